@@ -1,0 +1,283 @@
+//! The per-domain bounding volume hierarchy: built with `obvhs`, stored flat in the domain file
+//! as plain 32-byte nodes, and traversed here with a domain's hit interval and the
+//! triangle-id tie-break (which `obvhs`'s own traversal cannot express).
+
+use std::time::Duration;
+
+use bytemuck::{Pod, Zeroable};
+use glam::{Vec3, Vec3A};
+
+use crate::geometry::{PackedTriangle, nearer};
+
+/// One node of a binary BVH. Inner nodes (`count == 0`) have children at `index` and
+/// `index + 1`; leaves hold triangles `index .. index + count` of the domain's packed array.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct BvhNode {
+    /// Box minimum.
+    pub min: [f32; 3],
+    /// First child (inner) or first triangle (leaf).
+    pub index: u32,
+    /// Box maximum.
+    pub max: [f32; 3],
+    /// Triangle count; zero for inner nodes.
+    pub count: u32,
+}
+
+/// Relative padding of every node box: the triangle test and the box test round differently,
+/// and a box that misses a hit by one ulp would make the nearest hit depend on the tree.
+const BOX_PAD: f32 = 1e-5;
+
+/// Builds the BVH over `triangles` and reorders them into leaf order, so leaves index the
+/// packed array directly.
+pub fn build(triangles: &mut Vec<PackedTriangle>) -> Vec<BvhNode> {
+    if triangles.is_empty() {
+        return Vec::new();
+    }
+    let tris: Vec<obvhs::triangle::Triangle> = triangles
+        .iter()
+        .map(|t| {
+            let [a, b, c] = t.vertices();
+            obvhs::triangle::Triangle {
+                v0: Vec3A::from(a),
+                v1: Vec3A::from(b),
+                v2: Vec3A::from(c),
+            }
+        })
+        .collect();
+    let mut params = obvhs::BvhBuildParams::medium_build();
+    // Spatial pre-splits clip references to sub-boxes; our padding argument needs whole-triangle boxes.
+    params.pre_split = false;
+    let bvh =
+        obvhs::bvh2::builder::build_bvh2_from_tris(&tris, params, &mut Duration::default());
+    drop(tris);
+    let reordered: Vec<PackedTriangle> = bvh
+        .primitive_indices
+        .iter()
+        .map(|&i| triangles[i as usize])
+        .collect();
+    *triangles = reordered;
+    bvh.nodes
+        .iter()
+        .map(|n| {
+            let min = Vec3::from(n.aabb.min);
+            let max = Vec3::from(n.aabb.max);
+            let pad = (min.abs().max(max.abs()) * BOX_PAD).max(Vec3::splat(1e-30));
+            BvhNode {
+                min: (min - pad).into(),
+                index: n.first_index,
+                max: (max + pad).into(),
+                count: n.prim_count,
+            }
+        })
+        .collect()
+}
+
+/// A ray prepared for box tests.
+#[derive(Clone, Copy)]
+pub struct TraceRay {
+    origin: Vec3,
+    dir: Vec3,
+    inv_dir: Vec3,
+}
+
+impl TraceRay {
+    /// Prepares a ray; `dir` need not be normalised.
+    #[inline]
+    pub fn new(origin: Vec3, dir: Vec3) -> Self {
+        // A zero component gives an infinite inverse, which the slab test handles; -0.0 keeps its sign.
+        TraceRay {
+            origin,
+            dir,
+            inv_dir: dir.recip(),
+        }
+    }
+
+    #[inline(always)]
+    fn slab(&self, node: &BvhNode, t0: f32, t1: f32) -> Option<f32> {
+        let a = (Vec3::from(node.min) - self.origin) * self.inv_dir;
+        let b = (Vec3::from(node.max) - self.origin) * self.inv_dir;
+        // min/max ignore a NaN operand (0 * inf on a slab face), keeping the other bound.
+        let near = a.min(b).max_element().max(t0);
+        let far = a.max(b).min_element().min(t1);
+        (near <= far).then_some(near)
+    }
+}
+
+/// The nearest hit of a ray in a BVH.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Hit {
+    /// Distance along the ray direction.
+    pub t: f32,
+    /// Position of the triangle in the domain's packed array.
+    pub slot: u32,
+    /// Scene-wide triangle id.
+    pub id: u32,
+}
+
+/// Traversal stack entries; `build` refuses trees deeper than half of this.
+const STACK: usize = 256;
+
+/// The deepest tree `build` accepts, so traversal stacks never overflow.
+pub const MAX_DEPTH: usize = STACK / 2 - 1;
+
+/// Checks that `nodes` form one tree over `triangle_count` triangles no deeper than
+/// [`MAX_DEPTH`], so traversal can index without bounds failures; returns the depth.
+pub fn validate(nodes: &[BvhNode], triangle_count: usize) -> Result<usize, String> {
+    if nodes.is_empty() {
+        return if triangle_count == 0 {
+            Ok(0)
+        } else {
+            Err("triangles without a BVH".into())
+        };
+    }
+    let mut seen = vec![false; nodes.len()];
+    seen[0] = true;
+    let mut deepest = 0;
+    let mut todo = vec![(0usize, 1usize)];
+    while let Some((i, d)) = todo.pop() {
+        let n = &nodes[i];
+        deepest = deepest.max(d);
+        if d > MAX_DEPTH {
+            return Err(format!("BVH deeper than {MAX_DEPTH}"));
+        }
+        if n.count > 0 {
+            let end = n.index as usize + n.count as usize;
+            if end > triangle_count {
+                return Err(format!("BVH node {i} names triangles up to {end} of {triangle_count}"));
+            }
+            continue;
+        }
+        for c in [n.index as usize, n.index as usize + 1] {
+            match seen.get_mut(c) {
+                Some(s) if !*s => *s = true,
+                Some(_) => return Err(format!("BVH node {c} is reached twice")),
+                None => return Err(format!("BVH node {i} names child {c} of {}", nodes.len())),
+            }
+            todo.push((c, d + 1));
+        }
+    }
+    Ok(deepest)
+}
+
+/// Nearest hit with `t0 <= t <= t1`, ties broken by the lower scene-wide id.
+pub fn nearest_hit(
+    nodes: &[BvhNode],
+    tris: &[PackedTriangle],
+    ray: &TraceRay,
+    t0: f32,
+    t1: f32,
+) -> Option<Hit> {
+    let mut best = Hit {
+        t: t1,
+        slot: u32::MAX,
+        id: u32::MAX,
+    };
+    let mut found = false;
+    if nodes.is_empty() {
+        return None;
+    }
+    let mut stack = [0u32; STACK];
+    let mut sp = 0usize;
+    let mut node = &nodes[0];
+    if ray.slab(node, t0, t1).is_none() {
+        return None;
+    }
+    loop {
+        if node.count > 0 {
+            let first = node.index as usize;
+            for (k, tri) in tris[first..first + node.count as usize].iter().enumerate() {
+                if let Some(t) = tri.intersect(ray.origin, ray.dir)
+                    && t >= t0
+                    && nearer(t, tri.id, best.t, best.id)
+                {
+                    best = Hit {
+                        t,
+                        slot: (first + k) as u32,
+                        id: tri.id,
+                    };
+                    found = true;
+                }
+            }
+        } else {
+            let l = &nodes[node.index as usize];
+            let r = &nodes[node.index as usize + 1];
+            // Equal distances must still be visited for the id tie-break: compare with <=.
+            let hl = ray.slab(l, t0, best.t);
+            let hr = ray.slab(r, t0, best.t);
+            match (hl, hr) {
+                (Some(dl), Some(dr)) => {
+                    let (near, far) = if dl <= dr {
+                        (node.index, node.index + 1)
+                    } else {
+                        (node.index + 1, node.index)
+                    };
+                    stack[sp] = far;
+                    sp += 1;
+                    node = &nodes[near as usize];
+                    continue;
+                }
+                (Some(_), None) => {
+                    node = l;
+                    continue;
+                }
+                (None, Some(_)) => {
+                    node = r;
+                    continue;
+                }
+                (None, None) => {}
+            }
+        }
+        // Pop the next subtree that can still hold a hit no farther than the best.
+        loop {
+            if sp == 0 {
+                return found.then_some(best);
+            }
+            sp -= 1;
+            let n = &nodes[stack[sp] as usize];
+            if ray.slab(n, t0, best.t).is_some() {
+                node = n;
+                break;
+            }
+        }
+    }
+}
+
+/// Whether anything is hit with `t0 <= t <= t1` (shadow rays).
+pub fn any_hit(
+    nodes: &[BvhNode],
+    tris: &[PackedTriangle],
+    ray: &TraceRay,
+    t0: f32,
+    t1: f32,
+) -> bool {
+    if nodes.is_empty() {
+        return false;
+    }
+    let mut stack = [0u32; STACK];
+    let mut sp = 1usize;
+    stack[0] = 0;
+    while sp > 0 {
+        sp -= 1;
+        let node = &nodes[stack[sp] as usize];
+        if ray.slab(node, t0, t1).is_none() {
+            continue;
+        }
+        if node.count > 0 {
+            let first = node.index as usize;
+            for tri in &tris[first..first + node.count as usize] {
+                if let Some(t) = tri.intersect(ray.origin, ray.dir)
+                    && t >= t0
+                    && t <= t1
+                {
+                    return true;
+                }
+            }
+        } else {
+            stack[sp] = node.index;
+            stack[sp + 1] = node.index + 1;
+            sp += 2;
+        }
+    }
+    false
+}

@@ -1,0 +1,11 @@
+//! rayfarm's shared library: geometry, scenes cut into domains, the render kernel and the
+//! single-process reference renderer. The coordinator, the workers and the CLI are thin layers
+//! over it. See `docs/ARCHITECTURE.md` for where each concept lives.
+
+pub mod bvh;
+pub mod camera;
+pub mod geometry;
+pub mod ray;
+pub mod render;
+pub mod sampling;
+pub mod scene;

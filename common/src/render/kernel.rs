@@ -1,0 +1,368 @@
+//! The render kernel: given a loaded domain and rays queued for it, each ray is forwarded to
+//! the next domain along it, retired (adding its light to its pixel), or hits and is shaded
+//! (spawning shadow rays towards the lights and a bounce). Rays carry their own contribution,
+//! so nothing ever travels back to where a ray was born.
+
+use std::ops::ControlFlow;
+
+use glam::Vec3;
+
+use crate::bvh::{self, TraceRay};
+use crate::geometry::PackedTriangle;
+use crate::ray::{RayKind, RayRecord};
+use crate::sampling::{Purpose, uniform};
+use crate::scene::{DomainData, DomainTree, Light, Manifest, Material, Sky};
+
+/// Where the kernel puts its results.
+pub trait RaySink {
+    /// A ray that continues in domain `ray.domain`.
+    fn push(&mut self, ray: RayRecord);
+    /// Light arriving at a pixel.
+    fn deposit(&mut self, ray: &RayRecord, rgb: [f32; 3]);
+}
+
+/// Counts kept by the kernel; summed across threads and processes.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct KernelCounters {
+    /// Radiance-ray segments traced against a domain.
+    pub radiance_segments: u64,
+    /// Shadow-ray segments traced against a domain.
+    pub shadow_segments: u64,
+    /// Camera rays created.
+    pub primary_rays: u64,
+    /// Shadow rays created.
+    pub shadow_rays: u64,
+    /// Diffuse and glossy bounce rays created.
+    pub bounce_rays: u64,
+    /// Mirror reflection rays created.
+    pub reflection_rays: u64,
+    /// Rays moved on to another domain after finding nothing in theirs.
+    pub forwarded: u64,
+}
+
+impl KernelCounters {
+    /// Adds `other` into `self`.
+    pub fn add(&mut self, other: &KernelCounters) {
+        self.radiance_segments += other.radiance_segments;
+        self.shadow_segments += other.shadow_segments;
+        self.primary_rays += other.primary_rays;
+        self.shadow_rays += other.shadow_rays;
+        self.bounce_rays += other.bounce_rays;
+        self.reflection_rays += other.reflection_rays;
+        self.forwarded += other.forwarded;
+    }
+
+    /// Ray segments traced, of both kinds.
+    pub fn segments(&self) -> u64 {
+        self.radiance_segments + self.shadow_segments
+    }
+}
+
+/// The replicated part of a scene the kernel needs besides the domain being traced.
+#[derive(Clone, Debug)]
+pub struct SceneView {
+    tree: DomainTree,
+    has_triangles: Vec<bool>,
+    materials: Vec<Material>,
+    lights: Vec<Light>,
+    sky: Sky,
+    epsilon: f32,
+    max_depth: u16,
+}
+
+impl SceneView {
+    /// The view of `manifest` for paths of at most `max_depth` bounces.
+    pub fn new(manifest: &Manifest, max_depth: u16) -> Self {
+        SceneView {
+            tree: manifest.domain_tree(),
+            has_triangles: manifest.domains.iter().map(|d| d.triangles > 0).collect(),
+            materials: manifest.materials.clone(),
+            lights: manifest.lights.clone(),
+            sky: manifest.sky,
+            epsilon: manifest.ray_epsilon,
+            max_depth,
+        }
+    }
+
+    /// Number of domains.
+    pub fn domain_count(&self) -> usize {
+        self.has_triangles.len()
+    }
+
+    /// Sends a new ray to the first domain along it, or retires it at once if it meets none.
+    pub fn route_new(&self, ray: RayRecord, sink: &mut impl RaySink) {
+        let mut first = None;
+        self.tree.walk(
+            ray.origin.into(),
+            ray.dir.into(),
+            ray.t_min,
+            ray.t_max,
+            |d, _, _| {
+                if self.has_triangles[d as usize] {
+                    first = Some(d);
+                    ControlFlow::Break(())
+                } else {
+                    ControlFlow::Continue(())
+                }
+            },
+        );
+        self.send(ray, first, sink);
+    }
+
+    fn send(&self, mut ray: RayRecord, domain: Option<u32>, sink: &mut impl RaySink) {
+        match domain {
+            Some(d) => {
+                ray.domain = d;
+                sink.push(ray);
+            }
+            None => self.escape(&ray, sink),
+        }
+    }
+
+    /// A ray that meets no more geometry: a shadow ray delivers its light, a radiance ray
+    /// sees the sky.
+    fn escape(&self, ray: &RayRecord, sink: &mut impl RaySink) {
+        let t = Vec3::from(ray.throughput);
+        let light = match ray.kind() {
+            RayKind::Shadow => t,
+            RayKind::Radiance => {
+                let up = Vec3::from(ray.dir).y.clamp(0.0, 1.0);
+                t * Vec3::from(self.sky.horizon).lerp(Vec3::from(self.sky.zenith), up)
+            }
+        };
+        sink.deposit(ray, light.into());
+    }
+
+    /// This ray's interval in `domain`, and the next domain with geometry after it.
+    fn segment(&self, ray: &RayRecord, domain: u32) -> (Option<(f32, f32)>, Option<u32>) {
+        let mut interval = None;
+        let mut next = None;
+        self.tree.walk(
+            ray.origin.into(),
+            ray.dir.into(),
+            ray.t_min,
+            ray.t_max,
+            |d, a, b| {
+                if interval.is_some() {
+                    if self.has_triangles[d as usize] {
+                        next = Some(d);
+                        return ControlFlow::Break(());
+                    }
+                } else if d == domain {
+                    interval = Some((a, b));
+                }
+                ControlFlow::Continue(())
+            },
+        );
+        (interval, next)
+    }
+
+    /// Traces `rays` (all queued for `data`'s domain) and sends every outcome to `sink`.
+    pub fn trace(
+        &self,
+        data: &DomainData,
+        rays: &[RayRecord],
+        sink: &mut impl RaySink,
+        counters: &mut KernelCounters,
+    ) {
+        let nodes = data.nodes();
+        let tris = data.packed();
+        for ray in rays {
+            let (interval, next) = self.segment(ray, data.domain());
+            let Some((t0, t1)) = interval else {
+                // Not on this ray's path (a stale or foreign ray): start it over.
+                self.route_new(*ray, sink);
+                continue;
+            };
+            let origin = Vec3::from(ray.origin);
+            let dir = Vec3::from(ray.dir);
+            let tr = TraceRay::new(origin, dir);
+            match ray.kind() {
+                RayKind::Shadow => {
+                    counters.shadow_segments += 1;
+                    if bvh::any_hit(nodes, tris, &tr, t0, t1) {
+                        continue;
+                    }
+                }
+                RayKind::Radiance => {
+                    counters.radiance_segments += 1;
+                    if let Some(hit) = bvh::nearest_hit(nodes, tris, &tr, t0, t1) {
+                        let tri = &tris[hit.slot as usize];
+                        self.shade(ray, origin + dir * hit.t, tri, sink, counters);
+                        continue;
+                    }
+                }
+            }
+            if next.is_some() {
+                counters.forwarded += 1;
+            }
+            self.send(*ray, next, sink);
+        }
+    }
+
+    fn shade(
+        &self,
+        ray: &RayRecord,
+        p: Vec3,
+        tri: &PackedTriangle,
+        sink: &mut impl RaySink,
+        counters: &mut KernelCounters,
+    ) {
+        let dir = Vec3::from(ray.dir);
+        let mut n = tri.normal();
+        if n.dot(dir) > 0.0 {
+            n = -n;
+        }
+        let origin = p + n * self.epsilon * (1.0 + p.abs().max_element());
+        let throughput = Vec3::from(ray.throughput);
+        let u = |purpose| uniform(ray.pixel, ray.sample, ray.depth as u32, purpose, 0);
+        let can_bounce = ray.depth < self.max_depth;
+        let child = |d: Vec3, weight: Vec3| RayRecord {
+            origin: origin.into(),
+            t_min: 0.0,
+            dir: d.into(),
+            t_max: f32::INFINITY,
+            throughput: weight.into(),
+            depth: ray.depth + 1,
+            kind: RayKind::Radiance as u8,
+            ..*ray
+        };
+        // Materials are checked against the manifest when a domain is loaded.
+        match self.materials[tri.material as usize] {
+            Material::Diffuse { albedo } => {
+                let albedo = Vec3::from(albedo);
+                self.direct_light(ray, origin, n, throughput * albedo, sink, counters);
+                if can_bounce {
+                    let d = cosine_direction(n, u(Purpose::BounceU), u(Purpose::BounceV));
+                    counters.bounce_rays += 1;
+                    self.route_new(child(d, throughput * albedo), sink);
+                }
+            }
+            Material::Mirror { tint } => {
+                if can_bounce {
+                    counters.reflection_rays += 1;
+                    let d = reflect(dir, n);
+                    self.route_new(child(d, throughput * Vec3::from(tint)), sink);
+                }
+            }
+            Material::Glossy {
+                albedo,
+                specular,
+                roughness,
+            } => {
+                let specular = specular.clamp(0.0, 1.0);
+                let base = throughput * Vec3::from(albedo) * (1.0 - specular);
+                self.direct_light(ray, origin, n, base, sink, counters);
+                if !can_bounce {
+                    return;
+                }
+                // One bounce: the coat with probability `specular`, else the base. Both
+                // weights are divided by their probability, so the estimate stays unbiased.
+                if u(Purpose::Lobe) < specular {
+                    let fuzz = sphere_point(u(Purpose::GlossU), u(Purpose::GlossV)) * roughness;
+                    let d = (reflect(dir, n) + fuzz).normalize_or(n);
+                    if d.dot(n) > 0.0 {
+                        counters.bounce_rays += 1;
+                        self.route_new(child(d, throughput), sink);
+                    }
+                } else if specular < 1.0 {
+                    let d = cosine_direction(n, u(Purpose::BounceU), u(Purpose::BounceV));
+                    counters.bounce_rays += 1;
+                    self.route_new(child(d, throughput * Vec3::from(albedo)), sink);
+                }
+            }
+        }
+    }
+
+    /// Shadow rays towards every light, each carrying the light it will add if unoccluded.
+    /// `weight` is the path throughput times the diffuse reflectance.
+    fn direct_light(
+        &self,
+        ray: &RayRecord,
+        origin: Vec3,
+        n: Vec3,
+        weight: Vec3,
+        sink: &mut impl RaySink,
+        counters: &mut KernelCounters,
+    ) {
+        let brdf = weight * std::f32::consts::FRAC_1_PI;
+        for (i, light) in self.lights.iter().enumerate() {
+            let (dir, t_max, light_in) = match *light {
+                Light::Directional {
+                    direction,
+                    radiance,
+                } => {
+                    let l = Vec3::from(direction).normalize_or(Vec3::Y);
+                    let cos = n.dot(l);
+                    if cos <= 0.0 {
+                        continue;
+                    }
+                    (l, f32::INFINITY, Vec3::from(radiance) * cos * std::f32::consts::PI)
+                }
+                Light::Quad {
+                    corner,
+                    edge_u,
+                    edge_v,
+                    emission,
+                } => {
+                    let (eu, ev) = (Vec3::from(edge_u), Vec3::from(edge_v));
+                    let su = uniform(ray.pixel, ray.sample, ray.depth as u32, Purpose::LightU, i as u32);
+                    let sv = uniform(ray.pixel, ray.sample, ray.depth as u32, Purpose::LightV, i as u32);
+                    let q = Vec3::from(corner) + eu * su + ev * sv;
+                    let to = q - origin;
+                    let dist2 = to.length_squared();
+                    if dist2 <= 0.0 {
+                        continue;
+                    }
+                    let dist = dist2.sqrt();
+                    let l = to / dist;
+                    let area_n = eu.cross(ev);
+                    let cos_s = n.dot(l);
+                    let cos_l = -area_n.dot(l); // area_n carries the quad's area
+                    if cos_s <= 0.0 || cos_l <= 0.0 {
+                        continue;
+                    }
+                    let geometry = cos_s * cos_l / dist2;
+                    (l, dist * (1.0 - 1e-4), Vec3::from(emission) * geometry)
+                }
+            };
+            let carried = brdf * light_in;
+            if carried.max_element() <= 0.0 {
+                continue;
+            }
+            counters.shadow_rays += 1;
+            self.route_new(
+                RayRecord {
+                    origin: origin.into(),
+                    t_min: 0.0,
+                    dir: dir.into(),
+                    t_max,
+                    throughput: carried.into(),
+                    kind: RayKind::Shadow as u8,
+                    ..*ray
+                },
+                sink,
+            );
+        }
+    }
+}
+
+fn reflect(d: Vec3, n: Vec3) -> Vec3 {
+    d - n * (2.0 * d.dot(n))
+}
+
+/// Cosine-weighted direction about `n` (pdf cos/pi, which cancels the Lambert BRDF's cos/pi).
+fn cosine_direction(n: Vec3, u: f32, v: f32) -> Vec3 {
+    let (t, b) = n.any_orthonormal_pair();
+    let r = u.sqrt();
+    let phi = 2.0 * std::f32::consts::PI * v;
+    (t * (r * phi.cos()) + b * (r * phi.sin()) + n * (1.0 - u).max(0.0).sqrt()).normalize_or(n)
+}
+
+/// A point on the unit sphere.
+fn sphere_point(u: f32, v: f32) -> Vec3 {
+    let z = 1.0 - 2.0 * u;
+    let r = (1.0 - z * z).max(0.0).sqrt();
+    let phi = 2.0 * std::f32::consts::PI * v;
+    Vec3::new(r * phi.cos(), r * phi.sin(), z)
+}

@@ -1,0 +1,233 @@
+//! The single-process reference renderer (Pharr-style): one queue per domain, always trace
+//! the fullest queue, a byte-budgeted domain cache. Every distributed render must equal its
+//! image bit for bit.
+
+use std::path::Path;
+use std::time::Instant;
+
+use rayon::prelude::*;
+use tracing::{info, info_span};
+
+use super::cache::DomainCache;
+use super::film::Film;
+use super::kernel::{KernelCounters, RaySink, SceneView};
+use super::stats::{RenderStats, peak_rss_bytes};
+use crate::camera::PinholeCamera;
+use crate::ray::RayRecord;
+use crate::scene::{Camera, Manifest, SceneError};
+
+/// Largest image side accepted.
+pub const MAX_SIDE: u32 = 16384;
+/// Largest samples per pixel accepted.
+pub const MAX_SPP: u32 = 65536;
+/// Largest path depth accepted.
+pub const MAX_DEPTH: u32 = 64;
+
+/// What to render.
+#[derive(Clone, Debug)]
+pub struct FrameSpec {
+    /// Width in pixels.
+    pub width: u32,
+    /// Height in pixels.
+    pub height: u32,
+    /// Samples per pixel.
+    pub spp: u32,
+    /// Maximum bounces.
+    pub max_depth: u32,
+    /// View; the manifest's camera when `None`.
+    pub camera: Option<Camera>,
+}
+
+impl FrameSpec {
+    /// Rejects sizes the renderer will not attempt, with the reason.
+    pub fn check(&self) -> Result<(), String> {
+        if self.width == 0 || self.height == 0 || self.width > MAX_SIDE || self.height > MAX_SIDE {
+            return Err(format!(
+                "resolution {}x{} is outside 1..={MAX_SIDE} per side",
+                self.width, self.height
+            ));
+        }
+        if self.spp == 0 || self.spp > MAX_SPP {
+            return Err(format!("spp {} is outside 1..={MAX_SPP}", self.spp));
+        }
+        if self.max_depth > MAX_DEPTH {
+            return Err(format!("depth {} is above {MAX_DEPTH}", self.max_depth));
+        }
+        Ok(())
+    }
+}
+
+/// How to run the local renderer.
+#[derive(Clone, Debug)]
+pub struct LocalOptions {
+    /// Tracing threads.
+    pub threads: usize,
+    /// Domain cache budget in bytes.
+    pub cache_bytes: u64,
+    /// Camera rays issued whenever fewer than this many rays are queued.
+    pub wave_rays: usize,
+}
+
+/// Why a local render failed.
+#[derive(Debug, thiserror::Error)]
+pub enum RenderError {
+    /// The frame asks for something unreasonable.
+    #[error("invalid frame: {0}")]
+    Frame(String),
+    /// The scene could not be read.
+    #[error(transparent)]
+    Scene(#[from] SceneError),
+    /// The thread pool could not start.
+    #[error("thread pool: {0}")]
+    Threads(String),
+}
+
+/// Rays traced per rayon task: large enough to amortise, small enough to balance.
+const CHUNK: usize = 4096;
+
+struct QueueSink<'a> {
+    out: Vec<RayRecord>,
+    film: &'a Film,
+}
+
+impl RaySink for QueueSink<'_> {
+    fn push(&mut self, ray: RayRecord) {
+        self.out.push(ray);
+    }
+    fn deposit(&mut self, ray: &RayRecord, rgb: [f32; 3]) {
+        self.film.deposit(ray.pixel, rgb);
+    }
+}
+
+/// Renders one frame of the scene in `dir` in this process.
+pub fn render_local(
+    dir: &Path,
+    manifest: &Manifest,
+    frame: &FrameSpec,
+    options: &LocalOptions,
+) -> Result<(Film, RenderStats), RenderError> {
+    frame.check().map_err(RenderError::Frame)?;
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(options.threads.max(1))
+        .build()
+        .map_err(|e| RenderError::Threads(e.to_string()))?;
+    pool.install(|| render_in_pool(dir, manifest, frame, options))
+}
+
+fn render_in_pool(
+    dir: &Path,
+    manifest: &Manifest,
+    frame: &FrameSpec,
+    options: &LocalOptions,
+) -> Result<(Film, RenderStats), RenderError> {
+    let start = Instant::now();
+    let _span = info_span!("render_local", width = frame.width, height = frame.height, spp = frame.spp).entered();
+    let view = SceneView::new(manifest, frame.max_depth as u16);
+    let camera = PinholeCamera::new(
+        frame.camera.as_ref().unwrap_or(&manifest.camera),
+        frame.width,
+        frame.height,
+    );
+    let film = Film::new(frame.width, frame.height, frame.spp);
+    let mut cache = DomainCache::new(dir, manifest, options.cache_bytes)?;
+    let mut queues: Vec<Vec<RayRecord>> = vec![Vec::new(); view.domain_count()];
+    let mut counters = KernelCounters::default();
+    let total_primary = frame.width as u64 * frame.height as u64 * frame.spp as u64;
+    let mut issued = 0u64;
+    let mut passes = 0u64;
+    let wave = options.wave_rays.max(1) as u64;
+    loop {
+        let queued: usize = queues.iter().map(Vec::len).sum();
+        if queued < wave as usize && issued < total_primary {
+            let end = (issued + wave).min(total_primary);
+            let outs = issue_primaries(&view, &camera, &film, frame.spp, issued..end);
+            counters.primary_rays += end - issued;
+            issued = end;
+            distribute(&mut queues, outs);
+            continue;
+        }
+        // Fullest queue first; ties go to the lowest domain id.
+        let Some((d, len)) = queues
+            .iter()
+            .enumerate()
+            .map(|(d, q)| (d, q.len()))
+            .max_by_key(|&(d, len)| (len, std::cmp::Reverse(d)))
+            .filter(|&(_, len)| len > 0)
+        else {
+            break;
+        };
+        let data = cache.get(d as u32)?;
+        let rays = std::mem::take(&mut queues[d]);
+        let _pass = info_span!("trace_queue", domain = d, rays = len).entered();
+        let results: Vec<(Vec<RayRecord>, KernelCounters)> = rays
+            .par_chunks(CHUNK)
+            .map(|chunk| {
+                let mut sink = QueueSink {
+                    out: Vec::with_capacity(chunk.len() * 2),
+                    film: &film,
+                };
+                let mut c = KernelCounters::default();
+                view.trace(&data, chunk, &mut sink, &mut c);
+                (sink.out, c)
+            })
+            .collect();
+        passes += 1;
+        for (out, c) in results {
+            counters.add(&c);
+            distribute(&mut queues, vec![out]);
+        }
+    }
+    let wall = start.elapsed().as_secs_f64();
+    let threads = rayon::current_num_threads();
+    let rays_per_s = counters.segments() as f64 / wall.max(1e-9);
+    let stats = RenderStats {
+        width: frame.width,
+        height: frame.height,
+        spp: frame.spp,
+        max_depth: frame.max_depth,
+        threads,
+        domains: view.domain_count(),
+        wall_seconds: wall,
+        rays: counters,
+        cache: cache.counters(),
+        rays_per_s,
+        rays_per_s_per_core: rays_per_s / threads as f64,
+        queue_passes: passes,
+        peak_rss_bytes: peak_rss_bytes(),
+        image_hash: format!("{:016x}", film.hash()),
+    };
+    info!(wall, segments = counters.segments(), loads = stats.cache.loads, "frame done");
+    Ok((film, stats))
+}
+
+/// Camera rays for the flat (pixel, sample) indices in `range`, routed to their first domain.
+fn issue_primaries(
+    view: &SceneView,
+    camera: &PinholeCamera,
+    film: &Film,
+    spp: u32,
+    range: std::ops::Range<u64>,
+) -> Vec<Vec<RayRecord>> {
+    let idx: Vec<u64> = range.collect();
+    idx.par_chunks(CHUNK)
+        .map(|chunk| {
+            let mut sink = QueueSink {
+                out: Vec::with_capacity(chunk.len()),
+                film,
+            };
+            for &i in chunk {
+                let ray = camera.primary((i / spp as u64) as u32, (i % spp as u64) as u32);
+                view.route_new(ray, &mut sink);
+            }
+            sink.out
+        })
+        .collect()
+}
+
+fn distribute(queues: &mut [Vec<RayRecord>], outs: Vec<Vec<RayRecord>>) {
+    for out in outs {
+        for ray in out {
+            queues[ray.domain as usize].push(ray);
+        }
+    }
+}

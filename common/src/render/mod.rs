@@ -1,0 +1,11 @@
+//! Rendering: the kernel that traces one domain's queue, the fixed-point film, and the
+//! single-process reference renderer.
+
+pub mod cache;
+pub mod film;
+pub mod kernel;
+pub mod local;
+pub mod stats;
+
+pub use film::Film;
+pub use kernel::{KernelCounters, RaySink, SceneView};

@@ -1,0 +1,338 @@
+//! The domain file: one little-endian blob laid out so that loading is `mmap` plus a cast.
+//!
+//! ```text
+//! header (128 bytes)  magic, version, domain id, counts, bounds, checksum, section offsets
+//! vertices            [f32; 3] per vertex        (the domain's mesh, for tools and rebuilds)
+//! indices             [u32; 3] per triangle
+//! materials           u32 per triangle
+//! ids                 u32 per triangle           (scene-wide triangle id)
+//! nodes               BvhNode (32 bytes) each
+//! packed              PackedTriangle (48 bytes) each, in BVH leaf order
+//! ```
+//! Every section starts on a 64-byte boundary. The checksum is xxh3-64 of everything after
+//! the header.
+
+use std::collections::HashMap;
+use std::io::Write;
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+
+use bytemuck::{Pod, Zeroable};
+use memmap2::Mmap;
+
+use super::{SceneError, temporary_name};
+use crate::bvh::{self, BvhNode};
+use crate::geometry::{Aabb, PackedTriangle};
+
+/// First bytes of every domain file.
+pub const MAGIC: [u8; 8] = *b"RFDOMAIN";
+/// Layout version.
+pub const VERSION: u32 = 1;
+const ALIGN: u64 = 64;
+
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Pod, Zeroable)]
+struct Header {
+    magic: [u8; 8],
+    version: u32,
+    domain: u32,
+    vertex_count: u64,
+    triangle_count: u64,
+    node_count: u64,
+    packed_count: u64,
+    bounds: Aabb,
+    checksum: u64,
+    /// Offsets of vertices, indices, materials, ids, nodes, packed.
+    offsets: [u64; 6],
+    _reserved: [u8; 8],
+}
+
+const HEADER_BYTES: usize = std::mem::size_of::<Header>();
+const _: () = assert!(HEADER_BYTES == 136);
+
+/// A triangle handed to the domain writer.
+#[derive(Clone, Copy, Debug)]
+pub struct SourceTriangle {
+    /// Its corners.
+    pub vertices: [[f32; 3]; 3],
+    /// Scene-wide id.
+    pub id: u32,
+    /// Material index.
+    pub material: u32,
+}
+
+/// What the manifest needs to know about a written domain file.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DomainSummary {
+    /// File size.
+    pub bytes: u64,
+    /// Triangles referenced.
+    pub triangles: u64,
+    /// xxh3-64 after the header.
+    pub checksum: u64,
+}
+
+fn align(x: u64) -> u64 {
+    x.div_ceil(ALIGN) * ALIGN
+}
+
+/// Builds the BVH and writes domain `domain` to `path` (through a temporary name).
+pub fn write_domain(
+    path: &Path,
+    domain: u32,
+    bounds: Aabb,
+    triangles: &[SourceTriangle],
+) -> Result<DomainSummary, SceneError> {
+    let mut vertices: Vec<[f32; 3]> = Vec::new();
+    let mut index_of: HashMap<[u32; 3], u32> = HashMap::new();
+    let mut indices = Vec::with_capacity(triangles.len());
+    for t in triangles {
+        indices.push(t.vertices.map(|v| {
+            *index_of.entry(v.map(f32::to_bits)).or_insert_with(|| {
+                vertices.push(v);
+                vertices.len() as u32 - 1
+            })
+        }));
+    }
+    drop(index_of);
+    let materials: Vec<u32> = triangles.iter().map(|t| t.material).collect();
+    let ids: Vec<u32> = triangles.iter().map(|t| t.id).collect();
+    let mut packed: Vec<PackedTriangle> = triangles
+        .iter()
+        .map(|t| PackedTriangle::new(&t.vertices, t.id, t.material))
+        .collect();
+    let nodes = bvh::build(&mut packed);
+    if let Err(reason) = bvh::validate(&nodes, packed.len()) {
+        return Err(SceneError::Domain {
+            path: path.into(),
+            reason,
+        });
+    }
+
+    let sections: [&[u8]; 6] = [
+        bytemuck::cast_slice(&vertices),
+        bytemuck::cast_slice(&indices),
+        bytemuck::cast_slice(&materials),
+        bytemuck::cast_slice(&ids),
+        bytemuck::cast_slice(&nodes),
+        bytemuck::cast_slice(&packed),
+    ];
+    let mut body = Vec::new();
+    let mut offsets = [0u64; 6];
+    for (k, s) in sections.iter().enumerate() {
+        let at = align(HEADER_BYTES as u64 + body.len() as u64);
+        body.resize((at - HEADER_BYTES as u64) as usize, 0);
+        offsets[k] = at;
+        body.extend_from_slice(s);
+    }
+    let checksum = xxhash_rust::xxh3::xxh3_64(&body);
+    let header = Header {
+        magic: MAGIC,
+        version: VERSION,
+        domain,
+        vertex_count: vertices.len() as u64,
+        triangle_count: triangles.len() as u64,
+        node_count: nodes.len() as u64,
+        packed_count: packed.len() as u64,
+        bounds,
+        checksum,
+        offsets,
+        _reserved: [0; 8],
+    };
+    let tmp = temporary_name(path);
+    let write = || -> std::io::Result<()> {
+        let mut f = std::io::BufWriter::new(std::fs::File::create(&tmp)?);
+        f.write_all(bytemuck::bytes_of(&header))?;
+        f.write_all(&body)?;
+        f.into_inner().map_err(|e| e.into_error())?.sync_all()
+    };
+    write().map_err(|e| SceneError::io(&tmp, e))?;
+    std::fs::rename(&tmp, path).map_err(|e| SceneError::io(path, e))?;
+    Ok(DomainSummary {
+        bytes: (HEADER_BYTES + body.len()) as u64,
+        triangles: triangles.len() as u64,
+        checksum,
+    })
+}
+
+/// A mapped, checked domain file.
+pub struct DomainData {
+    map: Mmap,
+    path: PathBuf,
+    domain: u32,
+    bounds: Aabb,
+    sections: [Range<usize>; 6],
+}
+
+impl std::fmt::Debug for DomainData {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("DomainData")
+            .field("path", &self.path)
+            .field("domain", &self.domain)
+            .field("bytes", &self.map.len())
+            .finish()
+    }
+}
+
+impl DomainData {
+    /// Maps `path` and checks its structure; with `verify_checksum` also hashes the whole file
+    /// against the manifest's `expected_checksum`. `materials` bounds every material index.
+    pub fn open(
+        path: &Path,
+        expected_checksum: u64,
+        verify_checksum: bool,
+        materials: u32,
+    ) -> Result<DomainData, SceneError> {
+        let file = std::fs::File::open(path).map_err(|e| SceneError::io(path, e))?;
+        // SAFETY: domain files are written once, then renamed into place and never modified;
+        // a file changed under us is a broken deployment, and every value read is bounds-checked.
+        let map = unsafe { Mmap::map(&file) }.map_err(|e| SceneError::io(path, e))?;
+        Self::from_map(map, path, expected_checksum, verify_checksum, materials)
+    }
+
+    fn from_map(
+        map: Mmap,
+        path: &Path,
+        expected_checksum: u64,
+        verify_checksum: bool,
+        materials: u32,
+    ) -> Result<DomainData, SceneError> {
+        let bad = |reason: String| SceneError::Domain {
+            path: path.into(),
+            reason,
+        };
+        let header = parse_header(&map).map_err(bad)?;
+        if header.checksum != expected_checksum {
+            return Err(bad(format!(
+                "header checksum {:016x} differs from the manifest's {expected_checksum:016x}",
+                header.checksum
+            )));
+        }
+        if verify_checksum {
+            let actual = xxhash_rust::xxh3::xxh3_64(&map[HEADER_BYTES..]);
+            if actual != header.checksum {
+                return Err(bad(format!(
+                    "contents hash to {actual:016x}, header says {:016x} (corrupt file)",
+                    header.checksum
+                )));
+            }
+        }
+        let sizes = [
+            (header.vertex_count, 12u64),
+            (header.triangle_count, 12),
+            (header.triangle_count, 4),
+            (header.triangle_count, 4),
+            (header.node_count, std::mem::size_of::<BvhNode>() as u64),
+            (header.packed_count, std::mem::size_of::<PackedTriangle>() as u64),
+        ];
+        let mut sections: [Range<usize>; 6] = Default::default();
+        for (k, (count, size)) in sizes.iter().enumerate() {
+            let start = header.offsets[k];
+            let end = count
+                .checked_mul(*size)
+                .and_then(|n| n.checked_add(start))
+                .filter(|&e| e <= map.len() as u64 && start >= HEADER_BYTES as u64)
+                .ok_or_else(|| bad(format!("section {k} lies outside the {} byte file", map.len())))?;
+            if start % ALIGN != 0 {
+                return Err(bad(format!("section {k} is not {ALIGN}-byte aligned")));
+            }
+            sections[k] = start as usize..end as usize;
+        }
+        let data = DomainData {
+            path: path.into(),
+            domain: header.domain,
+            bounds: header.bounds,
+            sections,
+            map,
+        };
+        bvh::validate(data.nodes(), data.packed().len()).map_err(bad)?;
+        if let Some(t) = data.packed().iter().find(|t| t.material >= materials) {
+            return Err(bad(format!(
+                "triangle {} names material {} of {materials}",
+                t.id, t.material
+            )));
+        }
+        Ok(data)
+    }
+
+    fn section<T: Pod>(&self, k: usize) -> &[T] {
+        // Offsets were checked in `open`: aligned to 64 within a page-aligned map, sizes exact.
+        bytemuck::cast_slice(&self.map[self.sections[k].clone()])
+    }
+
+    /// The domain id recorded in the file.
+    pub fn domain(&self) -> u32 {
+        self.domain
+    }
+
+    /// The domain's box.
+    pub fn bounds(&self) -> Aabb {
+        self.bounds
+    }
+
+    /// Size of the mapping.
+    pub fn bytes(&self) -> u64 {
+        self.map.len() as u64
+    }
+
+    /// Mesh vertices.
+    pub fn vertices(&self) -> &[[f32; 3]] {
+        self.section(0)
+    }
+
+    /// Mesh triangles as vertex indices.
+    pub fn indices(&self) -> &[[u32; 3]] {
+        self.section(1)
+    }
+
+    /// Material per mesh triangle.
+    pub fn materials(&self) -> &[u32] {
+        self.section(2)
+    }
+
+    /// Scene-wide id per mesh triangle.
+    pub fn ids(&self) -> &[u32] {
+        self.section(3)
+    }
+
+    /// BVH nodes.
+    pub fn nodes(&self) -> &[BvhNode] {
+        self.section(4)
+    }
+
+    /// Triangles in BVH leaf order.
+    pub fn packed(&self) -> &[PackedTriangle] {
+        self.section(5)
+    }
+}
+
+fn parse_header(bytes: &[u8]) -> Result<Header, String> {
+    let Some(raw) = bytes.get(..HEADER_BYTES) else {
+        return Err(format!(
+            "{} bytes is shorter than the {HEADER_BYTES} byte header (truncated)",
+            bytes.len()
+        ));
+    };
+    let header: Header = bytemuck::pod_read_unaligned(raw);
+    if header.magic != MAGIC {
+        return Err("not a rayfarm domain file (bad magic)".into());
+    }
+    if header.version != VERSION {
+        return Err(format!(
+            "version {} is not the supported {VERSION}",
+            header.version
+        ));
+    }
+    Ok(header)
+}
+
+/// Reads a domain file from bytes in memory (tests and fuzzing use this).
+pub fn parse_domain_bytes(bytes: &[u8], materials: u32) -> Result<DomainData, SceneError> {
+    let mut map = memmap2::MmapMut::map_anon(bytes.len().max(1))
+        .map_err(|e| SceneError::io("<memory>", e))?;
+    map[..bytes.len()].copy_from_slice(bytes);
+    let map = map.make_read_only().map_err(|e| SceneError::io("<memory>", e))?;
+    // The checksum is still verified against the contents; only the manifest is absent.
+    let checksum = parse_header(bytes).map(|h| h.checksum).unwrap_or(0);
+    DomainData::from_map(map, Path::new("<memory>"), checksum, true, materials)
+}

@@ -1,0 +1,216 @@
+//! The scene manifest: camera, lights, materials and the domain table, as TOML.
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use super::partition::{DomainTree, KdNode};
+use super::{MANIFEST_FILE, SceneError, write_atomically};
+use crate::geometry::Aabb;
+
+/// Version of the manifest and domain file layout this build reads and writes.
+pub const FORMAT_VERSION: u32 = 1;
+
+/// Everything about a scene except its triangles.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Manifest {
+    /// Layout version, [`FORMAT_VERSION`].
+    pub format: u32,
+    /// A name for people.
+    pub name: String,
+    /// Box around all geometry; the root of the domain tree.
+    pub bounds: Aabb,
+    /// Total triangles in the scene (each counted once, however many domains reference it).
+    pub triangles: u64,
+    /// Offset applied along the surface normal when a ray leaves a surface.
+    pub ray_epsilon: f32,
+    /// The default view.
+    pub camera: Camera,
+    /// Light from rays that leave the scene.
+    pub sky: Sky,
+    /// Materials, indexed by each triangle's material number.
+    pub materials: Vec<Material>,
+    /// Light sources.
+    pub lights: Vec<Light>,
+    /// The k-d tree whose leaves are the domains; node 0 is the root.
+    pub kd_nodes: Vec<KdNode>,
+    /// One entry per domain, in domain-id order.
+    pub domains: Vec<DomainEntry>,
+}
+
+/// A pinhole camera.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Camera {
+    /// Eye position.
+    pub eye: [f32; 3],
+    /// Point looked at.
+    pub look_at: [f32; 3],
+    /// Up direction.
+    pub up: [f32; 3],
+    /// Vertical field of view in degrees.
+    pub fov_y_degrees: f32,
+}
+
+/// A vertical gradient for rays that escape.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Sky {
+    /// Radiance looking sideways.
+    pub horizon: [f32; 3],
+    /// Radiance looking straight up.
+    pub zenith: [f32; 3],
+}
+
+/// How a surface scatters light.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Material {
+    /// Lambertian.
+    Diffuse {
+        /// Reflectance per channel.
+        albedo: [f32; 3],
+    },
+    /// Perfect mirror.
+    Mirror {
+        /// Reflectance per channel.
+        tint: [f32; 3],
+    },
+    /// A diffuse base under a rough specular coat.
+    Glossy {
+        /// Reflectance of the base.
+        albedo: [f32; 3],
+        /// Probability of the coat reflecting (0..1).
+        specular: f32,
+        /// Spread of the coat's reflection (0 = mirror).
+        roughness: f32,
+    },
+}
+
+/// A light source.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Light {
+    /// Light from infinitely far away (a sun).
+    Directional {
+        /// Direction towards the light.
+        direction: [f32; 3],
+        /// Irradiance on a surface facing the light.
+        radiance: [f32; 3],
+    },
+    /// A one-sided parallelogram emitter (soft shadows); it emits on the side of `edge_u x edge_v`.
+    Quad {
+        /// One corner.
+        corner: [f32; 3],
+        /// First edge from the corner.
+        edge_u: [f32; 3],
+        /// Second edge from the corner.
+        edge_v: [f32; 3],
+        /// Emitted radiance.
+        emission: [f32; 3],
+    },
+}
+
+/// One domain as the manifest records it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DomainEntry {
+    /// File name inside the scene directory.
+    pub file: String,
+    /// The domain's box (a leaf of the k-d tree).
+    pub bounds: Aabb,
+    /// Size of the file in bytes.
+    pub bytes: u64,
+    /// Triangles referenced by the domain.
+    pub triangles: u64,
+    /// xxh3-64 of the file after its header, as 16 hex digits.
+    pub checksum: String,
+}
+
+impl Manifest {
+    /// Reads and checks `DIR/scene.toml`.
+    pub fn load(dir: &Path) -> Result<Manifest, SceneError> {
+        let path = dir.join(MANIFEST_FILE);
+        let text = std::fs::read_to_string(&path).map_err(|e| SceneError::io(&path, e))?;
+        Manifest::parse(&text).map_err(|reason| SceneError::Manifest { path, reason })
+    }
+
+    /// Parses and checks manifest text.
+    pub fn parse(text: &str) -> Result<Manifest, String> {
+        let m: Manifest = toml::from_str(text).map_err(|e| e.to_string())?;
+        m.check()?;
+        Ok(m)
+    }
+
+    /// Writes `DIR/scene.toml` atomically.
+    pub fn save(&self, dir: &Path) -> Result<(), SceneError> {
+        let text = toml::to_string_pretty(self).map_err(|e| SceneError::Manifest {
+            path: dir.join(MANIFEST_FILE),
+            reason: e.to_string(),
+        })?;
+        write_atomically(&dir.join(MANIFEST_FILE), text.as_bytes())
+    }
+
+    /// The domain tree, checked.
+    pub fn domain_tree(&self) -> DomainTree {
+        DomainTree::new(self.bounds, self.kd_nodes.clone())
+    }
+
+    fn check(&self) -> Result<(), String> {
+        if self.format != FORMAT_VERSION {
+            return Err(format!(
+                "format {} is not the supported {FORMAT_VERSION}",
+                self.format
+            ));
+        }
+        if self.domains.is_empty() {
+            return Err("no domains".into());
+        }
+        if self.materials.is_empty() {
+            return Err("no materials".into());
+        }
+        if self.bounds.is_empty() || !finite(&self.bounds.min) || !finite(&self.bounds.max) {
+            return Err("bounds are empty or not finite".into());
+        }
+        if !(self.ray_epsilon.is_finite() && self.ray_epsilon >= 0.0) {
+            return Err("ray_epsilon must be a finite non-negative number".into());
+        }
+        let c = &self.camera;
+        if !(finite(&c.eye) && finite(&c.look_at) && finite(&c.up))
+            || !(c.fov_y_degrees > 0.0 && c.fov_y_degrees < 180.0)
+        {
+            return Err("camera has non-finite vectors or a field of view outside (0, 180)".into());
+        }
+        for (i, d) in self.domains.iter().enumerate() {
+            if d.file.is_empty() || d.file.contains('/') || d.file.contains("..") {
+                return Err(format!("domain {i}: file name {:?} must be a plain name", d.file));
+            }
+            if u64::from_str_radix(&d.checksum, 16).is_err() {
+                return Err(format!("domain {i}: checksum {:?} is not hex", d.checksum));
+            }
+        }
+        for (i, l) in self.lights.iter().enumerate() {
+            let ok = match l {
+                Light::Directional {
+                    direction,
+                    radiance,
+                } => finite(direction) && finite(radiance),
+                Light::Quad {
+                    corner,
+                    edge_u,
+                    edge_v,
+                    emission,
+                } => finite(corner) && finite(edge_u) && finite(edge_v) && finite(emission),
+            };
+            if !ok {
+                return Err(format!("light {i} has a non-finite value"));
+            }
+        }
+        DomainTree::check(&self.kd_nodes, self.domains.len())
+    }
+}
+
+fn finite(v: &[f32; 3]) -> bool {
+    v.iter().all(|x| x.is_finite())
+}

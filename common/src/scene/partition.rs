@@ -1,0 +1,364 @@
+//! Domains: the leaves of a k-d tree over the scene's bounds. The tree is the coarse
+//! acceleration structure every process holds; walking it gives the domains a ray crosses,
+//! front to back, with intervals that share their end points exactly (no gaps, no overlaps
+//! beyond a point), which is what makes "nearest hit in the first domain that has one" exact.
+
+use std::ops::ControlFlow;
+
+use glam::Vec3;
+use serde::{Deserialize, Serialize};
+
+use crate::geometry::Aabb;
+
+/// A node of the domain tree.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "node", rename_all = "snake_case", deny_unknown_fields)]
+pub enum KdNode {
+    /// Points with coordinate `< position` on `axis` go below, the rest above.
+    Split {
+        /// 0, 1 or 2.
+        axis: u8,
+        /// The plane.
+        position: f32,
+        /// Node index of the lower half.
+        below: u32,
+        /// Node index of the upper half.
+        above: u32,
+    },
+    /// A domain.
+    Leaf {
+        /// Domain id.
+        domain: u32,
+    },
+}
+
+/// The domain tree with its root box.
+#[derive(Clone, Debug)]
+pub struct DomainTree {
+    bounds: Aabb,
+    nodes: Vec<KdNode>,
+}
+
+impl DomainTree {
+    /// Wraps nodes already checked by [`DomainTree::check`].
+    pub fn new(bounds: Aabb, nodes: Vec<KdNode>) -> Self {
+        DomainTree { bounds, nodes }
+    }
+
+    /// Checks that `nodes` is a tree rooted at 0 whose leaves are domains `0..domains`, each once.
+    pub fn check(nodes: &[KdNode], domains: usize) -> Result<(), String> {
+        let mut seen_node = vec![false; nodes.len()];
+        let mut seen_domain = vec![false; domains];
+        let mut todo = vec![0usize];
+        if nodes.is_empty() {
+            return Err("k-d tree has no nodes".into());
+        }
+        while let Some(i) = todo.pop() {
+            match seen_node.get_mut(i) {
+                Some(s) if !*s => *s = true,
+                Some(_) => return Err(format!("k-d node {i} is reached twice")),
+                None => return Err(format!("k-d tree names node {i} of {}", nodes.len())),
+            }
+            match nodes[i] {
+                KdNode::Split {
+                    axis,
+                    position,
+                    below,
+                    above,
+                } => {
+                    if axis > 2 || !position.is_finite() {
+                        return Err(format!("k-d node {i} has a bad axis or position"));
+                    }
+                    todo.push(below as usize);
+                    todo.push(above as usize);
+                }
+                KdNode::Leaf { domain } => match seen_domain.get_mut(domain as usize) {
+                    Some(s) if !*s => *s = true,
+                    _ => return Err(format!("k-d leaf {i} names domain {domain} badly")),
+                },
+            }
+        }
+        if let Some(d) = seen_domain.iter().position(|s| !s) {
+            return Err(format!("domain {d} is not a leaf of the k-d tree"));
+        }
+        Ok(())
+    }
+
+    /// The scene box.
+    pub fn bounds(&self) -> Aabb {
+        self.bounds
+    }
+
+    /// Box of every domain, by domain id.
+    pub fn domain_boxes(&self, domains: usize) -> Vec<Aabb> {
+        let mut boxes = vec![Aabb::EMPTY; domains];
+        let mut todo = vec![(0usize, self.bounds)];
+        while let Some((i, b)) = todo.pop() {
+            match self.nodes[i] {
+                KdNode::Split {
+                    axis,
+                    position,
+                    below,
+                    above,
+                } => {
+                    let (mut lo, mut hi) = (b, b);
+                    lo.max[axis as usize] = position;
+                    hi.min[axis as usize] = position;
+                    todo.push((below as usize, lo));
+                    todo.push((above as usize, hi));
+                }
+                KdNode::Leaf { domain } => boxes[domain as usize] = b,
+            }
+        }
+        boxes
+    }
+
+    /// Every domain whose closed box overlaps `b`.
+    pub fn overlapping(&self, b: &Aabb, mut out: impl FnMut(u32)) {
+        let mut todo = vec![0usize];
+        while let Some(i) = todo.pop() {
+            match self.nodes[i] {
+                KdNode::Split {
+                    axis,
+                    position,
+                    below,
+                    above,
+                } => {
+                    if b.min[axis as usize] <= position {
+                        todo.push(below as usize);
+                    }
+                    if b.max[axis as usize] >= position {
+                        todo.push(above as usize);
+                    }
+                }
+                KdNode::Leaf { domain } => out(domain),
+            }
+        }
+    }
+
+    /// Calls `visit(domain, t_enter, t_exit)` for the domains the ray crosses within
+    /// `[t_min, t_max]`, nearest first, until it breaks. Consecutive intervals share end points.
+    pub fn walk(
+        &self,
+        origin: Vec3,
+        dir: Vec3,
+        t_min: f32,
+        t_max: f32,
+        mut visit: impl FnMut(u32, f32, f32) -> ControlFlow<()>,
+    ) {
+        let Some((t0, t1)) = clip_to_box(&self.bounds, origin, dir, t_min, t_max) else {
+            return;
+        };
+        let mut stack: Vec<(u32, f32, f32)> = Vec::with_capacity(32);
+        let mut cur = (0u32, t0, t1);
+        loop {
+            let (i, lo, hi) = cur;
+            match self.nodes[i as usize] {
+                KdNode::Split {
+                    axis,
+                    position,
+                    below,
+                    above,
+                } => {
+                    let (o, d) = (origin[axis as usize], dir[axis as usize]);
+                    if d == 0.0 {
+                        cur = (if o < position { below } else { above }, lo, hi);
+                        continue;
+                    }
+                    let origin_below = o < position || (o == position && d > 0.0);
+                    let (near, far) = if origin_below {
+                        (below, above)
+                    } else {
+                        (above, below)
+                    };
+                    let t = (position - o) / d;
+                    if t < 0.0 || t > hi {
+                        cur = (near, lo, hi);
+                    } else if t < lo {
+                        cur = (far, lo, hi);
+                    } else {
+                        stack.push((far, t, hi));
+                        cur = (near, lo, t);
+                    }
+                    continue;
+                }
+                KdNode::Leaf { domain } => {
+                    if visit(domain, lo, hi).is_break() {
+                        return;
+                    }
+                }
+            }
+            match stack.pop() {
+                Some(next) => cur = next,
+                None => return,
+            }
+        }
+    }
+
+    /// Splits `bounds` into `domains` boxes so that each holds about the same weight of
+    /// `points` (triangle centroids, or surface estimates for generated scenes).
+    pub fn balanced(bounds: Aabb, points: &mut [([f32; 3], f64)], domains: u32) -> DomainTree {
+        let mut nodes = Vec::new();
+        let mut next_domain = 0;
+        split(&mut nodes, &mut next_domain, bounds, points, domains.max(1));
+        DomainTree { bounds, nodes }
+    }
+
+    /// The nodes, for the manifest.
+    pub fn nodes(&self) -> &[KdNode] {
+        &self.nodes
+    }
+}
+
+fn split(
+    nodes: &mut Vec<KdNode>,
+    next_domain: &mut u32,
+    b: Aabb,
+    points: &mut [([f32; 3], f64)],
+    leaves: u32,
+) -> u32 {
+    let me = nodes.len() as u32;
+    if leaves == 1 {
+        nodes.push(KdNode::Leaf {
+            domain: *next_domain,
+        });
+        *next_domain += 1;
+        return me;
+    }
+    let axis = b.longest_axis();
+    let below_leaves = leaves / 2;
+    let share = below_leaves as f64 / leaves as f64;
+    points.sort_unstable_by(|p, q| p.0[axis].total_cmp(&q.0[axis]));
+    let total: f64 = points.iter().map(|p| p.1).sum();
+    let mut acc = 0.0;
+    let mut cut = points.len();
+    for (i, p) in points.iter().enumerate() {
+        acc += p.1;
+        if acc >= total * share {
+            cut = i + 1;
+            break;
+        }
+    }
+    let (lo, hi) = (b.min[axis], b.max[axis]);
+    let mid = lo + (hi - lo) * share as f32;
+    let position = if total > 0.0 && cut < points.len() {
+        // Halfway between neighbouring points, so neither lies on the plane.
+        0.5 * (points[cut - 1].0[axis] + points[cut].0[axis])
+    } else {
+        mid
+    };
+    // A plane on the box face would make an empty slab; fall back to the spatial share.
+    let position = if position > lo && position < hi {
+        position
+    } else {
+        mid
+    };
+    let first_above = points.partition_point(|p| p.0[axis] < position);
+    let (pb, pa) = points.split_at_mut(first_above);
+    nodes.push(KdNode::Leaf { domain: u32::MAX });
+    let (mut bb, mut ba) = (b, b);
+    bb.max[axis] = position;
+    ba.min[axis] = position;
+    let below = split(nodes, next_domain, bb, pb, below_leaves);
+    let above = split(nodes, next_domain, ba, pa, leaves - below_leaves);
+    nodes[me as usize] = KdNode::Split {
+        axis: axis as u8,
+        position,
+        below,
+        above,
+    };
+    me
+}
+
+/// The part of `[t_min, t_max]` in which the ray is inside `b`.
+pub fn clip_to_box(b: &Aabb, origin: Vec3, dir: Vec3, t_min: f32, t_max: f32) -> Option<(f32, f32)> {
+    let (mut lo, mut hi) = (t_min, t_max);
+    for a in 0..3 {
+        let (o, d) = (origin[a], dir[a]);
+        if d == 0.0 {
+            if o < b.min[a] || o > b.max[a] {
+                return None;
+            }
+            continue;
+        }
+        // Same formula as the split planes in `walk`, so box faces and planes agree bit for bit.
+        let t1 = (b.min[a] - o) / d;
+        let t2 = (b.max[a] - o) / d;
+        lo = lo.max(t1.min(t2));
+        hi = hi.min(t1.max(t2));
+    }
+    (lo <= hi).then_some((lo, hi))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn grid_points(n: usize) -> Vec<([f32; 3], f64)> {
+        let mut v = Vec::new();
+        for i in 0..n {
+            for j in 0..n {
+                for k in 0..n {
+                    v.push(([i as f32, j as f32, k as f32].map(|x| (x + 0.5) / n as f32), 1.0));
+                }
+            }
+        }
+        v
+    }
+
+    fn unit() -> Aabb {
+        Aabb {
+            min: [0.0; 3],
+            max: [1.0; 3],
+        }
+    }
+
+    #[test]
+    fn balanced_split_gives_every_domain_an_equal_share() {
+        let mut pts = grid_points(8);
+        for n in [1, 3, 8, 13, 64] {
+            let t = DomainTree::balanced(unit(), &mut pts, n);
+            DomainTree::check(t.nodes(), n as usize).unwrap();
+            let boxes = t.domain_boxes(n as usize);
+            for b in &boxes {
+                let inside = pts
+                    .iter()
+                    .filter(|p| (0..3).all(|a| p.0[a] >= b.min[a] && p.0[a] < b.max[a].max(if b.max[a] == 1.0 { 2.0 } else { 0.0 })))
+                    .count();
+                let ideal = pts.len() as f64 / n as f64;
+                assert!((inside as f64 - ideal).abs() <= ideal * 0.5 + 1.0, "{n}: {inside} vs {ideal}");
+            }
+        }
+    }
+
+    #[test]
+    fn walk_intervals_are_contiguous_and_in_order() {
+        let mut pts = grid_points(6);
+        let t = DomainTree::balanced(unit(), &mut pts, 27);
+        let dirs = [[1.0, 0.3, 0.2], [-0.2, 1.0, -0.7], [0.0, 0.0, -1.0], [0.5, -0.5, 0.0]];
+        for d in dirs {
+            let origin = Vec3::new(0.5, 0.5, 0.5) - Vec3::from(d) * 3.0;
+            let mut last: Option<f32> = None;
+            let mut count = 0;
+            t.walk(origin, Vec3::from(d), 0.0, f32::INFINITY, |_, a, b| {
+                assert!(a <= b);
+                if let Some(l) = last {
+                    assert_eq!(l, a, "gap or overlap between domains");
+                }
+                last = Some(b);
+                count += 1;
+                ControlFlow::Continue(())
+            });
+            assert!(count >= 3);
+        }
+    }
+
+    #[test]
+    fn check_rejects_cycles_and_missing_domains() {
+        let cyc = vec![KdNode::Split { axis: 0, position: 0.5, below: 0, above: 1 }, KdNode::Leaf { domain: 0 }];
+        assert!(DomainTree::check(&cyc, 1).is_err());
+        let missing = vec![KdNode::Leaf { domain: 0 }];
+        assert!(DomainTree::check(&missing, 2).is_err());
+        assert!(DomainTree::check(&missing, 1).is_ok());
+    }
+}
