@@ -112,7 +112,7 @@ pub struct Hit {
     /// Position of the triangle in the domain's packed array.
     pub slot: u32,
     /// Scene-wide triangle id.
-    pub id: u32,
+    pub id: u64,
 }
 
 /// Traversal stack entries; `build` refuses trees deeper than half of this.
@@ -171,7 +171,7 @@ pub fn nearest_hit(
     let mut best = Hit {
         t: t1,
         slot: u32::MAX,
-        id: u32::MAX,
+        id: u64::MAX,
     };
     let mut found = false;
     if nodes.is_empty() {
@@ -189,12 +189,12 @@ pub fn nearest_hit(
             for (k, tri) in tris[first..first + node.count as usize].iter().enumerate() {
                 if let Some(t) = tri.intersect(ray.origin, ray.dir)
                     && t >= t0
-                    && nearer(t, tri.id, best.t, best.id)
+                    && nearer(t, tri.id(), best.t, best.id)
                 {
                     best = Hit {
                         t,
                         slot: (first + k) as u32,
-                        id: tri.id,
+                        id: tri.id(),
                     };
                     found = true;
                 }

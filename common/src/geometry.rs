@@ -93,30 +93,36 @@ impl Aabb {
 pub struct PackedTriangle {
     /// First vertex.
     pub v0: [f32; 3],
-    /// Scene-wide triangle id: breaks ties between equal hit distances.
-    pub id: u32,
+    /// Low half of the scene-wide triangle id, which breaks ties between equal distances.
+    pub id_lo: u32,
     /// `v1 - v0`.
     pub e1: [f32; 3],
     /// Index into the scene's material table.
     pub material: u32,
     /// `v2 - v0`.
     pub e2: [f32; 3],
-    /// Keeps the record 16-byte sized.
-    pub _pad: u32,
+    /// High half of the scene-wide triangle id.
+    pub id_hi: u32,
 }
 
 impl PackedTriangle {
     /// Packs a triangle given by its three vertices.
-    pub fn new(v: &[[f32; 3]; 3], id: u32, material: u32) -> Self {
+    pub fn new(v: &[[f32; 3]; 3], id: u64, material: u32) -> Self {
         let v0 = Vec3::from(v[0]);
         PackedTriangle {
             v0: v[0],
-            id,
+            id_lo: id as u32,
             e1: (Vec3::from(v[1]) - v0).into(),
             material,
             e2: (Vec3::from(v[2]) - v0).into(),
-            _pad: 0,
+            id_hi: (id >> 32) as u32,
         }
+    }
+
+    /// Scene-wide triangle id.
+    #[inline(always)]
+    pub fn id(&self) -> u64 {
+        ((self.id_hi as u64) << 32) | self.id_lo as u64
     }
 
     /// The three vertices.
@@ -166,6 +172,6 @@ impl PackedTriangle {
 /// Whether hit `(t, id)` is nearer than `(best_t, best_id)`: distance first, then the lower
 /// scene-wide triangle id, so that the winner does not depend on traversal order.
 #[inline(always)]
-pub fn nearer(t: f32, id: u32, best_t: f32, best_id: u32) -> bool {
+pub fn nearer(t: f32, id: u64, best_t: f32, best_id: u64) -> bool {
     t < best_t || (t == best_t && id < best_id)
 }

@@ -5,7 +5,12 @@
 pub mod bvh;
 pub mod camera;
 pub mod geometry;
+pub mod isosurface;
+pub mod mesh;
+pub mod prepare;
+pub mod nbody;
 pub mod ray;
 pub mod render;
 pub mod sampling;
 pub mod scene;
+pub mod volume;

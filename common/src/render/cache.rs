@@ -24,7 +24,7 @@ pub struct CacheCounters {
 /// Domains of one scene, loaded on demand.
 pub struct DomainCache {
     dir: PathBuf,
-    files: Vec<(String, u64)>,
+    files: Vec<(String, u64, u64)>,
     materials: u32,
     budget: u64,
     resident: Vec<Option<Arc<DomainData>>>,
@@ -45,7 +45,7 @@ impl DomainCache {
             .map(|d| {
                 // Checked hex in `Manifest::parse`.
                 let sum = u64::from_str_radix(&d.checksum, 16).unwrap_or_default();
-                (d.file.clone(), sum)
+                (d.file.clone(), sum, d.bytes)
             })
             .collect::<Vec<_>>();
         let n = files.len();
@@ -77,7 +77,7 @@ impl DomainCache {
         if let Some(d) = &self.resident[i] {
             return Ok(d.clone());
         }
-        let (file, checksum) = &self.files[i];
+        let (file, checksum, expected_bytes) = &self.files[i];
         let path = self.dir.join(file);
         let _span = info_span!("load_domain", domain, file = %file).entered();
         let data = DomainData::open(&path, *checksum, !self.verified[i], self.materials)?;
@@ -85,6 +85,12 @@ impl DomainCache {
             return Err(SceneError::Domain {
                 path,
                 reason: format!("holds domain {}, the manifest says {domain}", data.domain()),
+            });
+        }
+        if data.bytes() != *expected_bytes {
+            return Err(SceneError::Domain {
+                path,
+                reason: format!("is {} bytes, the manifest says {expected_bytes}", data.bytes()),
             });
         }
         self.verified[i] = true;

@@ -213,7 +213,8 @@ impl SceneView {
         if n.dot(dir) > 0.0 {
             n = -n;
         }
-        let origin = p + n * self.epsilon * (1.0 + p.abs().max_element());
+        // Leave the surface by a scene-relative margin plus a few ulps of the hit's magnitude.
+        let origin = p + n * (self.epsilon + p.abs().max_element() * 1e-6);
         let throughput = Vec3::from(ray.throughput);
         let u = |purpose| uniform(ray.pixel, ray.sample, ray.depth as u32, purpose, 0);
         let can_bounce = ray.depth < self.max_depth;

@@ -5,7 +5,7 @@
 //! vertices            [f32; 3] per vertex        (the domain's mesh, for tools and rebuilds)
 //! indices             [u32; 3] per triangle
 //! materials           u32 per triangle
-//! ids                 u32 per triangle           (scene-wide triangle id)
+//! ids                 u64 per triangle           (scene-wide triangle id)
 //! nodes               BvhNode (32 bytes) each
 //! packed              PackedTriangle (48 bytes) each, in BVH leaf order
 //! ```
@@ -56,7 +56,7 @@ pub struct SourceTriangle {
     /// Its corners.
     pub vertices: [[f32; 3]; 3],
     /// Scene-wide id.
-    pub id: u32,
+    pub id: u64,
     /// Material index.
     pub material: u32,
 }
@@ -96,7 +96,7 @@ pub fn write_domain(
     }
     drop(index_of);
     let materials: Vec<u32> = triangles.iter().map(|t| t.material).collect();
-    let ids: Vec<u32> = triangles.iter().map(|t| t.id).collect();
+    let ids: Vec<u64> = triangles.iter().map(|t| t.id).collect();
     let mut packed: Vec<PackedTriangle> = triangles
         .iter()
         .map(|t| PackedTriangle::new(&t.vertices, t.id, t.material))
@@ -221,7 +221,7 @@ impl DomainData {
             (header.vertex_count, 12u64),
             (header.triangle_count, 12),
             (header.triangle_count, 4),
-            (header.triangle_count, 4),
+            (header.triangle_count, 8),
             (header.node_count, std::mem::size_of::<BvhNode>() as u64),
             (header.packed_count, std::mem::size_of::<PackedTriangle>() as u64),
         ];
@@ -249,7 +249,7 @@ impl DomainData {
         if let Some(t) = data.packed().iter().find(|t| t.material >= materials) {
             return Err(bad(format!(
                 "triangle {} names material {} of {materials}",
-                t.id, t.material
+                t.id(), t.material
             )));
         }
         Ok(data)
@@ -291,7 +291,7 @@ impl DomainData {
     }
 
     /// Scene-wide id per mesh triangle.
-    pub fn ids(&self) -> &[u32] {
+    pub fn ids(&self) -> &[u64] {
         self.section(3)
     }
 

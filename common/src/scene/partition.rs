@@ -136,6 +136,23 @@ impl DomainTree {
         }
     }
 
+    /// The domain holding point `p` (points on a plane belong above it; points outside the
+    /// bounds go to the nearest leaf along the splits).
+    pub fn domain_at(&self, p: [f32; 3]) -> u32 {
+        let mut i = 0usize;
+        loop {
+            match self.nodes[i] {
+                KdNode::Split {
+                    axis,
+                    position,
+                    below,
+                    above,
+                } => i = if p[axis as usize] < position { below } else { above } as usize,
+                KdNode::Leaf { domain } => return domain,
+            }
+        }
+    }
+
     /// Calls `visit(domain, t_enter, t_exit)` for the domains the ray crosses within
     /// `[t_min, t_max]`, nearest first, until it breaks. Consecutive intervals share end points.
     pub fn walk(

@@ -1,0 +1,124 @@
+//! `rayfarm prepare`: a mesh file, a raw volume, or the built-in generator into a scene.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, bail};
+use clap::{Args, ValueEnum};
+use rayfarm_common::prepare::generate::{NbodyOptions, prepare_nbody};
+use rayfarm_common::prepare::prepare_mesh;
+use rayfarm_common::prepare::volume_scene::prepare_volume;
+use rayfarm_common::scene::Manifest;
+
+use crate::units;
+
+/// Built-in scene generators.
+#[derive(ValueEnum, Clone, Copy, Debug)]
+pub enum Generator {
+    /// Isosurface of a clustered particle-density field, with a ground plane and a mirror.
+    Nbody,
+}
+
+/// Options of `rayfarm prepare`.
+#[derive(Args, Clone, Debug)]
+pub struct PrepareArgs {
+    /// Mesh (.ply, .obj, .stl, optionally .gz) or raw volume (with --dims); omit with --generate.
+    pub input: Option<PathBuf>,
+    /// Scene directory to create.
+    #[arg(long, short)]
+    pub out: PathBuf,
+    /// Number of domains to cut the scene into.
+    #[arg(long, default_value_t = 8)]
+    pub domains: u32,
+    /// Replace `--out` if it exists.
+    #[arg(long)]
+    pub force: bool,
+    /// Scene name (default: the input's file stem or the generator's name).
+    #[arg(long)]
+    pub name: Option<String>,
+    /// Generate a built-in scene instead of reading INPUT.
+    #[arg(long, value_enum)]
+    pub generate: Option<Generator>,
+    /// Generator: approximate triangle count.
+    #[arg(long, default_value_t = 200_000)]
+    pub triangles: u64,
+    /// Generator: random seed.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Generator: keep peak memory under this (adds domains if needed), e.g. 256MiB.
+    #[arg(long, value_parser = units::bytes)]
+    pub max_memory: Option<u64>,
+    /// Volume: dimensions X,Y,Z of the raw file.
+    #[arg(long, value_delimiter = ',', num_args = 3)]
+    pub dims: Option<Vec<u32>>,
+    /// Volume: voxel type.
+    #[arg(long, default_value = "u8")]
+    pub dtype: String,
+    /// Volume: iso value of the surface.
+    #[arg(long)]
+    pub iso: Option<f32>,
+}
+
+pub fn run(a: PrepareArgs) -> anyhow::Result<()> {
+    let manifest = match (&a.generate, &a.input, &a.dims) {
+        (Some(Generator::Nbody), None, None) => prepare_nbody(
+            &a.out,
+            &NbodyOptions {
+                name: a.name.clone().unwrap_or_else(|| "nbody".into()),
+                triangles: a.triangles,
+                seed: a.seed,
+                domains: a.domains,
+                max_memory: a.max_memory,
+                force: a.force,
+            },
+        )?,
+        (Some(_), Some(_), _) | (Some(_), _, Some(_)) => {
+            bail!("--generate makes a scene without an INPUT or --dims")
+        }
+        (None, Some(input), Some(dims)) => {
+            let iso = a.iso.context("a volume needs --iso")?;
+            let dtype = a.dtype.parse().map_err(anyhow::Error::msg)?;
+            prepare_volume(
+                input,
+                [dims[0], dims[1], dims[2]],
+                dtype,
+                iso,
+                &name_of(&a),
+                &a.out,
+                a.domains,
+                a.force,
+            )?
+        }
+        (None, Some(input), None) => {
+            let mesh = rayfarm_common::mesh::read_mesh(input)?;
+            prepare_mesh(&mesh, &name_of(&a), &a.out, a.domains, a.force)?
+        }
+        (None, None, _) => bail!("give an INPUT mesh or volume, or --generate nbody"),
+    };
+    print_summary(&a.out, &manifest);
+    Ok(())
+}
+
+fn name_of(a: &PrepareArgs) -> String {
+    a.name.clone().unwrap_or_else(|| {
+        a.input
+            .as_ref()
+            .and_then(|p| p.file_name())
+            .map(|s| s.to_string_lossy().split('.').next().unwrap_or("scene").to_string())
+            .unwrap_or_else(|| "scene".into())
+    })
+}
+
+fn print_summary(out: &std::path::Path, m: &Manifest) {
+    let bytes: u64 = m.domains.iter().map(|d| d.bytes).sum();
+    let refs: u64 = m.domains.iter().map(|d| d.triangles).sum();
+    let largest = m.domains.iter().map(|d| d.bytes).max().unwrap_or(0);
+    println!(
+        "{}: {} triangles ({} references) in {} domains, {} on disk (largest domain {})",
+        out.display(),
+        m.triangles,
+        refs,
+        m.domains.len(),
+        units::human(bytes),
+        units::human(largest)
+    );
+}

@@ -1,0 +1,81 @@
+//! `rayfarm render --local`.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, bail};
+use clap::Args;
+use rayfarm_common::render::local::{FrameSpec, LocalOptions, render_local};
+use rayfarm_common::scene::Manifest;
+
+use crate::table::stats_table;
+use crate::units;
+
+/// Options of `rayfarm render`.
+#[derive(Args, Clone, Debug)]
+pub struct RenderArgs {
+    /// Render in this process (the only mode until the cluster is up).
+    #[arg(long)]
+    pub local: bool,
+    /// Scene directory (holding scene.toml).
+    #[arg(long, env = "RAYFARM_SCENE")]
+    pub scene: PathBuf,
+    /// Output image: .png (8-bit sRGB) or .exr (linear float).
+    #[arg(long, short, default_value = "render.png")]
+    pub out: PathBuf,
+    /// Image width.
+    #[arg(long, default_value_t = 640)]
+    pub width: u32,
+    /// Image height.
+    #[arg(long, default_value_t = 480)]
+    pub height: u32,
+    /// Samples per pixel.
+    #[arg(long, default_value_t = 4)]
+    pub spp: u32,
+    /// Maximum bounces.
+    #[arg(long, default_value_t = 3)]
+    pub depth: u32,
+    /// Tracing threads (default: all cores).
+    #[arg(long, env = "RAYFARM_THREADS")]
+    pub threads: Option<usize>,
+    /// Domain cache budget, e.g. 512MiB.
+    #[arg(long, env = "RAYFARM_CACHE_BYTES", value_parser = units::bytes, default_value = "4GiB")]
+    pub cache_bytes: u64,
+    /// Camera rays issued whenever fewer rays than this are queued (bounds memory).
+    #[arg(long, default_value_t = 1 << 20)]
+    pub wave_rays: usize,
+    /// Also write the statistics as JSON here.
+    #[arg(long)]
+    pub stats_json: Option<PathBuf>,
+    /// Do not print the statistics table.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+pub fn run(a: RenderArgs) -> anyhow::Result<()> {
+    if !a.local {
+        bail!("pass --local: rendering on a cluster is not built yet");
+    }
+    let manifest = Manifest::load(&a.scene)?;
+    let frame = FrameSpec {
+        width: a.width,
+        height: a.height,
+        spp: a.spp,
+        max_depth: a.depth,
+        camera: None,
+    };
+    let options = LocalOptions {
+        threads: a.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())),
+        cache_bytes: a.cache_bytes,
+        wave_rays: a.wave_rays,
+    };
+    let (film, stats) = render_local(&a.scene, &manifest, &frame, &options)?;
+    film.save(&a.out)?;
+    if let Some(p) = &a.stats_json {
+        std::fs::write(p, serde_json::to_string_pretty(&stats)?).with_context(|| p.display().to_string())?;
+    }
+    if !a.quiet {
+        println!("{}", stats_table(&stats));
+        println!("wrote {}", a.out.display());
+    }
+    Ok(())
+}

@@ -1,0 +1,132 @@
+//! The nearest hit found domain by domain equals the nearest hit of one BVH over the whole
+//! mesh, ties included: this is what lets a scene be cut into domains without changing a pixel.
+
+use std::ops::ControlFlow;
+use std::path::Path;
+
+use glam::Vec3;
+use proptest::prelude::*;
+use rayfarm_common::bvh::{Hit, TraceRay, nearest_hit};
+use rayfarm_common::mesh::TriangleMesh;
+use rayfarm_common::prepare::prepare_mesh;
+use rayfarm_common::scene::{DomainData, Manifest};
+
+/// Random triangles in the unit cube plus a fan sharing vertices (so ties on shared edges occur).
+fn mesh(seed: u64, n: usize) -> TriangleMesh {
+    let mut s = seed;
+    let mut next = move || {
+        s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        ((s >> 40) as f32) / (1u64 << 24) as f32
+    };
+    let mut m = TriangleMesh::default();
+    for _ in 0..n {
+        let c = [next(), next(), next()];
+        let base = m.positions.len() as u32;
+        for _ in 0..3 {
+            m.positions.push([0, 1, 2].map(|a| c[a] + (next() - 0.5) * 0.2));
+        }
+        m.triangles.push([base, base + 1, base + 2]);
+    }
+    // A fan around the cube's center: many triangles share each edge.
+    let hub = m.positions.len() as u32;
+    m.positions.push([0.5, 0.5, 0.5]);
+    for k in 0..24 {
+        let a = k as f32 / 24.0 * std::f32::consts::TAU;
+        m.positions.push([0.5 + 0.4 * a.cos(), 0.5 + 0.4 * a.sin(), 0.5]);
+    }
+    for k in 0..24u32 {
+        m.triangles.push([hub, hub + 1 + k, hub + 1 + (k + 1) % 24]);
+    }
+    m
+}
+
+struct Loaded {
+    manifest: Manifest,
+    domains: Vec<DomainData>,
+}
+
+fn load(dir: &Path) -> Loaded {
+    let manifest = Manifest::load(dir).unwrap();
+    let domains = manifest
+        .domains
+        .iter()
+        .map(|d| {
+            let sum = u64::from_str_radix(&d.checksum, 16).unwrap();
+            DomainData::open(&dir.join(&d.file), sum, true, 1).unwrap()
+        })
+        .collect();
+    Loaded { manifest, domains }
+}
+
+fn by_domains(s: &Loaded, o: Vec3, d: Vec3) -> Option<(f32, u64)> {
+    let tree = s.manifest.domain_tree();
+    let ray = TraceRay::new(o, d);
+    let mut found = None;
+    tree.walk(o, d, 0.0, f32::INFINITY, |dom, a, b| {
+        let data = &s.domains[dom as usize];
+        match nearest_hit(data.nodes(), data.packed(), &ray, a, b) {
+            Some(Hit { t, id, .. }) => {
+                found = Some((t, id));
+                ControlFlow::Break(())
+            }
+            None => ControlFlow::Continue(()),
+        }
+    });
+    found
+}
+
+fn whole(s: &Loaded, o: Vec3, d: Vec3) -> Option<(f32, u64)> {
+    let data = &s.domains[0];
+    nearest_hit(data.nodes(), data.packed(), &TraceRay::new(o, d), 0.0, f32::INFINITY).map(|h| (h.t, h.id))
+}
+
+fn scenes() -> (tempfile::TempDir, Loaded, Vec<Loaded>) {
+    let tmp = tempfile::tempdir().unwrap();
+    let m = mesh(7, 3000);
+    let one = tmp.path().join("d1");
+    prepare_mesh(&m, "t", &one, 1, false).unwrap();
+    let many = [8u32, 27, 64]
+        .iter()
+        .map(|&n| {
+            let p = tmp.path().join(format!("d{n}"));
+            prepare_mesh(&m, "t", &p, n, false).unwrap();
+            load(&p)
+        })
+        .collect();
+    let one = load(&one);
+    (tmp, one, many)
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(64))]
+    #[test]
+    fn domain_by_domain_nearest_hit_equals_whole_mesh(seed in any::<u64>()) {
+        thread_local! {
+            static SCENES: (tempfile::TempDir, Loaded, Vec<Loaded>) = scenes();
+        }
+        SCENES.with(|(_, one, many)| {
+            let mut s = seed | 1;
+            let mut next = move || {
+                s ^= s << 13; s ^= s >> 7; s ^= s << 17;
+                ((s >> 40) as f32) / (1u64 << 24) as f32
+            };
+            let mut hits = 0;
+            for _ in 0..500 {
+                // Origins inside and outside the mesh, directions everywhere, some axis-aligned.
+                let o = Vec3::new(next(), next(), next()) * 1.6 - 0.3;
+                let mut d = Vec3::new(next(), next(), next()) * 2.0 - 1.0;
+                if next() < 0.1 { d = Vec3::new(d.x, 0.0, 0.0); }
+                if next() < 0.1 { d.z = 0.0; }
+                if d.length_squared() < 1e-6 { continue; }
+                let d = d.normalize();
+                let expect = whole(one, o, d);
+                hits += expect.is_some() as usize;
+                for s in many {
+                    prop_assert_eq!(by_domains(s, o, d), expect, "{} domains, o={:?} d={:?}", s.domains.len(), o, d);
+                }
+            }
+            prop_assert!(hits > 50);
+            Ok(())
+        })?;
+    }
+}

@@ -1,0 +1,162 @@
+//! `rayfarm render --local` gives the same image, to the bit, whatever the domain count, the
+//! thread count and the cache budget; and bad scenes get clear errors.
+
+use std::path::{Path, PathBuf};
+
+use rayfarm_tests::{file_hash, rayfarm_err, rayfarm_ok, s, stats_field};
+
+fn generate(dir: &Path, domains: u32) -> PathBuf {
+    let out = dir.join(format!("nbody-{domains}"));
+    rayfarm_ok(&[
+        "prepare", "--generate", "nbody", "--triangles", "20000", "--seed", "3",
+        "--domains", &domains.to_string(), "--out", s(&out),
+    ]);
+    out
+}
+
+struct Rendered {
+    hash: String,
+    png: String,
+    loads: u64,
+}
+
+fn render(scene: &Path, out_dir: &Path, threads: u32, cache: &str, tag: &str) -> Rendered {
+    let png = out_dir.join(format!("{tag}.png"));
+    let json = out_dir.join(format!("{tag}.json"));
+    rayfarm_ok(&[
+        "render", "--local", "--scene", s(scene), "--out", s(&png), "--width", "96", "--height",
+        "72", "--spp", "2", "--depth", "3", "--threads", &threads.to_string(), "--cache-bytes",
+        cache, "--stats-json", s(&json), "--quiet",
+    ]);
+    Rendered {
+        hash: stats_field(&json, "/image_hash").as_str().unwrap().to_string(),
+        png: file_hash(&png),
+        loads: stats_field(&json, "/cache/loads").as_u64().unwrap(),
+    }
+}
+
+#[test]
+fn generated_scene_renders_identically_at_1_8_and_64_domains_any_threads_any_cache() {
+    let tmp = tempfile::tempdir().unwrap();
+    let reference = render(&generate(tmp.path(), 1), tmp.path(), 1, "1GiB", "ref");
+    for domains in [8, 64] {
+        let scene = generate(tmp.path(), domains);
+        for threads in [1, 2] {
+            // "1" byte holds one domain at a time; 1GiB holds them all.
+            for cache in ["1", "1GiB"] {
+                let r = render(&scene, tmp.path(), threads, cache, &format!("d{domains}t{threads}c{cache}"));
+                assert_eq!(r.hash, reference.hash, "{domains} domains, {threads} threads, cache {cache}");
+                assert_eq!(r.png, reference.png);
+                if cache == "1GiB" {
+                    assert_eq!(r.loads, domains as u64, "a cache holding the scene loads each domain once");
+                } else {
+                    assert!(r.loads > domains as u64, "a one-domain cache must reload domains");
+                }
+            }
+        }
+    }
+}
+
+/// A sphere over a floor, written as ASCII PLY: crossing triangles and shared edges everywhere.
+fn write_ply(path: &Path) {
+    let mut verts = Vec::new();
+    let mut faces = Vec::new();
+    let (nu, nv) = (48, 24);
+    for j in 0..=nv {
+        for i in 0..nu {
+            let (th, ph) = (j as f32 / nv as f32 * std::f32::consts::PI, i as f32 / nu as f32 * std::f32::consts::TAU);
+            verts.push([ph.cos() * th.sin() * 0.4 + 0.5, th.cos() * 0.4 + 0.5, ph.sin() * th.sin() * 0.4 + 0.5]);
+        }
+    }
+    for j in 0..nv {
+        for i in 0..nu {
+            let a = j * nu + i;
+            let b = j * nu + (i + 1) % nu;
+            faces.push([a, b, a + nu]);
+            faces.push([b, b + nu, a + nu]);
+        }
+    }
+    let f = verts.len();
+    verts.extend([[-1.0, 0.05, -1.0], [2.0, 0.05, -1.0], [2.0, 0.05, 2.0], [-1.0, 0.05, 2.0]]);
+    faces.push([f, f + 2, f + 1]);
+    faces.push([f, f + 3, f + 2]);
+    let mut text = format!(
+        "ply\nformat ascii 1.0\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nelement face {}\nproperty list uchar int vertex_indices\nend_header\n",
+        verts.len(),
+        faces.len()
+    );
+    for v in &verts {
+        text += &format!("{:?} {:?} {:?}\n", v[0], v[1], v[2]);
+    }
+    for t in &faces {
+        text += &format!("3 {} {} {}\n", t[0], t[1], t[2]);
+    }
+    std::fs::write(path, text).unwrap();
+}
+
+#[test]
+fn mesh_scene_renders_identically_at_1_8_and_64_domains() {
+    let tmp = tempfile::tempdir().unwrap();
+    let ply = tmp.path().join("sphere.ply");
+    write_ply(&ply);
+    let mut hashes = Vec::new();
+    for domains in [1, 8, 64] {
+        let out = tmp.path().join(format!("sphere-{domains}"));
+        rayfarm_ok(&["prepare", s(&ply), "--domains", &domains.to_string(), "--out", s(&out)]);
+        hashes.push(render(&out, tmp.path(), 2, "1", &format!("m{domains}")).hash);
+    }
+    assert_eq!(hashes[0], hashes[1]);
+    assert_eq!(hashes[0], hashes[2]);
+}
+
+fn args<'a>(scene: &'a str, out: &'a str) -> Vec<&'a str> {
+    vec!["render", "--local", "--scene", scene, "--out", out, "--width", "32", "--height", "24", "--spp", "1", "--quiet"]
+}
+
+#[test]
+fn bad_scenes_and_frames_get_clear_errors() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = generate(tmp.path(), 4);
+    let png = tmp.path().join("x.png");
+    let (sc, out) = (s(&scene), s(&png));
+    rayfarm_ok(&args(sc, out));
+
+    for (flag, value, expect) in [
+        ("--width", "0", "resolution 0x24"),
+        ("--width", "100000", "resolution 100000x24"),
+        ("--spp", "0", "spp 0"),
+        ("--depth", "1000", "depth 1000"),
+    ] {
+        let mut a = args(sc, out);
+        a.extend([flag, value]);
+        let err = rayfarm_err(&a);
+        assert!(err.contains(expect), "{flag} {value}: {err}");
+    }
+    let err = rayfarm_err(&args(sc, s(&tmp.path().join("x.gif"))));
+    assert!(err.contains("unknown image format"), "{err}");
+    let err = rayfarm_err(&args(s(&tmp.path().join("nowhere")), out));
+    assert!(err.contains("nowhere") && err.contains("scene.toml"), "{err}");
+
+    // A flipped byte deep in a domain: the checksum names the file.
+    let domain = scene.join("domain-00002.rfd");
+    let mut bytes = std::fs::read(&domain).unwrap();
+    let mid = bytes.len() / 2;
+    bytes[mid] ^= 0x40;
+    std::fs::write(&domain, &bytes).unwrap();
+    let err = rayfarm_err(&args(sc, out));
+    assert!(err.contains("domain-00002.rfd") && err.contains("corrupt"), "{err}");
+    // Truncated.
+    std::fs::write(&domain, &bytes[..100]).unwrap();
+    let err = rayfarm_err(&args(sc, out));
+    assert!(err.contains("domain-00002.rfd") && err.contains("truncated"), "{err}");
+
+    // A manifest that does not parse, and one that lies about its domains.
+    let manifest = scene.join("scene.toml");
+    let text = std::fs::read_to_string(&manifest).unwrap();
+    std::fs::write(&manifest, text.replace("[camera]", "[camera")).unwrap();
+    let err = rayfarm_err(&args(sc, out));
+    assert!(err.contains("scene.toml") && err.contains("malformed manifest"), "{err}");
+    std::fs::write(&manifest, text.replace("domain = 3", "domain = 7")).unwrap();
+    let err = rayfarm_err(&args(sc, out));
+    assert!(err.contains("malformed manifest") && err.contains("domain 7"), "{err}");
+}

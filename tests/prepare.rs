@@ -1,0 +1,60 @@
+//! `rayfarm prepare`: errors name the file and place and leave nothing behind; the generator
+//! stays under its memory bound however large the scene.
+
+use std::process::Command;
+
+use rayfarm_tests::{bin, rayfarm_err, rayfarm_ok, s};
+
+#[test]
+fn bad_inputs_name_the_file_and_leave_nothing_behind() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("scene");
+    let bad = tmp.path().join("broken.ply");
+    std::fs::write(&bad, "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0\n").unwrap();
+    let err = rayfarm_err(&["prepare", s(&bad), "--out", s(&out)]);
+    assert!(err.contains("broken.ply") && err.contains("line"), "{err}");
+    assert!(!out.exists(), "a failed prepare must not leave a scene");
+
+    let unknown = tmp.path().join("mesh.xyz");
+    std::fs::write(&unknown, "1 2 3").unwrap();
+    let err = rayfarm_err(&["prepare", s(&unknown), "--out", s(&out)]);
+    assert!(err.contains("mesh.xyz"), "{err}");
+
+    let err = rayfarm_err(&["prepare", s(&tmp.path().join("missing.obj")), "--out", s(&out)]);
+    assert!(err.contains("missing.obj"), "{err}");
+    assert!(!out.exists());
+    // Nothing staged is left either.
+    assert_eq!(std::fs::read_dir(tmp.path()).unwrap().count(), 2, "only the two inputs remain");
+
+    rayfarm_ok(&["prepare", "--generate", "nbody", "--triangles", "5000", "--out", s(&out)]);
+    let err = rayfarm_err(&["prepare", "--generate", "nbody", "--triangles", "5000", "--out", s(&out)]);
+    assert!(err.contains("already exists"), "{err}");
+}
+
+#[test]
+fn generator_peak_memory_stays_under_max_memory_for_a_scene_four_times_larger() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("big");
+    let limit: u64 = 112 << 20;
+    let output = Command::new("/usr/bin/time")
+        .arg("-v")
+        .arg(bin("rayfarm"))
+        .args(["prepare", "--generate", "nbody", "--triangles", "6000000", "--domains", "8"])
+        .args(["--max-memory", &limit.to_string(), "--out", s(&out)])
+        .output()
+        .expect("/usr/bin/time is needed for this test (Debian package `time`)");
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{stderr}");
+    let peak_kib: u64 = stderr
+        .lines()
+        .find_map(|l| l.trim().strip_prefix("Maximum resident set size (kbytes):"))
+        .and_then(|v| v.trim().parse().ok())
+        .expect("time -v reports the peak RSS");
+    let total: u64 = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().metadata().unwrap().len())
+        .sum();
+    eprintln!("scene {} MiB on disk, peak RSS {} MiB, bound {} MiB", total >> 20, peak_kib >> 10, limit >> 20);
+    assert!(total > 4 * limit, "the scene ({total} bytes) must exceed 4x the bound");
+    assert!(peak_kib * 1024 < limit, "peak RSS {peak_kib} KiB is over the bound");
+}
