@@ -8,7 +8,10 @@ use std::process::{Command, Output};
 pub fn bin(name: &str) -> PathBuf {
     let exe = std::env::current_exe().expect("test executable path");
     // target/<profile>/deps/<test> -> target/<profile>/<name>
-    let dir = exe.parent().and_then(Path::parent).expect("target directory");
+    let dir = exe
+        .parent()
+        .and_then(Path::parent)
+        .expect("target directory");
     let path = dir.join(name);
     assert!(
         path.exists(),
@@ -63,7 +66,10 @@ pub fn stats_field(path: &Path, pointer: &str) -> serde_json::Value {
 
 /// xxh3 of a file's bytes, in hex.
 pub fn file_hash(path: &Path) -> String {
-    format!("{:016x}", xxhash_rust::xxh3::xxh3_64(&std::fs::read(path).expect("read file")))
+    format!(
+        "{:016x}",
+        xxhash_rust::xxh3::xxh3_64(&std::fs::read(path).expect("read file"))
+    )
 }
 
 /// `p` as a `&str` for argument lists.

@@ -8,8 +8,17 @@ use rayfarm_tests::{file_hash, rayfarm_err, rayfarm_ok, s, stats_field};
 fn generate(dir: &Path, domains: u32) -> PathBuf {
     let out = dir.join(format!("nbody-{domains}"));
     rayfarm_ok(&[
-        "prepare", "--generate", "nbody", "--triangles", "20000", "--seed", "3",
-        "--domains", &domains.to_string(), "--out", s(&out),
+        "prepare",
+        "--generate",
+        "nbody",
+        "--triangles",
+        "20000",
+        "--seed",
+        "3",
+        "--domains",
+        &domains.to_string(),
+        "--out",
+        s(&out),
     ]);
     out
 }
@@ -24,12 +33,33 @@ fn render(scene: &Path, out_dir: &Path, threads: u32, cache: &str, tag: &str) ->
     let png = out_dir.join(format!("{tag}.png"));
     let json = out_dir.join(format!("{tag}.json"));
     rayfarm_ok(&[
-        "render", "--local", "--scene", s(scene), "--out", s(&png), "--width", "96", "--height",
-        "72", "--spp", "2", "--depth", "3", "--threads", &threads.to_string(), "--cache-bytes",
-        cache, "--stats-json", s(&json), "--quiet",
+        "render",
+        "--local",
+        "--scene",
+        s(scene),
+        "--out",
+        s(&png),
+        "--width",
+        "96",
+        "--height",
+        "72",
+        "--spp",
+        "2",
+        "--depth",
+        "3",
+        "--threads",
+        &threads.to_string(),
+        "--cache-bytes",
+        cache,
+        "--stats-json",
+        s(&json),
+        "--quiet",
     ]);
     Rendered {
-        hash: stats_field(&json, "/image_hash").as_str().unwrap().to_string(),
+        hash: stats_field(&json, "/image_hash")
+            .as_str()
+            .unwrap()
+            .to_string(),
         png: file_hash(&png),
         loads: stats_field(&json, "/cache/loads").as_u64().unwrap(),
     }
@@ -44,13 +74,28 @@ fn generated_scene_renders_identically_at_1_8_and_64_domains_any_threads_any_cac
         for threads in [1, 2] {
             // "1" byte holds one domain at a time; 1GiB holds them all.
             for cache in ["1", "1GiB"] {
-                let r = render(&scene, tmp.path(), threads, cache, &format!("d{domains}t{threads}c{cache}"));
-                assert_eq!(r.hash, reference.hash, "{domains} domains, {threads} threads, cache {cache}");
+                let r = render(
+                    &scene,
+                    tmp.path(),
+                    threads,
+                    cache,
+                    &format!("d{domains}t{threads}c{cache}"),
+                );
+                assert_eq!(
+                    r.hash, reference.hash,
+                    "{domains} domains, {threads} threads, cache {cache}"
+                );
                 assert_eq!(r.png, reference.png);
                 if cache == "1GiB" {
-                    assert_eq!(r.loads, domains as u64, "a cache holding the scene loads each domain once");
+                    assert_eq!(
+                        r.loads, domains as u64,
+                        "a cache holding the scene loads each domain once"
+                    );
                 } else {
-                    assert!(r.loads > domains as u64, "a one-domain cache must reload domains");
+                    assert!(
+                        r.loads > domains as u64,
+                        "a one-domain cache must reload domains"
+                    );
                 }
             }
         }
@@ -64,8 +109,15 @@ fn write_ply(path: &Path) {
     let (nu, nv) = (48, 24);
     for j in 0..=nv {
         for i in 0..nu {
-            let (th, ph) = (j as f32 / nv as f32 * std::f32::consts::PI, i as f32 / nu as f32 * std::f32::consts::TAU);
-            verts.push([ph.cos() * th.sin() * 0.4 + 0.5, th.cos() * 0.4 + 0.5, ph.sin() * th.sin() * 0.4 + 0.5]);
+            let (th, ph) = (
+                j as f32 / nv as f32 * std::f32::consts::PI,
+                i as f32 / nu as f32 * std::f32::consts::TAU,
+            );
+            verts.push([
+                ph.cos() * th.sin() * 0.4 + 0.5,
+                th.cos() * 0.4 + 0.5,
+                ph.sin() * th.sin() * 0.4 + 0.5,
+            ]);
         }
     }
     for j in 0..nv {
@@ -77,7 +129,12 @@ fn write_ply(path: &Path) {
         }
     }
     let f = verts.len();
-    verts.extend([[-1.0, 0.05, -1.0], [2.0, 0.05, -1.0], [2.0, 0.05, 2.0], [-1.0, 0.05, 2.0]]);
+    verts.extend([
+        [-1.0, 0.05, -1.0],
+        [2.0, 0.05, -1.0],
+        [2.0, 0.05, 2.0],
+        [-1.0, 0.05, 2.0],
+    ]);
     faces.push([f, f + 2, f + 1]);
     faces.push([f, f + 3, f + 2]);
     let mut text = format!(
@@ -102,7 +159,14 @@ fn mesh_scene_renders_identically_at_1_8_and_64_domains() {
     let mut hashes = Vec::new();
     for domains in [1, 8, 64] {
         let out = tmp.path().join(format!("sphere-{domains}"));
-        rayfarm_ok(&["prepare", s(&ply), "--domains", &domains.to_string(), "--out", s(&out)]);
+        rayfarm_ok(&[
+            "prepare",
+            s(&ply),
+            "--domains",
+            &domains.to_string(),
+            "--out",
+            s(&out),
+        ]);
         hashes.push(render(&out, tmp.path(), 2, "1", &format!("m{domains}")).hash);
     }
     assert_eq!(hashes[0], hashes[1]);
@@ -110,7 +174,10 @@ fn mesh_scene_renders_identically_at_1_8_and_64_domains() {
 }
 
 fn args<'a>(scene: &'a str, out: &'a str) -> Vec<&'a str> {
-    vec!["render", "--local", "--scene", scene, "--out", out, "--width", "32", "--height", "24", "--spp", "1", "--quiet"]
+    vec![
+        "render", "--local", "--scene", scene, "--out", out, "--width", "32", "--height", "24",
+        "--spp", "1", "--quiet",
+    ]
 }
 
 #[test]
@@ -128,14 +195,20 @@ fn bad_scenes_and_frames_get_clear_errors() {
         ("--depth", "1000", "depth 1000"),
     ] {
         let mut a = args(sc, out);
-        a.extend([flag, value]);
+        match a.iter().position(|x| *x == flag) {
+            Some(i) => a[i + 1] = value,
+            None => a.extend([flag, value]),
+        }
         let err = rayfarm_err(&a);
         assert!(err.contains(expect), "{flag} {value}: {err}");
     }
     let err = rayfarm_err(&args(sc, s(&tmp.path().join("x.gif"))));
     assert!(err.contains("unknown image format"), "{err}");
     let err = rayfarm_err(&args(s(&tmp.path().join("nowhere")), out));
-    assert!(err.contains("nowhere") && err.contains("scene.toml"), "{err}");
+    assert!(
+        err.contains("nowhere") && err.contains("scene.toml"),
+        "{err}"
+    );
 
     // A flipped byte deep in a domain: the checksum names the file.
     let domain = scene.join("domain-00002.rfd");
@@ -144,19 +217,31 @@ fn bad_scenes_and_frames_get_clear_errors() {
     bytes[mid] ^= 0x40;
     std::fs::write(&domain, &bytes).unwrap();
     let err = rayfarm_err(&args(sc, out));
-    assert!(err.contains("domain-00002.rfd") && err.contains("corrupt"), "{err}");
+    assert!(
+        err.contains("domain-00002.rfd") && err.contains("corrupt"),
+        "{err}"
+    );
     // Truncated.
     std::fs::write(&domain, &bytes[..100]).unwrap();
     let err = rayfarm_err(&args(sc, out));
-    assert!(err.contains("domain-00002.rfd") && err.contains("truncated"), "{err}");
+    assert!(
+        err.contains("domain-00002.rfd") && err.contains("truncated"),
+        "{err}"
+    );
 
     // A manifest that does not parse, and one that lies about its domains.
     let manifest = scene.join("scene.toml");
     let text = std::fs::read_to_string(&manifest).unwrap();
     std::fs::write(&manifest, text.replace("[camera]", "[camera")).unwrap();
     let err = rayfarm_err(&args(sc, out));
-    assert!(err.contains("scene.toml") && err.contains("malformed manifest"), "{err}");
+    assert!(
+        err.contains("scene.toml") && err.contains("malformed manifest"),
+        "{err}"
+    );
     std::fs::write(&manifest, text.replace("domain = 3", "domain = 7")).unwrap();
     let err = rayfarm_err(&args(sc, out));
-    assert!(err.contains("malformed manifest") && err.contains("domain 7"), "{err}");
+    assert!(
+        err.contains("malformed manifest") && err.contains("domain 7"),
+        "{err}"
+    );
 }

@@ -20,14 +20,39 @@ fn bad_inputs_name_the_file_and_leave_nothing_behind() {
     let err = rayfarm_err(&["prepare", s(&unknown), "--out", s(&out)]);
     assert!(err.contains("mesh.xyz"), "{err}");
 
-    let err = rayfarm_err(&["prepare", s(&tmp.path().join("missing.obj")), "--out", s(&out)]);
+    let err = rayfarm_err(&[
+        "prepare",
+        s(&tmp.path().join("missing.obj")),
+        "--out",
+        s(&out),
+    ]);
     assert!(err.contains("missing.obj"), "{err}");
     assert!(!out.exists());
     // Nothing staged is left either.
-    assert_eq!(std::fs::read_dir(tmp.path()).unwrap().count(), 2, "only the two inputs remain");
+    assert_eq!(
+        std::fs::read_dir(tmp.path()).unwrap().count(),
+        2,
+        "only the two inputs remain"
+    );
 
-    rayfarm_ok(&["prepare", "--generate", "nbody", "--triangles", "5000", "--out", s(&out)]);
-    let err = rayfarm_err(&["prepare", "--generate", "nbody", "--triangles", "5000", "--out", s(&out)]);
+    rayfarm_ok(&[
+        "prepare",
+        "--generate",
+        "nbody",
+        "--triangles",
+        "5000",
+        "--out",
+        s(&out),
+    ]);
+    let err = rayfarm_err(&[
+        "prepare",
+        "--generate",
+        "nbody",
+        "--triangles",
+        "5000",
+        "--out",
+        s(&out),
+    ]);
     assert!(err.contains("already exists"), "{err}");
 }
 
@@ -35,11 +60,19 @@ fn bad_inputs_name_the_file_and_leave_nothing_behind() {
 fn generator_peak_memory_stays_under_max_memory_for_a_scene_four_times_larger() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("big");
-    let limit: u64 = 112 << 20;
+    let limit: u64 = 96 << 20;
     let output = Command::new("/usr/bin/time")
         .arg("-v")
         .arg(bin("rayfarm"))
-        .args(["prepare", "--generate", "nbody", "--triangles", "6000000", "--domains", "8"])
+        .args([
+            "prepare",
+            "--generate",
+            "nbody",
+            "--triangles",
+            "7000000",
+            "--domains",
+            "8",
+        ])
         .args(["--max-memory", &limit.to_string(), "--out", s(&out)])
         .output()
         .expect("/usr/bin/time is needed for this test (Debian package `time`)");
@@ -54,7 +87,18 @@ fn generator_peak_memory_stays_under_max_memory_for_a_scene_four_times_larger() 
         .unwrap()
         .map(|e| e.unwrap().metadata().unwrap().len())
         .sum();
-    eprintln!("scene {} MiB on disk, peak RSS {} MiB, bound {} MiB", total >> 20, peak_kib >> 10, limit >> 20);
-    assert!(total > 4 * limit, "the scene ({total} bytes) must exceed 4x the bound");
-    assert!(peak_kib * 1024 < limit, "peak RSS {peak_kib} KiB is over the bound");
+    eprintln!(
+        "scene {} MiB on disk, peak RSS {} MiB, bound {} MiB",
+        total >> 20,
+        peak_kib >> 10,
+        limit >> 20
+    );
+    assert!(
+        total > 4 * limit,
+        "the scene ({total} bytes) must exceed 4x the bound"
+    );
+    assert!(
+        peak_kib * 1024 < limit,
+        "peak RSS {peak_kib} KiB is over the bound"
+    );
 }

@@ -9,17 +9,29 @@ use crate::units::human;
 pub fn stats_table(s: &RenderStats) -> Table {
     let r = &s.rays;
     let rows: Vec<(&str, String)> = vec![
-        ("image", format!("{}x{}, {} spp, depth {}", s.width, s.height, s.spp, s.max_depth)),
+        (
+            "image",
+            format!(
+                "{}x{}, {} spp, depth {}",
+                s.width, s.height, s.spp, s.max_depth
+            ),
+        ),
         ("wall time", format!("{:.3} s", s.wall_seconds)),
         ("threads", s.threads.to_string()),
         ("camera rays", r.primary_rays.to_string()),
         ("shadow rays", r.shadow_rays.to_string()),
         ("bounce rays (diffuse, glossy)", r.bounce_rays.to_string()),
         ("reflection rays (mirror)", r.reflection_rays.to_string()),
-        ("segments traced (radiance / shadow)", format!("{} / {}", r.radiance_segments, r.shadow_segments)),
+        (
+            "segments traced (radiance / shadow)",
+            format!("{} / {}", r.radiance_segments, r.shadow_segments),
+        ),
         ("rays forwarded between domains", r.forwarded.to_string()),
         ("rays/s (segments)", format!("{:.3} M", s.rays_per_s / 1e6)),
-        ("rays/s per core", format!("{:.3} M", s.rays_per_s_per_core / 1e6)),
+        (
+            "rays/s per core",
+            format!("{:.3} M", s.rays_per_s_per_core / 1e6),
+        ),
         ("domains", s.domains.to_string()),
         ("domain loads", s.cache.loads.to_string()),
         ("bytes loaded", human(s.cache.bytes_loaded)),
@@ -29,7 +41,8 @@ pub fn stats_table(s: &RenderStats) -> Table {
         ("image hash", s.image_hash.clone()),
     ];
     let mut t = Table::new();
-    t.load_preset(UTF8_FULL_CONDENSED).set_header(vec!["statistic", "value"]);
+    t.load_preset(UTF8_FULL_CONDENSED)
+        .set_header(vec!["statistic", "value"]);
     for (k, v) in rows {
         t.add_row(vec![k.to_string(), v]);
     }

@@ -48,8 +48,7 @@ pub fn build(triangles: &mut Vec<PackedTriangle>) -> Vec<BvhNode> {
     let mut params = obvhs::BvhBuildParams::medium_build();
     // Spatial pre-splits clip references to sub-boxes; our padding argument needs whole-triangle boxes.
     params.pre_split = false;
-    let bvh =
-        obvhs::bvh2::builder::build_bvh2_from_tris(&tris, params, &mut Duration::default());
+    let bvh = obvhs::bvh2::builder::build_bvh2_from_tris(&tris, params, &mut Duration::default());
     drop(tris);
     let reordered: Vec<PackedTriangle> = bvh
         .primitive_indices
@@ -144,7 +143,9 @@ pub fn validate(nodes: &[BvhNode], triangle_count: usize) -> Result<usize, Strin
         if n.count > 0 {
             let end = n.index as usize + n.count as usize;
             if end > triangle_count {
-                return Err(format!("BVH node {i} names triangles up to {end} of {triangle_count}"));
+                return Err(format!(
+                    "BVH node {i} names triangles up to {end} of {triangle_count}"
+                ));
             }
             continue;
         }
@@ -180,9 +181,7 @@ pub fn nearest_hit(
     let mut stack = [0u32; STACK];
     let mut sp = 0usize;
     let mut node = &nodes[0];
-    if ray.slab(node, t0, t1).is_none() {
-        return None;
-    }
+    ray.slab(node, t0, t1)?;
     loop {
         if node.count > 0 {
             let first = node.index as usize;

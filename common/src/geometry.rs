@@ -32,10 +32,8 @@ impl Aabb {
 
     /// Extends the box to hold `p`.
     pub fn grow(&mut self, p: [f32; 3]) {
-        for a in 0..3 {
-            self.min[a] = self.min[a].min(p[a]);
-            self.max[a] = self.max[a].max(p[a]);
-        }
+        self.min = (Vec3::from(self.min).min(Vec3::from(p))).into();
+        self.max = (Vec3::from(self.max).max(Vec3::from(p))).into();
     }
 
     /// Extends the box to hold `other`.

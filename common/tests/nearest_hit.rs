@@ -15,7 +15,9 @@ use rayfarm_common::scene::{DomainData, Manifest};
 fn mesh(seed: u64, n: usize) -> TriangleMesh {
     let mut s = seed;
     let mut next = move || {
-        s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        s = s
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
         ((s >> 40) as f32) / (1u64 << 24) as f32
     };
     let mut m = TriangleMesh::default();
@@ -23,7 +25,8 @@ fn mesh(seed: u64, n: usize) -> TriangleMesh {
         let c = [next(), next(), next()];
         let base = m.positions.len() as u32;
         for _ in 0..3 {
-            m.positions.push([0, 1, 2].map(|a| c[a] + (next() - 0.5) * 0.2));
+            m.positions
+                .push([0, 1, 2].map(|a| c[a] + (next() - 0.5) * 0.2));
         }
         m.triangles.push([base, base + 1, base + 2]);
     }
@@ -32,7 +35,8 @@ fn mesh(seed: u64, n: usize) -> TriangleMesh {
     m.positions.push([0.5, 0.5, 0.5]);
     for k in 0..24 {
         let a = k as f32 / 24.0 * std::f32::consts::TAU;
-        m.positions.push([0.5 + 0.4 * a.cos(), 0.5 + 0.4 * a.sin(), 0.5]);
+        m.positions
+            .push([0.5 + 0.4 * a.cos(), 0.5 + 0.4 * a.sin(), 0.5]);
     }
     for k in 0..24u32 {
         m.triangles.push([hub, hub + 1 + k, hub + 1 + (k + 1) % 24]);
@@ -77,7 +81,14 @@ fn by_domains(s: &Loaded, o: Vec3, d: Vec3) -> Option<(f32, u64)> {
 
 fn whole(s: &Loaded, o: Vec3, d: Vec3) -> Option<(f32, u64)> {
     let data = &s.domains[0];
-    nearest_hit(data.nodes(), data.packed(), &TraceRay::new(o, d), 0.0, f32::INFINITY).map(|h| (h.t, h.id))
+    nearest_hit(
+        data.nodes(),
+        data.packed(),
+        &TraceRay::new(o, d),
+        0.0,
+        f32::INFINITY,
+    )
+    .map(|h| (h.t, h.id))
 }
 
 fn scenes() -> (tempfile::TempDir, Loaded, Vec<Loaded>) {

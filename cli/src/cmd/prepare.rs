@@ -103,7 +103,13 @@ fn name_of(a: &PrepareArgs) -> String {
         a.input
             .as_ref()
             .and_then(|p| p.file_name())
-            .map(|s| s.to_string_lossy().split('.').next().unwrap_or("scene").to_string())
+            .map(|s| {
+                s.to_string_lossy()
+                    .split('.')
+                    .next()
+                    .unwrap_or("scene")
+                    .to_string()
+            })
             .unwrap_or_else(|| "scene".into())
     })
 }

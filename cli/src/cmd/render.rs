@@ -64,14 +64,17 @@ pub fn run(a: RenderArgs) -> anyhow::Result<()> {
         camera: None,
     };
     let options = LocalOptions {
-        threads: a.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())),
+        threads: a
+            .threads
+            .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())),
         cache_bytes: a.cache_bytes,
         wave_rays: a.wave_rays,
     };
     let (film, stats) = render_local(&a.scene, &manifest, &frame, &options)?;
     film.save(&a.out)?;
     if let Some(p) = &a.stats_json {
-        std::fs::write(p, serde_json::to_string_pretty(&stats)?).with_context(|| p.display().to_string())?;
+        std::fs::write(p, serde_json::to_string_pretty(&stats)?)
+            .with_context(|| p.display().to_string())?;
     }
     if !a.quiet {
         println!("{}", stats_table(&stats));

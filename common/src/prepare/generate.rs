@@ -36,10 +36,10 @@ pub struct NbodyOptions {
 /// Particles in the field: fixed, so the scene looks the same at every size.
 const PARTICLES: usize = 20_000;
 /// Peak bytes per triangle while one domain is built (source, packed and obvhs copies, the
-/// BVH builder's work arrays), measured with `/usr/bin/time -v` and rounded up.
-const BUILD_BYTES_PER_TRIANGLE: u64 = 700;
+/// BVH builder's work arrays), measured with `/usr/bin/time -v` (335 MiB peak for one 872k-triangle domain) and rounded up.
+const BUILD_BYTES_PER_TRIANGLE: u64 = 400;
 /// Memory the process needs besides the domain being built.
-const BASE_BYTES: u64 = 48 << 20;
+const BASE_BYTES: u64 = 32 << 20;
 /// Lattice resolution of the coarse pass that estimates where the triangles are.
 const COARSE: u32 = 48;
 
@@ -62,7 +62,10 @@ pub fn prepare_nbody(out: &Path, o: &NbodyOptions) -> Result<Manifest, PrepareEr
     let iso = field.suggested_iso();
     let n = resolution_for_triangles(&field, iso, o.triangles).max(8);
     let grid = Grid::unit_cube(n);
-    let sampled = SampledField { field: &field, grid };
+    let sampled = SampledField {
+        field: &field,
+        grid,
+    };
     let (mut points, surface_cells) = coarse_surface(&field, iso);
     let domains = domains_for_memory(o, n, surface_cells)?;
     let bounds = scene_bounds();
@@ -125,7 +128,11 @@ fn coarse_surface(field: &NbodyField, iso: f32) -> (Vec<([f32; 3], f64)>, u64) {
 }
 
 /// The domain count: as asked, or more if one domain's build would not fit `max_memory`.
-fn domains_for_memory(o: &NbodyOptions, n: u32, coarse_triangles: u64) -> Result<u32, PrepareError> {
+fn domains_for_memory(
+    o: &NbodyOptions,
+    n: u32,
+    coarse_triangles: u64,
+) -> Result<u32, PrepareError> {
     let Some(limit) = o.max_memory else {
         return Ok(o.domains.max(1));
     };
@@ -139,11 +146,14 @@ fn domains_for_memory(o: &NbodyOptions, n: u32, coarse_triangles: u64) -> Result
     let scale = (n as f64 / COARSE as f64).powi(2);
     let estimate = (coarse_triangles as f64 * scale * 1.3) as u64 + 4;
     let per_domain = (limit - BASE_BYTES) / BUILD_BYTES_PER_TRIANGLE;
-    // Balancing is approximate; leave room for a domain twice the average.
-    let needed = (estimate * 2).div_ceil(per_domain.max(1));
+    // Balancing is approximate; leave room for a domain half again the average.
+    let needed = (estimate * 3 / 2).div_ceil(per_domain.max(1));
     let domains = (needed as u32).max(o.domains.max(1));
     if domains > o.domains {
-        info!(asked = o.domains, domains, "more domains to stay under --max-memory");
+        info!(
+            asked = o.domains,
+            domains, "more domains to stay under --max-memory"
+        );
     }
     Ok(domains)
 }
@@ -179,37 +189,76 @@ fn fixed_triangles() -> Vec<SourceTriangle> {
         let (c, u, v) = (Vec3::from(c), Vec3::from(u), Vec3::from(v));
         let p = [c, c + u, c + u + v, c + v].map(<[f32; 3]>::from);
         [
-            SourceTriangle { vertices: [p[0], p[1], p[2]], id: first, material },
-            SourceTriangle { vertices: [p[0], p[2], p[3]], id: first + 1, material },
+            SourceTriangle {
+                vertices: [p[0], p[1], p[2]],
+                id: first,
+                material,
+            },
+            SourceTriangle {
+                vertices: [p[0], p[2], p[3]],
+                id: first + 1,
+                material,
+            },
         ]
     };
     let mut v = Vec::new();
-    v.extend(quad([-0.6, GROUND, -0.6], [0.0, 0.0, 2.2], [2.2, 0.0, 0.0], MAT_GROUND, 0));
-    v.extend(quad([-0.3, GROUND, MIRROR_Z], [1.6, 0.0, 0.0], [0.0, 1.05, 0.0], MAT_MIRROR, 2));
+    v.extend(quad(
+        [-0.6, GROUND, -0.6],
+        [0.0, 0.0, 2.2],
+        [2.2, 0.0, 0.0],
+        MAT_GROUND,
+        0,
+    ));
+    v.extend(quad(
+        [-0.3, GROUND, MIRROR_Z],
+        [1.6, 0.0, 0.0],
+        [0.0, 1.05, 0.0],
+        MAT_MIRROR,
+        2,
+    ));
     v
 }
 
 fn materials() -> Vec<Material> {
     vec![
-        Material::Diffuse { albedo: [0.55, 0.55, 0.52] },
-        Material::Mirror { tint: [0.9, 0.9, 0.95] },
-        Material::Diffuse { albedo: [0.85, 0.5, 0.25] },
-        Material::Diffuse { albedo: [0.3, 0.45, 0.85] },
-        Material::Diffuse { albedo: [0.8, 0.8, 0.75] },
-        Material::Glossy { albedo: [0.75, 0.55, 0.2], specular: 0.4, roughness: 0.12 },
+        Material::Diffuse {
+            albedo: [0.55, 0.55, 0.52],
+        },
+        Material::Mirror {
+            tint: [0.9, 0.9, 0.95],
+        },
+        Material::Diffuse {
+            albedo: [0.85, 0.5, 0.25],
+        },
+        Material::Diffuse {
+            albedo: [0.3, 0.45, 0.85],
+        },
+        Material::Diffuse {
+            albedo: [0.8, 0.8, 0.75],
+        },
+        Material::Glossy {
+            albedo: [0.75, 0.55, 0.2],
+            specular: 0.4,
+            roughness: 0.12,
+        },
     ]
 }
 
 /// Colour by region of space, so a blob keeps its colour at every triangle count.
 fn blob_material(v: &[[f32; 3]; 3]) -> u32 {
     let c = v[0].map(|x| (x * 5.0).floor() as i64 as u64);
-    let h = c[0].wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ c[1].wrapping_mul(0xc2b2_ae3d_27d4_eb4f) ^ c[2].wrapping_mul(0x1656_67b1_9e37_79f9);
+    let h = c[0].wrapping_mul(0x9e37_79b9_7f4a_7c15)
+        ^ c[1].wrapping_mul(0xc2b2_ae3d_27d4_eb4f)
+        ^ c[2].wrapping_mul(0x1656_67b1_9e37_79f9);
     2 + ((h >> 33) % BLOB_MATERIALS as u64) as u32
 }
 
 fn lights() -> Vec<Light> {
     vec![
-        Light::Directional { direction: [0.35, 0.85, 0.4], radiance: [1.0, 0.95, 0.85] },
+        Light::Directional {
+            direction: [0.35, 0.85, 0.4],
+            radiance: [1.0, 0.95, 0.85],
+        },
         Light::Quad {
             corner: [0.1, 1.6, 0.2],
             edge_u: [0.6, 0.0, 0.0],

@@ -3,7 +3,9 @@
 
 use std::path::Path;
 
-use super::{DomainTriangles, PrepareError, SceneSpec, default_lighting, reference_margin, write_scene};
+use super::{
+    DomainTriangles, PrepareError, SceneSpec, default_lighting, reference_margin, write_scene,
+};
 use crate::geometry::Aabb;
 use crate::mesh::TriangleMesh;
 use crate::scene::domain_file::SourceTriangle;
@@ -33,7 +35,9 @@ pub fn prepare_mesh(
             let v = t.map(|k| mesh.positions.get(k as usize).copied());
             match v {
                 [Some(a), Some(b), Some(c)] => Ok([a, b, c]),
-                _ => Err(PrepareError::Invalid(format!("triangle {i} names a missing vertex"))),
+                _ => Err(PrepareError::Invalid(format!(
+                    "triangle {i} names a missing vertex"
+                ))),
             }
         })
         .collect::<Result<_, _>>()?;
@@ -44,7 +48,9 @@ pub fn prepare_mesh(
     for t in &tris {
         for v in t {
             if v.iter().any(|x| !x.is_finite()) {
-                return Err(PrepareError::Invalid("the mesh has a non-finite vertex".into()));
+                return Err(PrepareError::Invalid(
+                    "the mesh has a non-finite vertex".into(),
+                ));
             }
             bounds.grow(*v);
         }

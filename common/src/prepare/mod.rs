@@ -106,7 +106,11 @@ pub fn write_scene(
             triangles += tris.owned;
             let file = format!("domain-{id:05}.rfd");
             let summary = write_domain(&staging.join(&file), id as u32, *b, &tris.triangles)?;
-            info!(triangles = summary.triangles, bytes = summary.bytes, "domain written");
+            info!(
+                triangles = summary.triangles,
+                bytes = summary.bytes,
+                "domain written"
+            );
             domains.push(DomainEntry {
                 file,
                 bounds: *b,

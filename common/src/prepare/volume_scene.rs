@@ -23,9 +23,15 @@ pub fn prepare_volume(
     domains: u32,
     force: bool,
 ) -> Result<Manifest, PrepareError> {
-    let volume = RawVolume::open(input, dims, dtype)
-        .map_err(|e| PrepareError::Invalid(e.to_string()))?;
-    let longest = dims.iter().copied().max().unwrap_or(1).saturating_sub(1).max(1);
+    let volume =
+        RawVolume::open(input, dims, dtype).map_err(|e| PrepareError::Invalid(e.to_string()))?;
+    let longest = dims
+        .iter()
+        .copied()
+        .max()
+        .unwrap_or(1)
+        .saturating_sub(1)
+        .max(1);
     let grid = Grid {
         origin: Vec3::ZERO,
         spacing: Vec3::splat(1.0 / longest as f32),

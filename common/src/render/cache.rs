@@ -37,7 +37,11 @@ pub struct DomainCache {
 
 impl DomainCache {
     /// A cache for the scene in `dir` holding at most `budget` bytes of domains.
-    pub fn new(dir: impl Into<PathBuf>, manifest: &Manifest, budget: u64) -> Result<Self, SceneError> {
+    pub fn new(
+        dir: impl Into<PathBuf>,
+        manifest: &Manifest,
+        budget: u64,
+    ) -> Result<Self, SceneError> {
         let dir = dir.into();
         let files = manifest
             .domains
@@ -65,7 +69,9 @@ impl DomainCache {
 
     /// Whether `domain` is mapped now.
     pub fn is_resident(&self, domain: u32) -> bool {
-        self.resident.get(domain as usize).is_some_and(|r| r.is_some())
+        self.resident
+            .get(domain as usize)
+            .is_some_and(|r| r.is_some())
     }
 
     /// The domain, mapping it (and evicting others) if needed. Its checksum is verified the
@@ -90,7 +96,10 @@ impl DomainCache {
         if data.bytes() != *expected_bytes {
             return Err(SceneError::Domain {
                 path,
-                reason: format!("is {} bytes, the manifest says {expected_bytes}", data.bytes()),
+                reason: format!(
+                    "is {} bytes, the manifest says {expected_bytes}",
+                    data.bytes()
+                ),
             });
         }
         self.verified[i] = true;
@@ -99,7 +108,8 @@ impl DomainCache {
         self.resident_bytes += bytes;
         self.counters.loads += 1;
         self.counters.bytes_loaded += bytes;
-        self.counters.peak_resident_bytes = self.counters.peak_resident_bytes.max(self.resident_bytes);
+        self.counters.peak_resident_bytes =
+            self.counters.peak_resident_bytes.max(self.resident_bytes);
         debug!(bytes, resident = self.resident_bytes, "domain loaded");
         let data = Arc::new(data);
         self.resident[i] = Some(data.clone());

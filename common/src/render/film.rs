@@ -13,7 +13,10 @@ const MAX_CONTRIBUTION: f64 = 1.0e6;
 #[inline]
 pub fn to_fixed(v: f32) -> i64 {
     if v.is_finite() && v > 0.0 {
-        (v as f64).min(MAX_CONTRIBUTION).mul_add(FIXED_ONE, 0.5).floor() as i64
+        (v as f64)
+            .min(MAX_CONTRIBUTION)
+            .mul_add(FIXED_ONE, 0.5)
+            .floor() as i64
     } else {
         0
     }
@@ -90,7 +93,10 @@ impl Film {
 
     /// The raw sums, three per pixel.
     pub fn fixed_sums(&self) -> Vec<i64> {
-        self.sums.iter().map(|c| c.load(Ordering::Relaxed)).collect()
+        self.sums
+            .iter()
+            .map(|c| c.load(Ordering::Relaxed))
+            .collect()
     }
 
     /// xxh3-64 of the fixed-point sums: two renders agree to the bit iff their hashes agree.

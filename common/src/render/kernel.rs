@@ -298,7 +298,11 @@ impl SceneView {
                     if cos <= 0.0 {
                         continue;
                     }
-                    (l, f32::INFINITY, Vec3::from(radiance) * cos * std::f32::consts::PI)
+                    (
+                        l,
+                        f32::INFINITY,
+                        Vec3::from(radiance) * cos * std::f32::consts::PI,
+                    )
                 }
                 Light::Quad {
                     corner,
@@ -307,8 +311,20 @@ impl SceneView {
                     emission,
                 } => {
                     let (eu, ev) = (Vec3::from(edge_u), Vec3::from(edge_v));
-                    let su = uniform(ray.pixel, ray.sample, ray.depth as u32, Purpose::LightU, i as u32);
-                    let sv = uniform(ray.pixel, ray.sample, ray.depth as u32, Purpose::LightV, i as u32);
+                    let su = uniform(
+                        ray.pixel,
+                        ray.sample,
+                        ray.depth as u32,
+                        Purpose::LightU,
+                        i as u32,
+                    );
+                    let sv = uniform(
+                        ray.pixel,
+                        ray.sample,
+                        ray.depth as u32,
+                        Purpose::LightV,
+                        i as u32,
+                    );
                     let q = Vec3::from(corner) + eu * su + ev * sv;
                     let to = q - origin;
                     let dist2 = to.length_squared();

@@ -121,7 +121,13 @@ fn render_in_pool(
     options: &LocalOptions,
 ) -> Result<(Film, RenderStats), RenderError> {
     let start = Instant::now();
-    let _span = info_span!("render_local", width = frame.width, height = frame.height, spp = frame.spp).entered();
+    let _span = info_span!(
+        "render_local",
+        width = frame.width,
+        height = frame.height,
+        spp = frame.spp
+    )
+    .entered();
     let view = SceneView::new(manifest, frame.max_depth as u16);
     let camera = PinholeCamera::new(
         frame.camera.as_ref().unwrap_or(&manifest.camera),
@@ -196,7 +202,12 @@ fn render_in_pool(
         peak_rss_bytes: peak_rss_bytes(),
         image_hash: format!("{:016x}", film.hash()),
     };
-    info!(wall, segments = counters.segments(), loads = stats.cache.loads, "frame done");
+    info!(
+        wall,
+        segments = counters.segments(),
+        loads = stats.cache.loads,
+        "frame done"
+    );
     Ok((film, stats))
 }
 

@@ -223,7 +223,10 @@ impl DomainData {
             (header.triangle_count, 4),
             (header.triangle_count, 8),
             (header.node_count, std::mem::size_of::<BvhNode>() as u64),
-            (header.packed_count, std::mem::size_of::<PackedTriangle>() as u64),
+            (
+                header.packed_count,
+                std::mem::size_of::<PackedTriangle>() as u64,
+            ),
         ];
         let mut sections: [Range<usize>; 6] = Default::default();
         for (k, (count, size)) in sizes.iter().enumerate() {
@@ -232,7 +235,12 @@ impl DomainData {
                 .checked_mul(*size)
                 .and_then(|n| n.checked_add(start))
                 .filter(|&e| e <= map.len() as u64 && start >= HEADER_BYTES as u64)
-                .ok_or_else(|| bad(format!("section {k} lies outside the {} byte file", map.len())))?;
+                .ok_or_else(|| {
+                    bad(format!(
+                        "section {k} lies outside the {} byte file",
+                        map.len()
+                    ))
+                })?;
             if start % ALIGN != 0 {
                 return Err(bad(format!("section {k} is not {ALIGN}-byte aligned")));
             }
@@ -249,7 +257,8 @@ impl DomainData {
         if let Some(t) = data.packed().iter().find(|t| t.material >= materials) {
             return Err(bad(format!(
                 "triangle {} names material {} of {materials}",
-                t.id(), t.material
+                t.id(),
+                t.material
             )));
         }
         Ok(data)
@@ -331,7 +340,9 @@ pub fn parse_domain_bytes(bytes: &[u8], materials: u32) -> Result<DomainData, Sc
     let mut map = memmap2::MmapMut::map_anon(bytes.len().max(1))
         .map_err(|e| SceneError::io("<memory>", e))?;
     map[..bytes.len()].copy_from_slice(bytes);
-    let map = map.make_read_only().map_err(|e| SceneError::io("<memory>", e))?;
+    let map = map
+        .make_read_only()
+        .map_err(|e| SceneError::io("<memory>", e))?;
     // The checksum is still verified against the contents; only the manifest is absent.
     let checksum = parse_header(bytes).map(|h| h.checksum).unwrap_or(0);
     DomainData::from_map(map, Path::new("<memory>"), checksum, true, materials)

@@ -177,14 +177,16 @@ impl Manifest {
             return Err("ray_epsilon must be a finite non-negative number".into());
         }
         let c = &self.camera;
-        if !(finite(&c.eye) && finite(&c.look_at) && finite(&c.up))
-            || !(c.fov_y_degrees > 0.0 && c.fov_y_degrees < 180.0)
-        {
+        let fov_ok = c.fov_y_degrees > 0.0 && c.fov_y_degrees < 180.0;
+        if !(finite(&c.eye) && finite(&c.look_at) && finite(&c.up) && fov_ok) {
             return Err("camera has non-finite vectors or a field of view outside (0, 180)".into());
         }
         for (i, d) in self.domains.iter().enumerate() {
             if d.file.is_empty() || d.file.contains('/') || d.file.contains("..") {
-                return Err(format!("domain {i}: file name {:?} must be a plain name", d.file));
+                return Err(format!(
+                    "domain {i}: file name {:?} must be a plain name",
+                    d.file
+                ));
             }
             if u64::from_str_radix(&d.checksum, 16).is_err() {
                 return Err(format!("domain {i}: checksum {:?} is not hex", d.checksum));

@@ -147,7 +147,13 @@ impl DomainTree {
                     position,
                     below,
                     above,
-                } => i = if p[axis as usize] < position { below } else { above } as usize,
+                } => {
+                    i = if p[axis as usize] < position {
+                        below
+                    } else {
+                        above
+                    } as usize
+                }
                 KdNode::Leaf { domain } => return domain,
             }
         }
@@ -288,7 +294,13 @@ fn split(
 }
 
 /// The part of `[t_min, t_max]` in which the ray is inside `b`.
-pub fn clip_to_box(b: &Aabb, origin: Vec3, dir: Vec3, t_min: f32, t_max: f32) -> Option<(f32, f32)> {
+pub fn clip_to_box(
+    b: &Aabb,
+    origin: Vec3,
+    dir: Vec3,
+    t_min: f32,
+    t_max: f32,
+) -> Option<(f32, f32)> {
     let (mut lo, mut hi) = (t_min, t_max);
     for a in 0..3 {
         let (o, d) = (origin[a], dir[a]);
@@ -316,7 +328,10 @@ mod tests {
         for i in 0..n {
             for j in 0..n {
                 for k in 0..n {
-                    v.push(([i as f32, j as f32, k as f32].map(|x| (x + 0.5) / n as f32), 1.0));
+                    v.push((
+                        [i as f32, j as f32, k as f32].map(|x| (x + 0.5) / n as f32),
+                        1.0,
+                    ));
                 }
             }
         }
@@ -340,10 +355,18 @@ mod tests {
             for b in &boxes {
                 let inside = pts
                     .iter()
-                    .filter(|p| (0..3).all(|a| p.0[a] >= b.min[a] && p.0[a] < b.max[a].max(if b.max[a] == 1.0 { 2.0 } else { 0.0 })))
+                    .filter(|p| {
+                        (0..3).all(|a| {
+                            p.0[a] >= b.min[a]
+                                && p.0[a] < b.max[a].max(if b.max[a] == 1.0 { 2.0 } else { 0.0 })
+                        })
+                    })
                     .count();
                 let ideal = pts.len() as f64 / n as f64;
-                assert!((inside as f64 - ideal).abs() <= ideal * 0.5 + 1.0, "{n}: {inside} vs {ideal}");
+                assert!(
+                    (inside as f64 - ideal).abs() <= ideal * 0.5 + 1.0,
+                    "{n}: {inside} vs {ideal}"
+                );
             }
         }
     }
@@ -352,7 +375,12 @@ mod tests {
     fn walk_intervals_are_contiguous_and_in_order() {
         let mut pts = grid_points(6);
         let t = DomainTree::balanced(unit(), &mut pts, 27);
-        let dirs = [[1.0, 0.3, 0.2], [-0.2, 1.0, -0.7], [0.0, 0.0, -1.0], [0.5, -0.5, 0.0]];
+        let dirs = [
+            [1.0, 0.3, 0.2],
+            [-0.2, 1.0, -0.7],
+            [0.0, 0.0, -1.0],
+            [0.5, -0.5, 0.0],
+        ];
         for d in dirs {
             let origin = Vec3::new(0.5, 0.5, 0.5) - Vec3::from(d) * 3.0;
             let mut last: Option<f32> = None;
@@ -372,7 +400,15 @@ mod tests {
 
     #[test]
     fn check_rejects_cycles_and_missing_domains() {
-        let cyc = vec![KdNode::Split { axis: 0, position: 0.5, below: 0, above: 1 }, KdNode::Leaf { domain: 0 }];
+        let cyc = vec![
+            KdNode::Split {
+                axis: 0,
+                position: 0.5,
+                below: 0,
+                above: 1,
+            },
+            KdNode::Leaf { domain: 0 },
+        ];
         assert!(DomainTree::check(&cyc, 1).is_err());
         let missing = vec![KdNode::Leaf { domain: 0 }];
         assert!(DomainTree::check(&missing, 2).is_err());
