@@ -78,28 +78,39 @@ pub struct TraceRay {
     origin: Vec3,
     dir: Vec3,
     inv_dir: Vec3,
+    origin_inv: Vec3,
 }
 
 impl TraceRay {
     /// Prepares a ray; `dir` need not be normalised.
     #[inline]
     pub fn new(origin: Vec3, dir: Vec3) -> Self {
-        // A zero component gives an infinite inverse, which the slab test handles; -0.0 keeps its sign.
+        // A zero component would give 0 * inf = NaN in the slab test; a tiny stand-in keeps every
+        // product finite and only moves the (padded) box test, never the triangle test.
+        let safe = |d: f32| {
+            if d.abs() < 1e-30 {
+                1e-30f32.copysign(d)
+            } else {
+                d
+            }
+        };
+        let inv_dir = Vec3::new(safe(dir.x), safe(dir.y), safe(dir.z)).recip();
         TraceRay {
             origin,
             dir,
-            inv_dir: dir.recip(),
+            inv_dir,
+            origin_inv: origin * inv_dir,
         }
     }
 
+    /// Entry distance into the node's box within `[t0, t1]`, or infinity if it is missed.
     #[inline(always)]
-    fn slab(&self, node: &BvhNode, t0: f32, t1: f32) -> Option<f32> {
-        let a = (Vec3::from(node.min) - self.origin) * self.inv_dir;
-        let b = (Vec3::from(node.max) - self.origin) * self.inv_dir;
-        // min/max ignore a NaN operand (0 * inf on a slab face), keeping the other bound.
+    fn slab(&self, node: &BvhNode, t0: f32, t1: f32) -> f32 {
+        let a = Vec3::from(node.min).mul_add(self.inv_dir, -self.origin_inv);
+        let b = Vec3::from(node.max).mul_add(self.inv_dir, -self.origin_inv);
         let near = a.min(b).max_element().max(t0);
         let far = a.max(b).min_element().min(t1);
-        (near <= far).then_some(near)
+        if near <= far { near } else { f32::INFINITY }
     }
 }
 
@@ -174,68 +185,54 @@ pub fn nearest_hit(
         slot: u32::MAX,
         id: u64::MAX,
     };
-    let mut found = false;
-    if nodes.is_empty() {
+    let root = nodes.first()?;
+    if ray.slab(root, t0, t1) == f32::INFINITY {
         return None;
     }
-    let mut stack = [0u32; STACK];
+    // Each entry keeps its entry distance, so a subtree beyond the best hit is skipped unopened.
+    let mut stack = [(0u32, 0f32); STACK];
     let mut sp = 0usize;
-    let mut node = &nodes[0];
-    ray.slab(node, t0, t1)?;
+    let mut node = root;
     loop {
         if node.count > 0 {
             let first = node.index as usize;
             for (k, tri) in tris[first..first + node.count as usize].iter().enumerate() {
-                if let Some(t) = tri.intersect(ray.origin, ray.dir)
-                    && t >= t0
-                    && nearer(t, tri.id(), best.t, best.id)
-                {
+                let t = tri.intersect_t(ray.origin, ray.dir);
+                if t >= t0 && nearer(t, tri.id(), best.t, best.id) {
                     best = Hit {
                         t,
                         slot: (first + k) as u32,
                         id: tri.id(),
                     };
-                    found = true;
                 }
             }
         } else {
-            let l = &nodes[node.index as usize];
-            let r = &nodes[node.index as usize + 1];
+            let i = node.index as usize;
             // Equal distances must still be visited for the id tie-break: compare with <=.
-            let hl = ray.slab(l, t0, best.t);
-            let hr = ray.slab(r, t0, best.t);
-            match (hl, hr) {
-                (Some(dl), Some(dr)) => {
-                    let (near, far) = if dl <= dr {
-                        (node.index, node.index + 1)
-                    } else {
-                        (node.index + 1, node.index)
-                    };
-                    stack[sp] = far;
+            let dl = ray.slab(&nodes[i], t0, best.t);
+            let dr = ray.slab(&nodes[i + 1], t0, best.t);
+            let (near, dn, far, df) = if dl <= dr {
+                (i, dl, i + 1, dr)
+            } else {
+                (i + 1, dr, i, dl)
+            };
+            if dn != f32::INFINITY {
+                if df != f32::INFINITY {
+                    stack[sp] = (far as u32, df);
                     sp += 1;
-                    node = &nodes[near as usize];
-                    continue;
                 }
-                (Some(_), None) => {
-                    node = l;
-                    continue;
-                }
-                (None, Some(_)) => {
-                    node = r;
-                    continue;
-                }
-                (None, None) => {}
+                node = &nodes[near];
+                continue;
             }
         }
-        // Pop the next subtree that can still hold a hit no farther than the best.
         loop {
             if sp == 0 {
-                return found.then_some(best);
+                return (best.slot != u32::MAX).then_some(best);
             }
             sp -= 1;
-            let n = &nodes[stack[sp] as usize];
-            if ray.slab(n, t0, best.t).is_some() {
-                node = n;
+            let (n, d) = stack[sp];
+            if d <= best.t {
+                node = &nodes[n as usize];
                 break;
             }
         }
@@ -259,16 +256,14 @@ pub fn any_hit(
     while sp > 0 {
         sp -= 1;
         let node = &nodes[stack[sp] as usize];
-        if ray.slab(node, t0, t1).is_none() {
+        if ray.slab(node, t0, t1) == f32::INFINITY {
             continue;
         }
         if node.count > 0 {
             let first = node.index as usize;
             for tri in &tris[first..first + node.count as usize] {
-                if let Some(t) = tri.intersect(ray.origin, ray.dir)
-                    && t >= t0
-                    && t <= t1
-                {
+                let t = tri.intersect_t(ray.origin, ray.dir);
+                if t >= t0 && t <= t1 {
                     return true;
                 }
             }

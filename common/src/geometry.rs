@@ -144,26 +144,30 @@ impl PackedTriangle {
     /// at a positive distance. A pure function of the ray and this record.
     #[inline(always)]
     pub fn intersect(&self, origin: Vec3, dir: Vec3) -> Option<f32> {
+        let t = self.intersect_t(origin, dir);
+        (t != f32::INFINITY).then_some(t)
+    }
+
+    /// [`Self::intersect`] without branches on the way: infinity when there is no hit, so
+    /// traversal pays one comparison per triangle instead of three mispredicted ones.
+    #[inline(always)]
+    pub fn intersect_t(&self, origin: Vec3, dir: Vec3) -> f32 {
         let e1 = Vec3::from(self.e1);
         let e2 = Vec3::from(self.e2);
         let p = dir.cross(e2);
         let det = e1.dot(p);
-        if det.abs() < 1e-30 {
-            return None;
-        }
         let inv = 1.0 / det;
         let s = origin - Vec3::from(self.v0);
         let u = s.dot(p) * inv;
-        if !(0.0..=1.0).contains(&u) {
-            return None;
-        }
         let q = s.cross(e1);
         let v = dir.dot(q) * inv;
-        if v < 0.0 || u + v > 1.0 {
-            return None;
-        }
         let t = e2.dot(q) * inv;
-        (t > 0.0).then_some(t)
+        let inside = u >= 0.0 && v >= 0.0 && u + v <= 1.0;
+        if inside & (det.abs() >= 1e-30) & (t > 0.0) {
+            t
+        } else {
+            f32::INFINITY
+        }
     }
 }
 

@@ -1,0 +1,191 @@
+//! Kernel throughput (coherent primary and incoherent diffuse rays, one core), BVH build time,
+//! and domain load time (map vs rebuild), on the built-in scene at 1M triangles in one domain.
+//!
+//! `cargo bench -p rayfarm-common --bench kernel`
+
+use std::hint::black_box;
+use std::path::PathBuf;
+
+use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
+use glam::Vec3;
+use rayfarm_common::bvh::{self, TraceRay};
+use rayfarm_common::camera::PinholeCamera;
+use rayfarm_common::geometry::PackedTriangle;
+use rayfarm_common::prepare::generate::{NbodyOptions, prepare_nbody};
+use rayfarm_common::ray::RayRecord;
+use rayfarm_common::render::kernel::{KernelCounters, RaySink, SceneView};
+use rayfarm_common::sampling::{Purpose, uniform};
+use rayfarm_common::scene::{DomainData, Manifest};
+
+const TRIANGLES: u64 = 1_000_000;
+const SIDE: u32 = 256;
+
+struct Bench {
+    dir: PathBuf,
+    manifest: Manifest,
+    data: DomainData,
+}
+
+fn scene() -> Bench {
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../target/bench-scenes/nbody-1m-1");
+    if Manifest::load(&dir).is_err() {
+        prepare_nbody(
+            &dir,
+            &NbodyOptions {
+                name: "nbody".into(),
+                triangles: TRIANGLES,
+                seed: 1,
+                domains: 1,
+                max_memory: None,
+                force: true,
+            },
+        )
+        .expect("generate the benchmark scene");
+    }
+    let manifest = Manifest::load(&dir).expect("benchmark scene");
+    let data = open(&dir, &manifest, false);
+    Bench {
+        dir,
+        manifest,
+        data,
+    }
+}
+
+fn open(dir: &std::path::Path, m: &Manifest, verify: bool) -> DomainData {
+    let d = &m.domains[0];
+    let sum = u64::from_str_radix(&d.checksum, 16).unwrap();
+    DomainData::open(&dir.join(&d.file), sum, verify, m.materials.len() as u32).unwrap()
+}
+
+fn primary_rays(m: &Manifest) -> Vec<(Vec3, Vec3)> {
+    let cam = PinholeCamera::new(&m.camera, SIDE, SIDE);
+    (0..SIDE * SIDE)
+        .map(|p| {
+            let r = cam.primary(p, 0);
+            (Vec3::from(r.origin), Vec3::from(r.dir))
+        })
+        .collect()
+}
+
+/// From every primary hit, a cosine-distributed direction about the surface normal.
+fn diffuse_rays(b: &Bench, primary: &[(Vec3, Vec3)]) -> Vec<(Vec3, Vec3)> {
+    let (nodes, tris) = (b.data.nodes(), b.data.packed());
+    primary
+        .iter()
+        .enumerate()
+        .filter_map(|(i, &(o, d))| {
+            let hit = bvh::nearest_hit(nodes, tris, &TraceRay::new(o, d), 0.0, f32::INFINITY)?;
+            let mut n = tris[hit.slot as usize].normal();
+            if n.dot(d) > 0.0 {
+                n = -n;
+            }
+            let p = o + d * hit.t + n * 1e-4;
+            let (t, bt) = n.any_orthonormal_pair();
+            let u = uniform(i as u32, 0, 1, Purpose::BounceU, 0);
+            let phi = std::f32::consts::TAU * uniform(i as u32, 0, 1, Purpose::BounceV, 0);
+            let r = u.sqrt();
+            Some((
+                p,
+                (t * r * phi.cos() + bt * r * phi.sin() + n * (1.0 - u).sqrt()).normalize(),
+            ))
+        })
+        .collect()
+}
+
+fn trace_all(b: &Bench, rays: &[(Vec3, Vec3)]) -> usize {
+    let (nodes, tris) = (b.data.nodes(), b.data.packed());
+    rays.iter()
+        .filter(|(o, d)| {
+            bvh::nearest_hit(nodes, tris, &TraceRay::new(*o, *d), 0.0, f32::INFINITY).is_some()
+        })
+        .count()
+}
+
+struct CountSink(usize);
+impl RaySink for CountSink {
+    fn push(&mut self, _: RayRecord) {
+        self.0 += 1;
+    }
+    fn deposit(&mut self, _: &RayRecord, _: [f32; 3]) {
+        self.0 += 1;
+    }
+}
+
+fn kernel(c: &mut Criterion) {
+    let b = scene();
+    let primary = primary_rays(&b.manifest);
+    let diffuse = diffuse_rays(&b, &primary);
+    let mut g = c.benchmark_group("trace_1m_one_core");
+    g.throughput(Throughput::Elements(primary.len() as u64));
+    g.bench_function("coherent_primary", |bch| {
+        bch.iter(|| black_box(trace_all(&b, &primary)))
+    });
+    g.throughput(Throughput::Elements(diffuse.len() as u64));
+    g.bench_function("incoherent_diffuse", |bch| {
+        bch.iter(|| black_box(trace_all(&b, &diffuse)))
+    });
+    // The whole kernel on camera rays: traversal plus shading and spawning children.
+    let view = SceneView::new(&b.manifest, 3);
+    let cam = PinholeCamera::new(&b.manifest.camera, SIDE, SIDE);
+    let records: Vec<RayRecord> = (0..SIDE * SIDE)
+        .map(|p| RayRecord {
+            domain: 0,
+            ..cam.primary(p, 0)
+        })
+        .collect();
+    g.throughput(Throughput::Elements(records.len() as u64));
+    g.bench_function("kernel_primary_with_shading", |bch| {
+        bch.iter(|| {
+            let mut sink = CountSink(0);
+            let mut counters = KernelCounters::default();
+            view.trace(&b.data, &records, &mut sink, &mut counters);
+            black_box(sink.0)
+        })
+    });
+    g.finish();
+}
+
+fn build_and_load(c: &mut Criterion) {
+    let b = scene();
+    let tris: Vec<PackedTriangle> = b.data.packed().to_vec();
+    let mut g = c.benchmark_group("domain_1m");
+    g.sample_size(10);
+    g.throughput(Throughput::Elements(tris.len() as u64));
+    g.bench_function("bvh_build", |bch| {
+        bch.iter(|| {
+            let mut t = tris.clone();
+            black_box(bvh::build(&mut t).len())
+        })
+    });
+    for verify in [false, true] {
+        let name = if verify {
+            "map_and_verify_checksum"
+        } else {
+            "map"
+        };
+        g.bench_with_input(BenchmarkId::new("load", name), &verify, |bch, &v| {
+            bch.iter(|| black_box(open(&b.dir, &b.manifest, v).nodes().len()))
+        });
+    }
+    g.bench_with_input(
+        BenchmarkId::new("load", "read_mesh_and_rebuild"),
+        &(),
+        |bch, _| {
+            bch.iter(|| {
+                let d = open(&b.dir, &b.manifest, false);
+                let (v, mats, ids) = (d.vertices(), d.materials(), d.ids());
+                let mut t: Vec<PackedTriangle> = d
+                    .indices()
+                    .iter()
+                    .zip(mats.iter().zip(ids))
+                    .map(|(ix, (&m, &id))| PackedTriangle::new(&ix.map(|k| v[k as usize]), id, m))
+                    .collect();
+                black_box(bvh::build(&mut t).len())
+            })
+        },
+    );
+    g.finish();
+}
+
+criterion_group!(benches, kernel, build_and_load);
+criterion_main!(benches);

@@ -1,0 +1,488 @@
+//! Benchmark: rayfarm's BVH traversal (`bvh::nearest_hit`) against Embree 3, one core each, on
+//! the same one-domain scene and the same rays, in one run.
+//!
+//! Two ray sets: coherent camera rays (one per pixel of a square image from the manifest's
+//! camera) and incoherent diffuse rays (one cosine-distributed bounce from every camera hit).
+//! Both are closest-hit, each ray over the finite interval the render kernel would give it in
+//! the domain; rays that miss the domain are left out, as a render never traces them. Embree is not a dependency of rayfarm: this example writes the mesh
+//! and the rays to files, runs `bench/embree/embree_trace` on them, and reads its timings and
+//! hits back. `bench/embree/run.sh` builds that program and the scene, then runs this.
+//!
+//! ```text
+//! embree_compare SCENE_DIR --embree PATH [--size N] [--reps N] [--high]
+//! ```
+
+use std::error::Error;
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::ops::ControlFlow;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::Instant;
+
+use bytemuck::{Pod, Zeroable};
+use glam::Vec3;
+use rayfarm_common::bvh::{self, Hit, TraceRay};
+use rayfarm_common::camera::PinholeCamera;
+use rayfarm_common::geometry::PackedTriangle;
+use rayfarm_common::sampling::{Purpose, uniform};
+use rayfarm_common::scene::{DomainData, DomainTree, Manifest};
+use serde_json::{Value, json};
+
+type Result<T> = std::result::Result<T, Box<dyn Error>>;
+
+/// Two tracers agree on a hit when their distances differ by at most this, relatively.
+const T_TOLERANCE: f32 = 1e-4;
+
+/// One ray as both tracers read it (the C++ program's `Ray`).
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct BenchRay {
+    origin: [f32; 3],
+    t_min: f32,
+    dir: [f32; 3],
+    t_max: f32,
+}
+
+/// One result of the C++ program (its `Hit`): `prim` indexes the domain's mesh triangles.
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct EmbreeHit {
+    t: f32,
+    prim: u32,
+}
+
+const EMBREE_MISS: u32 = u32::MAX;
+
+struct Options {
+    scene: PathBuf,
+    embree: PathBuf,
+    size: u32,
+    reps: usize,
+    high: bool,
+}
+
+fn parse_args() -> Result<Options> {
+    let usage = "usage: embree_compare SCENE_DIR --embree PATH [--size N] [--reps N] [--high]";
+    let mut scene = None;
+    let mut embree = None;
+    let mut size = 1024;
+    let mut reps = 5;
+    let mut high = false;
+    let mut args = std::env::args().skip(1);
+    while let Some(a) = args.next() {
+        let mut value = || {
+            args.next()
+                .ok_or_else(|| format!("{a} needs a value\n{usage}"))
+        };
+        match a.as_str() {
+            "--embree" => embree = Some(PathBuf::from(value()?)),
+            "--size" => size = value()?.parse()?,
+            "--reps" => reps = value()?.parse()?,
+            "--high" => high = true,
+            "-h" | "--help" => return Err(usage.into()),
+            s if s.starts_with("--") => return Err(format!("unknown option {s}\n{usage}").into()),
+            _ if scene.is_none() => scene = Some(PathBuf::from(a)),
+            _ => return Err(format!("unexpected argument {a}\n{usage}").into()),
+        }
+    }
+    Ok(Options {
+        scene: scene.ok_or(usage)?,
+        embree: embree.ok_or(usage)?,
+        size,
+        reps: reps.max(1),
+        high,
+    })
+}
+
+/// Seconds per repetition of one tracer over one ray set.
+struct Timing(Vec<f64>);
+
+impl Timing {
+    fn sorted(&self) -> Vec<f64> {
+        let mut s = self.0.clone();
+        s.sort_by(f64::total_cmp);
+        s
+    }
+
+    /// Median throughput: robust to one disturbed repetition on a shared machine.
+    fn median_mrays(&self, rays: usize) -> f64 {
+        let s = self.sorted();
+        rays as f64 / s[s.len() / 2] / 1e6
+    }
+
+    fn best_mrays(&self, rays: usize) -> f64 {
+        rays as f64 / self.sorted()[0] / 1e6
+    }
+}
+
+/// One closest-hit pass of rayfarm's kernel over `rays` on this thread. Preparing each
+/// `TraceRay` is inside the timed loop, as filling each `RTCRayHit` is on the Embree side.
+fn trace_rayfarm(domain: &DomainData, rays: &[BenchRay], hits: &mut Vec<Option<Hit>>) -> f64 {
+    let (nodes, tris) = (domain.nodes(), domain.packed());
+    hits.clear();
+    hits.reserve(rays.len());
+    let start = Instant::now();
+    for r in rays {
+        let ray = TraceRay::new(r.origin.into(), r.dir.into());
+        hits.push(bvh::nearest_hit(nodes, tris, &ray, r.t_min, r.t_max));
+    }
+    start.elapsed().as_secs_f64()
+}
+
+/// The ray limited to the interval the render kernel traces it over in the (only) domain, as
+/// the domain tree's walk gives it; `None` if the ray misses the domain and would never be
+/// traced. Both tracers get the same finite interval.
+fn in_domain(tree: &DomainTree, origin: Vec3, dir: Vec3) -> Option<BenchRay> {
+    let mut interval = None;
+    tree.walk(origin, dir, 0.0, f32::INFINITY, |_, t0, t1| {
+        interval = Some((t0, t1));
+        ControlFlow::Break(())
+    });
+    let (t_min, t_max) = interval?;
+    Some(BenchRay {
+        origin: origin.into(),
+        t_min,
+        dir: dir.into(),
+        t_max,
+    })
+}
+
+/// One camera ray per pixel of a `size` x `size` image; also returns each ray's pixel.
+fn camera_rays(manifest: &Manifest, tree: &DomainTree, size: u32) -> (Vec<BenchRay>, Vec<u32>) {
+    let camera = PinholeCamera::new(&manifest.camera, size, size);
+    (0..size * size)
+        .filter_map(|pixel| {
+            let r = camera.primary(pixel, 0);
+            in_domain(tree, r.origin.into(), r.dir.into()).map(|ray| (ray, pixel))
+        })
+        .unzip()
+}
+
+/// One diffuse bounce from every camera ray that hit, drawn with the same hashed random
+/// numbers a render uses for the first bounce, so the set is deterministic.
+fn diffuse_rays(
+    camera: &[BenchRay],
+    pixels: &[u32],
+    hits: &[Option<Hit>],
+    tris: &[PackedTriangle],
+    tree: &DomainTree,
+    epsilon: f32,
+) -> Vec<BenchRay> {
+    let mut rays = Vec::with_capacity(camera.len());
+    for ((ray, &pixel), hit) in camera.iter().zip(pixels).zip(hits) {
+        let Some(hit) = hit else { continue };
+        let dir = Vec3::from(ray.dir);
+        let p = Vec3::from(ray.origin) + dir * hit.t;
+        let normal = tris[hit.slot as usize].normal();
+        // The geometric normal on the side the ray arrived from.
+        let n = if normal.dot(dir) > 0.0 {
+            -normal
+        } else {
+            normal
+        };
+        // Leave the surface the way the render kernel does (scene epsilon plus a margin
+        // relative to the position), so these are the rays a render would trace.
+        let origin = p + n * (epsilon + p.abs().max_element() * 1e-6);
+        let u = uniform(pixel, 0, 0, Purpose::BounceU, 0);
+        let v = uniform(pixel, 0, 0, Purpose::BounceV, 0);
+        rays.extend(in_domain(tree, origin, cosine_about(n, u, v)));
+    }
+    rays
+}
+
+/// A cosine-distributed unit direction about the unit vector `n`: a uniform point on the unit
+/// disk, lifted onto the hemisphere (Malley's method).
+fn cosine_about(n: Vec3, u: f32, v: f32) -> Vec3 {
+    let (tangent, bitangent) = n.any_orthonormal_pair();
+    let r = u.sqrt();
+    let (sin, cos) = (std::f32::consts::TAU * v).sin_cos();
+    let lift = (1.0 - u).max(0.0).sqrt();
+    (tangent * (r * cos) + bitangent * (r * sin) + n * lift).normalize()
+}
+
+fn write_file(path: &Path, parts: &[&[u8]]) -> Result<()> {
+    let mut f = BufWriter::new(File::create(path)?);
+    for p in parts {
+        f.write_all(p)?;
+    }
+    f.into_inner().map_err(|e| e.into_error())?;
+    Ok(())
+}
+
+fn write_mesh(path: &Path, domain: &DomainData) -> Result<()> {
+    let (v, i) = (domain.vertices(), domain.indices());
+    let counts = [v.len() as u64, i.len() as u64];
+    write_file(
+        path,
+        &[
+            bytemuck::bytes_of(&counts),
+            bytemuck::cast_slice(v),
+            bytemuck::cast_slice(i),
+        ],
+    )
+}
+
+fn write_rays(path: &Path, rays: &[BenchRay]) -> Result<()> {
+    let count = rays.len() as u64;
+    write_file(
+        path,
+        &[bytemuck::bytes_of(&count), bytemuck::cast_slice(rays)],
+    )
+}
+
+/// How often the two tracers agree, and how they differ when they do not.
+#[derive(Default)]
+struct Agreement {
+    rays: usize,
+    /// Both miss, or both hit at distances within `T_TOLERANCE`.
+    agree: usize,
+    /// Both hit something.
+    both_hit: usize,
+    /// Both hit the same scene-wide triangle id.
+    same_triangle: usize,
+    only_rayfarm_hits: usize,
+    only_embree_hits: usize,
+    distance_differs: usize,
+    /// A few disagreements for a person to look at: ray index, rayfarm, Embree.
+    examples: Vec<String>,
+}
+
+impl Agreement {
+    fn fraction(&self) -> f64 {
+        self.agree as f64 / self.rays.max(1) as f64
+    }
+}
+
+fn compare(ours: &[Option<Hit>], theirs: &[EmbreeHit], mesh_ids: &[u64]) -> Agreement {
+    let mut a = Agreement {
+        rays: ours.len(),
+        ..Default::default()
+    };
+    for (k, (o, e)) in ours.iter().zip(theirs).enumerate() {
+        // Embree numbers triangles in mesh order; rayfarm reports scene-wide ids.
+        let e = (e.prim != EMBREE_MISS).then(|| (e.t, mesh_ids[e.prim as usize]));
+        let ok = match (o, e) {
+            (None, None) => true,
+            (Some(_), None) => {
+                a.only_rayfarm_hits += 1;
+                false
+            }
+            (None, Some(_)) => {
+                a.only_embree_hits += 1;
+                false
+            }
+            (Some(h), Some((t, id))) => {
+                a.both_hit += 1;
+                a.same_triangle += usize::from(h.id == id);
+                let close = (h.t - t).abs() <= T_TOLERANCE * h.t.abs().max(t.abs());
+                a.distance_differs += usize::from(!close);
+                close
+            }
+        };
+        a.agree += usize::from(ok);
+        if !ok && a.examples.len() < 3 {
+            let ours = o.map(|h| (h.t, h.id));
+            a.examples
+                .push(format!("ray {k}: rayfarm {ours:?}, embree {e:?}"));
+        }
+    }
+    a
+}
+
+/// Runs the C++ program and returns its JSON line; its stderr passes through.
+fn run_embree(opts: &Options, dir: &Path, sets: &[(&str, &Path)]) -> Result<Value> {
+    let mut cmd = Command::new(&opts.embree);
+    cmd.arg("--reps").arg(opts.reps.to_string());
+    if opts.high {
+        cmd.arg("--high");
+    }
+    cmd.arg(dir.join("mesh.bin")).arg(dir);
+    for (name, path) in sets {
+        cmd.arg(format!("{name}:{}", path.display()));
+    }
+    let out = cmd
+        .stderr(Stdio::inherit())
+        .output()
+        .map_err(|e| format!("{}: {e}", opts.embree.display()))?;
+    if !out.status.success() {
+        return Err(format!("{} failed: {}", opts.embree.display(), out.status).into());
+    }
+    let stdout = String::from_utf8(out.stdout)?;
+    let line = stdout
+        .lines()
+        .rfind(|l| l.starts_with('{'))
+        .ok_or("embree_trace printed no JSON line")?;
+    Ok(serde_json::from_str(line)?)
+}
+
+/// The Embree timing of set `name` in the build of `quality`, if that build ran.
+fn embree_timing(report: &Value, quality: &str, name: &str) -> Option<Timing> {
+    let build = report["builds"]
+        .as_array()?
+        .iter()
+        .find(|b| b["quality"] == quality)?;
+    let set = build["sets"]
+        .as_array()?
+        .iter()
+        .find(|s| s["name"] == name)?;
+    let seconds = set["seconds"].as_array()?.iter().map(Value::as_f64);
+    Some(Timing(seconds.collect::<Option<Vec<f64>>>()?))
+}
+
+/// The machine's load when the run ended: other processes on a 2-core machine skew timings.
+fn load_average() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .ok()
+        .and_then(|s| s.split_whitespace().next().map(str::to_owned))
+        .unwrap_or_default()
+}
+
+fn main() -> Result<()> {
+    let opts = parse_args()?;
+    let manifest = Manifest::load(&opts.scene)?;
+    let [entry] = manifest.domains.as_slice() else {
+        return Err(format!(
+            "{} has {} domains; the comparison needs one (prepare with --domains 1)",
+            opts.scene.display(),
+            manifest.domains.len()
+        )
+        .into());
+    };
+    let checksum = u64::from_str_radix(&entry.checksum, 16)?;
+    let materials = manifest.materials.len() as u32;
+    // Verifying the checksum also reads the whole file, so no timed pass pays for page faults.
+    let domain = DomainData::open(&opts.scene.join(&entry.file), checksum, true, materials)?;
+
+    // A first untimed pass over the camera rays finds the hits the diffuse rays start from.
+    let tree = manifest.domain_tree();
+    let (camera, pixels) = camera_rays(&manifest, &tree, opts.size);
+    let mut hits = Vec::new();
+    trace_rayfarm(&domain, &camera, &mut hits);
+    let diffuse = diffuse_rays(
+        &camera,
+        &pixels,
+        &hits,
+        domain.packed(),
+        &tree,
+        manifest.ray_epsilon,
+    );
+    let sets: [(&str, &[BenchRay]); 2] = [("coherent", &camera), ("incoherent", &diffuse)];
+
+    let dir = tempfile::Builder::new()
+        .prefix("embree-compare")
+        .tempdir()?;
+    write_mesh(&dir.path().join("mesh.bin"), &domain)?;
+    let ray_files: Vec<PathBuf> = sets
+        .iter()
+        .map(|(name, rays)| {
+            let path = dir.path().join(format!("{name}.rays"));
+            write_rays(&path, rays).map(|()| path)
+        })
+        .collect::<Result<_>>()?;
+
+    eprintln!(
+        "{} triangles; {} of {} camera rays enter the domain, {} diffuse rays; {} repetitions each",
+        domain.packed().len(),
+        camera.len(),
+        opts.size * opts.size,
+        diffuse.len(),
+        opts.reps
+    );
+    let mut ours = Vec::new();
+    for (_, rays) in &sets {
+        let mut hits = Vec::new();
+        let seconds = (0..opts.reps)
+            .map(|_| trace_rayfarm(&domain, rays, &mut hits))
+            .collect();
+        ours.push((Timing(seconds), hits));
+    }
+
+    let named_files: Vec<(&str, &Path)> = sets
+        .iter()
+        .zip(&ray_files)
+        .map(|((name, _), path)| (*name, path.as_path()))
+        .collect();
+    let report = run_embree(&opts, dir.path(), &named_files)?;
+
+    println!(
+        "{:<11} {:>9} {:>12} {:>12} {:>12} {:>10} {:>10}",
+        "rays", "count", "rayfarm", "embree med", "embree high", "rf/embree", "agree"
+    );
+    let mut summary = serde_json::Map::new();
+    for ((name, rays), (timing, hits)) in sets.iter().zip(&ours) {
+        let n = rays.len();
+        let theirs: Vec<EmbreeHit> =
+            bytemuck::pod_collect_to_vec(&std::fs::read(dir.path().join(format!("{name}.hits")))?);
+        if theirs.len() != n {
+            return Err(format!("embree_trace wrote {} hits for {n} rays", theirs.len()).into());
+        }
+        let agreement = compare(hits, &theirs, domain.ids());
+        let medium = embree_timing(&report, "medium", name).ok_or("no medium-quality timing")?;
+        let high = embree_timing(&report, "high", name);
+        let (rf, em) = (timing.median_mrays(n), medium.median_mrays(n));
+        let high_mrays = high.as_ref().map(|h| h.median_mrays(n));
+        println!(
+            "{:<11} {:>9} {:>12.3} {:>12.3} {:>12} {:>10.3} {:>9.4}%",
+            name,
+            n,
+            rf,
+            em,
+            high_mrays.map_or("-".into(), |h| format!("{h:.3}")),
+            rf / em,
+            agreement.fraction() * 100.0
+        );
+        for e in &agreement.examples {
+            println!("    differs: {e}");
+        }
+        summary.insert(
+            (*name).into(),
+            json!({
+                "rays": n,
+                "rayfarm_mrays": rf,
+                "rayfarm_mrays_best": timing.best_mrays(n),
+                "embree_mrays": em,
+                "embree_mrays_best": medium.best_mrays(n),
+                "embree_high_mrays": high_mrays,
+                "ratio_rayfarm_over_embree": rf / em,
+                "agreement": agreement.fraction(),
+                "both_hit": agreement.both_hit,
+                "same_triangle_of_both_hit":
+                    agreement.same_triangle as f64 / agreement.both_hit.max(1) as f64,
+                "only_rayfarm_hits": agreement.only_rayfarm_hits,
+                "only_embree_hits": agreement.only_embree_hits,
+                "distance_differs": agreement.distance_differs,
+            }),
+        );
+    }
+    println!(
+        "Mrays/s, median of {} single-thread passes; rf/embree = rayfarm / Embree medium; \
+         agree = same hit/miss and t within {T_TOLERANCE} relative",
+        opts.reps
+    );
+    let build_seconds: serde_json::Map<String, Value> = report["builds"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(|b| {
+            Some((
+                b["quality"].as_str()?.to_owned(),
+                b["build_seconds"].clone(),
+            ))
+        })
+        .collect();
+    let summary = json!({
+        "bench": "embree_compare",
+        "scene": opts.scene.display().to_string(),
+        "triangles": domain.packed().len(),
+        "bvh_nodes": domain.nodes().len(),
+        "image": [opts.size, opts.size],
+        "reps": opts.reps,
+        "embree": report["embree"],
+        "embree_build_seconds": build_seconds,
+        "load_average": load_average(),
+        "sets": summary,
+    });
+    println!("{summary}");
+    Ok(())
+}
