@@ -9,8 +9,8 @@
 //! nodes               BvhNode (32 bytes) each
 //! packed              PackedTriangle (48 bytes) each, in BVH leaf order
 //! ```
-//! Every section starts on a 64-byte boundary. The checksum is xxh3-64 of everything after
-//! the header.
+//! Every section starts on a 64-byte boundary. The checksum is xxh3-64 of the whole file with
+//! the checksum field zeroed, so a flipped bit anywhere, header included, is caught.
 
 use std::collections::HashMap;
 use std::io::Write;
@@ -125,8 +125,7 @@ pub fn write_domain(
         offsets[k] = at;
         body.extend_from_slice(s);
     }
-    let checksum = xxhash_rust::xxh3::xxh3_64(&body);
-    let header = Header {
+    let mut header = Header {
         magic: MAGIC,
         version: VERSION,
         domain,
@@ -135,10 +134,12 @@ pub fn write_domain(
         node_count: nodes.len() as u64,
         packed_count: packed.len() as u64,
         bounds,
-        checksum,
+        checksum: 0,
         offsets,
         _reserved: [0; 8],
     };
+    let checksum = file_checksum(bytemuck::bytes_of(&header), &body);
+    header.checksum = checksum;
     let tmp = temporary_name(path);
     let write = || -> std::io::Result<()> {
         let mut f = std::io::BufWriter::new(std::fs::File::create(&tmp)?);
@@ -209,7 +210,9 @@ impl DomainData {
             )));
         }
         if verify_checksum {
-            let actual = xxhash_rust::xxh3::xxh3_64(&map[HEADER_BYTES..]);
+            let mut unsealed = header;
+            unsealed.checksum = 0;
+            let actual = file_checksum(bytemuck::bytes_of(&unsealed), &map[HEADER_BYTES..]);
             if actual != header.checksum {
                 return Err(bad(format!(
                     "contents hash to {actual:016x}, header says {:016x} (corrupt file)",
@@ -313,6 +316,14 @@ impl DomainData {
     pub fn packed(&self) -> &[PackedTriangle] {
         self.section(5)
     }
+}
+
+/// xxh3-64 of the header (with its checksum field zero) followed by the body.
+fn file_checksum(header: &[u8], body: &[u8]) -> u64 {
+    let mut h = xxhash_rust::xxh3::Xxh3::new();
+    h.update(header);
+    h.update(body);
+    h.digest()
 }
 
 fn parse_header(bytes: &[u8]) -> Result<Header, String> {

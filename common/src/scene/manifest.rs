@@ -124,7 +124,7 @@ pub struct DomainEntry {
     pub bytes: u64,
     /// Triangles referenced by the domain.
     pub triangles: u64,
-    /// xxh3-64 of the file after its header, as 16 hex digits.
+    /// xxh3-64 of the file with its checksum field zeroed, as 16 hex digits.
     pub checksum: String,
 }
 
