@@ -102,3 +102,77 @@ fn generator_peak_memory_stays_under_max_memory_for_a_scene_four_times_larger() 
         "peak RSS {peak_kib} KiB is over the bound"
     );
 }
+
+#[test]
+fn a_raw_volume_becomes_a_scene_that_renders_to_exr_and_png() {
+    let tmp = tempfile::tempdir().unwrap();
+    let raw = tmp.path().join("ball.raw");
+    let n = 40u32;
+    let mut voxels = Vec::new();
+    for z in 0..n {
+        for y in 0..n {
+            for x in 0..n {
+                let d = [x, y, z].map(|c| c as f32 - 19.5);
+                let r = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                voxels.extend_from_slice(&((1000.0 - r * 50.0).max(0.0) as u16).to_le_bytes());
+            }
+        }
+    }
+    std::fs::write(&raw, &voxels).unwrap();
+    let out = tmp.path().join("ball");
+    let dims = format!("{n},{n},{n}");
+    let ok = rayfarm_ok(&[
+        "prepare",
+        s(&raw),
+        "--dims",
+        &dims,
+        "--dtype",
+        "u16",
+        "--iso",
+        "300",
+        "--domains",
+        "4",
+        "--out",
+        s(&out),
+    ]);
+    assert!(String::from_utf8_lossy(&ok.stdout).contains("in 4 domains"));
+    // A size that does not match the dimensions is refused with both numbers.
+    let err = rayfarm_err(&[
+        "prepare",
+        s(&raw),
+        "--dims",
+        "41,40,40",
+        "--dtype",
+        "u16",
+        "--iso",
+        "300",
+        "--out",
+        s(&tmp.path().join("x")),
+    ]);
+    assert!(err.contains("ball.raw"), "{err}");
+    for ext in ["png", "exr"] {
+        let img = tmp.path().join(format!("ball.{ext}"));
+        rayfarm_ok(&[
+            "render",
+            "--local",
+            "--scene",
+            s(&out),
+            "--out",
+            s(&img),
+            "--width",
+            "40",
+            "--height",
+            "30",
+            "--spp",
+            "1",
+            "--quiet",
+        ]);
+        let bytes = std::fs::read(&img).unwrap();
+        let magic: &[u8] = if ext == "png" {
+            b"\x89PNG"
+        } else {
+            &[0x76, 0x2f, 0x31, 0x01]
+        };
+        assert!(bytes.starts_with(magic), "{ext} file has the wrong magic");
+    }
+}

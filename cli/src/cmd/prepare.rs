@@ -48,8 +48,8 @@ pub struct PrepareArgs {
     #[arg(long, value_parser = units::bytes)]
     pub max_memory: Option<u64>,
     /// Volume: dimensions X,Y,Z of the raw file.
-    #[arg(long, value_delimiter = ',', num_args = 3)]
-    pub dims: Option<Vec<u32>>,
+    #[arg(long, value_parser = parse_dims)]
+    pub dims: Option<[u32; 3]>,
     /// Volume: voxel type.
     #[arg(long, default_value = "u8")]
     pub dtype: String,
@@ -79,7 +79,7 @@ pub fn run(a: PrepareArgs) -> anyhow::Result<()> {
             let dtype = a.dtype.parse().map_err(anyhow::Error::msg)?;
             prepare_volume(
                 input,
-                [dims[0], dims[1], dims[2]],
+                *dims,
                 dtype,
                 iso,
                 &name_of(&a),
@@ -96,6 +96,14 @@ pub fn run(a: PrepareArgs) -> anyhow::Result<()> {
     };
     print_summary(&a.out, &manifest);
     Ok(())
+}
+
+fn parse_dims(s: &str) -> Result<[u32; 3], String> {
+    let v: Vec<u32> = s
+        .split(',')
+        .map(|p| p.trim().parse::<u32>().map_err(|e| format!("{p:?}: {e}")))
+        .collect::<Result<_, _>>()?;
+    <[u32; 3]>::try_from(v).map_err(|v| format!("expected X,Y,Z, got {} numbers", v.len()))
 }
 
 fn name_of(a: &PrepareArgs) -> String {
