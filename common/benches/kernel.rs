@@ -8,7 +8,7 @@ use std::path::PathBuf;
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use glam::Vec3;
-use rayfarm_common::bvh::{self, TraceRay};
+use rayfarm_common::bvh::{self, TraceRay, Traverser};
 use rayfarm_common::camera::PinholeCamera;
 use rayfarm_common::geometry::PackedTriangle;
 use rayfarm_common::prepare::generate::{NbodyOptions, prepare_nbody};
@@ -74,7 +74,13 @@ fn diffuse_rays(b: &Bench, primary: &[(Vec3, Vec3)]) -> Vec<(Vec3, Vec3)> {
         .iter()
         .enumerate()
         .filter_map(|(i, &(o, d))| {
-            let hit = bvh::nearest_hit(nodes, tris, &TraceRay::new(o, d), 0.0, f32::INFINITY)?;
+            let hit = Traverser::new().nearest_hit(
+                nodes,
+                tris,
+                &TraceRay::new(o, d),
+                0.0,
+                f32::INFINITY,
+            )?;
             let mut n = tris[hit.slot as usize].normal();
             if n.dot(d) > 0.0 {
                 n = -n;
@@ -96,7 +102,9 @@ fn trace_all(b: &Bench, rays: &[(Vec3, Vec3)]) -> usize {
     let (nodes, tris) = (b.data.nodes(), b.data.packed());
     rays.iter()
         .filter(|(o, d)| {
-            bvh::nearest_hit(nodes, tris, &TraceRay::new(*o, *d), 0.0, f32::INFINITY).is_some()
+            Traverser::new()
+                .nearest_hit(nodes, tris, &TraceRay::new(*o, *d), 0.0, f32::INFINITY)
+                .is_some()
         })
         .count()
 }

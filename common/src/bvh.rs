@@ -5,13 +5,13 @@
 use std::time::Duration;
 
 use bytemuck::{Pod, Zeroable};
-use glam::{Vec3, Vec3A};
+use glam::{BVec4A, Vec3, Vec3A, Vec4};
 
 use crate::geometry::{PackedTriangle, nearer};
 
-/// One node of a binary BVH. Inner nodes (`count == 0`) have children at `index` and
+/// One node of a binary BVH. Aligned so each half loads as one SIMD register. Inner nodes (`count == 0`) have children at `index` and
 /// `index + 1`; leaves hold triangles `index .. index + count` of the domain's packed array.
-#[repr(C)]
+#[repr(C, align(16))]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
 pub struct BvhNode {
     /// Box minimum.
@@ -22,6 +22,26 @@ pub struct BvhNode {
     pub max: [f32; 3],
     /// Triangle count; zero for inner nodes.
     pub count: u32,
+}
+
+impl BvhNode {
+    /// The box as two SIMD vectors.
+    #[inline(always)]
+    pub fn bounds(&self) -> (Vec3A, Vec3A) {
+        let halves: &[Vec4; 2] = bytemuck::cast_ref(self);
+        (xyz(halves[0]), xyz(halves[1]))
+    }
+}
+
+/// The first three lanes of `v`, the fourth zeroed bitwise: it holds an integer whose bits may
+/// read as a denormal float, and arithmetic on denormals is very slow.
+#[inline(always)]
+pub fn xyz(v: Vec4) -> Vec3A {
+    Vec3A::from_vec4(Vec4::select(
+        BVec4A::new(true, true, true, false),
+        v,
+        Vec4::ZERO,
+    ))
 }
 
 /// Relative padding of every node box: the triangle test and the box test round differently,
@@ -75,10 +95,10 @@ pub fn build(triangles: &mut Vec<PackedTriangle>) -> Vec<BvhNode> {
 /// A ray prepared for box tests.
 #[derive(Clone, Copy)]
 pub struct TraceRay {
-    origin: Vec3,
-    dir: Vec3,
-    inv_dir: Vec3,
-    origin_inv: Vec3,
+    origin: Vec3A,
+    dir: Vec3A,
+    inv_dir: Vec3A,
+    origin_inv: Vec3A,
 }
 
 impl TraceRay {
@@ -94,10 +114,11 @@ impl TraceRay {
                 d
             }
         };
-        let inv_dir = Vec3::new(safe(dir.x), safe(dir.y), safe(dir.z)).recip();
+        let inv_dir = Vec3A::new(safe(dir.x), safe(dir.y), safe(dir.z)).recip();
+        let origin = Vec3A::from(origin);
         TraceRay {
             origin,
-            dir,
+            dir: Vec3A::from(dir),
             inv_dir,
             origin_inv: origin * inv_dir,
         }
@@ -106,12 +127,26 @@ impl TraceRay {
     /// Entry distance into the node's box within `[t0, t1]`, or infinity if it is missed.
     #[inline(always)]
     fn slab(&self, node: &BvhNode, t0: f32, t1: f32) -> f32 {
-        let a = Vec3::from(node.min).mul_add(self.inv_dir, -self.origin_inv);
-        let b = Vec3::from(node.max).mul_add(self.inv_dir, -self.origin_inv);
-        let near = a.min(b).max_element().max(t0);
-        let far = a.max(b).min_element().min(t1);
+        let (lo, hi) = node.bounds();
+        // Not `mul_add`: without FMA in the target features it becomes a libm call.
+        let a = lo * self.inv_dir - self.origin_inv;
+        let b = hi * self.inv_dir - self.origin_inv;
+        // Plain comparisons, not f32::max/min: every operand is finite here, so the NaN
+        // handling those carry would be a dozen wasted instructions per box.
+        let near = max(a.min(b).max_element(), t0);
+        let far = min(a.max(b).min_element(), t1);
         if near <= far { near } else { f32::INFINITY }
     }
+}
+
+#[inline(always)]
+fn max(a: f32, b: f32) -> f32 {
+    if a > b { a } else { b }
+}
+
+#[inline(always)]
+fn min(a: f32, b: f32) -> f32 {
+    if a < b { a } else { b }
 }
 
 /// The nearest hit of a ray in a BVH.
@@ -172,106 +207,126 @@ pub fn validate(nodes: &[BvhNode], triangle_count: usize) -> Result<usize, Strin
     Ok(deepest)
 }
 
-/// Nearest hit with `t0 <= t <= t1`, ties broken by the lower scene-wide id.
-pub fn nearest_hit(
-    nodes: &[BvhNode],
-    tris: &[PackedTriangle],
-    ray: &TraceRay,
-    t0: f32,
-    t1: f32,
-) -> Option<Hit> {
-    let mut best = Hit {
-        t: t1,
-        slot: u32::MAX,
-        id: u64::MAX,
-    };
-    let root = nodes.first()?;
-    if ray.slab(root, t0, t1) == f32::INFINITY {
-        return None;
-    }
-    // Each entry keeps its entry distance, so a subtree beyond the best hit is skipped unopened.
-    let mut stack = [(0u32, 0f32); STACK];
-    let mut sp = 0usize;
-    let mut node = root;
-    loop {
-        if node.count > 0 {
-            let first = node.index as usize;
-            for (k, tri) in tris[first..first + node.count as usize].iter().enumerate() {
-                let t = tri.intersect_t(ray.origin, ray.dir);
-                if t >= t0 && nearer(t, tri.id(), best.t, best.id) {
-                    best = Hit {
-                        t,
-                        slot: (first + k) as u32,
-                        id: tri.id(),
-                    };
-                }
-            }
-        } else {
-            let i = node.index as usize;
-            // Equal distances must still be visited for the id tie-break: compare with <=.
-            let dl = ray.slab(&nodes[i], t0, best.t);
-            let dr = ray.slab(&nodes[i + 1], t0, best.t);
-            let (near, dn, far, df) = if dl <= dr {
-                (i, dl, i + 1, dr)
-            } else {
-                (i + 1, dr, i, dl)
-            };
-            if dn != f32::INFINITY {
-                if df != f32::INFINITY {
-                    stack[sp] = (far as u32, df);
-                    sp += 1;
-                }
-                node = &nodes[near];
-                continue;
-            }
-        }
-        loop {
-            if sp == 0 {
-                return (best.slot != u32::MAX).then_some(best);
-            }
-            sp -= 1;
-            let (n, d) = stack[sp];
-            if d <= best.t {
-                node = &nodes[n as usize];
-                break;
-            }
-        }
+/// Traversal state reused across rays: zeroing a fresh stack for every ray cost more than
+/// traversing a coherent ray's whole path.
+pub struct Traverser {
+    near_stack: Vec<(u32, f32)>,
+    any_stack: Vec<u32>,
+}
+
+impl Default for Traverser {
+    fn default() -> Self {
+        Self::new()
     }
 }
 
-/// Whether anything is hit with `t0 <= t <= t1` (shadow rays).
-pub fn any_hit(
-    nodes: &[BvhNode],
-    tris: &[PackedTriangle],
-    ray: &TraceRay,
-    t0: f32,
-    t1: f32,
-) -> bool {
-    if nodes.is_empty() {
-        return false;
-    }
-    let mut stack = [0u32; STACK];
-    let mut sp = 1usize;
-    stack[0] = 0;
-    while sp > 0 {
-        sp -= 1;
-        let node = &nodes[stack[sp] as usize];
-        if ray.slab(node, t0, t1) == f32::INFINITY {
-            continue;
+impl Traverser {
+    /// A traverser with stacks for trees of [`MAX_DEPTH`].
+    pub fn new() -> Self {
+        Traverser {
+            near_stack: Vec::with_capacity(STACK),
+            any_stack: Vec::with_capacity(STACK),
         }
-        if node.count > 0 {
-            let first = node.index as usize;
-            for tri in &tris[first..first + node.count as usize] {
-                let t = tri.intersect_t(ray.origin, ray.dir);
-                if t >= t0 && t <= t1 {
-                    return true;
+    }
+
+    /// Nearest hit with `t0 <= t <= t1`, ties broken by the lower scene-wide id.
+    pub fn nearest_hit(
+        &mut self,
+        nodes: &[BvhNode],
+        tris: &[PackedTriangle],
+        ray: &TraceRay,
+        t0: f32,
+        t1: f32,
+    ) -> Option<Hit> {
+        let mut best = Hit {
+            t: t1,
+            slot: u32::MAX,
+            id: u64::MAX,
+        };
+        let root = nodes.first()?;
+        if ray.slab(root, t0, t1) == f32::INFINITY {
+            return None;
+        }
+        // Each entry keeps its entry distance, so a subtree beyond the best hit is skipped unopened.
+        let stack = &mut self.near_stack;
+        stack.clear();
+        let mut node = root;
+        loop {
+            if node.count > 0 {
+                let first = node.index as usize;
+                for (k, tri) in tris[first..first + node.count as usize].iter().enumerate() {
+                    let t = tri.intersect_t(ray.origin, ray.dir);
+                    if t >= t0 && nearer(t, tri.id(), best.t, best.id) {
+                        best = Hit {
+                            t,
+                            slot: (first + k) as u32,
+                            id: tri.id(),
+                        };
+                    }
+                }
+            } else {
+                let i = node.index as usize;
+                // Equal distances must still be visited for the id tie-break: compare with <=.
+                let dl = ray.slab(&nodes[i], t0, best.t);
+                let dr = ray.slab(&nodes[i + 1], t0, best.t);
+                let (near, dn, far, df) = if dl <= dr {
+                    (i, dl, i + 1, dr)
+                } else {
+                    (i + 1, dr, i, dl)
+                };
+                if dn != f32::INFINITY {
+                    if df != f32::INFINITY {
+                        stack.push((far as u32, df));
+                    }
+                    node = &nodes[near];
+                    continue;
                 }
             }
-        } else {
-            stack[sp] = node.index;
-            stack[sp + 1] = node.index + 1;
-            sp += 2;
+            loop {
+                let Some((n, d)) = stack.pop() else {
+                    return (best.slot != u32::MAX).then_some(best);
+                };
+                if d <= best.t {
+                    node = &nodes[n as usize];
+                    break;
+                }
+            }
         }
     }
-    false
+
+    /// Whether anything is hit with `t0 <= t <= t1` (shadow rays).
+    pub fn any_hit(
+        &mut self,
+        nodes: &[BvhNode],
+        tris: &[PackedTriangle],
+        ray: &TraceRay,
+        t0: f32,
+        t1: f32,
+    ) -> bool {
+        if nodes.is_empty() {
+            return false;
+        }
+        let stack = &mut self.any_stack;
+        stack.clear();
+        stack.push(0);
+        while let Some(n) = stack.pop() {
+            let node = &nodes[n as usize];
+            if ray.slab(node, t0, t1) == f32::INFINITY {
+                continue;
+            }
+            if node.count > 0 {
+                let first = node.index as usize;
+                for tri in &tris[first..first + node.count as usize] {
+                    let t = tri.intersect_t(ray.origin, ray.dir);
+                    if t >= t0 && t <= t1 {
+                        return true;
+                    }
+                }
+            } else {
+                stack.push(node.index);
+                stack.push(node.index + 1);
+            }
+        }
+        false
+    }
 }

@@ -1,7 +1,9 @@
 //! Axis-aligned boxes and the one ray-triangle test every part of rayfarm agrees on.
 
 use bytemuck::{Pod, Zeroable};
-use glam::Vec3;
+use glam::{Vec3, Vec3A, Vec4};
+
+use crate::bvh::xyz;
 use serde::{Deserialize, Serialize};
 
 /// An axis-aligned box, closed on every side.
@@ -86,7 +88,7 @@ impl Aabb {
 /// A triangle stored ready for intersection: one vertex and two edges, its scene-wide id and
 /// material. Every domain that references a triangle stores the same bits, so every domain
 /// computes the same hit distance for the same ray.
-#[repr(C)]
+#[repr(C, align(16))]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
 pub struct PackedTriangle {
     /// First vertex.
@@ -144,20 +146,20 @@ impl PackedTriangle {
     /// at a positive distance. A pure function of the ray and this record.
     #[inline(always)]
     pub fn intersect(&self, origin: Vec3, dir: Vec3) -> Option<f32> {
-        let t = self.intersect_t(origin, dir);
+        let t = self.intersect_t(origin.into(), dir.into());
         (t != f32::INFINITY).then_some(t)
     }
 
     /// [`Self::intersect`] without branches on the way: infinity when there is no hit, so
     /// traversal pays one comparison per triangle instead of three mispredicted ones.
     #[inline(always)]
-    pub fn intersect_t(&self, origin: Vec3, dir: Vec3) -> f32 {
-        let e1 = Vec3::from(self.e1);
-        let e2 = Vec3::from(self.e2);
+    pub fn intersect_t(&self, origin: Vec3A, dir: Vec3A) -> f32 {
+        let rows: &[Vec4; 3] = bytemuck::cast_ref(self);
+        let (v0, e1, e2) = (xyz(rows[0]), xyz(rows[1]), xyz(rows[2]));
         let p = dir.cross(e2);
         let det = e1.dot(p);
         let inv = 1.0 / det;
-        let s = origin - Vec3::from(self.v0);
+        let s = origin - v0;
         let u = s.dot(p) * inv;
         let q = s.cross(e1);
         let v = dir.dot(q) * inv;

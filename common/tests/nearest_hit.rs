@@ -6,7 +6,7 @@ use std::path::Path;
 
 use glam::Vec3;
 use proptest::prelude::*;
-use rayfarm_common::bvh::{Hit, TraceRay, nearest_hit};
+use rayfarm_common::bvh::{Hit, TraceRay, Traverser};
 use rayfarm_common::mesh::TriangleMesh;
 use rayfarm_common::prepare::prepare_mesh;
 use rayfarm_common::scene::{DomainData, Manifest};
@@ -68,7 +68,7 @@ fn by_domains(s: &Loaded, o: Vec3, d: Vec3) -> Option<(f32, u64)> {
     let mut found = None;
     tree.walk(o, d, 0.0, f32::INFINITY, |dom, a, b| {
         let data = &s.domains[dom as usize];
-        match nearest_hit(data.nodes(), data.packed(), &ray, a, b) {
+        match Traverser::new().nearest_hit(data.nodes(), data.packed(), &ray, a, b) {
             Some(Hit { t, id, .. }) => {
                 found = Some((t, id));
                 ControlFlow::Break(())
@@ -81,14 +81,15 @@ fn by_domains(s: &Loaded, o: Vec3, d: Vec3) -> Option<(f32, u64)> {
 
 fn whole(s: &Loaded, o: Vec3, d: Vec3) -> Option<(f32, u64)> {
     let data = &s.domains[0];
-    nearest_hit(
-        data.nodes(),
-        data.packed(),
-        &TraceRay::new(o, d),
-        0.0,
-        f32::INFINITY,
-    )
-    .map(|h| (h.t, h.id))
+    Traverser::new()
+        .nearest_hit(
+            data.nodes(),
+            data.packed(),
+            &TraceRay::new(o, d),
+            0.0,
+            f32::INFINITY,
+        )
+        .map(|h| (h.t, h.id))
 }
 
 fn scenes() -> (tempfile::TempDir, Loaded, Vec<Loaded>) {

@@ -7,7 +7,7 @@ use std::ops::ControlFlow;
 
 use glam::Vec3;
 
-use crate::bvh::{self, TraceRay};
+use crate::bvh::{TraceRay, Traverser};
 use crate::geometry::PackedTriangle;
 use crate::ray::{RayKind, RayRecord};
 use crate::sampling::{Purpose, uniform};
@@ -167,6 +167,7 @@ impl SceneView {
     ) {
         let nodes = data.nodes();
         let tris = data.packed();
+        let mut traverser = Traverser::new();
         for ray in rays {
             let (interval, next) = self.segment(ray, data.domain());
             let Some((t0, t1)) = interval else {
@@ -180,13 +181,13 @@ impl SceneView {
             match ray.kind() {
                 RayKind::Shadow => {
                     counters.shadow_segments += 1;
-                    if bvh::any_hit(nodes, tris, &tr, t0, t1) {
+                    if traverser.any_hit(nodes, tris, &tr, t0, t1) {
                         continue;
                     }
                 }
                 RayKind::Radiance => {
                     counters.radiance_segments += 1;
-                    if let Some(hit) = bvh::nearest_hit(nodes, tris, &tr, t0, t1) {
+                    if let Some(hit) = traverser.nearest_hit(nodes, tris, &tr, t0, t1) {
                         let tri = &tris[hit.slot as usize];
                         self.shade(ray, origin + dir * hit.t, tri, sink, counters);
                         continue;
