@@ -256,7 +256,8 @@ impl Traverser {
                 let first = node.index as usize;
                 for (k, tri) in tris[first..first + node.count as usize].iter().enumerate() {
                     let t = tri.intersect_t(ray.origin, ray.dir);
-                    if t >= t0 && nearer(t, tri.id(), best.t, best.id) {
+                    // A miss is infinity, which must not win against an unbounded t1.
+                    if t >= t0 && t != f32::INFINITY && nearer(t, tri.id(), best.t, best.id) {
                         best = Hit {
                             t,
                             slot: (first + k) as u32,
