@@ -1,4 +1,4 @@
-//! Benchmark: rayfarm's BVH traversal (`bvh::nearest_hit`) against Embree 3, one core each, on
+//! Benchmark: rayfarm's BVH traversal (`bvh::Traverser::nearest_hit`) against Embree 3, one core each, on
 //! the same one-domain scene and the same rays, in one run.
 //!
 //! Two ray sets: coherent camera rays (one per pixel of a square image from the manifest's
@@ -22,7 +22,7 @@ use std::time::Instant;
 
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
-use rayfarm_common::bvh::{self, Hit, TraceRay};
+use rayfarm_common::bvh::{Hit, TraceRay, Traverser};
 use rayfarm_common::camera::PinholeCamera;
 use rayfarm_common::geometry::PackedTriangle;
 use rayfarm_common::sampling::{Purpose, uniform};
@@ -122,10 +122,11 @@ fn trace_rayfarm(domain: &DomainData, rays: &[BenchRay], hits: &mut Vec<Option<H
     let (nodes, tris) = (domain.nodes(), domain.packed());
     hits.clear();
     hits.reserve(rays.len());
+    let mut traverser = Traverser::new();
     let start = Instant::now();
     for r in rays {
         let ray = TraceRay::new(r.origin.into(), r.dir.into());
-        hits.push(bvh::nearest_hit(nodes, tris, &ray, r.t_min, r.t_max));
+        hits.push(traverser.nearest_hit(nodes, tris, &ray, r.t_min, r.t_max));
     }
     start.elapsed().as_secs_f64()
 }

@@ -1,9 +1,7 @@
 //! Axis-aligned boxes and the one ray-triangle test every part of rayfarm agrees on.
 
 use bytemuck::{Pod, Zeroable};
-use glam::{Vec3, Vec3A, Vec4};
-
-use crate::bvh::xyz;
+use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
 /// An axis-aligned box, closed on every side.
@@ -88,7 +86,7 @@ impl Aabb {
 /// A triangle stored ready for intersection: one vertex and two edges, its scene-wide id and
 /// material. Every domain that references a triangle stores the same bits, so every domain
 /// computes the same hit distance for the same ray.
-#[repr(C, align(16))]
+#[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
 pub struct PackedTriangle {
     /// First vertex.
@@ -146,16 +144,21 @@ impl PackedTriangle {
     /// at a positive distance. A pure function of the ray and this record.
     #[inline(always)]
     pub fn intersect(&self, origin: Vec3, dir: Vec3) -> Option<f32> {
-        let t = self.intersect_t(origin.into(), dir.into());
+        let t = self.intersect_t(origin, dir);
         (t != f32::INFINITY).then_some(t)
     }
 
     /// [`Self::intersect`] without branches on the way: infinity when there is no hit, so
     /// traversal pays one comparison per triangle instead of three mispredicted ones.
     #[inline(always)]
-    pub fn intersect_t(&self, origin: Vec3A, dir: Vec3A) -> f32 {
-        let rows: &[Vec4; 3] = bytemuck::cast_ref(self);
-        let (v0, e1, e2) = (xyz(rows[0]), xyz(rows[1]), xyz(rows[2]));
+    pub fn intersect_t(&self, origin: Vec3, dir: Vec3) -> f32 {
+        // Scalar on purpose: the fourth lane of each 16-byte row holds integer bits that read as
+        // denormal floats, and SIMD arithmetic on them stalls (masking it is optimised away).
+        let (v0, e1, e2) = (
+            Vec3::from(self.v0),
+            Vec3::from(self.e1),
+            Vec3::from(self.e2),
+        );
         let p = dir.cross(e2);
         let det = e1.dot(p);
         let inv = 1.0 / det;

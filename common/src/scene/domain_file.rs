@@ -6,7 +6,7 @@
 //! indices             [u32; 3] per triangle
 //! materials           u32 per triangle
 //! ids                 u64 per triangle           (scene-wide triangle id)
-//! nodes               BvhNode (32 bytes) each
+//! nodes               BvhNode (128 bytes, 4-wide) each
 //! packed              PackedTriangle (48 bytes) each, in BVH leaf order
 //! ```
 //! Every section starts on a 64-byte boundary. The checksum is xxh3-64 of the whole file with
@@ -27,7 +27,7 @@ use crate::geometry::{Aabb, PackedTriangle};
 /// First bytes of every domain file.
 pub const MAGIC: [u8; 8] = *b"RFDOMAIN";
 /// Layout version.
-pub const VERSION: u32 = 1;
+pub const VERSION: u32 = 2;
 const ALIGN: u64 = 64;
 
 #[repr(C)]
