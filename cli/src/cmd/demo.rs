@@ -34,7 +34,9 @@ pub struct DemoArgs {
 
 pub fn run(a: DemoArgs) -> anyhow::Result<()> {
     let scene = a.dir.join(format!("nbody-{}-{}", a.triangles, a.domains));
-    if Manifest::load(&scene).is_err() {
+    // Re-prepare a scene that is missing, damaged or from an older build.
+    let usable = Manifest::load(&scene).and_then(|m| m.check_domains(&scene, false));
+    if usable.is_err() {
         eprintln!("preparing the built-in scene in {} ...", scene.display());
         super::prepare::run(PrepareArgs {
             input: None,

@@ -5,7 +5,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use super::partition::{DomainTree, KdNode};
-use super::{MANIFEST_FILE, SceneError, write_atomically};
+use super::{DomainData, MANIFEST_FILE, SceneError, write_atomically};
 use crate::geometry::Aabb;
 
 /// Version of the manifest and domain file layout this build reads and writes.
@@ -150,6 +150,17 @@ impl Manifest {
             reason: e.to_string(),
         })?;
         write_atomically(&dir.join(MANIFEST_FILE), text.as_bytes())
+    }
+
+    /// Maps every domain file once to check it matches this build and the manifest; with
+    /// `verify_checksums` also hashes every byte.
+    pub fn check_domains(&self, dir: &Path, verify_checksums: bool) -> Result<(), SceneError> {
+        for d in &self.domains {
+            let sum = u64::from_str_radix(&d.checksum, 16).unwrap_or_default();
+            let path = dir.join(&d.file);
+            DomainData::open(&path, sum, verify_checksums, self.materials.len() as u32)?;
+        }
+        Ok(())
     }
 
     /// The domain tree, checked.
