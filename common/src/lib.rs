@@ -2,6 +2,7 @@
 //! single-process reference renderer. The coordinator, the workers and the CLI are thin layers
 //! over it. See `docs/ARCHITECTURE.md` for where each concept lives.
 
+pub mod bundler;
 pub mod bvh;
 pub mod camera;
 pub mod geometry;
@@ -9,8 +10,11 @@ pub mod isosurface;
 pub mod mesh;
 pub mod nbody;
 pub mod prepare;
+pub mod proto;
 pub mod ray;
 pub mod render;
 pub mod sampling;
 pub mod scene;
+pub mod schedule;
 pub mod volume;
+pub mod wire;

@@ -1,0 +1,36 @@
+//! Generated gRPC types and services of `proto/rayfarm/v1` (the user API, the worker control
+//! stream, the peer bundle stream).
+
+#![allow(missing_docs, clippy::all, clippy::pedantic)]
+
+tonic::include_proto!("rayfarm.v1");
+
+/// Version of the worker and peer protocols; a peer of another version is refused.
+pub const PROTOCOL_VERSION: u32 = 1;
+
+#[cfg(test)]
+mod tests {
+    use prost::Message;
+
+    use super::*;
+
+    #[test]
+    fn control_messages_round_trip_through_protobuf() {
+        let msg = CoordinatorMessage {
+            body: Some(coordinator_message::Body::RoundPlan(RoundPlan {
+                job_id: "j1".into(),
+                round: 7,
+                work_on: vec![3, 5],
+                evict: vec![1],
+                holders: vec![DomainHolders {
+                    domain: 3,
+                    workers: vec!["10.0.0.2:7000".into()],
+                }],
+            })),
+        };
+        let bytes = msg.encode_to_vec();
+        assert_eq!(CoordinatorMessage::decode(bytes.as_slice()).unwrap(), msg);
+        assert!(CoordinatorMessage::decode(&b"\xff\xff\xff"[..]).is_err());
+        assert_eq!(Schedule::try_from(3), Ok(Schedule::Dynamic));
+    }
+}

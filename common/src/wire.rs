@@ -1,0 +1,228 @@
+//! Ray batches on the wire: a 16-byte header, then the ray records as raw little-endian bytes,
+//! carried in one protobuf `bytes` field (never one protobuf message per ray). Decoding checks
+//! every record, because the bytes come from another process that may be broken or hostile.
+
+use crate::ray::{RayKind, RayRecord};
+
+#[cfg(not(target_endian = "little"))]
+compile_error!(
+    "ray batches are raw little-endian records; big-endian hosts need a byte-swapping codec"
+);
+
+/// First bytes of every batch.
+pub const MAGIC: [u8; 4] = *b"RFRB";
+/// Layout version of the batch.
+pub const VERSION: u16 = 1;
+/// Bytes before the first record.
+pub const HEADER_BYTES: usize = 16;
+const RECORD_BYTES: usize = std::mem::size_of::<RayRecord>();
+
+/// What a batch's records must satisfy to be accepted.
+#[derive(Clone, Copy, Debug)]
+pub struct BatchLimits {
+    /// Domains in the scene: every record's domain must be below.
+    pub domains: u32,
+    /// Pixels in the frame: every record's pixel must be below.
+    pub pixels: u32,
+    /// Largest bounce count.
+    pub max_depth: u16,
+    /// Largest number of records in one batch.
+    pub max_records: usize,
+}
+
+/// Why a batch was refused.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum WireError {
+    /// Shorter than the header, or not a whole number of records.
+    #[error(
+        "ray batch of {0} bytes is truncated or not a whole number of {RECORD_BYTES}-byte records"
+    )]
+    Length(usize),
+    /// Wrong magic.
+    #[error("not a ray batch (bad magic)")]
+    Magic,
+    /// A version this build does not read.
+    #[error("ray batch version {0} is not the supported {VERSION}")]
+    Version(u16),
+    /// The header's count disagrees with the length, or exceeds the limit.
+    #[error("ray batch says {said} records, holds {held} (limit {limit})")]
+    Count {
+        /// Count in the header.
+        said: u32,
+        /// Records present.
+        held: usize,
+        /// Largest accepted.
+        limit: usize,
+    },
+    /// A record is out of range.
+    #[error("ray record {index}: {reason}")]
+    Record {
+        /// Position in the batch.
+        index: usize,
+        /// What is wrong.
+        reason: &'static str,
+    },
+}
+
+/// Encodes rays as one batch.
+pub fn encode_batch(rays: &[RayRecord]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(HEADER_BYTES + rays.len() * RECORD_BYTES);
+    out.extend_from_slice(&MAGIC);
+    out.extend_from_slice(&VERSION.to_le_bytes());
+    out.extend_from_slice(&0u16.to_le_bytes());
+    out.extend_from_slice(&(rays.len() as u32).to_le_bytes());
+    out.extend_from_slice(&0u32.to_le_bytes());
+    out.extend_from_slice(bytemuck::cast_slice(rays));
+    out
+}
+
+/// Decodes and checks a batch.
+pub fn decode_batch(bytes: &[u8], limits: &BatchLimits) -> Result<Vec<RayRecord>, WireError> {
+    let len = bytes.len();
+    if len < HEADER_BYTES || !(len - HEADER_BYTES).is_multiple_of(RECORD_BYTES) {
+        return Err(WireError::Length(len));
+    }
+    if bytes[0..4] != MAGIC {
+        return Err(WireError::Magic);
+    }
+    let version = u16::from_le_bytes([bytes[4], bytes[5]]);
+    if version != VERSION {
+        return Err(WireError::Version(version));
+    }
+    let said = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
+    let held = (len - HEADER_BYTES) / RECORD_BYTES;
+    if said as usize != held || held > limits.max_records {
+        return Err(WireError::Count {
+            said,
+            held,
+            limit: limits.max_records,
+        });
+    }
+    // The payload is not aligned for RayRecord; copying also detaches it from the message.
+    let rays: Vec<RayRecord> = bytemuck::pod_collect_to_vec(&bytes[HEADER_BYTES..]);
+    for (index, r) in rays.iter().enumerate() {
+        check_record(r, limits).map_err(|reason| WireError::Record { index, reason })?;
+    }
+    Ok(rays)
+}
+
+fn check_record(r: &RayRecord, l: &BatchLimits) -> Result<(), &'static str> {
+    let finite = |v: &[f32; 3]| v.iter().all(|x| x.is_finite());
+    if r.kind != RayKind::Radiance as u8 && r.kind != RayKind::Shadow as u8 {
+        return Err("unknown kind");
+    }
+    if r._pad != 0 || r._pad2 != 0 {
+        return Err("padding is not zero");
+    }
+    if !finite(&r.origin) || !finite(&r.dir) || !finite(&r.throughput) {
+        return Err("non-finite origin, direction or throughput");
+    }
+    if r.dir == [0.0; 3] {
+        return Err("zero direction");
+    }
+    if !(r.t_min >= 0.0 && r.t_min.is_finite() && r.t_max >= r.t_min) {
+        return Err("bad interval");
+    }
+    if r.domain >= l.domains {
+        return Err("domain out of range");
+    }
+    if r.pixel >= l.pixels {
+        return Err("pixel out of range");
+    }
+    if r.depth > l.max_depth {
+        return Err("depth above the frame's maximum");
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use proptest::prelude::*;
+
+    use super::*;
+
+    const LIMITS: BatchLimits = BatchLimits {
+        domains: 8,
+        pixels: 1000,
+        max_depth: 4,
+        max_records: 1 << 16,
+    };
+
+    fn ray(i: u32) -> RayRecord {
+        RayRecord {
+            origin: [i as f32, 1.0, 2.0],
+            t_min: 0.0,
+            dir: [0.0, 0.0, 1.0],
+            t_max: f32::INFINITY,
+            throughput: [0.5; 3],
+            pixel: i % 1000,
+            sample: i,
+            depth: (i % 5) as u16,
+            kind: (i % 2) as u8,
+            domain: i % 8,
+            tile: i / 64,
+            epoch: 3,
+            credit: 1 << 40,
+            ..bytemuck::Zeroable::zeroed()
+        }
+    }
+
+    #[test]
+    fn round_trip() {
+        let rays: Vec<RayRecord> = (0..100).map(ray).collect();
+        assert_eq!(decode_batch(&encode_batch(&rays), &LIMITS).unwrap(), rays);
+        assert_eq!(decode_batch(&encode_batch(&[]), &LIMITS).unwrap(), vec![]);
+    }
+
+    #[test]
+    fn out_of_range_records_name_their_index() {
+        let mut rays: Vec<RayRecord> = (0..10).map(ray).collect();
+        rays[7].domain = 8;
+        let err = decode_batch(&encode_batch(&rays), &LIMITS).unwrap_err();
+        assert_eq!(
+            err,
+            WireError::Record {
+                index: 7,
+                reason: "domain out of range"
+            }
+        );
+        rays[7].domain = 0;
+        rays[3].dir = [f32::NAN, 0.0, 1.0];
+        assert!(matches!(
+            decode_batch(&encode_batch(&rays), &LIMITS),
+            Err(WireError::Record { index: 3, .. })
+        ));
+        let mut b = encode_batch(&rays);
+        b[4] = 9;
+        assert_eq!(decode_batch(&b, &LIMITS), Err(WireError::Version(9)));
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(5000))]
+
+        #[test]
+        fn garbage_never_panics(bytes in proptest::collection::vec(any::<u8>(), 0..2048)) {
+            let _ = decode_batch(&bytes, &LIMITS);
+        }
+
+        #[test]
+        fn corrupted_batches_never_panic_and_accepted_ones_are_in_range(
+            edits in proptest::collection::vec((any::<usize>(), any::<u8>()), 1..6),
+            cut in any::<usize>(),
+        ) {
+            let mut b = encode_batch(&(0..20).map(ray).collect::<Vec<_>>());
+            for (at, v) in edits {
+                let at = at % b.len();
+                b[at] = v;
+            }
+            if cut % 4 == 0 {
+                b.truncate(cut % b.len());
+            }
+            if let Ok(rays) = decode_batch(&b, &LIMITS) {
+                for r in rays {
+                    prop_assert!(r.domain < LIMITS.domains && r.pixel < LIMITS.pixels && r.depth <= LIMITS.max_depth);
+                }
+            }
+        }
+    }
+}
