@@ -1,4 +1,5 @@
-//! Kernel throughput (coherent primary and incoherent diffuse rays, one core), BVH build time,
+//! Kernel throughput (coherent primary and incoherent diffuse rays, one core, each ray over
+//! the interval the kernel gives it), BVH build time,
 //! and domain load time (map vs rebuild), on the built-in scene at 1M triangles in one domain.
 //!
 //! `cargo bench -p rayfarm-common --bench kernel`
@@ -15,10 +16,12 @@ use rayfarm_common::prepare::generate::{NbodyOptions, prepare_nbody};
 use rayfarm_common::ray::RayRecord;
 use rayfarm_common::render::kernel::{KernelCounters, RaySink, SceneView};
 use rayfarm_common::sampling::{Purpose, uniform};
+use rayfarm_common::scene::partition::clip_to_box;
 use rayfarm_common::scene::{DomainData, Manifest};
 
 const TRIANGLES: u64 = 1_000_000;
-const SIDE: u32 = 256;
+/// Camera rays per side: 1024x1024, as in `bench/embree`.
+const SIDE: u32 = 1024;
 
 struct Bench {
     dir: PathBuf,
@@ -57,30 +60,32 @@ fn open(dir: &std::path::Path, m: &Manifest, verify: bool) -> DomainData {
     DomainData::open(&dir.join(&d.file), sum, verify, m.materials.len() as u32).unwrap()
 }
 
-fn primary_rays(m: &Manifest) -> Vec<(Vec3, Vec3)> {
+/// A ray with the interval the kernel traces it over: its span inside the (only) domain.
+type Segment = (Vec3, Vec3, f32, f32);
+
+fn segment(m: &Manifest, o: Vec3, d: Vec3) -> Option<Segment> {
+    clip_to_box(&m.bounds, o, d, 0.0, f32::INFINITY).map(|(a, b)| (o, d, a, b))
+}
+
+fn primary_rays(m: &Manifest) -> Vec<Segment> {
     let cam = PinholeCamera::new(&m.camera, SIDE, SIDE);
     (0..SIDE * SIDE)
-        .map(|p| {
+        .filter_map(|p| {
             let r = cam.primary(p, 0);
-            (Vec3::from(r.origin), Vec3::from(r.dir))
+            segment(m, Vec3::from(r.origin), Vec3::from(r.dir))
         })
         .collect()
 }
 
 /// From every primary hit, a cosine-distributed direction about the surface normal.
-fn diffuse_rays(b: &Bench, primary: &[(Vec3, Vec3)]) -> Vec<(Vec3, Vec3)> {
+fn diffuse_rays(b: &Bench, primary: &[Segment]) -> Vec<Segment> {
     let (nodes, tris) = (b.data.nodes(), b.data.packed());
+    let mut traverser = Traverser::new();
     primary
         .iter()
         .enumerate()
-        .filter_map(|(i, &(o, d))| {
-            let hit = Traverser::new().nearest_hit(
-                nodes,
-                tris,
-                &TraceRay::new(o, d),
-                0.0,
-                f32::INFINITY,
-            )?;
+        .filter_map(|(i, &(o, d, t0, t1))| {
+            let hit = traverser.nearest_hit(nodes, tris, &TraceRay::new(o, d), t0, t1)?;
             let mut n = tris[hit.slot as usize].normal();
             if n.dot(d) > 0.0 {
                 n = -n;
@@ -90,20 +95,20 @@ fn diffuse_rays(b: &Bench, primary: &[(Vec3, Vec3)]) -> Vec<(Vec3, Vec3)> {
             let u = uniform(i as u32, 0, 1, Purpose::BounceU, 0);
             let phi = std::f32::consts::TAU * uniform(i as u32, 0, 1, Purpose::BounceV, 0);
             let r = u.sqrt();
-            Some((
-                p,
-                (t * r * phi.cos() + bt * r * phi.sin() + n * (1.0 - u).sqrt()).normalize(),
-            ))
+            let dir = (t * r * phi.cos() + bt * r * phi.sin() + n * (1.0 - u).sqrt()).normalize();
+            segment(&b.manifest, p, dir)
         })
         .collect()
 }
 
-fn trace_all(b: &Bench, rays: &[(Vec3, Vec3)]) -> usize {
+fn trace_all(b: &Bench, rays: &[Segment]) -> usize {
     let (nodes, tris) = (b.data.nodes(), b.data.packed());
+    // One traverser for the whole set, as the kernel keeps one per batch.
+    let mut traverser = Traverser::new();
     rays.iter()
-        .filter(|(o, d)| {
-            Traverser::new()
-                .nearest_hit(nodes, tris, &TraceRay::new(*o, *d), 0.0, f32::INFINITY)
+        .filter(|&&(o, d, t0, t1)| {
+            traverser
+                .nearest_hit(nodes, tris, &TraceRay::new(o, d), t0, t1)
                 .is_some()
         })
         .count()
@@ -134,8 +139,9 @@ fn kernel(c: &mut Criterion) {
     });
     // The whole kernel on camera rays: traversal plus shading and spawning children.
     let view = SceneView::new(&b.manifest, 3);
-    let cam = PinholeCamera::new(&b.manifest.camera, SIDE, SIDE);
-    let records: Vec<RayRecord> = (0..SIDE * SIDE)
+    // Camera rays of a 256x256 image (the kernel also shades, so fewer rays suffice).
+    let cam = PinholeCamera::new(&b.manifest.camera, 256, 256);
+    let records: Vec<RayRecord> = (0..256 * 256)
         .map(|p| RayRecord {
             domain: 0,
             ..cam.primary(p, 0)
