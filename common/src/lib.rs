@@ -5,6 +5,7 @@
 pub mod bundler;
 pub mod bvh;
 pub mod camera;
+pub mod frame;
 pub mod geometry;
 pub mod isosurface;
 pub mod mesh;
