@@ -119,7 +119,7 @@ impl RaySink for CountSink {
     fn push(&mut self, _: RayRecord) {
         self.0 += 1;
     }
-    fn deposit(&mut self, _: &RayRecord, _: [f32; 3]) {
+    fn retire(&mut self, _: &RayRecord, _: [f32; 3]) {
         self.0 += 1;
     }
 }

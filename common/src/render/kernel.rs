@@ -8,6 +8,7 @@ use std::ops::ControlFlow;
 use glam::Vec3;
 
 use crate::bvh::{TraceRay, Traverser};
+use crate::frame::{split_credit, split_path_credit};
 use crate::geometry::PackedTriangle;
 use crate::ray::{RayKind, RayRecord};
 use crate::sampling::{Purpose, uniform};
@@ -17,8 +18,8 @@ use crate::scene::{DomainData, DomainTree, Light, Manifest, Material, Sky};
 pub trait RaySink {
     /// A ray that continues in domain `ray.domain`.
     fn push(&mut self, ray: RayRecord);
-    /// Light arriving at a pixel.
-    fn deposit(&mut self, ray: &RayRecord, rgb: [f32; 3]);
+    /// A ray ends here: `rgb` (possibly black) goes to its pixel and `ray.credit` back to its tile.
+    fn retire(&mut self, ray: &RayRecord, rgb: [f32; 3]);
 }
 
 /// Counts kept by the kernel; summed across threads and processes.
@@ -130,7 +131,7 @@ impl SceneView {
                 t * Vec3::from(self.sky.horizon).lerp(Vec3::from(self.sky.zenith), up)
             }
         };
-        sink.deposit(ray, light.into());
+        sink.retire(ray, light.into());
     }
 
     /// This ray's interval in `domain`, and the next domain with geometry after it.
@@ -168,6 +169,7 @@ impl SceneView {
         let nodes = data.nodes();
         let tris = data.packed();
         let mut traverser = Traverser::new();
+        let mut children = Vec::with_capacity(self.lights.len() + 1);
         for ray in rays {
             let (interval, next) = self.segment(ray, data.domain());
             let Some((t0, t1)) = interval else {
@@ -182,6 +184,8 @@ impl SceneView {
                 RayKind::Shadow => {
                     counters.shadow_segments += 1;
                     if traverser.any_hit(nodes, tris, &tr, t0, t1) {
+                        // Occluded: no light, but the credit still goes home.
+                        sink.retire(ray, [0.0; 3]);
                         continue;
                     }
                 }
@@ -189,7 +193,9 @@ impl SceneView {
                     counters.radiance_segments += 1;
                     if let Some(hit) = traverser.nearest_hit(nodes, tris, &tr, t0, t1) {
                         let tri = &tris[hit.slot as usize];
-                        self.shade(ray, origin + dir * hit.t, tri, sink, counters);
+                        children.clear();
+                        self.shade(ray, origin + dir * hit.t, tri, &mut children, counters);
+                        self.hand_on_credit(ray, &mut children, sink);
                         continue;
                     }
                 }
@@ -201,12 +207,57 @@ impl SceneView {
         }
     }
 
+    /// Splits the parent's credit among its children (shadow rays get the minimum, the bounce
+    /// the rest, so credit lasts for any depth) and sends them on. A parent without children, or
+    /// whose credit cannot be split, ends its path and returns its credit; credit depends only
+    /// on the ray tree, so that cut is the same in every run.
+    fn hand_on_credit(
+        &self,
+        parent: &RayRecord,
+        children: &mut [RayRecord],
+        sink: &mut impl RaySink,
+    ) {
+        let leaves = children
+            .iter()
+            .filter(|c| c.kind() == RayKind::Shadow)
+            .count();
+        let bounces = children.len() - leaves;
+        let shares: Option<Vec<u64>> = match bounces {
+            0 => split_credit(parent.credit, leaves)
+                .ok()
+                .map(Iterator::collect),
+            _ => split_path_credit(parent.credit, leaves).ok().map(|s| {
+                children
+                    .iter()
+                    .map(|c| {
+                        if c.kind() == RayKind::Shadow {
+                            s.leaf
+                        } else {
+                            s.continuation
+                        }
+                    })
+                    .collect()
+            }),
+        };
+        match shares {
+            Some(shares) if !children.is_empty() => {
+                for (child, credit) in children.iter_mut().zip(shares) {
+                    child.credit = credit;
+                    self.route_new(*child, sink);
+                }
+            }
+            _ => sink.retire(parent, [0.0; 3]),
+        }
+    }
+
+    /// The children of a radiance ray that hit `tri` at `p`: shadow rays towards the lights and
+    /// at most one bounce, pushed to `out` without credit.
     fn shade(
         &self,
         ray: &RayRecord,
         p: Vec3,
         tri: &PackedTriangle,
-        sink: &mut impl RaySink,
+        out: &mut Vec<RayRecord>,
         counters: &mut KernelCounters,
     ) {
         let dir = Vec3::from(ray.dir);
@@ -233,18 +284,18 @@ impl SceneView {
         match self.materials[tri.material as usize] {
             Material::Diffuse { albedo } => {
                 let albedo = Vec3::from(albedo);
-                self.direct_light(ray, origin, n, throughput * albedo, sink, counters);
+                self.direct_light(ray, origin, n, throughput * albedo, out, counters);
                 if can_bounce {
                     let d = cosine_direction(n, u(Purpose::BounceU), u(Purpose::BounceV));
                     counters.bounce_rays += 1;
-                    self.route_new(child(d, throughput * albedo), sink);
+                    out.push(child(d, throughput * albedo));
                 }
             }
             Material::Mirror { tint } => {
                 if can_bounce {
                     counters.reflection_rays += 1;
                     let d = reflect(dir, n);
-                    self.route_new(child(d, throughput * Vec3::from(tint)), sink);
+                    out.push(child(d, throughput * Vec3::from(tint)));
                 }
             }
             Material::Glossy {
@@ -254,7 +305,7 @@ impl SceneView {
             } => {
                 let specular = specular.clamp(0.0, 1.0);
                 let base = throughput * Vec3::from(albedo) * (1.0 - specular);
-                self.direct_light(ray, origin, n, base, sink, counters);
+                self.direct_light(ray, origin, n, base, out, counters);
                 if !can_bounce {
                     return;
                 }
@@ -265,12 +316,12 @@ impl SceneView {
                     let d = (reflect(dir, n) + fuzz).normalize_or(n);
                     if d.dot(n) > 0.0 {
                         counters.bounce_rays += 1;
-                        self.route_new(child(d, throughput), sink);
+                        out.push(child(d, throughput));
                     }
                 } else if specular < 1.0 {
                     let d = cosine_direction(n, u(Purpose::BounceU), u(Purpose::BounceV));
                     counters.bounce_rays += 1;
-                    self.route_new(child(d, throughput * Vec3::from(albedo)), sink);
+                    out.push(child(d, throughput * Vec3::from(albedo)));
                 }
             }
         }
@@ -284,7 +335,7 @@ impl SceneView {
         origin: Vec3,
         n: Vec3,
         weight: Vec3,
-        sink: &mut impl RaySink,
+        out: &mut Vec<RayRecord>,
         counters: &mut KernelCounters,
     ) {
         let brdf = weight * std::f32::consts::FRAC_1_PI;
@@ -349,18 +400,15 @@ impl SceneView {
                 continue;
             }
             counters.shadow_rays += 1;
-            self.route_new(
-                RayRecord {
-                    origin: origin.into(),
-                    t_min: 0.0,
-                    dir: dir.into(),
-                    t_max,
-                    throughput: carried.into(),
-                    kind: RayKind::Shadow as u8,
-                    ..*ray
-                },
-                sink,
-            );
+            out.push(RayRecord {
+                origin: origin.into(),
+                t_min: 0.0,
+                dir: dir.into(),
+                t_max,
+                throughput: carried.into(),
+                kind: RayKind::Shadow as u8,
+                ..*ray
+            });
         }
     }
 }

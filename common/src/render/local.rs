@@ -3,6 +3,7 @@
 //! image bit for bit.
 
 use std::path::Path;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
 use rayon::prelude::*;
@@ -13,6 +14,7 @@ use super::film::Film;
 use super::kernel::{KernelCounters, RaySink, SceneView};
 use super::stats::{RenderStats, peak_rss_bytes};
 use crate::camera::PinholeCamera;
+use crate::frame::{TILE_CREDIT, TileGrid, primary_credit};
 use crate::ray::RayRecord;
 use crate::scene::{Camera, Manifest, SceneError};
 
@@ -80,22 +82,41 @@ pub enum RenderError {
     /// The thread pool could not start.
     #[error("thread pool: {0}")]
     Threads(String),
+    /// The kernel lost or invented credit: a bug, reported rather than hidden.
+    #[error("internal error: tile {tile} returned {returned} of {expected} credit")]
+    Credit {
+        /// The tile.
+        tile: u32,
+        /// Credit that came back.
+        returned: u64,
+        /// Credit it started with.
+        expected: u64,
+    },
 }
 
 /// Rays traced per rayon task: large enough to amortise, small enough to balance.
 const CHUNK: usize = 4096;
 
+/// Tile side in pixels for credit accounting.
+const TILE_SIZE: u32 = 32;
+
 struct QueueSink<'a> {
     out: Vec<RayRecord>,
     film: &'a Film,
+    /// Credit returned per tile: the local renderer checks the kernel conserves it exactly,
+    /// as the cluster will rely on it to know when a tile is done.
+    returned: &'a [AtomicU64],
 }
 
 impl RaySink for QueueSink<'_> {
     fn push(&mut self, ray: RayRecord) {
         self.out.push(ray);
     }
-    fn deposit(&mut self, ray: &RayRecord, rgb: [f32; 3]) {
+    fn retire(&mut self, ray: &RayRecord, rgb: [f32; 3]) {
         self.film.deposit(ray.pixel, rgb);
+        if let Some(t) = self.returned.get(ray.tile as usize) {
+            t.fetch_add(ray.credit, Ordering::Relaxed);
+        }
     }
 }
 
@@ -135,6 +156,9 @@ fn render_in_pool(
         frame.height,
     );
     let film = Film::new(frame.width, frame.height, frame.spp);
+    let grid = TileGrid::new(frame.width, frame.height, TILE_SIZE)
+        .ok_or_else(|| RenderError::Frame("image does not fit the tile grid".into()))?;
+    let returned: Vec<AtomicU64> = (0..grid.count()).map(|_| AtomicU64::new(0)).collect();
     let mut cache = DomainCache::new(dir, manifest, options.cache_bytes)?;
     let mut queues: Vec<Vec<RayRecord>> = vec![Vec::new(); view.domain_count()];
     let mut counters = KernelCounters::default();
@@ -146,7 +170,12 @@ fn render_in_pool(
         let queued: usize = queues.iter().map(Vec::len).sum();
         if queued < wave as usize && issued < total_primary {
             let end = (issued + wave).min(total_primary);
-            let outs = issue_primaries(&view, &camera, &film, frame.spp, issued..end);
+            let sink = |out| QueueSink {
+                out,
+                film: &film,
+                returned: &returned,
+            };
+            let outs = issue_primaries(&view, &camera, &grid, frame.spp, issued..end, sink);
             counters.primary_rays += end - issued;
             issued = end;
             distribute(&mut queues, outs);
@@ -171,6 +200,7 @@ fn render_in_pool(
                 let mut sink = QueueSink {
                     out: Vec::with_capacity(chunk.len() * 2),
                     film: &film,
+                    returned: &returned,
                 };
                 let mut c = KernelCounters::default();
                 view.trace(&data, chunk, &mut sink, &mut c);
@@ -181,6 +211,16 @@ fn render_in_pool(
         for (out, c) in results {
             counters.add(&c);
             distribute(&mut queues, vec![out]);
+        }
+    }
+    for (tile, r) in returned.iter().enumerate() {
+        let r = r.load(Ordering::Relaxed);
+        if r != TILE_CREDIT {
+            return Err(RenderError::Credit {
+                tile: tile as u32,
+                returned: r,
+                expected: TILE_CREDIT,
+            });
         }
     }
     let wall = start.elapsed().as_secs_f64();
@@ -211,23 +251,30 @@ fn render_in_pool(
     Ok((film, stats))
 }
 
-/// Camera rays for the flat (pixel, sample) indices in `range`, routed to their first domain.
-fn issue_primaries(
+/// Camera rays for the flat (pixel, sample) indices in `range`, each with its share of its
+/// tile's credit, routed to their first domain.
+fn issue_primaries<'a>(
     view: &SceneView,
     camera: &PinholeCamera,
-    film: &Film,
+    grid: &TileGrid,
     spp: u32,
     range: std::ops::Range<u64>,
+    sink: impl Fn(Vec<RayRecord>) -> QueueSink<'a> + Sync,
 ) -> Vec<Vec<RayRecord>> {
     let idx: Vec<u64> = range.collect();
     idx.par_chunks(CHUNK)
         .map(|chunk| {
-            let mut sink = QueueSink {
-                out: Vec::with_capacity(chunk.len()),
-                film,
-            };
+            let mut sink = sink(Vec::with_capacity(chunk.len()));
             for &i in chunk {
-                let ray = camera.primary((i / spp as u64) as u32, (i % spp as u64) as u32);
+                let (pixel, sample) = ((i / spp as u64) as u32, (i % spp as u64) as u32);
+                let mut ray = camera.primary(pixel, sample);
+                // Every pixel of the frame lies in the grid, so these lookups cannot fail.
+                let tile = grid.tile_of(pixel).unwrap_or(0);
+                let local = grid.local_index(tile, pixel).unwrap_or(0) as u64;
+                let rays = grid.tile_pixel_count(tile) as u64 * spp as u64;
+                ray.tile = tile;
+                ray.credit = primary_credit(TILE_CREDIT, rays, local * spp as u64 + sample as u64)
+                    .unwrap_or(0);
                 view.route_new(ray, &mut sink);
             }
             sink.out
