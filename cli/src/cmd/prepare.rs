@@ -135,4 +135,9 @@ fn print_summary(out: &std::path::Path, m: &Manifest) {
         units::human(bytes),
         units::human(largest)
     );
+    // The kernel's own high-water mark (what `/usr/bin/time -v` reports), for scripts and tests.
+    println!(
+        "peak RSS: {} bytes",
+        rayfarm_common::render::stats::peak_rss_bytes()
+    );
 }
