@@ -4,7 +4,8 @@ use std::path::PathBuf;
 
 use anyhow::{Context, bail};
 use clap::Args;
-use rayfarm_common::render::local::{FrameSpec, LocalOptions, render_local};
+use indicatif::{ProgressBar, ProgressStyle};
+use rayfarm_common::render::local::{FrameSpec, LocalOptions, Progress, render_local};
 use rayfarm_common::scene::Manifest;
 
 use crate::table::stats_table;
@@ -70,7 +71,28 @@ pub fn run(a: RenderArgs) -> anyhow::Result<()> {
         cache_bytes: a.cache_bytes,
         wave_rays: a.wave_rays,
     };
-    let (film, stats) = render_local(&a.scene, &manifest, &frame, &options)?;
+    let bar = if a.quiet {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(0)
+    };
+    bar.set_style(
+        ProgressStyle::with_template("{spinner} [{bar:30}] {pos}/{len} tiles  {msg}  eta {eta}")
+            .map_err(anyhow::Error::msg)?
+            .progress_chars("=> "),
+    );
+    let mut on_progress = |p: &Progress| {
+        bar.set_length(p.tiles_total as u64);
+        bar.set_position(p.tiles_done as u64);
+        bar.set_message(format!(
+            "{:.2} Mrays/s, {} loads",
+            p.segments as f64 / p.elapsed.max(1e-9) / 1e6,
+            p.loads
+        ));
+    };
+    let result = render_local(&a.scene, &manifest, &frame, &options, &mut on_progress);
+    bar.finish_and_clear();
+    let (film, stats) = result?;
     film.save(&a.out)?;
     if let Some(p) = &a.stats_json {
         std::fs::write(p, serde_json::to_string_pretty(&stats)?)

@@ -120,19 +120,36 @@ impl RaySink for QueueSink<'_> {
     }
 }
 
-/// Renders one frame of the scene in `dir` in this process.
+/// How far a local render has come; reported after every queue pass.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Progress {
+    /// Tiles whose credit has all come back (finished).
+    pub tiles_done: u32,
+    /// Tiles in the frame.
+    pub tiles_total: u32,
+    /// Ray segments traced so far.
+    pub segments: u64,
+    /// Domain loads so far.
+    pub loads: u64,
+    /// Seconds since the frame started.
+    pub elapsed: f64,
+}
+
+/// Renders one frame of the scene in `dir` in this process, calling `on_progress` after
+/// every queue pass.
 pub fn render_local(
     dir: &Path,
     manifest: &Manifest,
     frame: &FrameSpec,
     options: &LocalOptions,
+    on_progress: &mut (dyn FnMut(&Progress) + Send),
 ) -> Result<(Film, RenderStats), RenderError> {
     frame.check().map_err(RenderError::Frame)?;
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(options.threads.max(1))
         .build()
         .map_err(|e| RenderError::Threads(e.to_string()))?;
-    pool.install(|| render_in_pool(dir, manifest, frame, options))
+    pool.install(|| render_in_pool(dir, manifest, frame, options, on_progress))
 }
 
 fn render_in_pool(
@@ -140,6 +157,7 @@ fn render_in_pool(
     manifest: &Manifest,
     frame: &FrameSpec,
     options: &LocalOptions,
+    on_progress: &mut (dyn FnMut(&Progress) + Send),
 ) -> Result<(Film, RenderStats), RenderError> {
     let start = Instant::now();
     let _span = info_span!(
@@ -212,6 +230,16 @@ fn render_in_pool(
             counters.add(&c);
             distribute(&mut queues, vec![out]);
         }
+        on_progress(&Progress {
+            tiles_done: returned
+                .iter()
+                .filter(|r| r.load(Ordering::Relaxed) == TILE_CREDIT)
+                .count() as u32,
+            tiles_total: grid.count(),
+            segments: counters.segments(),
+            loads: cache.counters().loads,
+            elapsed: start.elapsed().as_secs_f64(),
+        });
     }
     for (tile, r) in returned.iter().enumerate() {
         let r = r.load(Ordering::Relaxed);
