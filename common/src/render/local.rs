@@ -184,16 +184,16 @@ fn render_in_pool(
     let mut issued = 0u64;
     let mut passes = 0u64;
     let wave = options.wave_rays.max(1) as u64;
+    let new_sink = |out| QueueSink {
+        out,
+        film: &film,
+        returned: &returned,
+    };
     loop {
         let queued: usize = queues.iter().map(Vec::len).sum();
         if queued < wave as usize && issued < total_primary {
             let end = (issued + wave).min(total_primary);
-            let sink = |out| QueueSink {
-                out,
-                film: &film,
-                returned: &returned,
-            };
-            let outs = issue_primaries(&view, &camera, &grid, frame.spp, issued..end, sink);
+            let outs = issue_primaries(&view, &camera, &grid, frame.spp, issued..end, new_sink);
             counters.primary_rays += end - issued;
             issued = end;
             distribute(&mut queues, outs);
@@ -215,21 +215,19 @@ fn render_in_pool(
         let results: Vec<(Vec<RayRecord>, KernelCounters)> = rays
             .par_chunks(CHUNK)
             .map(|chunk| {
-                let mut sink = QueueSink {
-                    out: Vec::with_capacity(chunk.len() * 2),
-                    film: &film,
-                    returned: &returned,
-                };
+                let mut sink = new_sink(Vec::with_capacity(chunk.len() * 2));
                 let mut c = KernelCounters::default();
                 view.trace(&data, chunk, &mut sink, &mut c);
                 (sink.out, c)
             })
             .collect();
         passes += 1;
+        let mut outs = Vec::with_capacity(results.len());
         for (out, c) in results {
             counters.add(&c);
-            distribute(&mut queues, vec![out]);
+            outs.push(out);
         }
+        distribute(&mut queues, outs);
         on_progress(&Progress {
             tiles_done: returned
                 .iter()
@@ -287,12 +285,12 @@ fn issue_primaries<'a>(
     grid: &TileGrid,
     spp: u32,
     range: std::ops::Range<u64>,
-    sink: impl Fn(Vec<RayRecord>) -> QueueSink<'a> + Sync,
+    new_sink: impl Fn(Vec<RayRecord>) -> QueueSink<'a> + Sync,
 ) -> Vec<Vec<RayRecord>> {
     let idx: Vec<u64> = range.collect();
     idx.par_chunks(CHUNK)
         .map(|chunk| {
-            let mut sink = sink(Vec::with_capacity(chunk.len()));
+            let mut sink = new_sink(Vec::with_capacity(chunk.len()));
             for &i in chunk {
                 let (pixel, sample) = ((i / spp as u64) as u32, (i % spp as u64) as u32);
                 let mut ray = camera.primary(pixel, sample);
