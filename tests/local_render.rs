@@ -193,6 +193,7 @@ fn bad_scenes_and_frames_get_clear_errors() {
         ("--width", "100000", "resolution 100000x24"),
         ("--spp", "0", "spp 0"),
         ("--depth", "1000", "depth 1000"),
+        ("--fov", "200", "field of view 200"),
     ] {
         let mut a = args(sc, out);
         match a.iter().position(|x| *x == flag) {
@@ -202,6 +203,17 @@ fn bad_scenes_and_frames_get_clear_errors() {
         let err = rayfarm_err(&a);
         assert!(err.contains(expect), "{flag} {value}: {err}");
     }
+    // A camera override renders another view of the same scene.
+    let json = tmp.path().join("s.json");
+    let hash = |extra: &[&str]| {
+        let mut a = args(sc, out);
+        a.extend(["--stats-json", s(&json)]);
+        a.extend(extra);
+        rayfarm_ok(&a);
+        stats_field(&json, "/image_hash")
+    };
+    assert_ne!(hash(&[]), hash(&["--eye", "0.5,0.9,2.0", "--fov", "30"]));
+
     let err = rayfarm_err(&args(sc, s(&tmp.path().join("x.gif"))));
     assert!(err.contains("unknown image format"), "{err}");
     let err = rayfarm_err(&args(s(&tmp.path().join("nowhere")), out));

@@ -63,6 +63,9 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
         height: a.height,
         spp: a.spp,
         depth: 3,
+        eye: None,
+        look_at: None,
+        fov: None,
         threads: None,
         // A quarter of the scene: the renderer has to page domains in and out, as on a cluster.
         cache_bytes: (scene_bytes / 4).max(1),

@@ -6,7 +6,7 @@ use anyhow::{Context, bail};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use rayfarm_common::render::local::{FrameSpec, LocalOptions, Progress, render_local};
-use rayfarm_common::scene::Manifest;
+use rayfarm_common::scene::{Camera, Manifest};
 
 use crate::table::stats_table;
 use crate::units;
@@ -35,6 +35,15 @@ pub struct RenderArgs {
     /// Maximum bounces.
     #[arg(long, default_value_t = 3)]
     pub depth: u32,
+    /// Camera position X,Y,Z (default: the scene's camera).
+    #[arg(long, value_parser = parse_vec3)]
+    pub eye: Option<[f32; 3]>,
+    /// Point the camera looks at, X,Y,Z.
+    #[arg(long, value_parser = parse_vec3)]
+    pub look_at: Option<[f32; 3]>,
+    /// Vertical field of view in degrees.
+    #[arg(long)]
+    pub fov: Option<f32>,
     /// Tracing threads (default: all cores).
     #[arg(long, env = "RAYFARM_THREADS")]
     pub threads: Option<usize>,
@@ -52,6 +61,27 @@ pub struct RenderArgs {
     pub quiet: bool,
 }
 
+fn parse_vec3(s: &str) -> Result<[f32; 3], String> {
+    let v: Vec<f32> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f32>().map_err(|e| format!("{p:?}: {e}")))
+        .collect::<Result<_, _>>()?;
+    <[f32; 3]>::try_from(v).map_err(|v| format!("expected X,Y,Z, got {} numbers", v.len()))
+}
+
+/// The scene's camera with whatever the command line overrides.
+fn camera_override(scene: &Camera, a: &RenderArgs) -> Option<Camera> {
+    if a.eye.is_none() && a.look_at.is_none() && a.fov.is_none() {
+        return None;
+    }
+    Some(Camera {
+        eye: a.eye.unwrap_or(scene.eye),
+        look_at: a.look_at.unwrap_or(scene.look_at),
+        up: scene.up,
+        fov_y_degrees: a.fov.unwrap_or(scene.fov_y_degrees),
+    })
+}
+
 pub fn run(a: RenderArgs) -> anyhow::Result<()> {
     if !a.local {
         bail!("pass --local: rendering on a cluster is not built yet");
@@ -62,7 +92,7 @@ pub fn run(a: RenderArgs) -> anyhow::Result<()> {
         height: a.height,
         spp: a.spp,
         max_depth: a.depth,
-        camera: None,
+        camera: camera_override(&manifest.camera, &a),
     };
     let options = LocalOptions {
         threads: a

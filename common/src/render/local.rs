@@ -55,6 +55,18 @@ impl FrameSpec {
         if self.max_depth > MAX_DEPTH {
             return Err(format!("depth {} is above {MAX_DEPTH}", self.max_depth));
         }
+        if let Some(c) = &self.camera {
+            let finite = |v: &[f32; 3]| v.iter().all(|x| x.is_finite());
+            if !(finite(&c.eye) && finite(&c.look_at) && finite(&c.up)) || c.eye == c.look_at {
+                return Err("camera eye and look-at must be finite and distinct".into());
+            }
+            if !(c.fov_y_degrees > 0.0 && c.fov_y_degrees < 180.0) {
+                return Err(format!(
+                    "field of view {} is outside (0, 180)",
+                    c.fov_y_degrees
+                ));
+            }
+        }
         Ok(())
     }
 }
