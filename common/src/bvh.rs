@@ -9,7 +9,7 @@ use std::time::Duration;
 use bytemuck::{Pod, Zeroable};
 use glam::{Vec3, Vec3A, Vec4};
 
-use crate::geometry::{PackedTriangle, nearer};
+use crate::geometry::{PackedTriangle, ShearedRay, nearer};
 
 /// Width of a node.
 pub const WIDTH: usize = 4;
@@ -197,8 +197,7 @@ pub fn validate(nodes: &[BvhNode], triangle_count: usize) -> Result<usize, Strin
 /// A ray prepared for box tests.
 #[derive(Clone, Copy)]
 pub struct TraceRay {
-    origin: Vec3,
-    dir: Vec3,
+    sheared: ShearedRay,
     inv: [Vec4; 3],
     origin_inv: [Vec4; 3],
 }
@@ -222,8 +221,7 @@ impl TraceRay {
             safe(dir.z).recip(),
         ];
         TraceRay {
-            origin,
-            dir,
+            sheared: ShearedRay::new(origin, dir),
             inv: inv.map(Vec4::splat),
             origin_inv: [0, 1, 2].map(|a| Vec4::splat(origin[a] * inv[a])),
         }
@@ -320,7 +318,7 @@ impl Traverser {
             if e.meta != SLOT_INNER {
                 let first = e.child as usize;
                 for (k, tri) in tris[first..first + e.meta as usize].iter().enumerate() {
-                    let t = tri.intersect_t(ray.origin, ray.dir);
+                    let t = tri.intersect_t(&ray.sheared);
                     // A miss is infinity, which must not win against an unbounded t1.
                     if t >= t0 && t != f32::INFINITY && nearer(t, tri.id(), best.t, best.id) {
                         best = Hit {
@@ -380,7 +378,7 @@ impl Traverser {
             if e.meta != SLOT_INNER {
                 let first = e.child as usize;
                 for tri in &tris[first..first + e.meta as usize] {
-                    let t = tri.intersect_t(ray.origin, ray.dir);
+                    let t = tri.intersect_t(&ray.sheared);
                     if t >= t0 && t <= t1 && t != f32::INFINITY {
                         return true;
                     }

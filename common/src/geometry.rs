@@ -83,9 +83,10 @@ impl Aabb {
     }
 }
 
-/// A triangle stored ready for intersection: one vertex and two edges, its scene-wide id and
-/// material. Every domain that references a triangle stores the same bits, so every domain
-/// computes the same hit distance for the same ray.
+/// A triangle stored ready for intersection: its three vertices exactly as the mesh gives
+/// them (so neighbours share edge bits and the watertight test leaves no cracks), its
+/// scene-wide id and material. Every domain that references a triangle stores the same bits,
+/// so every domain computes the same hit distance for the same ray.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
 pub struct PackedTriangle {
@@ -93,26 +94,60 @@ pub struct PackedTriangle {
     pub v0: [f32; 3],
     /// Low half of the scene-wide triangle id, which breaks ties between equal distances.
     pub id_lo: u32,
-    /// `v1 - v0`.
-    pub e1: [f32; 3],
+    /// Second vertex.
+    pub v1: [f32; 3],
     /// Index into the scene's material table.
     pub material: u32,
-    /// `v2 - v0`.
-    pub e2: [f32; 3],
+    /// Third vertex.
+    pub v2: [f32; 3],
     /// High half of the scene-wide triangle id.
     pub id_hi: u32,
+}
+
+/// A ray transformed for the watertight test (Woop, Benthin and Wald, JCGT 2013): the
+/// dominant direction axis becomes z and the ray is sheared onto it, so each triangle edge is
+/// tested with the same arithmetic from both of its triangles.
+#[derive(Clone, Copy, Debug)]
+pub struct ShearedRay {
+    origin: Vec3,
+    axes: [usize; 3],
+    shear: Vec3,
+}
+
+impl ShearedRay {
+    /// Prepares `origin + t * dir`; `dir` must not be zero.
+    #[inline]
+    pub fn new(origin: Vec3, dir: Vec3) -> Self {
+        let a = dir.abs();
+        let kz = if a.x >= a.y && a.x >= a.z {
+            0
+        } else if a.y >= a.z {
+            1
+        } else {
+            2
+        };
+        let (mut kx, mut ky) = ((kz + 1) % 3, (kz + 2) % 3);
+        // Keep the winding: a negative dominant component mirrors the projection.
+        if dir[kz] < 0.0 {
+            std::mem::swap(&mut kx, &mut ky);
+        }
+        ShearedRay {
+            origin,
+            axes: [kx, ky, kz],
+            shear: Vec3::new(dir[kx] / dir[kz], dir[ky] / dir[kz], 1.0 / dir[kz]),
+        }
+    }
 }
 
 impl PackedTriangle {
     /// Packs a triangle given by its three vertices.
     pub fn new(v: &[[f32; 3]; 3], id: u64, material: u32) -> Self {
-        let v0 = Vec3::from(v[0]);
         PackedTriangle {
             v0: v[0],
             id_lo: id as u32,
-            e1: (Vec3::from(v[1]) - v0).into(),
+            v1: v[1],
             material,
-            e2: (Vec3::from(v[2]) - v0).into(),
+            v2: v[2],
             id_hi: (id >> 32) as u32,
         }
     }
@@ -125,54 +160,62 @@ impl PackedTriangle {
 
     /// The three vertices.
     pub fn vertices(&self) -> [[f32; 3]; 3] {
-        let v0 = Vec3::from(self.v0);
-        [
-            self.v0,
-            (v0 + Vec3::from(self.e1)).into(),
-            (v0 + Vec3::from(self.e2)).into(),
-        ]
+        [self.v0, self.v1, self.v2]
     }
 
     /// Unit geometric normal (right-hand rule over v0, v1, v2).
     pub fn normal(&self) -> Vec3 {
-        Vec3::from(self.e1)
-            .cross(Vec3::from(self.e2))
+        let v0 = Vec3::from(self.v0);
+        (Vec3::from(self.v1) - v0)
+            .cross(Vec3::from(self.v2) - v0)
             .normalize_or(Vec3::Z)
     }
 
-    /// Möller-Trumbore: the distance along `dir` at which the ray meets the triangle, if it does
-    /// at a positive distance. A pure function of the ray and this record.
+    /// The distance along `dir` at which the ray meets the triangle, if it does at a positive
+    /// distance. A pure function of the ray and this record.
     #[inline(always)]
     pub fn intersect(&self, origin: Vec3, dir: Vec3) -> Option<f32> {
-        let t = self.intersect_t(origin, dir);
+        let t = self.intersect_t(&ShearedRay::new(origin, dir));
         (t != f32::INFINITY).then_some(t)
     }
 
-    /// [`Self::intersect`] without branches on the way: infinity when there is no hit, so
-    /// traversal pays one comparison per triangle instead of three mispredicted ones.
+    /// The watertight test: infinity when there is no hit. A ray through a shared edge or
+    /// vertex hits at least one of the triangles that share it.
     #[inline(always)]
-    pub fn intersect_t(&self, origin: Vec3, dir: Vec3) -> f32 {
-        // Scalar on purpose: the fourth lane of each 16-byte row holds integer bits that read as
-        // denormal floats, and SIMD arithmetic on them stalls (masking it is optimised away).
-        let (v0, e1, e2) = (
-            Vec3::from(self.v0),
-            Vec3::from(self.e1),
-            Vec3::from(self.e2),
-        );
-        let p = dir.cross(e2);
-        let det = e1.dot(p);
-        let inv = 1.0 / det;
-        let s = origin - v0;
-        let u = s.dot(p) * inv;
-        let q = s.cross(e1);
-        let v = dir.dot(q) * inv;
-        let t = e2.dot(q) * inv;
-        let inside = u >= 0.0 && v >= 0.0 && u + v <= 1.0;
-        if inside & (det.abs() >= 1e-30) & (t > 0.0) {
-            t
-        } else {
-            f32::INFINITY
+    pub fn intersect_t(&self, r: &ShearedRay) -> f32 {
+        let [kx, ky, kz] = r.axes;
+        let s = r.shear;
+        // Vertices relative to the origin, sheared into the ray's space.
+        let a = Vec3::from(self.v0) - r.origin;
+        let b = Vec3::from(self.v1) - r.origin;
+        let c = Vec3::from(self.v2) - r.origin;
+        let (ax, ay) = (a[kx] - s.x * a[kz], a[ky] - s.y * a[kz]);
+        let (bx, by) = (b[kx] - s.x * b[kz], b[ky] - s.y * b[kz]);
+        let (cx, cy) = (c[kx] - s.x * c[kz], c[ky] - s.y * c[kz]);
+        let mut u = cx * by - cy * bx;
+        let mut v = ax * cy - ay * cx;
+        let mut w = bx * ay - by * ax;
+        // An exact zero may be rounding: decide the edge in double precision.
+        if u == 0.0 || v == 0.0 || w == 0.0 {
+            let d =
+                |p: f32, q: f32, m: f32, n: f32| (p as f64 * q as f64 - m as f64 * n as f64) as f32;
+            u = d(cx, by, cy, bx);
+            v = d(ax, cy, ay, cx);
+            w = d(bx, ay, by, ax);
         }
+        if (u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0) {
+            return f32::INFINITY;
+        }
+        let det = u + v + w;
+        if det == 0.0 {
+            return f32::INFINITY;
+        }
+        let t_scaled = u * (s.z * a[kz]) + v * (s.z * b[kz]) + w * (s.z * c[kz]);
+        // Same sign as det means a positive distance.
+        if (det > 0.0 && t_scaled <= 0.0) || (det < 0.0 && t_scaled >= 0.0) {
+            return f32::INFINITY;
+        }
+        t_scaled / det
     }
 }
 

@@ -27,7 +27,7 @@ use crate::geometry::{Aabb, PackedTriangle};
 /// First bytes of every domain file.
 pub const MAGIC: [u8; 8] = *b"RFDOMAIN";
 /// Layout version.
-pub const VERSION: u32 = 2;
+pub const VERSION: u32 = 3;
 const ALIGN: u64 = 64;
 
 #[repr(C)]

@@ -1,0 +1,75 @@
+//! The triangle test is watertight: a ray through a shared edge or vertex of a closed mesh
+//! always hits one of the triangles that share it, so surfaces have no pinholes.
+
+use glam::Vec3;
+use rayfarm_common::geometry::PackedTriangle;
+
+/// A closed, subdivided octahedron: every edge is shared by two triangles with identical bits.
+fn closed_mesh(levels: u32) -> Vec<[[f32; 3]; 3]> {
+    let p = [Vec3::X, Vec3::Y, Vec3::Z, -Vec3::X, -Vec3::Y, -Vec3::Z];
+    let mut tris: Vec<[Vec3; 3]> = vec![
+        [p[0], p[1], p[2]],
+        [p[1], p[3], p[2]],
+        [p[3], p[4], p[2]],
+        [p[4], p[0], p[2]],
+        [p[1], p[0], p[5]],
+        [p[3], p[1], p[5]],
+        [p[4], p[3], p[5]],
+        [p[0], p[4], p[5]],
+    ];
+    for _ in 0..levels {
+        // Midpoints are computed from the two end points in a fixed order, so both triangles
+        // of an edge get the same bits.
+        let mid = |a: Vec3, b: Vec3| {
+            let (lo, hi) = if a.to_array() < b.to_array() {
+                (a, b)
+            } else {
+                (b, a)
+            };
+            ((lo + hi) * 0.5).normalize() * 1.3
+        };
+        tris = tris
+            .iter()
+            .flat_map(|&[a, b, c]| {
+                let (ab, bc, ca) = (mid(a, b), mid(b, c), mid(c, a));
+                [[a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca]]
+            })
+            .collect();
+    }
+    tris.iter().map(|t| t.map(|v| v.to_array())).collect()
+}
+
+#[test]
+fn rays_through_vertices_and_edges_of_a_closed_mesh_never_escape() {
+    let mesh = closed_mesh(4);
+    let packed: Vec<PackedTriangle> = mesh
+        .iter()
+        .enumerate()
+        .map(|(i, t)| PackedTriangle::new(t, i as u64, 0))
+        .collect();
+    let origins = [
+        Vec3::ZERO,
+        Vec3::new(0.1, -0.05, 0.02),
+        Vec3::new(-0.3, 0.2, 0.1),
+    ];
+    let mut targets = Vec::new();
+    for t in &mesh {
+        let [a, b, c] = t.map(Vec3::from);
+        targets.extend([a, b, c, (a + b) * 0.5, (b + c) * 0.5, (c + a) * 0.5]);
+    }
+    let mut escaped = 0;
+    for o in origins {
+        for &target in &targets {
+            let d = (target - o).normalize();
+            if !packed.iter().any(|t| t.intersect(o, d).is_some()) {
+                escaped += 1;
+            }
+        }
+    }
+    assert_eq!(
+        escaped,
+        0,
+        "{escaped} of {} rays slipped through an edge or vertex",
+        targets.len() * origins.len()
+    );
+}
