@@ -1,4 +1,4 @@
-//! Human-friendly byte sizes on the command line ("512MiB", "2G", "1000000").
+//! Command-line values: human-friendly byte sizes ("512MiB", "2G", "1000000") and X,Y,Z triples.
 
 /// Parses a byte size for clap.
 pub fn bytes(s: &str) -> Result<u64, String> {
@@ -22,4 +22,16 @@ pub fn human(bytes: u64) -> String {
     } else {
         format!("{v:.1} {}", UNITS[u])
     }
+}
+
+/// Parses "X,Y,Z" for clap (volume dimensions, camera positions).
+pub fn triple<T: std::str::FromStr>(s: &str) -> Result<[T; 3], String>
+where
+    T::Err: std::fmt::Display,
+{
+    let v: Vec<T> = s
+        .split(',')
+        .map(|p| p.trim().parse::<T>().map_err(|e| format!("{p:?}: {e}")))
+        .collect::<Result<_, _>>()?;
+    <[T; 3]>::try_from(v).map_err(|v| format!("expected X,Y,Z, got {} numbers", v.len()))
 }

@@ -48,7 +48,7 @@ pub struct PrepareArgs {
     #[arg(long, value_parser = units::bytes)]
     pub max_memory: Option<u64>,
     /// Volume: dimensions X,Y,Z of the raw file.
-    #[arg(long, value_parser = parse_dims)]
+    #[arg(long, value_parser = units::triple::<u32>)]
     pub dims: Option<[u32; 3]>,
     /// Volume: voxel type.
     #[arg(long, default_value = "u8")]
@@ -96,14 +96,6 @@ pub fn run(a: PrepareArgs) -> anyhow::Result<()> {
     };
     print_summary(&a.out, &manifest);
     Ok(())
-}
-
-fn parse_dims(s: &str) -> Result<[u32; 3], String> {
-    let v: Vec<u32> = s
-        .split(',')
-        .map(|p| p.trim().parse::<u32>().map_err(|e| format!("{p:?}: {e}")))
-        .collect::<Result<_, _>>()?;
-    <[u32; 3]>::try_from(v).map_err(|v| format!("expected X,Y,Z, got {} numbers", v.len()))
 }
 
 fn name_of(a: &PrepareArgs) -> String {

@@ -36,10 +36,10 @@ pub struct RenderArgs {
     #[arg(long, default_value_t = 3)]
     pub depth: u32,
     /// Camera position X,Y,Z (default: the scene's camera).
-    #[arg(long, value_parser = parse_vec3)]
+    #[arg(long, value_parser = units::triple::<f32>)]
     pub eye: Option<[f32; 3]>,
     /// Point the camera looks at, X,Y,Z.
-    #[arg(long, value_parser = parse_vec3)]
+    #[arg(long, value_parser = units::triple::<f32>)]
     pub look_at: Option<[f32; 3]>,
     /// Vertical field of view in degrees.
     #[arg(long)]
@@ -59,14 +59,6 @@ pub struct RenderArgs {
     /// Do not print the statistics table.
     #[arg(long)]
     pub quiet: bool,
-}
-
-fn parse_vec3(s: &str) -> Result<[f32; 3], String> {
-    let v: Vec<f32> = s
-        .split(',')
-        .map(|p| p.trim().parse::<f32>().map_err(|e| format!("{p:?}: {e}")))
-        .collect::<Result<_, _>>()?;
-    <[f32; 3]>::try_from(v).map_err(|v| format!("expected X,Y,Z, got {} numbers", v.len()))
 }
 
 /// The scene's camera with whatever the command line overrides.
