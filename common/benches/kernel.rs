@@ -55,9 +55,7 @@ fn scene() -> Bench {
 }
 
 fn open(dir: &std::path::Path, m: &Manifest, verify: bool) -> DomainData {
-    let d = &m.domains[0];
-    let sum = u64::from_str_radix(&d.checksum, 16).unwrap();
-    DomainData::open(&dir.join(&d.file), sum, verify, m.materials.len() as u32).unwrap()
+    m.open_domain(dir, 0, verify).expect("benchmark domain")
 }
 
 /// A ray with the interval the kernel traces it over: its span inside the (only) domain.

@@ -51,13 +51,8 @@ struct Loaded {
 
 fn load(dir: &Path) -> Loaded {
     let manifest = Manifest::load(dir).unwrap();
-    let domains = manifest
-        .domains
-        .iter()
-        .map(|d| {
-            let sum = u64::from_str_radix(&d.checksum, 16).unwrap();
-            DomainData::open(&dir.join(&d.file), sum, true, 1).unwrap()
-        })
+    let domains = (0..manifest.domains.len() as u32)
+        .map(|d| manifest.open_domain(dir, d, true).unwrap())
         .collect();
     Loaded { manifest, domains }
 }

@@ -24,8 +24,7 @@ pub struct CacheCounters {
 /// Domains of one scene, loaded on demand.
 pub struct DomainCache {
     dir: PathBuf,
-    files: Vec<(String, u64, u64)>,
-    materials: u32,
+    manifest: Manifest,
     budget: u64,
     resident: Vec<Option<Arc<DomainData>>>,
     last_use: Vec<u64>,
@@ -37,26 +36,11 @@ pub struct DomainCache {
 
 impl DomainCache {
     /// A cache for the scene in `dir` holding at most `budget` bytes of domains.
-    pub fn new(
-        dir: impl Into<PathBuf>,
-        manifest: &Manifest,
-        budget: u64,
-    ) -> Result<Self, SceneError> {
-        let dir = dir.into();
-        let files = manifest
-            .domains
-            .iter()
-            .map(|d| {
-                // Checked hex in `Manifest::parse`.
-                let sum = u64::from_str_radix(&d.checksum, 16).unwrap_or_default();
-                (d.file.clone(), sum, d.bytes)
-            })
-            .collect::<Vec<_>>();
-        let n = files.len();
-        Ok(DomainCache {
-            dir,
-            files,
-            materials: manifest.materials.len() as u32,
+    pub fn new(dir: impl Into<PathBuf>, manifest: &Manifest, budget: u64) -> Self {
+        let n = manifest.domains.len();
+        DomainCache {
+            dir: dir.into(),
+            manifest: manifest.clone(),
             budget,
             resident: vec![None; n],
             last_use: vec![0; n],
@@ -64,7 +48,7 @@ impl DomainCache {
             clock: 0,
             resident_bytes: 0,
             counters: CacheCounters::default(),
-        })
+        }
     }
 
     /// Whether `domain` is mapped now.
@@ -83,25 +67,11 @@ impl DomainCache {
         if let Some(d) = &self.resident[i] {
             return Ok(d.clone());
         }
-        let (file, checksum, expected_bytes) = &self.files[i];
-        let path = self.dir.join(file);
-        let _span = info_span!("load_domain", domain, file = %file).entered();
-        let data = DomainData::open(&path, *checksum, !self.verified[i], self.materials)?;
-        if data.domain() != domain {
-            return Err(SceneError::Domain {
-                path,
-                reason: format!("holds domain {}, the manifest says {domain}", data.domain()),
-            });
-        }
-        if data.bytes() != *expected_bytes {
-            return Err(SceneError::Domain {
-                path,
-                reason: format!(
-                    "is {} bytes, the manifest says {expected_bytes}",
-                    data.bytes()
-                ),
-            });
-        }
+        let _span =
+            info_span!("load_domain", domain, file = %self.manifest.domains[i].file).entered();
+        let data = self
+            .manifest
+            .open_domain(&self.dir, domain, !self.verified[i])?;
         self.verified[i] = true;
         let bytes = data.bytes();
         self.evict_for(bytes, domain);

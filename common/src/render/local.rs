@@ -56,15 +56,9 @@ impl FrameSpec {
             return Err(format!("depth {} is above {MAX_DEPTH}", self.max_depth));
         }
         if let Some(c) = &self.camera {
-            let finite = |v: &[f32; 3]| v.iter().all(|x| x.is_finite());
-            if !(finite(&c.eye) && finite(&c.look_at) && finite(&c.up)) || c.eye == c.look_at {
-                return Err("camera eye and look-at must be finite and distinct".into());
-            }
-            if !(c.fov_y_degrees > 0.0 && c.fov_y_degrees < 180.0) {
-                return Err(format!(
-                    "field of view {} is outside (0, 180)",
-                    c.fov_y_degrees
-                ));
+            c.check()?;
+            if c.eye == c.look_at {
+                return Err("camera eye and look-at must be distinct".into());
             }
         }
         Ok(())
@@ -189,7 +183,7 @@ fn render_in_pool(
     let grid = TileGrid::new(frame.width, frame.height, TILE_SIZE)
         .ok_or_else(|| RenderError::Frame("image does not fit the tile grid".into()))?;
     let returned: Vec<AtomicU64> = (0..grid.count()).map(|_| AtomicU64::new(0)).collect();
-    let mut cache = DomainCache::new(dir, manifest, options.cache_bytes)?;
+    let mut cache = DomainCache::new(dir, manifest, options.cache_bytes);
     let mut queues: Vec<Vec<RayRecord>> = vec![Vec::new(); view.domain_count()];
     let mut counters = KernelCounters::default();
     let total_primary = frame.width as u64 * frame.height as u64 * frame.spp as u64;

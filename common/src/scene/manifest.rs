@@ -53,6 +53,23 @@ pub struct Camera {
     pub fov_y_degrees: f32,
 }
 
+impl Camera {
+    /// Rejects a camera that cannot make an image: non-finite vectors, or a field of view
+    /// outside (0, 180) degrees.
+    pub fn check(&self) -> Result<(), String> {
+        if !(finite(&self.eye) && finite(&self.look_at) && finite(&self.up)) {
+            return Err("camera vectors must be finite".into());
+        }
+        if !(self.fov_y_degrees > 0.0 && self.fov_y_degrees < 180.0) {
+            return Err(format!(
+                "field of view {} is outside (0, 180)",
+                self.fov_y_degrees
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// A vertical gradient for rays that escape.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -152,13 +169,56 @@ impl Manifest {
         write_atomically(&dir.join(MANIFEST_FILE), text.as_bytes())
     }
 
+    /// Maps domain `domain` of the scene in `dir` and checks it against this manifest: its id,
+    /// its size, its header checksum, its materials; with `verify_checksum` also hashes every
+    /// byte. The one way every reader opens a domain.
+    pub fn open_domain(
+        &self,
+        dir: &Path,
+        domain: u32,
+        verify_checksum: bool,
+    ) -> Result<DomainData, SceneError> {
+        let entry = self
+            .domains
+            .get(domain as usize)
+            .ok_or_else(|| SceneError::Manifest {
+                path: dir.join(MANIFEST_FILE),
+                reason: format!("no domain {domain} of {}", self.domains.len()),
+            })?;
+        // Hex was checked when the manifest was parsed.
+        let checksum = u64::from_str_radix(&entry.checksum, 16).unwrap_or_default();
+        let path = dir.join(&entry.file);
+        let data = DomainData::open(
+            &path,
+            checksum,
+            verify_checksum,
+            self.materials.len() as u32,
+        )?;
+        let mismatch = if data.domain() != domain {
+            Some(format!(
+                "holds domain {}, the manifest says {domain}",
+                data.domain()
+            ))
+        } else if data.bytes() != entry.bytes {
+            Some(format!(
+                "is {} bytes, the manifest says {}",
+                data.bytes(),
+                entry.bytes
+            ))
+        } else {
+            None
+        };
+        match mismatch {
+            Some(reason) => Err(SceneError::Domain { path, reason }),
+            None => Ok(data),
+        }
+    }
+
     /// Maps every domain file once to check it matches this build and the manifest; with
     /// `verify_checksums` also hashes every byte.
     pub fn check_domains(&self, dir: &Path, verify_checksums: bool) -> Result<(), SceneError> {
-        for d in &self.domains {
-            let sum = u64::from_str_radix(&d.checksum, 16).unwrap_or_default();
-            let path = dir.join(&d.file);
-            DomainData::open(&path, sum, verify_checksums, self.materials.len() as u32)?;
+        for d in 0..self.domains.len() as u32 {
+            self.open_domain(dir, d, verify_checksums)?;
         }
         Ok(())
     }
@@ -187,11 +247,7 @@ impl Manifest {
         if !(self.ray_epsilon.is_finite() && self.ray_epsilon >= 0.0) {
             return Err("ray_epsilon must be a finite non-negative number".into());
         }
-        let c = &self.camera;
-        let fov_ok = c.fov_y_degrees > 0.0 && c.fov_y_degrees < 180.0;
-        if !(finite(&c.eye) && finite(&c.look_at) && finite(&c.up) && fov_ok) {
-            return Err("camera has non-finite vectors or a field of view outside (0, 180)".into());
-        }
+        self.camera.check()?;
         for (i, d) in self.domains.iter().enumerate() {
             if d.file.is_empty() || d.file.contains('/') || d.file.contains("..") {
                 return Err(format!(
