@@ -36,12 +36,6 @@ impl Aabb {
         self.max = (Vec3::from(self.max).max(Vec3::from(p))).into();
     }
 
-    /// Extends the box to hold `other`.
-    pub fn union(&mut self, other: &Aabb) {
-        self.grow(other.min);
-        self.grow(other.max);
-    }
-
     /// Whether the box holds nothing.
     pub fn is_empty(&self) -> bool {
         (0..3).any(|a| self.min[a] > self.max[a])

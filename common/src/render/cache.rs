@@ -51,13 +51,6 @@ impl DomainCache {
         }
     }
 
-    /// Whether `domain` is mapped now.
-    pub fn is_resident(&self, domain: u32) -> bool {
-        self.resident
-            .get(domain as usize)
-            .is_some_and(|r| r.is_some())
-    }
-
     /// The domain, mapping it (and evicting others) if needed. Its checksum is verified the
     /// first time it is loaded.
     pub fn get(&mut self, domain: u32) -> Result<Arc<DomainData>, SceneError> {

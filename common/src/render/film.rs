@@ -81,16 +81,6 @@ impl Film {
         }
     }
 
-    /// Adds fixed-point sums already converted elsewhere (another process's tile).
-    pub fn add_fixed(&self, pixel: u32, rgb: [i64; 3]) {
-        let base = pixel as usize * 3;
-        if let Some(cells) = self.sums.get(base..base + 3) {
-            for (cell, v) in cells.iter().zip(rgb) {
-                cell.fetch_add(v, Ordering::Relaxed);
-            }
-        }
-    }
-
     /// The raw sums, three per pixel.
     pub fn fixed_sums(&self) -> Vec<i64> {
         self.sums
