@@ -356,7 +356,7 @@ pub struct Bundle<P> {
 }
 
 /// Counters of one tier.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct TierStats {
     /// Bundles emitted.
     pub bundles: u64,
@@ -375,7 +375,8 @@ impl TierStats {
         self.bytes += bundle_bytes as u64;
     }
 
-    fn add(&mut self, other: &TierStats) {
+    /// Adds `other` into `self`.
+    pub fn add(&mut self, other: &TierStats) {
         self.bundles += other.bundles;
         self.messages += other.messages;
         self.bytes += other.bytes;

@@ -93,6 +93,24 @@ impl DomainCache {
         }
     }
 
+    /// Drops `domain` from the cache if it is resident (the schedule asked for its slot).
+    pub fn evict(&mut self, domain: u32) {
+        if let Some(d) = self.resident.get_mut(domain as usize).and_then(Option::take) {
+            self.resident_bytes -= d.bytes();
+            self.counters.evictions += 1;
+            debug!(domain, "domain evicted by plan");
+        }
+    }
+
+    /// Domains mapped now, ascending.
+    pub fn resident(&self) -> Vec<u32> {
+        (0..)
+            .zip(&self.resident)
+            .filter(|(_, d)| d.is_some())
+            .map(|(i, _)| i)
+            .collect()
+    }
+
     /// The counters so far.
     pub fn counters(&self) -> CacheCounters {
         self.counters

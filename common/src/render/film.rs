@@ -58,6 +58,18 @@ impl Film {
         }
     }
 
+    /// A film holding already accumulated fixed-point sums, one `[r, g, b]` per pixel (as
+    /// the coordinator assembles them from tile results).
+    pub fn from_fixed(width: u32, height: u32, spp: u32, sums: &[[i64; 3]]) -> Self {
+        let film = Film::new(width, height, spp);
+        for (cells, rgb) in film.sums.chunks_exact(3).zip(sums) {
+            for (cell, v) in cells.iter().zip(rgb) {
+                cell.store(*v, Ordering::Relaxed);
+            }
+        }
+        film
+    }
+
     /// Width in pixels.
     pub fn width(&self) -> u32 {
         self.width

@@ -1,0 +1,151 @@
+//! A job's frame as the user API carries it, checked once on the coordinator and read the
+//! same way by every worker.
+
+use crate::proto;
+use crate::render::local::FrameSpec;
+use crate::scene::Camera;
+
+/// Tile side in pixels: the unit of credit, epochs and results.
+pub const TILE_SIZE: u32 = 32;
+
+/// Schedule names as users type them, with their protobuf values.
+pub const SCHEDULES: [(&str, proto::Schedule); 4] = [
+    ("dynamic", proto::Schedule::Dynamic),
+    ("image-plane", proto::Schedule::ImagePlane),
+    ("domain", proto::Schedule::Domain),
+    ("hybrid", proto::Schedule::Hybrid),
+];
+
+/// The schedule called `name`.
+pub fn parse_schedule(name: &str) -> Result<proto::Schedule, String> {
+    SCHEDULES
+        .iter()
+        .find(|(n, _)| *n == name)
+        .map(|&(_, s)| s)
+        .ok_or_else(|| {
+            let known: Vec<&str> = SCHEDULES.iter().map(|(n, _)| *n).collect();
+            format!("unknown schedule {name:?} (known: {})", known.join(", "))
+        })
+}
+
+/// The user-facing name of `schedule` (UNSPECIFIED means dynamic).
+pub fn schedule_name(schedule: proto::Schedule) -> &'static str {
+    SCHEDULES
+        .iter()
+        .find(|&&(_, s)| s == schedule)
+        .map_or("dynamic", |(n, _)| n)
+}
+
+/// The frame of a job: size, samples, depth and camera, checked like `render --local`'s.
+/// Camera fields the job leaves empty (or a zero field of view) keep the scene's.
+pub fn frame_spec(spec: &proto::JobSpec, scene_camera: &Camera) -> Result<FrameSpec, String> {
+    let camera = spec
+        .camera
+        .as_ref()
+        .map(|c| camera_from_proto(c, scene_camera))
+        .transpose()?;
+    let frame = FrameSpec {
+        width: spec.width,
+        height: spec.height,
+        spp: spec.spp,
+        max_depth: spec.max_depth,
+        camera,
+    };
+    frame.check()?;
+    Ok(frame)
+}
+
+fn camera_from_proto(c: &proto::Camera, scene: &Camera) -> Result<Camera, String> {
+    let triple = |name: &str, v: &[f32], default: [f32; 3]| -> Result<[f32; 3], String> {
+        if v.is_empty() {
+            return Ok(default);
+        }
+        v.try_into()
+            .map_err(|_| format!("camera {name} needs 3 numbers, got {}", v.len()))
+    };
+    let camera = Camera {
+        eye: triple("eye", &c.eye, scene.eye)?,
+        look_at: triple("look_at", &c.look_at, scene.look_at)?,
+        up: triple("up", &c.up, scene.up)?,
+        fov_y_degrees: if c.fov_y_degrees == 0.0 {
+            scene.fov_y_degrees
+        } else {
+            c.fov_y_degrees
+        },
+    };
+    camera.check()?;
+    Ok(camera)
+}
+
+/// The protobuf form of a camera.
+pub fn camera_to_proto(c: &Camera) -> proto::Camera {
+    proto::Camera {
+        eye: c.eye.to_vec(),
+        look_at: c.look_at.to_vec(),
+        up: c.up.to_vec(),
+        fov_y_degrees: c.fov_y_degrees,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn spec() -> proto::JobSpec {
+        proto::JobSpec {
+            scene: "s".into(),
+            camera: None,
+            width: 64,
+            height: 48,
+            spp: 2,
+            max_depth: 3,
+            schedule: proto::Schedule::Dynamic as i32,
+            priority: 0,
+        }
+    }
+
+    const SCENE: Camera = Camera {
+        eye: [0.0, 0.0, 5.0],
+        look_at: [0.0; 3],
+        up: [0.0, 1.0, 0.0],
+        fov_y_degrees: 40.0,
+    };
+
+    #[test]
+    fn empty_camera_fields_keep_the_scenes() {
+        let partial = proto::JobSpec {
+            camera: Some(proto::Camera {
+                eye: vec![1.0, 2.0, 3.0],
+                ..Default::default()
+            }),
+            ..spec()
+        };
+        let cam = frame_spec(&partial, &SCENE).unwrap().camera.unwrap();
+        assert_eq!(cam.eye, [1.0, 2.0, 3.0]);
+        assert_eq!(cam.look_at, SCENE.look_at);
+        assert_eq!(cam.fov_y_degrees, 40.0);
+    }
+
+    #[test]
+    fn absurd_frames_and_cameras_are_refused_with_the_reason() {
+        assert!(frame_spec(&spec(), &SCENE).is_ok());
+        let wide = proto::JobSpec {
+            width: 100_000,
+            ..spec()
+        };
+        assert!(frame_spec(&wide, &SCENE).unwrap_err().contains("resolution"));
+        let bad_cam = proto::JobSpec {
+            camera: Some(proto::Camera {
+                eye: vec![0.0, 1.0],
+                look_at: vec![0.0; 3],
+                up: vec![],
+                fov_y_degrees: 40.0,
+            }),
+            ..spec()
+        };
+        assert!(frame_spec(&bad_cam, &SCENE).unwrap_err().contains("eye"));
+        assert_eq!(parse_schedule("image-plane"), Ok(proto::Schedule::ImagePlane));
+        assert!(parse_schedule("fastest").unwrap_err().contains("known"));
+        assert_eq!(schedule_name(proto::Schedule::Unspecified), "dynamic");
+    }
+}

@@ -1,0 +1,145 @@
+//! Statistics of one frame rendered by the cluster (DESIGN.md "What is measured"): what each
+//! worker reports when the frame ends, and the coordinator's sum of them.
+
+use serde::{Deserialize, Serialize};
+
+use crate::bundler::{Tier, TierStats};
+use crate::render::cache::CacheCounters;
+use crate::render::kernel::KernelCounters;
+
+/// Traffic of one bundler tier.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TierTraffic {
+    /// Tier name: control, results, migrated, tasks.
+    pub tier: String,
+    /// Bundles, messages and bytes sent.
+    #[serde(flatten)]
+    pub sent: TierStats,
+}
+
+/// The tier counters of a bundler, most urgent tier first.
+pub fn tier_traffic(stats: &crate::bundler::Stats) -> Vec<TierTraffic> {
+    Tier::MOST_URGENT_FIRST
+        .into_iter()
+        .map(|t| TierTraffic {
+            tier: tier_name(t).to_string(),
+            sent: stats[t],
+        })
+        .collect()
+}
+
+/// Lower-case name of a tier.
+pub fn tier_name(tier: Tier) -> &'static str {
+    match tier {
+        Tier::Control => "control",
+        Tier::Results => "results",
+        Tier::Migrated => "migrated",
+        Tier::Tasks => "tasks",
+    }
+}
+
+/// What one worker did for one frame.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct WorkerFrameStats {
+    /// The worker.
+    pub worker_id: String,
+    /// Threads it traced with.
+    pub threads: usize,
+    /// Rays it created and traced.
+    pub rays: KernelCounters,
+    /// Its domain cache.
+    pub cache: CacheCounters,
+    /// Rays it sent to other workers.
+    pub rays_sent: u64,
+    /// Ray bytes it sent to other workers (wire format).
+    pub bytes_sent: u64,
+    /// Rays it received from other workers.
+    pub rays_received: u64,
+    /// Bundles sent to peers, per tier.
+    pub tiers: Vec<TierTraffic>,
+    /// Seconds spent tracing (including domain loads).
+    pub busy_seconds: f64,
+    /// Seconds from the frame's start to its end on this worker.
+    pub frame_seconds: f64,
+    /// Fraction of the frame spent not tracing.
+    pub idle_fraction: f64,
+    /// Peak resident memory of the process, bytes.
+    pub peak_rss_bytes: u64,
+}
+
+/// What a frame cost and produced across the cluster.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ClusterStats {
+    /// The job.
+    pub job_id: String,
+    /// Scene name as submitted.
+    pub scene: String,
+    /// Schedule name.
+    pub schedule: String,
+    /// Image width.
+    pub width: u32,
+    /// Image height.
+    pub height: u32,
+    /// Samples per pixel.
+    pub spp: u32,
+    /// Maximum bounces.
+    pub max_depth: u32,
+    /// Workers that took part.
+    pub workers: usize,
+    /// Tracing threads over all workers.
+    pub threads: usize,
+    /// Domains in the scene.
+    pub domains: usize,
+    /// Wall time from the frame's start to its last tile, seconds.
+    pub wall_seconds: f64,
+    /// Ray counts, summed over workers.
+    pub rays: KernelCounters,
+    /// Domain cache counters, summed over workers (peak resident: the largest).
+    pub cache: CacheCounters,
+    /// Ray segments traced per second of wall time.
+    pub rays_per_s: f64,
+    /// `rays_per_s` divided by the threads.
+    pub rays_per_s_per_core: f64,
+    /// Scheduling rounds.
+    pub rounds: u64,
+    /// Rays sent between workers.
+    pub rays_migrated: u64,
+    /// Ray bytes sent between workers.
+    pub bytes_migrated: u64,
+    /// Bundles per tier, summed over workers.
+    pub tiers: Vec<TierTraffic>,
+    /// Per worker.
+    pub per_worker: Vec<WorkerFrameStats>,
+    /// Largest peak RSS of a worker, bytes.
+    pub peak_rss_bytes: u64,
+    /// xxh3-64 of the fixed-point pixel sums, 16 hex digits.
+    pub image_hash: String,
+}
+
+impl ClusterStats {
+    /// Adds the workers' reports into the cluster totals.
+    pub fn absorb(&mut self, workers: Vec<WorkerFrameStats>) {
+        for w in &workers {
+            self.threads += w.threads;
+            self.rays.add(&w.rays);
+            self.cache.loads += w.cache.loads;
+            self.cache.bytes_loaded += w.cache.bytes_loaded;
+            self.cache.evictions += w.cache.evictions;
+            self.cache.peak_resident_bytes =
+                self.cache.peak_resident_bytes.max(w.cache.peak_resident_bytes);
+            self.rays_migrated += w.rays_sent;
+            self.bytes_migrated += w.bytes_sent;
+            self.peak_rss_bytes = self.peak_rss_bytes.max(w.peak_rss_bytes);
+            for t in &w.tiers {
+                match self.tiers.iter_mut().find(|x| x.tier == t.tier) {
+                    Some(x) => x.sent.add(&t.sent),
+                    None => self.tiers.push(t.clone()),
+                }
+            }
+        }
+        self.workers = workers.len();
+        self.rays_per_s = self.rays.segments() as f64 / self.wall_seconds.max(1e-9);
+        self.rays_per_s_per_core = self.rays_per_s / self.threads.max(1) as f64;
+        self.per_worker = workers;
+    }
+}
