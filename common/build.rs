@@ -11,6 +11,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         println!("cargo:rerun-if-changed={f}");
     }
     let fds = protox::compile(files, ["../proto"])?;
-    tonic_prost_build::configure().compile_fds(fds)?;
+    // Ray batches and images as `Bytes`: handed on without copying.
+    tonic_prost_build::configure()
+        .bytes(".rayfarm.v1.PeerBundle.batches")
+        .bytes(".rayfarm.v1.FetchResultResponse.image")
+        .compile_fds(fds)?;
     Ok(())
 }

@@ -6,6 +6,7 @@ pub mod bundler;
 pub mod bvh;
 pub mod camera;
 pub mod cluster;
+pub mod fault;
 pub mod frame;
 pub mod geometry;
 pub mod isosurface;

@@ -1,7 +1,166 @@
-//! `rayfarm-coordinator`: part of the cluster, which is not built yet (see the cluster issue).
-//! Until then it refuses to start, so that no script mistakes it for a working coordinator.
+//! `rayfarm-coordinator`: accepts render jobs, runs one frame at a time across the attached
+//! workers, plans the rounds of the dynamic schedule from their queue reports, and collects
+//! tile results until every tile's credit is back.
+
+mod api;
+mod control;
+mod frame;
+mod queue;
+mod results;
+mod state;
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::Context;
+use clap::Parser;
+use rayfarm_common::fault::Faults;
+use rayfarm_common::proto::job_service_server::JobServiceServer;
+use rayfarm_common::proto::worker_control_server::WorkerControlServer;
+use rayfarm_common::schedule::dynamic::Options;
+use tonic::transport::Server;
+use tonic::transport::server::TcpIncoming;
+use tracing::{error, info};
+use tracing_subscriber::EnvFilter;
+
+use crate::state::{Config, Coordinator};
+
+/// Largest gRPC message accepted or sent (tile results of a big pass, fetched images).
+const MAX_MESSAGE_BYTES: usize = 256 << 20;
+
+/// rayfarm-coordinator: the job queue and scheduler of a rayfarm cluster.
+#[derive(Parser, Debug)]
+#[command(version, about)]
+struct Args {
+    /// Address to serve the job API and workers on; port 0 lets the OS choose (the chosen
+    /// address is printed on stdout).
+    #[arg(long, env = "RAYFARM_LISTEN", default_value = "0.0.0.0:50051")]
+    listen: SocketAddr,
+    /// Where results (images, statistics) are kept.
+    #[arg(long, env = "RAYFARM_DATA_DIR", default_value = "rayfarm-data")]
+    data_dir: PathBuf,
+    /// Directory that job scene names are relative to (this node's mount point).
+    #[arg(long, env = "RAYFARM_SCENE_ROOT", default_value = ".")]
+    scene_root: PathBuf,
+    /// Scene rendered by jobs that name none.
+    #[arg(long, env = "RAYFARM_DEFAULT_SCENE")]
+    default_scene: Option<String>,
+    /// Heartbeat interval asked of workers, milliseconds.
+    #[arg(long, env = "RAYFARM_HEARTBEAT_MS", default_value_t = 1000)]
+    heartbeat_ms: u64,
+    /// A worker silent for this many milliseconds is dropped.
+    #[arg(long, env = "RAYFARM_WORKER_TIMEOUT_MS", default_value_t = 10_000)]
+    worker_timeout_ms: u64,
+    /// Give workers left idle by the schedule a copy of the busiest domain (costs a load,
+    /// keeps cores busy). Off: the paper's algorithm as written.
+    #[arg(long, env = "RAYFARM_REPLICATE_IDLE", default_value_t = false)]
+    replicate_idle: bool,
+    /// More log output (-v debug, -vv trace); RUST_LOG overrides.
+    #[arg(short, long, action = clap::ArgAction::Count)]
+    verbose: u8,
+}
 
 fn main() -> std::process::ExitCode {
-    eprintln!("rayfarm-coordinator: the cluster is not built yet; use `rayfarm render --local`");
-    std::process::ExitCode::from(2)
+    let args = Args::parse();
+    let default = match args.verbose {
+        0 => "info",
+        1 => "debug",
+        _ => "trace",
+    };
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(default)),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let runtime = match tokio::runtime::Runtime::new() {
+        Ok(r) => r,
+        Err(e) => {
+            error!(error = %e, "cannot start the runtime");
+            return std::process::ExitCode::FAILURE;
+        }
+    };
+    match runtime.block_on(run(args)) {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            error!("{e:#}");
+            eprintln!("error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+async fn run(args: Args) -> anyhow::Result<()> {
+    std::fs::create_dir_all(&args.data_dir)
+        .with_context(|| format!("creating data directory {}", args.data_dir.display()))?;
+    let listener = tokio::net::TcpListener::bind(args.listen)
+        .await
+        .with_context(|| format!("cannot listen on {}", args.listen))?;
+    let bound = listener.local_addr()?;
+    // The one line scripts and tests wait for; logs go to stderr.
+    println!("listening on {bound}");
+    let config = Config {
+        data_dir: args.data_dir,
+        scene_root: args.scene_root,
+        default_scene: args.default_scene,
+        heartbeat: Duration::from_millis(args.heartbeat_ms.max(10)),
+        worker_timeout: Duration::from_millis(args.worker_timeout_ms.max(100)),
+        report_timeout: Duration::from_secs(5),
+        schedule_options: Options {
+            replicate_onto_idle: args.replicate_idle,
+        },
+    };
+    info!(%bound, ?config, "coordinator up");
+    let faults = Faults::from_env();
+    if faults.active() {
+        info!(?faults, "fault injection is on (test instrumentation)");
+    }
+    let coordinator = Coordinator::new(config);
+    let reaper = {
+        let c = coordinator.clone();
+        let period = c.config().heartbeat;
+        async move {
+            let mut tick = tokio::time::interval(period);
+            loop {
+                tick.tick().await;
+                c.reap_silent_workers();
+            }
+        }
+    };
+    let api = JobServiceServer::new(api::Api::new(coordinator.clone()))
+        .max_decoding_message_size(MAX_MESSAGE_BYTES)
+        .max_encoding_message_size(MAX_MESSAGE_BYTES);
+    let control = WorkerControlServer::new(control::Control::new(coordinator, faults))
+        .max_decoding_message_size(MAX_MESSAGE_BYTES)
+        .max_encoding_message_size(MAX_MESSAGE_BYTES);
+    let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
+    let server = Server::builder()
+        .add_service(api)
+        .add_service(control)
+        .serve_with_incoming_shutdown(incoming, shutdown_signal());
+    tokio::select! {
+        r = server => r.context("server failed")?,
+        () = reaper => {}
+    }
+    info!("coordinator stopped");
+    Ok(())
+}
+
+async fn shutdown_signal() {
+    let ctrl_c = tokio::signal::ctrl_c();
+    #[cfg(unix)]
+    {
+        let mut term =
+            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+                Ok(s) => s,
+                Err(_) => return ctrl_c.await.unwrap_or(()),
+            };
+        tokio::select! {
+            _ = ctrl_c => {}
+            _ = term.recv() => {}
+        }
+    }
+    #[cfg(not(unix))]
+    let _ = ctrl_c.await;
 }

@@ -1,7 +1,202 @@
-//! `rayfarm-worker`: part of the cluster, which is not built yet (see the cluster issue).
-//! Until then it refuses to start, so that no script mistakes it for a working worker.
+//! `rayfarm-worker`: attaches to a coordinator, maps domains from shared storage into a
+//! byte-budgeted cache, traces the rays queued for the domains it is given each round, and
+//! streams rays that leave its domains to the workers holding the next ones.
+
+mod control;
+mod engine;
+mod frame;
+mod pass;
+mod peers;
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use anyhow::Context;
+use clap::Parser;
+use rayfarm_common::bundler::BundlerConfig;
+use rayfarm_common::proto::peer_service_server::PeerServiceServer;
+use tokio::sync::mpsc;
+use tonic::transport::Server;
+use tonic::transport::server::TcpIncoming;
+use tracing::{error, info};
+use tracing_subscriber::EnvFilter;
+
+use crate::engine::{Engine, EngineConfig};
+use crate::peers::{MAX_MESSAGE_BYTES, PeerLinks, PeerServer};
+use rayfarm_common::fault::Faults;
+
+/// rayfarm-worker: traces rays for a rayfarm coordinator.
+#[derive(Parser, Debug)]
+#[command(version, about)]
+struct Args {
+    /// The coordinator's URL.
+    #[arg(
+        long,
+        env = "RAYFARM_COORDINATOR",
+        default_value = "http://127.0.0.1:50051"
+    )]
+    coordinator: String,
+    /// Address to serve peers on; port 0 lets the OS choose (the chosen address is printed).
+    #[arg(long, env = "RAYFARM_WORKER_LISTEN", default_value = "0.0.0.0:0")]
+    listen: SocketAddr,
+    /// Address peers reach this worker at (host:port). Default: the listen address, or this
+    /// host's name with the listen port when listening on all interfaces.
+    #[arg(long, env = "RAYFARM_ADVERTISE")]
+    advertise: Option<String>,
+    /// Worker id shown in status and statistics. Default: the advertised address.
+    #[arg(long, env = "RAYFARM_WORKER_ID")]
+    worker_id: Option<String>,
+    /// Domain cache budget, e.g. 512MiB or 2GB.
+    #[arg(long, env = "RAYFARM_CACHE_BYTES", default_value = "1GiB", value_parser = parse_bytes)]
+    cache_bytes: u64,
+    /// Directory that job scene names are relative to (this node's mount point).
+    #[arg(long, env = "RAYFARM_SCENE_ROOT", default_value = ".")]
+    scene_root: PathBuf,
+    /// Tracing threads (default: all cores).
+    #[arg(long, env = "RAYFARM_THREADS")]
+    threads: Option<usize>,
+    /// Camera rays are issued while fewer rays than this are queued on the worker.
+    #[arg(long, env = "RAYFARM_WAVE_RAYS", default_value_t = 1 << 20)]
+    wave_rays: usize,
+    /// Most rays traced in one pass (smaller passes react faster to new plans).
+    #[arg(long, env = "RAYFARM_PASS_RAYS", default_value_t = 1 << 18)]
+    pass_rays: usize,
+    /// More log output (-v info, -vv debug); RUST_LOG overrides.
+    #[arg(short, long, action = clap::ArgAction::Count)]
+    verbose: u8,
+}
+
+fn parse_bytes(s: &str) -> Result<u64, String> {
+    parse_size::parse_size(s).map_err(|e| format!("{s:?}: {e}"))
+}
 
 fn main() -> std::process::ExitCode {
-    eprintln!("rayfarm-worker: the cluster is not built yet; use `rayfarm render --local`");
-    std::process::ExitCode::from(2)
+    let args = Args::parse();
+    init_logging(args.verbose);
+    let runtime = match tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+    {
+        Ok(r) => r,
+        Err(e) => {
+            error!(error = %e, "cannot start the runtime");
+            return std::process::ExitCode::FAILURE;
+        }
+    };
+    match runtime.block_on(run(args)) {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            error!("{e:#}");
+            eprintln!("error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+fn init_logging(verbose: u8) {
+    let default = match verbose {
+        0 => "info",
+        1 => "debug",
+        _ => "trace",
+    };
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(default)),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+}
+
+async fn run(args: Args) -> anyhow::Result<()> {
+    let listener = tokio::net::TcpListener::bind(args.listen)
+        .await
+        .with_context(|| format!("cannot listen on {}", args.listen))?;
+    let bound = listener.local_addr()?;
+    let advertise = args.advertise.clone().unwrap_or_else(|| {
+        if bound.ip().is_unspecified() {
+            format!(
+                "{}:{}",
+                gethostname::gethostname().to_string_lossy(),
+                bound.port()
+            )
+        } else {
+            bound.to_string()
+        }
+    });
+    let worker_id = args.worker_id.clone().unwrap_or_else(|| advertise.clone());
+    let threads = args.threads.unwrap_or_else(|| {
+        std::thread::available_parallelism().map_or(1, std::num::NonZeroUsize::get)
+    });
+    // The one line scripts and tests wait for; logs go to stderr.
+    println!("listening on {bound}");
+    info!(%bound, %advertise, %worker_id, threads, cache_bytes = args.cache_bytes, "worker up");
+
+    let faults = Faults::from_env();
+    if faults.active() {
+        info!(?faults, "fault injection is on (test instrumentation)");
+    }
+    let (events_tx, events_rx) = mpsc::unbounded_channel();
+    let (to_coordinator, outbound) = mpsc::unbounded_channel();
+    let engine = Engine::new(
+        EngineConfig {
+            worker_id: worker_id.clone(),
+            advertise: advertise.clone(),
+            scene_root: args.scene_root.clone(),
+            cache_bytes: args.cache_bytes,
+            threads,
+            wave_rays: args.wave_rays.max(1),
+            pass_rays: args.pass_rays.max(1),
+            bundler: BundlerConfig::default(),
+        },
+        events_tx.clone(),
+        to_coordinator,
+        PeerLinks::new(worker_id.clone(), faults),
+    )?;
+    let peer_service = PeerServiceServer::new(PeerServer::new(events_tx.clone()))
+        .max_decoding_message_size(MAX_MESSAGE_BYTES)
+        .max_encoding_message_size(MAX_MESSAGE_BYTES);
+    let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
+    let server = Server::builder()
+        .add_service(peer_service)
+        .serve_with_incoming(incoming);
+    let control = control::run(
+        control::Identity {
+            coordinator: args.coordinator.clone(),
+            worker_id,
+            advertise,
+            cache_bytes: args.cache_bytes,
+            threads: threads as u32,
+        },
+        events_tx,
+        outbound,
+        faults,
+    );
+    tokio::select! {
+        r = server => r.context("peer server failed"),
+        r = control => r,
+        () = engine.run(events_rx) => Ok(()),
+        _ = shutdown_signal() => {
+            info!("shutting down");
+            Ok(())
+        }
+    }
+}
+
+async fn shutdown_signal() {
+    let ctrl_c = tokio::signal::ctrl_c();
+    #[cfg(unix)]
+    {
+        let mut term =
+            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+                Ok(s) => s,
+                Err(_) => return ctrl_c.await.unwrap_or(()),
+            };
+        tokio::select! {
+            _ = ctrl_c => {}
+            _ = term.recv() => {}
+        }
+    }
+    #[cfg(not(unix))]
+    let _ = ctrl_c.await;
 }

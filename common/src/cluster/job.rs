@@ -133,7 +133,11 @@ mod tests {
             width: 100_000,
             ..spec()
         };
-        assert!(frame_spec(&wide, &SCENE).unwrap_err().contains("resolution"));
+        assert!(
+            frame_spec(&wide, &SCENE)
+                .unwrap_err()
+                .contains("resolution")
+        );
         let bad_cam = proto::JobSpec {
             camera: Some(proto::Camera {
                 eye: vec![0.0, 1.0],
@@ -144,7 +148,10 @@ mod tests {
             ..spec()
         };
         assert!(frame_spec(&bad_cam, &SCENE).unwrap_err().contains("eye"));
-        assert_eq!(parse_schedule("image-plane"), Ok(proto::Schedule::ImagePlane));
+        assert_eq!(
+            parse_schedule("image-plane"),
+            Ok(proto::Schedule::ImagePlane)
+        );
         assert!(parse_schedule("fastest").unwrap_err().contains("known"));
         assert_eq!(schedule_name(proto::Schedule::Unspecified), "dynamic");
     }

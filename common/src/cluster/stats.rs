@@ -125,8 +125,10 @@ impl ClusterStats {
             self.cache.loads += w.cache.loads;
             self.cache.bytes_loaded += w.cache.bytes_loaded;
             self.cache.evictions += w.cache.evictions;
-            self.cache.peak_resident_bytes =
-                self.cache.peak_resident_bytes.max(w.cache.peak_resident_bytes);
+            self.cache.peak_resident_bytes = self
+                .cache
+                .peak_resident_bytes
+                .max(w.cache.peak_resident_bytes);
             self.rays_migrated += w.rays_sent;
             self.bytes_migrated += w.bytes_sent;
             self.peak_rss_bytes = self.peak_rss_bytes.max(w.peak_rss_bytes);

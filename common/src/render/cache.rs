@@ -95,7 +95,11 @@ impl DomainCache {
 
     /// Drops `domain` from the cache if it is resident (the schedule asked for its slot).
     pub fn evict(&mut self, domain: u32) {
-        if let Some(d) = self.resident.get_mut(domain as usize).and_then(Option::take) {
+        if let Some(d) = self
+            .resident
+            .get_mut(domain as usize)
+            .and_then(Option::take)
+        {
             self.resident_bytes -= d.bytes();
             self.counters.evictions += 1;
             debug!(domain, "domain evicted by plan");

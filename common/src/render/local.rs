@@ -12,9 +12,10 @@ use tracing::{info, info_span};
 use super::cache::DomainCache;
 use super::film::Film;
 use super::kernel::{KernelCounters, RaySink, SceneView};
+use super::primary::primary_ray;
 use super::stats::{RenderStats, peak_rss_bytes};
 use crate::camera::PinholeCamera;
-use crate::frame::{TILE_CREDIT, TileGrid, primary_credit};
+use crate::frame::{TILE_CREDIT, TileGrid};
 use crate::ray::RayRecord;
 use crate::scene::{Camera, Manifest, SceneError};
 
@@ -103,9 +104,6 @@ pub enum RenderError {
 /// Rays traced per rayon task: large enough to amortise, small enough to balance.
 const CHUNK: usize = 4096;
 
-/// Tile side in pixels for credit accounting.
-const TILE_SIZE: u32 = 32;
-
 struct QueueSink<'a> {
     out: Vec<RayRecord>,
     film: &'a Film,
@@ -180,7 +178,7 @@ fn render_in_pool(
         frame.height,
     );
     let film = Film::new(frame.width, frame.height, frame.spp);
-    let grid = TileGrid::new(frame.width, frame.height, TILE_SIZE)
+    let grid = TileGrid::new(frame.width, frame.height, crate::cluster::job::TILE_SIZE)
         .ok_or_else(|| RenderError::Frame("image does not fit the tile grid".into()))?;
     let returned: Vec<AtomicU64> = (0..grid.count()).map(|_| AtomicU64::new(0)).collect();
     let mut cache = DomainCache::new(dir, manifest, options.cache_bytes);
@@ -299,14 +297,7 @@ fn issue_primaries<'a>(
             let mut sink = new_sink(Vec::with_capacity(chunk.len()));
             for &i in chunk {
                 let (pixel, sample) = ((i / spp as u64) as u32, (i % spp as u64) as u32);
-                let mut ray = camera.primary(pixel, sample);
-                // Every pixel of the frame lies in the grid, so these lookups cannot fail.
-                let tile = grid.tile_of(pixel).unwrap_or(0);
-                let local = grid.local_index(tile, pixel).unwrap_or(0) as u64;
-                let rays = grid.tile_pixel_count(tile) as u64 * spp as u64;
-                ray.tile = tile;
-                ray.credit = primary_credit(TILE_CREDIT, rays, local * spp as u64 + sample as u64)
-                    .unwrap_or(0);
+                let ray = primary_ray(camera, grid, spp, pixel, sample);
                 view.route_new(ray, &mut sink);
             }
             sink.out

@@ -5,6 +5,7 @@ pub mod cache;
 pub mod film;
 pub mod kernel;
 pub mod local;
+pub mod primary;
 pub mod stats;
 
 pub use film::Film;

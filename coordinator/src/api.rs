@@ -1,0 +1,109 @@
+//! `JobService`: the user API, a thin layer over [`Coordinator`].
+
+use std::pin::Pin;
+use std::sync::Arc;
+
+use rayfarm_common::proto::job_service_server::JobService;
+use rayfarm_common::proto::{self, JobState};
+use tokio::sync::mpsc;
+use tokio_stream::Stream;
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::{Request, Response, Status};
+
+use crate::state::Coordinator;
+
+/// The user API served by the coordinator.
+pub struct Api {
+    coordinator: Arc<Coordinator>,
+}
+
+impl Api {
+    pub fn new(coordinator: Arc<Coordinator>) -> Self {
+        Api { coordinator }
+    }
+}
+
+type WatchStream = Pin<Box<dyn Stream<Item = Result<proto::WatchJobResponse, Status>> + Send>>;
+
+#[tonic::async_trait]
+impl JobService for Api {
+    async fn submit_job(
+        &self,
+        request: Request<proto::SubmitJobRequest>,
+    ) -> Result<Response<proto::SubmitJobResponse>, Status> {
+        let job_id = self.coordinator.submit(request.into_inner().spec)?;
+        Ok(Response::new(proto::SubmitJobResponse { job_id }))
+    }
+
+    type WatchJobStream = WatchStream;
+
+    async fn watch_job(
+        &self,
+        request: Request<proto::WatchJobRequest>,
+    ) -> Result<Response<WatchStream>, Status> {
+        let mut rx = self.coordinator.watch(&request.into_inner().job_id)?;
+        let (tx, out) = mpsc::channel(4);
+        tokio::spawn(async move {
+            loop {
+                let event = rx.borrow_and_update().clone();
+                let ended = matches!(
+                    event.state(),
+                    JobState::Succeeded | JobState::Failed | JobState::Cancelled
+                );
+                if tx.send(Ok(event)).await.is_err() || ended {
+                    break;
+                }
+                if rx.changed().await.is_err() {
+                    break;
+                }
+            }
+        });
+        Ok(Response::new(Box::pin(ReceiverStream::new(out))))
+    }
+
+    async fn list_jobs(
+        &self,
+        _request: Request<proto::ListJobsRequest>,
+    ) -> Result<Response<proto::ListJobsResponse>, Status> {
+        Ok(Response::new(proto::ListJobsResponse {
+            jobs: self.coordinator.list(),
+        }))
+    }
+
+    async fn cancel_job(
+        &self,
+        request: Request<proto::CancelJobRequest>,
+    ) -> Result<Response<proto::CancelJobResponse>, Status> {
+        let state = self.coordinator.cancel(&request.into_inner().job_id)?;
+        Ok(Response::new(proto::CancelJobResponse {
+            state: state as i32,
+        }))
+    }
+
+    async fn fetch_result(
+        &self,
+        request: Request<proto::FetchResultRequest>,
+    ) -> Result<Response<proto::FetchResultResponse>, Status> {
+        let r = request.into_inner();
+        let (path, stats_json, image_hash) = self.coordinator.result(&r.job_id, r.format())?;
+        let image = tokio::fs::read(&path).await.map_err(|e| {
+            Status::data_loss(format!(
+                "result of {} unreadable: {}: {e}",
+                r.job_id,
+                path.display()
+            ))
+        })?;
+        Ok(Response::new(proto::FetchResultResponse {
+            image: image.into(),
+            stats_json,
+            image_hash,
+        }))
+    }
+
+    async fn get_cluster_status(
+        &self,
+        _request: Request<proto::GetClusterStatusRequest>,
+    ) -> Result<Response<proto::GetClusterStatusResponse>, Status> {
+        Ok(Response::new(self.coordinator.status()))
+    }
+}

@@ -1,0 +1,256 @@
+//! The frame the cluster is rendering: who takes part, their last queue reports, the rounds
+//! of the dynamic schedule, and the tile ledger that says when the frame is complete. It
+//! returns the messages to send instead of sending them, so the coordinator's locking and
+//! I/O stay outside.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::time::Instant;
+
+use rayfarm_common::cluster::job::TILE_SIZE;
+use rayfarm_common::cluster::tile_sums;
+use rayfarm_common::frame::{Accept, FrameLedger, TILE_CREDIT, TileGrid};
+use rayfarm_common::proto::{self, coordinator_message::Body};
+use rayfarm_common::render::local::FrameSpec;
+use rayfarm_common::schedule::dynamic::{Options, next_round_with};
+use rayfarm_common::schedule::{ClusterState, DomainId, WorkerId, WorkerState};
+use tracing::{debug, info};
+
+/// A message for one worker, by the coordinator's worker key.
+pub type Outgoing = (u32, proto::CoordinatorMessage);
+
+/// What the frame needs to know about a worker.
+#[derive(Clone, Debug)]
+pub struct Member {
+    pub peer_address: String,
+    pub cache_bytes: u64,
+    /// Its latest queue report for this frame.
+    report: Option<proto::QueueReport>,
+    /// Segments it has traced for this frame (latest figure it sent).
+    segments: u64,
+}
+
+impl Member {
+    pub fn new(peer_address: String, cache_bytes: u64) -> Self {
+        Member {
+            peer_address,
+            cache_bytes,
+            report: None,
+            segments: 0,
+        }
+    }
+}
+
+/// See the module documentation.
+pub struct RunningFrame {
+    pub job_id: String,
+    pub spec: proto::JobSpec,
+    pub frame: FrameSpec,
+    domain_bytes: Vec<u64>,
+    pub ledger: FrameLedger,
+    pub round: u64,
+    members: BTreeMap<u32, Member>,
+    pub started: Instant,
+    /// Domain loads the plans asked for.
+    pub planned_loads: u64,
+    options: Options,
+}
+
+fn msg(body: Body) -> proto::CoordinatorMessage {
+    proto::CoordinatorMessage { body: Some(body) }
+}
+
+impl RunningFrame {
+    /// A frame of `spec` over a scene with domains of `domain_bytes` each.
+    pub fn new(
+        job_id: String,
+        spec: proto::JobSpec,
+        frame: FrameSpec,
+        domain_bytes: Vec<u64>,
+        options: Options,
+    ) -> Result<Self, String> {
+        let grid = TileGrid::new(frame.width, frame.height, TILE_SIZE)
+            .ok_or_else(|| "the image does not fit the tile grid".to_string())?;
+        Ok(RunningFrame {
+            job_id,
+            spec,
+            frame,
+            domain_bytes,
+            ledger: FrameLedger::new(grid, TILE_CREDIT),
+            round: 0,
+            members: BTreeMap::new(),
+            started: Instant::now(),
+            planned_loads: 0,
+            options,
+        })
+    }
+
+    fn start_message(&self, tiles: Vec<u32>) -> proto::CoordinatorMessage {
+        msg(Body::StartFrame(proto::StartFrame {
+            job_id: self.job_id.clone(),
+            spec: Some(self.spec.clone()),
+            tile_size: TILE_SIZE,
+            primary_tiles: tiles,
+            round: self.round,
+        }))
+    }
+
+    /// Starts the frame on `workers`, dealing camera-ray tiles round robin (neighbouring
+    /// tiles cost about the same, so every worker gets an even share of the work).
+    pub fn start(&mut self, workers: Vec<(u32, Member)>) -> Vec<Outgoing> {
+        let n = workers.len().max(1);
+        let mut tiles: Vec<Vec<u32>> = vec![Vec::new(); n];
+        for t in 0..self.ledger.grid().count() {
+            tiles[t as usize % n].push(t);
+        }
+        let mut out = Vec::new();
+        for ((key, member), tiles) in workers.into_iter().zip(tiles) {
+            out.push((key, self.start_message(tiles)));
+            self.members.insert(key, member);
+        }
+        out
+    }
+
+    /// Lets a worker that registered mid-frame take part from the next round.
+    pub fn join(&mut self, key: u32, member: Member) -> Outgoing {
+        self.members.insert(key, member);
+        (key, self.start_message(Vec::new()))
+    }
+
+    /// Domains in the scene.
+    pub fn domain_count(&self) -> usize {
+        self.domain_bytes.len()
+    }
+
+    /// Workers taking part.
+    pub fn members(&self) -> impl Iterator<Item = u32> + '_ {
+        self.members.keys().copied()
+    }
+
+    /// Removes a worker (it was lost); true if it took part.
+    pub fn remove(&mut self, key: u32) -> bool {
+        self.members.remove(&key).is_some()
+    }
+
+    /// Records a queue report; returns the next round's plans when every worker has
+    /// finished the current round and some ray is queued somewhere.
+    pub fn report(&mut self, key: u32, report: proto::QueueReport) -> Vec<Outgoing> {
+        let Some(member) = self.members.get_mut(&key) else {
+            return Vec::new();
+        };
+        member.report = Some(report);
+        self.plan_if_round_over()
+    }
+
+    fn plan_if_round_over(&mut self) -> Vec<Outgoing> {
+        let round = self.round;
+        let all_in = self
+            .members
+            .values()
+            .all(|m| m.report.as_ref().is_some_and(|r| r.round >= round));
+        if !all_in {
+            return Vec::new();
+        }
+        let Some(state) = self.cluster_state() else {
+            return Vec::new();
+        };
+        if !state.has_rays() {
+            // Rays or results are still on the wire: a worker reports again when they land.
+            return Vec::new();
+        }
+        let plan = next_round_with(&state, self.options);
+        self.round += 1;
+        self.planned_loads += plan.load_count() as u64;
+        let holders: Vec<proto::DomainHolders> = plan
+            .routes()
+            .into_iter()
+            .map(|(d, ws)| proto::DomainHolders {
+                domain: d.0,
+                workers: ws
+                    .iter()
+                    .filter_map(|w| self.members.get(&w.0))
+                    .map(|m| m.peer_address.clone())
+                    .collect(),
+            })
+            .collect();
+        info!(
+            round = self.round,
+            loads = plan.load_count(),
+            wanted = state.wanted().count(),
+            "round planned"
+        );
+        plan.workers()
+            .iter()
+            .map(|p| {
+                debug!(worker = p.worker.0, keep = ?p.keep, load = ?p.load, evict = ?p.evict, "plan");
+                let body = Body::RoundPlan(proto::RoundPlan {
+                    job_id: self.job_id.clone(),
+                    round: self.round,
+                    work_on: p.work().map(|d| d.0).collect(),
+                    evict: p.evict.iter().map(|d| d.0).collect(),
+                    holders: holders.clone(),
+                });
+                (p.worker.0, msg(body))
+            })
+            .collect()
+    }
+
+    /// The cluster as the schedule sees it, from the latest reports.
+    fn cluster_state(&self) -> Option<ClusterState> {
+        let domains = self.domain_bytes.len() as u32;
+        let largest = self.domain_bytes.iter().copied().max().unwrap_or(1).max(1);
+        let mut queued: BTreeMap<DomainId, u64> = BTreeMap::new();
+        let mut workers = Vec::new();
+        for (&key, m) in &self.members {
+            let report = m.report.as_ref()?;
+            let resident: BTreeSet<DomainId> = report
+                .resident_domains
+                .iter()
+                .filter(|&&d| d < domains)
+                .map(|&d| DomainId(d))
+                .collect();
+            // Domains differ in size: count the slots by the largest, but never fewer than
+            // what the worker holds now.
+            let capacity = ((m.cache_bytes / largest) as usize)
+                .max(1)
+                .max(resident.len());
+            workers.push(WorkerState::new(WorkerId(key), resident, capacity));
+            for (&d, &n) in &report.queued_rays {
+                if d < domains {
+                    *queued.entry(DomainId(d)).or_default() += n;
+                }
+            }
+        }
+        ClusterState::new(workers, queued).ok()
+    }
+
+    /// Accepts a worker's tile results. Returns whether the frame is now complete; an error
+    /// means the worker sent results that cannot be right (the job must fail).
+    pub fn results(&mut self, key: u32, results: proto::TileResults) -> Result<bool, String> {
+        if let Some(m) = self.members.get_mut(&key) {
+            m.segments = m.segments.max(results.segments_traced);
+        }
+        for r in results.results {
+            let sums = tile_sums::decode(&r.sums).map_err(|e| format!("tile {}: {e}", r.tile))?;
+            match self.ledger.accept(r.tile, r.epoch, r.credit, &sums) {
+                Ok(Accept::Completed) => debug!(tile = r.tile, "tile complete"),
+                Ok(Accept::Pending | Accept::Stale) => {}
+                Err(reject) => return Err(reject.to_string()),
+            }
+        }
+        Ok(self.ledger.is_complete())
+    }
+
+    /// Progress for watchers: (tiles done, tiles, segments per second, ETA seconds or -1).
+    pub fn progress(&self) -> (u32, u32, f64, f64) {
+        let done = self.ledger.tiles_done();
+        let total = self.ledger.grid().count();
+        let elapsed = self.started.elapsed().as_secs_f64();
+        let segments: u64 = self.members.values().map(|m| m.segments).sum();
+        let eta = if done == 0 {
+            -1.0
+        } else {
+            elapsed * f64::from(total - done) / f64::from(done)
+        };
+        (done, total, segments as f64 / elapsed.max(1e-9), eta)
+    }
+}

@@ -1,0 +1,665 @@
+//! The coordinator's state and everything that changes it: jobs and their queue, registered
+//! workers, the running frame and frames being finished. Handlers of both gRPC services call
+//! in here; every method takes the lock briefly and sends on unbounded channels, never
+//! awaiting while holding it.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use rayfarm_common::cluster::job::{frame_spec, schedule_name};
+use rayfarm_common::cluster::scene_ref;
+use rayfarm_common::cluster::stats::{ClusterStats, WorkerFrameStats};
+use rayfarm_common::proto::{
+    self, JobState, PROTOCOL_VERSION, Schedule, coordinator_message::Body,
+    worker_message::Body as FromWorker,
+};
+use rayfarm_common::render::Film;
+use rayfarm_common::scene::Manifest;
+use rayfarm_common::schedule::dynamic::Options;
+use tokio::sync::{mpsc, oneshot, watch};
+use tonic::Status;
+use tracing::{error, info, info_span, warn};
+
+use crate::frame::{Member, Outgoing, RunningFrame};
+use crate::queue::JobQueue;
+use crate::results;
+
+/// How the coordinator is set up.
+#[derive(Clone, Debug)]
+pub struct Config {
+    pub data_dir: PathBuf,
+    pub scene_root: PathBuf,
+    pub default_scene: Option<String>,
+    /// Heartbeat interval asked of workers.
+    pub heartbeat: Duration,
+    /// A worker silent this long is dropped.
+    pub worker_timeout: Duration,
+    /// How long a finished frame waits for the workers' statistics.
+    pub report_timeout: Duration,
+    /// Extensions of the dynamic schedule.
+    pub schedule_options: Options,
+}
+
+/// Where a worker's messages go.
+pub type WorkerTx = mpsc::UnboundedSender<Result<proto::CoordinatorMessage, Status>>;
+
+struct Job {
+    summary: proto::JobSummary,
+    seq: u64,
+    progress: watch::Sender<proto::WatchJobResponse>,
+    image_hash: String,
+    stats_json: String,
+}
+
+struct WorkerEntry {
+    id: String,
+    peer_address: String,
+    cache_bytes: u64,
+    tx: WorkerTx,
+    last_seen: Instant,
+    last_report: Option<proto::QueueReport>,
+}
+
+struct Finishing {
+    waiting: BTreeSet<u32>,
+    reports: Vec<WorkerFrameStats>,
+    done: Option<oneshot::Sender<()>>,
+}
+
+#[derive(Default)]
+struct State {
+    jobs: BTreeMap<String, Job>,
+    queue: JobQueue,
+    seq: u64,
+    workers: BTreeMap<u32, WorkerEntry>,
+    next_key: u32,
+    running: Option<RunningFrame>,
+    finishing: BTreeMap<String, Finishing>,
+}
+
+/// See the module documentation.
+pub struct Coordinator {
+    config: Config,
+    state: Mutex<State>,
+}
+
+fn unix_ms() -> i64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as i64)
+}
+
+fn is_terminal(state: JobState) -> bool {
+    matches!(
+        state,
+        JobState::Succeeded | JobState::Failed | JobState::Cancelled
+    )
+}
+
+impl Coordinator {
+    pub fn new(config: Config) -> Arc<Self> {
+        Arc::new(Coordinator {
+            config,
+            state: Mutex::new(State::default()),
+        })
+    }
+
+    pub fn config(&self) -> &Config {
+        &self.config
+    }
+
+    fn lock(&self) -> MutexGuard<'_, State> {
+        // A handler that panicked mid-update is a bug; keep serving the other jobs.
+        self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    // ----- the user API -----
+
+    /// Checks and queues a job; returns its id.
+    pub fn submit(self: &Arc<Self>, spec: Option<proto::JobSpec>) -> Result<String, Status> {
+        let mut spec =
+            spec.ok_or_else(|| Status::invalid_argument("the request has no job spec"))?;
+        let schedule = Schedule::try_from(spec.schedule)
+            .map_err(|_| Status::invalid_argument(format!("unknown schedule {}", spec.schedule)))?;
+        if !matches!(schedule, Schedule::Unspecified | Schedule::Dynamic) {
+            return Err(Status::unimplemented(format!(
+                "schedule {} is not available yet; use dynamic",
+                schedule_name(schedule)
+            )));
+        }
+        spec.schedule = Schedule::Dynamic as i32;
+        if spec.scene.is_empty() {
+            spec.scene = self.config.default_scene.clone().unwrap_or_default();
+        }
+        let (_, manifest) = self.open_scene(&spec.scene)?;
+        frame_spec(&spec, &manifest.camera).map_err(Status::invalid_argument)?;
+        let mut st = self.lock();
+        st.seq += 1;
+        let seq = st.seq;
+        let id = format!("job-{}-{seq}", unix_ms() / 1000);
+        let summary = proto::JobSummary {
+            job_id: id.clone(),
+            spec: Some(spec.clone()),
+            state: JobState::Queued as i32,
+            submitted_unix_ms: unix_ms(),
+            ..Default::default()
+        };
+        let (progress, _) = watch::channel(proto::WatchJobResponse {
+            job_id: id.clone(),
+            state: JobState::Queued as i32,
+            eta_seconds: -1.0,
+            ..Default::default()
+        });
+        st.jobs.insert(
+            id.clone(),
+            Job {
+                summary,
+                seq,
+                progress,
+                image_hash: String::new(),
+                stats_json: String::new(),
+            },
+        );
+        st.queue.push(id.clone(), spec.priority, seq);
+        info!(job = %id, scene = %spec.scene, width = spec.width, height = spec.height, spp = spec.spp, priority = spec.priority, "job queued");
+        self.try_start(&mut st);
+        Ok(id)
+    }
+
+    fn open_scene(&self, scene: &str) -> Result<(PathBuf, Manifest), Status> {
+        let dir = scene_ref::resolve(&self.config.scene_root, scene).map_err(|e| match e {
+            scene_ref::SceneRefError::Missing => Status::failed_precondition(e.to_string()),
+            scene_ref::SceneRefError::Escapes(_) => Status::invalid_argument(e.to_string()),
+        })?;
+        if !dir.is_dir() {
+            return Err(Status::not_found(format!(
+                "scene {scene:?} not found: {} is not a directory",
+                dir.display()
+            )));
+        }
+        let manifest = Manifest::load(&dir)
+            .map_err(|e| Status::failed_precondition(format!("scene {scene:?}: {e}")))?;
+        Ok((dir, manifest))
+    }
+
+    /// Cancels a queued or running job; returns its state afterwards.
+    pub fn cancel(self: &Arc<Self>, id: &str) -> Result<JobState, Status> {
+        let mut st = self.lock();
+        let state = st
+            .jobs
+            .get(id)
+            .map(|j| j.summary.state())
+            .ok_or_else(|| not_found(id))?;
+        if is_terminal(state) {
+            return Ok(state);
+        }
+        if st.queue.remove(id) {
+            set_state(&mut st, id, JobState::Cancelled, "");
+        } else if st.running.as_ref().is_some_and(|f| f.job_id == id) {
+            if let Some(frame) = st.running.take() {
+                end_frame(&st, &frame);
+            }
+            set_state(&mut st, id, JobState::Cancelled, "");
+            self.try_start(&mut st);
+        }
+        info!(job = %id, "job cancelled");
+        Ok(st
+            .jobs
+            .get(id)
+            .map_or(JobState::Cancelled, |j| j.summary.state()))
+    }
+
+    /// Jobs, newest first.
+    pub fn list(&self) -> Vec<proto::JobSummary> {
+        let st = self.lock();
+        let mut jobs: Vec<&Job> = st.jobs.values().collect();
+        jobs.sort_by_key(|j| std::cmp::Reverse(j.seq));
+        jobs.into_iter().map(|j| j.summary.clone()).collect()
+    }
+
+    /// A receiver of a job's progress events.
+    pub fn watch(&self, id: &str) -> Result<watch::Receiver<proto::WatchJobResponse>, Status> {
+        let st = self.lock();
+        st.jobs
+            .get(id)
+            .map(|j| j.progress.subscribe())
+            .ok_or_else(|| not_found(id))
+    }
+
+    /// Where a finished job's image is, with its statistics and hash.
+    pub fn result(
+        &self,
+        id: &str,
+        format: proto::ImageFormat,
+    ) -> Result<(PathBuf, String, String), Status> {
+        let st = self.lock();
+        let job = st.jobs.get(id).ok_or_else(|| not_found(id))?;
+        if job.summary.state() != JobState::Succeeded {
+            return Err(Status::failed_precondition(format!(
+                "job {id} is {} and has no result",
+                state_name(job.summary.state())
+            )));
+        }
+        Ok((
+            results::image_path(&self.config.data_dir, id, format),
+            job.stats_json.clone(),
+            job.image_hash.clone(),
+        ))
+    }
+
+    /// Workers, their resident domains and queues.
+    pub fn status(&self) -> proto::GetClusterStatusResponse {
+        let st = self.lock();
+        proto::GetClusterStatusResponse {
+            workers: st
+                .workers
+                .values()
+                .map(|w| proto::WorkerStatus {
+                    worker_id: w.id.clone(),
+                    peer_address: w.peer_address.clone(),
+                    resident_domains: w
+                        .last_report
+                        .as_ref()
+                        .map(|r| r.resident_domains.clone())
+                        .unwrap_or_default(),
+                    queued_rays: w
+                        .last_report
+                        .as_ref()
+                        .map(|r| r.queued_rays.clone())
+                        .unwrap_or_default(),
+                    last_seen_ms: w.last_seen.elapsed().as_millis() as u64,
+                })
+                .collect(),
+            running_job_id: st
+                .running
+                .as_ref()
+                .map(|f| f.job_id.clone())
+                .unwrap_or_default(),
+            round: st.running.as_ref().map_or(0, |f| f.round),
+        }
+    }
+
+    // ----- workers -----
+
+    /// Registers a worker whose messages go to `tx`; returns its key.
+    pub fn register(self: &Arc<Self>, r: &proto::Register, tx: WorkerTx) -> Result<u32, Status> {
+        if r.protocol_version != PROTOCOL_VERSION {
+            return Err(Status::failed_precondition(format!(
+                "worker speaks protocol {}, the coordinator {PROTOCOL_VERSION}",
+                r.protocol_version
+            )));
+        }
+        if r.worker_id.is_empty() || r.peer_address.is_empty() {
+            return Err(Status::invalid_argument(
+                "worker id and peer address are required",
+            ));
+        }
+        let mut st = self.lock();
+        if st.workers.values().any(|w| w.id == r.worker_id) {
+            return Err(Status::already_exists(format!(
+                "a worker called {} is already attached",
+                r.worker_id
+            )));
+        }
+        let key = st.next_key;
+        st.next_key += 1;
+        let registered = Body::Registered(proto::Registered {
+            heartbeat_ms: self.config.heartbeat.as_millis() as u32,
+        });
+        let _ = tx.send(Ok(proto::CoordinatorMessage {
+            body: Some(registered),
+        }));
+        st.workers.insert(
+            key,
+            WorkerEntry {
+                id: r.worker_id.clone(),
+                peer_address: r.peer_address.clone(),
+                cache_bytes: r.cache_bytes,
+                tx,
+                last_seen: Instant::now(),
+                last_report: None,
+            },
+        );
+        info!(worker = %r.worker_id, key, peer = %r.peer_address, cache_bytes = r.cache_bytes, threads = r.threads, "worker attached");
+        let member = Member::new(r.peer_address.clone(), r.cache_bytes);
+        if let Some(frame) = st.running.as_mut() {
+            let out = frame.join(key, member);
+            info!(job = %frame.job_id, round = frame.round, "worker joins the running frame");
+            send(&st, vec![out]);
+        } else {
+            self.try_start(&mut st);
+        }
+        Ok(key)
+    }
+
+    /// Handles one message of a registered worker.
+    pub fn worker_message(self: &Arc<Self>, key: u32, body: FromWorker) {
+        let mut st = self.lock();
+        let Some(worker) = st.workers.get_mut(&key) else {
+            return;
+        };
+        worker.last_seen = Instant::now();
+        match body {
+            FromWorker::Register(_) => warn!(key, "worker registered twice; ignored"),
+            FromWorker::Heartbeat(_) => {}
+            FromWorker::QueueReport(r) => {
+                worker.last_report = Some(r.clone());
+                let out = match st.running.as_mut() {
+                    Some(f) if f.job_id == r.job_id => f.report(key, r),
+                    _ => Vec::new(),
+                };
+                send(&st, out);
+                if let Some(f) = st.running.as_ref() {
+                    publish_progress(&st, f);
+                }
+            }
+            FromWorker::TileResults(r) => self.tile_results(&mut st, key, r),
+            FromWorker::FrameReport(r) => self.frame_report(&mut st, key, r),
+        }
+    }
+
+    fn tile_results(self: &Arc<Self>, st: &mut State, key: u32, r: proto::TileResults) {
+        let Some(frame) = st.running.as_mut().filter(|f| f.job_id == r.job_id) else {
+            return;
+        };
+        match frame.results(key, r) {
+            Ok(false) => {
+                if let Some(f) = st.running.as_ref() {
+                    publish_progress(st, f);
+                }
+            }
+            Ok(true) => self.complete(st),
+            Err(e) => {
+                let worker = st
+                    .workers
+                    .get(&key)
+                    .map(|w| w.id.clone())
+                    .unwrap_or_default();
+                let msg = format!("worker {worker} sent impossible tile results: {e}");
+                error!("{msg}");
+                self.fail_running(st, &msg);
+            }
+        }
+    }
+
+    fn frame_report(self: &Arc<Self>, st: &mut State, key: u32, r: proto::FrameReport) {
+        if !r.error.is_empty() {
+            if st.running.as_ref().is_some_and(|f| f.job_id == r.job_id) {
+                self.fail_running(st, &r.error);
+            }
+            return;
+        }
+        let Some(fin) = st.finishing.get_mut(&r.job_id) else {
+            return;
+        };
+        match serde_json::from_str::<WorkerFrameStats>(&r.stats_json) {
+            Ok(stats) => fin.reports.push(stats),
+            Err(e) => warn!(key, error = %e, "unreadable worker statistics"),
+        }
+        fin.waiting.remove(&key);
+        if fin.waiting.is_empty()
+            && let Some(done) = fin.done.take()
+        {
+            let _ = done.send(());
+        }
+    }
+
+    /// Forgets a worker whose stream ended or who stopped sending heartbeats.
+    pub fn worker_gone(self: &Arc<Self>, key: u32, why: &str) {
+        let mut st = self.lock();
+        let Some(worker) = st.workers.remove(&key) else {
+            return;
+        };
+        warn!(worker = %worker.id, why, "worker lost");
+        for fin in st.finishing.values_mut() {
+            fin.waiting.remove(&key);
+            if fin.waiting.is_empty()
+                && let Some(done) = fin.done.take()
+            {
+                let _ = done.send(());
+            }
+        }
+        let member = st.running.as_mut().is_some_and(|f| f.remove(key));
+        if member {
+            let msg = format!(
+                "worker {} was lost mid-frame ({why}); re-issuing its work is not implemented yet",
+                worker.id
+            );
+            self.fail_running(&mut st, &msg);
+        }
+    }
+
+    /// Drops workers that have been silent longer than the timeout.
+    pub fn reap_silent_workers(self: &Arc<Self>) {
+        let silent: Vec<u32> = {
+            let st = self.lock();
+            st.workers
+                .iter()
+                .filter(|(_, w)| w.last_seen.elapsed() > self.config.worker_timeout)
+                .map(|(&k, _)| k)
+                .collect()
+        };
+        for key in silent {
+            if let Some(tx) = self.lock().workers.get(&key).map(|w| w.tx.clone()) {
+                let _ = tx.send(Err(Status::deadline_exceeded("no heartbeat")));
+            }
+            self.worker_gone(key, "no heartbeat");
+        }
+    }
+
+    // ----- frames -----
+
+    /// Starts the next queued job if the cluster is free and has workers.
+    fn try_start(self: &Arc<Self>, st: &mut State) {
+        while st.running.is_none() && !st.workers.is_empty() {
+            let Some(id) = st.queue.pop() else {
+                return;
+            };
+            let Some(spec) = st.jobs.get(&id).and_then(|j| j.summary.spec.clone()) else {
+                continue;
+            };
+            let _span = info_span!("start_job", job = %id).entered();
+            match self.prepare_frame(&id, spec) {
+                Ok(mut frame) => {
+                    let members: Vec<(u32, Member)> = st
+                        .workers
+                        .iter()
+                        .map(|(&k, w)| (k, Member::new(w.peer_address.clone(), w.cache_bytes)))
+                        .collect();
+                    let out = frame.start(members);
+                    info!(
+                        workers = out.len(),
+                        tiles = frame.ledger.grid().count(),
+                        "frame started"
+                    );
+                    send(st, out);
+                    if let Some(job) = st.jobs.get_mut(&id) {
+                        job.summary.started_unix_ms = unix_ms();
+                    }
+                    set_state(st, &id, JobState::Running, "");
+                    publish_progress(st, &frame);
+                    st.running = Some(frame);
+                }
+                Err(status) => {
+                    error!(error = %status.message(), "job cannot start");
+                    set_state(st, &id, JobState::Failed, status.message());
+                }
+            }
+        }
+    }
+
+    fn prepare_frame(&self, id: &str, spec: proto::JobSpec) -> Result<RunningFrame, Status> {
+        // The scene was checked at submission; check again, it may have changed since.
+        let (_, manifest) = self.open_scene(&spec.scene)?;
+        let frame = frame_spec(&spec, &manifest.camera).map_err(Status::invalid_argument)?;
+        let domain_bytes = manifest.domains.iter().map(|d| d.bytes).collect();
+        RunningFrame::new(
+            id.to_string(),
+            spec,
+            frame,
+            domain_bytes,
+            self.config.schedule_options,
+        )
+        .map_err(Status::invalid_argument)
+    }
+
+    fn fail_running(self: &Arc<Self>, st: &mut State, error: &str) {
+        if let Some(frame) = st.running.take() {
+            end_frame(st, &frame);
+            set_state(st, &frame.job_id, JobState::Failed, error);
+        }
+        self.try_start(st);
+    }
+
+    /// The running frame has all its credit back: end it on the workers, collect their
+    /// statistics, write the results, and move on to the next job at once.
+    fn complete(self: &Arc<Self>, st: &mut State) {
+        let Some(frame) = st.running.take() else {
+            return;
+        };
+        let wall = frame.started.elapsed().as_secs_f64();
+        info!(job = %frame.job_id, wall, rounds = frame.round, "frame complete");
+        end_frame(st, &frame);
+        let (done_tx, done_rx) = oneshot::channel();
+        st.finishing.insert(
+            frame.job_id.clone(),
+            Finishing {
+                waiting: frame.members().collect(),
+                reports: Vec::new(),
+                done: Some(done_tx),
+            },
+        );
+        let this = self.clone();
+        tokio::spawn(async move {
+            let _ = tokio::time::timeout(this.config.report_timeout, done_rx).await;
+            this.finish(frame, wall).await;
+        });
+        self.try_start(st);
+    }
+
+    async fn finish(self: Arc<Self>, frame: RunningFrame, wall: f64) {
+        let id = frame.job_id.clone();
+        let reports = {
+            let mut st = self.lock();
+            st.finishing
+                .remove(&id)
+                .map(|f| f.reports)
+                .unwrap_or_default()
+        };
+        let spec = &frame.frame;
+        let mut stats = ClusterStats {
+            job_id: id.clone(),
+            scene: frame.spec.scene.clone(),
+            schedule: "dynamic".into(),
+            width: spec.width,
+            height: spec.height,
+            spp: spec.spp,
+            max_depth: spec.max_depth,
+            domains: frame.domain_count(),
+            wall_seconds: wall,
+            rounds: frame.round,
+            ..Default::default()
+        };
+        stats.absorb(reports);
+        let data_dir = self.config.data_dir.clone();
+        let sums = frame.ledger.image_sums();
+        let (w, h, spp) = (spec.width, spec.height, spec.spp);
+        let job = id.clone();
+        let written = tokio::task::spawn_blocking(move || {
+            let film = Film::from_fixed(w, h, spp, &sums);
+            stats.image_hash = format!("{:016x}", film.hash());
+            results::write(&data_dir, &job, &film, &stats).map(|json| (json, stats.image_hash))
+        })
+        .await;
+        let mut st = self.lock();
+        match written {
+            Ok(Ok((json, hash))) => {
+                if let Some(job) = st.jobs.get_mut(&id) {
+                    job.stats_json = json;
+                    job.image_hash = hash.clone();
+                }
+                info!(job = %id, %hash, "results written");
+                set_state(&mut st, &id, JobState::Succeeded, "");
+            }
+            Ok(Err(e)) => set_state(&mut st, &id, JobState::Failed, &format!("{e:#}")),
+            Err(e) => set_state(&mut st, &id, JobState::Failed, &format!("{e}")),
+        }
+    }
+}
+
+fn not_found(id: &str) -> Status {
+    Status::not_found(format!("no job {id}"))
+}
+
+fn state_name(state: JobState) -> &'static str {
+    match state {
+        JobState::Unspecified => "unknown",
+        JobState::Queued => "queued",
+        JobState::Running => "running",
+        JobState::Succeeded => "succeeded",
+        JobState::Failed => "failed",
+        JobState::Cancelled => "cancelled",
+    }
+}
+
+fn send(st: &State, out: Vec<Outgoing>) {
+    for (key, msg) in out {
+        if let Some(w) = st.workers.get(&key) {
+            // A closed channel means the worker is going; worker_gone will handle it.
+            let _ = w.tx.send(Ok(msg));
+        }
+    }
+}
+
+fn end_frame(st: &State, frame: &RunningFrame) {
+    let out = frame
+        .members()
+        .map(|k| {
+            let body = Body::EndFrame(proto::EndFrame {
+                job_id: frame.job_id.clone(),
+            });
+            (k, proto::CoordinatorMessage { body: Some(body) })
+        })
+        .collect();
+    send(st, out);
+}
+
+fn set_state(st: &mut State, id: &str, state: JobState, error: &str) {
+    let Some(job) = st.jobs.get_mut(id) else {
+        return;
+    };
+    job.summary.state = state as i32;
+    job.summary.error = error.to_string();
+    if is_terminal(state) {
+        job.summary.finished_unix_ms = unix_ms();
+    }
+    if state == JobState::Failed {
+        error!(job = %id, error, "job failed");
+    }
+    let stats_json = job.stats_json.clone();
+    job.progress.send_modify(|p| {
+        p.state = state as i32;
+        p.error = error.to_string();
+        p.stats_json = stats_json;
+        if state == JobState::Succeeded {
+            p.tiles_done = p.tiles_total;
+            p.eta_seconds = 0.0;
+        }
+    });
+}
+
+fn publish_progress(st: &State, frame: &RunningFrame) {
+    let Some(job) = st.jobs.get(&frame.job_id) else {
+        return;
+    };
+    let (done, total, rate, eta) = frame.progress();
+    job.progress.send_modify(|p| {
+        p.tiles_done = done;
+        p.tiles_total = total;
+        p.round = frame.round;
+        p.rays_per_second = rate;
+        p.eta_seconds = eta;
+    });
+}

@@ -1,0 +1,524 @@
+//! The worker's engine: one task that owns the frame state and reacts to the coordinator's
+//! messages, to ray bundles from peers and to finished passes. Tracing runs on a rayon pool,
+//! one pass at a time, while the engine keeps routing and reporting.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use bytes::Bytes;
+use rayfarm_common::bundler::{Bundle, Bundler, BundlerConfig, PushErrorKind, Tier};
+use rayfarm_common::camera::PinholeCamera;
+use rayfarm_common::cluster::stats::{WorkerFrameStats, tier_traffic};
+use rayfarm_common::cluster::{job, scene_ref};
+use rayfarm_common::frame::TileGrid;
+use rayfarm_common::proto::{self, coordinator_message::Body as FromCoordinator};
+use rayfarm_common::ray::RayRecord;
+use rayfarm_common::render::SceneView;
+use rayfarm_common::render::cache::{CacheCounters, DomainCache};
+use rayfarm_common::render::stats::peak_rss_bytes;
+use rayfarm_common::scene::Manifest;
+use rayfarm_common::wire::{self, BatchLimits};
+use tokio::sync::mpsc;
+use tracing::{debug, error, info, info_span, warn};
+
+use crate::frame::Frame;
+use crate::pass::{self, FrameView, PassError, PassInput, PassOutput};
+use crate::peers::PeerLinks;
+
+/// Rays per encoded batch sent to a peer (160 KiB).
+const BATCH_RAYS: usize = 2048;
+
+/// What the engine needs to know about itself.
+#[derive(Clone, Debug)]
+pub struct EngineConfig {
+    pub worker_id: String,
+    /// Address peers reach this worker at.
+    pub advertise: String,
+    pub scene_root: PathBuf,
+    pub cache_bytes: u64,
+    pub threads: usize,
+    /// Camera rays are issued while fewer than this many rays are queued here.
+    pub wave_rays: usize,
+    /// Most rays traced in one pass.
+    pub pass_rays: usize,
+    pub bundler: BundlerConfig,
+}
+
+/// Something the engine reacts to.
+pub enum Event {
+    /// A message from the coordinator.
+    Control(proto::CoordinatorMessage),
+    /// The control stream ended; frame state is dropped (the coordinator forgets this worker).
+    Disconnected,
+    /// A bundle from a peer, not yet decoded.
+    PeerBundle {
+        sender: String,
+        job_id: String,
+        batches: Vec<Bytes>,
+    },
+    /// A pass finished.
+    PassDone(Result<PassOutput, PassError>),
+}
+
+/// The engine. See the module documentation.
+pub struct Engine {
+    config: EngineConfig,
+    pool: Arc<rayon::ThreadPool>,
+    events: mpsc::UnboundedSender<Event>,
+    to_coordinator: mpsc::UnboundedSender<proto::WorkerMessage>,
+    peers: PeerLinks,
+    bundler: Bundler<String>,
+    clock: Instant,
+    frame: Option<Frame>,
+    /// The scene directory the cache serves, and the cache.
+    cache: Option<(PathBuf, Arc<Mutex<DomainCache>>)>,
+    pass_running: bool,
+    /// Bundles that arrived for a job this worker has not started yet.
+    early: BTreeMap<String, Vec<(String, Vec<Bytes>)>>,
+    /// Recently ended jobs: their late bundles are dropped.
+    ended: Vec<String>,
+}
+
+impl Engine {
+    pub fn new(
+        config: EngineConfig,
+        events: mpsc::UnboundedSender<Event>,
+        to_coordinator: mpsc::UnboundedSender<proto::WorkerMessage>,
+        peers: PeerLinks,
+    ) -> anyhow::Result<Self> {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(config.threads.max(1))
+            .thread_name(|i| format!("trace-{i}"))
+            .build()?;
+        let bundler = Bundler::new(config.bundler)?;
+        Ok(Engine {
+            config,
+            pool: Arc::new(pool),
+            events,
+            to_coordinator,
+            peers,
+            bundler,
+            clock: Instant::now(),
+            frame: None,
+            cache: None,
+            pass_running: false,
+            early: BTreeMap::new(),
+            ended: Vec::new(),
+        })
+    }
+
+    /// Runs until the event channel closes.
+    pub async fn run(mut self, mut events: mpsc::UnboundedReceiver<Event>) {
+        loop {
+            let deadline = self.bundler.next_deadline().map(|d| self.clock + d);
+            tokio::select! {
+                event = events.recv() => match event {
+                    Some(event) => self.handle(event),
+                    None => break,
+                },
+                _ = sleep_until(deadline), if deadline.is_some() => self.send_due_bundles(),
+            }
+            self.pump();
+        }
+    }
+
+    fn now(&self) -> Duration {
+        self.clock.elapsed()
+    }
+
+    fn handle(&mut self, event: Event) {
+        match event {
+            Event::Control(msg) => match msg.body {
+                Some(FromCoordinator::Registered(r)) => {
+                    info!(
+                        heartbeat_ms = r.heartbeat_ms,
+                        "registered with the coordinator"
+                    );
+                }
+                Some(FromCoordinator::StartFrame(s)) => self.start_frame(s),
+                Some(FromCoordinator::RoundPlan(p)) => self.round_plan(p),
+                Some(FromCoordinator::EpochBump(b)) => {
+                    if let Some(f) = self.frame.as_mut().filter(|f| f.job_id == b.job_id) {
+                        f.bump_epochs(&b.epochs.into_iter().collect());
+                    }
+                }
+                Some(FromCoordinator::EndFrame(e)) => self.end_frame(&e.job_id),
+                None => warn!("empty message from the coordinator"),
+            },
+            Event::Disconnected => {
+                if let Some(f) = self.frame.take() {
+                    warn!(job = %f.job_id, "lost the coordinator: dropping the frame");
+                }
+            }
+            Event::PeerBundle {
+                sender,
+                job_id,
+                batches,
+            } => self.peer_bundle(sender, job_id, batches),
+            Event::PassDone(result) => {
+                self.pass_running = false;
+                match result {
+                    Ok(out) => self.pass_done(out),
+                    Err(e) => self.fail_frame(format!("{e}")),
+                }
+            }
+        }
+    }
+
+    fn start_frame(&mut self, s: proto::StartFrame) {
+        let _span = info_span!("start_frame", job = %s.job_id).entered();
+        if let Some(old) = self.frame.take() {
+            warn!(job = %old.job_id, "a new frame replaces an unfinished one");
+        }
+        // Bundles of an older frame are worthless now, and the counters start afresh.
+        if let Ok(fresh) = Bundler::new(self.config.bundler) {
+            self.bundler = fresh;
+        }
+        match self.open_frame(&s) {
+            Ok(mut frame) => {
+                if let Some((_, cache)) = &self.cache {
+                    frame.cache_at_start = lock(cache).counters();
+                }
+                info!(tiles = s.primary_tiles.len(), "frame started");
+                self.frame = Some(frame);
+                for (sender, batches) in self.early.remove(&s.job_id).unwrap_or_default() {
+                    self.peer_bundle(sender, s.job_id.clone(), batches);
+                }
+            }
+            Err(e) => {
+                error!(error = %e, "cannot take part in the frame");
+                self.send(proto::worker_message::Body::FrameReport(
+                    proto::FrameReport {
+                        job_id: s.job_id.clone(),
+                        stats_json: String::new(),
+                        error: format!("worker {}: {e}", self.config.worker_id),
+                    },
+                ));
+            }
+        }
+    }
+
+    fn open_frame(&mut self, s: &proto::StartFrame) -> anyhow::Result<Frame> {
+        let spec = s
+            .spec
+            .as_ref()
+            .ok_or_else(|| anyhow::anyhow!("StartFrame without a job spec"))?;
+        let dir = scene_ref::resolve(&self.config.scene_root, &spec.scene)?;
+        let manifest = Manifest::load(&dir)?;
+        let frame = job::frame_spec(spec, &manifest.camera).map_err(anyhow::Error::msg)?;
+        let grid = TileGrid::new(frame.width, frame.height, s.tile_size)
+            .ok_or_else(|| anyhow::anyhow!("bad tile size {}", s.tile_size))?;
+        if s.primary_tiles.iter().any(|&t| t >= grid.count()) {
+            anyhow::bail!("primary tiles outside the frame's {} tiles", grid.count());
+        }
+        let camera = PinholeCamera::new(
+            frame.camera.as_ref().unwrap_or(&manifest.camera),
+            frame.width,
+            frame.height,
+        );
+        let view = SceneView::new(&manifest, frame.max_depth as u16);
+        let limits = BatchLimits {
+            domains: manifest.domains.len() as u32,
+            pixels: frame.width * frame.height,
+            max_depth: frame.max_depth as u16,
+            max_records: 1 << 20,
+        };
+        if self.cache.as_ref().is_none_or(|(d, _)| *d != dir) {
+            let cache = DomainCache::new(&dir, &manifest, self.config.cache_bytes);
+            self.cache = Some((dir, Arc::new(Mutex::new(cache))));
+        }
+        let shared = Arc::new(FrameView {
+            view,
+            camera,
+            grid,
+            spp: frame.spp,
+        });
+        let mut frame = Frame::new(s.job_id.clone(), shared, limits, s.primary_tiles.clone());
+        frame.round = s.round;
+        Ok(frame)
+    }
+
+    fn round_plan(&mut self, p: proto::RoundPlan) {
+        let Some(frame) = self.frame.as_mut().filter(|f| f.job_id == p.job_id) else {
+            debug!(job = %p.job_id, "plan for a frame not running here");
+            return;
+        };
+        let _span = info_span!("round", round = p.round).entered();
+        frame.set_plan(
+            p.round,
+            p.work_on.iter().copied(),
+            p.holders.into_iter().map(|h| (h.domain, h.workers)),
+            &self.config.advertise,
+        );
+        if let Some((_, cache)) = &self.cache {
+            let mut cache = lock(cache);
+            for d in &p.evict {
+                cache.evict(*d);
+            }
+        }
+        debug!(work_on = ?p.work_on, evict = ?p.evict, "round plan");
+        let out = frame.take_for_peers();
+        let job_id = frame.job_id.clone();
+        for (peer, rays) in out {
+            self.send_rays(&job_id, peer, &rays);
+        }
+        self.send_due_bundles();
+    }
+
+    fn end_frame(&mut self, job_id: &str) {
+        self.early.remove(job_id);
+        self.ended.push(job_id.to_string());
+        if self.ended.len() > 16 {
+            self.ended.remove(0);
+        }
+        let Some(frame) = self.frame.take_if(|f| f.job_id == job_id) else {
+            return;
+        };
+        let c = &frame.counters;
+        let frame_seconds = frame.started.elapsed().as_secs_f64();
+        let busy_seconds = c.busy.as_secs_f64();
+        let stats = WorkerFrameStats {
+            worker_id: self.config.worker_id.clone(),
+            threads: self.pool.current_num_threads(),
+            rays: c.rays,
+            cache: self
+                .cache
+                .as_ref()
+                .map(|(_, cache)| since(&frame.cache_at_start, &lock(cache).counters()))
+                .unwrap_or_default(),
+            rays_sent: c.rays_sent,
+            bytes_sent: c.bytes_sent,
+            rays_received: c.rays_received,
+            tiers: tier_traffic(self.bundler.stats()),
+            busy_seconds,
+            frame_seconds,
+            idle_fraction: (1.0 - busy_seconds / frame_seconds.max(1e-9)).clamp(0.0, 1.0),
+            peak_rss_bytes: peak_rss_bytes(),
+        };
+        info!(job = %job_id, segments = c.rays.segments(), busy_seconds, "frame ended");
+        self.send(proto::worker_message::Body::FrameReport(
+            proto::FrameReport {
+                job_id: job_id.to_string(),
+                stats_json: serde_json::to_string(&stats).unwrap_or_default(),
+                error: String::new(),
+            },
+        ));
+    }
+
+    fn fail_frame(&mut self, error: String) {
+        if let Some(frame) = self.frame.take() {
+            error!(job = %frame.job_id, %error, "frame failed on this worker");
+            self.send(proto::worker_message::Body::FrameReport(
+                proto::FrameReport {
+                    job_id: frame.job_id,
+                    stats_json: String::new(),
+                    error: format!("worker {}: {error}", self.config.worker_id),
+                },
+            ));
+        }
+    }
+
+    fn peer_bundle(&mut self, sender: String, job_id: String, batches: Vec<Bytes>) {
+        let Some(frame) = self.frame.as_mut().filter(|f| f.job_id == job_id) else {
+            if !self.ended.contains(&job_id) {
+                self.early
+                    .entry(job_id)
+                    .or_default()
+                    .push((sender, batches));
+            }
+            return;
+        };
+        let mut forward: BTreeMap<String, Vec<RayRecord>> = BTreeMap::new();
+        for batch in batches {
+            match wire::decode_batch(&batch, &frame.limits) {
+                Ok(rays) => {
+                    frame.counters.rays_received += rays.len() as u64;
+                    for (peer, mut rays) in frame.route(rays) {
+                        forward.entry(peer).or_default().append(&mut rays);
+                    }
+                }
+                Err(e) => error!(%sender, error = %e, "dropping a malformed ray batch from a peer"),
+            }
+        }
+        // New rays here change what the coordinator should know at the round's end.
+        frame.reported = false;
+        for (peer, rays) in forward {
+            self.send_rays(&job_id, peer, &rays);
+        }
+    }
+
+    fn pass_done(&mut self, out: PassOutput) {
+        let Some(frame) = self.frame.as_mut() else {
+            return;
+        };
+        frame.counters.rays.add(&out.counters);
+        frame.counters.busy += out.busy;
+        if !out.results.is_empty() {
+            let msg = proto::TileResults {
+                job_id: frame.job_id.clone(),
+                results: out.results,
+                segments_traced: frame.counters.rays.segments(),
+            };
+            self.send(proto::worker_message::Body::TileResults(msg));
+        }
+        let Some(frame) = self.frame.as_mut() else {
+            return;
+        };
+        let out_rays = frame.route(out.rays);
+        let job_id = frame.job_id.clone();
+        for (peer, rays) in out_rays {
+            self.send_rays(&job_id, peer, &rays);
+        }
+        self.send_due_bundles();
+    }
+
+    /// Starts the next pass, or, with nothing to do, sends everything pending and tells the
+    /// coordinator this worker's queues (the end of its round).
+    fn pump(&mut self) {
+        if self.pass_running {
+            return;
+        }
+        let Some(frame) = self.frame.as_mut() else {
+            return;
+        };
+        let mut primaries = Vec::new();
+        let mut queued = frame.queued_total();
+        while queued < self.config.wave_rays
+            && let Some(tile) = frame.to_issue.pop_front()
+        {
+            primaries.push((tile, frame.epochs[tile as usize]));
+            queued += frame.shared.grid.tile_pixel_count(tile) * frame.shared.spp as usize;
+        }
+        let trace = frame.take_work(self.config.pass_rays);
+        if primaries.is_empty() && trace.is_none() {
+            self.report_idle();
+            return;
+        }
+        let Some((_, cache)) = &self.cache else {
+            return;
+        };
+        let input = PassInput {
+            frame: frame.shared.clone(),
+            primaries,
+            trace,
+            cache: cache.clone(),
+        };
+        self.pass_running = true;
+        let pool = self.pool.clone();
+        let events = self.events.clone();
+        tokio::task::spawn_blocking(move || {
+            let result = pool.install(|| pass::run(input));
+            // The engine may be gone at shutdown; nothing is left to do then.
+            let _ = events.send(Event::PassDone(result));
+        });
+    }
+
+    fn report_idle(&mut self) {
+        let bundles = self.bundler.flush_all(self.now());
+        self.send_bundles(bundles);
+        let Some(frame) = self.frame.as_mut() else {
+            return;
+        };
+        if frame.reported {
+            return;
+        }
+        frame.reported = true;
+        let resident = self
+            .cache
+            .as_ref()
+            .map(|(_, c)| lock(c).resident())
+            .unwrap_or_default();
+        let report = proto::QueueReport {
+            job_id: frame.job_id.clone(),
+            round: frame.round,
+            resident_domains: resident,
+            queued_rays: frame.queue_sizes().into_iter().collect(),
+        };
+        debug!(
+            round = frame.round,
+            queued = frame.queued_total(),
+            "round done here"
+        );
+        self.send(proto::worker_message::Body::QueueReport(report));
+    }
+
+    fn send(&self, body: proto::worker_message::Body) {
+        // If the control stream is gone the engine learns it from Event::Disconnected.
+        let _ = self
+            .to_coordinator
+            .send(proto::WorkerMessage { body: Some(body) });
+    }
+
+    /// Queues rays for a peer in the bundler's migrated-ray tier.
+    fn send_rays(&mut self, job_id: &str, peer: String, rays: &[RayRecord]) {
+        if let Some(frame) = self.frame.as_mut() {
+            frame.counters.rays_sent += rays.len() as u64;
+        }
+        for chunk in rays.chunks(BATCH_RAYS) {
+            let mut msg = Bytes::from(wire::encode_batch(chunk));
+            if let Some(frame) = self.frame.as_mut() {
+                frame.counters.bytes_sent += msg.len() as u64;
+            }
+            loop {
+                match self
+                    .bundler
+                    .push(peer.clone(), Tier::Migrated, msg, self.now())
+                {
+                    Ok(()) => break,
+                    Err(e) if matches!(e.kind, PushErrorKind::PeerFull { .. }) => {
+                        // The peer's bulk queue is full: send what it holds, then retry.
+                        let bundles = self.bundler.flush_peer(&peer);
+                        self.send_bundles_for(job_id, bundles);
+                        msg = e.into_message();
+                    }
+                    Err(e) => {
+                        error!(%peer, error = %e, "ray batch refused by the bundler");
+                        break;
+                    }
+                }
+            }
+        }
+    }
+
+    fn send_due_bundles(&mut self) {
+        let bundles = self.bundler.poll(self.now());
+        self.send_bundles(bundles);
+    }
+
+    fn send_bundles(&mut self, bundles: Vec<Bundle<String>>) {
+        let Some(job_id) = self.frame.as_ref().map(|f| f.job_id.clone()) else {
+            return;
+        };
+        self.send_bundles_for(&job_id, bundles);
+    }
+
+    fn send_bundles_for(&mut self, job_id: &str, bundles: Vec<Bundle<String>>) {
+        for b in bundles {
+            self.peers.send(&b.peer, job_id, b.tier, b.messages);
+        }
+    }
+}
+
+/// Cache counters of a frame: what changed since its start (the peak is the process's).
+fn since(start: &CacheCounters, now: &CacheCounters) -> CacheCounters {
+    CacheCounters {
+        loads: now.loads - start.loads,
+        bytes_loaded: now.bytes_loaded - start.bytes_loaded,
+        evictions: now.evictions - start.evictions,
+        peak_resident_bytes: now.peak_resident_bytes,
+    }
+}
+
+fn lock(cache: &Mutex<DomainCache>) -> std::sync::MutexGuard<'_, DomainCache> {
+    // A poisoned lock means a pass panicked; the cache's own state is still consistent.
+    cache.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+async fn sleep_until(deadline: Option<Instant>) {
+    match deadline {
+        Some(d) => tokio::time::sleep_until(d.into()).await,
+        None => std::future::pending().await,
+    }
+}

@@ -1,0 +1,203 @@
+//! A worker's state for the frame it is working on: one ray queue per domain, the tiles whose
+//! camera rays it still has to issue, and this round's plan (which domains it traces, and who
+//! holds the others).
+
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use rayfarm_common::ray::RayRecord;
+use rayfarm_common::render::KernelCounters;
+use rayfarm_common::render::cache::CacheCounters;
+use rayfarm_common::wire::BatchLimits;
+
+use crate::pass::FrameView;
+
+/// Counters of one frame on this worker.
+#[derive(Default)]
+pub struct FrameCounters {
+    pub rays: KernelCounters,
+    pub rays_sent: u64,
+    pub bytes_sent: u64,
+    pub rays_received: u64,
+    pub busy: Duration,
+}
+
+/// The frame being rendered.
+pub struct Frame {
+    pub job_id: String,
+    pub shared: Arc<FrameView>,
+    pub limits: BatchLimits,
+    /// Tiles whose camera rays this worker issues, in order, not yet issued.
+    pub to_issue: VecDeque<u32>,
+    /// Current epoch of every tile: rays of older epochs are dropped.
+    pub epochs: Vec<u32>,
+    queues: Vec<Vec<RayRecord>>,
+    pub round: u64,
+    work_on: BTreeSet<u32>,
+    /// Other workers holding each domain this round.
+    holders: BTreeMap<u32, Vec<String>>,
+    /// Whether the coordinator has this worker's current state (no report is due).
+    pub reported: bool,
+    pub counters: FrameCounters,
+    /// The domain cache's counters when the frame started.
+    pub cache_at_start: CacheCounters,
+    pub started: Instant,
+}
+
+/// Where a routed ray goes.
+enum Destination {
+    /// Queued here.
+    Local,
+    /// To the worker at this peer address.
+    Peer(String),
+}
+
+impl Frame {
+    pub fn new(
+        job_id: String,
+        shared: Arc<FrameView>,
+        limits: BatchLimits,
+        to_issue: Vec<u32>,
+    ) -> Self {
+        let domains = shared.view.domain_count();
+        let tiles = shared.grid.count() as usize;
+        Frame {
+            job_id,
+            shared,
+            limits,
+            to_issue: to_issue.into(),
+            epochs: vec![0; tiles],
+            queues: vec![Vec::new(); domains],
+            round: 0,
+            work_on: BTreeSet::new(),
+            holders: BTreeMap::new(),
+            reported: false,
+            counters: FrameCounters::default(),
+            cache_at_start: CacheCounters::default(),
+            started: Instant::now(),
+        }
+    }
+
+    /// Adopts a round's plan; `me` is this worker's peer address (not a destination).
+    pub fn set_plan(
+        &mut self,
+        round: u64,
+        work_on: impl IntoIterator<Item = u32>,
+        holders: impl IntoIterator<Item = (u32, Vec<String>)>,
+        me: &str,
+    ) {
+        self.round = round;
+        self.work_on = work_on.into_iter().collect();
+        self.holders = holders
+            .into_iter()
+            .map(|(d, mut ws)| {
+                ws.retain(|w| w != me);
+                (d, ws)
+            })
+            .filter(|(_, ws)| !ws.is_empty())
+            .collect();
+        self.reported = false;
+    }
+
+    /// Whether a ray belongs to the current epoch of its tile.
+    fn is_current(&self, ray: &RayRecord) -> bool {
+        self.epochs.get(ray.tile as usize) == Some(&ray.epoch)
+    }
+
+    /// Where a ray goes this round: here if this worker traces the domain or no
+    /// one does (it waits for a later round), else to one of its holders, chosen by pixel so
+    /// that a hot domain's rays spread evenly over its holders.
+    fn destination(&self, ray: &RayRecord) -> Destination {
+        if self.work_on.contains(&ray.domain) {
+            return Destination::Local;
+        }
+        match self.holders.get(&ray.domain) {
+            Some(ws) => Destination::Peer(ws[ray.pixel as usize % ws.len()].clone()),
+            None => Destination::Local,
+        }
+    }
+
+    /// Queues each ray of the current epoch here or returns it, grouped by the peer it goes
+    /// to; rays of an older epoch are dropped.
+    pub fn route(&mut self, rays: Vec<RayRecord>) -> BTreeMap<String, Vec<RayRecord>> {
+        let mut out: BTreeMap<String, Vec<RayRecord>> = BTreeMap::new();
+        for ray in rays {
+            if !self.is_current(&ray) {
+                continue;
+            }
+            match self.destination(&ray) {
+                Destination::Peer(p) => out.entry(p).or_default().push(ray),
+                Destination::Local => {
+                    if let Some(q) = self.queues.get_mut(ray.domain as usize) {
+                        q.push(ray);
+                    }
+                }
+            }
+        }
+        out
+    }
+
+    /// Takes every queued ray that now has a holder elsewhere, grouped by peer.
+    pub fn take_for_peers(&mut self) -> BTreeMap<String, Vec<RayRecord>> {
+        let mut out: BTreeMap<String, Vec<RayRecord>> = BTreeMap::new();
+        let domains: Vec<u32> = self
+            .holders
+            .keys()
+            .copied()
+            .filter(|d| !self.work_on.contains(d))
+            .collect();
+        for d in domains {
+            for ray in std::mem::take(&mut self.queues[d as usize]) {
+                if let Destination::Peer(p) = self.destination(&ray) {
+                    out.entry(p).or_default().push(ray);
+                }
+            }
+        }
+        out
+    }
+
+    /// Takes up to `max` rays of the fullest queue this worker traces this round.
+    pub fn take_work(&mut self, max: usize) -> Option<(u32, Vec<RayRecord>)> {
+        let (&d, len) = self
+            .work_on
+            .iter()
+            .map(|d| (d, self.queues[*d as usize].len()))
+            .max_by_key(|&(d, len)| (len, std::cmp::Reverse(*d)))
+            .filter(|&(_, len)| len > 0)?;
+        let q = &mut self.queues[d as usize];
+        let rays = if len > max {
+            q.split_off(len - max)
+        } else {
+            std::mem::take(q)
+        };
+        Some((d, rays))
+    }
+
+    /// Rays queued here, over all domains.
+    pub fn queued_total(&self) -> usize {
+        self.queues.iter().map(Vec::len).sum()
+    }
+
+    /// Rays queued per domain, non-empty queues only.
+    pub fn queue_sizes(&self) -> BTreeMap<u32, u64> {
+        (0..)
+            .zip(&self.queues)
+            .filter(|(_, q)| !q.is_empty())
+            .map(|(d, q)| (d, q.len() as u64))
+            .collect()
+    }
+
+    /// Drops queued rays of the given tiles older than their new epochs.
+    pub fn bump_epochs(&mut self, bumps: &BTreeMap<u32, u32>) {
+        for (&tile, &epoch) in bumps {
+            if let Some(e) = self.epochs.get_mut(tile as usize) {
+                *e = (*e).max(epoch);
+            }
+        }
+        let epochs = &self.epochs;
+        for q in &mut self.queues {
+            q.retain(|r| epochs.get(r.tile as usize) == Some(&r.epoch));
+        }
+    }
+}

@@ -1,0 +1,188 @@
+//! Worker-to-worker ray traffic: outbound links (one long-lived `ExchangeBundles` stream per
+//! peer, opened on first use) and the service that receives peers' bundles.
+
+use std::collections::HashMap;
+use std::pin::Pin;
+use std::time::Duration;
+
+use bytes::Bytes;
+use rayfarm_common::bundler::Tier;
+use rayfarm_common::proto::peer_service_client::PeerServiceClient;
+use rayfarm_common::proto::peer_service_server::PeerService;
+use rayfarm_common::proto::{self, PROTOCOL_VERSION};
+use tokio::sync::mpsc;
+use tokio_stream::Stream;
+use tokio_stream::wrappers::UnboundedReceiverStream;
+use tonic::transport::Endpoint;
+use tonic::{Request, Response, Status, Streaming};
+use tracing::{debug, error, warn};
+
+use crate::engine::Event;
+use rayfarm_common::fault::Faults;
+
+/// Largest gRPC message accepted or sent between workers.
+pub const MAX_MESSAGE_BYTES: usize = 64 << 20;
+
+/// Times a link tries to connect before giving up on the peer.
+const CONNECT_ATTEMPTS: u32 = 20;
+
+/// Outbound streams to peers, by peer address.
+pub struct PeerLinks {
+    me: String,
+    faults: Faults,
+    links: HashMap<String, mpsc::UnboundedSender<proto::PeerBundle>>,
+    sequence: u64,
+}
+
+impl PeerLinks {
+    /// Links from the worker called `me`.
+    pub fn new(me: String, faults: Faults) -> Self {
+        PeerLinks {
+            me,
+            faults,
+            links: HashMap::new(),
+            sequence: 0,
+        }
+    }
+
+    /// Sends one bundle to `peer`, opening the link if needed. Never blocks.
+    pub fn send(&mut self, peer: &str, job_id: &str, tier: Tier, batches: Vec<Bytes>) {
+        self.sequence += 1;
+        let bundle = proto::PeerBundle {
+            protocol_version: PROTOCOL_VERSION,
+            sender: self.me.clone(),
+            job_id: job_id.to_string(),
+            tier: proto_tier(tier) as i32,
+            sequence: self.sequence,
+            batches,
+        };
+        let link = self
+            .links
+            .entry(peer.to_string())
+            .or_insert_with(|| open_link(peer.to_string(), self.faults));
+        if let Err(mpsc::error::SendError(bundle)) = link.send(bundle) {
+            // The link task gave up on this peer; try a fresh link once.
+            let fresh = open_link(peer.to_string(), self.faults);
+            if fresh.send(bundle).is_err() {
+                error!(%peer, "cannot reach peer: bundle dropped");
+            }
+            self.links.insert(peer.to_string(), fresh);
+        }
+    }
+}
+
+fn proto_tier(tier: Tier) -> proto::Tier {
+    match tier {
+        Tier::Control => proto::Tier::Control,
+        Tier::Results => proto::Tier::Results,
+        Tier::Migrated => proto::Tier::Migrated,
+        Tier::Tasks => proto::Tier::Tasks,
+    }
+}
+
+fn open_link(peer: String, faults: Faults) -> mpsc::UnboundedSender<proto::PeerBundle> {
+    let (tx, rx) = mpsc::unbounded_channel();
+    let rx = faults.delayed(&peer, rx);
+    tokio::spawn(async move {
+        if let Err(e) = run_link(&peer, rx).await {
+            error!(%peer, error = %e, "peer link failed");
+        }
+    });
+    tx
+}
+
+async fn run_link(
+    peer: &str,
+    rx: mpsc::UnboundedReceiver<proto::PeerBundle>,
+) -> anyhow::Result<()> {
+    let endpoint = Endpoint::from_shared(format!("http://{peer}"))?
+        .tcp_nodelay(true)
+        .connect_timeout(Duration::from_secs(5));
+    let mut attempt = 0;
+    let channel = loop {
+        match endpoint.connect().await {
+            Ok(c) => break c,
+            Err(e) if attempt < CONNECT_ATTEMPTS => {
+                attempt += 1;
+                warn!(%peer, error = %e, attempt, "connecting to peer");
+                tokio::time::sleep(Duration::from_millis(50 << attempt.min(5))).await;
+            }
+            Err(e) => return Err(e.into()),
+        }
+    };
+    let mut client = PeerServiceClient::new(channel)
+        .max_decoding_message_size(MAX_MESSAGE_BYTES)
+        .max_encoding_message_size(MAX_MESSAGE_BYTES);
+    let mut acks = client
+        .exchange_bundles(UnboundedReceiverStream::new(rx))
+        .await?
+        .into_inner();
+    while let Some(ack) = acks.message().await? {
+        debug!(%peer, sequence = ack.sequence, "bundle acknowledged");
+    }
+    Ok(())
+}
+
+/// The `PeerService` of this worker: decodes nothing itself, hands bundles to the engine.
+pub struct PeerServer {
+    events: mpsc::UnboundedSender<Event>,
+}
+
+impl PeerServer {
+    pub fn new(events: mpsc::UnboundedSender<Event>) -> Self {
+        PeerServer { events }
+    }
+}
+
+type AckStream = Pin<Box<dyn Stream<Item = Result<proto::PeerAck, Status>> + Send>>;
+
+#[tonic::async_trait]
+impl PeerService for PeerServer {
+    type ExchangeBundlesStream = AckStream;
+
+    async fn exchange_bundles(
+        &self,
+        request: Request<Streaming<proto::PeerBundle>>,
+    ) -> Result<Response<AckStream>, Status> {
+        let mut inbound = request.into_inner();
+        let events = self.events.clone();
+        let (acks, ack_rx) = mpsc::unbounded_channel();
+        tokio::spawn(async move {
+            loop {
+                let bundle = match inbound.message().await {
+                    Ok(Some(b)) => b,
+                    Ok(None) => break,
+                    Err(status) => {
+                        warn!(%status, "peer stream ended with an error");
+                        break;
+                    }
+                };
+                if bundle.protocol_version != PROTOCOL_VERSION {
+                    let msg = format!(
+                        "peer {} speaks protocol {}, this worker {PROTOCOL_VERSION}",
+                        bundle.sender, bundle.protocol_version
+                    );
+                    error!("{msg}");
+                    let _ = acks.send(Err(Status::failed_precondition(msg)));
+                    break;
+                }
+                let sequence = bundle.sequence;
+                let event = Event::PeerBundle {
+                    sender: bundle.sender,
+                    job_id: bundle.job_id,
+                    batches: bundle.batches,
+                };
+                if events.send(event).is_err() {
+                    break;
+                }
+                let _ = acks.send(Ok(proto::PeerAck {
+                    sequence,
+                    window_bytes: 0,
+                }));
+            }
+        });
+        Ok(Response::new(Box::pin(UnboundedReceiverStream::new(
+            ack_rx,
+        ))))
+    }
+}
