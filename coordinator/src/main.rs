@@ -29,6 +29,14 @@ use crate::state::{Config, Coordinator};
 /// Largest gRPC message accepted or sent (tile results of a big pass, fetched images).
 const MAX_MESSAGE_BYTES: usize = 256 << 20;
 
+/// Extensions of the dynamic schedule that copy domains.
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum Replicate {
+    None,
+    Idle,
+    FreeSlots,
+}
+
 /// rayfarm-coordinator: the job queue and scheduler of a rayfarm cluster.
 #[derive(Parser, Debug)]
 #[command(version, about)]
@@ -52,10 +60,11 @@ struct Args {
     /// A worker silent for this many milliseconds is dropped.
     #[arg(long, env = "RAYFARM_WORKER_TIMEOUT_MS", default_value_t = 10_000)]
     worker_timeout_ms: u64,
-    /// Give workers left idle by the schedule a copy of the busiest domain (costs a load,
-    /// keeps cores busy). Off: the paper's algorithm as written.
-    #[arg(long, env = "RAYFARM_REPLICATE_IDLE", default_value_t = false)]
-    replicate_idle: bool,
+    /// Copies of busy domains beyond the paper's algorithm (each costs a load): `none` is
+    /// Fig. 5 as written; `idle` gives workers left idle a copy of the busiest domain;
+    /// `free-slots` fills every free cache slot with copies of wanted domains.
+    #[arg(long, env = "RAYFARM_REPLICATE", value_enum, default_value_t = Replicate::FreeSlots)]
+    replicate: Replicate,
     /// More log output (-v debug, -vv trace); RUST_LOG overrides.
     #[arg(short, long, action = clap::ArgAction::Count)]
     verbose: u8,
@@ -108,7 +117,8 @@ async fn run(args: Args) -> anyhow::Result<()> {
         worker_timeout: Duration::from_millis(args.worker_timeout_ms.max(100)),
         report_timeout: Duration::from_secs(5),
         schedule_options: Options {
-            replicate_onto_idle: args.replicate_idle,
+            replicate_onto_idle: matches!(args.replicate, Replicate::Idle),
+            fill_free_slots: matches!(args.replicate, Replicate::FreeSlots),
         },
     };
     info!(%bound, ?config, "coordinator up");

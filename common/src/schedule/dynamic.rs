@@ -51,6 +51,11 @@ pub struct Options {
     /// queued rays per holder, so hot queues are shared instead of leaving
     /// cores unused. Each copy costs a load.
     pub replicate_onto_idle: bool,
+    /// Fill every cache slot left free after Fig. 5 with a copy of a wanted domain (most
+    /// rays per holder first). When the caches hold the scene this converges to every
+    /// worker tracing its own rays with no migration (the image-plane regime), at the cost
+    /// of one load per copy.
+    pub fill_free_slots: bool,
 }
 
 /// What one worker should hold and work on in the coming round.
@@ -146,6 +151,9 @@ pub fn next_round_with(state: &ClusterState, options: Options) -> RoundPlan {
     pair_with_free_slots(&mut drafts, &to_assign);
     if options.replicate_onto_idle {
         replicate_onto_idle(state, &mut drafts);
+    }
+    if options.fill_free_slots {
+        fill_free_slots(state, &mut drafts);
     }
     RoundPlan {
         workers: drafts.into_iter().map(Draft::finish).collect(),
@@ -253,12 +261,42 @@ fn replicate_onto_idle(state: &ClusterState, drafts: &mut [Draft<'_>]) {
     }
 }
 
+/// Extension (off by default): free slots take copies of wanted domains, hottest per
+/// holder first, a slot at a time across workers (lower id first) so copies spread.
+fn fill_free_slots(state: &ClusterState, drafts: &mut [Draft<'_>]) {
+    loop {
+        let mut placed = false;
+        for i in 0..drafts.len() {
+            if drafts[i].free_slots() == 0 {
+                continue;
+            }
+            let mine = &drafts[i];
+            let candidate = hottest_per_holder_where(state, drafts, |d| !mine.works_on(d));
+            if let Some(domain) = candidate {
+                drafts[i].load.insert(domain);
+                placed = true;
+            }
+        }
+        if !placed {
+            return;
+        }
+    }
+}
+
 fn hottest_per_holder(state: &ClusterState, drafts: &[Draft<'_>]) -> Option<DomainId> {
+    hottest_per_holder_where(state, drafts, |_| true)
+}
+
+fn hottest_per_holder_where(
+    state: &ClusterState,
+    drafts: &[Draft<'_>],
+    eligible: impl Fn(DomainId) -> bool,
+) -> Option<DomainId> {
     let holders = |d: DomainId| drafts.iter().filter(|w| w.works_on(d)).count() as u64;
     // Rays are compared as fractions rays/holders without division; the
     // first maximum wins, and `wanted` yields lower ids first.
     let mut best: Option<(DomainId, u64, u64)> = None;
-    for (domain, rays) in state.wanted() {
+    for (domain, rays) in state.wanted().filter(|&(d, _)| eligible(d)) {
         let copies = holders(domain);
         if rays <= copies {
             continue;
@@ -304,7 +342,36 @@ mod tests {
 
     const REPLICATE: Options = Options {
         replicate_onto_idle: true,
+        fill_free_slots: false,
     };
+
+    const FILL: Options = Options {
+        replicate_onto_idle: false,
+        fill_free_slots: true,
+    };
+
+    #[test]
+    fn free_slots_take_copies_of_the_hottest_domains_and_never_evict_wanted_data() {
+        // Worker 0 holds 0; worker 1 holds nothing; both hold three domains.
+        let s = state(
+            vec![worker(0, &[0], 3), worker(1, &[], 3)],
+            &[(0, 90), (1, 40), (2, 2)],
+        );
+        let plain = next_round(&s);
+        assert_eq!(plain.load_count(), 2);
+        let plan = next_round_with(&s, FILL);
+        // Every wanted domain with more rays than holders ends up on both workers.
+        for dom in [0, 1] {
+            assert_eq!(plan.holders(d(dom)).len(), 2, "domain {dom}");
+        }
+        assert_eq!(plan.holders(d(2)).len(), 2);
+        assert!(of(&plan, 0).keep.contains(&d(0)));
+        assert!(of(&plan, 0).evict.is_empty() && of(&plan, 1).evict.is_empty());
+        // Slots stay free once every wanted domain is everywhere.
+        let s = state(vec![worker(0, &[], 4), worker(1, &[], 4)], &[(3, 10)]);
+        let plan = next_round_with(&s, FILL);
+        assert_eq!(plan.load_count(), 2);
+    }
 
     #[test]
     fn keeps_wanted_resident_data_even_when_another_queue_is_fuller() {
@@ -544,7 +611,7 @@ mod tests {
     proptest! {
         #[test]
         fn plans_respect_the_invariants(s in arb_state(), replicate in any::<bool>()) {
-            let options = Options { replicate_onto_idle: replicate };
+            let options = Options { replicate_onto_idle: replicate, ..Options::default() };
             let plan = next_round_with(&s, options);
             prop_assert_eq!(plan.workers().len(), s.workers().len());
             for (w, p) in s.workers().iter().zip(plan.workers()) {
@@ -562,7 +629,7 @@ mod tests {
 
         #[test]
         fn plans_are_a_pure_function_of_the_state(s in arb_state(), replicate in any::<bool>()) {
-            let options = Options { replicate_onto_idle: replicate };
+            let options = Options { replicate_onto_idle: replicate, ..Options::default() };
             let reordered = ClusterState::new(
                 s.workers().iter().rev().cloned(),
                 s.wanted().collect::<Vec<_>>().into_iter().rev(),
