@@ -1,8 +1,13 @@
-//! Shared pieces of the integration tests: find the real binaries, run them, read their output.
+//! Shared pieces of the integration tests: find the real binaries, run them, read their output,
+//! and run a real cluster of them on loopback ([`Cluster`]).
 //! The binaries are built by `cargo build --release --bins` (README's test command does it).
 
+use std::fs::File;
+use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::{Child, ChildStdout, Command, Output, Stdio};
+use std::sync::mpsc;
+use std::time::Duration;
 
 /// Path of a workspace binary built in the same profile as this test.
 pub fn bin(name: &str) -> PathBuf {
@@ -75,4 +80,351 @@ pub fn file_hash(path: &Path) -> String {
 /// `p` as a `&str` for argument lists.
 pub fn s(p: &Path) -> &str {
     p.to_str().expect("utf-8 path")
+}
+
+/// How long a started process may take to print `listening on ADDR`.
+pub const START_TIMEOUT: Duration = Duration::from_secs(30);
+
+/// Lines of each process's log shown when a test fails.
+const LOG_TAIL_LINES: usize = 40;
+
+/// How a worker of a [`Cluster`] is started.
+#[derive(Clone, Debug)]
+pub struct WorkerOpts {
+    /// `--cache-bytes`: its domain cache budget.
+    pub cache_bytes: u64,
+    /// `--threads` (`None`: the worker's default, all cores).
+    pub threads: Option<usize>,
+    /// Extra environment variables, e.g. fault injection.
+    pub env: Vec<(String, String)>,
+}
+
+impl Default for WorkerOpts {
+    /// 1 GiB of cache and one thread: test machines are small and clusters are several
+    /// processes.
+    fn default() -> Self {
+        Self {
+            cache_bytes: 1 << 30,
+            threads: Some(1),
+            env: Vec::new(),
+        }
+    }
+}
+
+impl WorkerOpts {
+    /// The defaults with a cache budget of `cache_bytes`.
+    pub fn cache(cache_bytes: u64) -> Self {
+        Self {
+            cache_bytes,
+            ..Self::default()
+        }
+    }
+
+    /// With `threads` tracing threads.
+    pub fn threads(mut self, threads: usize) -> Self {
+        self.threads = Some(threads);
+        self
+    }
+
+    /// With the environment variable `key=value`.
+    pub fn env(mut self, key: &str, value: &str) -> Self {
+        self.env.push((key.to_string(), value.to_string()));
+        self
+    }
+}
+
+/// One process of a test cluster.
+struct Proc {
+    name: String,
+    child: Child,
+    log: PathBuf,
+    addr: String,
+    /// Killed by the test (its log is still shown).
+    killed: bool,
+}
+
+impl Proc {
+    /// Starts `program args` with its stderr in `log`, and waits for its `listening on ADDR`
+    /// line (panicking, with the end of its log, if it exits or stays silent).
+    fn start(
+        name: &str,
+        program: &Path,
+        args: &[String],
+        env: &[(String, String)],
+        log: &Path,
+    ) -> Proc {
+        let log_file = File::create(log).expect("create log file");
+        let mut cmd = Command::new(program);
+        cmd.args(args)
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(log_file);
+        // Logs go to a file: useful detail, no terminal colour codes.
+        cmd.env("NO_COLOR", "1");
+        if std::env::var_os("RUST_LOG").is_none() {
+            cmd.env("RUST_LOG", "info");
+        }
+        cmd.envs(env.iter().map(|(k, v)| (k, v)));
+        let mut child = cmd
+            .spawn()
+            .unwrap_or_else(|e| panic!("start {}: {e}", program.display()));
+        let stdout = child.stdout.take().expect("piped stdout");
+        match listening_address(stdout).recv_timeout(START_TIMEOUT) {
+            Ok(Ok(addr)) => Proc {
+                name: name.to_string(),
+                child,
+                log: log.to_path_buf(),
+                addr,
+                killed: false,
+            },
+            failure => {
+                let why = match failure {
+                    Ok(Err(e)) => e,
+                    _ => format!("printed no `listening on ADDR` within {START_TIMEOUT:?}"),
+                };
+                let _ = child.kill();
+                let status = child.wait().map(|s| s.to_string()).unwrap_or_default();
+                panic!(
+                    "{name} {why} ({status}); {} args {args:?}; its log:\n{}",
+                    program.display(),
+                    log_tail(log, LOG_TAIL_LINES)
+                );
+            }
+        }
+    }
+
+    fn stop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Reads a child's stdout on a thread: sends the address of its `listening on ADDR` line (or
+/// why there is none), then drains the rest so the child never blocks on a full pipe.
+fn listening_address(stdout: ChildStdout) -> mpsc::Receiver<Result<String, String>> {
+    let (tx, rx) = mpsc::channel();
+    std::thread::spawn(move || {
+        let mut sent = false;
+        for line in BufReader::new(stdout).lines() {
+            match line {
+                Ok(line) if !sent => {
+                    if let Some(addr) = line.trim().strip_prefix("listening on ") {
+                        let _ = tx.send(Ok(addr.trim().to_string()));
+                        sent = true;
+                    }
+                }
+                Ok(_) => {}
+                Err(e) => {
+                    if !sent {
+                        let _ = tx.send(Err(format!("stdout unreadable: {e}")));
+                    }
+                    return;
+                }
+            }
+        }
+        if !sent {
+            let _ = tx.send(Err("exited before it was listening".into()));
+        }
+    });
+    rx
+}
+
+/// The last `n` lines of a file, indented.
+fn log_tail(path: &Path, n: usize) -> String {
+    let text = std::fs::read(path)
+        .map(|b| String::from_utf8_lossy(&b).into_owned())
+        .unwrap_or_else(|e| format!("(unreadable: {e})"));
+    let lines: Vec<&str> = text.lines().collect();
+    lines[lines.len().saturating_sub(n)..]
+        .iter()
+        .map(|l| format!("    {l}\n"))
+        .collect()
+}
+
+/// A real cluster on loopback: `rayfarm-coordinator` and `rayfarm-worker` processes, each
+/// logging to a file in a temporary directory. Dropping it kills every process; if the test
+/// is failing, the tails of all logs are printed first.
+pub struct Cluster {
+    dir: tempfile::TempDir,
+    scene_root: PathBuf,
+    url: String,
+    coordinator: Proc,
+    /// By index of start, killed ones included.
+    workers: Vec<Proc>,
+}
+
+impl Cluster {
+    /// Starts a coordinator serving scenes under `scene_root` (with `default_scene` for jobs
+    /// that name none) and one worker per entry of `workers`, and waits until all workers are
+    /// registered.
+    pub fn start(
+        scene_root: &Path,
+        default_scene: Option<&str>,
+        workers: &[WorkerOpts],
+    ) -> Cluster {
+        Self::start_with_env(scene_root, default_scene, &[], workers)
+    }
+
+    /// [`Cluster::start`] with extra environment variables for the coordinator (e.g. fault
+    /// injection).
+    pub fn start_with_env(
+        scene_root: &Path,
+        default_scene: Option<&str>,
+        coordinator_env: &[(&str, &str)],
+        workers: &[WorkerOpts],
+    ) -> Cluster {
+        let dir = tempfile::tempdir().expect("cluster temp dir");
+        let data_dir = dir.path().join("data");
+        std::fs::create_dir_all(&data_dir).expect("create data dir");
+        let mut args = vec![
+            "--listen".to_string(),
+            "127.0.0.1:0".to_string(),
+            "--data-dir".to_string(),
+            s(&data_dir).to_string(),
+            "--scene-root".to_string(),
+            s(scene_root).to_string(),
+        ];
+        if let Some(name) = default_scene {
+            args.extend(["--default-scene".to_string(), name.to_string()]);
+        }
+        let env: Vec<(String, String)> = coordinator_env
+            .iter()
+            .map(|(k, v)| (k.to_string(), v.to_string()))
+            .collect();
+        let coordinator = Proc::start(
+            "coordinator",
+            &bin("rayfarm-coordinator"),
+            &args,
+            &env,
+            &dir.path().join("coordinator.log"),
+        );
+        let mut cluster = Cluster {
+            url: format!("http://{}", coordinator.addr),
+            dir,
+            scene_root: scene_root.to_path_buf(),
+            coordinator,
+            workers: Vec::new(),
+        };
+        for opts in workers {
+            cluster.add_worker(opts);
+        }
+        cluster.wait_for_workers(workers.len(), START_TIMEOUT);
+        cluster
+    }
+
+    /// The coordinator's URL, `http://127.0.0.1:PORT`.
+    pub fn coordinator_url(&self) -> &str {
+        &self.url
+    }
+
+    /// Starts one more worker (it may join mid-frame); returns its index. Waits until it is
+    /// listening, not until it is registered (see [`Cluster::wait_for_workers`]).
+    pub fn add_worker(&mut self, opts: &WorkerOpts) -> usize {
+        let i = self.workers.len();
+        let mut args = vec![
+            "--coordinator".to_string(),
+            self.url.clone(),
+            "--listen".to_string(),
+            "127.0.0.1:0".to_string(),
+            "--cache-bytes".to_string(),
+            opts.cache_bytes.to_string(),
+            "--scene-root".to_string(),
+            s(&self.scene_root).to_string(),
+        ];
+        if let Some(t) = opts.threads {
+            args.extend(["--threads".to_string(), t.to_string()]);
+        }
+        let name = format!("worker-{i}");
+        let log = self.dir.path().join(format!("{name}.log"));
+        let proc = Proc::start(&name, &bin("rayfarm-worker"), &args, &opts.env, &log);
+        self.workers.push(proc);
+        i
+    }
+
+    /// Kills worker `i` at once (SIGKILL: a crash, not a shutdown) and reaps it.
+    pub fn kill_worker(&mut self, i: usize) {
+        let proc = &mut self.workers[i];
+        assert!(!proc.killed, "worker {i} was already killed");
+        proc.stop();
+        proc.killed = true;
+    }
+
+    /// The peer address worker `i` printed (also once it is killed).
+    pub fn worker_addr(&self, i: usize) -> &str {
+        &self.workers[i].addr
+    }
+
+    /// Waits until exactly `n` workers are registered with the coordinator (asking as a user
+    /// would: `rayfarm status --wait-workers N`); panics after `timeout`.
+    pub fn wait_for_workers(&self, n: usize, timeout: Duration) {
+        self.rayfarm_ok(&[
+            "status",
+            "--wait-workers",
+            &n.to_string(),
+            "--timeout",
+            &timeout.as_secs_f64().to_string(),
+            "--json",
+        ]);
+    }
+
+    /// `rayfarm status --json`, parsed.
+    pub fn status(&self) -> serde_json::Value {
+        let out = self.rayfarm_ok(&["status", "--json"]);
+        serde_json::from_slice(&out.stdout).expect("status --json parses")
+    }
+
+    /// Runs `rayfarm` against this cluster (`RAYFARM_COORDINATOR` set); returns its output,
+    /// whatever the exit status.
+    pub fn rayfarm(&self, args: &[&str]) -> Output {
+        Command::new(bin("rayfarm"))
+            .args(args)
+            .env("RUST_LOG", "warn")
+            .env("RAYFARM_COORDINATOR", &self.url)
+            .output()
+            .expect("start rayfarm")
+    }
+
+    /// [`Cluster::rayfarm`], failing the test (showing stderr) unless it succeeds.
+    pub fn rayfarm_ok(&self, args: &[&str]) -> Output {
+        let out = self.rayfarm(args);
+        assert!(
+            out.status.success(),
+            "rayfarm {} failed ({}):\n{}",
+            args.join(" "),
+            out.status,
+            String::from_utf8_lossy(&out.stderr)
+        );
+        out
+    }
+
+    /// The directory holding the processes' logs (and the coordinator's data directory).
+    pub fn dir(&self) -> &Path {
+        self.dir.path()
+    }
+
+    /// Prints the end of every process's log to stderr (shown with the failing test).
+    pub fn dump_logs(&self) {
+        for p in std::iter::once(&self.coordinator).chain(&self.workers) {
+            eprintln!(
+                "---- {} ({}{}), last {LOG_TAIL_LINES} lines of {}:\n{}",
+                p.name,
+                p.addr,
+                if p.killed { ", killed by the test" } else { "" },
+                p.log.display(),
+                log_tail(&p.log, LOG_TAIL_LINES)
+            );
+        }
+    }
+}
+
+impl Drop for Cluster {
+    fn drop(&mut self) {
+        if std::thread::panicking() {
+            self.dump_logs();
+        }
+        for w in &mut self.workers {
+            w.stop();
+        }
+        self.coordinator.stop();
+    }
 }

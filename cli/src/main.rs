@@ -1,7 +1,11 @@
 //! `rayfarm`: what a person types. Prepare scenes, render them locally, and (with the cluster)
 //! submit and watch jobs. A thin layer over `rayfarm-common`.
 
+mod client;
 mod cmd;
+mod local_cluster;
+#[cfg(test)]
+mod mock_tests;
 mod table;
 mod units;
 
@@ -25,8 +29,22 @@ enum Command {
     Prepare(cmd::prepare::PrepareArgs),
     /// Render a scene in this process (the reference every distributed render must equal).
     Render(cmd::render::RenderArgs),
-    /// Prepare the built-in scene if missing and render it, printing the statistics.
+    /// Prepare the built-in scene if missing and render it on a local cluster, printing the
+    /// statistics.
     Demo(cmd::demo::DemoArgs),
+    /// Queue a frame on the cluster; prints the job id (or, with --wait, follows it and saves
+    /// the image).
+    Submit(cmd::submit::SubmitArgs),
+    /// Follow a job's progress until it ends.
+    Watch(cmd::watch::WatchArgs),
+    /// List the cluster's jobs, newest first.
+    Jobs(cmd::jobs::JobsArgs),
+    /// Show the workers, their resident domains and queues, and the running job.
+    Status(cmd::status::StatusArgs),
+    /// Save a finished job's image (and statistics).
+    Fetch(cmd::fetch::FetchArgs),
+    /// Cancel a queued or running job.
+    Cancel(cmd::cancel::CancelArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -42,16 +60,27 @@ fn main() -> std::process::ExitCode {
         )
         .with_writer(std::io::stderr)
         .init();
-    let result = match cli.command {
-        Command::Prepare(a) => cmd::prepare::run(a),
-        Command::Render(a) => cmd::render::run(a),
-        Command::Demo(a) => cmd::demo::run(a),
-    };
+    let result = dispatch(cli.command);
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e:#}");
             std::process::ExitCode::FAILURE
         }
+    }
+}
+
+/// Runs one subcommand.
+fn dispatch(command: Command) -> anyhow::Result<()> {
+    match command {
+        Command::Prepare(a) => cmd::prepare::run(a),
+        Command::Render(a) => cmd::render::run(a),
+        Command::Demo(a) => cmd::demo::run(a),
+        Command::Submit(a) => cmd::submit::run(a),
+        Command::Watch(a) => cmd::watch::run(a),
+        Command::Jobs(a) => cmd::jobs::run(a),
+        Command::Status(a) => cmd::status::run(a),
+        Command::Fetch(a) => cmd::fetch::run(a),
+        Command::Cancel(a) => cmd::cancel::run(a),
     }
 }

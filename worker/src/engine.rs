@@ -58,8 +58,11 @@ pub enum Event {
         job_id: String,
         batches: Vec<Bytes>,
     },
-    /// A pass finished.
-    PassDone(Result<PassOutput, PassError>),
+    /// A pass of the frame of `job_id` finished.
+    PassDone {
+        job_id: String,
+        result: Result<PassOutput, PassError>,
+    },
 }
 
 /// The engine. See the module documentation.
@@ -157,11 +160,14 @@ impl Engine {
                 job_id,
                 batches,
             } => self.peer_bundle(sender, job_id, batches),
-            Event::PassDone(result) => {
+            Event::PassDone { job_id, result } => {
                 self.pass_running = false;
-                match result {
-                    Ok(out) => self.pass_done(out),
-                    Err(e) => self.fail_frame(format!("{e}")),
+                // A pass of a frame that has ended since is of no use.
+                if self.frame.as_ref().is_some_and(|f| f.job_id == job_id) {
+                    match result {
+                        Ok(out) => self.pass_done(out),
+                        Err(e) => self.fail_frame(format!("{e}")),
+                    }
                 }
             }
         }
@@ -408,10 +414,11 @@ impl Engine {
         self.pass_running = true;
         let pool = self.pool.clone();
         let events = self.events.clone();
+        let job_id = frame.job_id.clone();
         tokio::task::spawn_blocking(move || {
             let result = pool.install(|| pass::run(input));
             // The engine may be gone at shutdown; nothing is left to do then.
-            let _ = events.send(Event::PassDone(result));
+            let _ = events.send(Event::PassDone { job_id, result });
         });
     }
 

@@ -1,5 +1,11 @@
 //! One module per subcommand.
 
+pub mod cancel;
 pub mod demo;
+pub mod fetch;
+pub mod jobs;
 pub mod prepare;
 pub mod render;
+pub mod status;
+pub mod submit;
+pub mod watch;

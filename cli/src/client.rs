@@ -1,0 +1,236 @@
+//! Talking to a coordinator: one place that connects, and one place that turns gRPC failures
+//! into sentences a person can act on ("the coordinator is unreachable", "INVALID_ARGUMENT:
+//! width must be ..."), so every cluster command reports errors the same way.
+
+use std::time::Duration;
+
+use anyhow::{Context, anyhow};
+use clap::Args;
+use rayfarm_common::proto;
+use rayfarm_common::proto::job_service_client::JobServiceClient;
+use tonic::transport::{Channel, Endpoint};
+
+/// Images of big frames travel in one message; the default 4 MiB limit would refuse them.
+const MAX_MESSAGE_BYTES: usize = 256 << 20;
+
+/// How long to wait for the TCP (and HTTP/2) connection before calling a coordinator
+/// unreachable.
+const CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
+
+/// The `--coordinator` option every cluster command takes.
+#[derive(Args, Clone, Debug)]
+pub struct CoordinatorArgs {
+    /// Coordinator address: http://HOST:PORT, or HOST:PORT.
+    #[arg(
+        long,
+        env = "RAYFARM_COORDINATOR",
+        default_value = "http://127.0.0.1:50051"
+    )]
+    pub coordinator: String,
+}
+
+/// The async runtime of one command. The commands are I/O-bound request/response clients,
+/// so one thread is plenty.
+pub fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("starting the async runtime")
+}
+
+/// `addr` as a URL: a bare `host:port` gets `http://`.
+pub fn normalize_url(addr: &str) -> String {
+    let addr = addr.trim();
+    if addr.contains("://") {
+        addr.to_string()
+    } else {
+        format!("http://{addr}")
+    }
+}
+
+/// A connected coordinator. Every call maps a failure to a readable error.
+#[derive(Clone)]
+pub struct Coordinator {
+    url: String,
+    client: JobServiceClient<Channel>,
+}
+
+impl Coordinator {
+    /// Connects to the coordinator at `addr` (fails fast if nothing answers there).
+    pub async fn connect(addr: &str) -> anyhow::Result<Self> {
+        let url = normalize_url(addr);
+        let endpoint = Endpoint::from_shared(url.clone())
+            .map_err(|e| anyhow!("{url:?} is not a coordinator address: {}", chain(&e)))?
+            .tcp_nodelay(true)
+            .connect_timeout(CONNECT_TIMEOUT);
+        let channel = endpoint
+            .connect()
+            .await
+            .map_err(|e| anyhow!("coordinator at {url} is unreachable: {}", chain(&e)))?;
+        let client = JobServiceClient::new(channel)
+            .max_decoding_message_size(MAX_MESSAGE_BYTES)
+            .max_encoding_message_size(MAX_MESSAGE_BYTES);
+        Ok(Self { url, client })
+    }
+
+    /// The URL connected to.
+    pub fn url(&self) -> &str {
+        &self.url
+    }
+
+    /// A failed call as a readable error.
+    pub fn rpc_error(&self, status: &tonic::Status) -> anyhow::Error {
+        rpc_error(&self.url, status)
+    }
+
+    /// Queues a job; returns its id.
+    pub async fn submit(&mut self, spec: proto::JobSpec) -> anyhow::Result<String> {
+        let req = proto::SubmitJobRequest { spec: Some(spec) };
+        let resp = self.client.submit_job(req).await;
+        Ok(resp.map_err(|s| self.rpc_error(&s))?.into_inner().job_id)
+    }
+
+    /// The progress events of a job, until it ends.
+    pub async fn watch(
+        &mut self,
+        job_id: &str,
+    ) -> anyhow::Result<tonic::Streaming<proto::WatchJobResponse>> {
+        let req = proto::WatchJobRequest {
+            job_id: job_id.to_string(),
+        };
+        let resp = self.client.watch_job(req).await;
+        Ok(resp.map_err(|s| self.rpc_error(&s))?.into_inner())
+    }
+
+    /// The jobs, newest first.
+    pub async fn jobs(&mut self) -> anyhow::Result<Vec<proto::JobSummary>> {
+        let resp = self.client.list_jobs(proto::ListJobsRequest {}).await;
+        Ok(resp.map_err(|s| self.rpc_error(&s))?.into_inner().jobs)
+    }
+
+    /// Cancels a job; returns its state after the request.
+    pub async fn cancel(&mut self, job_id: &str) -> anyhow::Result<proto::JobState> {
+        let req = proto::CancelJobRequest {
+            job_id: job_id.to_string(),
+        };
+        let resp = self.client.cancel_job(req).await;
+        Ok(resp.map_err(|s| self.rpc_error(&s))?.into_inner().state())
+    }
+
+    /// A finished job's image, encoded as `format`, and its statistics.
+    pub async fn fetch(
+        &mut self,
+        job_id: &str,
+        format: proto::ImageFormat,
+    ) -> anyhow::Result<proto::FetchResultResponse> {
+        let req = proto::FetchResultRequest {
+            job_id: job_id.to_string(),
+            format: format as i32,
+        };
+        let resp = self.client.fetch_result(req).await;
+        Ok(resp.map_err(|s| self.rpc_error(&s))?.into_inner())
+    }
+
+    /// The workers and the running job.
+    pub async fn cluster_status(&mut self) -> anyhow::Result<proto::GetClusterStatusResponse> {
+        let resp = self
+            .client
+            .get_cluster_status(proto::GetClusterStatusRequest {})
+            .await;
+        Ok(resp.map_err(|s| self.rpc_error(&s))?.into_inner())
+    }
+}
+
+/// A failed call as a readable error: an unreachable coordinator says so; anything else is
+/// the status code's protobuf name and the server's message.
+pub fn rpc_error(url: &str, status: &tonic::Status) -> anyhow::Error {
+    let message = if status.message().is_empty() {
+        status.code().description().to_string()
+    } else {
+        status.message().to_string()
+    };
+    match status.code() {
+        tonic::Code::Unavailable => anyhow!("coordinator at {url} is unreachable: {message}"),
+        code => anyhow!("{}: {message}", code_name(code)),
+    }
+}
+
+/// The protobuf name of a status code, as gRPC documents and other tools print it.
+pub fn code_name(code: tonic::Code) -> &'static str {
+    use tonic::Code::*;
+    match code {
+        Ok => "OK",
+        Cancelled => "CANCELLED",
+        Unknown => "UNKNOWN",
+        InvalidArgument => "INVALID_ARGUMENT",
+        DeadlineExceeded => "DEADLINE_EXCEEDED",
+        NotFound => "NOT_FOUND",
+        AlreadyExists => "ALREADY_EXISTS",
+        PermissionDenied => "PERMISSION_DENIED",
+        ResourceExhausted => "RESOURCE_EXHAUSTED",
+        FailedPrecondition => "FAILED_PRECONDITION",
+        Aborted => "ABORTED",
+        OutOfRange => "OUT_OF_RANGE",
+        Unimplemented => "UNIMPLEMENTED",
+        Internal => "INTERNAL",
+        Unavailable => "UNAVAILABLE",
+        DataLoss => "DATA_LOSS",
+        Unauthenticated => "UNAUTHENTICATED",
+    }
+}
+
+/// An error and its sources on one line ("transport error: connection refused"), skipping a
+/// source that repeats its parent's text. Transport errors hide the useful part in sources.
+fn chain(e: &(dyn std::error::Error + 'static)) -> String {
+    let mut parts: Vec<String> = vec![e.to_string()];
+    let mut source = e.source();
+    while let Some(s) = source {
+        let text = s.to_string();
+        if parts.last().is_none_or(|last| !last.contains(&text)) {
+            parts.push(text);
+        }
+        source = s.source();
+    }
+    parts.join(": ")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bare_host_port_gets_a_scheme() {
+        assert_eq!(normalize_url("10.0.0.1:50051"), "http://10.0.0.1:50051");
+        assert_eq!(normalize_url(" http://h:1 "), "http://h:1");
+        assert_eq!(normalize_url("https://h:1"), "https://h:1");
+    }
+
+    #[test]
+    fn rpc_errors_name_the_code_or_the_unreachable_coordinator() {
+        let url = "http://127.0.0.1:1";
+        let e = rpc_error(url, &tonic::Status::invalid_argument("width must be >= 1"));
+        assert_eq!(e.to_string(), "INVALID_ARGUMENT: width must be >= 1");
+        let e = rpc_error(url, &tonic::Status::unavailable("connection reset"));
+        assert_eq!(
+            e.to_string(),
+            "coordinator at http://127.0.0.1:1 is unreachable: connection reset"
+        );
+        let e = rpc_error(url, &tonic::Status::new(tonic::Code::NotFound, ""));
+        assert!(e.to_string().starts_with("NOT_FOUND: "), "{e}");
+    }
+
+    #[test]
+    fn an_unreachable_coordinator_is_reported_as_such() {
+        // Port 1 on loopback: nothing listens there in a test environment.
+        let rt = runtime().unwrap();
+        let err = rt
+            .block_on(Coordinator::connect("127.0.0.1:1"))
+            .err()
+            .unwrap();
+        let text = format!("{err:#}");
+        assert!(
+            text.starts_with("coordinator at http://127.0.0.1:1 is unreachable: "),
+            "{text}"
+        );
+    }
+}

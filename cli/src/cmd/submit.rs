@@ -1,0 +1,247 @@
+//! `rayfarm submit`: queue a frame on the cluster. Prints the job id at once, or with `--wait`
+//! follows the job, saves the image and prints the statistics, like `render --local` does in
+//! one process. `demo` reuses [`wait_and_save`].
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use clap::Args;
+use rayfarm_common::cluster::job::parse_schedule;
+use rayfarm_common::proto;
+
+use super::fetch::{default_output, image_format, save_result};
+use super::watch::{ended_ok, follow, parse_stats, print_stats};
+use crate::client::{Coordinator, CoordinatorArgs, runtime};
+use crate::units;
+
+/// Options of `rayfarm submit`.
+#[derive(Args, Clone, Debug)]
+pub struct SubmitArgs {
+    #[command(flatten)]
+    pub coordinator: CoordinatorArgs,
+    /// Scene name under the nodes' scene root, or an absolute path every node sees
+    /// [default: the coordinator's default scene].
+    #[arg(long, env = "RAYFARM_SCENE")]
+    pub scene: Option<String>,
+    /// Image width.
+    #[arg(long, env = "RAYFARM_WIDTH", default_value_t = 640)]
+    pub width: u32,
+    /// Image height.
+    #[arg(long, env = "RAYFARM_HEIGHT", default_value_t = 480)]
+    pub height: u32,
+    /// Samples per pixel.
+    #[arg(long, env = "RAYFARM_SPP", default_value_t = 4)]
+    pub spp: u32,
+    /// Maximum bounces.
+    #[arg(long, env = "RAYFARM_DEPTH", default_value_t = 3)]
+    pub depth: u32,
+    /// How rays are scheduled across workers: dynamic, image-plane, domain or hybrid.
+    #[arg(long, env = "RAYFARM_SCHEDULE", default_value = "dynamic", value_parser = parse_schedule)]
+    pub schedule: proto::Schedule,
+    /// Higher runs first; equal priorities run in submission order.
+    #[arg(
+        long,
+        env = "RAYFARM_PRIORITY",
+        default_value_t = 0,
+        allow_negative_numbers = true
+    )]
+    pub priority: i32,
+    /// Camera position X,Y,Z [default: the scene's camera].
+    #[arg(long, env = "RAYFARM_EYE", value_parser = units::triple::<f32>, allow_negative_numbers = true)]
+    pub eye: Option<[f32; 3]>,
+    /// Point the camera looks at, X,Y,Z [default: the scene's].
+    #[arg(long, env = "RAYFARM_LOOK_AT", value_parser = units::triple::<f32>, allow_negative_numbers = true)]
+    pub look_at: Option<[f32; 3]>,
+    /// Camera up direction, X,Y,Z [default: the scene's].
+    #[arg(long, env = "RAYFARM_UP", value_parser = units::triple::<f32>, allow_negative_numbers = true)]
+    pub up: Option<[f32; 3]>,
+    /// Vertical field of view in degrees [default: the scene's].
+    #[arg(long, env = "RAYFARM_FOV")]
+    pub fov: Option<f32>,
+    /// Follow the job to its end, then save the image and print the statistics.
+    #[arg(long, env = "RAYFARM_WAIT")]
+    pub wait: bool,
+    /// With --wait: output image, .png (8-bit sRGB) or .exr (linear float)
+    /// [default: <job id>.png].
+    #[arg(long, short, env = "RAYFARM_OUTPUT", requires = "wait")]
+    pub output: Option<PathBuf>,
+    /// With --wait: also write the frame's statistics as JSON here.
+    #[arg(long, env = "RAYFARM_STATS_JSON", requires = "wait")]
+    pub stats_json: Option<PathBuf>,
+    /// With --wait: no progress bar and no statistics table.
+    #[arg(long, env = "RAYFARM_QUIET")]
+    pub quiet: bool,
+}
+
+impl SubmitArgs {
+    /// The job the flags describe. A camera goes along only when a camera flag is given, and
+    /// then only with the fields given: the coordinator fills the rest from the scene.
+    pub fn job_spec(&self) -> proto::JobSpec {
+        let camera = (self.eye.is_some()
+            || self.look_at.is_some()
+            || self.up.is_some()
+            || self.fov.is_some())
+        .then(|| proto::Camera {
+            eye: self.eye.map(Vec::from).unwrap_or_default(),
+            look_at: self.look_at.map(Vec::from).unwrap_or_default(),
+            up: self.up.map(Vec::from).unwrap_or_default(),
+            fov_y_degrees: self.fov.unwrap_or(0.0),
+        });
+        proto::JobSpec {
+            scene: self.scene.clone().unwrap_or_default(),
+            camera,
+            width: self.width,
+            height: self.height,
+            spp: self.spp,
+            max_depth: self.depth,
+            schedule: self.schedule as i32,
+            priority: self.priority,
+        }
+    }
+}
+
+/// What to do with a job's result once it has ended.
+#[derive(Clone, Debug)]
+pub struct WaitOptions {
+    /// Image path; `None`: `<job id>.png`.
+    pub output: Option<PathBuf>,
+    /// Statistics JSON path.
+    pub stats_json: Option<PathBuf>,
+    /// No progress bar, no statistics table.
+    pub quiet: bool,
+}
+
+pub fn run(a: SubmitArgs) -> anyhow::Result<()> {
+    // Refuse a bad output name before the cluster spends a frame on it.
+    if let Some(out) = &a.output {
+        image_format(out)?;
+    }
+    let spec = a.job_spec();
+    let wait = WaitOptions {
+        output: a.output,
+        stats_json: a.stats_json,
+        quiet: a.quiet,
+    };
+    runtime()?.block_on(async {
+        let mut coord = Coordinator::connect(&a.coordinator.coordinator).await?;
+        let job_id = coord.submit(spec).await.context("submitting the job")?;
+        if !a.wait {
+            println!("{job_id}");
+            return Ok(());
+        }
+        wait_and_save(&mut coord, &job_id, &wait).await.map(drop)
+    })
+}
+
+/// Follows job `job_id` to its end; if it succeeded, saves its image and statistics and prints
+/// the statistics table (unless quiet) and `image hash: <hash>`. A failed or cancelled job is
+/// an error. Returns where the image went.
+pub async fn wait_and_save(
+    coord: &mut Coordinator,
+    job_id: &str,
+    opts: &WaitOptions,
+) -> anyhow::Result<PathBuf> {
+    let output = opts
+        .output
+        .clone()
+        .unwrap_or_else(|| default_output(job_id));
+    let format = image_format(&output)?;
+    let end = follow(coord, job_id, opts.quiet).await?;
+    ended_ok(&end)?;
+    let result = save_result(coord, job_id, &output, format, opts.stats_json.as_deref()).await?;
+    if !opts.quiet {
+        let stats = parse_stats(&result.stats_json)?;
+        print_stats(&stats);
+        println!("wrote {}", output.display());
+    }
+    println!("image hash: {}", result.image_hash);
+    Ok(output)
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::Parser;
+
+    use super::*;
+
+    #[derive(Parser)]
+    struct T {
+        #[command(flatten)]
+        a: SubmitArgs,
+    }
+
+    fn parse(args: &[&str]) -> SubmitArgs {
+        T::try_parse_from(std::iter::once("submit").chain(args.iter().copied()))
+            .unwrap()
+            .a
+    }
+
+    #[test]
+    fn defaults_make_a_dynamic_640x480_job_on_the_default_scene_and_view() {
+        let spec = parse(&[]).job_spec();
+        assert_eq!(
+            spec,
+            proto::JobSpec {
+                scene: String::new(),
+                camera: None,
+                width: 640,
+                height: 480,
+                spp: 4,
+                max_depth: 3,
+                schedule: proto::Schedule::Dynamic as i32,
+                priority: 0,
+            }
+        );
+    }
+
+    #[test]
+    fn flags_become_the_job_and_only_given_camera_fields_are_sent() {
+        let a = parse(&[
+            "--scene",
+            "nbody-10m",
+            "--width",
+            "96",
+            "--height",
+            "72",
+            "--spp",
+            "2",
+            "--depth",
+            "5",
+            "--schedule",
+            "image-plane",
+            "--priority",
+            "-3",
+            "--eye",
+            "0.5,-0.9,2",
+        ]);
+        let spec = a.job_spec();
+        assert_eq!(spec.scene, "nbody-10m");
+        assert_eq!(
+            (spec.width, spec.height, spec.spp, spec.max_depth),
+            (96, 72, 2, 5)
+        );
+        assert_eq!(spec.schedule(), proto::Schedule::ImagePlane);
+        assert_eq!(spec.priority, -3);
+        let cam = spec.camera.unwrap();
+        assert_eq!(cam.eye, vec![0.5, -0.9, 2.0]);
+        assert!(cam.look_at.is_empty() && cam.up.is_empty());
+        assert_eq!(cam.fov_y_degrees, 0.0);
+
+        let cam = parse(&["--fov", "30"]).job_spec().camera.unwrap();
+        assert_eq!(cam.fov_y_degrees, 30.0);
+        assert!(cam.eye.is_empty());
+    }
+
+    #[test]
+    fn bad_values_are_refused_by_the_parser() {
+        let bad = |args: &[&str]| {
+            T::try_parse_from(std::iter::once("submit").chain(args.iter().copied()))
+                .err()
+                .unwrap()
+                .to_string()
+        };
+        assert!(bad(&["--schedule", "fastest"]).contains("known"));
+        assert!(bad(&["--eye", "1,2"]).contains("X,Y,Z"));
+        assert!(bad(&["--output", "f.png"]).contains("--wait"));
+    }
+}

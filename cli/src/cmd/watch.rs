@@ -1,0 +1,212 @@
+//! `rayfarm watch ID`, and the progress display every command that waits for a job shares
+//! (`submit --wait`, `demo`): one progress bar fed by the coordinator's WatchJob stream, and one
+//! rule for what a job's end means (succeeded is success; failed or cancelled is an error).
+
+use std::time::Duration;
+
+use anyhow::{Context, anyhow, bail};
+use clap::Args;
+use indicatif::{ProgressBar, ProgressFinish, ProgressStyle};
+use rayfarm_common::cluster::stats::ClusterStats;
+use rayfarm_common::proto::{self, JobState};
+
+use crate::client::{Coordinator, CoordinatorArgs, runtime};
+use crate::table::{cluster_stats_table, worker_stats_table};
+
+/// Options of `rayfarm watch`.
+#[derive(Args, Clone, Debug)]
+pub struct WatchArgs {
+    #[command(flatten)]
+    pub coordinator: CoordinatorArgs,
+    /// The job to watch (as printed by `rayfarm submit`).
+    pub job_id: String,
+    /// No progress bar and no statistics table; only the final state.
+    #[arg(long, env = "RAYFARM_QUIET")]
+    pub quiet: bool,
+}
+
+pub fn run(a: WatchArgs) -> anyhow::Result<()> {
+    runtime()?.block_on(async {
+        let mut coord = Coordinator::connect(&a.coordinator.coordinator).await?;
+        let end = follow(&mut coord, &a.job_id, a.quiet).await?;
+        println!("job {}: {}", end.job_id, state_name(end.state()));
+        if end.state() == JobState::Succeeded && !a.quiet && !end.stats_json.is_empty() {
+            let stats = parse_stats(&end.stats_json)?;
+            print_stats(&stats);
+        }
+        ended_ok(&end)
+    })
+}
+
+/// The lower-case name of a job state, as the CLI prints it.
+pub fn state_name(state: JobState) -> &'static str {
+    match state {
+        JobState::Unspecified => "unknown",
+        JobState::Queued => "queued",
+        JobState::Running => "running",
+        JobState::Succeeded => "succeeded",
+        JobState::Failed => "failed",
+        JobState::Cancelled => "cancelled",
+    }
+}
+
+/// Whether a job in `state` will not change any more.
+pub fn is_final(state: JobState) -> bool {
+    matches!(
+        state,
+        JobState::Succeeded | JobState::Failed | JobState::Cancelled
+    )
+}
+
+/// Follows job `job_id` with a progress bar on stderr (none when `quiet`) until it ends;
+/// returns its last event, which carries the final state, the error or the statistics.
+pub async fn follow(
+    coord: &mut Coordinator,
+    job_id: &str,
+    quiet: bool,
+) -> anyhow::Result<proto::WatchJobResponse> {
+    let mut stream = coord
+        .watch(job_id)
+        .await
+        .with_context(|| format!("watching job {job_id}"))?;
+    let bar = progress_bar(quiet)?;
+    loop {
+        let event = match stream.message().await {
+            Ok(Some(event)) => event,
+            Ok(None) => {
+                bail!("the coordinator ended the watch of job {job_id} before the job ended")
+            }
+            Err(status) => {
+                return Err(coord.rpc_error(&status)).context(format!("watching job {job_id}"));
+            }
+        };
+        show(&bar, &event);
+        if is_final(event.state()) {
+            bar.finish_and_clear();
+            return Ok(event);
+        }
+    }
+}
+
+/// Succeeded is `Ok`; a failed or cancelled job is an error saying so (with the job's own
+/// error message).
+pub fn ended_ok(end: &proto::WatchJobResponse) -> anyhow::Result<()> {
+    match end.state() {
+        JobState::Succeeded => Ok(()),
+        JobState::Failed if end.error.is_empty() => Err(anyhow!("job {} failed", end.job_id)),
+        JobState::Failed => Err(anyhow!("job {} failed: {}", end.job_id, end.error)),
+        JobState::Cancelled => Err(anyhow!("job {} was cancelled", end.job_id)),
+        other => Err(anyhow!(
+            "job {} has not ended (state {})",
+            end.job_id,
+            state_name(other)
+        )),
+    }
+}
+
+/// Statistics JSON from the coordinator, as `ClusterStats`.
+pub fn parse_stats(json: &str) -> anyhow::Result<ClusterStats> {
+    serde_json::from_str(json).context("the coordinator sent statistics this CLI cannot read")
+}
+
+/// Prints the cluster and per-worker statistics tables.
+pub fn print_stats(stats: &ClusterStats) {
+    println!("{}", cluster_stats_table(stats));
+    if !stats.per_worker.is_empty() {
+        println!("{}", worker_stats_table(&stats.per_worker));
+    }
+}
+
+/// A progress bar on stderr that clears itself however the wait ends (even when the future
+/// waiting is dropped, e.g. on Ctrl-C). Hidden when `quiet` (indicatif also hides it when
+/// stderr is not a terminal).
+fn progress_bar(quiet: bool) -> anyhow::Result<ProgressBar> {
+    let bar = if quiet {
+        ProgressBar::hidden()
+    } else {
+        // No length until the coordinator says how many tiles: an empty bar, not a full one.
+        ProgressBar::no_length()
+    };
+    let bar = bar.with_finish(ProgressFinish::AndClear).with_style(
+        ProgressStyle::with_template("{spinner} [{bar:30}] {pos}/{len} tiles  {msg}")
+            .map_err(anyhow::Error::msg)?
+            .progress_chars("=> "),
+    );
+    bar.enable_steady_tick(Duration::from_millis(120));
+    bar.set_message("connecting");
+    Ok(bar)
+}
+
+fn show(bar: &ProgressBar, e: &proto::WatchJobResponse) {
+    if e.tiles_total > 0 {
+        bar.set_length(u64::from(e.tiles_total));
+    }
+    bar.set_position(u64::from(e.tiles_done));
+    bar.set_message(progress_message(e));
+}
+
+/// The text beside the bar: the state while queued, rate, round and ETA while running.
+fn progress_message(e: &proto::WatchJobResponse) -> String {
+    match e.state() {
+        JobState::Running => format!(
+            "{:.2} Mrays/s  round {}  eta {}",
+            e.rays_per_second / 1e6,
+            e.round,
+            eta(e.eta_seconds)
+        ),
+        state => state_name(state).to_string(),
+    }
+}
+
+/// Seconds as "42s", "3m05s", "1h02m"; unknown (negative or not finite) as "?".
+fn eta(seconds: f64) -> String {
+    if !seconds.is_finite() || seconds < 0.0 {
+        return "?".into();
+    }
+    let s = seconds.round() as u64;
+    match s {
+        0..60 => format!("{s}s"),
+        60..3600 => format!("{}m{:02}s", s / 60, s % 60),
+        _ => format!("{}h{:02}m", s / 3600, s % 3600 / 60),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn event(state: JobState, error: &str) -> proto::WatchJobResponse {
+        proto::WatchJobResponse {
+            job_id: "j7".into(),
+            state: state as i32,
+            error: error.into(),
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn failed_and_cancelled_jobs_are_errors_with_the_reason() {
+        assert!(ended_ok(&event(JobState::Succeeded, "")).is_ok());
+        let e = ended_ok(&event(JobState::Failed, "worker w2 lost")).unwrap_err();
+        assert_eq!(e.to_string(), "job j7 failed: worker w2 lost");
+        let e = ended_ok(&event(JobState::Cancelled, "")).unwrap_err();
+        assert_eq!(e.to_string(), "job j7 was cancelled");
+        assert!(ended_ok(&event(JobState::Running, "")).is_err());
+    }
+
+    #[test]
+    fn progress_text_shows_rate_round_and_eta() {
+        let e = proto::WatchJobResponse {
+            state: JobState::Running as i32,
+            rays_per_second: 12_345_678.0,
+            round: 9,
+            eta_seconds: 185.0,
+            ..Default::default()
+        };
+        assert_eq!(progress_message(&e), "12.35 Mrays/s  round 9  eta 3m05s");
+        assert_eq!(progress_message(&event(JobState::Queued, "")), "queued");
+        assert_eq!(eta(-1.0), "?");
+        assert_eq!(eta(f64::NAN), "?");
+        assert_eq!(eta(7200.0), "2h00m");
+    }
+}

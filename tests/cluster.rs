@@ -1,0 +1,316 @@
+//! A real cluster on loopback (a `rayfarm-coordinator` and `rayfarm-worker` processes, driven
+//! with the `rayfarm` CLI as a user would) renders the image of `rayfarm render --local` to
+//! the bit, whatever the number of workers, the cache budgets, the jobs around it and the
+//! order in which messages arrive.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use rayfarm_tests::{Cluster, WorkerOpts, bin, rayfarm_ok, s, stats_field};
+
+/// A frame small enough to render in about a second, deep enough to bounce between domains.
+const FRAME: [&str; 8] = [
+    "--width", "96", "--height", "72", "--spp", "2", "--depth", "3",
+];
+
+/// Prepares a generated scene `name` under `root`.
+fn prepare(root: &Path, name: &str, triangles: u32, domains: u32) -> PathBuf {
+    let out = root.join(name);
+    rayfarm_ok(&[
+        "prepare",
+        "--generate",
+        "nbody",
+        "--triangles",
+        &triangles.to_string(),
+        "--seed",
+        "5",
+        "--domains",
+        &domains.to_string(),
+        "--out",
+        s(&out),
+    ]);
+    out
+}
+
+/// The image hash of `render --local` for `frame`.
+fn local_hash(scene: &Path, frame: &[&str]) -> String {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let json = dir.path().join("local.json");
+    let png = dir.path().join("local.png");
+    let mut args = vec![
+        "render",
+        "--local",
+        "--scene",
+        s(scene),
+        "--out",
+        s(&png),
+        "--stats-json",
+        s(&json),
+        "--quiet",
+    ];
+    args.extend_from_slice(frame);
+    rayfarm_ok(&args);
+    hash_of(&json)
+}
+
+fn hash_of(stats: &Path) -> String {
+    stats_field(stats, "/image_hash")
+        .as_str()
+        .expect("hash is a string")
+        .to_string()
+}
+
+/// `rayfarm submit --wait` on the cluster; returns the statistics file.
+fn submit_wait(cluster: &Cluster, frame: &[&str], tag: &str) -> PathBuf {
+    let png = cluster.dir().join(format!("{tag}.png"));
+    let json = cluster.dir().join(format!("{tag}.json"));
+    let mut args = vec![
+        "submit",
+        "--wait",
+        "--quiet",
+        "--output",
+        s(&png),
+        "--stats-json",
+        s(&json),
+    ];
+    args.extend_from_slice(frame);
+    cluster.rayfarm_ok(&args);
+    assert!(png.exists(), "{} was not written", png.display());
+    json
+}
+
+/// Sizes of a scene's domain files: (total, largest).
+fn domain_bytes(scene: &Path) -> (u64, u64) {
+    let sizes: Vec<u64> = std::fs::read_dir(scene)
+        .expect("scene dir")
+        .filter_map(Result::ok)
+        .filter(|e| e.file_name() != "scene.toml")
+        .map(|e| e.metadata().expect("metadata").len())
+        .collect();
+    (sizes.iter().sum(), sizes.iter().copied().max().unwrap_or(0))
+}
+
+/// `rayfarm jobs --json`, by job id.
+fn jobs(cluster: &Cluster) -> Vec<serde_json::Value> {
+    let out = cluster.rayfarm_ok(&["jobs", "--json"]);
+    serde_json::from_slice(&out.stdout).expect("jobs --json parses")
+}
+
+fn job<'a>(jobs: &'a [serde_json::Value], id: &str) -> &'a serde_json::Value {
+    jobs.iter()
+        .find(|j| j["job_id"] == id)
+        .unwrap_or_else(|| panic!("job {id} not listed"))
+}
+
+/// Polls `check` until it holds; fails the test after `timeout`.
+fn wait_until(what: &str, timeout: Duration, mut check: impl FnMut() -> bool) {
+    let start = Instant::now();
+    while !check() {
+        assert!(start.elapsed() < timeout, "timed out waiting for {what}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+fn submit(cluster: &Cluster, frame: &[&str], extra: &[&str]) -> String {
+    let mut args = vec!["submit"];
+    args.extend_from_slice(frame);
+    args.extend_from_slice(extra);
+    let out = cluster.rayfarm_ok(&args);
+    String::from_utf8_lossy(&out.stdout).trim().to_string()
+}
+
+#[test]
+fn one_two_and_four_workers_render_the_local_image() {
+    let root = tempfile::tempdir().expect("temp dir");
+    let scene = prepare(root.path(), "nb", 40_000, 8);
+    let (_, largest) = domain_bytes(&scene);
+    let expected = local_hash(&scene, &FRAME);
+    // Caches of two domains make rays move between workers; caches that hold the scene let
+    // every worker take copies of everything it needs.
+    for (n, cache) in [
+        (1, 2 * largest),
+        (2, 2 * largest),
+        (4, 2 * largest),
+        (2, 1 << 30),
+    ] {
+        let workers = vec![WorkerOpts::cache(cache); n];
+        let cluster = Cluster::start(root.path(), Some("nb"), &workers);
+        let stats = submit_wait(&cluster, &FRAME, &format!("w{n}"));
+        assert_eq!(hash_of(&stats), expected, "{n} workers, cache {cache}");
+        assert_eq!(stats_field(&stats, "/workers"), n, "{n} workers took part");
+        let migrated = stats_field(&stats, "/rays_migrated").as_u64().unwrap_or(0);
+        if n > 1 && cache < 1 << 30 {
+            assert!(migrated > 0, "{n} workers with small caches moved no rays");
+            let tiers = stats_field(&stats, "/tiers");
+            let migrated_tier = tiers
+                .as_array()
+                .and_then(|t| t.iter().find(|t| t["tier"] == "migrated"))
+                .expect("migrated tier counted");
+            assert!(migrated_tier["bundles"].as_u64() > Some(0));
+        }
+    }
+}
+
+#[test]
+fn a_scene_four_times_the_cluster_cache_renders_identically() {
+    let root = tempfile::tempdir().expect("temp dir");
+    let scene = prepare(root.path(), "big", 60_000, 16);
+    let (total, largest) = domain_bytes(&scene);
+    // Each cache holds the largest domain and no more.
+    let workers = vec![WorkerOpts::cache(largest); 2];
+    assert!(
+        total >= 4 * 2 * largest,
+        "scene {total} B is not 4x the caches' {} B",
+        2 * largest
+    );
+    let expected = local_hash(&scene, &FRAME);
+    let cluster = Cluster::start(root.path(), Some("big"), &workers);
+    let stats = submit_wait(&cluster, &FRAME, "big");
+    assert_eq!(hash_of(&stats), expected);
+    let loads = stats_field(&stats, "/cache/loads").as_u64().expect("loads");
+    let rounds = stats_field(&stats, "/rounds").as_u64().expect("rounds");
+    eprintln!(
+        "scene {total} B over caches of 2 x {largest} B: {loads} domain loads, {rounds} rounds"
+    );
+    assert!(
+        loads >= 16,
+        "every domain with geometry in view must be loaded at least once"
+    );
+}
+
+#[test]
+fn jobs_run_in_priority_order_then_submission_order() {
+    let root = tempfile::tempdir().expect("temp dir");
+    let scene = prepare(root.path(), "nb", 20_000, 4);
+    // No worker yet: all three wait in the queue.
+    let mut cluster = Cluster::start(root.path(), Some("nb"), &[]);
+    let low = submit(&cluster, &FRAME, &["--priority", "1"]);
+    let high = submit(&cluster, &FRAME, &["--priority", "9"]);
+    let mid = submit(&cluster, &FRAME, &["--priority", "5"]);
+    let listed = jobs(&cluster);
+    for id in [&low, &high, &mid] {
+        assert_eq!(job(&listed, id)["state"], "queued");
+    }
+    cluster.add_worker(&WorkerOpts::default());
+    for id in [&low, &high, &mid] {
+        cluster.rayfarm_ok(&["watch", id, "--quiet"]);
+    }
+    let listed = jobs(&cluster);
+    let started = |id: &str| {
+        job(&listed, id)["started_unix_ms"]
+            .as_i64()
+            .expect("started")
+    };
+    let finished = |id: &str| {
+        job(&listed, id)["finished_unix_ms"]
+            .as_i64()
+            .expect("finished")
+    };
+    for id in [&low, &high, &mid] {
+        assert_eq!(job(&listed, id)["state"], "succeeded");
+    }
+    assert!(started(&high) <= started(&mid) && started(&mid) <= started(&low));
+    assert!(finished(&high) <= finished(&mid) && finished(&mid) <= finished(&low));
+    // And the images are right.
+    let expected = local_hash(&scene, &FRAME);
+    for id in [&low, &high, &mid] {
+        let png = cluster.dir().join(format!("{id}.png"));
+        let out = cluster.rayfarm_ok(&["fetch", id, "-o", s(&png)]);
+        assert!(String::from_utf8_lossy(&out.stdout).contains(&expected));
+    }
+}
+
+#[test]
+fn cancel_stops_the_running_job_and_the_cluster_takes_the_next() {
+    let root = tempfile::tempdir().expect("temp dir");
+    let scene = prepare(root.path(), "nb", 20_000, 4);
+    let cluster = Cluster::start(root.path(), Some("nb"), &[WorkerOpts::default()]);
+    // Minutes of work, so it is surely still running when cancelled.
+    let long = submit(
+        &cluster,
+        &["--width", "256", "--height", "256", "--spp", "4096"],
+        &[],
+    );
+    let next = submit(&cluster, &FRAME, &[]);
+    wait_until("the long job to run", Duration::from_secs(30), || {
+        job(&jobs(&cluster), &long)["state"] == "running"
+    });
+    let out = cluster.rayfarm_ok(&["cancel", &long]);
+    assert!(String::from_utf8_lossy(&out.stdout).contains("cancelled"));
+    let json = cluster.dir().join("next.json");
+    let png = cluster.dir().join("next.png");
+    cluster.rayfarm_ok(&["watch", &next, "--quiet"]);
+    cluster.rayfarm_ok(&["fetch", &next, "-o", s(&png), "--stats-json", s(&json)]);
+    assert_eq!(hash_of(&json), local_hash(&scene, &FRAME));
+    let listed = jobs(&cluster);
+    assert_eq!(job(&listed, &long)["state"], "cancelled");
+    assert_eq!(job(&listed, &next)["state"], "succeeded");
+    // A cancelled job has no result.
+    let refused = cluster.rayfarm(&["fetch", &long, "-o", s(&png)]);
+    assert!(!refused.status.success());
+}
+
+#[test]
+fn a_worker_started_mid_frame_gets_work_in_the_next_round() {
+    let root = tempfile::tempdir().expect("temp dir");
+    let scene = prepare(root.path(), "nb", 60_000, 16);
+    let (_, largest) = domain_bytes(&scene);
+    // One-domain caches: many rounds, so the frame is still running when the worker joins.
+    let frame = [
+        "--width", "192", "--height", "144", "--spp", "8", "--depth", "3",
+    ];
+    let mut cluster = Cluster::start(root.path(), Some("nb"), &[WorkerOpts::cache(largest)]);
+    let json = cluster.dir().join("join.json");
+    let png = cluster.dir().join("join.png");
+    let mut waiter = Command::new(bin("rayfarm"))
+        .args([
+            "submit",
+            "--wait",
+            "--quiet",
+            "-o",
+            s(&png),
+            "--stats-json",
+            s(&json),
+        ])
+        .args(frame)
+        .env("RAYFARM_COORDINATOR", cluster.coordinator_url())
+        .stdout(Stdio::null())
+        .spawn()
+        .expect("start rayfarm submit");
+    wait_until("round 2 of the frame", Duration::from_secs(60), || {
+        cluster.status()["round"].as_u64() >= Some(2)
+    });
+    cluster.add_worker(&WorkerOpts::cache(largest));
+    let status = waiter.wait().expect("rayfarm submit ends");
+    assert!(status.success(), "submit --wait failed: {status}");
+    assert_eq!(hash_of(&json), local_hash(&scene, &frame));
+    let per_worker = stats_field(&json, "/per_worker");
+    let per_worker = per_worker.as_array().expect("per-worker stats");
+    assert_eq!(per_worker.len(), 2, "both workers report: {per_worker:?}");
+    for w in per_worker {
+        let traced = w["rays"]["radiance_segments"].as_u64().unwrap_or(0);
+        assert!(traced > 0, "worker {} traced nothing", w["worker_id"]);
+    }
+}
+
+#[test]
+fn random_message_delays_never_commit_a_tile_early() {
+    let root = tempfile::tempdir().expect("temp dir");
+    let scene = prepare(root.path(), "nb", 30_000, 8);
+    let (_, largest) = domain_bytes(&scene);
+    let expected = local_hash(&scene, &FRAME);
+    for seed in 0..20 {
+        let seed = seed.to_string();
+        let delays = [
+            ("RAYFARM_FAULT_DELAY_MS", "3"),
+            ("RAYFARM_FAULT_SEED", seed.as_str()),
+        ];
+        let worker = delays
+            .iter()
+            .fold(WorkerOpts::cache(2 * largest), |w, (k, v)| w.env(k, v));
+        let cluster = Cluster::start_with_env(root.path(), Some("nb"), &delays, &vec![worker; 3]);
+        let stats = submit_wait(&cluster, &FRAME, "delayed");
+        assert_eq!(hash_of(&stats), expected, "seed {seed}");
+    }
+}
