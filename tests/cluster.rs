@@ -314,3 +314,83 @@ fn random_message_delays_never_commit_a_tile_early() {
         assert_eq!(hash_of(&stats), expected, "seed {seed}");
     }
 }
+
+/// Runs `rayfarm` against the cluster expecting failure; returns stderr.
+fn refused(cluster: &Cluster, args: &[&str]) -> String {
+    let out = cluster.rayfarm(args);
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(
+        !out.status.success(),
+        "rayfarm {} should have failed",
+        args.join(" ")
+    );
+    stderr
+}
+
+#[test]
+fn bad_jobs_get_precise_errors_and_the_cluster_renders_the_next() {
+    let root = tempfile::tempdir().expect("temp dir");
+    let scene = prepare(root.path(), "nb", 20_000, 4);
+    // A copy of the scene with one domain file damaged after its checksum was taken.
+    let broken = root.path().join("broken");
+    std::fs::create_dir_all(&broken).expect("mkdir");
+    for entry in std::fs::read_dir(&scene).expect("scene dir") {
+        let entry = entry.expect("entry");
+        std::fs::copy(entry.path(), broken.join(entry.file_name())).expect("copy");
+    }
+    let damaged = std::fs::read_dir(&broken)
+        .expect("dir")
+        .filter_map(Result::ok)
+        .map(|e| e.path())
+        .filter(|p| p.file_name().is_some_and(|n| n != "scene.toml"))
+        .max_by_key(|p| std::fs::metadata(p).map(|m| m.len()).unwrap_or(0))
+        .expect("a domain file");
+    let mut bytes = std::fs::read(&damaged).expect("read");
+    let last = bytes.len() - 1;
+    bytes[last] ^= 0x40;
+    std::fs::write(&damaged, bytes).expect("write");
+
+    let cluster = Cluster::start(root.path(), Some("nb"), &[WorkerOpts::default()]);
+    let err = refused(&cluster, &["submit", "--width", "0"]);
+    assert!(
+        err.contains("INVALID_ARGUMENT") && err.contains("resolution"),
+        "{err}"
+    );
+    let err = refused(&cluster, &["submit", "--spp", "70000"]);
+    assert!(
+        err.contains("INVALID_ARGUMENT") && err.contains("spp"),
+        "{err}"
+    );
+    let err = refused(&cluster, &["submit", "--schedule", "fastest"]);
+    assert!(err.contains("unknown schedule"), "{err}");
+    let err = refused(&cluster, &["submit", "--scene", "no-such-scene"]);
+    assert!(
+        err.contains("NOT_FOUND") && err.contains("no-such-scene"),
+        "{err}"
+    );
+    let err = refused(&cluster, &["submit", "--scene", "../etc"]);
+    assert!(
+        err.contains("INVALID_ARGUMENT") && err.contains("scene root"),
+        "{err}"
+    );
+    let err = refused(&cluster, &["fetch", "job-that-never-was", "-o", "x.png"]);
+    assert!(err.contains("NOT_FOUND"), "{err}");
+    // The damaged domain fails its job, naming the file, when a worker first loads it.
+    let mut args = vec!["submit", "--scene", "broken", "--wait", "--quiet"];
+    args.extend_from_slice(&FRAME);
+    let err = refused(&cluster, &args);
+    let file = damaged.file_name().and_then(|n| n.to_str()).expect("name");
+    assert!(err.contains("failed") && err.contains(file), "{err}");
+    // The cluster is unharmed: the next job renders the reference image.
+    let stats = submit_wait(&cluster, &FRAME, "after");
+    assert_eq!(hash_of(&stats), local_hash(&scene, &FRAME));
+    // A result larger than gRPC's default 4 MiB message limit still comes back whole.
+    let exr = cluster.dir().join("big.exr");
+    let big = [
+        "--width", "1200", "--height", "1200", "--spp", "1", "--depth", "0",
+    ];
+    let mut args = vec!["submit", "--wait", "--quiet", "-o", s(&exr)];
+    args.extend_from_slice(&big);
+    cluster.rayfarm_ok(&args);
+    assert!(std::fs::metadata(&exr).expect("exr written").len() > 4 << 20);
+}

@@ -4,8 +4,6 @@
 mod client;
 mod cmd;
 mod local_cluster;
-#[cfg(test)]
-mod mock_tests;
 mod table;
 mod units;
 

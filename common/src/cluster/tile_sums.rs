@@ -29,7 +29,7 @@ pub enum SumsError {
 
 /// Decodes sums written by [`encode`]; the ledger checks that pixels belong to the tile.
 pub fn decode(bytes: &[u8]) -> Result<Vec<(u32, [i64; 3])>, SumsError> {
-    if bytes.len() % PIXEL_BYTES != 0 {
+    if !bytes.len().is_multiple_of(PIXEL_BYTES) {
         return Err(SumsError::Length(bytes.len()));
     }
     bytes
