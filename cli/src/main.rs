@@ -8,7 +8,6 @@ mod table;
 mod units;
 
 use clap::{Parser, Subcommand};
-use tracing_subscriber::EnvFilter;
 
 /// rayfarm: a distributed ray-tracing render farm for scenes larger than one machine.
 #[derive(Parser)]
@@ -52,12 +51,7 @@ fn main() -> std::process::ExitCode {
         1 => "info",
         _ => "debug",
     };
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(default)),
-        )
-        .with_writer(std::io::stderr)
-        .init();
+    rayfarm_common::telemetry::init_logging(default);
     let result = dispatch(cli.command);
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

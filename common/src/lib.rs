@@ -19,5 +19,6 @@ pub mod render;
 pub mod sampling;
 pub mod scene;
 pub mod schedule;
+pub mod telemetry;
 pub mod volume;
 pub mod wire;

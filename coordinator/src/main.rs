@@ -22,7 +22,6 @@ use rayfarm_common::schedule::dynamic::Options;
 use tonic::transport::Server;
 use tonic::transport::server::TcpIncoming;
 use tracing::{error, info};
-use tracing_subscriber::EnvFilter;
 
 use crate::state::{Config, Coordinator};
 
@@ -77,12 +76,7 @@ fn main() -> std::process::ExitCode {
         1 => "debug",
         _ => "trace",
     };
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(default)),
-        )
-        .with_writer(std::io::stderr)
-        .init();
+    rayfarm_common::telemetry::init_logging(default);
     let runtime = match tokio::runtime::Runtime::new() {
         Ok(r) => r,
         Err(e) => {
@@ -148,29 +142,11 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let server = Server::builder()
         .add_service(api)
         .add_service(control)
-        .serve_with_incoming_shutdown(incoming, shutdown_signal());
+        .serve_with_incoming_shutdown(incoming, rayfarm_common::telemetry::shutdown_signal());
     tokio::select! {
         r = server => r.context("server failed")?,
         () = reaper => {}
     }
     info!("coordinator stopped");
     Ok(())
-}
-
-async fn shutdown_signal() {
-    let ctrl_c = tokio::signal::ctrl_c();
-    #[cfg(unix)]
-    {
-        let mut term =
-            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-                Ok(s) => s,
-                Err(_) => return ctrl_c.await.unwrap_or(()),
-            };
-        tokio::select! {
-            _ = ctrl_c => {}
-            _ = term.recv() => {}
-        }
-    }
-    #[cfg(not(unix))]
-    let _ = ctrl_c.await;
 }

@@ -263,6 +263,7 @@ impl Engine {
             for d in &p.evict {
                 cache.evict(*d);
             }
+            frame.set_resident(cache.resident());
         }
         debug!(work_on = ?p.work_on, evict = ?p.evict, "round plan");
         let out = frame.take_for_peers();
@@ -361,6 +362,9 @@ impl Engine {
         };
         frame.counters.rays.add(&out.counters);
         frame.counters.busy += out.busy;
+        if let Some((_, cache)) = &self.cache {
+            frame.set_resident(lock(cache).resident());
+        }
         if !out.results.is_empty() {
             let msg = proto::TileResults {
                 job_id: frame.job_id.clone(),

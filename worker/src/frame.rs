@@ -35,6 +35,10 @@ pub struct Frame {
     queues: Vec<Vec<RayRecord>>,
     pub round: u64,
     work_on: BTreeSet<u32>,
+    /// Domains mapped here now. Rays for them are traced here even when the plan gave the
+    /// domain to no one or to another worker: any worker may trace any ray of a domain it
+    /// has, and doing so costs neither a load nor a transfer.
+    resident: BTreeSet<u32>,
     /// Other workers holding each domain this round.
     holders: BTreeMap<u32, Vec<String>>,
     /// Whether the coordinator has this worker's current state (no report is due).
@@ -71,6 +75,7 @@ impl Frame {
             queues: vec![Vec::new(); domains],
             round: 0,
             work_on: BTreeSet::new(),
+            resident: BTreeSet::new(),
             holders: BTreeMap::new(),
             reported: false,
             counters: FrameCounters::default(),
@@ -100,6 +105,16 @@ impl Frame {
         self.reported = false;
     }
 
+    /// Records which domains are mapped here now.
+    pub fn set_resident(&mut self, resident: impl IntoIterator<Item = u32>) {
+        self.resident = resident.into_iter().collect();
+    }
+
+    /// Whether rays for `domain` are traced here now.
+    fn traces(&self, domain: u32) -> bool {
+        self.work_on.contains(&domain) || self.resident.contains(&domain)
+    }
+
     /// Whether a ray belongs to the current epoch of its tile.
     fn is_current(&self, ray: &RayRecord) -> bool {
         self.epochs.get(ray.tile as usize) == Some(&ray.epoch)
@@ -109,7 +124,7 @@ impl Frame {
     /// one does (it waits for a later round), else to one of its holders, chosen by pixel so
     /// that a hot domain's rays spread evenly over its holders.
     fn destination(&self, ray: &RayRecord) -> Destination {
-        if self.work_on.contains(&ray.domain) {
+        if self.traces(ray.domain) {
             return Destination::Local;
         }
         match self.holders.get(&ray.domain) {
@@ -145,7 +160,7 @@ impl Frame {
             .holders
             .keys()
             .copied()
-            .filter(|d| !self.work_on.contains(d))
+            .filter(|&d| !self.traces(d))
             .collect();
         for d in domains {
             for ray in std::mem::take(&mut self.queues[d as usize]) {
@@ -157,11 +172,11 @@ impl Frame {
         out
     }
 
-    /// Takes up to `max` rays of the fullest queue this worker traces this round.
+    /// Takes up to `max` rays of the fullest queue this worker traces now.
     pub fn take_work(&mut self, max: usize) -> Option<(u32, Vec<RayRecord>)> {
         let (&d, len) = self
             .work_on
-            .iter()
+            .union(&self.resident)
             .map(|d| (d, self.queues[*d as usize].len()))
             .max_by_key(|&(d, len)| (len, std::cmp::Reverse(*d)))
             .filter(|&(_, len)| len > 0)?;

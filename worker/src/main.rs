@@ -19,7 +19,6 @@ use tokio::sync::mpsc;
 use tonic::transport::Server;
 use tonic::transport::server::TcpIncoming;
 use tracing::{error, info};
-use tracing_subscriber::EnvFilter;
 
 use crate::engine::{Engine, EngineConfig};
 use crate::peers::{MAX_MESSAGE_BYTES, PeerLinks, PeerServer};
@@ -100,12 +99,7 @@ fn init_logging(verbose: u8) {
         1 => "debug",
         _ => "trace",
     };
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(default)),
-        )
-        .with_writer(std::io::stderr)
-        .init();
+    rayfarm_common::telemetry::init_logging(default);
 }
 
 async fn run(args: Args) -> anyhow::Result<()> {
@@ -176,27 +170,9 @@ async fn run(args: Args) -> anyhow::Result<()> {
         r = server => r.context("peer server failed"),
         r = control => r,
         () = engine.run(events_rx) => Ok(()),
-        _ = shutdown_signal() => {
+        _ = rayfarm_common::telemetry::shutdown_signal() => {
             info!("shutting down");
             Ok(())
         }
     }
-}
-
-async fn shutdown_signal() {
-    let ctrl_c = tokio::signal::ctrl_c();
-    #[cfg(unix)]
-    {
-        let mut term =
-            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-                Ok(s) => s,
-                Err(_) => return ctrl_c.await.unwrap_or(()),
-            };
-        tokio::select! {
-            _ = ctrl_c => {}
-            _ = term.recv() => {}
-        }
-    }
-    #[cfg(not(unix))]
-    let _ = ctrl_c.await;
 }

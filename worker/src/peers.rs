@@ -85,7 +85,7 @@ fn open_link(peer: String, faults: Faults) -> mpsc::UnboundedSender<proto::PeerB
     let rx = faults.delayed(&peer, rx);
     tokio::spawn(async move {
         if let Err(e) = run_link(&peer, rx).await {
-            error!(%peer, error = %e, "peer link failed");
+            warn!(%peer, error = %e, "peer link ended");
         }
     });
     tx
