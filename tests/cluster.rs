@@ -394,3 +394,35 @@ fn bad_jobs_get_precise_errors_and_the_cluster_renders_the_next() {
     cluster.rayfarm_ok(&args);
     assert!(std::fs::metadata(&exr).expect("exr written").len() > 4 << 20);
 }
+
+#[test]
+fn the_demo_runs_a_local_cluster_and_matches_its_local_render() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let demo = |extra: &[&str]| {
+        let mut args = vec![
+            "demo",
+            "--dir",
+            s(dir.path()),
+            "--triangles",
+            "20000",
+            "--domains",
+            "8",
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--spp",
+            "1",
+        ];
+        args.extend_from_slice(extra);
+        rayfarm_ok(&args);
+        hash_of(&dir.path().join("demo-stats.json"))
+    };
+    let cluster = demo(&["--workers", "2"]);
+    assert!(dir.path().join("demo.png").exists());
+    assert_eq!(
+        stats_field(&dir.path().join("demo-stats.json"), "/workers"),
+        2
+    );
+    assert_eq!(cluster, demo(&["--local"]));
+}
