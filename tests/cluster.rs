@@ -153,6 +153,42 @@ fn one_two_and_four_workers_render_the_local_image() {
 }
 
 #[test]
+fn every_schedule_renders_the_local_image_with_one_to_four_workers() {
+    let root = tempfile::tempdir().expect("temp dir");
+    let scene = prepare(root.path(), "nb", 30_000, 8);
+    let (_, largest) = domain_bytes(&scene);
+    let expected = local_hash(&scene, &FRAME);
+    for n in 1..=4 {
+        // Two-domain caches: image-plane and domain must page, dynamic must plan.
+        let cluster = Cluster::start(
+            root.path(),
+            Some("nb"),
+            &vec![WorkerOpts::cache(2 * largest); n],
+        );
+        for schedule in ["image-plane", "domain", "dynamic"] {
+            let mut frame = FRAME.to_vec();
+            frame.extend(["--schedule", schedule, "--cold-cache"]);
+            let stats = submit_wait(&cluster, &frame, &format!("{schedule}-{n}"));
+            assert_eq!(hash_of(&stats), expected, "{schedule} with {n} workers");
+            assert_eq!(stats_field(&stats, "/schedule"), schedule);
+            let migrated = stats_field(&stats, "/rays_migrated").as_u64();
+            if schedule == "image-plane" {
+                assert_eq!(
+                    migrated,
+                    Some(0),
+                    "image-plane rays never leave their worker"
+                );
+            } else if n > 1 && schedule == "domain" {
+                assert!(
+                    migrated > Some(0),
+                    "domain schedule with {n} workers moved no rays"
+                );
+            }
+        }
+    }
+}
+
+#[test]
 fn a_scene_four_times_the_cluster_cache_renders_identically() {
     let root = tempfile::tempdir().expect("temp dir");
     let scene = prepare(root.path(), "big", 60_000, 16);
@@ -363,6 +399,11 @@ fn bad_jobs_get_precise_errors_and_the_cluster_renders_the_next() {
     );
     let err = refused(&cluster, &["submit", "--schedule", "fastest"]);
     assert!(err.contains("unknown schedule"), "{err}");
+    let err = refused(&cluster, &["submit", "--schedule", "hybrid"]);
+    assert!(
+        err.contains("UNIMPLEMENTED") && err.contains("hybrid"),
+        "{err}"
+    );
     let err = refused(&cluster, &["submit", "--scene", "no-such-scene"]);
     assert!(
         err.contains("NOT_FOUND") && err.contains("no-such-scene"),

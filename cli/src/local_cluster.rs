@@ -1,10 +1,14 @@
-//! A coordinator and workers as child processes of this one, for `rayfarm demo`: the real
-//! binaries talking gRPC over loopback, so the demo exercises exactly what a farm runs.
+//! A coordinator and workers as child processes of this one, for `rayfarm demo` and `rayfarm
+//! bench`: the real binaries talking gRPC over loopback, so both exercise exactly what a farm
+//! runs. Both start the cluster the same way ([`ClusterConfig`], [`with_local_cluster`]), so a
+//! benchmark measures the cluster the demo shows.
 //!
 //! Children start in their own process group, so a Ctrl-C in the terminal reaches only
-//! `rayfarm`, which then stops them in order (SIGTERM, a grace period, then SIGKILL). If
-//! `rayfarm` leaves by another path, dropping the [`LocalCluster`] kills what is left.
+//! `rayfarm`, which then cancels the job in flight ([`JobInFlight`]) and stops them in order
+//! (SIGTERM, a grace period, then SIGKILL). If `rayfarm` leaves by another path, dropping the
+//! [`LocalCluster`] kills what is left.
 
+use std::cell::RefCell;
 use std::ffi::OsString;
 use std::path::{Path, PathBuf};
 use std::process::Stdio;
@@ -15,11 +19,14 @@ use tokio::io::{AsyncBufReadExt, BufReader};
 use tokio::process::{Child, ChildStdout, Command};
 use tokio::time::{Instant, timeout_at};
 
+use crate::client::Coordinator;
+use crate::cmd::status::wait_for_workers;
+
 /// What a process prints on stdout, alone on a line, once its gRPC server is bound.
 const LISTENING: &str = "listening on ";
 
-/// How long a child may take to bind its port.
-pub const START_TIMEOUT: Duration = Duration::from_secs(30);
+/// How long a child may take to bind its port (and all workers to register).
+const START_TIMEOUT: Duration = Duration::from_secs(30);
 
 /// How long children get to stop after SIGTERM before they are killed.
 const STOP_GRACE: Duration = Duration::from_secs(10);
@@ -39,6 +46,232 @@ pub fn sibling_binary(name: &str) -> anyhow::Result<PathBuf> {
         );
     }
     Ok(path)
+}
+
+/// Everything a local cluster needs, worked out before any process starts.
+#[derive(Clone, Debug)]
+pub struct ClusterConfig {
+    /// The `rayfarm-coordinator` binary.
+    pub coordinator_bin: PathBuf,
+    /// The `rayfarm-worker` binary.
+    pub worker_bin: PathBuf,
+    /// The coordinator's data directory (results), also where every child's log goes.
+    pub data_dir: PathBuf,
+    /// The scene root of every process (absolute).
+    pub scene_root: PathBuf,
+    /// The coordinator's default scene, a name under `scene_root`.
+    pub default_scene: String,
+    /// Worker processes.
+    pub workers: usize,
+    /// Domain cache budget of each worker, bytes.
+    pub cache_bytes: u64,
+    /// Tracing threads of each worker.
+    pub threads: usize,
+    /// More flags for the coordinator (e.g. `--replicate none`).
+    pub coordinator_extra: Vec<OsString>,
+    /// More flags for every worker (e.g. `--storage-bandwidth 100MiB/s`).
+    pub worker_extra: Vec<OsString>,
+}
+
+impl ClusterConfig {
+    /// A cluster rendering the prepared scene in `scene_dir` (its parent is the scene root,
+    /// its directory name the default scene), with the binaries next to this executable,
+    /// keeping data and logs in `data_dir`. Fails before anything starts if a binary is
+    /// missing.
+    pub fn for_scene(
+        scene_dir: &Path,
+        data_dir: &Path,
+        workers: usize,
+        cache_bytes: u64,
+        threads: usize,
+    ) -> anyhow::Result<Self> {
+        let (scene_root, default_scene) = scene_root_and_name(scene_dir)?;
+        Ok(Self {
+            coordinator_bin: sibling_binary("rayfarm-coordinator")?,
+            worker_bin: sibling_binary("rayfarm-worker")?,
+            data_dir: std::path::absolute(data_dir)
+                .with_context(|| format!("{}: no absolute path", data_dir.display()))?,
+            scene_root,
+            default_scene,
+            workers,
+            cache_bytes,
+            threads,
+            coordinator_extra: Vec::new(),
+            worker_extra: Vec::new(),
+        })
+    }
+
+    /// The coordinator's command line: loopback, a port the OS chooses.
+    pub fn coordinator_args(&self) -> Vec<OsString> {
+        let mut args: Vec<OsString> = vec![
+            "--listen".into(),
+            "127.0.0.1:0".into(),
+            "--data-dir".into(),
+            self.data_dir.clone().into(),
+            "--scene-root".into(),
+            self.scene_root.clone().into(),
+            "--default-scene".into(),
+            self.default_scene.clone().into(),
+        ];
+        args.extend(self.coordinator_extra.iter().cloned());
+        args
+    }
+
+    /// A worker's command line, attached to the coordinator at `coordinator_url`.
+    pub fn worker_args(&self, coordinator_url: &str) -> Vec<OsString> {
+        let mut args: Vec<OsString> = vec![
+            "--coordinator".into(),
+            coordinator_url.into(),
+            "--listen".into(),
+            "127.0.0.1:0".into(),
+            "--cache-bytes".into(),
+            self.cache_bytes.to_string().into(),
+            "--scene-root".into(),
+            self.scene_root.clone().into(),
+            "--threads".into(),
+            self.threads.to_string().into(),
+        ];
+        args.extend(self.worker_extra.iter().cloned());
+        args
+    }
+}
+
+/// A prepared scene directory as (absolute scene root, scene name): its parent and its
+/// directory name, which is how jobs name scenes relative to the nodes' scene root.
+pub fn scene_root_and_name(scene_dir: &Path) -> anyhow::Result<(PathBuf, String)> {
+    let absolute = std::path::absolute(scene_dir)
+        .with_context(|| format!("{}: no absolute path", scene_dir.display()))?;
+    let name = absolute
+        .file_name()
+        .and_then(|n| n.to_str())
+        .ok_or_else(|| anyhow!("{}: scene directory name is not UTF-8", scene_dir.display()))?
+        .to_string();
+    let root = absolute
+        .parent()
+        .ok_or_else(|| anyhow!("{}: a scene directory has a parent", absolute.display()))?
+        .to_path_buf();
+    Ok((root, name))
+}
+
+/// The machine's cores shared among `workers` worker processes (at least one thread each).
+pub fn threads_per_worker(workers: usize) -> usize {
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    (cores / workers.max(1)).max(1)
+}
+
+/// The job a session is waiting for, if any, and where it runs: what an interrupted or
+/// failed session cancels so the cluster does not go on rendering it.
+#[derive(Default)]
+pub struct JobInFlight(RefCell<Option<(String, String)>>);
+
+impl JobInFlight {
+    /// Records job `job_id` on the coordinator at `url` as the one in flight.
+    pub fn set(&self, url: &str, job_id: &str) {
+        self.0.replace(Some((url.to_string(), job_id.to_string())));
+    }
+
+    /// The job in flight has ended.
+    pub fn clear(&self) {
+        self.0.replace(None);
+    }
+
+    /// Cancels the job in flight (if any), giving up quietly after a moment: this is cleanup
+    /// on the way out.
+    pub async fn cancel_quietly(&self) {
+        let Some((url, job_id)) = self.0.take() else {
+            return;
+        };
+        let cancel = async {
+            let mut coord = Coordinator::connect(&url).await?;
+            coord.cancel(&job_id).await
+        };
+        let _ = tokio::time::timeout(Duration::from_secs(3), cancel).await;
+    }
+}
+
+/// Runs `session` until it ends or Ctrl-C (an "interrupted" error); if it did not succeed,
+/// cancels the job it left in flight.
+pub async fn interruptible<T>(
+    in_flight: &JobInFlight,
+    session: impl Future<Output = anyhow::Result<T>>,
+) -> anyhow::Result<T> {
+    let outcome = tokio::select! {
+        r = session => r,
+        r = tokio::signal::ctrl_c() => match r {
+            Ok(()) => Err(anyhow!("interrupted")),
+            Err(e) => Err(anyhow!("listening for Ctrl-C: {e}")),
+        },
+    };
+    if outcome.is_err() {
+        in_flight.cancel_quietly().await;
+    }
+    outcome
+}
+
+/// Starts the cluster `config` describes (the coordinator, then the workers, then waits until
+/// all have registered), runs `session` with the coordinator's URL, and stops every process
+/// whatever happens: success, error or Ctrl-C. A session that fails or is interrupted has its
+/// job in flight cancelled first.
+pub async fn with_local_cluster<T>(
+    config: &ClusterConfig,
+    in_flight: &JobInFlight,
+    session: impl AsyncFnOnce(String) -> anyhow::Result<T>,
+) -> anyhow::Result<T> {
+    let mut cluster = LocalCluster::new(&config.data_dir)?;
+    eprintln!(
+        "starting a local cluster: a coordinator and {} workers ({} thread{}, {} cache each); logs in {}",
+        config.workers,
+        config.threads,
+        if config.threads == 1 { "" } else { "s" },
+        crate::units::human(config.cache_bytes),
+        cluster.log_dir().display()
+    );
+    let outcome = interruptible(in_flight, async {
+        let url = start_cluster(&mut cluster, config).await?;
+        session(url).await
+    })
+    .await;
+    eprintln!("stopping the local cluster ...");
+    for note in cluster.shutdown().await {
+        eprintln!("warning: {note}");
+    }
+    if outcome.is_err() {
+        eprintln!(
+            "the cluster's logs: {}",
+            config.data_dir.join("*.log").display()
+        );
+    }
+    outcome
+}
+
+/// Starts the coordinator and the workers and waits for all workers to register; returns the
+/// coordinator's URL.
+async fn start_cluster(
+    cluster: &mut LocalCluster,
+    config: &ClusterConfig,
+) -> anyhow::Result<String> {
+    let addr = cluster
+        .start(
+            "coordinator",
+            &config.coordinator_bin,
+            &config.coordinator_args(),
+        )
+        .await?;
+    let url = format!("http://{addr}");
+    for i in 0..config.workers {
+        cluster
+            .start(
+                &format!("worker-{i}"),
+                &config.worker_bin,
+                &config.worker_args(&url),
+            )
+            .await?;
+    }
+    let mut coord = Coordinator::connect(&url).await?;
+    wait_for_workers(&mut coord, config.workers, START_TIMEOUT)
+        .await
+        .context("waiting for the workers to register")?;
+    Ok(url)
 }
 
 /// One child process.

@@ -185,6 +185,7 @@ mod tests {
                 },
             }],
             busy_seconds: 1.5,
+            load_seconds: 0.0,
             frame_seconds: 2.0,
             idle_fraction: 0.25,
             peak_rss_bytes: rss,

@@ -9,9 +9,10 @@ use std::time::Instant;
 use rayfarm_common::cluster::job::TILE_SIZE;
 use rayfarm_common::cluster::tile_sums;
 use rayfarm_common::frame::{Accept, FrameLedger, TILE_CREDIT, TileGrid};
-use rayfarm_common::proto::{self, coordinator_message::Body};
+use rayfarm_common::proto::{self, Schedule, coordinator_message::Body};
 use rayfarm_common::render::local::FrameSpec;
 use rayfarm_common::schedule::dynamic::{Options, next_round_with};
+use rayfarm_common::schedule::static_plans::{domain_owner, image_plane_share};
 use rayfarm_common::schedule::{ClusterState, DomainId, WorkerId, WorkerState};
 use tracing::{debug, info};
 
@@ -43,6 +44,7 @@ impl Member {
 /// See the module documentation.
 pub struct RunningFrame {
     pub job_id: String,
+    pub schedule: Schedule,
     pub spec: proto::JobSpec,
     pub frame: FrameSpec,
     domain_bytes: Vec<u64>,
@@ -70,8 +72,14 @@ impl RunningFrame {
     ) -> Result<Self, String> {
         let grid = TileGrid::new(frame.width, frame.height, TILE_SIZE)
             .ok_or_else(|| "the image does not fit the tile grid".to_string())?;
+        let schedule = match Schedule::try_from(spec.schedule) {
+            Ok(Schedule::Unspecified) => Schedule::Dynamic,
+            Ok(s) => s,
+            Err(_) => return Err(format!("unknown schedule {}", spec.schedule)),
+        };
         Ok(RunningFrame {
             job_id,
+            schedule,
             spec,
             frame,
             domain_bytes,
@@ -94,20 +102,55 @@ impl RunningFrame {
         }))
     }
 
-    /// Starts the frame on `workers`, dealing camera-ray tiles round robin (neighbouring
-    /// tiles cost about the same, so every worker gets an even share of the work).
+    /// Starts the frame on `workers` (at least one). Image-plane gives each worker a
+    /// contiguous share of the tiles (Fig. 3); the other schedules deal tiles round robin,
+    /// since neighbouring tiles cost about the same. The domain schedule's one plan, every
+    /// domain with its round-robin owner (Fig. 4), follows at once.
     pub fn start(&mut self, workers: Vec<(u32, Member)>) -> Vec<Outgoing> {
-        let n = workers.len().max(1);
-        let mut tiles: Vec<Vec<u32>> = vec![Vec::new(); n];
-        for t in 0..self.ledger.grid().count() {
-            tiles[t as usize % n].push(t);
-        }
+        let n = workers.len().max(1) as u32;
+        let count = self.ledger.grid().count();
+        let tiles: Vec<Vec<u32>> = (0..n)
+            .map(|i| match self.schedule {
+                Schedule::ImagePlane => image_plane_share(i, n, count).collect(),
+                _ => (i..count).step_by(n as usize).collect(),
+            })
+            .collect();
         let mut out = Vec::new();
         for ((key, member), tiles) in workers.into_iter().zip(tiles) {
             out.push((key, self.start_message(tiles)));
             self.members.insert(key, member);
         }
+        if self.schedule == Schedule::Domain {
+            out.extend(self.owner_plans());
+        }
         out
+    }
+
+    /// The static domain schedule: domain `d` belongs to the `d mod n`-th worker.
+    fn owner_plans(&mut self) -> Vec<Outgoing> {
+        let keys: Vec<u32> = self.members.keys().copied().collect();
+        let n = keys.len() as u32;
+        let owner = |d: u32| keys[domain_owner(DomainId(d), n) as usize];
+        let domains = self.domain_bytes.len() as u32;
+        let holders: Vec<proto::DomainHolders> = (0..domains)
+            .map(|d| proto::DomainHolders {
+                domain: d,
+                workers: vec![self.members[&owner(d)].peer_address.clone()],
+            })
+            .collect();
+        self.round = 1;
+        keys.iter()
+            .map(|&key| {
+                let body = Body::RoundPlan(proto::RoundPlan {
+                    job_id: self.job_id.clone(),
+                    round: 1,
+                    work_on: (0..domains).filter(|&d| owner(d) == key).collect(),
+                    evict: Vec::new(),
+                    holders: holders.clone(),
+                });
+                (key, msg(body))
+            })
+            .collect()
     }
 
     /// Lets a worker that registered mid-frame take part from the next round.
@@ -131,13 +174,17 @@ impl RunningFrame {
         self.members.remove(&key).is_some()
     }
 
-    /// Records a queue report; returns the next round's plans when every worker has
-    /// finished the current round and some ray is queued somewhere.
+    /// Records a queue report; under the dynamic schedule, returns the next round's plans
+    /// when every worker has finished the current round and some ray is queued somewhere.
+    /// The static schedules decide once and never plan again.
     pub fn report(&mut self, key: u32, report: proto::QueueReport) -> Vec<Outgoing> {
         let Some(member) = self.members.get_mut(&key) else {
             return Vec::new();
         };
         member.report = Some(report);
+        if self.schedule != Schedule::Dynamic {
+            return Vec::new();
+        }
         self.plan_if_round_over()
     }
 

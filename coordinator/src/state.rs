@@ -123,13 +123,17 @@ impl Coordinator {
             spec.ok_or_else(|| Status::invalid_argument("the request has no job spec"))?;
         let schedule = Schedule::try_from(spec.schedule)
             .map_err(|_| Status::invalid_argument(format!("unknown schedule {}", spec.schedule)))?;
-        if !matches!(schedule, Schedule::Unspecified | Schedule::Dynamic) {
-            return Err(Status::unimplemented(format!(
-                "schedule {} is not available yet; use dynamic",
-                schedule_name(schedule)
-            )));
-        }
-        spec.schedule = Schedule::Dynamic as i32;
+        let schedule = match schedule {
+            Schedule::Unspecified => Schedule::Dynamic,
+            Schedule::Hybrid => {
+                return Err(Status::unimplemented(format!(
+                    "schedule {} is not available yet",
+                    schedule_name(schedule)
+                )));
+            }
+            s => s,
+        };
+        spec.schedule = schedule as i32;
         if spec.scene.is_empty() {
             spec.scene = self.config.default_scene.clone().unwrap_or_default();
         }
@@ -552,7 +556,7 @@ impl Coordinator {
         let mut stats = ClusterStats {
             job_id: id.clone(),
             scene: frame.spec.scene.clone(),
-            schedule: "dynamic".into(),
+            schedule: schedule_name(frame.schedule).into(),
             width: spec.width,
             height: spec.height,
             spp: spec.spp,

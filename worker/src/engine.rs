@@ -13,17 +13,17 @@ use rayfarm_common::camera::PinholeCamera;
 use rayfarm_common::cluster::stats::{WorkerFrameStats, tier_traffic};
 use rayfarm_common::cluster::{job, scene_ref};
 use rayfarm_common::frame::TileGrid;
-use rayfarm_common::proto::{self, coordinator_message::Body as FromCoordinator};
+use rayfarm_common::proto::{self, Schedule, coordinator_message::Body as FromCoordinator};
 use rayfarm_common::ray::RayRecord;
 use rayfarm_common::render::SceneView;
-use rayfarm_common::render::cache::{CacheCounters, DomainCache};
+use rayfarm_common::render::cache::{CacheCounters, DomainCache, StorageModel};
 use rayfarm_common::render::stats::peak_rss_bytes;
 use rayfarm_common::scene::Manifest;
 use rayfarm_common::wire::{self, BatchLimits};
 use tokio::sync::mpsc;
 use tracing::{debug, error, info, info_span, warn};
 
-use crate::frame::Frame;
+use crate::frame::{Frame, Mode};
 use crate::pass::{self, FrameView, PassError, PassInput, PassOutput};
 use crate::peers::PeerLinks;
 
@@ -44,6 +44,8 @@ pub struct EngineConfig {
     /// Most rays traced in one pass.
     pub pass_rays: usize,
     pub bundler: BundlerConfig,
+    /// Emulated storage speed charged on every domain load (benchmarks).
+    pub storage: StorageModel,
 }
 
 /// Something the engine reacts to.
@@ -232,16 +234,37 @@ impl Engine {
             max_records: 1 << 20,
         };
         if self.cache.as_ref().is_none_or(|(d, _)| *d != dir) {
-            let cache = DomainCache::new(&dir, &manifest, self.config.cache_bytes);
+            let cache = DomainCache::new(&dir, &manifest, self.config.cache_bytes)
+                .with_storage(self.config.storage);
             self.cache = Some((dir, Arc::new(Mutex::new(cache))));
+        } else if spec.cold_cache
+            && let Some((_, cache)) = &self.cache
+        {
+            lock(cache).clear();
         }
+        let mode = match Schedule::try_from(spec.schedule) {
+            Ok(Schedule::ImagePlane) => Mode::ImagePlane,
+            Ok(Schedule::Domain) => Mode::Domain,
+            Ok(Schedule::Dynamic | Schedule::Unspecified) => Mode::Dynamic,
+            Ok(other) => anyhow::bail!(
+                "schedule {} is not supported here",
+                job::schedule_name(other)
+            ),
+            Err(_) => anyhow::bail!("unknown schedule {}", spec.schedule),
+        };
         let shared = Arc::new(FrameView {
             view,
             camera,
             grid,
             spp: frame.spp,
         });
-        let mut frame = Frame::new(s.job_id.clone(), shared, limits, s.primary_tiles.clone());
+        let mut frame = Frame::new(
+            mode,
+            s.job_id.clone(),
+            shared,
+            limits,
+            s.primary_tiles.clone(),
+        );
         frame.round = s.round;
         Ok(frame)
     }
@@ -286,20 +309,22 @@ impl Engine {
         let c = &frame.counters;
         let frame_seconds = frame.started.elapsed().as_secs_f64();
         let busy_seconds = c.busy.as_secs_f64();
+        let cache = self
+            .cache
+            .as_ref()
+            .map(|(_, cache)| since(&frame.cache_at_start, &lock(cache).counters()))
+            .unwrap_or_default();
         let stats = WorkerFrameStats {
             worker_id: self.config.worker_id.clone(),
             threads: self.pool.current_num_threads(),
             rays: c.rays,
-            cache: self
-                .cache
-                .as_ref()
-                .map(|(_, cache)| since(&frame.cache_at_start, &lock(cache).counters()))
-                .unwrap_or_default(),
+            cache,
             rays_sent: c.rays_sent,
             bytes_sent: c.bytes_sent,
             rays_received: c.rays_received,
             tiers: tier_traffic(self.bundler.stats()),
             busy_seconds,
+            load_seconds: cache.load_nanos as f64 / 1e9,
             frame_seconds,
             idle_fraction: (1.0 - busy_seconds / frame_seconds.max(1e-9)).clamp(0.0, 1.0),
             peak_rss_bytes: peak_rss_bytes(),
@@ -519,6 +544,7 @@ fn since(start: &CacheCounters, now: &CacheCounters) -> CacheCounters {
         bytes_loaded: now.bytes_loaded - start.bytes_loaded,
         evictions: now.evictions - start.evictions,
         peak_resident_bytes: now.peak_resident_bytes,
+        load_nanos: now.load_nanos - start.load_nanos,
     }
 }
 

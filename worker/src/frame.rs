@@ -23,8 +23,21 @@ pub struct FrameCounters {
     pub busy: Duration,
 }
 
+/// Where this frame's rays are traced: the job's schedule as the worker sees it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Mode {
+    /// Image-plane (Fig. 3): rays never leave this worker; any domain is loaded on demand.
+    ImagePlane,
+    /// Domain (Fig. 4): this worker traces the domains it owns; rays go to the owners.
+    Domain,
+    /// Dynamic (Figs. 5-6): the planned domains, plus any domain still mapped here; rays go
+    /// to this round's holders.
+    Dynamic,
+}
+
 /// The frame being rendered.
 pub struct Frame {
+    pub mode: Mode,
     pub job_id: String,
     pub shared: Arc<FrameView>,
     pub limits: BatchLimits,
@@ -59,6 +72,7 @@ enum Destination {
 
 impl Frame {
     pub fn new(
+        mode: Mode,
         job_id: String,
         shared: Arc<FrameView>,
         limits: BatchLimits,
@@ -67,6 +81,7 @@ impl Frame {
         let domains = shared.view.domain_count();
         let tiles = shared.grid.count() as usize;
         Frame {
+            mode,
             job_id,
             shared,
             limits,
@@ -112,7 +127,11 @@ impl Frame {
 
     /// Whether rays for `domain` are traced here now.
     fn traces(&self, domain: u32) -> bool {
-        self.work_on.contains(&domain) || self.resident.contains(&domain)
+        match self.mode {
+            Mode::ImagePlane => true,
+            Mode::Domain => self.work_on.contains(&domain),
+            Mode::Dynamic => self.work_on.contains(&domain) || self.resident.contains(&domain),
+        }
     }
 
     /// Whether a ray belongs to the current epoch of its tile.
@@ -172,14 +191,14 @@ impl Frame {
         out
     }
 
-    /// Takes up to `max` rays of the fullest queue this worker traces now.
+    /// Takes up to `max` rays of the fullest queue this worker traces now (ties: the lower
+    /// domain id).
     pub fn take_work(&mut self, max: usize) -> Option<(u32, Vec<RayRecord>)> {
-        let (&d, len) = self
-            .work_on
-            .union(&self.resident)
-            .map(|d| (d, self.queues[*d as usize].len()))
-            .max_by_key(|&(d, len)| (len, std::cmp::Reverse(*d)))
-            .filter(|&(_, len)| len > 0)?;
+        let (d, len) = (0..)
+            .zip(&self.queues)
+            .filter(|&(d, q)| !q.is_empty() && self.traces(d))
+            .map(|(d, q)| (d, q.len()))
+            .max_by_key(|&(d, len)| (len, std::cmp::Reverse(d)))?;
         let q = &mut self.queues[d as usize];
         let rays = if len > max {
             q.split_off(len - max)

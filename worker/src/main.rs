@@ -10,11 +10,13 @@ mod peers;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
+use std::time::Duration;
 
 use anyhow::Context;
 use clap::Parser;
 use rayfarm_common::bundler::BundlerConfig;
 use rayfarm_common::proto::peer_service_server::PeerServiceServer;
+use rayfarm_common::render::cache::StorageModel;
 use tokio::sync::mpsc;
 use tonic::transport::Server;
 use tonic::transport::server::TcpIncoming;
@@ -60,6 +62,13 @@ struct Args {
     /// Most rays traced in one pass (smaller passes react faster to new plans).
     #[arg(long, env = "RAYFARM_PASS_RAYS", default_value_t = 1 << 18)]
     pass_rays: usize,
+    /// EMULATION for benchmarks: charge every domain load as if storage delivered this many
+    /// bytes per second (e.g. 100MiB/s), so one machine shows the I/O-bound regime.
+    #[arg(long, env = "RAYFARM_STORAGE_BANDWIDTH", value_parser = parse_rate)]
+    storage_bandwidth: Option<u64>,
+    /// EMULATION for benchmarks: a fixed delay added to every domain load (e.g. 5ms).
+    #[arg(long, env = "RAYFARM_STORAGE_LATENCY", value_parser = parse_duration)]
+    storage_latency: Option<Duration>,
     /// More log output (-v info, -vv debug); RUST_LOG overrides.
     #[arg(short, long, action = clap::ArgAction::Count)]
     verbose: u8,
@@ -67,6 +76,30 @@ struct Args {
 
 fn parse_bytes(s: &str) -> Result<u64, String> {
     parse_size::parse_size(s).map_err(|e| format!("{s:?}: {e}"))
+}
+
+/// A rate such as `200MiB/s` (the `/s` is optional).
+fn parse_rate(s: &str) -> Result<u64, String> {
+    parse_bytes(s.trim().trim_end_matches("/s"))
+}
+
+/// A duration such as `5ms`, `1.5s` or `200us`.
+fn parse_duration(s: &str) -> Result<Duration, String> {
+    let s = s.trim();
+    let split = s
+        .find(|c: char| !(c.is_ascii_digit() || c == '.'))
+        .unwrap_or(s.len());
+    let (number, unit) = s.split_at(split);
+    let value: f64 = number
+        .parse()
+        .map_err(|_| format!("{s:?}: expected a number with a unit, e.g. 5ms"))?;
+    let seconds = match unit.trim() {
+        "s" => value,
+        "ms" => value / 1e3,
+        "us" => value / 1e6,
+        _ => return Err(format!("{s:?}: unit must be s, ms or us")),
+    };
+    Duration::try_from_secs_f64(seconds).map_err(|e| format!("{s:?}: {e}"))
 }
 
 fn main() -> std::process::ExitCode {
@@ -125,6 +158,13 @@ async fn run(args: Args) -> anyhow::Result<()> {
     // The one line scripts and tests wait for; logs go to stderr.
     println!("listening on {bound}");
     info!(%bound, %advertise, %worker_id, threads, cache_bytes = args.cache_bytes, "worker up");
+    if args.storage_bandwidth.is_some() || args.storage_latency.is_some() {
+        info!(
+            bandwidth = ?args.storage_bandwidth,
+            latency = ?args.storage_latency,
+            "EMULATING slower storage: every domain load is delayed"
+        );
+    }
 
     let faults = Faults::from_env();
     if faults.active() {
@@ -142,6 +182,10 @@ async fn run(args: Args) -> anyhow::Result<()> {
             wave_rays: args.wave_rays.max(1),
             pass_rays: args.pass_rays.max(1),
             bundler: BundlerConfig::default(),
+            storage: StorageModel {
+                bandwidth: args.storage_bandwidth,
+                latency: args.storage_latency.unwrap_or_default(),
+            },
         },
         events_tx.clone(),
         to_coordinator,

@@ -3,22 +3,18 @@
 //! processes on loopback, each with a cache of a quarter of the scene so domains are paged as
 //! on a farm) and prints the statistics. `--local` renders in this process instead.
 
-use std::cell::OnceCell;
-use std::ffi::OsString;
 use std::path::{Path, PathBuf};
-use std::time::Duration;
 
-use anyhow::{Context, anyhow};
+use anyhow::Context;
 use clap::Args;
 use rayfarm_common::proto;
 use rayfarm_common::scene::Manifest;
 
 use super::prepare::{Generator, PrepareArgs};
 use super::render::RenderArgs;
-use super::status::wait_for_workers;
 use super::submit::{WaitOptions, wait_and_save};
 use crate::client::{Coordinator, runtime};
-use crate::local_cluster::{LocalCluster, START_TIMEOUT, sibling_binary};
+use crate::local_cluster::{ClusterConfig, JobInFlight, threads_per_worker, with_local_cluster};
 
 /// Options of `rayfarm demo`.
 #[derive(Args, Clone, Debug)]
@@ -103,192 +99,49 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
 /// Starts the local cluster, renders the frame on it and stops it, whatever happens
 /// (including Ctrl-C).
 fn run_cluster(a: &DemoArgs, scene: &Path, cache_bytes: u64) -> anyhow::Result<()> {
-    // Find the binaries before anything starts, so a missing one costs nothing.
-    let coordinator_bin = sibling_binary("rayfarm-coordinator")?;
-    let worker_bin = sibling_binary("rayfarm-worker")?;
-    let scene_name = scene
-        .file_name()
-        .and_then(|n| n.to_str())
-        .ok_or_else(|| anyhow!("{}: scene directory name is not UTF-8", scene.display()))?
-        .to_string();
-    let absolute = |p: &Path| {
-        std::path::absolute(p).with_context(|| format!("{}: no absolute path", p.display()))
-    };
-    let plan = Plan {
-        coordinator_bin,
-        worker_bin,
-        data_dir: absolute(&a.dir.join("cluster"))?,
-        scene_root: absolute(&a.dir)?,
-        scene_name: scene_name.clone(),
-        workers: a.workers as usize,
+    let workers = a.workers as usize;
+    // Finds the binaries before anything starts, so a missing one costs nothing.
+    let config = ClusterConfig::for_scene(
+        scene,
+        &a.dir.join("cluster"),
+        workers,
         cache_bytes,
-        threads: threads_per_worker(a.workers as usize),
-        spec: proto::JobSpec {
-            scene: scene_name,
-            camera: None,
-            width: a.width,
-            height: a.height,
-            spp: a.spp,
-            max_depth: DEPTH,
-            schedule: proto::Schedule::Dynamic as i32,
-            priority: 0,
-        },
-        image: a.dir.join("demo.png"),
-        stats_json: a.dir.join("demo-stats.json"),
+        threads_per_worker(workers),
+    )?;
+    let spec = proto::JobSpec {
+        scene: config.default_scene.clone(),
+        camera: None,
+        width: a.width,
+        height: a.height,
+        spp: a.spp,
+        max_depth: DEPTH,
+        schedule: proto::Schedule::Dynamic as i32,
+        priority: 0,
+        cold_cache: false,
     };
-    runtime()?.block_on(async {
-        let mut cluster = LocalCluster::new(&plan.data_dir)?;
-        eprintln!(
-            "starting a local cluster: a coordinator and {} workers ({} thread{}, {} cache each); logs in {}",
-            plan.workers,
-            plan.threads,
-            if plan.threads == 1 { "" } else { "s" },
-            crate::units::human(plan.cache_bytes),
-            cluster.log_dir().display()
-        );
-        let submitted = OnceCell::new();
-        let outcome = tokio::select! {
-            r = session(&mut cluster, &plan, &submitted) => r,
-            r = tokio::signal::ctrl_c() => match r {
-                Ok(()) => Err(anyhow!("interrupted")),
-                Err(e) => Err(anyhow!("listening for Ctrl-C: {e}")),
-            },
-        };
-        if outcome.is_err()
-            && let Some(job) = submitted.get()
-        {
-            cancel_quietly(&job.url, &job.job_id).await;
-        }
-        eprintln!("stopping the local cluster ...");
-        for note in cluster.shutdown().await {
-            eprintln!("warning: {note}");
-        }
-        let logs = plan.data_dir.join("*.log");
-        match outcome {
-            Ok(()) => {
-                println!(
-                    "image {}, statistics {}, cluster logs {}",
-                    plan.image.display(),
-                    plan.stats_json.display(),
-                    logs.display()
-                );
-                Ok(())
-            }
-            Err(e) => {
-                eprintln!("the cluster's logs: {}", logs.display());
-                Err(e)
-            }
-        }
-    })
-}
-
-/// A job the session submitted, and where.
-struct Submitted {
-    url: String,
-    job_id: String,
-}
-
-/// Everything the cluster session needs, worked out before any process starts.
-struct Plan {
-    coordinator_bin: PathBuf,
-    worker_bin: PathBuf,
-    data_dir: PathBuf,
-    scene_root: PathBuf,
-    scene_name: String,
-    workers: usize,
-    cache_bytes: u64,
-    threads: usize,
-    spec: proto::JobSpec,
-    image: PathBuf,
-    stats_json: PathBuf,
-}
-
-/// Starts the coordinator and the workers, waits for all workers to register, then submits
-/// the frame and follows it like `submit --wait`. Records the job in `submitted`, so that an
-/// interrupted demo can cancel it.
-async fn session(
-    cluster: &mut LocalCluster,
-    plan: &Plan,
-    submitted: &OnceCell<Submitted>,
-) -> anyhow::Result<()> {
-    let addr = cluster
-        .start(
-            "coordinator",
-            &plan.coordinator_bin,
-            &coordinator_args(plan),
-        )
-        .await?;
-    let url = format!("http://{addr}");
-    for i in 0..plan.workers {
-        cluster
-            .start(
-                &format!("worker-{i}"),
-                &plan.worker_bin,
-                &worker_args(plan, &url),
-            )
-            .await?;
-    }
-    let mut coord = Coordinator::connect(&url).await?;
-    wait_for_workers(&mut coord, plan.workers, START_TIMEOUT)
-        .await
-        .context("waiting for the workers to register")?;
-    let job_id = coord
-        .submit(plan.spec.clone())
-        .await
-        .context("submitting the demo frame")?;
-    let _ = submitted.set(Submitted {
-        url: url.clone(),
-        job_id: job_id.clone(),
-    });
-    eprintln!("job {job_id} submitted to {url}");
     let wait = WaitOptions {
-        output: Some(plan.image.clone()),
-        stats_json: Some(plan.stats_json.clone()),
+        output: Some(a.dir.join("demo.png")),
+        stats_json: Some(a.dir.join("demo-stats.json")),
         quiet: false,
     };
-    wait_and_save(&mut coord, &job_id, &wait).await?;
+    let in_flight = JobInFlight::default();
+    runtime()?.block_on(with_local_cluster(&config, &in_flight, async |url| {
+        let mut coord = Coordinator::connect(&url).await?;
+        let job_id = coord
+            .submit(spec)
+            .await
+            .context("submitting the demo frame")?;
+        in_flight.set(&url, &job_id);
+        eprintln!("job {job_id} submitted to {url}");
+        wait_and_save(&mut coord, &job_id, &wait).await?;
+        in_flight.clear();
+        Ok(())
+    }))?;
+    println!(
+        "image {}, statistics {}, cluster logs {}",
+        a.dir.join("demo.png").display(),
+        a.dir.join("demo-stats.json").display(),
+        config.data_dir.join("*.log").display()
+    );
     Ok(())
-}
-
-/// Cancels a job, giving up quietly after a moment: the cluster is being stopped anyway.
-async fn cancel_quietly(url: &str, job_id: &str) {
-    let cancel = async {
-        let mut coord = Coordinator::connect(url).await?;
-        coord.cancel(job_id).await
-    };
-    let _ = tokio::time::timeout(Duration::from_secs(3), cancel).await;
-}
-
-fn coordinator_args(plan: &Plan) -> Vec<OsString> {
-    vec![
-        "--listen".into(),
-        "127.0.0.1:0".into(),
-        "--data-dir".into(),
-        plan.data_dir.clone().into(),
-        "--scene-root".into(),
-        plan.scene_root.clone().into(),
-        "--default-scene".into(),
-        plan.scene_name.clone().into(),
-    ]
-}
-
-fn worker_args(plan: &Plan, coordinator_url: &str) -> Vec<OsString> {
-    vec![
-        "--coordinator".into(),
-        coordinator_url.into(),
-        "--listen".into(),
-        "127.0.0.1:0".into(),
-        "--cache-bytes".into(),
-        plan.cache_bytes.to_string().into(),
-        "--scene-root".into(),
-        plan.scene_root.clone().into(),
-        "--threads".into(),
-        plan.threads.to_string().into(),
-    ]
-}
-
-/// The machine's cores shared among the workers (at least one thread each).
-fn threads_per_worker(workers: usize) -> usize {
-    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-    (cores / workers.max(1)).max(1)
 }

@@ -46,6 +46,10 @@ pub struct SubmitArgs {
         allow_negative_numbers = true
     )]
     pub priority: i32,
+    /// Drop every worker's cached domains before the frame, so it pays for every domain load
+    /// (for comparing schedules; by default caches stay warm across frames of a scene).
+    #[arg(long, env = "RAYFARM_COLD_CACHE")]
+    pub cold_cache: bool,
     /// Camera position X,Y,Z [default: the scene's camera].
     #[arg(long, env = "RAYFARM_EYE", value_parser = units::triple::<f32>, allow_negative_numbers = true)]
     pub eye: Option<[f32; 3]>,
@@ -96,6 +100,7 @@ impl SubmitArgs {
             max_depth: self.depth,
             schedule: self.schedule as i32,
             priority: self.priority,
+            cold_cache: self.cold_cache,
         }
     }
 }
@@ -190,6 +195,7 @@ mod tests {
                 max_depth: 3,
                 schedule: proto::Schedule::Dynamic as i32,
                 priority: 0,
+                cold_cache: false,
             }
         );
     }
@@ -222,11 +228,13 @@ mod tests {
         );
         assert_eq!(spec.schedule(), proto::Schedule::ImagePlane);
         assert_eq!(spec.priority, -3);
+        assert!(!spec.cold_cache);
         let cam = spec.camera.unwrap();
         assert_eq!(cam.eye, vec![0.5, -0.9, 2.0]);
         assert!(cam.look_at.is_empty() && cam.up.is_empty());
         assert_eq!(cam.fov_y_degrees, 0.0);
 
+        assert!(parse(&["--cold-cache"]).job_spec().cold_cache);
         let cam = parse(&["--fov", "30"]).job_spec().camera.unwrap();
         assert_eq!(cam.fov_y_degrees, 30.0);
         assert!(cam.eye.is_empty());

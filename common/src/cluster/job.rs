@@ -101,6 +101,7 @@ mod tests {
             max_depth: 3,
             schedule: proto::Schedule::Dynamic as i32,
             priority: 0,
+            cold_cache: false,
         }
     }
 

@@ -57,8 +57,11 @@ pub struct WorkerFrameStats {
     pub rays_received: u64,
     /// Bundles sent to peers, per tier.
     pub tiers: Vec<TierTraffic>,
-    /// Seconds spent tracing (including domain loads).
+    /// Seconds spent in passes (tracing, issuing camera rays, domain loads).
     pub busy_seconds: f64,
+    /// Of `busy_seconds`, the time spent mapping and checking domains.
+    #[serde(default)]
+    pub load_seconds: f64,
     /// Seconds from the frame's start to its end on this worker.
     pub frame_seconds: f64,
     /// Fraction of the frame spent not tracing.

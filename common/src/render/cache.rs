@@ -1,8 +1,12 @@
 //! The domain cache: mapped domain files under a byte budget, least recently used out first.
-//! A domain larger than the whole budget is still loaded, alone.
+//! A domain larger than the whole budget is still loaded, alone. An evicted domain is really
+//! gone: unmapped, and its pages dropped from the page cache, so loading it again reads
+//! storage. Slower shared storage can be emulated ([`StorageModel`]) to study schedules in
+//! the regime where loading dominates.
 
 use std::path::PathBuf;
 use std::sync::Arc;
+use std::time::{Duration, Instant};
 
 use tracing::{debug, info_span};
 
@@ -19,6 +23,45 @@ pub struct CacheCounters {
     pub evictions: u64,
     /// Largest number of bytes resident at once.
     pub peak_resident_bytes: u64,
+    /// Time spent loading (mapping, checking, emulated storage delay), nanoseconds.
+    #[serde(default)]
+    pub load_nanos: u64,
+}
+
+/// An emulation of slower shared storage, charged on every load: `latency` plus the file's
+/// bytes at `bandwidth`. For benchmarks only; it makes a load cost what it would on a
+/// cluster's network file system.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct StorageModel {
+    /// Bytes per second; `None` is unlimited.
+    pub bandwidth: Option<u64>,
+    /// Fixed cost of each load.
+    pub latency: Duration,
+}
+
+impl StorageModel {
+    /// The emulated time to load `bytes`.
+    pub fn delay(&self, bytes: u64) -> Duration {
+        let transfer = self
+            .bandwidth
+            .filter(|&b| b > 0)
+            .map_or(Duration::ZERO, |b| {
+                Duration::from_secs_f64(bytes as f64 / b as f64)
+            });
+        self.latency + transfer
+    }
+
+    /// Whether any delay is added.
+    pub fn is_active(&self) -> bool {
+        self.bandwidth.is_some() || !self.latency.is_zero()
+    }
+}
+
+/// `posix_fadvise(DONTNEED)` on a whole file: clean pages leave the page cache.
+fn drop_page_cache(path: &std::path::Path) -> std::io::Result<()> {
+    let file = std::fs::File::open(path)?;
+    rustix::fs::fadvise(&file, 0, None, rustix::fs::Advice::DontNeed)?;
+    Ok(())
 }
 
 /// Domains of one scene, loaded on demand.
@@ -32,6 +75,7 @@ pub struct DomainCache {
     clock: u64,
     resident_bytes: u64,
     counters: CacheCounters,
+    storage: StorageModel,
 }
 
 impl DomainCache {
@@ -48,7 +92,14 @@ impl DomainCache {
             clock: 0,
             resident_bytes: 0,
             counters: CacheCounters::default(),
+            storage: StorageModel::default(),
         }
+    }
+
+    /// The cache with loads charged as on `storage`.
+    pub fn with_storage(mut self, storage: StorageModel) -> Self {
+        self.storage = storage;
+        self
     }
 
     /// The domain, mapping it (and evicting others) if needed. Its checksum is verified the
@@ -62,9 +113,13 @@ impl DomainCache {
         }
         let _span =
             info_span!("load_domain", domain, file = %self.manifest.domains[i].file).entered();
+        let started = Instant::now();
         let data = self
             .manifest
             .open_domain(&self.dir, domain, !self.verified[i])?;
+        if self.storage.is_active() {
+            std::thread::sleep(self.storage.delay(data.bytes()));
+        }
         self.verified[i] = true;
         let bytes = data.bytes();
         self.evict_for(bytes, domain);
@@ -73,6 +128,7 @@ impl DomainCache {
         self.counters.bytes_loaded += bytes;
         self.counters.peak_resident_bytes =
             self.counters.peak_resident_bytes.max(self.resident_bytes);
+        self.counters.load_nanos += started.elapsed().as_nanos() as u64;
         debug!(bytes, resident = self.resident_bytes, "domain loaded");
         let data = Arc::new(data);
         self.resident[i] = Some(data.clone());
@@ -85,24 +141,37 @@ impl DomainCache {
                 .filter(|&j| j != keep as usize && self.resident[j].is_some())
                 .min_by_key(|&j| self.last_use[j]);
             let Some(j) = victim else { break };
-            if let Some(d) = self.resident[j].take() {
-                self.resident_bytes -= d.bytes();
-                self.counters.evictions += 1;
-                debug!(domain = j, "domain evicted");
-            }
+            self.drop_domain(j);
+        }
+    }
+
+    /// Unmaps a resident domain and asks the kernel to drop its pages from the page cache,
+    /// so that a later load costs a read from storage, as it would on a cluster.
+    fn drop_domain(&mut self, i: usize) {
+        let Some(d) = self.resident[i].take() else {
+            return;
+        };
+        self.resident_bytes -= d.bytes();
+        self.counters.evictions += 1;
+        drop(d);
+        let path = self.dir.join(&self.manifest.domains[i].file);
+        if let Err(e) = drop_page_cache(&path) {
+            debug!(domain = i, error = %e, "page cache not dropped");
+        }
+        debug!(domain = i, "domain evicted");
+    }
+
+    /// Unmaps every domain (a frame that must pay for all its loads).
+    pub fn clear(&mut self) {
+        for i in 0..self.resident.len() {
+            self.drop_domain(i);
         }
     }
 
     /// Drops `domain` from the cache if it is resident (the schedule asked for its slot).
     pub fn evict(&mut self, domain: u32) {
-        if let Some(d) = self
-            .resident
-            .get_mut(domain as usize)
-            .and_then(Option::take)
-        {
-            self.resident_bytes -= d.bytes();
-            self.counters.evictions += 1;
-            debug!(domain, "domain evicted by plan");
+        if (domain as usize) < self.resident.len() {
+            self.drop_domain(domain as usize);
         }
     }
 
