@@ -467,3 +467,36 @@ fn the_demo_runs_a_local_cluster_and_matches_its_local_render() {
     );
     assert_eq!(cluster, demo(&["--local"]));
 }
+
+#[test]
+fn queues_past_their_memory_cap_spill_to_disk_and_past_the_spill_cap_fail_clearly() {
+    let root = tempfile::tempdir().expect("temp dir");
+    let scene = prepare(root.path(), "nb", 30_000, 8);
+    let (_, largest) = domain_bytes(&scene);
+    // 64 KiB of queue memory: 819 rays, far fewer than a frame queues.
+    let tight = WorkerOpts::cache(2 * largest).env("RAYFARM_QUEUE_BYTES", "64KiB");
+    let cluster = Cluster::start(root.path(), Some("nb"), &vec![tight; 2]);
+    let stats = submit_wait(&cluster, &FRAME, "spilled");
+    assert_eq!(hash_of(&stats), local_hash(&scene, &FRAME));
+    let per_worker = stats_field(&stats, "/per_worker");
+    let spilled: u64 = per_worker
+        .as_array()
+        .expect("per-worker stats")
+        .iter()
+        .map(|w| w["rays_spilled"].as_u64().unwrap_or(0))
+        .sum();
+    assert!(spilled > 0, "nothing spilled: {per_worker}");
+    drop(cluster);
+
+    let starved = WorkerOpts::cache(2 * largest)
+        .env("RAYFARM_QUEUE_BYTES", "8KiB")
+        .env("RAYFARM_SPILL_BYTES", "16KiB");
+    let cluster = Cluster::start(root.path(), Some("nb"), &[starved]);
+    let mut args = vec!["submit", "--wait", "--quiet"];
+    args.extend_from_slice(&FRAME);
+    let err = refused(&cluster, &args);
+    assert!(err.contains("exceed the worker's budgets"), "{err}");
+    // The worker is still there for the next job.
+    let status = cluster.status();
+    assert_eq!(status["workers"].as_array().map(Vec::len), Some(1));
+}

@@ -1,6 +1,7 @@
 //! `rayfarm`: what a person types. Prepare scenes, render them locally, and (with the cluster)
 //! submit and watch jobs. A thin layer over `rayfarm-common`.
 
+mod bench;
 mod client;
 mod cmd;
 mod local_cluster;
@@ -42,6 +43,9 @@ enum Command {
     Fetch(cmd::fetch::FetchArgs),
     /// Cancel a queued or running job.
     Cancel(cmd::cancel::CancelArgs),
+    /// Render one scene with every schedule side by side (cold caches, repeats interleaved)
+    /// on a local cluster and compare time, domain loads and traffic against the bound.
+    Bench(cmd::bench::BenchArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -74,5 +78,6 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
         Command::Status(a) => cmd::status::run(a),
         Command::Fetch(a) => cmd::fetch::run(a),
         Command::Cancel(a) => cmd::cancel::run(a),
+        Command::Bench(a) => cmd::bench::run(a),
     }
 }

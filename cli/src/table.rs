@@ -189,6 +189,8 @@ mod tests {
             frame_seconds: 2.0,
             idle_fraction: 0.25,
             peak_rss_bytes: rss,
+            // Fields added later default to zero.
+            ..Default::default()
         }
     }
 

@@ -7,6 +7,7 @@ use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use anyhow::Context;
 use bytes::Bytes;
 use rayfarm_common::bundler::{Bundle, Bundler, BundlerConfig, PushErrorKind, Tier};
 use rayfarm_common::camera::PinholeCamera;
@@ -26,6 +27,7 @@ use tracing::{debug, error, info, info_span, warn};
 use crate::frame::{Frame, Mode};
 use crate::pass::{self, FrameView, PassError, PassInput, PassOutput};
 use crate::peers::PeerLinks;
+use crate::queues::DomainQueues;
 
 /// Rays per encoded batch sent to a peer (160 KiB).
 const BATCH_RAYS: usize = 2048;
@@ -46,6 +48,11 @@ pub struct EngineConfig {
     pub bundler: BundlerConfig,
     /// Emulated storage speed charged on every domain load (benchmarks).
     pub storage: StorageModel,
+    /// Most bytes of queued rays held in memory; the rest spill to `spill_dir`.
+    pub queue_bytes: u64,
+    /// Most bytes of rays spilled to disk before the frame fails.
+    pub spill_bytes: u64,
+    pub spill_dir: PathBuf,
 }
 
 /// Something the engine reacts to.
@@ -145,8 +152,12 @@ impl Engine {
                 Some(FromCoordinator::StartFrame(s)) => self.start_frame(s),
                 Some(FromCoordinator::RoundPlan(p)) => self.round_plan(p),
                 Some(FromCoordinator::EpochBump(b)) => {
-                    if let Some(f) = self.frame.as_mut().filter(|f| f.job_id == b.job_id) {
-                        f.bump_epochs(&b.epochs.into_iter().collect());
+                    let bumped = match self.frame.as_mut().filter(|f| f.job_id == b.job_id) {
+                        Some(f) => f.bump_epochs(&b.epochs.into_iter().collect()),
+                        None => Ok(()),
+                    };
+                    if let Err(e) = bumped {
+                        self.fail_frame(e.to_string());
                     }
                 }
                 Some(FromCoordinator::EndFrame(e)) => self.end_frame(&e.job_id),
@@ -258,12 +269,20 @@ impl Engine {
             grid,
             spp: frame.spp,
         });
+        let queues = DomainQueues::new(
+            manifest.domains.len(),
+            self.config.queue_bytes,
+            self.config.spill_bytes,
+            &self.config.spill_dir,
+        )
+        .with_context(|| format!("spill directory {}", self.config.spill_dir.display()))?;
         let mut frame = Frame::new(
             mode,
             s.job_id.clone(),
             shared,
             limits,
             s.primary_tiles.clone(),
+            queues,
         );
         frame.round = s.round;
         Ok(frame)
@@ -289,12 +308,16 @@ impl Engine {
             frame.set_resident(cache.resident());
         }
         debug!(work_on = ?p.work_on, evict = ?p.evict, "round plan");
-        let out = frame.take_for_peers();
         let job_id = frame.job_id.clone();
-        for (peer, rays) in out {
-            self.send_rays(&job_id, peer, &rays);
+        match frame.take_for_peers() {
+            Ok(out) => {
+                for (peer, rays) in out {
+                    self.send_rays(&job_id, peer, &rays);
+                }
+                self.send_due_bundles();
+            }
+            Err(e) => self.fail_frame(e.to_string()),
         }
-        self.send_due_bundles();
     }
 
     fn end_frame(&mut self, job_id: &str) {
@@ -322,6 +345,7 @@ impl Engine {
             rays_sent: c.rays_sent,
             bytes_sent: c.bytes_sent,
             rays_received: c.rays_received,
+            rays_spilled: frame.spilled(),
             tiers: tier_traffic(self.bundler.stats()),
             busy_seconds,
             load_seconds: cache.load_nanos as f64 / 1e9,
@@ -364,14 +388,21 @@ impl Engine {
         };
         let mut forward: BTreeMap<String, Vec<RayRecord>> = BTreeMap::new();
         for batch in batches {
-            match wire::decode_batch(&batch, &frame.limits) {
-                Ok(rays) => {
-                    frame.counters.rays_received += rays.len() as u64;
-                    for (peer, mut rays) in frame.route(rays) {
+            let rays = match wire::decode_batch(&batch, &frame.limits) {
+                Ok(rays) => rays,
+                Err(e) => {
+                    error!(%sender, error = %e, "dropping a malformed ray batch from a peer");
+                    continue;
+                }
+            };
+            frame.counters.rays_received += rays.len() as u64;
+            match frame.route(rays) {
+                Ok(out) => {
+                    for (peer, mut rays) in out {
                         forward.entry(peer).or_default().append(&mut rays);
                     }
                 }
-                Err(e) => error!(%sender, error = %e, "dropping a malformed ray batch from a peer"),
+                Err(e) => return self.fail_frame(e.to_string()),
             }
         }
         // New rays here change what the coordinator should know at the round's end.
@@ -401,7 +432,10 @@ impl Engine {
         let Some(frame) = self.frame.as_mut() else {
             return;
         };
-        let out_rays = frame.route(out.rays);
+        let out_rays = match frame.route(out.rays) {
+            Ok(r) => r,
+            Err(e) => return self.fail_frame(e.to_string()),
+        };
         let job_id = frame.job_id.clone();
         for (peer, rays) in out_rays {
             self.send_rays(&job_id, peer, &rays);
@@ -426,7 +460,10 @@ impl Engine {
             primaries.push((tile, frame.epochs[tile as usize]));
             queued += frame.shared.grid.tile_pixel_count(tile) * frame.shared.spp as usize;
         }
-        let trace = frame.take_work(self.config.pass_rays);
+        let trace = match frame.take_work(self.config.pass_rays) {
+            Ok(t) => t,
+            Err(e) => return self.fail_frame(e.to_string()),
+        };
         if primaries.is_empty() && trace.is_none() {
             self.report_idle();
             return;

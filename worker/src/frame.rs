@@ -12,6 +12,7 @@ use rayfarm_common::render::cache::CacheCounters;
 use rayfarm_common::wire::BatchLimits;
 
 use crate::pass::FrameView;
+use crate::queues::{DomainQueues, QueueError};
 
 /// Counters of one frame on this worker.
 #[derive(Default)]
@@ -45,7 +46,7 @@ pub struct Frame {
     pub to_issue: VecDeque<u32>,
     /// Current epoch of every tile: rays of older epochs are dropped.
     pub epochs: Vec<u32>,
-    queues: Vec<Vec<RayRecord>>,
+    queues: DomainQueues,
     pub round: u64,
     work_on: BTreeSet<u32>,
     /// Domains mapped here now. Rays for them are traced here even when the plan gave the
@@ -77,8 +78,8 @@ impl Frame {
         shared: Arc<FrameView>,
         limits: BatchLimits,
         to_issue: Vec<u32>,
+        queues: DomainQueues,
     ) -> Self {
-        let domains = shared.view.domain_count();
         let tiles = shared.grid.count() as usize;
         Frame {
             mode,
@@ -87,7 +88,7 @@ impl Frame {
             limits,
             to_issue: to_issue.into(),
             epochs: vec![0; tiles],
-            queues: vec![Vec::new(); domains],
+            queues,
             round: 0,
             work_on: BTreeSet::new(),
             resident: BTreeSet::new(),
@@ -154,84 +155,88 @@ impl Frame {
 
     /// Queues each ray of the current epoch here or returns it, grouped by the peer it goes
     /// to; rays of an older epoch are dropped.
-    pub fn route(&mut self, rays: Vec<RayRecord>) -> BTreeMap<String, Vec<RayRecord>> {
+    pub fn route(
+        &mut self,
+        rays: Vec<RayRecord>,
+    ) -> Result<BTreeMap<String, Vec<RayRecord>>, QueueError> {
         let mut out: BTreeMap<String, Vec<RayRecord>> = BTreeMap::new();
+        let mut local: BTreeMap<u32, Vec<RayRecord>> = BTreeMap::new();
         for ray in rays {
-            if !self.is_current(&ray) {
+            if !self.is_current(&ray) || ray.domain >= self.queues.domains() {
                 continue;
             }
             match self.destination(&ray) {
                 Destination::Peer(p) => out.entry(p).or_default().push(ray),
-                Destination::Local => {
-                    if let Some(q) = self.queues.get_mut(ray.domain as usize) {
-                        q.push(ray);
-                    }
-                }
+                Destination::Local => local.entry(ray.domain).or_default().push(ray),
             }
         }
-        out
+        for (d, rays) in local {
+            self.queues.push(d, &rays)?;
+        }
+        Ok(out)
     }
 
     /// Takes every queued ray that now has a holder elsewhere, grouped by peer.
-    pub fn take_for_peers(&mut self) -> BTreeMap<String, Vec<RayRecord>> {
+    pub fn take_for_peers(&mut self) -> Result<BTreeMap<String, Vec<RayRecord>>, QueueError> {
         let mut out: BTreeMap<String, Vec<RayRecord>> = BTreeMap::new();
         let domains: Vec<u32> = self
             .holders
             .keys()
             .copied()
-            .filter(|&d| !self.traces(d))
+            .filter(|&d| !self.traces(d) && d < self.queues.domains())
             .collect();
         for d in domains {
-            for ray in std::mem::take(&mut self.queues[d as usize]) {
+            let len = self.queues.len(d) as usize;
+            for ray in self.queues.take(d, len)? {
                 if let Destination::Peer(p) = self.destination(&ray) {
                     out.entry(p).or_default().push(ray);
                 }
             }
         }
-        out
+        Ok(out)
     }
 
     /// Takes up to `max` rays of the fullest queue this worker traces now (ties: the lower
     /// domain id).
-    pub fn take_work(&mut self, max: usize) -> Option<(u32, Vec<RayRecord>)> {
-        let (d, len) = (0..)
-            .zip(&self.queues)
-            .filter(|&(d, q)| !q.is_empty() && self.traces(d))
-            .map(|(d, q)| (d, q.len()))
-            .max_by_key(|&(d, len)| (len, std::cmp::Reverse(d)))?;
-        let q = &mut self.queues[d as usize];
-        let rays = if len > max {
-            q.split_off(len - max)
-        } else {
-            std::mem::take(q)
+    pub fn take_work(&mut self, max: usize) -> Result<Option<(u32, Vec<RayRecord>)>, QueueError> {
+        let fullest = (0..self.queues.domains())
+            .filter(|&d| self.traces(d))
+            .map(|d| (d, self.queues.len(d)))
+            .filter(|&(_, len)| len > 0)
+            .max_by_key(|&(d, len)| (len, std::cmp::Reverse(d)));
+        let Some((d, _)) = fullest else {
+            return Ok(None);
         };
-        Some((d, rays))
+        Ok(Some((d, self.queues.take(d, max)?)))
     }
 
     /// Rays queued here, over all domains.
     pub fn queued_total(&self) -> usize {
-        self.queues.iter().map(Vec::len).sum()
+        self.queues.total() as usize
     }
 
     /// Rays queued per domain, non-empty queues only.
     pub fn queue_sizes(&self) -> BTreeMap<u32, u64> {
-        (0..)
-            .zip(&self.queues)
-            .filter(|(_, q)| !q.is_empty())
-            .map(|(d, q)| (d, q.len() as u64))
+        (0..self.queues.domains())
+            .map(|d| (d, self.queues.len(d)))
+            .filter(|&(_, n)| n > 0)
             .collect()
     }
 
+    /// Rays spilled to disk so far in this frame.
+    pub fn spilled(&self) -> u64 {
+        self.queues.spilled_total
+    }
+
     /// Drops queued rays of the given tiles older than their new epochs.
-    pub fn bump_epochs(&mut self, bumps: &BTreeMap<u32, u32>) {
+    pub fn bump_epochs(&mut self, bumps: &BTreeMap<u32, u32>) -> Result<(), QueueError> {
         for (&tile, &epoch) in bumps {
             if let Some(e) = self.epochs.get_mut(tile as usize) {
                 *e = (*e).max(epoch);
             }
         }
         let epochs = &self.epochs;
-        for q in &mut self.queues {
-            q.retain(|r| epochs.get(r.tile as usize) == Some(&r.epoch));
-        }
+        self.queues
+            .retain(|r| epochs.get(r.tile as usize) == Some(&r.epoch))
     }
 }

@@ -7,6 +7,7 @@ mod engine;
 mod frame;
 mod pass;
 mod peers;
+mod queues;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -62,6 +63,15 @@ struct Args {
     /// Most rays traced in one pass (smaller passes react faster to new plans).
     #[arg(long, env = "RAYFARM_PASS_RAYS", default_value_t = 1 << 18)]
     pass_rays: usize,
+    /// Most bytes of queued rays kept in memory; past it rays spill to --spill-dir.
+    #[arg(long, env = "RAYFARM_QUEUE_BYTES", default_value = "512MiB", value_parser = parse_bytes)]
+    queue_bytes: u64,
+    /// Most bytes of rays spilled to disk; past it the frame fails with a clear error.
+    #[arg(long, env = "RAYFARM_SPILL_BYTES", default_value = "8GiB", value_parser = parse_bytes)]
+    spill_bytes: u64,
+    /// Directory for spilled rays (default: the system's temporary directory).
+    #[arg(long, env = "RAYFARM_SPILL_DIR")]
+    spill_dir: Option<PathBuf>,
     /// EMULATION for benchmarks: charge every domain load as if storage delivered this many
     /// bytes per second (e.g. 100MiB/s), so one machine shows the I/O-bound regime.
     #[arg(long, env = "RAYFARM_STORAGE_BANDWIDTH", value_parser = parse_rate)]
@@ -186,6 +196,9 @@ async fn run(args: Args) -> anyhow::Result<()> {
                 bandwidth: args.storage_bandwidth,
                 latency: args.storage_latency.unwrap_or_default(),
             },
+            queue_bytes: args.queue_bytes,
+            spill_bytes: args.spill_bytes,
+            spill_dir: args.spill_dir.clone().unwrap_or_else(std::env::temp_dir),
         },
         events_tx.clone(),
         to_coordinator,

@@ -118,7 +118,11 @@ fn row<'a>(r: &'a RunOutcome, setup: &'a Setup) -> Row<'a> {
 }
 
 /// Writes the runs as CSV, a header and one row per run, to `out`.
-pub fn write_runs(out: impl std::io::Write, runs: &[RunOutcome], setup: &Setup) -> anyhow::Result<()> {
+pub fn write_runs(
+    out: impl std::io::Write,
+    runs: &[RunOutcome],
+    setup: &Setup,
+) -> anyhow::Result<()> {
     let mut w = csv::Writer::from_writer(out);
     for r in runs {
         w.serialize(row(r, setup))
@@ -191,7 +195,10 @@ mod tests {
             "spp",
             "depth",
         ] {
-            assert!(header.iter().any(|h| h == col), "no column {col}: {header:?}");
+            assert!(
+                header.iter().any(|h| h == col),
+                "no column {col}: {header:?}"
+            );
         }
         let rows: Vec<csv::StringRecord> = reader.records().map(Result::unwrap).collect();
         assert_eq!(rows.len(), 2);

@@ -211,7 +211,8 @@ pub fn summarize(schedules: &[String], runs: &[RunOutcome]) -> Vec<ScheduleSumma
 
 /// The measures of some successful runs of one schedule; `None` when there are none.
 fn measure(ok: &[&ClusterStats]) -> Option<Measured> {
-    let med = |f: &dyn Fn(&ClusterStats) -> f64| median(&ok.iter().map(|s| f(s)).collect::<Vec<_>>());
+    let med =
+        |f: &dyn Fn(&ClusterStats) -> f64| median(&ok.iter().map(|s| f(s)).collect::<Vec<_>>());
     let wall = spread(&ok.iter().map(|s| s.wall_seconds).collect::<Vec<_>>())?;
     let idle: Vec<f64> = ok
         .iter()
@@ -391,7 +392,10 @@ pub(crate) mod tests {
             ]
         );
         // Past the number of schedules the rotation wraps around.
-        assert_eq!(run_order(2, 3), vec![(1, 0), (1, 1), (2, 1), (2, 0), (3, 0), (3, 1)]);
+        assert_eq!(
+            run_order(2, 3),
+            vec![(1, 0), (1, 1), (2, 1), (2, 0), (3, 0), (3, 1)]
+        );
         assert_eq!(run_order(1, 2), vec![(1, 0), (2, 0)]);
         assert!(run_order(0, 3).is_empty());
     }
@@ -478,7 +482,10 @@ pub(crate) mod tests {
         assert_eq!(m.peak_rss_bytes, 300);
         assert_eq!((s[1].runs, s[1].ok), (3, 0));
         assert_eq!(s[1].measured, None);
-        assert_eq!(s[1].errors, vec!["job j2 failed: boom", "job j4 failed: boom"]);
+        assert_eq!(
+            s[1].errors,
+            vec!["job j2 failed: boom", "job j4 failed: boom"]
+        );
         assert_eq!(best_median(&s), Some(2.0));
         assert_eq!(reference_loads(&s), Some(6.0));
         assert_eq!(reference_loads(&s[1..]), None);

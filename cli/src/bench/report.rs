@@ -197,15 +197,17 @@ mod tests {
             outcome(2, "domain", Ok(stats(4.0, 40, 1.5, 0.5, "h"))),
             outcome(3, "image-plane", Err("UNIMPLEMENTED: not yet".into())),
         ];
-        let names: Vec<String> = ["dynamic", "domain", "image-plane"].map(String::from).into();
+        let names: Vec<String> = ["dynamic", "domain", "image-plane"]
+            .map(String::from)
+            .into();
         let summaries = summarize(&names, &runs);
         let b = bound(&runs, 1 << 20, None);
         let text = bench_table(&summaries, b.as_ref()).to_string();
-        let dynamic = row(&text, "dynamic ");
+        let dynamic = row(&text, "│ dynamic ");
         for want in ["1/1", "2.00 s (2.00-2.00)", "1.00x", "c0 r0 m6 t0", "50 %"] {
             assert!(dynamic.contains(want), "{want:?} missing in {dynamic}");
         }
-        let domain = row(&text, "domain ");
+        let domain = row(&text, "│ domain ");
         for want in ["4.00 s", "2.00x", "10.0x", "25 %"] {
             assert!(domain.contains(want), "{want:?} missing in {domain}");
         }
@@ -213,11 +215,17 @@ mod tests {
         assert!(failed.contains("0/1") && failed.contains("failed: UNIMPLEMENTED"));
 
         let note = bound_footnote(b.as_ref(), 2, 1 << 20, None);
-        assert!(note.contains("bound = max(compute, loads) = 1.00 s"), "{note}");
+        assert!(
+            note.contains("bound = max(compute, loads) = 1.00 s"),
+            "{note}"
+        );
         assert!(note.contains("no --storage-bandwidth"), "{note}");
         let b = bound(&runs, 1 << 20, Some(1024.0 * 1024.0));
         let note = bound_footnote(b.as_ref(), 2, 1 << 20, Some("1MiB/s"));
-        assert!(note.contains("(1.0 MiB) / storage bandwidth (1MiB/s) = 1.00 s"), "{note}");
+        assert!(
+            note.contains("(1.0 MiB) / storage bandwidth (1MiB/s) = 1.00 s"),
+            "{note}"
+        );
     }
 
     #[test]
@@ -232,7 +240,10 @@ mod tests {
             ("bb".into(), vec!["run 2 (domain, repeat 1)".into()]),
         ]);
         let text = hash_verdict(&differ);
-        assert!(text.starts_with("IMAGES DIFFER: 2 different hashes"), "{text}");
+        assert!(
+            text.starts_with("IMAGES DIFFER: 2 different hashes"),
+            "{text}"
+        );
         assert!(text.contains("\n  bb: run 2 (domain, repeat 1)"), "{text}");
     }
 }

@@ -55,6 +55,9 @@ pub struct WorkerFrameStats {
     pub bytes_sent: u64,
     /// Rays it received from other workers.
     pub rays_received: u64,
+    /// Rays that did not fit its queue memory and went to disk for a while.
+    #[serde(default)]
+    pub rays_spilled: u64,
     /// Bundles sent to peers, per tier.
     pub tiers: Vec<TierTraffic>,
     /// Seconds spent in passes (tracing, issuing camera rays, domain loads).
