@@ -165,7 +165,7 @@ fn every_schedule_renders_the_local_image_with_one_to_four_workers() {
             Some("nb"),
             &vec![WorkerOpts::cache(2 * largest); n],
         );
-        for schedule in ["image-plane", "domain", "dynamic"] {
+        for schedule in ["image-plane", "domain", "dynamic", "hybrid"] {
             let mut frame = FRAME.to_vec();
             frame.extend(["--schedule", schedule, "--cold-cache"]);
             let stats = submit_wait(&cluster, &frame, &format!("{schedule}-{n}"));
@@ -399,11 +399,6 @@ fn bad_jobs_get_precise_errors_and_the_cluster_renders_the_next() {
     );
     let err = refused(&cluster, &["submit", "--schedule", "fastest"]);
     assert!(err.contains("unknown schedule"), "{err}");
-    let err = refused(&cluster, &["submit", "--schedule", "hybrid"]);
-    assert!(
-        err.contains("UNIMPLEMENTED") && err.contains("hybrid"),
-        "{err}"
-    );
     let err = refused(&cluster, &["submit", "--scene", "no-such-scene"]);
     assert!(
         err.contains("NOT_FOUND") && err.contains("no-such-scene"),

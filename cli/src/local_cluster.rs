@@ -198,7 +198,11 @@ pub async fn interruptible<T>(
     let outcome = tokio::select! {
         r = session => r,
         r = tokio::signal::ctrl_c() => match r {
-            Ok(()) => Err(anyhow!("interrupted")),
+            Ok(()) => {
+                // End whatever progress line was being written.
+                eprintln!();
+                Err(anyhow!("interrupted"))
+            }
             Err(e) => Err(anyhow!("listening for Ctrl-C: {e}")),
         },
     };

@@ -55,6 +55,10 @@ pub struct RunningFrame {
     /// Domain loads the plans asked for.
     pub planned_loads: u64,
     options: Options,
+    /// Tiles not yet handed out (hybrid: demand-driven work for workers that run dry).
+    pending_tiles: std::collections::VecDeque<u32>,
+    /// Tiles per hand-out.
+    batch: usize,
 }
 
 fn msg(body: Body) -> proto::CoordinatorMessage {
@@ -89,6 +93,8 @@ impl RunningFrame {
             started: Instant::now(),
             planned_loads: 0,
             options,
+            pending_tiles: Default::default(),
+            batch: 1,
         })
     }
 
@@ -109,21 +115,34 @@ impl RunningFrame {
     pub fn start(&mut self, workers: Vec<(u32, Member)>) -> Vec<Outgoing> {
         let n = workers.len().max(1) as u32;
         let count = self.ledger.grid().count();
-        let tiles: Vec<Vec<u32>> = (0..n)
-            .map(|i| match self.schedule {
-                Schedule::ImagePlane => image_plane_share(i, n, count).collect(),
-                _ => (i..count).step_by(n as usize).collect(),
-            })
-            .collect();
+        let tiles: Vec<Vec<u32>> = match self.schedule {
+            Schedule::ImagePlane => (0..n)
+                .map(|i| image_plane_share(i, n, count).collect())
+                .collect(),
+            Schedule::Hybrid => {
+                // A first batch each; the rest goes to whoever runs dry first.
+                self.batch = (count as usize / (n as usize * 4)).max(1);
+                self.pending_tiles = (0..count).collect();
+                (0..n).map(|_| self.hand_out()).collect()
+            }
+            _ => (0..n)
+                .map(|i| (i..count).step_by(n as usize).collect())
+                .collect(),
+        };
         let mut out = Vec::new();
         for ((key, member), tiles) in workers.into_iter().zip(tiles) {
             out.push((key, self.start_message(tiles)));
             self.members.insert(key, member);
         }
-        if self.schedule == Schedule::Domain {
+        if matches!(self.schedule, Schedule::Domain | Schedule::Hybrid) {
             out.extend(self.owner_plans());
         }
         out
+    }
+
+    fn hand_out(&mut self) -> Vec<u32> {
+        let n = self.batch.min(self.pending_tiles.len());
+        self.pending_tiles.drain(..n).collect()
     }
 
     /// The static domain schedule: domain `d` belongs to the `d mod n`-th worker.
@@ -182,10 +201,19 @@ impl RunningFrame {
             return Vec::new();
         };
         member.report = Some(report);
-        if self.schedule != Schedule::Dynamic {
-            return Vec::new();
+        match self.schedule {
+            Schedule::Dynamic | Schedule::Unspecified => self.plan_if_round_over(),
+            // A worker reports when it has run dry: hand it more demand-driven work.
+            Schedule::Hybrid if !self.pending_tiles.is_empty() => {
+                let tiles = self.hand_out();
+                let body = Body::HandOutTiles(proto::HandOutTiles {
+                    job_id: self.job_id.clone(),
+                    tiles,
+                });
+                vec![(key, msg(body))]
+            }
+            _ => Vec::new(),
         }
-        self.plan_if_round_over()
     }
 
     fn plan_if_round_over(&mut self) -> Vec<Outgoing> {

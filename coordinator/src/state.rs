@@ -125,12 +125,6 @@ impl Coordinator {
             .map_err(|_| Status::invalid_argument(format!("unknown schedule {}", spec.schedule)))?;
         let schedule = match schedule {
             Schedule::Unspecified => Schedule::Dynamic,
-            Schedule::Hybrid => {
-                return Err(Status::unimplemented(format!(
-                    "schedule {} is not available yet",
-                    schedule_name(schedule)
-                )));
-            }
             s => s,
         };
         spec.schedule = schedule as i32;

@@ -161,6 +161,14 @@ impl Engine {
                     }
                 }
                 Some(FromCoordinator::EndFrame(e)) => self.end_frame(&e.job_id),
+                Some(FromCoordinator::HandOutTiles(h)) => {
+                    if let Some(f) = self.frame.as_mut().filter(|f| f.job_id == h.job_id) {
+                        let tiles = f.shared.grid.count();
+                        f.to_issue
+                            .extend(h.tiles.into_iter().filter(|&t| t < tiles));
+                        f.reported = false;
+                    }
+                }
                 None => warn!("empty message from the coordinator"),
             },
             Event::Disconnected => {
@@ -248,19 +256,21 @@ impl Engine {
             let cache = DomainCache::new(&dir, &manifest, self.config.cache_bytes)
                 .with_storage(self.config.storage);
             self.cache = Some((dir, Arc::new(Mutex::new(cache))));
-        } else if spec.cold_cache
-            && let Some((_, cache)) = &self.cache
-        {
-            lock(cache).clear();
+        } else if let Some((_, cache)) = &self.cache {
+            let mut cache = lock(cache);
+            cache.pin([]);
+            if spec.cold_cache {
+                cache.clear();
+            }
         }
         let mode = match Schedule::try_from(spec.schedule) {
             Ok(Schedule::ImagePlane) => Mode::ImagePlane,
             Ok(Schedule::Domain) => Mode::Domain,
             Ok(Schedule::Dynamic | Schedule::Unspecified) => Mode::Dynamic,
-            Ok(other) => anyhow::bail!(
-                "schedule {} is not supported here",
-                job::schedule_name(other)
-            ),
+            // Decided again with each plan, once the owned domains are known.
+            Ok(Schedule::Hybrid) => Mode::Hybrid {
+                demand_loads: false,
+            },
             Err(_) => anyhow::bail!("unknown schedule {}", spec.schedule),
         };
         let shared = Arc::new(FrameView {
@@ -306,6 +316,8 @@ impl Engine {
                 cache.evict(*d);
             }
             frame.set_resident(cache.resident());
+            let pinned = frame.decide_demand_loads(self.config.cache_bytes, &cache.domain_bytes());
+            cache.pin(pinned);
         }
         debug!(work_on = ?p.work_on, evict = ?p.evict, "round plan");
         let job_id = frame.job_id.clone();

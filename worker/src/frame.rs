@@ -34,6 +34,11 @@ pub enum Mode {
     /// Dynamic (Figs. 5-6): the planned domains, plus any domain still mapped here; rays go
     /// to this round's holders.
     Dynamic,
+    /// Hybrid (Reinhard et al.): camera rays and their shadow rays, coherent, are traced by
+    /// the worker whose tile they are, loading what they need (`demand_loads`; off when the
+    /// cache is too small, then they migrate too); incoherent rays migrate to the domains'
+    /// owners. Owned domains' queues go first (data-parallel first).
+    Hybrid { demand_loads: bool },
 }
 
 /// The frame being rendered.
@@ -100,6 +105,26 @@ impl Frame {
         }
     }
 
+    /// Under hybrid, whether demand-driven rays may load domains: only while the cache has
+    /// room for every owned domain plus the largest other, so that they never push owned
+    /// (data-parallel) data out. Otherwise they migrate like the rest.
+    /// Returns the domains to pin in the cache (the owned ones when demand loads may use
+    /// the rest).
+    pub fn decide_demand_loads(&mut self, cache_bytes: u64, domain_bytes: &[u64]) -> Vec<u32> {
+        let Mode::Hybrid { demand_loads } = &mut self.mode else {
+            return Vec::new();
+        };
+        let size = |d: u32| domain_bytes.get(d as usize).copied().unwrap_or(0);
+        let owned: u64 = self.work_on.iter().map(|&d| size(d)).sum();
+        let largest = domain_bytes.iter().copied().max().unwrap_or(0);
+        *demand_loads = cache_bytes >= owned + largest;
+        if *demand_loads {
+            self.work_on.iter().copied().collect()
+        } else {
+            Vec::new()
+        }
+    }
+
     /// Adopts a round's plan; `me` is this worker's peer address (not a destination).
     pub fn set_plan(
         &mut self,
@@ -126,12 +151,27 @@ impl Frame {
         self.resident = resident.into_iter().collect();
     }
 
-    /// Whether rays for `domain` are traced here now.
+    fn planned_or_resident(&self, domain: u32) -> bool {
+        self.work_on.contains(&domain) || self.resident.contains(&domain)
+    }
+
+    /// Whether this worker may trace the queue of `domain` now.
     fn traces(&self, domain: u32) -> bool {
         match self.mode {
-            Mode::ImagePlane => true,
+            // Every ray queued under hybrid was kept here on purpose (see `keeps`).
+            Mode::ImagePlane | Mode::Hybrid { .. } => true,
             Mode::Domain => self.work_on.contains(&domain),
-            Mode::Dynamic => self.work_on.contains(&domain) || self.resident.contains(&domain),
+            Mode::Dynamic => self.planned_or_resident(domain),
+        }
+    }
+
+    /// Whether `ray` stays on this worker.
+    fn keeps(&self, ray: &RayRecord) -> bool {
+        match self.mode {
+            Mode::Hybrid { demand_loads } => {
+                self.planned_or_resident(ray.domain) || (demand_loads && ray.depth == 0)
+            }
+            _ => self.traces(ray.domain),
         }
     }
 
@@ -144,7 +184,7 @@ impl Frame {
     /// one does (it waits for a later round), else to one of its holders, chosen by pixel so
     /// that a hot domain's rays spread evenly over its holders.
     fn destination(&self, ray: &RayRecord) -> Destination {
-        if self.traces(ray.domain) {
+        if self.keeps(ray) {
             return Destination::Local;
         }
         match self.holders.get(&ray.domain) {
@@ -178,32 +218,31 @@ impl Frame {
 
     /// Takes every queued ray that now has a holder elsewhere, grouped by peer.
     pub fn take_for_peers(&mut self) -> Result<BTreeMap<String, Vec<RayRecord>>, QueueError> {
-        let mut out: BTreeMap<String, Vec<RayRecord>> = BTreeMap::new();
         let domains: Vec<u32> = self
             .holders
             .keys()
             .copied()
-            .filter(|&d| !self.traces(d) && d < self.queues.domains())
+            .filter(|&d| !self.planned_or_resident(d) && d < self.queues.domains())
             .collect();
+        let mut queued = Vec::new();
         for d in domains {
             let len = self.queues.len(d) as usize;
-            for ray in self.queues.take(d, len)? {
-                if let Destination::Peer(p) = self.destination(&ray) {
-                    out.entry(p).or_default().push(ray);
-                }
-            }
+            queued.extend(self.queues.take(d, len)?);
         }
-        Ok(out)
+        // Rays this worker still keeps go back to its queues.
+        self.route(queued)
     }
 
     /// Takes up to `max` rays of the fullest queue this worker traces now (ties: the lower
     /// domain id).
     pub fn take_work(&mut self, max: usize) -> Result<Option<(u32, Vec<RayRecord>)>, QueueError> {
+        // Hybrid traces its own domains' (data-parallel) queues before demand-driven work.
+        let first = |d: u32| matches!(self.mode, Mode::Hybrid { .. }) && self.work_on.contains(&d);
         let fullest = (0..self.queues.domains())
             .filter(|&d| self.traces(d))
             .map(|d| (d, self.queues.len(d)))
             .filter(|&(_, len)| len > 0)
-            .max_by_key(|&(d, len)| (len, std::cmp::Reverse(d)));
+            .max_by_key(|&(d, len)| (first(d), len, std::cmp::Reverse(d)));
         let Some((d, _)) = fullest else {
             return Ok(None);
         };

@@ -89,8 +89,11 @@ fn draw(title: &str, summaries: &[ScheduleSummary]) -> anyhow::Result<Vec<u8>> {
             &names,
             &times,
             &BLUE,
+            &|v| format!("{v:.2}"),
         )?;
-        panel(&right, "median domain loads", &names, &loads, &RED)?;
+        panel(&right, "median domain loads", &names, &loads, &RED, &|v| {
+            super::report::count(v.round())
+        })?;
         root.present().map_err(plot_error)?;
     }
     Ok(rgb)
@@ -110,6 +113,7 @@ fn panel<DB: DrawingBackend>(
     names: &[String],
     bars: &[Option<Bar>],
     color: &RGBColor,
+    y_label: &dyn Fn(&f64) -> String,
 ) -> anyhow::Result<()> {
     let n = u32::try_from(names.len().max(1)).context("too many schedules to chart")?;
     let top = bars
@@ -123,7 +127,8 @@ fn panel<DB: DrawingBackend>(
         .margin(16)
         .x_label_area_size(32)
         .y_label_area_size(56)
-        .build_cartesian_2d((0..n).into_segmented(), 0.0..top)
+        // An integer range is closed: 0..n-1 gives n segments.
+        .build_cartesian_2d((0..n - 1).into_segmented(), 0.0..top)
         .map_err(plot_error)?;
     let label_of = |v: &SegmentValue<u32>| match v {
         SegmentValue::CenterOf(i) => names.get(*i as usize).cloned().unwrap_or_default(),
@@ -134,6 +139,8 @@ fn panel<DB: DrawingBackend>(
         .disable_x_mesh()
         .x_labels(names.len() + 1)
         .x_label_formatter(&label_of)
+        .y_label_formatter(y_label)
+        .light_line_style(WHITE)
         .label_style((FAMILY, 15).into_font())
         .draw()
         .map_err(plot_error)?;

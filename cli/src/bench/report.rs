@@ -71,31 +71,35 @@ pub fn bench_table(summaries: &[ScheduleSummary], bound: Option<&Bound>) -> Tabl
     t
 }
 
-/// The footnote under the table: what the bound is, with its numbers.
+/// The footnote under the table: what the bound is, with its numbers, and what the other
+/// columns mean.
 pub fn bound_footnote(
     bound: Option<&Bound>,
     successful_runs: usize,
     scene_bytes: u64,
     bandwidth: Option<&str>,
 ) -> String {
+    let legend = "wall times are the coordinator's (frame start to last tile); other columns \
+                  are medians over a schedule's successful runs, except idle (the mean over \
+                  workers and runs) and peak RSS (the largest worker); bundles per tier: \
+                  c control, r results, m migrated, t tasks.";
     let Some(b) = bound else {
-        return "bound: no run succeeded, so there is none".into();
+        return format!("no run succeeded, so there is no bound; {legend}");
     };
     let load = match bandwidth {
         Some(rate) => format!(
-            "loads = the scene's domain bytes ({}) / storage bandwidth ({rate}) = {:.2} s",
+            "the scene's domain bytes ({}) / storage bandwidth ({rate}) = {:.3} s",
             human(scene_bytes),
             b.load_seconds
         ),
-        None => "loads = 0 (no --storage-bandwidth given)".into(),
+        None => "0 (no --storage-bandwidth given)".into(),
     };
     format!(
-        "bound = max(compute, loads) = {:.2} s; compute = the least ray work over all \
-         {successful_runs} successful runs, i.e. the sum over workers of (busy - load seconds) \
-         divided by the total threads, = {:.2} s; {load}. efficiency = bound / median wall \
-         time. Times are the coordinator's (frame start to last tile); other columns are \
-         medians over a schedule's successful runs, idle is the mean over workers and runs, \
-         peak RSS the largest worker; bundles: c control, r results, m migrated, t tasks.",
+        "efficiency = bound / median wall time, where bound = max(compute, loads) = {:.3} s:\n  \
+         compute = the least ray work of the {successful_runs} successful runs: the sum over \
+         workers of (busy - load seconds) / total threads = {:.3} s\n  \
+         loads = {load}\n\
+         {legend}",
         b.seconds(),
         b.compute_seconds
     )
@@ -216,14 +220,14 @@ mod tests {
 
         let note = bound_footnote(b.as_ref(), 2, 1 << 20, None);
         assert!(
-            note.contains("bound = max(compute, loads) = 1.00 s"),
+            note.contains("bound = max(compute, loads) = 1.000 s"),
             "{note}"
         );
         assert!(note.contains("no --storage-bandwidth"), "{note}");
         let b = bound(&runs, 1 << 20, Some(1024.0 * 1024.0));
         let note = bound_footnote(b.as_ref(), 2, 1 << 20, Some("1MiB/s"));
         assert!(
-            note.contains("(1.0 MiB) / storage bandwidth (1MiB/s) = 1.00 s"),
+            note.contains("(1.0 MiB) / storage bandwidth (1MiB/s) = 1.000 s"),
             "{note}"
         );
     }

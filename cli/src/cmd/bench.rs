@@ -247,65 +247,63 @@ fn writable_parent(path: &Path) -> anyhow::Result<()> {
 
 pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     let plan = Plan::new(&a)?;
-    let in_flight = JobInFlight::default();
-    let rt = runtime()?;
     let (runs, setup) = match &a.coordinator {
         Some(url) => {
-            let runs = rt.block_on(interruptible(&in_flight, bench(url, &plan, &in_flight)))?;
+            let in_flight = JobInFlight::default();
+            let runs =
+                runtime()?.block_on(interruptible(&in_flight, bench(url, &plan, &in_flight)))?;
             (runs, setup(&a, &plan, None))
         }
-        None => {
-            let workers = a.workers as usize;
-            let threads = a
-                .threads
-                .map_or_else(|| threads_per_worker(workers), |t| t as usize);
-            let cache_bytes = a.cache_bytes.unwrap_or((plan.scene_bytes / 4).max(1));
-            let (data_dir, temp) = match &a.keep_cluster_logs {
-                Some(dir) => (dir.clone(), None),
-                None => {
-                    let t = tempfile::Builder::new()
-                        .prefix("rayfarm-bench-")
-                        .tempdir()
-                        .context("creating a temporary directory for the cluster")?;
-                    (t.path().to_path_buf(), Some(t))
-                }
-            };
-            let mut config = ClusterConfig::for_scene(
-                &plan.scene_dir,
-                &data_dir,
-                workers,
-                cache_bytes,
-                threads,
-            )?;
-            config.coordinator_extra = coordinator_extra(&a);
-            config.worker_extra = worker_extra(&a);
-            let result = rt.block_on(with_local_cluster(&config, &in_flight, async |url| {
-                bench(&url, &plan, &in_flight).await
-            }));
-            let failed = result
-                .as_ref()
-                .map_or(true, |runs| runs.iter().all(|r| r.result.is_err()));
-            if let Some(t) = temp {
-                if failed {
-                    eprintln!(
-                        "kept the cluster's logs and results in {}",
-                        t.keep().display()
-                    );
-                }
-            } else {
-                eprintln!(
-                    "the cluster's logs and results are in {}",
-                    data_dir.display()
-                );
-            }
-            let runs = result?;
-            (
-                runs,
-                setup(&a, &plan, Some((workers, cache_bytes, threads))),
-            )
-        }
+        None => run_local(&a, &plan)?,
     };
     report(&a, &plan, &runs, &setup)
+}
+
+/// Runs the bench on a local cluster started for it and stopped after it. Its data directory
+/// (logs, images) is `--keep-cluster-logs` or a temporary directory, which is kept when the
+/// bench fails so the logs can be read.
+fn run_local(a: &BenchArgs, plan: &Plan) -> anyhow::Result<(Vec<RunOutcome>, Setup)> {
+    let workers = a.workers as usize;
+    let threads = a
+        .threads
+        .map_or_else(|| threads_per_worker(workers), |t| t as usize);
+    let cache_bytes = a.cache_bytes.unwrap_or((plan.scene_bytes / 4).max(1));
+    let (data_dir, temp) = match &a.keep_cluster_logs {
+        Some(dir) => (dir.clone(), None),
+        None => {
+            let t = tempfile::Builder::new()
+                .prefix("rayfarm-bench-")
+                .tempdir()
+                .context("creating a temporary directory for the cluster")?;
+            (t.path().to_path_buf(), Some(t))
+        }
+    };
+    let mut config =
+        ClusterConfig::for_scene(&plan.scene_dir, &data_dir, workers, cache_bytes, threads)?;
+    config.coordinator_extra = coordinator_extra(a);
+    config.worker_extra = worker_extra(a);
+    let in_flight = JobInFlight::default();
+    let result = runtime()?.block_on(with_local_cluster(&config, &in_flight, async |url| {
+        bench(&url, plan, &in_flight).await
+    }));
+    let failed = result
+        .as_ref()
+        .map_or(true, |runs| runs.iter().all(|r| r.result.is_err()));
+    match temp {
+        Some(t) if failed => eprintln!(
+            "kept the cluster's logs and results in {}",
+            t.keep().display()
+        ),
+        Some(_) => {}
+        None => eprintln!(
+            "the cluster's logs and results are in {}",
+            data_dir.display()
+        ),
+    }
+    Ok((
+        result?,
+        setup(a, plan, Some((workers, cache_bytes, threads))),
+    ))
 }
 
 /// Flags for the coordinator the bench starts.
@@ -370,7 +368,8 @@ async fn bench(url: &str, plan: &Plan, in_flight: &JobInFlight) -> anyhow::Resul
     let order = run_order(plan.schedules.len(), plan.repeats);
     eprintln!(
         "bench: {} schedules x {} repeats = {} frames of {} ({} domains, {}) at {}x{}, {} spp, \
-         depth {}, cold caches, on {} workers",
+         depth {}, cold caches, on {} workers (one line per frame: the coordinator's wall time, \
+         domain loads, rounds)",
         plan.schedules.len(),
         plan.repeats,
         order.len(),
@@ -547,7 +546,11 @@ fn describe(plan: &Plan, setup: &Setup, runs: &[RunOutcome]) -> String {
     if !setup.storage_latency.is_empty() {
         text.push_str(&format!(" + {} per load", setup.storage_latency));
     }
-    text.push_str(&format!(", {} repeats, cold caches", plan.repeats));
+    text.push_str(&format!(
+        ", {} repeat{}, cold caches",
+        plan.repeats,
+        if plan.repeats == 1 { "" } else { "s" }
+    ));
     text
 }
 

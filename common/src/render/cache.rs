@@ -76,6 +76,8 @@ pub struct DomainCache {
     resident_bytes: u64,
     counters: CacheCounters,
     storage: StorageModel,
+    /// Domains the least-recently-used rule must not evict (a schedule's owned data).
+    pinned: std::collections::BTreeSet<u32>,
 }
 
 impl DomainCache {
@@ -93,7 +95,14 @@ impl DomainCache {
             resident_bytes: 0,
             counters: CacheCounters::default(),
             storage: StorageModel::default(),
+            pinned: Default::default(),
         }
+    }
+
+    /// Protects `domains` from eviction by other loads (an explicit `evict` still drops
+    /// them); replaces the previous set.
+    pub fn pin(&mut self, domains: impl IntoIterator<Item = u32>) {
+        self.pinned = domains.into_iter().collect();
     }
 
     /// The cache with loads charged as on `storage`.
@@ -139,6 +148,7 @@ impl DomainCache {
         while self.resident_bytes + incoming > self.budget {
             let victim = (0..self.resident.len())
                 .filter(|&j| j != keep as usize && self.resident[j].is_some())
+                .filter(|&j| !self.pinned.contains(&(j as u32)))
                 .min_by_key(|&j| self.last_use[j]);
             let Some(j) = victim else { break };
             self.drop_domain(j);
@@ -173,6 +183,11 @@ impl DomainCache {
         if (domain as usize) < self.resident.len() {
             self.drop_domain(domain as usize);
         }
+    }
+
+    /// Size of every domain file of the scene, by domain id.
+    pub fn domain_bytes(&self) -> Vec<u64> {
+        self.manifest.domains.iter().map(|d| d.bytes).collect()
     }
 
     /// Domains mapped now, ascending.
