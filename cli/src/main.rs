@@ -46,6 +46,8 @@ enum Command {
     /// Render one scene with every schedule side by side (cold caches, repeats interleaved)
     /// on a local cluster and compare time, domain loads and traffic against the bound.
     Bench(cmd::bench::BenchArgs),
+    /// Check that a coordinator or worker is up (the gRPC health service).
+    Health(cmd::health::HealthArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -79,5 +81,6 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
         Command::Fetch(a) => cmd::fetch::run(a),
         Command::Cancel(a) => cmd::cancel::run(a),
         Command::Bench(a) => cmd::bench::run(a),
+        Command::Health(a) => cmd::health::run(a),
     }
 }

@@ -61,7 +61,7 @@ impl WorkerControl for Control {
                         None => warn!(key, "empty message from a worker"),
                     },
                     Ok(None) => break "stream closed".to_string(),
-                    Err(status) => break format!("stream failed: {status}"),
+                    Err(status) => break format!("stream failed: {}", status.message()),
                 }
             };
             coordinator.worker_gone(key, &why);

@@ -138,8 +138,12 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let control = WorkerControlServer::new(control::Control::new(coordinator, faults))
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
+    // The standard gRPC health service, for container health checks and load balancers.
+    let (health, health_service) = tonic_health::server::health_reporter();
+    health.set_serving::<JobServiceServer<api::Api>>().await;
     let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
     let server = Server::builder()
+        .add_service(health_service)
         .add_service(api)
         .add_service(control)
         .serve_with_incoming_shutdown(incoming, rayfarm_common::telemetry::shutdown_signal());

@@ -207,8 +207,12 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let peer_service = PeerServiceServer::new(PeerServer::new(events_tx.clone()))
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
+    // The standard gRPC health service, for container health checks.
+    let (health, health_service) = tonic_health::server::health_reporter();
+    health.set_serving::<PeerServiceServer<PeerServer>>().await;
     let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
     let server = Server::builder()
+        .add_service(health_service)
         .add_service(peer_service)
         .serve_with_incoming(incoming);
     let control = control::run(

@@ -81,8 +81,9 @@ pub fn bound_footnote(
 ) -> String {
     let legend = "wall times are the coordinator's (frame start to last tile); other columns \
                   are medians over a schedule's successful runs, except idle (the mean over \
-                  workers and runs) and peak RSS (the largest worker); bundles per tier: \
-                  c control, r results, m migrated, t tasks.";
+                  workers and runs) and peak RSS (the largest worker's high-water mark since \
+                  it started: the same workers serve every run); bundles per tier: c control, \
+                  r results, m migrated, t tasks.";
     let Some(b) = bound else {
         return format!("no run succeeded, so there is no bound; {legend}");
     };

@@ -256,13 +256,17 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
         }
         None => run_local(&a, &plan)?,
     };
-    report(&a, &plan, &runs, &setup)
+    report(&a, &plan, &runs.runs, &setup)?;
+    match runs.stopped {
+        Some(why) => Err(anyhow!("the bench {why}")),
+        None => Ok(()),
+    }
 }
 
 /// Runs the bench on a local cluster started for it and stopped after it. Its data directory
-/// (logs, images) is `--keep-cluster-logs` or a temporary directory, which is kept when the
-/// bench fails so the logs can be read.
-fn run_local(a: &BenchArgs, plan: &Plan) -> anyhow::Result<(Vec<RunOutcome>, Setup)> {
+/// (logs, images) is `--keep-cluster-logs` or a temporary directory, which is kept when a run
+/// failed so the logs can be read.
+fn run_local(a: &BenchArgs, plan: &Plan) -> anyhow::Result<(BenchRuns, Setup)> {
     let workers = a.workers as usize;
     let threads = a
         .threads
@@ -286,9 +290,9 @@ fn run_local(a: &BenchArgs, plan: &Plan) -> anyhow::Result<(Vec<RunOutcome>, Set
     let result = runtime()?.block_on(with_local_cluster(&config, &in_flight, async |url| {
         bench(&url, plan, &in_flight).await
     }));
-    let failed = result
-        .as_ref()
-        .map_or(true, |runs| runs.iter().all(|r| r.result.is_err()));
+    let failed = result.as_ref().map_or(true, |b| {
+        b.stopped.is_some() || b.runs.iter().any(|r| r.result.is_err())
+    });
     match temp {
         Some(t) if failed => eprintln!(
             "kept the cluster's logs and results in {}",
@@ -354,9 +358,17 @@ fn setup(a: &BenchArgs, plan: &Plan, local: Option<(usize, u64, usize)>) -> Setu
     }
 }
 
+/// The runs of a bench, and why it stopped before the last one, if it did.
+struct BenchRuns {
+    runs: Vec<RunOutcome>,
+    stopped: Option<String>,
+}
+
 /// Renders every run of the plan on the cluster at `url`, one at a time, with a line on
-/// stderr per run. A failed run is recorded and the bench goes on.
-async fn bench(url: &str, plan: &Plan, in_flight: &JobInFlight) -> anyhow::Result<Vec<RunOutcome>> {
+/// stderr per run. A failed run is recorded and the bench goes on, unless the cluster itself
+/// is no longer the one measured (the coordinator stopped answering, or a worker left or
+/// joined): then it stops, keeping the runs so far.
+async fn bench(url: &str, plan: &Plan, in_flight: &JobInFlight) -> anyhow::Result<BenchRuns> {
     let mut coord = Coordinator::connect(url).await?;
     let status = coord
         .cluster_status()
@@ -382,8 +394,19 @@ async fn bench(url: &str, plan: &Plan, in_flight: &JobInFlight) -> anyhow::Resul
         plan.spec.max_depth,
         status.workers.len()
     );
+    let workers = status.workers.len();
     let mut runs = Vec::with_capacity(order.len());
     for (i, &(repeat, s)) in order.iter().enumerate() {
+        if i > 0
+            && let Some(why) = cluster_changed(&mut coord, workers).await
+        {
+            let stopped = format!("stopped after run {i} of {}: {why}", order.len());
+            eprintln!("{stopped}");
+            return Ok(BenchRuns {
+                runs,
+                stopped: Some(stopped),
+            });
+        }
         let (name, schedule) = &plan.schedules[s];
         eprint!(
             "run {}/{}: {name} (repeat {repeat}) ... ",
@@ -407,7 +430,23 @@ async fn bench(url: &str, plan: &Plan, in_flight: &JobInFlight) -> anyhow::Resul
             result,
         });
     }
-    Ok(runs)
+    Ok(BenchRuns {
+        runs,
+        stopped: None,
+    })
+}
+
+/// Why the cluster is no longer the one the bench started on, if it is not: the coordinator
+/// does not answer, or the number of registered workers changed.
+async fn cluster_changed(coord: &mut Coordinator, workers: usize) -> Option<String> {
+    match coord.cluster_status().await {
+        Err(e) => Some(format!("{e:#}")),
+        Ok(s) if s.workers.len() != workers => Some(format!(
+            "{} workers are registered, the bench started with {workers}",
+            s.workers.len()
+        )),
+        Ok(_) => None,
+    }
 }
 
 /// Submits one frame and follows it to its end: its job id (once submitted) and its

@@ -60,6 +60,7 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
             out: scene.clone(),
             domains: a.domains,
             force: true,
+            if_missing: false,
             name: Some("nbody".into()),
             generate: Some(Generator::Nbody),
             triangles: a.triangles,

@@ -4,6 +4,7 @@ pub mod bench;
 pub mod cancel;
 pub mod demo;
 pub mod fetch;
+pub mod health;
 pub mod jobs;
 pub mod prepare;
 pub mod render;

@@ -32,6 +32,10 @@ pub struct PrepareArgs {
     /// Replace `--out` if it exists.
     #[arg(long)]
     pub force: bool,
+    /// Do nothing if `--out` already holds a scene whose manifest and domain files check out
+    /// (for one-shot jobs that may run again, e.g. a docker-compose service).
+    #[arg(long, conflicts_with = "force")]
+    pub if_missing: bool,
     /// Scene name (default: the input's file stem or the generator's name).
     #[arg(long)]
     pub name: Option<String>,
@@ -59,6 +63,13 @@ pub struct PrepareArgs {
 }
 
 pub fn run(a: PrepareArgs) -> anyhow::Result<()> {
+    if a.if_missing
+        && let Ok(m) = rayfarm_common::scene::Manifest::load(&a.out)
+        && m.check_domains(&a.out, true).is_ok()
+    {
+        println!("{}: already prepared, left as it is", a.out.display());
+        return Ok(());
+    }
     let manifest = match (&a.generate, &a.input, &a.dims) {
         (Some(Generator::Nbody), None, None) => prepare_nbody(
             &a.out,

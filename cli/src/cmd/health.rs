@@ -1,0 +1,46 @@
+//! `rayfarm health ADDR`: the standard gRPC health check against a coordinator or a worker,
+//! for container health checks (the image has no shell or curl) and for scripts.
+
+use std::time::Duration;
+
+use anyhow::{Context, bail};
+use clap::Args;
+use tonic::transport::Endpoint;
+use tonic_health::pb::HealthCheckRequest;
+use tonic_health::pb::health_check_response::ServingStatus;
+use tonic_health::pb::health_client::HealthClient;
+
+use crate::client::{normalize_url, runtime};
+
+/// Options of `rayfarm health`.
+#[derive(Args, Clone, Debug)]
+pub struct HealthArgs {
+    /// Address of a rayfarm-coordinator or rayfarm-worker: HOST:PORT or http://HOST:PORT.
+    pub addr: String,
+    /// Seconds to wait for an answer.
+    #[arg(long, default_value_t = 3.0)]
+    pub timeout: f64,
+}
+
+pub fn run(a: HealthArgs) -> anyhow::Result<()> {
+    let url = normalize_url(&a.addr);
+    let timeout = Duration::try_from_secs_f64(a.timeout).context("--timeout")?;
+    let status = runtime()?.block_on(async {
+        let channel = Endpoint::from_shared(url.clone())?
+            .connect_timeout(timeout)
+            .timeout(timeout)
+            .connect()
+            .await
+            .with_context(|| format!("{url} is unreachable"))?;
+        let response = HealthClient::new(channel)
+            .check(HealthCheckRequest::default())
+            .await
+            .with_context(|| format!("{url} did not answer the health check"))?;
+        anyhow::Ok(response.into_inner().status())
+    })?;
+    if status != ServingStatus::Serving {
+        bail!("{url} is {}", status.as_str_name());
+    }
+    println!("{url}: serving");
+    Ok(())
+}
