@@ -1,0 +1,135 @@
+//! The deployment files parse and say what the README promises: the Kubernetes manifests
+//! (no cluster here, so they are checked as documents), the compose file's services, and the
+//! Slurm script's shell syntax.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use yaml_rust2::{Yaml, YamlLoader};
+
+fn deploy() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("workspace root")
+        .join("deploy")
+}
+
+fn documents(path: &Path) -> Vec<Yaml> {
+    let text = std::fs::read_to_string(path).expect("read yaml");
+    YamlLoader::load_from_str(&text).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+fn str_at<'a>(doc: &'a Yaml, path: &[&str]) -> Option<&'a str> {
+    path.iter()
+        .try_fold(doc, |d, k| match &d[*k] {
+            Yaml::BadValue => None,
+            v => Some(v),
+        })?
+        .as_str()
+}
+
+#[test]
+fn kubernetes_manifests_hold_the_promised_objects() {
+    let mut objects = Vec::new();
+    for entry in std::fs::read_dir(deploy().join("k8s")).expect("deploy/k8s") {
+        let path = entry.expect("entry").path();
+        for doc in documents(&path) {
+            let kind = str_at(&doc, &["kind"])
+                .expect("every object has a kind")
+                .to_string();
+            let name = str_at(&doc, &["metadata", "name"])
+                .expect("and a name")
+                .to_string();
+            assert!(
+                str_at(&doc, &["apiVersion"]).is_some(),
+                "{kind} {name}: apiVersion"
+            );
+            objects.push((kind, name, doc));
+        }
+    }
+    let find = |kind: &str, name: &str| {
+        objects
+            .iter()
+            .find(|(k, n, _)| k == kind && n == name)
+            .map(|(_, _, d)| d)
+            .unwrap_or_else(|| panic!("no {kind} {name}"))
+    };
+    find("Deployment", "rayfarm-coordinator");
+    find("Service", "rayfarm-coordinator");
+    find("Job", "rayfarm-prepare");
+    let headless = find("Service", "rayfarm-workers");
+    assert_eq!(str_at(headless, &["spec", "clusterIP"]), Some("None"));
+    let workers = find("StatefulSet", "rayfarm-worker");
+    assert_eq!(
+        str_at(workers, &["spec", "serviceName"]),
+        Some("rayfarm-workers")
+    );
+    let scenes = find("PersistentVolumeClaim", "rayfarm-scenes");
+    assert_eq!(
+        scenes["spec"]["accessModes"][0].as_str(),
+        Some("ReadWriteMany")
+    );
+    // Every pod runs the rayfarm image as a non-root user.
+    for (kind, name, doc) in &objects {
+        let pod = &doc["spec"]["template"]["spec"];
+        if pod.is_badvalue() {
+            continue;
+        }
+        assert_eq!(
+            pod["securityContext"]["runAsNonRoot"].as_bool(),
+            Some(true),
+            "{kind} {name}"
+        );
+        let image = pod["containers"][0]["image"].as_str().unwrap_or_default();
+        assert!(
+            image.starts_with("rayfarm:"),
+            "{kind} {name}: image {image}"
+        );
+    }
+    // Peers reach workers through the headless service's per-pod names.
+    let env = workers["spec"]["template"]["spec"]["containers"][0]["env"]
+        .as_vec()
+        .expect("worker env");
+    let advertise = env
+        .iter()
+        .find(|e| e["name"].as_str() == Some("RAYFARM_ADVERTISE"))
+        .and_then(|e| e["value"].as_str())
+        .expect("RAYFARM_ADVERTISE");
+    assert!(advertise.contains("rayfarm-workers"), "{advertise}");
+}
+
+#[test]
+fn the_compose_file_has_prepare_coordinator_and_scalable_workers() {
+    let docs = documents(&deploy().join("docker-compose.yml"));
+    let services = &docs[0]["services"];
+    for name in ["prepare", "coordinator", "worker"] {
+        assert!(!services[name].is_badvalue(), "service {name}");
+    }
+    assert!(
+        services["coordinator"]["ports"][0]
+            .as_str()
+            .is_some_and(|p| p.ends_with(":50051"))
+    );
+    assert!(!services["coordinator"]["healthcheck"].is_badvalue());
+    assert!(!services["worker"]["healthcheck"].is_badvalue());
+    assert!(!services["worker"]["deploy"]["replicas"].is_badvalue());
+    assert_eq!(
+        services["coordinator"]["depends_on"]["prepare"]["condition"].as_str(),
+        Some("service_completed_successfully")
+    );
+}
+
+#[test]
+fn the_slurm_script_is_valid_shell() {
+    let script = deploy().join("slurm/rayfarm.sbatch");
+    let out = Command::new("bash")
+        .arg("-n")
+        .arg(&script)
+        .output()
+        .expect("bash -n");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
