@@ -495,3 +495,58 @@ fn queues_past_their_memory_cap_spill_to_disk_and_past_the_spill_cap_fail_clearl
     let status = cluster.status();
     assert_eq!(status["workers"].as_array().map(Vec::len), Some(1));
 }
+
+#[test]
+fn a_worker_killed_mid_frame_costs_time_not_the_image() {
+    let root = tempfile::tempdir().expect("temp dir");
+    let scene = prepare(root.path(), "nb", 60_000, 16);
+    let (_, largest) = domain_bytes(&scene);
+    let frame = [
+        "--width", "192", "--height", "144", "--spp", "8", "--depth", "3",
+    ];
+    let expected = local_hash(&scene, &frame);
+    for schedule in ["dynamic", "domain", "hybrid", "image-plane"] {
+        // One-domain caches: many rounds, rays on every worker, so the kill lands mid-frame.
+        let mut cluster = Cluster::start(
+            root.path(),
+            Some("nb"),
+            &vec![WorkerOpts::cache(largest); 3],
+        );
+        let json = cluster.dir().join("killed.json");
+        let png = cluster.dir().join("killed.png");
+        let mut waiter = Command::new(bin("rayfarm"))
+            .args([
+                "submit",
+                "--wait",
+                "--quiet",
+                "-o",
+                s(&png),
+                "--stats-json",
+                s(&json),
+            ])
+            .args(["--schedule", schedule])
+            .args(frame)
+            .env("RAYFARM_COORDINATOR", cluster.coordinator_url())
+            .stdout(Stdio::null())
+            .spawn()
+            .expect("start rayfarm submit");
+        wait_until(
+            &format!("the {schedule} frame to start"),
+            Duration::from_secs(60),
+            || {
+                cluster.status()["running_job_id"]
+                    .as_str()
+                    .is_some_and(|j| !j.is_empty())
+            },
+        );
+        cluster.kill_worker(1);
+        let status = waiter.wait().expect("rayfarm submit ends");
+        assert!(
+            status.success(),
+            "{schedule}: the frame failed after a worker was killed"
+        );
+        assert_eq!(hash_of(&json), expected, "{schedule}");
+        // The killed worker was a member and never reported: the frame really lost it.
+        assert_eq!(stats_field(&json, "/workers"), 2, "{schedule}");
+    }
+}

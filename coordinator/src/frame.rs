@@ -188,9 +188,59 @@ impl RunningFrame {
         self.members.keys().copied()
     }
 
-    /// Removes a worker (it was lost); true if it took part.
-    pub fn remove(&mut self, key: u32) -> bool {
-        self.members.remove(&key).is_some()
+    /// A member is gone, and every unfinished tile may have had rays on it: bumps their
+    /// epochs (dropping their partial sums), tells the others to drop those tiles' old rays
+    /// and to send nothing more to the lost worker, and deals the tiles' camera rays again;
+    /// the domain and hybrid schedules get new owners. Returns `None` if the worker took no
+    /// part, and no messages if no member is left (the caller decides the job's fate).
+    pub fn lose(&mut self, key: u32) -> Option<Vec<Outgoing>> {
+        let lost = self.members.remove(&key)?;
+        if self.members.is_empty() {
+            return Some(Vec::new());
+        }
+        let unfinished: Vec<u32> = self.ledger.unfinished().collect();
+        let bumped = self.ledger.bump(&unfinished);
+        info!(tiles = bumped.len(), "epochs bumped after losing a worker");
+        let bump = proto::EpochBump {
+            job_id: self.job_id.clone(),
+            epochs: bumped.iter().copied().collect(),
+            lost_peers: vec![lost.peer_address],
+        };
+        let keys: Vec<u32> = self.members.keys().copied().collect();
+        let mut out: Vec<Outgoing> = keys
+            .iter()
+            .map(|&k| (k, msg(Body::EpochBump(bump.clone()))))
+            .collect();
+        // What members reported before the bump counted rays they have now dropped.
+        for m in self.members.values_mut() {
+            m.report = None;
+        }
+        let tiles: Vec<u32> = bumped.into_iter().map(|(t, _)| t).collect();
+        if self.schedule == Schedule::Hybrid {
+            // Whoever runs dry first takes them, as before.
+            self.pending_tiles = tiles.into();
+            for &k in &keys {
+                let tiles = self.hand_out();
+                out.push((k, self.hand_out_message(tiles)));
+            }
+        } else {
+            let n = keys.len();
+            for (i, &k) in keys.iter().enumerate() {
+                let share = tiles.iter().copied().skip(i).step_by(n).collect();
+                out.push((k, self.hand_out_message(share)));
+            }
+        }
+        if matches!(self.schedule, Schedule::Domain | Schedule::Hybrid) {
+            out.extend(self.owner_plans());
+        }
+        Some(out)
+    }
+
+    fn hand_out_message(&self, tiles: Vec<u32>) -> proto::CoordinatorMessage {
+        msg(Body::HandOutTiles(proto::HandOutTiles {
+            job_id: self.job_id.clone(),
+            tiles,
+        }))
     }
 
     /// Records a queue report; under the dynamic schedule, returns the next round's plans
@@ -206,11 +256,7 @@ impl RunningFrame {
             // A worker reports when it has run dry: hand it more demand-driven work.
             Schedule::Hybrid if !self.pending_tiles.is_empty() => {
                 let tiles = self.hand_out();
-                let body = Body::HandOutTiles(proto::HandOutTiles {
-                    job_id: self.job_id.clone(),
-                    tiles,
-                });
-                vec![(key, msg(body))]
+                vec![(key, self.hand_out_message(tiles))]
             }
             _ => Vec::new(),
         }

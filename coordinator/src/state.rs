@@ -419,14 +419,23 @@ impl Coordinator {
                 let _ = done.send(());
             }
         }
-        let member = st.running.as_mut().is_some_and(|f| f.remove(key));
-        if member {
-            let msg = format!(
-                "worker {} was lost mid-frame ({why}); re-issuing its work is not implemented yet",
-                worker.id
-            );
-            self.fail_running(&mut st, &msg);
+        let Some(out) = st.running.as_mut().and_then(|f| f.lose(key)) else {
+            return;
+        };
+        if out.is_empty() {
+            // No worker left: the job goes back to the front of its priority class and
+            // starts over when workers come back.
+            if let Some(frame) = st.running.take() {
+                warn!(job = %frame.job_id, "every worker of the frame is gone: job re-queued");
+                let seq = st.jobs.get(&frame.job_id).map_or(0, |j| j.seq);
+                st.queue
+                    .push(frame.job_id.clone(), frame.spec.priority, seq);
+                set_state(&mut st, &frame.job_id, JobState::Queued, "");
+            }
+            return;
         }
+        info!(worker = %worker.id, "re-issuing the unfinished tiles on the remaining workers");
+        send(&st, out);
     }
 
     /// Drops workers that have been silent longer than the timeout.

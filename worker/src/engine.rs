@@ -153,7 +153,11 @@ impl Engine {
                 Some(FromCoordinator::RoundPlan(p)) => self.round_plan(p),
                 Some(FromCoordinator::EpochBump(b)) => {
                     let bumped = match self.frame.as_mut().filter(|f| f.job_id == b.job_id) {
-                        Some(f) => f.bump_epochs(&b.epochs.into_iter().collect()),
+                        Some(f) => {
+                            warn!(tiles = b.epochs.len(), lost = ?b.lost_peers, "epochs bumped");
+                            f.forget_peers(&b.lost_peers);
+                            f.bump_epochs(&b.epochs.into_iter().collect())
+                        }
                         None => Ok(()),
                     };
                     if let Err(e) = bumped {

@@ -267,13 +267,25 @@ impl Frame {
         self.queues.spilled_total
     }
 
-    /// Drops queued rays of the given tiles older than their new epochs.
+    /// Sends nothing more to `peers` (they are gone); their domains' rays wait here for the
+    /// next plan.
+    pub fn forget_peers(&mut self, peers: &[String]) {
+        for holders in self.holders.values_mut() {
+            holders.retain(|h| !peers.contains(h));
+        }
+        self.holders.retain(|_, hs| !hs.is_empty());
+    }
+
+    /// Drops queued rays of the given tiles older than their new epochs. Their camera rays
+    /// are not issued here any more: the coordinator deals them again.
     pub fn bump_epochs(&mut self, bumps: &BTreeMap<u32, u32>) -> Result<(), QueueError> {
         for (&tile, &epoch) in bumps {
             if let Some(e) = self.epochs.get_mut(tile as usize) {
                 *e = (*e).max(epoch);
             }
         }
+        self.to_issue.retain(|t| !bumps.contains_key(t));
+        self.reported = false;
         let epochs = &self.epochs;
         self.queues
             .retain(|r| epochs.get(r.tile as usize) == Some(&r.epoch))
