@@ -112,6 +112,21 @@ fn wait_until(what: &str, timeout: Duration, mut check: impl FnMut() -> bool) {
     }
 }
 
+/// Waits for a child process with a timeout, killing it and failing the test after.
+fn wait_child(child: &mut std::process::Child, what: &str, timeout: Duration) -> bool {
+    let start = Instant::now();
+    loop {
+        if let Some(status) = child.try_wait().expect("child status") {
+            return status.success();
+        }
+        if start.elapsed() > timeout {
+            let _ = child.kill();
+            panic!("{what} did not end within {timeout:?}");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
 fn submit(cluster: &Cluster, frame: &[&str], extra: &[&str]) -> String {
     let mut args = vec!["submit"];
     args.extend_from_slice(frame);
@@ -318,8 +333,8 @@ fn a_worker_started_mid_frame_gets_work_in_the_next_round() {
         cluster.status()["round"].as_u64() >= Some(2)
     });
     cluster.add_worker(&WorkerOpts::cache(largest));
-    let status = waiter.wait().expect("rayfarm submit ends");
-    assert!(status.success(), "submit --wait failed: {status}");
+    let ok = wait_child(&mut waiter, "the frame", Duration::from_secs(120));
+    assert!(ok, "submit --wait failed");
     assert_eq!(hash_of(&json), local_hash(&scene, &frame));
     let per_worker = stats_field(&json, "/per_worker");
     let per_worker = per_worker.as_array().expect("per-worker stats");
@@ -540,13 +555,53 @@ fn a_worker_killed_mid_frame_costs_time_not_the_image() {
             },
         );
         cluster.kill_worker(1);
-        let status = waiter.wait().expect("rayfarm submit ends");
-        assert!(
-            status.success(),
-            "{schedule}: the frame failed after a worker was killed"
-        );
+        let ok = wait_child(&mut waiter, "the frame", Duration::from_secs(120));
+        assert!(ok, "{schedule}: the frame failed after a worker was killed");
         assert_eq!(hash_of(&json), expected, "{schedule}");
         // The killed worker was a member and never reported: the frame really lost it.
         assert_eq!(stats_field(&json, "/workers"), 2, "{schedule}");
     }
+}
+
+#[test]
+fn two_of_four_workers_killed_at_once_and_a_replacement_joining_keep_the_image() {
+    let root = tempfile::tempdir().expect("temp dir");
+    let scene = prepare(root.path(), "nb", 60_000, 16);
+    let (_, largest) = domain_bytes(&scene);
+    let frame = [
+        "--width", "192", "--height", "144", "--spp", "8", "--depth", "3",
+    ];
+    let mut cluster = Cluster::start(
+        root.path(),
+        Some("nb"),
+        &vec![WorkerOpts::cache(largest); 4],
+    );
+    let json = cluster.dir().join("two.json");
+    let png = cluster.dir().join("two.png");
+    let mut waiter = Command::new(bin("rayfarm"))
+        .args([
+            "submit",
+            "--wait",
+            "--quiet",
+            "-o",
+            s(&png),
+            "--stats-json",
+            s(&json),
+        ])
+        .args(frame)
+        .env("RAYFARM_COORDINATOR", cluster.coordinator_url())
+        .stdout(Stdio::null())
+        .spawn()
+        .expect("start rayfarm submit");
+    wait_until("round 1 of the frame", Duration::from_secs(60), || {
+        cluster.status()["round"].as_u64() >= Some(1)
+    });
+    cluster.kill_worker(1);
+    cluster.kill_worker(2);
+    cluster.add_worker(&WorkerOpts::cache(largest));
+    let ok = wait_child(&mut waiter, "the frame", Duration::from_secs(120));
+    assert!(ok, "the frame failed after losing two workers");
+    assert_eq!(hash_of(&json), local_hash(&scene, &frame));
+    let reporting = stats_field(&json, "/workers").as_u64().unwrap_or(0);
+    assert!(reporting <= 3, "the killed workers cannot have reported");
 }

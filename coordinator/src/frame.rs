@@ -105,6 +105,10 @@ impl RunningFrame {
             tile_size: TILE_SIZE,
             primary_tiles: tiles,
             round: self.round,
+            epochs: (0..self.ledger.grid().count())
+                .filter_map(|t| Some((t, self.ledger.epoch(t)?)))
+                .filter(|&(_, e)| e > 0)
+                .collect(),
         }))
     }
 

@@ -299,6 +299,11 @@ impl Engine {
             queues,
         );
         frame.round = s.round;
+        for (&tile, &epoch) in &s.epochs {
+            if let Some(e) = frame.epochs.get_mut(tile as usize) {
+                *e = epoch;
+            }
+        }
         Ok(frame)
     }
 
