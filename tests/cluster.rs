@@ -112,6 +112,32 @@ fn wait_until(what: &str, timeout: Duration, mut check: impl FnMut() -> bool) {
     }
 }
 
+/// Starts `rayfarm submit --wait` for `frame` in the background (the test acts meanwhile).
+fn spawn_submit_wait(
+    cluster: &Cluster,
+    frame: &[&str],
+    extra: &[&str],
+    png: &Path,
+    json: &Path,
+) -> std::process::Child {
+    Command::new(bin("rayfarm"))
+        .args([
+            "submit",
+            "--wait",
+            "--quiet",
+            "-o",
+            s(png),
+            "--stats-json",
+            s(json),
+        ])
+        .args(extra)
+        .args(frame)
+        .env("RAYFARM_COORDINATOR", cluster.coordinator_url())
+        .stdout(Stdio::null())
+        .spawn()
+        .expect("start rayfarm submit")
+}
+
 /// Waits for a child process with a timeout, killing it and failing the test after.
 fn wait_child(child: &mut std::process::Child, what: &str, timeout: Duration) -> bool {
     let start = Instant::now();
@@ -314,21 +340,7 @@ fn a_worker_started_mid_frame_gets_work_in_the_next_round() {
     let mut cluster = Cluster::start(root.path(), Some("nb"), &[WorkerOpts::cache(largest)]);
     let json = cluster.dir().join("join.json");
     let png = cluster.dir().join("join.png");
-    let mut waiter = Command::new(bin("rayfarm"))
-        .args([
-            "submit",
-            "--wait",
-            "--quiet",
-            "-o",
-            s(&png),
-            "--stats-json",
-            s(&json),
-        ])
-        .args(frame)
-        .env("RAYFARM_COORDINATOR", cluster.coordinator_url())
-        .stdout(Stdio::null())
-        .spawn()
-        .expect("start rayfarm submit");
+    let mut waiter = spawn_submit_wait(&cluster, &frame, &[], &png, &json);
     wait_until("round 2 of the frame", Duration::from_secs(60), || {
         cluster.status()["round"].as_u64() >= Some(2)
     });
@@ -529,22 +541,8 @@ fn a_worker_killed_mid_frame_costs_time_not_the_image() {
         );
         let json = cluster.dir().join("killed.json");
         let png = cluster.dir().join("killed.png");
-        let mut waiter = Command::new(bin("rayfarm"))
-            .args([
-                "submit",
-                "--wait",
-                "--quiet",
-                "-o",
-                s(&png),
-                "--stats-json",
-                s(&json),
-            ])
-            .args(["--schedule", schedule])
-            .args(frame)
-            .env("RAYFARM_COORDINATOR", cluster.coordinator_url())
-            .stdout(Stdio::null())
-            .spawn()
-            .expect("start rayfarm submit");
+        let mut waiter =
+            spawn_submit_wait(&cluster, &frame, &["--schedule", schedule], &png, &json);
         wait_until(
             &format!("the {schedule} frame to start"),
             Duration::from_secs(60),
@@ -578,21 +576,7 @@ fn two_of_four_workers_killed_at_once_and_a_replacement_joining_keep_the_image()
     );
     let json = cluster.dir().join("two.json");
     let png = cluster.dir().join("two.png");
-    let mut waiter = Command::new(bin("rayfarm"))
-        .args([
-            "submit",
-            "--wait",
-            "--quiet",
-            "-o",
-            s(&png),
-            "--stats-json",
-            s(&json),
-        ])
-        .args(frame)
-        .env("RAYFARM_COORDINATOR", cluster.coordinator_url())
-        .stdout(Stdio::null())
-        .spawn()
-        .expect("start rayfarm submit");
+    let mut waiter = spawn_submit_wait(&cluster, &frame, &[], &png, &json);
     wait_until("round 1 of the frame", Duration::from_secs(60), || {
         cluster.status()["round"].as_u64() >= Some(1)
     });

@@ -1,7 +1,9 @@
 //! Logging and process lifecycle shared by the binaries: logs go to stderr (stdout is for
 //! results and the `listening on` line), coloured only on a terminal.
 
+use std::future::Future;
 use std::io::IsTerminal;
+use std::process::ExitCode;
 
 use tracing_subscriber::EnvFilter;
 
@@ -31,4 +33,37 @@ pub async fn shutdown_signal() {
     }
     // Without a signal handler there is nothing to wait for but Ctrl-C.
     let _ = tokio::signal::ctrl_c().await;
+}
+
+/// The `main` of a server binary: logging at the level `-v` asks for, a tokio runtime (with
+/// `worker_threads` threads, or one per core), then `run`; an error is logged, printed and
+/// turned into a failing exit code.
+pub fn server_main<F>(verbose: u8, worker_threads: Option<usize>, run: F) -> ExitCode
+where
+    F: Future<Output = anyhow::Result<()>>,
+{
+    init_logging(match verbose {
+        0 => "info",
+        1 => "debug",
+        _ => "trace",
+    });
+    let mut builder = tokio::runtime::Builder::new_multi_thread();
+    if let Some(n) = worker_threads {
+        builder.worker_threads(n);
+    }
+    let runtime = match builder.enable_all().build() {
+        Ok(r) => r,
+        Err(e) => {
+            tracing::error!(error = %e, "cannot start the runtime");
+            return ExitCode::FAILURE;
+        }
+    };
+    match runtime.block_on(run) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            tracing::error!("{e:#}");
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
 }

@@ -21,7 +21,7 @@ use rayfarm_common::proto::worker_control_server::WorkerControlServer;
 use rayfarm_common::schedule::dynamic::Options;
 use tonic::transport::Server;
 use tonic::transport::server::TcpIncoming;
-use tracing::{error, info};
+use tracing::info;
 
 use crate::state::{Config, Coordinator};
 
@@ -71,27 +71,7 @@ struct Args {
 
 fn main() -> std::process::ExitCode {
     let args = Args::parse();
-    let default = match args.verbose {
-        0 => "info",
-        1 => "debug",
-        _ => "trace",
-    };
-    rayfarm_common::telemetry::init_logging(default);
-    let runtime = match tokio::runtime::Runtime::new() {
-        Ok(r) => r,
-        Err(e) => {
-            error!(error = %e, "cannot start the runtime");
-            return std::process::ExitCode::FAILURE;
-        }
-    };
-    match runtime.block_on(run(args)) {
-        Ok(()) => std::process::ExitCode::SUCCESS,
-        Err(e) => {
-            error!("{e:#}");
-            eprintln!("error: {e:#}");
-            std::process::ExitCode::FAILURE
-        }
-    }
+    rayfarm_common::telemetry::server_main(args.verbose, None, run(args))
 }
 
 async fn run(args: Args) -> anyhow::Result<()> {

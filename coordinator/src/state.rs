@@ -8,7 +8,7 @@ use std::path::PathBuf;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
-use rayfarm_common::cluster::job::{frame_spec, schedule_name};
+use rayfarm_common::cluster::job::{frame_spec, schedule_name, state_name};
 use rayfarm_common::cluster::scene_ref;
 use rayfarm_common::cluster::stats::{ClusterStats, WorkerFrameStats};
 use rayfarm_common::proto::{
@@ -598,17 +598,6 @@ impl Coordinator {
 
 fn not_found(id: &str) -> Status {
     Status::not_found(format!("no job {id}"))
-}
-
-fn state_name(state: JobState) -> &'static str {
-    match state {
-        JobState::Unspecified => "unknown",
-        JobState::Queued => "queued",
-        JobState::Running => "running",
-        JobState::Succeeded => "succeeded",
-        JobState::Failed => "failed",
-        JobState::Cancelled => "cancelled",
-    }
 }
 
 fn send(st: &State, out: Vec<Outgoing>) {

@@ -21,7 +21,7 @@ use rayfarm_common::render::cache::StorageModel;
 use tokio::sync::mpsc;
 use tonic::transport::Server;
 use tonic::transport::server::TcpIncoming;
-use tracing::{error, info};
+use tracing::info;
 
 use crate::engine::{Engine, EngineConfig};
 use crate::peers::{MAX_MESSAGE_BYTES, PeerLinks, PeerServer};
@@ -114,35 +114,8 @@ fn parse_duration(s: &str) -> Result<Duration, String> {
 
 fn main() -> std::process::ExitCode {
     let args = Args::parse();
-    init_logging(args.verbose);
-    let runtime = match tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-    {
-        Ok(r) => r,
-        Err(e) => {
-            error!(error = %e, "cannot start the runtime");
-            return std::process::ExitCode::FAILURE;
-        }
-    };
-    match runtime.block_on(run(args)) {
-        Ok(()) => std::process::ExitCode::SUCCESS,
-        Err(e) => {
-            error!("{e:#}");
-            eprintln!("error: {e:#}");
-            std::process::ExitCode::FAILURE
-        }
-    }
-}
-
-fn init_logging(verbose: u8) {
-    let default = match verbose {
-        0 => "info",
-        1 => "debug",
-        _ => "trace",
-    };
-    rayfarm_common::telemetry::init_logging(default);
+    // Two async threads route and talk; tracing has its own pool.
+    rayfarm_common::telemetry::server_main(args.verbose, Some(2), run(args))
 }
 
 async fn run(args: Args) -> anyhow::Result<()> {

@@ -38,17 +38,7 @@ pub fn run(a: WatchArgs) -> anyhow::Result<()> {
     })
 }
 
-/// The lower-case name of a job state, as the CLI prints it.
-pub fn state_name(state: JobState) -> &'static str {
-    match state {
-        JobState::Unspecified => "unknown",
-        JobState::Queued => "queued",
-        JobState::Running => "running",
-        JobState::Succeeded => "succeeded",
-        JobState::Failed => "failed",
-        JobState::Cancelled => "cancelled",
-    }
-}
+pub use rayfarm_common::cluster::job::state_name;
 
 /// Whether a job in `state` will not change any more.
 pub fn is_final(state: JobState) -> bool {

@@ -36,6 +36,18 @@ pub fn schedule_name(schedule: proto::Schedule) -> &'static str {
         .map_or("dynamic", |(n, _)| n)
 }
 
+/// The lower-case name of a job state, as users see it.
+pub fn state_name(state: proto::JobState) -> &'static str {
+    match state {
+        proto::JobState::Unspecified => "unknown",
+        proto::JobState::Queued => "queued",
+        proto::JobState::Running => "running",
+        proto::JobState::Succeeded => "succeeded",
+        proto::JobState::Failed => "failed",
+        proto::JobState::Cancelled => "cancelled",
+    }
+}
+
 /// The frame of a job: size, samples, depth and camera, checked like `render --local`'s.
 /// Camera fields the job leaves empty (or a zero field of view) keep the scene's.
 pub fn frame_spec(spec: &proto::JobSpec, scene_camera: &Camera) -> Result<FrameSpec, String> {
