@@ -1,12 +1,7 @@
 //! Command-line values: human-friendly byte sizes ("512MiB", "2G", "1000000") and X,Y,Z triples.
 
 /// Parses a byte size for clap.
-pub fn bytes(s: &str) -> Result<u64, String> {
-    parse_size::Config::new()
-        .with_binary()
-        .parse_size(s)
-        .map_err(|e| format!("{s:?} is not a byte size ({e}); try 512MiB or 2GiB"))
-}
+pub use rayfarm_common::units::parse_bytes as bytes;
 
 /// Formats a byte count for tables.
 pub fn human(bytes: u64) -> String {

@@ -20,5 +20,6 @@ pub mod sampling;
 pub mod scene;
 pub mod schedule;
 pub mod telemetry;
+pub mod units;
 pub mod volume;
 pub mod wire;

@@ -18,6 +18,7 @@ use clap::Parser;
 use rayfarm_common::bundler::BundlerConfig;
 use rayfarm_common::proto::peer_service_server::PeerServiceServer;
 use rayfarm_common::render::cache::StorageModel;
+use rayfarm_common::units::{parse_bytes, parse_rate};
 use tokio::sync::mpsc;
 use tonic::transport::Server;
 use tonic::transport::server::TcpIncoming;
@@ -82,15 +83,6 @@ struct Args {
     /// More log output (-v info, -vv debug); RUST_LOG overrides.
     #[arg(short, long, action = clap::ArgAction::Count)]
     verbose: u8,
-}
-
-fn parse_bytes(s: &str) -> Result<u64, String> {
-    parse_size::parse_size(s).map_err(|e| format!("{s:?}: {e}"))
-}
-
-/// A rate such as `200MiB/s` (the `/s` is optional).
-fn parse_rate(s: &str) -> Result<u64, String> {
-    parse_bytes(s.trim().trim_end_matches("/s"))
 }
 
 /// A duration such as `5ms`, `1.5s` or `200us`.

@@ -139,16 +139,9 @@ pub struct Rate {
 /// Parses a bandwidth for clap: a byte size per second, "100MiB/s" (the "/s" may be left
 /// out).
 pub fn parse_rate(s: &str) -> Result<Rate, String> {
-    let t = s.trim();
-    let size = t.strip_suffix("/s").unwrap_or(t).trim();
-    let bytes_per_second = units::bytes(size)
-        .map_err(|_| format!("{s:?} is not a bandwidth; try 100MiB/s or 1GiB/s"))?;
-    if bytes_per_second == 0 {
-        return Err(format!("bandwidth {s:?} must be more than zero"));
-    }
     Ok(Rate {
-        text: t.to_string(),
-        bytes_per_second,
+        text: s.trim().to_string(),
+        bytes_per_second: rayfarm_common::units::parse_rate(s)?,
     })
 }
 
