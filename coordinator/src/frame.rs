@@ -11,13 +11,30 @@ use rayfarm_common::cluster::tile_sums;
 use rayfarm_common::frame::{Accept, FrameLedger, TILE_CREDIT, TileGrid};
 use rayfarm_common::proto::{self, Schedule, coordinator_message::Body};
 use rayfarm_common::render::local::FrameSpec;
-use rayfarm_common::schedule::dynamic::{Options, next_round_with};
+use rayfarm_common::schedule::dynamic::{Options, defer_small_queues, next_round_with};
 use rayfarm_common::schedule::static_plans::{domain_owner, image_plane_share};
 use rayfarm_common::schedule::{ClusterState, DomainId, WorkerId, WorkerState};
 use tracing::{debug, info};
 
 /// A message for one worker, by the coordinator's worker key.
 pub type Outgoing = (u32, proto::CoordinatorMessage);
+
+/// Asynchronous rounds: while some worker is busy, an unheld domain waits until its queue
+/// has at least this fraction (1/n) of the fullest queue's rays.
+const DEFER_FACTOR: u64 = 8;
+
+/// How the dynamic schedule's rounds advance.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum Rounds {
+    /// Fig. 5 as written: a round is planned when every worker has reported, so each round
+    /// waits for its slowest worker.
+    Barrier,
+    /// A worker that runs dry is planned at once from the latest reports of all (the busy
+    /// ones' are older); the others learn the new holders and go on. No worker waits for
+    /// another, at the price of planning on older figures.
+    #[default]
+    Async,
+}
 
 /// What the frame needs to know about a worker.
 #[derive(Clone, Debug)]
@@ -28,6 +45,10 @@ pub struct Member {
     report: Option<proto::QueueReport>,
     /// Segments it has traced for this frame (latest figure it sent).
     segments: u64,
+    /// Domains of its current plan (asynchronous rounds).
+    plan: BTreeSet<u32>,
+    /// Round of its current plan: a report of that round or later means it has run dry.
+    planned_round: u64,
 }
 
 impl Member {
@@ -37,7 +58,16 @@ impl Member {
             cache_bytes,
             report: None,
             segments: 0,
+            plan: BTreeSet::new(),
+            planned_round: 0,
         }
+    }
+
+    /// Whether it has run out of work since its last plan.
+    fn is_dry(&self) -> bool {
+        self.report
+            .as_ref()
+            .is_some_and(|r| r.round >= self.planned_round)
     }
 }
 
@@ -55,6 +85,7 @@ pub struct RunningFrame {
     /// Domain loads the plans asked for.
     pub planned_loads: u64,
     options: Options,
+    rounds: Rounds,
     /// Tiles not yet handed out (hybrid: demand-driven work for workers that run dry).
     pending_tiles: std::collections::VecDeque<u32>,
     /// Tiles per hand-out.
@@ -73,6 +104,7 @@ impl RunningFrame {
         frame: FrameSpec,
         domain_bytes: Vec<u64>,
         options: Options,
+        rounds: Rounds,
     ) -> Result<Self, String> {
         let grid = TileGrid::new(frame.width, frame.height, TILE_SIZE)
             .ok_or_else(|| "the image does not fit the tile grid".to_string())?;
@@ -93,6 +125,7 @@ impl RunningFrame {
             started: Instant::now(),
             planned_loads: 0,
             options,
+            rounds,
             pending_tiles: Default::default(),
             batch: 1,
         })
@@ -256,7 +289,10 @@ impl RunningFrame {
         };
         member.report = Some(report);
         match self.schedule {
-            Schedule::Dynamic | Schedule::Unspecified => self.plan_if_round_over(),
+            Schedule::Dynamic | Schedule::Unspecified => match self.rounds {
+                Rounds::Barrier => self.plan_if_round_over(),
+                Rounds::Async => self.plan_dry_members(),
+            },
             // A worker reports when it has run dry: hand it more demand-driven work.
             Schedule::Hybrid if !self.pending_tiles.is_empty() => {
                 let tiles = self.hand_out();
@@ -317,6 +353,134 @@ impl RunningFrame {
                 (p.worker.0, msg(body))
             })
             .collect()
+    }
+
+    /// Asynchronous rounds: plans every member that has run dry, from the latest reports of
+    /// all. Busy members keep their plans: the schedule sees them holding exactly what they
+    /// work on, with no free slot. A dry member whose plan would not change is left waiting
+    /// (its rays are elsewhere or on the wire); the next report plans it again. Members whose
+    /// plan did not change learn the new holders.
+    fn plan_dry_members(&mut self) -> Vec<Outgoing> {
+        let dry: BTreeSet<u32> = self
+            .members
+            .iter()
+            .filter(|(_, m)| m.is_dry())
+            .map(|(&k, _)| k)
+            .collect();
+        if dry.is_empty() {
+            return Vec::new();
+        }
+        let Some(mut state) = self.cluster_state_async(&dry) else {
+            return Vec::new();
+        };
+        if !state.has_rays() {
+            return Vec::new();
+        }
+        if dry.len() < self.members.len() {
+            state = defer_small_queues(&state, DEFER_FACTOR);
+        }
+        let plan = next_round_with(&state, self.options);
+        let changed: Vec<_> = plan
+            .workers()
+            .iter()
+            .filter(|p| dry.contains(&p.worker.0))
+            .filter(|p| {
+                let work: BTreeSet<u32> = p.work().map(|d| d.0).collect();
+                !p.evict.is_empty() || work != self.members[&p.worker.0].plan
+            })
+            .collect();
+        if changed.is_empty() {
+            return Vec::new();
+        }
+        self.round += 1;
+        for p in &changed {
+            self.planned_loads += p.load.len() as u64;
+            if let Some(m) = self.members.get_mut(&p.worker.0) {
+                m.plan = p.work().map(|d| d.0).collect();
+                m.planned_round = self.round;
+            }
+        }
+        let holders = self.current_holders();
+        debug!(
+            round = self.round,
+            planned = changed.len(),
+            "dry workers planned"
+        );
+        let mut out: Vec<Outgoing> = changed
+            .iter()
+            .map(|p| {
+                let body = Body::RoundPlan(proto::RoundPlan {
+                    job_id: self.job_id.clone(),
+                    round: self.round,
+                    work_on: p.work().map(|d| d.0).collect(),
+                    evict: p.evict.iter().map(|d| d.0).collect(),
+                    holders: holders.clone(),
+                });
+                (p.worker.0, msg(body))
+            })
+            .collect();
+        let planned: BTreeSet<u32> = changed.iter().map(|p| p.worker.0).collect();
+        for &key in self.members.keys().filter(|k| !planned.contains(k)) {
+            let body = Body::Holders(proto::Holders {
+                job_id: self.job_id.clone(),
+                holders: holders.clone(),
+            });
+            out.push((key, msg(body)));
+        }
+        out
+    }
+
+    /// Every domain someone's current plan includes, with the peer addresses of its holders.
+    fn current_holders(&self) -> Vec<proto::DomainHolders> {
+        let mut by_domain: BTreeMap<u32, Vec<String>> = BTreeMap::new();
+        for m in self.members.values() {
+            for &d in &m.plan {
+                by_domain.entry(d).or_default().push(m.peer_address.clone());
+            }
+        }
+        by_domain
+            .into_iter()
+            .map(|(domain, workers)| proto::DomainHolders { domain, workers })
+            .collect()
+    }
+
+    /// The cluster for planning the `dry` members: their reports as they are; busy members
+    /// hold their plan and what they reported resident, with no slot to spare.
+    fn cluster_state_async(&self, dry: &BTreeSet<u32>) -> Option<ClusterState> {
+        let domains = self.domain_bytes.len() as u32;
+        let largest = self.domain_bytes.iter().copied().max().unwrap_or(1).max(1);
+        let mut queued: BTreeMap<DomainId, u64> = BTreeMap::new();
+        let mut workers = Vec::new();
+        for (&key, m) in &self.members {
+            let Some(report) = m.report.as_ref() else {
+                continue;
+            };
+            let mut resident: BTreeSet<DomainId> = report
+                .resident_domains
+                .iter()
+                .filter(|&&d| d < domains)
+                .map(|&d| DomainId(d))
+                .collect();
+            if dry.contains(&key) {
+                let capacity = ((m.cache_bytes / largest) as usize)
+                    .max(1)
+                    .max(resident.len());
+                workers.push(WorkerState::new(WorkerId(key), resident, capacity));
+            } else {
+                resident.extend(m.plan.iter().map(|&d| DomainId(d)));
+                // A busy member holding nothing has no place in the plan; its rays count.
+                if !resident.is_empty() {
+                    let capacity = resident.len();
+                    workers.push(WorkerState::new(WorkerId(key), resident, capacity));
+                }
+            }
+            for (&d, &n) in &report.queued_rays {
+                if d < domains {
+                    *queued.entry(DomainId(d)).or_default() += n;
+                }
+            }
+        }
+        ClusterState::new(workers, queued).ok()
     }
 
     /// The cluster as the schedule sees it, from the latest reports.

@@ -23,6 +23,7 @@ use tonic::transport::Server;
 use tonic::transport::server::TcpIncoming;
 use tracing::info;
 
+use crate::frame::Rounds;
 use crate::state::{Config, Coordinator};
 
 /// Largest gRPC message accepted or sent (tile results of a big pass, fetched images).
@@ -64,6 +65,10 @@ struct Args {
     /// `free-slots` fills every free cache slot with copies of wanted domains.
     #[arg(long, env = "RAYFARM_REPLICATE", value_enum, default_value_t = Replicate::FreeSlots)]
     replicate: Replicate,
+    /// How the dynamic schedule's rounds advance: `async` plans a worker as soon as it runs
+    /// dry; `barrier` (Fig. 5 as written) waits until every worker has reported.
+    #[arg(long, env = "RAYFARM_ROUNDS", value_enum, default_value_t = Rounds::Async)]
+    rounds: Rounds,
     /// More log output (-v debug, -vv trace); RUST_LOG overrides.
     #[arg(short, long, action = clap::ArgAction::Count)]
     verbose: u8,
@@ -94,6 +99,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
             replicate_onto_idle: matches!(args.replicate, Replicate::Idle),
             fill_free_slots: matches!(args.replicate, Replicate::FreeSlots),
         },
+        rounds: args.rounds,
     };
     info!(%bound, ?config, "coordinator up");
     let faults = Faults::from_env();

@@ -22,7 +22,7 @@ use tokio::sync::{mpsc, oneshot, watch};
 use tonic::Status;
 use tracing::{error, info, info_span, warn};
 
-use crate::frame::{Member, Outgoing, RunningFrame};
+use crate::frame::{Member, Outgoing, Rounds, RunningFrame};
 use crate::queue::JobQueue;
 use crate::results;
 
@@ -40,6 +40,8 @@ pub struct Config {
     pub report_timeout: Duration,
     /// Extensions of the dynamic schedule.
     pub schedule_options: Options,
+    /// How the dynamic schedule's rounds advance.
+    pub rounds: Rounds,
 }
 
 /// Where a worker's messages go.
@@ -508,6 +510,7 @@ impl Coordinator {
             frame,
             domain_bytes,
             self.config.schedule_options,
+            self.config.rounds,
         )
         .map_err(Status::invalid_argument)
     }

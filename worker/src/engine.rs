@@ -165,6 +165,7 @@ impl Engine {
                     }
                 }
                 Some(FromCoordinator::EndFrame(e)) => self.end_frame(&e.job_id),
+                Some(FromCoordinator::Holders(h)) => self.holders(h),
                 Some(FromCoordinator::HandOutTiles(h)) => {
                     if let Some(f) = self.frame.as_mut().filter(|f| f.job_id == h.job_id) {
                         let tiles = f.shared.grid.count();
@@ -332,6 +333,31 @@ impl Engine {
         let job_id = frame.job_id.clone();
         match frame.take_for_peers() {
             Ok(out) => {
+                for (peer, rays) in out {
+                    self.send_rays(&job_id, peer, &rays);
+                }
+                self.send_due_bundles();
+            }
+            Err(e) => self.fail_frame(e.to_string()),
+        }
+    }
+
+    /// Another worker's plan changed: rays waiting here for its domains go to it now.
+    fn holders(&mut self, h: proto::Holders) {
+        let Some(frame) = self.frame.as_mut().filter(|f| f.job_id == h.job_id) else {
+            return;
+        };
+        frame.set_holders(
+            h.holders.into_iter().map(|h| (h.domain, h.workers)),
+            &self.config.advertise,
+        );
+        let job_id = frame.job_id.clone();
+        match frame.take_for_peers() {
+            Ok(out) => {
+                // The coordinator counted these rays here: it must hear they left.
+                if !out.is_empty() {
+                    frame.reported = false;
+                }
                 for (peer, rays) in out {
                     self.send_rays(&job_id, peer, &rays);
                 }

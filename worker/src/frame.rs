@@ -135,6 +135,12 @@ impl Frame {
     ) {
         self.round = round;
         self.work_on = work_on.into_iter().collect();
+        self.set_holders(holders, me);
+        self.reported = false;
+    }
+
+    /// Adopts new holders of the domains, keeping this worker's own plan.
+    pub fn set_holders(&mut self, holders: impl IntoIterator<Item = (u32, Vec<String>)>, me: &str) {
         self.holders = holders
             .into_iter()
             .map(|(d, mut ws)| {
@@ -143,7 +149,6 @@ impl Frame {
             })
             .filter(|(_, ws)| !ws.is_empty())
             .collect();
-        self.reported = false;
     }
 
     /// Records which domains are mapped here now.
