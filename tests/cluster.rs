@@ -230,6 +230,29 @@ fn every_schedule_renders_the_local_image_with_one_to_four_workers() {
 }
 
 #[test]
+fn dynamic_rounds_with_a_barrier_render_the_local_image() {
+    // The default is asynchronous rounds; Fig. 5's barrier rounds must agree to the bit.
+    let root = tempfile::tempdir().expect("temp dir");
+    let scene = prepare(root.path(), "nb", 30_000, 8);
+    let (_, largest) = domain_bytes(&scene);
+    let expected = local_hash(&scene, &FRAME);
+    for n in [2, 4] {
+        let cluster = Cluster::start_with_env(
+            root.path(),
+            Some("nb"),
+            &[("RAYFARM_ROUNDS", "barrier")],
+            &vec![WorkerOpts::cache(largest); n],
+        );
+        let mut frame = FRAME.to_vec();
+        frame.extend(["--schedule", "dynamic", "--cold-cache"]);
+        let stats = submit_wait(&cluster, &frame, &format!("barrier-{n}"));
+        assert_eq!(hash_of(&stats), expected, "barrier rounds with {n} workers");
+        let rounds = stats_field(&stats, "/rounds").as_u64().unwrap_or(0);
+        assert!(rounds > 1, "{n} workers planned {rounds} rounds");
+    }
+}
+
+#[test]
 fn a_scene_four_times_the_cluster_cache_renders_identically() {
     let root = tempfile::tempdir().expect("temp dir");
     let scene = prepare(root.path(), "big", 60_000, 16);

@@ -400,6 +400,7 @@ impl RunningFrame {
                 m.planned_round = self.round;
             }
         }
+        self.move_queued_to_holders();
         let holders = self.current_holders();
         debug!(
             round = self.round,
@@ -428,6 +429,46 @@ impl RunningFrame {
             out.push((key, msg(body)));
         }
         out
+    }
+
+    /// Once told the new holders, a busy member sends its waiting rays for their domains to
+    /// them, but its next report may be far off: account for the move now, so that its older
+    /// figures do not keep a dry holder waiting on rays it has already traced.
+    fn move_queued_to_holders(&mut self) {
+        let holder_of: BTreeMap<u32, u32> = self
+            .members
+            .iter()
+            .flat_map(|(&k, m)| m.plan.iter().map(move |&d| (d, k)))
+            .collect();
+        let mut moved: BTreeMap<u32, BTreeMap<u32, u64>> = BTreeMap::new();
+        for m in self.members.values_mut() {
+            let Some(report) = m.report.as_mut() else {
+                continue;
+            };
+            let keeps = |d: &u32| m.plan.contains(d) || report.resident_domains.contains(d);
+            let leaving: Vec<u32> = report
+                .queued_rays
+                .keys()
+                .copied()
+                .filter(|d| holder_of.contains_key(d) && !keeps(d))
+                .collect();
+            for d in leaving {
+                if let Some(n) = report.queued_rays.remove(&d) {
+                    *moved
+                        .entry(holder_of[&d])
+                        .or_default()
+                        .entry(d)
+                        .or_default() += n;
+                }
+            }
+        }
+        for (key, queues) in moved {
+            if let Some(report) = self.members.get_mut(&key).and_then(|m| m.report.as_mut()) {
+                for (d, n) in queues {
+                    *report.queued_rays.entry(d).or_default() += n;
+                }
+            }
+        }
     }
 
     /// Every domain someone's current plan includes, with the peer addresses of its holders.
