@@ -11,17 +11,13 @@ use rayfarm_common::cluster::tile_sums;
 use rayfarm_common::frame::{Accept, FrameLedger, TILE_CREDIT, TileGrid};
 use rayfarm_common::proto::{self, Schedule, coordinator_message::Body};
 use rayfarm_common::render::local::FrameSpec;
-use rayfarm_common::schedule::dynamic::{Options, defer_small_queues, next_round_with};
+use rayfarm_common::schedule::dynamic::{Options, next_round_with};
 use rayfarm_common::schedule::static_plans::{domain_owner, image_plane_share};
 use rayfarm_common::schedule::{ClusterState, DomainId, WorkerId, WorkerState};
 use tracing::{debug, info};
 
 /// A message for one worker, by the coordinator's worker key.
 pub type Outgoing = (u32, proto::CoordinatorMessage);
-
-/// Asynchronous rounds: while some worker is busy, an unheld domain waits until its queue
-/// has at least this fraction (1/n) of the fullest queue's rays.
-const DEFER_FACTOR: u64 = 8;
 
 /// How the dynamic schedule's rounds advance.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
@@ -370,14 +366,11 @@ impl RunningFrame {
         if dry.is_empty() {
             return Vec::new();
         }
-        let Some(mut state) = self.cluster_state_async(&dry) else {
+        let Some(state) = self.cluster_state_async(&dry) else {
             return Vec::new();
         };
         if !state.has_rays() {
             return Vec::new();
-        }
-        if dry.len() < self.members.len() {
-            state = defer_small_queues(&state, DEFER_FACTOR);
         }
         let plan = next_round_with(&state, self.options);
         let changed: Vec<_> = plan

@@ -160,29 +160,6 @@ pub fn next_round_with(state: &ClusterState, options: Options) -> RoundPlan {
     }
 }
 
-/// For asynchronous rounds, while some worker is still busy: the state without the queues of
-/// domains no worker holds that have fewer than `1/factor` of the fullest queue's rays. Such a
-/// queue is still growing from the busy workers' rays, and loading its domain now would pay a
-/// whole load for a few rays; it is planned once it has grown or once everyone has run dry.
-pub fn defer_small_queues(state: &ClusterState, factor: u64) -> ClusterState {
-    let held: BTreeSet<DomainId> = state
-        .workers
-        .iter()
-        .flat_map(|w| w.resident.iter().copied())
-        .collect();
-    let fullest = state.queued.values().copied().max().unwrap_or(0);
-    let queued = state
-        .queued
-        .iter()
-        .filter(|&(d, &n)| held.contains(d) || n.saturating_mul(factor.max(1)) >= fullest)
-        .map(|(&d, &n)| (d, n))
-        .collect();
-    ClusterState {
-        workers: state.workers.clone(),
-        queued,
-    }
-}
-
 /// A worker's plan while it is being built.
 struct Draft<'a> {
     worker: &'a WorkerState,
@@ -372,22 +349,6 @@ mod tests {
         replicate_onto_idle: false,
         fill_free_slots: true,
     };
-
-    #[test]
-    fn small_unheld_queues_wait_but_held_ones_and_large_ones_do_not() {
-        // Domain 0 is held; 1 is the fullest; 2 has a tenth of it, 3 a third.
-        let s = state(
-            vec![worker(0, &[0], 1), worker(1, &[], 1)],
-            &[(0, 5), (1, 900), (2, 90), (3, 300)],
-        );
-        let deferred = defer_small_queues(&s, 4);
-        let wanted: Vec<_> = deferred.wanted().map(|(d, _)| d.0).collect();
-        assert_eq!(wanted, vec![0, 1, 3]);
-        // Worker 1 loads the fullest; domain 2 is nobody's yet.
-        let plan = next_round(&deferred);
-        assert_eq!(of(&plan, 1).load, set(&[1]));
-        assert!(plan.holders(d(2)).is_empty());
-    }
 
     #[test]
     fn free_slots_take_copies_of_the_hottest_domains_and_never_evict_wanted_data() {
