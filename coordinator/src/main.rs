@@ -1,6 +1,7 @@
 //! `rayfarm-coordinator`: accepts render jobs, runs one frame at a time across the attached
 //! workers, plans the rounds of the dynamic schedule from their queue reports, and collects
-//! tile results until every tile's credit is back.
+//! tile results until every tile's credit is back. Jobs are kept in a database in the data
+//! directory, so a restarted coordinator carries on with them (`store`).
 
 mod api;
 mod control;

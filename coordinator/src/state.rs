@@ -788,3 +788,89 @@ fn restore(st: &mut State, data_dir: &std::path::Path, stored: StoredJob) {
     }
     st.jobs.insert(id, job);
 }
+
+#[cfg(test)]
+mod tests {
+    use rayfarm_common::prepare::generate::{NbodyOptions, prepare_nbody};
+
+    use super::*;
+
+    fn config(root: &std::path::Path) -> Config {
+        Config {
+            data_dir: root.join("data"),
+            scene_root: root.join("scenes"),
+            default_scene: None,
+            heartbeat: Duration::from_secs(1),
+            worker_timeout: Duration::from_secs(10),
+            report_timeout: Duration::from_secs(1),
+            schedule_options: Options::default(),
+        }
+    }
+
+    /// Attaches a worker (its control stream is the channel) and returns the epochs of every
+    /// tile in the StartFrame it is sent, tile by tile.
+    fn start_epochs(c: &Arc<Coordinator>) -> BTreeMap<u32, u32> {
+        let (tx, mut rx) = mpsc::unbounded_channel();
+        let register = proto::Register {
+            protocol_version: PROTOCOL_VERSION,
+            worker_id: "w".into(),
+            peer_address: "127.0.0.1:1".into(),
+            cache_bytes: 1 << 30,
+            threads: 1,
+        };
+        c.register(&register, tx).expect("registered");
+        while let Ok(msg) = rx.try_recv() {
+            if let Some(Body::StartFrame(s)) = msg.expect("no error").body {
+                return s.epochs.into_iter().collect();
+            }
+        }
+        panic!("no StartFrame sent");
+    }
+
+    #[test]
+    fn a_job_restarted_after_a_coordinator_restart_starts_its_tiles_at_a_new_epoch() {
+        let root = tempfile::tempdir().unwrap();
+        let options = NbodyOptions {
+            name: "nb".into(),
+            triangles: 2000,
+            seed: 1,
+            domains: 2,
+            max_memory: None,
+            force: false,
+        };
+        prepare_nbody(&root.path().join("scenes").join("nb"), &options).unwrap();
+        std::fs::create_dir_all(root.path().join("data")).unwrap();
+        let spec = proto::JobSpec {
+            scene: "nb".into(),
+            width: 64,
+            height: 32,
+            spp: 1,
+            max_depth: 1,
+            ..Default::default()
+        };
+        let c = Coordinator::open(config(root.path())).unwrap();
+        let id = c.submit(Some(spec.clone())).unwrap();
+        assert!(
+            start_epochs(&c).is_empty(),
+            "a first frame starts at epoch 0"
+        );
+        assert_eq!(c.list()[0].state(), JobState::Running);
+        drop(c);
+        for epoch in 1..=2 {
+            // As after a crash: the running job is queued again, and its next frame's tiles
+            // are all at an epoch the dead run never used.
+            let c = Coordinator::open(config(root.path())).unwrap();
+            let jobs = c.list();
+            assert_eq!((jobs.len(), jobs[0].state()), (1, JobState::Queued));
+            let epochs = start_epochs(&c);
+            let tiles = epochs.len();
+            assert!(tiles >= 2, "{epochs:?}");
+            assert!(epochs.values().all(|&e| e == epoch), "{epochs:?}");
+            assert_eq!(c.list()[0].job_id, id);
+        }
+        // Sequence numbers go on where they stopped.
+        let c = Coordinator::open(config(root.path())).unwrap();
+        let next = c.submit(Some(spec)).unwrap();
+        assert!(next.ends_with("-2"), "{next}");
+    }
+}
