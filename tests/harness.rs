@@ -249,6 +249,11 @@ pub struct Cluster {
     scene_root: PathBuf,
     url: String,
     coordinator: Proc,
+    /// How the coordinator was started, to start it again the same way.
+    coordinator_args: Vec<String>,
+    coordinator_env: Vec<(String, String)>,
+    /// Coordinators killed by the test (their logs are still shown).
+    former_coordinators: Vec<Proc>,
     /// By index of start, killed ones included.
     workers: Vec<Proc>,
 }
@@ -303,6 +308,9 @@ impl Cluster {
             dir,
             scene_root: scene_root.to_path_buf(),
             coordinator,
+            coordinator_args: args,
+            coordinator_env: env,
+            former_coordinators: Vec::new(),
             workers: Vec::new(),
         };
         for opts in workers {
@@ -347,6 +355,51 @@ impl Cluster {
         assert!(!proc.killed, "worker {i} was already killed");
         proc.stop();
         proc.killed = true;
+    }
+
+    /// Kills the coordinator at once (SIGKILL: a crash, not a shutdown) and reaps it; the
+    /// workers keep running. See [`Cluster::restart_coordinator`].
+    pub fn kill_coordinator(&mut self) {
+        assert!(
+            !self.coordinator.killed,
+            "the coordinator was already killed"
+        );
+        self.coordinator.stop();
+        self.coordinator.killed = true;
+    }
+
+    /// Starts the coordinator again after [`Cluster::kill_coordinator`], with the same
+    /// arguments, on the same address and data directory; its log is a new file. Waits until
+    /// it is listening, not until workers have come back.
+    pub fn restart_coordinator(&mut self) {
+        assert!(self.coordinator.killed, "kill the coordinator first");
+        let n = self.former_coordinators.len() + 2;
+        let mut args = self.coordinator_args.clone();
+        let listen = args
+            .iter()
+            .position(|a| a == "--listen")
+            .expect("--listen among the coordinator's arguments");
+        args[listen + 1] = self.coordinator.addr.clone();
+        let name = format!("coordinator-{n}");
+        let log = self.dir.path().join(format!("{name}.log"));
+        let fresh = Proc::start(
+            &name,
+            &bin("rayfarm-coordinator"),
+            &args,
+            &self.coordinator_env,
+            &log,
+        );
+        assert_eq!(
+            fresh.addr, self.coordinator.addr,
+            "restarted on another address"
+        );
+        let old = std::mem::replace(&mut self.coordinator, fresh);
+        self.former_coordinators.push(old);
+    }
+
+    /// The coordinator's data directory.
+    pub fn data_dir(&self) -> PathBuf {
+        self.dir.path().join("data")
     }
 
     /// The peer address worker `i` printed (also once it is killed).
@@ -404,7 +457,8 @@ impl Cluster {
 
     /// Prints the end of every process's log to stderr (shown with the failing test).
     pub fn dump_logs(&self) {
-        for p in std::iter::once(&self.coordinator).chain(&self.workers) {
+        let procs = self.former_coordinators.iter();
+        for p in procs.chain([&self.coordinator]).chain(&self.workers) {
             eprintln!(
                 "---- {} ({}{}), last {LOG_TAIL_LINES} lines of {}:\n{}",
                 p.name,

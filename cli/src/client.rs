@@ -2,6 +2,7 @@
 //! into sentences a person can act on ("the coordinator is unreachable", "INVALID_ARGUMENT:
 //! width must be ..."), so every cluster command reports errors the same way.
 
+use std::error::Error as _;
 use std::time::Duration;
 
 use anyhow::{Context, anyhow};
@@ -16,6 +17,37 @@ const MAX_MESSAGE_BYTES: usize = 256 << 20;
 /// How long to wait for the TCP (and HTTP/2) connection before calling a coordinator
 /// unreachable.
 const CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
+
+/// The coordinator cannot be reached, or the connection to it broke: it is down, restarting,
+/// or the network is. Worth retrying, unlike a refusal by a coordinator that is up.
+#[derive(Debug, thiserror::Error)]
+#[error("UNAVAILABLE: coordinator at {url} is unreachable: {reason}")]
+pub struct Unavailable {
+    /// The coordinator's URL.
+    pub url: String,
+    /// What the transport said.
+    pub reason: String,
+}
+
+/// Whether `e` says the coordinator was unreachable (see [`Unavailable`]).
+pub fn is_unavailable(e: &anyhow::Error) -> bool {
+    e.chain().any(|c| c.is::<Unavailable>())
+}
+
+/// Whether a failed call means the connection to the coordinator is gone rather than that a
+/// coordinator that is up refused the call.
+pub fn connection_lost(status: &tonic::Status) -> bool {
+    match status.code() {
+        tonic::Code::Unavailable => true,
+        // A status the client made up from a broken connection ("h2 protocol error: error
+        // reading a body from connection" when the coordinator dies mid-stream) carries the
+        // transport's error as its source; a status the server sent carries none.
+        tonic::Code::Unknown | tonic::Code::Internal | tonic::Code::Cancelled => {
+            status.source().is_some()
+        }
+        _ => false,
+    }
+}
 
 /// The `--coordinator` option every cluster command takes.
 #[derive(Args, Clone, Debug)]
@@ -63,14 +95,42 @@ impl Coordinator {
             .map_err(|e| anyhow!("{url:?} is not a coordinator address: {}", chain(&e)))?
             .tcp_nodelay(true)
             .connect_timeout(CONNECT_TIMEOUT);
-        let channel = endpoint
-            .connect()
-            .await
-            .map_err(|e| anyhow!("coordinator at {url} is unreachable: {}", chain(&e)))?;
+        let channel = endpoint.connect().await.map_err(|e| Unavailable {
+            url: url.clone(),
+            reason: chain(&e),
+        })?;
         let client = JobServiceClient::new(channel)
             .max_decoding_message_size(MAX_MESSAGE_BYTES)
             .max_encoding_message_size(MAX_MESSAGE_BYTES);
         Ok(Self { url, client })
+    }
+
+    /// Connects again to the same coordinator, retrying unreachable ones with exponential
+    /// backoff (250 ms to 5 s, with jitter) until `deadline`; then fails with the last
+    /// [`Unavailable`].
+    pub async fn reconnect(&mut self, deadline: tokio::time::Instant) -> anyhow::Result<()> {
+        let mut delay = Duration::from_millis(250);
+        loop {
+            match Self::connect(&self.url).await {
+                Ok(fresh) => {
+                    *self = fresh;
+                    return Ok(());
+                }
+                Err(e) if is_unavailable(&e) && tokio::time::Instant::now() < deadline => {
+                    tracing::debug!(error = %e, ?delay, "coordinator still unreachable");
+                }
+                Err(e) => return Err(e),
+            }
+            // Jitter from the clock's nanoseconds: many clients of a restarted coordinator do
+            // not come back in step.
+            let nanos = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.subsec_nanos());
+            let jitter = delay.mul_f64(f64::from(nanos % 1000) / 2000.0);
+            let now = tokio::time::Instant::now();
+            tokio::time::sleep_until((now + delay + jitter).min(deadline)).await;
+            delay = (delay * 2).min(Duration::from_secs(5));
+        }
     }
 
     /// The URL connected to.
@@ -141,18 +201,23 @@ impl Coordinator {
     }
 }
 
-/// A failed call as a readable error: an unreachable coordinator says so; anything else is
-/// the status code's protobuf name and the server's message.
+/// A failed call as a readable error: an unreachable coordinator (or a broken connection) is
+/// an [`Unavailable`]; anything else is the status code's protobuf name and the server's
+/// message.
 pub fn rpc_error(url: &str, status: &tonic::Status) -> anyhow::Error {
     let message = if status.message().is_empty() {
         status.code().description().to_string()
     } else {
         status.message().to_string()
     };
-    match status.code() {
-        tonic::Code::Unavailable => anyhow!("coordinator at {url} is unreachable: {message}"),
-        code => anyhow!("{}: {message}", code_name(code)),
+    if connection_lost(status) {
+        return Unavailable {
+            url: url.to_string(),
+            reason: message,
+        }
+        .into();
     }
+    anyhow!("{}: {message}", code_name(status.code()))
 }
 
 /// The protobuf name of a status code, as gRPC documents and other tools print it.
@@ -211,10 +276,22 @@ mod tests {
         let e = rpc_error(url, &tonic::Status::invalid_argument("width must be >= 1"));
         assert_eq!(e.to_string(), "INVALID_ARGUMENT: width must be >= 1");
         let e = rpc_error(url, &tonic::Status::unavailable("connection reset"));
+        assert!(is_unavailable(&e));
         assert_eq!(
             e.to_string(),
-            "coordinator at http://127.0.0.1:1 is unreachable: connection reset"
+            "UNAVAILABLE: coordinator at http://127.0.0.1:1 is unreachable: connection reset"
         );
+        // UNKNOWN from a broken connection (it has the transport's error as its source) is
+        // the coordinator going away; UNKNOWN sent by a server is not.
+        let broken = tonic::Status::from_error(
+            "h2 protocol error: error reading a body from connection".into(),
+        );
+        assert_eq!(broken.code(), tonic::Code::Unknown);
+        assert!(connection_lost(&broken));
+        assert!(is_unavailable(&rpc_error(url, &broken)));
+        let sent = tonic::Status::unknown("the server says so");
+        assert!(!connection_lost(&sent));
+        assert!(!is_unavailable(&rpc_error(url, &sent)));
         let e = rpc_error(url, &tonic::Status::new(tonic::Code::NotFound, ""));
         assert!(e.to_string().starts_with("NOT_FOUND: "), "{e}");
     }
@@ -228,8 +305,9 @@ mod tests {
             .err()
             .unwrap();
         let text = format!("{err:#}");
+        assert!(is_unavailable(&err));
         assert!(
-            text.starts_with("coordinator at http://127.0.0.1:1 is unreachable: "),
+            text.starts_with("UNAVAILABLE: coordinator at http://127.0.0.1:1 is unreachable: "),
             "{text}"
         );
     }

@@ -1,6 +1,7 @@
 //! `rayfarm-coordinator`: accepts render jobs, runs one frame at a time across the attached
 //! workers, plans the rounds of the dynamic schedule from their queue reports, and collects
-//! tile results until every tile's credit is back.
+//! tile results until every tile's credit is back. Jobs are kept in a database in the data
+//! directory, so a restarted coordinator carries on with them (`store`).
 
 mod api;
 mod control;
@@ -8,6 +9,7 @@ mod frame;
 mod queue;
 mod results;
 mod state;
+mod store;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -45,7 +47,10 @@ struct Args {
     /// address is printed on stdout).
     #[arg(long, env = "RAYFARM_LISTEN", default_value = "0.0.0.0:50051")]
     listen: SocketAddr,
-    /// Where results (images, statistics) are kept.
+    /// Where jobs and results are kept: the job database `rayfarm.redb` (queued, running and
+    /// finished jobs survive a restart; a damaged file stops the coordinator, never replaced)
+    /// and `jobs/<id>/` with each finished job's images and statistics. One coordinator per
+    /// directory.
     #[arg(long, env = "RAYFARM_DATA_DIR", default_value = "rayfarm-data")]
     data_dir: PathBuf,
     /// Directory that job scene names are relative to (this node's mount point).
@@ -82,12 +87,7 @@ fn main() -> std::process::ExitCode {
 async fn run(args: Args) -> anyhow::Result<()> {
     std::fs::create_dir_all(&args.data_dir)
         .with_context(|| format!("creating data directory {}", args.data_dir.display()))?;
-    let listener = tokio::net::TcpListener::bind(args.listen)
-        .await
-        .with_context(|| format!("cannot listen on {}", args.listen))?;
-    let bound = listener.local_addr()?;
-    // The one line scripts and tests wait for; logs go to stderr.
-    println!("listening on {bound}");
+    let listen = args.listen;
     let config = Config {
         data_dir: args.data_dir,
         scene_root: args.scene_root,
@@ -101,12 +101,19 @@ async fn run(args: Args) -> anyhow::Result<()> {
         },
         rounds: args.rounds,
     };
+    // The jobs are loaded before listening: nobody sees a coordinator without them.
+    let coordinator = Coordinator::open(config.clone())?;
+    let listener = tokio::net::TcpListener::bind(listen)
+        .await
+        .with_context(|| format!("cannot listen on {listen}"))?;
+    let bound = listener.local_addr()?;
+    // The one line scripts and tests wait for; logs go to stderr.
+    println!("listening on {bound}");
     info!(%bound, ?config, "coordinator up");
     let faults = Faults::from_env();
     if faults.active() {
         info!(?faults, "fault injection is on (test instrumentation)");
     }
-    let coordinator = Coordinator::new(config);
     let reaper = {
         let c = coordinator.clone();
         let period = c.config().heartbeat;

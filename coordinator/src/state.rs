@@ -25,6 +25,7 @@ use tracing::{error, info, info_span, warn};
 use crate::frame::{Member, Outgoing, Rounds, RunningFrame};
 use crate::queue::JobQueue;
 use crate::results;
+use crate::store::{Store, StoreError, StoredJob};
 
 /// How the coordinator is set up.
 #[derive(Clone, Debug)]
@@ -50,9 +51,23 @@ pub type WorkerTx = mpsc::UnboundedSender<Result<proto::CoordinatorMessage, Stat
 struct Job {
     summary: proto::JobSummary,
     seq: u64,
+    /// Frames started so far (see [`StoredJob::attempts`]).
+    attempts: u32,
     progress: watch::Sender<proto::WatchJobResponse>,
     image_hash: String,
     stats_json: String,
+}
+
+impl Job {
+    fn stored(&self) -> StoredJob {
+        StoredJob {
+            summary: Some(self.summary.clone()),
+            seq: self.seq,
+            attempts: self.attempts,
+            image_hash: self.image_hash.clone(),
+            stats_json: self.stats_json.clone(),
+        }
+    }
 }
 
 struct WorkerEntry {
@@ -70,8 +85,9 @@ struct Finishing {
     done: Option<oneshot::Sender<()>>,
 }
 
-#[derive(Default)]
 struct State {
+    /// Where every job change is written through to.
+    store: Store,
     jobs: BTreeMap<String, Job>,
     queue: JobQueue,
     seq: u64,
@@ -101,11 +117,35 @@ fn is_terminal(state: JobState) -> bool {
 }
 
 impl Coordinator {
-    pub fn new(config: Config) -> Arc<Self> {
-        Arc::new(Coordinator {
+    /// A coordinator with the jobs of the store in `config.data_dir`: queued jobs queued in
+    /// their old order, a job that was running queued again in its place (its frame starts
+    /// over; partial sums lived only in the old process), finished jobs fetchable.
+    pub fn open(config: Config) -> Result<Arc<Self>, StoreError> {
+        let store = Store::open(&config.data_dir)?;
+        let loaded = store.load()?;
+        let mut st = State {
+            store,
+            jobs: BTreeMap::new(),
+            queue: JobQueue::default(),
+            seq: loaded.seq,
+            workers: BTreeMap::new(),
+            next_key: 0,
+            running: None,
+            finishing: BTreeMap::new(),
+        };
+        for stored in loaded.jobs {
+            restore(&mut st, &config.data_dir, stored);
+        }
+        info!(
+            store = %st.store.path().display(),
+            jobs = st.jobs.len(),
+            queued = st.jobs.values().filter(|j| j.summary.state() == JobState::Queued).count(),
+            "job store opened"
+        );
+        Ok(Arc::new(Coordinator {
             config,
-            state: Mutex::new(State::default()),
-        })
+            state: Mutex::new(st),
+        }))
     }
 
     pub fn config(&self) -> &Config {
@@ -146,22 +186,21 @@ impl Coordinator {
             submitted_unix_ms: unix_ms(),
             ..Default::default()
         };
-        let (progress, _) = watch::channel(proto::WatchJobResponse {
-            job_id: id.clone(),
-            state: JobState::Queued as i32,
-            eta_seconds: -1.0,
-            ..Default::default()
-        });
-        st.jobs.insert(
-            id.clone(),
-            Job {
-                summary,
-                seq,
-                progress,
-                image_hash: String::new(),
-                stats_json: String::new(),
-            },
-        );
+        let job = Job {
+            summary,
+            seq,
+            attempts: 0,
+            progress: progress_channel(&id, JobState::Queued, "", ""),
+            image_hash: String::new(),
+            stats_json: String::new(),
+        };
+        // A job the client was told about must survive a restart: on disk before the reply.
+        st.store.put(&job.stored()).map_err(|e| {
+            let e = e.with_causes();
+            error!(job = %id, error = %e, "job not recorded");
+            Status::internal(format!("the job could not be recorded: {e}"))
+        })?;
+        st.jobs.insert(id.clone(), job);
         st.queue.push(id.clone(), spec.priority, seq);
         info!(job = %id, scene = %spec.scene, width = spec.width, height = spec.height, spp = spec.spp, priority = spec.priority, "job queued");
         self.try_start(&mut st);
@@ -470,8 +509,16 @@ impl Coordinator {
                 continue;
             };
             let _span = info_span!("start_job", job = %id).entered();
+            let attempts = st.jobs.get(&id).map_or(0, |j| j.attempts);
             match self.prepare_frame(&id, spec) {
                 Ok(mut frame) => {
+                    // A job started before (by a coordinator since restarted, or before its
+                    // workers were all lost) starts every tile at a new epoch, so rays and
+                    // results of the abandoned run still in flight are dropped as stale.
+                    let tiles: Vec<u32> = (0..frame.ledger.grid().count()).collect();
+                    for _ in 0..attempts {
+                        frame.ledger.bump(&tiles);
+                    }
                     let members: Vec<(u32, Member)> = st
                         .workers
                         .iter()
@@ -486,6 +533,7 @@ impl Coordinator {
                     send(st, out);
                     if let Some(job) = st.jobs.get_mut(&id) {
                         job.summary.started_unix_ms = unix_ms();
+                        job.attempts = attempts.saturating_add(1);
                     }
                     set_state(st, &id, JobState::Running, "");
                     publish_progress(st, &frame);
@@ -638,6 +686,12 @@ fn set_state(st: &mut State, id: &str, state: JobState, error: &str) {
         error!(job = %id, error, "job failed");
     }
     let stats_json = job.stats_json.clone();
+    // Written through under the lock, so the store sees the changes in the order they
+    // happened. Once per state change; a failed write is logged and the job goes on (the
+    // change is lost only if the coordinator restarts before the next write of this job).
+    if let Err(e) = st.store.put(&job.stored()) {
+        error!(job = %id, error = %e.with_causes(), "job state not saved");
+    }
     job.progress.send_modify(|p| {
         p.state = state as i32;
         p.error = error.to_string();
@@ -661,4 +715,165 @@ fn publish_progress(st: &State, frame: &RunningFrame) {
         p.rays_per_second = rate;
         p.eta_seconds = eta;
     });
+}
+
+/// A job's progress channel, starting at `state`.
+fn progress_channel(
+    id: &str,
+    state: JobState,
+    error: &str,
+    stats_json: &str,
+) -> watch::Sender<proto::WatchJobResponse> {
+    watch::channel(proto::WatchJobResponse {
+        job_id: id.to_string(),
+        state: state as i32,
+        eta_seconds: if state == JobState::Succeeded {
+            0.0
+        } else {
+            -1.0
+        },
+        error: error.to_string(),
+        stats_json: stats_json.to_string(),
+        ..Default::default()
+    })
+    .0
+}
+
+/// Takes one stored job into the state of a starting coordinator.
+fn restore(st: &mut State, data_dir: &std::path::Path, stored: StoredJob) {
+    let Some(summary) = stored.summary.clone() else {
+        warn!(seq = stored.seq, "a stored job without a summary; skipped");
+        return;
+    };
+    let id = summary.job_id.clone();
+    let priority = summary.spec.as_ref().map_or(0, |s| s.priority);
+    let mut job = Job {
+        progress: progress_channel(&id, summary.state(), &summary.error, &stored.stats_json),
+        summary,
+        seq: stored.seq,
+        attempts: stored.attempts,
+        image_hash: stored.image_hash,
+        stats_json: stored.stats_json,
+    };
+    let mut changed = None;
+    match job.summary.state() {
+        JobState::Queued | JobState::Unspecified => st.queue.push(id.clone(), priority, job.seq),
+        JobState::Running => {
+            // Its frame died with the old process; it starts over, ahead of later jobs of its
+            // priority since it keeps its sequence number.
+            info!(job = %id, "job was running when the coordinator stopped: queued again");
+            st.queue.push(id.clone(), priority, job.seq);
+            changed = Some((JobState::Queued, String::new()));
+        }
+        JobState::Succeeded => {
+            let missing = [proto::ImageFormat::Png, proto::ImageFormat::Exr]
+                .into_iter()
+                .map(|f| results::image_path(data_dir, &id, f))
+                .find(|p| !p.is_file());
+            if let Some(path) = missing {
+                let error = format!("its result file {} is gone", path.display());
+                warn!(job = %id, %error, "finished job without its result");
+                changed = Some((JobState::Failed, error));
+            }
+        }
+        JobState::Failed | JobState::Cancelled => {}
+    }
+    if let Some((state, error)) = changed {
+        job.summary.state = state as i32;
+        job.summary.error = error;
+        if state == JobState::Failed {
+            job.summary.finished_unix_ms = unix_ms();
+        }
+        job.progress = progress_channel(&id, state, &job.summary.error, &job.stats_json);
+        if let Err(e) = st.store.put(&job.stored()) {
+            error!(job = %id, error = %e.with_causes(), "job state not saved");
+        }
+    }
+    st.jobs.insert(id, job);
+}
+
+#[cfg(test)]
+mod tests {
+    use rayfarm_common::prepare::generate::{NbodyOptions, prepare_nbody};
+
+    use super::*;
+
+    fn config(root: &std::path::Path) -> Config {
+        Config {
+            data_dir: root.join("data"),
+            scene_root: root.join("scenes"),
+            default_scene: None,
+            heartbeat: Duration::from_secs(1),
+            worker_timeout: Duration::from_secs(10),
+            report_timeout: Duration::from_secs(1),
+            schedule_options: Options::default(),
+        }
+    }
+
+    /// Attaches a worker (its control stream is the channel) and returns the epochs of every
+    /// tile in the StartFrame it is sent, tile by tile.
+    fn start_epochs(c: &Arc<Coordinator>) -> BTreeMap<u32, u32> {
+        let (tx, mut rx) = mpsc::unbounded_channel();
+        let register = proto::Register {
+            protocol_version: PROTOCOL_VERSION,
+            worker_id: "w".into(),
+            peer_address: "127.0.0.1:1".into(),
+            cache_bytes: 1 << 30,
+            threads: 1,
+        };
+        c.register(&register, tx).expect("registered");
+        while let Ok(msg) = rx.try_recv() {
+            if let Some(Body::StartFrame(s)) = msg.expect("no error").body {
+                return s.epochs.into_iter().collect();
+            }
+        }
+        panic!("no StartFrame sent");
+    }
+
+    #[test]
+    fn a_job_restarted_after_a_coordinator_restart_starts_its_tiles_at_a_new_epoch() {
+        let root = tempfile::tempdir().unwrap();
+        let options = NbodyOptions {
+            name: "nb".into(),
+            triangles: 2000,
+            seed: 1,
+            domains: 2,
+            max_memory: None,
+            force: false,
+        };
+        prepare_nbody(&root.path().join("scenes").join("nb"), &options).unwrap();
+        std::fs::create_dir_all(root.path().join("data")).unwrap();
+        let spec = proto::JobSpec {
+            scene: "nb".into(),
+            width: 64,
+            height: 32,
+            spp: 1,
+            max_depth: 1,
+            ..Default::default()
+        };
+        let c = Coordinator::open(config(root.path())).unwrap();
+        let id = c.submit(Some(spec.clone())).unwrap();
+        assert!(
+            start_epochs(&c).is_empty(),
+            "a first frame starts at epoch 0"
+        );
+        assert_eq!(c.list()[0].state(), JobState::Running);
+        drop(c);
+        for epoch in 1..=2 {
+            // As after a crash: the running job is queued again, and its next frame's tiles
+            // are all at an epoch the dead run never used.
+            let c = Coordinator::open(config(root.path())).unwrap();
+            let jobs = c.list();
+            assert_eq!((jobs.len(), jobs[0].state()), (1, JobState::Queued));
+            let epochs = start_epochs(&c);
+            let tiles = epochs.len();
+            assert!(tiles >= 2, "{epochs:?}");
+            assert!(epochs.values().all(|&e| e == epoch), "{epochs:?}");
+            assert_eq!(c.list()[0].job_id, id);
+        }
+        // Sequence numbers go on where they stopped.
+        let c = Coordinator::open(config(root.path())).unwrap();
+        let next = c.submit(Some(spec)).unwrap();
+        assert!(next.ends_with("-2"), "{next}");
+    }
 }

@@ -40,7 +40,7 @@ pub async fn run(
 ) -> anyhow::Result<()> {
     let mut failures = 0u32;
     loop {
-        match session(&me, &events, &mut outbound, faults).await {
+        match session(&me, &events, &mut outbound, faults, &mut failures).await {
             Ok(Session::EngineGone) => return Ok(()),
             Ok(Session::Ended) => failures = 0,
             Err(status) if status.code() == Code::FailedPrecondition => {
@@ -68,6 +68,7 @@ async fn session(
     events: &mpsc::UnboundedSender<Event>,
     outbound: &mut mpsc::UnboundedReceiver<proto::WorkerMessage>,
     faults: Faults,
+    failures: &mut u32,
 ) -> Result<Session, tonic::Status> {
     let unavailable = |e: tonic::transport::Error| tonic::Status::unavailable(e.to_string());
     let channel = Endpoint::from_shared(me.coordinator.clone())
@@ -102,6 +103,8 @@ async fn session(
                 Ok(Some(msg)) => {
                     if let Some(FromCoordinator::Registered(r)) = &msg.body {
                         info!(coordinator = %me.coordinator, "attached");
+                        // The next loss (a coordinator restart) backs off from the start again.
+                        *failures = 0;
                         let period = Duration::from_millis(u64::from(r.heartbeat_ms.max(10)));
                         heartbeat = tokio::time::interval(period);
                     }

@@ -12,7 +12,7 @@
 //! PNG chart. The arithmetic lives in `crate::bench`, pure and tested.
 
 use std::path::{Path, PathBuf};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use anyhow::{Context, anyhow, bail};
 use clap::{Args, ValueEnum};
@@ -455,7 +455,8 @@ async fn run_one(
         Err(e) => return (None, Err(format!("{e:#}"))),
     };
     in_flight.set(coord.url(), &job_id);
-    let end = match follow(coord, &job_id, true).await {
+    // The bench's coordinator is its own child: if it dies, the run is over.
+    let end = match follow(coord, &job_id, true, Duration::ZERO).await {
         Ok(end) => end,
         Err(e) => {
             in_flight.cancel_quietly().await;

@@ -4,6 +4,7 @@
 //! on a farm) and prints the statistics. `--local` renders in this process instead.
 
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 
 use anyhow::Context;
 use clap::Args;
@@ -124,6 +125,8 @@ fn run_cluster(a: &DemoArgs, scene: &Path, cache_bytes: u64) -> anyhow::Result<(
         output: Some(a.dir.join("demo.png")),
         stats_json: Some(a.dir.join("demo-stats.json")),
         quiet: false,
+        // The demo's coordinator is its own child: if it dies, the demo is over.
+        ride_out: Duration::ZERO,
     };
     let in_flight = JobInFlight::default();
     runtime()?.block_on(with_local_cluster(&config, &in_flight, async |url| {

@@ -3,6 +3,7 @@
 //! one process. `demo` reuses [`wait_and_save`].
 
 use std::path::PathBuf;
+use std::time::Duration;
 
 use anyhow::Context;
 use clap::Args;
@@ -10,7 +11,7 @@ use rayfarm_common::cluster::job::parse_schedule;
 use rayfarm_common::proto;
 
 use super::fetch::{default_output, image_format, save_result};
-use super::watch::{ended_ok, follow, parse_stats, print_stats};
+use super::watch::{ReconnectArgs, ended_ok, follow, parse_stats, print_stats};
 use crate::client::{Coordinator, CoordinatorArgs, runtime};
 use crate::units;
 
@@ -75,6 +76,9 @@ pub struct SubmitArgs {
     /// With --wait: no progress bar and no statistics table.
     #[arg(long, env = "RAYFARM_QUIET")]
     pub quiet: bool,
+    /// With --wait: how long to ride out a lost coordinator.
+    #[command(flatten)]
+    pub reconnect: ReconnectArgs,
 }
 
 impl SubmitArgs {
@@ -114,6 +118,8 @@ pub struct WaitOptions {
     pub stats_json: Option<PathBuf>,
     /// No progress bar, no statistics table.
     pub quiet: bool,
+    /// How long to keep reconnecting to a lost coordinator (zero: not at all).
+    pub ride_out: Duration,
 }
 
 pub fn run(a: SubmitArgs) -> anyhow::Result<()> {
@@ -126,6 +132,7 @@ pub fn run(a: SubmitArgs) -> anyhow::Result<()> {
         output: a.output,
         stats_json: a.stats_json,
         quiet: a.quiet,
+        ride_out: a.reconnect.ride_out()?,
     };
     runtime()?.block_on(async {
         let mut coord = Coordinator::connect(&a.coordinator.coordinator).await?;
@@ -151,7 +158,7 @@ pub async fn wait_and_save(
         .clone()
         .unwrap_or_else(|| default_output(job_id));
     let format = image_format(&output)?;
-    let end = follow(coord, job_id, opts.quiet).await?;
+    let end = follow(coord, job_id, opts.quiet, opts.ride_out).await?;
     ended_ok(&end)?;
     let result = save_result(coord, job_id, &output, format, opts.stats_json.as_deref()).await?;
     if !opts.quiet {

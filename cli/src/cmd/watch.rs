@@ -10,7 +10,7 @@ use indicatif::{ProgressBar, ProgressFinish, ProgressStyle};
 use rayfarm_common::cluster::stats::ClusterStats;
 use rayfarm_common::proto::{self, JobState};
 
-use crate::client::{Coordinator, CoordinatorArgs, runtime};
+use crate::client::{Coordinator, CoordinatorArgs, is_unavailable, runtime};
 use crate::table::{cluster_stats_table, worker_stats_table};
 
 /// Options of `rayfarm watch`.
@@ -23,12 +23,38 @@ pub struct WatchArgs {
     /// No progress bar and no statistics table; only the final state.
     #[arg(long, env = "RAYFARM_QUIET")]
     pub quiet: bool,
+    #[command(flatten)]
+    pub reconnect: ReconnectArgs,
+}
+
+/// How long a command following a job rides out a lost coordinator.
+#[derive(Args, Clone, Debug)]
+pub struct ReconnectArgs {
+    /// When the coordinator goes away mid-watch (stopped, restarting), keep reconnecting for
+    /// this many seconds, then follow the same job again (a restarted coordinator keeps its
+    /// jobs); 0 gives up at once.
+    #[arg(
+        long,
+        env = "RAYFARM_RECONNECT_TIMEOUT",
+        value_name = "SECONDS",
+        default_value_t = 120.0
+    )]
+    pub reconnect_timeout: f64,
+}
+
+impl ReconnectArgs {
+    /// The timeout as a duration; an error names the flag.
+    pub fn ride_out(&self) -> anyhow::Result<Duration> {
+        Duration::try_from_secs_f64(self.reconnect_timeout)
+            .map_err(|e| anyhow!("--reconnect-timeout {}: {e}", self.reconnect_timeout))
+    }
 }
 
 pub fn run(a: WatchArgs) -> anyhow::Result<()> {
+    let ride_out = a.reconnect.ride_out()?;
     runtime()?.block_on(async {
         let mut coord = Coordinator::connect(&a.coordinator.coordinator).await?;
-        let end = follow(&mut coord, &a.job_id, a.quiet).await?;
+        let end = follow(&mut coord, &a.job_id, a.quiet, ride_out).await?;
         println!("job {}: {}", end.job_id, state_name(end.state()));
         if end.state() == JobState::Succeeded && !a.quiet && !end.stats_json.is_empty() {
             let stats = parse_stats(&end.stats_json)?;
@@ -50,16 +76,67 @@ pub fn is_final(state: JobState) -> bool {
 
 /// Follows job `job_id` with a progress bar on stderr (none when `quiet`) until it ends;
 /// returns its last event, which carries the final state, the error or the statistics.
+///
+/// When the coordinator goes away (unreachable, or the connection breaks), `coord` reconnects
+/// with backoff for up to `ride_out` and the same job is followed again: a restarted
+/// coordinator still has it. The time counts from the loss until an event arrives again, so
+/// a coordinator that answers but never gets as far as an event does not keep this going.
 pub async fn follow(
     coord: &mut Coordinator,
     job_id: &str,
     quiet: bool,
+    ride_out: Duration,
+) -> anyhow::Result<proto::WatchJobResponse> {
+    let bar = progress_bar(quiet)?;
+    let mut lost_at: Option<tokio::time::Instant> = None;
+    loop {
+        let mut heard = false;
+        let lost = match follow_once(coord, job_id, &bar, &mut heard).await {
+            Ok(end) => {
+                bar.finish_and_clear();
+                return Ok(end);
+            }
+            Err(e) if is_unavailable(&e) && !ride_out.is_zero() => e,
+            Err(e) => return Err(e),
+        };
+        if heard || lost_at.is_none() {
+            lost_at = Some(tokio::time::Instant::now());
+        }
+        let deadline = lost_at.unwrap_or_else(tokio::time::Instant::now) + ride_out;
+        bar.suspend(|| {
+            eprintln!(
+                "warning: {lost:#}; reconnecting for up to {}s",
+                ride_out.as_secs_f64()
+            )
+        });
+        bar.set_message("reconnecting");
+        coord.reconnect(deadline).await.with_context(|| {
+            format!(
+                "watching job {job_id}: the coordinator did not come back within {}s",
+                ride_out.as_secs_f64()
+            )
+        })?;
+        bar.suspend(|| {
+            eprintln!(
+                "reconnected to {}; following job {job_id} again",
+                coord.url()
+            )
+        });
+    }
+}
+
+/// One watch stream of `job_id`, until the job ends or the stream fails; `heard` is set once
+/// an event arrived.
+async fn follow_once(
+    coord: &mut Coordinator,
+    job_id: &str,
+    bar: &ProgressBar,
+    heard: &mut bool,
 ) -> anyhow::Result<proto::WatchJobResponse> {
     let mut stream = coord
         .watch(job_id)
         .await
         .with_context(|| format!("watching job {job_id}"))?;
-    let bar = progress_bar(quiet)?;
     loop {
         let event = match stream.message().await {
             Ok(Some(event)) => event,
@@ -70,9 +147,9 @@ pub async fn follow(
                 return Err(coord.rpc_error(&status)).context(format!("watching job {job_id}"));
             }
         };
-        show(&bar, &event);
+        *heard = true;
+        show(bar, &event);
         if is_final(event.state()) {
-            bar.finish_and_clear();
             return Ok(event);
         }
     }

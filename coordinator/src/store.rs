@@ -1,0 +1,366 @@
+//! The job store: every job, its state and where its result is, in an embedded redb database
+//! at `<data dir>/rayfarm.redb`, so a restarted coordinator carries on where the last one
+//! stopped. Images and statistics stay in files under `<data dir>/jobs/` (see `results`); the
+//! store keeps their hash and statistics beside the job.
+//!
+//! Why redb: pure Rust (no C toolchain, no bundled SQLite), one file, ACID transactions that
+//! are fsynced on commit, and typed key-value tables, which is all a job store needs; nothing
+//! here wants SQL. Records are protobuf (prost) so fields can be added without a migration.
+//!
+//! Writes happen once per job state change (submit, start, finish, fail, cancel), never per
+//! ray or tile.
+
+use std::path::{Path, PathBuf};
+
+use rayfarm_common::proto;
+use redb::{ReadableDatabase, ReadableTable, TableDefinition};
+
+/// File name of the database inside the data directory.
+pub const FILE_NAME: &str = "rayfarm.redb";
+
+/// Job id -> [`StoredJob`] (protobuf).
+const JOBS: TableDefinition<&str, &[u8]> = TableDefinition::new("jobs");
+/// Small facts about the store itself, by name.
+const META: TableDefinition<&str, u64> = TableDefinition::new("meta");
+/// Meta key: the layout version of the records.
+const SCHEMA_KEY: &str = "schema";
+/// Meta key: the highest submission sequence number handed out.
+const SEQ_KEY: &str = "seq";
+/// The layout this coordinator writes and reads.
+const SCHEMA: u64 = 1;
+
+/// One job as stored.
+#[derive(Clone, PartialEq, prost::Message)]
+pub struct StoredJob {
+    /// The job as the API lists it (spec, state, times, error).
+    #[prost(message, optional, tag = "1")]
+    pub summary: Option<proto::JobSummary>,
+    /// Submission sequence number: equal priorities run in this order.
+    #[prost(uint64, tag = "2")]
+    pub seq: u64,
+    /// Frames of this job started so far, across restarts. A restarted frame starts its tiles
+    /// at this epoch, so rays and results of an abandoned run are told apart from the new
+    /// run's and dropped.
+    #[prost(uint32, tag = "3")]
+    pub attempts: u32,
+    /// Hash of the finished image.
+    #[prost(string, tag = "4")]
+    pub image_hash: String,
+    /// Statistics of the finished frame as JSON.
+    #[prost(string, tag = "5")]
+    pub stats_json: String,
+}
+
+impl StoredJob {
+    /// The job's id (empty if the record has no summary).
+    pub fn id(&self) -> &str {
+        self.summary.as_ref().map_or("", |s| s.job_id.as_str())
+    }
+}
+
+/// Why the store cannot be used. Every variant names the database file.
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    /// Another process holds the file's lock.
+    #[error(
+        "job database {path} is in use by another process (is another coordinator running on \
+         this data directory?)"
+    )]
+    InUse { path: PathBuf },
+    /// The file cannot be opened: unreadable, not a redb database, or corrupt.
+    #[error(
+        "job database {path} cannot be opened; it is left as it is (move it away to start with \
+         no jobs)"
+    )]
+    Open {
+        path: PathBuf,
+        source: redb::DatabaseError,
+    },
+    /// Written by a coordinator with another record layout.
+    #[error(
+        "job database {path} has record layout {found}; this coordinator reads layout {SCHEMA}"
+    )]
+    Schema { path: PathBuf, found: u64 },
+    /// A read or write failed.
+    #[error("job database {path}: {what}")]
+    Db {
+        path: PathBuf,
+        what: &'static str,
+        source: Box<redb::Error>,
+    },
+    /// A record does not decode.
+    #[error("job database {path}: the record of job {id:?} is unreadable")]
+    Record {
+        path: PathBuf,
+        id: String,
+        source: prost::DecodeError,
+    },
+    /// A record filed under another job's id.
+    #[error("job database {path}: the record under {key:?} is of job {found:?}")]
+    Misfiled {
+        path: PathBuf,
+        key: String,
+        found: String,
+    },
+}
+
+impl StoreError {
+    /// The error and its causes on one line, for logs and replies (`Display` alone gives only
+    /// the first).
+    pub fn with_causes(&self) -> String {
+        let mut text = self.to_string();
+        let mut source = std::error::Error::source(self);
+        while let Some(s) = source {
+            text.push_str(": ");
+            text.push_str(&s.to_string());
+            source = s.source();
+        }
+        text
+    }
+}
+
+/// What the store held when the coordinator started.
+#[derive(Debug, Default)]
+pub struct Loaded {
+    /// Every job, in no particular order.
+    pub jobs: Vec<StoredJob>,
+    /// The highest sequence number handed out.
+    pub seq: u64,
+}
+
+/// See the module documentation.
+pub struct Store {
+    db: redb::Database,
+    path: PathBuf,
+}
+
+impl std::fmt::Debug for Store {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Store").field("path", &self.path).finish()
+    }
+}
+
+impl Store {
+    /// Opens (or creates) `<data_dir>/rayfarm.redb`. A file that is not a sound redb database
+    /// is refused, never replaced.
+    pub fn open(data_dir: &Path) -> Result<Store, StoreError> {
+        let path = data_dir.join(FILE_NAME);
+        // The whole file is checked on open: a damaged file then fails here with an error
+        // instead of misbehaving later. The store is small, so the check is cheap.
+        let db = redb::Builder::new()
+            .set_cache_size(16 << 20)
+            .set_check_integrity_on_open(true)
+            .create(&path)
+            .map_err(|source| match source {
+                redb::DatabaseError::DatabaseAlreadyOpen => {
+                    StoreError::InUse { path: path.clone() }
+                }
+                source => StoreError::Open {
+                    path: path.clone(),
+                    source,
+                },
+            })?;
+        let store = Store { db, path };
+        store.init()?;
+        Ok(store)
+    }
+
+    /// The database file.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    fn err(&self, what: &'static str) -> impl Fn(redb::Error) -> StoreError + '_ {
+        move |e| StoreError::Db {
+            path: self.path.clone(),
+            what,
+            source: Box::new(e),
+        }
+    }
+
+    /// Creates the tables of a new file and checks the layout of an old one.
+    fn init(&self) -> Result<(), StoreError> {
+        let e = self.err("creating the tables");
+        let txn = self.db.begin_write().map_err(|x| e(x.into()))?;
+        {
+            txn.open_table(JOBS).map_err(|x| e(x.into()))?;
+            let mut meta = txn.open_table(META).map_err(|x| e(x.into()))?;
+            let found = meta
+                .get(SCHEMA_KEY)
+                .map_err(|x| e(x.into()))?
+                .map(|v| v.value());
+            match found {
+                None => {
+                    meta.insert(SCHEMA_KEY, SCHEMA).map_err(|x| e(x.into()))?;
+                }
+                Some(SCHEMA) => {}
+                Some(found) => {
+                    return Err(StoreError::Schema {
+                        path: self.path.clone(),
+                        found,
+                    });
+                }
+            }
+        }
+        txn.commit().map_err(|x| e(x.into()))
+    }
+
+    /// Every stored job and the highest sequence number.
+    pub fn load(&self) -> Result<Loaded, StoreError> {
+        let e = self.err("reading the jobs");
+        let txn = self.db.begin_read().map_err(|x| e(x.into()))?;
+        let table = txn.open_table(JOBS).map_err(|x| e(x.into()))?;
+        let meta = txn.open_table(META).map_err(|x| e(x.into()))?;
+        let mut loaded = Loaded {
+            seq: meta
+                .get(SEQ_KEY)
+                .map_err(|x| e(x.into()))?
+                .map_or(0, |v| v.value()),
+            ..Loaded::default()
+        };
+        for entry in table.iter().map_err(|x| e(x.into()))? {
+            let (id, bytes) = entry.map_err(|x| e(x.into()))?;
+            let job = <StoredJob as prost::Message>::decode(bytes.value()).map_err(|source| {
+                StoreError::Record {
+                    path: self.path.clone(),
+                    id: id.value().to_string(),
+                    source,
+                }
+            })?;
+            if job.id() != id.value() {
+                return Err(StoreError::Misfiled {
+                    path: self.path.clone(),
+                    key: id.value().to_string(),
+                    found: job.id().to_string(),
+                });
+            }
+            loaded.seq = loaded.seq.max(job.seq);
+            loaded.jobs.push(job);
+        }
+        Ok(loaded)
+    }
+
+    /// Writes `job` (replacing its previous record) and raises the stored sequence number to
+    /// its `seq`, in one transaction that is on disk when this returns.
+    pub fn put(&self, job: &StoredJob) -> Result<(), StoreError> {
+        let e = self.err("writing a job");
+        let bytes = prost::Message::encode_to_vec(job);
+        let txn = self.db.begin_write().map_err(|x| e(x.into()))?;
+        {
+            let mut table = txn.open_table(JOBS).map_err(|x| e(x.into()))?;
+            table
+                .insert(job.id(), bytes.as_slice())
+                .map_err(|x| e(x.into()))?;
+            let mut meta = txn.open_table(META).map_err(|x| e(x.into()))?;
+            let seq = meta
+                .get(SEQ_KEY)
+                .map_err(|x| e(x.into()))?
+                .map_or(0, |v| v.value());
+            if job.seq > seq {
+                meta.insert(SEQ_KEY, job.seq).map_err(|x| e(x.into()))?;
+            }
+        }
+        txn.commit().map_err(|x| e(x.into()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proto::JobState;
+
+    fn job(id: &str, seq: u64, state: JobState) -> StoredJob {
+        StoredJob {
+            summary: Some(proto::JobSummary {
+                job_id: id.into(),
+                spec: Some(proto::JobSpec {
+                    scene: "nb".into(),
+                    width: 96,
+                    height: 72,
+                    spp: 2,
+                    priority: -3,
+                    ..Default::default()
+                }),
+                state: state as i32,
+                submitted_unix_ms: 1_700_000_000_000,
+                ..Default::default()
+            }),
+            seq,
+            attempts: 0,
+            image_hash: String::new(),
+            stats_json: String::new(),
+        }
+    }
+
+    #[test]
+    fn jobs_survive_reopening_and_the_last_write_wins() {
+        let dir = tempfile::tempdir().unwrap();
+        let a = job("job-1", 1, JobState::Queued);
+        let mut b = job("job-2", 2, JobState::Running);
+        {
+            let store = Store::open(dir.path()).unwrap();
+            assert!(store.load().unwrap().jobs.is_empty());
+            store.put(&a).unwrap();
+            store.put(&b).unwrap();
+            b.summary.as_mut().unwrap().state = JobState::Succeeded as i32;
+            b.attempts = 2;
+            b.image_hash = "00ff00ff00ff00ff".into();
+            b.stats_json = "{\"wall_seconds\":1.5}".into();
+            store.put(&b).unwrap();
+        }
+        let store = Store::open(dir.path()).unwrap();
+        let mut loaded = store.load().unwrap();
+        loaded.jobs.sort_by_key(|j| j.seq);
+        assert_eq!(loaded.jobs, vec![a, b]);
+        assert_eq!(loaded.seq, 2);
+    }
+
+    #[test]
+    fn a_second_opener_is_told_the_file_is_in_use() {
+        let dir = tempfile::tempdir().unwrap();
+        let _first = Store::open(dir.path()).unwrap();
+        let err = Store::open(dir.path()).unwrap_err();
+        assert!(matches!(err, StoreError::InUse { .. }), "{err}");
+        assert!(err.to_string().contains(FILE_NAME), "{err}");
+    }
+
+    #[test]
+    fn a_file_that_is_not_a_database_is_refused_and_left_alone() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join(FILE_NAME);
+        let junk =
+            b"these are not the bytes of a redb database, whatever else they are\n".repeat(100);
+        std::fs::write(&path, &junk).unwrap();
+        let err = Store::open(dir.path()).unwrap_err();
+        let text = err.with_causes();
+        assert!(matches!(err, StoreError::Open { .. }), "{text}");
+        assert!(text.contains("Not a redb database"), "{text}");
+        assert!(text.contains(&path.display().to_string()), "{text}");
+        assert_eq!(std::fs::read(&path).unwrap(), junk, "the file was changed");
+    }
+
+    #[test]
+    fn a_damaged_database_is_refused_with_its_name() {
+        let dir = tempfile::tempdir().unwrap();
+        {
+            let store = Store::open(dir.path()).unwrap();
+            for i in 1..=50 {
+                store
+                    .put(&job(&format!("job-{i}"), i, JobState::Queued))
+                    .unwrap();
+            }
+        }
+        let path = dir.path().join(FILE_NAME);
+        let mut bytes = std::fs::read(&path).unwrap();
+        // Past the header and the first pages: the region of the committed tree.
+        let len = bytes.len();
+        for b in &mut bytes[len / 4..] {
+            *b ^= 0x5a;
+        }
+        std::fs::write(&path, &bytes).unwrap();
+        let err = Store::open(dir.path()).unwrap_err();
+        let text = err.to_string();
+        assert!(text.contains(&path.display().to_string()), "{text}");
+        assert_eq!(std::fs::read(&path).unwrap(), bytes, "the file was changed");
+    }
+}
