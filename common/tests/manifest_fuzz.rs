@@ -293,12 +293,15 @@ fn awkward_values() {
     );
 }
 
+/// How a lie changes a domain's entry.
+type Lie = fn(&mut DomainEntry);
+
 /// Each lie is caught when the domain is opened, and the message names the file and the lie.
 #[test]
 fn a_manifest_lying_about_a_domain_is_refused_when_it_is_opened() {
     let s = scene();
     let dir = s.dir.path();
-    let lies: [(&str, fn(&mut DomainEntry)); 5] = [
+    let lies: [(&str, Lie); 5] = [
         ("bytes", |d| d.bytes += 64),
         ("triangles", |d| d.triangles += 1),
         ("triangles", |d| d.triangles = u64::MAX),
@@ -339,7 +342,7 @@ fn random_lies_about_sizes() {
             let mut m = s.manifest.clone();
             let truth = m.domains[d].clone();
             let small = |x: u64, t: u64| {
-                if x % 2 == 0 {
+                if x.is_multiple_of(2) {
                     t.wrapping_add(x % 7).wrapping_sub(3)
                 } else {
                     x
