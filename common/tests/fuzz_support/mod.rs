@@ -75,8 +75,8 @@ pub fn cases(default: u32) -> u32 {
 }
 
 /// Runs property `name` over `cases(default)` inputs of `strategy`, printing how many were
-/// tried (shown with `--nocapture`). Failures are saved next to the calling test file, as the
-/// `proptest!` macro does.
+/// tried (shown with `--nocapture`). Failures are saved next to the calling test file, where the
+/// `proptest!` macro saves them in this crate's tests.
 pub fn check<S: Strategy>(
     source_file: &'static str,
     name: &str,
@@ -87,7 +87,7 @@ pub fn check<S: Strategy>(
     let config = Config {
         cases: cases(default),
         source_file: Some(source_file),
-        failure_persistence: Some(Box::new(FileFailurePersistence::SourceParallel(
+        failure_persistence: Some(Box::new(FileFailurePersistence::WithSource(
             "proptest-regressions",
         ))),
         ..Config::default()
