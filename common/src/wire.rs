@@ -31,7 +31,7 @@ pub struct BatchLimits {
 }
 
 /// Why a batch was refused.
-#[derive(Debug, thiserror::Error, PartialEq)]
+#[derive(Clone, Debug, thiserror::Error, PartialEq)]
 pub enum WireError {
     /// Shorter than the header, or not a whole number of records.
     #[error(
@@ -44,11 +44,20 @@ pub enum WireError {
     /// A version this build does not read.
     #[error("ray batch version {0} is not the supported {VERSION}")]
     Version(u16),
-    /// The header's count disagrees with the length, or exceeds the limit.
-    #[error("ray batch says {said} records, holds {held} (limit {limit})")]
+    /// Header bytes this version leaves unused are not zero.
+    #[error("ray batch header has non-zero reserved bytes")]
+    Reserved,
+    /// The header's count disagrees with the records present.
+    #[error("ray batch says {said} records, holds {held}")]
     Count {
         /// Count in the header.
         said: u32,
+        /// Records present.
+        held: usize,
+    },
+    /// More records than a batch may hold.
+    #[error("ray batch holds {held} records, more than the limit of {limit}")]
+    TooMany {
         /// Records present.
         held: usize,
         /// Largest accepted.
@@ -62,6 +71,19 @@ pub enum WireError {
         /// What is wrong.
         reason: &'static str,
     },
+}
+
+impl BatchLimits {
+    /// Limits that hold whatever the frame, for checking a batch before its frame is known:
+    /// the frame-dependent ranges (domain, pixel, depth) are left open.
+    pub fn any_frame(max_records: usize) -> Self {
+        BatchLimits {
+            domains: u32::MAX,
+            pixels: u32::MAX,
+            max_depth: u16::MAX,
+            max_records,
+        }
+    }
 }
 
 /// Encodes rays as one batch.
@@ -78,32 +100,49 @@ pub fn encode_batch(rays: &[RayRecord]) -> Vec<u8> {
 
 /// Decodes and checks a batch.
 pub fn decode_batch(bytes: &[u8], limits: &BatchLimits) -> Result<Vec<RayRecord>, WireError> {
+    check_batch(bytes, limits)?;
+    // The payload is not aligned for RayRecord; copying also detaches it from the message.
+    Ok(bytemuck::pod_collect_to_vec(&bytes[HEADER_BYTES..]))
+}
+
+/// Checks a batch without copying it; returns its number of records.
+pub fn check_batch(bytes: &[u8], limits: &BatchLimits) -> Result<usize, WireError> {
     let len = bytes.len();
+    // Identity before size, so that garbage is called garbage rather than a truncated batch.
+    match bytes.get(0..4) {
+        Some(magic) if magic != MAGIC => return Err(WireError::Magic),
+        Some(_) => {}
+        None => return Err(WireError::Length(len)),
+    }
+    if let Some(&[lo, hi]) = bytes.get(4..6) {
+        let version = u16::from_le_bytes([lo, hi]);
+        if version != VERSION {
+            return Err(WireError::Version(version));
+        }
+    }
     if len < HEADER_BYTES || !(len - HEADER_BYTES).is_multiple_of(RECORD_BYTES) {
         return Err(WireError::Length(len));
     }
-    if bytes[0..4] != MAGIC {
-        return Err(WireError::Magic);
-    }
-    let version = u16::from_le_bytes([bytes[4], bytes[5]]);
-    if version != VERSION {
-        return Err(WireError::Version(version));
+    // Zero, as in records, so that an accepted batch has exactly one encoding.
+    if bytes[6..8] != [0; 2] || bytes[12..16] != [0; 4] {
+        return Err(WireError::Reserved);
     }
     let said = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
     let held = (len - HEADER_BYTES) / RECORD_BYTES;
-    if said as usize != held || held > limits.max_records {
-        return Err(WireError::Count {
-            said,
+    if held > limits.max_records {
+        return Err(WireError::TooMany {
             held,
             limit: limits.max_records,
         });
     }
-    // The payload is not aligned for RayRecord; copying also detaches it from the message.
-    let rays: Vec<RayRecord> = bytemuck::pod_collect_to_vec(&bytes[HEADER_BYTES..]);
-    for (index, r) in rays.iter().enumerate() {
-        check_record(r, limits).map_err(|reason| WireError::Record { index, reason })?;
+    if said as usize != held {
+        return Err(WireError::Count { said, held });
     }
-    Ok(rays)
+    for (index, raw) in bytes[HEADER_BYTES..].chunks_exact(RECORD_BYTES).enumerate() {
+        let r: RayRecord = bytemuck::pod_read_unaligned(raw);
+        check_record(&r, limits).map_err(|reason| WireError::Record { index, reason })?;
+    }
+    Ok(held)
 }
 
 fn check_record(r: &RayRecord, l: &BatchLimits) -> Result<(), &'static str> {

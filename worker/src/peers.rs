@@ -10,6 +10,7 @@ use rayfarm_common::bundler::Tier;
 use rayfarm_common::proto::peer_service_client::PeerServiceClient;
 use rayfarm_common::proto::peer_service_server::PeerService;
 use rayfarm_common::proto::{self, PROTOCOL_VERSION};
+use rayfarm_common::wire::{self, BatchLimits, WireError};
 use tokio::sync::mpsc;
 use tokio_stream::Stream;
 use tokio_stream::wrappers::UnboundedReceiverStream;
@@ -22,6 +23,9 @@ use rayfarm_common::fault::Faults;
 
 /// Largest gRPC message accepted or sent between workers.
 pub const MAX_MESSAGE_BYTES: usize = 64 << 20;
+
+/// Most records in one batch from a peer: the engine's own limit.
+const MAX_BATCH_RECORDS: usize = 1 << 20;
 
 /// Times a link tries to connect before giving up on the peer.
 const CONNECT_ATTEMPTS: u32 = 20;
@@ -144,6 +148,9 @@ impl PeerService for PeerServer {
         &self,
         request: Request<Streaming<proto::PeerBundle>>,
     ) -> Result<Response<AckStream>, Status> {
+        let remote = request
+            .remote_addr()
+            .map_or_else(|| "unknown".to_string(), |a| a.to_string());
         let mut inbound = request.into_inner();
         let events = self.events.clone();
         let (acks, ack_rx) = mpsc::unbounded_channel();
@@ -153,17 +160,24 @@ impl PeerService for PeerServer {
                     Ok(Some(b)) => b,
                     Ok(None) => break,
                     Err(status) => {
-                        warn!(%status, "peer stream ended with an error");
+                        warn!(%remote, %status, "peer stream ended with an error");
                         break;
                     }
                 };
-                if bundle.protocol_version != PROTOCOL_VERSION {
-                    let msg = format!(
-                        "peer {} speaks protocol {}, this worker {PROTOCOL_VERSION}",
-                        bundle.sender, bundle.protocol_version
+                if let Err(status) = check_bundle(&bundle) {
+                    // The whole bundle is refused, so the engine never sees half of one; the
+                    // stream ends because a peer that sends one bad bundle cannot be trusted
+                    // with the next.
+                    error!(
+                        %remote,
+                        sender = %bundle.sender,
+                        job = %bundle.job_id,
+                        sequence = bundle.sequence,
+                        code = ?status.code(),
+                        error = %status.message(),
+                        "refusing a bundle from a peer"
                     );
-                    error!("{msg}");
-                    let _ = acks.send(Err(Status::failed_precondition(msg)));
+                    let _ = acks.send(Err(status));
                     break;
                 }
                 let sequence = bundle.sequence;
@@ -185,4 +199,37 @@ impl PeerService for PeerServer {
             ack_rx,
         ))))
     }
+}
+
+/// Checks what can be checked before the bundle's frame is known: the protocol version, the
+/// tier, and each batch's structure and frame-independent record fields. The engine checks the
+/// rest (domain, pixel and depth ranges) against the frame.
+fn check_bundle(bundle: &proto::PeerBundle) -> Result<(), Status> {
+    if bundle.protocol_version != PROTOCOL_VERSION {
+        return Err(Status::failed_precondition(format!(
+            "peer {} speaks protocol {}, this worker {PROTOCOL_VERSION}",
+            bundle.sender, bundle.protocol_version
+        )));
+    }
+    if proto::Tier::try_from(bundle.tier).is_err() {
+        return Err(Status::invalid_argument(format!(
+            "bundle {} has unknown tier {}",
+            bundle.sequence, bundle.tier
+        )));
+    }
+    let limits = BatchLimits::any_frame(MAX_BATCH_RECORDS);
+    for (i, batch) in bundle.batches.iter().enumerate() {
+        if let Err(e) = wire::check_batch(batch, &limits) {
+            let msg = format!("bundle {} batch {i}: {e}", bundle.sequence);
+            return Err(match e {
+                WireError::Magic | WireError::Reserved | WireError::Record { .. } => {
+                    Status::invalid_argument(msg)
+                }
+                WireError::Version(_) => Status::failed_precondition(msg),
+                WireError::Length(_) | WireError::Count { .. } => Status::data_loss(msg),
+                WireError::TooMany { .. } => Status::resource_exhausted(msg),
+            });
+        }
+    }
+    Ok(())
 }

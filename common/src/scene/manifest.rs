@@ -205,6 +205,12 @@ impl Manifest {
                 data.bytes(),
                 entry.bytes
             ))
+        } else if data.indices().len() as u64 != entry.triangles {
+            Some(format!(
+                "holds {} triangles, the manifest says {}",
+                data.indices().len(),
+                entry.triangles
+            ))
         } else {
             None
         };
@@ -248,6 +254,23 @@ impl Manifest {
             return Err("ray_epsilon must be a finite non-negative number".into());
         }
         self.camera.check()?;
+        if !(finite(&self.sky.horizon) && finite(&self.sky.zenith)) {
+            return Err("sky has a non-finite value".into());
+        }
+        for (i, m) in self.materials.iter().enumerate() {
+            let ok = match *m {
+                Material::Diffuse { albedo } => finite(&albedo),
+                Material::Mirror { tint } => finite(&tint),
+                Material::Glossy {
+                    albedo,
+                    specular,
+                    roughness,
+                } => finite(&albedo) && specular.is_finite() && roughness.is_finite(),
+            };
+            if !ok {
+                return Err(format!("material {i} has a non-finite value"));
+            }
+        }
         for (i, d) in self.domains.iter().enumerate() {
             if d.file.is_empty() || d.file.contains('/') || d.file.contains("..") {
                 return Err(format!(
