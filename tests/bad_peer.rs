@@ -194,6 +194,7 @@ fn bad_peers_get_precise_statuses_and_the_frame_they_claim_still_renders() {
     let bad_record = wire::encode_batch(&[ray(), nan_ray]);
     let mut other_protocol = bundle(&job, vec![valid.clone()]);
     other_protocol.protocol_version = PROTOCOL_VERSION + 1;
+    let other_protocol_message = format!("speaks protocol {}", PROTOCOL_VERSION + 1);
     let mut unknown_tier = bundle(&job, vec![valid.clone()]);
     unknown_tier.tier = 99;
     let garbage = b"GET / HTTP/1.1\r\nHost: worker\r\n\r\n".repeat(5);
@@ -232,7 +233,7 @@ fn bad_peers_get_precise_statuses_and_the_frame_they_claim_still_renders() {
             "another protocol version",
             other_protocol,
             Code::FailedPrecondition,
-            "speaks protocol 2",
+            other_protocol_message.as_str(),
         ),
         (
             "unknown tier",
