@@ -612,3 +612,73 @@ fn two_of_four_workers_killed_at_once_and_a_replacement_joining_keep_the_image()
     let reporting = stats_field(&json, "/workers").as_u64().unwrap_or(0);
     assert!(reporting <= 3, "the killed workers cannot have reported");
 }
+
+/// Counts the lines of `log` containing each of `needles`.
+fn count_lines(log: &[String], needles: &[&str]) -> Vec<usize> {
+    needles
+        .iter()
+        .map(|n| log.iter().filter(|l| l.contains(n)).count())
+        .collect()
+}
+
+#[test]
+fn a_worker_killed_while_loading_tracing_or_sending_costs_time_not_the_image() {
+    let root = tempfile::tempdir().expect("temp dir");
+    let scene = prepare(root.path(), "nb", 60_000, 16);
+    let (_, largest) = domain_bytes(&scene);
+    let frame = [
+        "--width", "192", "--height", "144", "--spp", "8", "--depth", "3",
+    ];
+    let expected = local_hash(&scene, &frame);
+    let verbose = "info,rayfarm_common::render::cache=debug,rayfarm_worker=debug";
+    // Each kill point: how the victim runs so that it lingers there, and the log lines that
+    // say it is there now (the first seen more often than the second).
+    let points: [(&str, WorkerOpts, [&str; 2]); 3] = [
+        (
+            "loading a domain",
+            WorkerOpts::cache(largest)
+                .env("RUST_LOG", verbose)
+                .arg("--storage-latency", "2s"),
+            ["loading domain", "domain loaded"],
+        ),
+        (
+            "tracing",
+            WorkerOpts::cache(largest).env("RUST_LOG", verbose),
+            ["tracing a queue", "queue traced"],
+        ),
+        (
+            "with bundles in flight",
+            WorkerOpts::cache(largest)
+                .env("RUST_LOG", verbose)
+                .env("RAYFARM_FAULT_DELAY_MS", "400")
+                .env("RAYFARM_FAULT_SEED", "7"),
+            ["bundle sent", "bundle acknowledged"],
+        ),
+    ];
+    for (point, victim, [begun, ended]) in points {
+        let mut workers = vec![WorkerOpts::cache(largest); 2];
+        workers.push(victim);
+        let mut cluster = Cluster::start(root.path(), Some("nb"), &workers);
+        let json = cluster.dir().join("killed.json");
+        let png = cluster.dir().join("killed.png");
+        let mut waiter = spawn_submit_wait(&cluster, &frame, &[], &png, &json);
+        wait_until(
+            &format!("worker 2 {point}"),
+            Duration::from_secs(60),
+            || {
+                let n = count_lines(&cluster.worker_log(2), &[begun, ended]);
+                n[0] > n[1]
+            },
+        );
+        cluster.kill_worker(2);
+        let n = count_lines(&cluster.worker_log(2), &[begun, ended]);
+        assert!(
+            n[0] > n[1],
+            "worker 2 was no longer {point} when killed: {n:?}"
+        );
+        let ok = wait_child(&mut waiter, "the frame", Duration::from_secs(120));
+        assert!(ok, "the frame failed after a worker was killed {point}");
+        assert_eq!(hash_of(&json), expected, "killed {point}");
+        assert_eq!(stats_field(&json, "/workers"), 2, "killed {point}");
+    }
+}

@@ -97,6 +97,8 @@ pub struct WorkerOpts {
     pub threads: Option<usize>,
     /// Extra environment variables, e.g. fault injection.
     pub env: Vec<(String, String)>,
+    /// Extra command-line arguments.
+    pub args: Vec<String>,
 }
 
 impl Default for WorkerOpts {
@@ -107,6 +109,7 @@ impl Default for WorkerOpts {
             cache_bytes: 1 << 30,
             threads: Some(1),
             env: Vec::new(),
+            args: Vec::new(),
         }
     }
 }
@@ -129,6 +132,12 @@ impl WorkerOpts {
     /// With the environment variable `key=value`.
     pub fn env(mut self, key: &str, value: &str) -> Self {
         self.env.push((key.to_string(), value.to_string()));
+        self
+    }
+
+    /// With the command-line option `flag value`.
+    pub fn arg(mut self, flag: &str, value: &str) -> Self {
+        self.args.extend([flag.to_string(), value.to_string()]);
         self
     }
 }
@@ -342,11 +351,24 @@ impl Cluster {
         if let Some(t) = opts.threads {
             args.extend(["--threads".to_string(), t.to_string()]);
         }
+        args.extend(opts.args.iter().cloned());
         let name = format!("worker-{i}");
         let log = self.dir.path().join(format!("{name}.log"));
         let proc = Proc::start(&name, &bin("rayfarm-worker"), &args, &opts.env, &log);
         self.workers.push(proc);
         i
+    }
+
+    /// Lines of worker `i`'s log so far.
+    pub fn worker_log(&self, i: usize) -> Vec<String> {
+        std::fs::read(&self.workers[i].log)
+            .map(|b| {
+                String::from_utf8_lossy(&b)
+                    .lines()
+                    .map(String::from)
+                    .collect()
+            })
+            .unwrap_or_default()
     }
 
     /// Kills worker `i` at once (SIGKILL: a crash, not a shutdown) and reaps it.

@@ -17,7 +17,7 @@ use rayfarm_common::render::primary::primary_ray;
 use rayfarm_common::render::{KernelCounters, RaySink, SceneView};
 use rayfarm_common::scene::SceneError;
 use rayon::prelude::*;
-use tracing::info_span;
+use tracing::{debug, info_span};
 
 /// Rays traced per rayon task: large enough to amortise, small enough to balance.
 const CHUNK: usize = 4096;
@@ -147,6 +147,7 @@ pub fn run(input: PassInput) -> Result<PassOutput, PassError> {
             cache.get(*domain)?
         };
         let _span = info_span!("trace_queue", domain, rays = rays.len()).entered();
+        debug!("tracing a queue");
         let (traced, c) = rays
             .par_chunks(CHUNK)
             .map(|chunk| {
@@ -167,6 +168,7 @@ pub fn run(input: PassInput) -> Result<PassOutput, PassError> {
             );
         sink = sink.merge(traced);
         counters.add(&c);
+        debug!("queue traced");
     }
     let results = sink
         .tiles

@@ -60,6 +60,7 @@ impl PeerLinks {
             sequence: self.sequence,
             batches,
         };
+        debug!(%peer, sequence = self.sequence, "bundle sent");
         let link = self
             .links
             .entry(peer.to_string())

@@ -122,6 +122,7 @@ impl DomainCache {
         }
         let _span =
             info_span!("load_domain", domain, file = %self.manifest.domains[i].file).entered();
+        debug!("loading domain");
         let started = Instant::now();
         let data = self
             .manifest
