@@ -807,6 +807,7 @@ mod tests {
             worker_timeout: Duration::from_secs(10),
             report_timeout: Duration::from_secs(1),
             schedule_options: Options::default(),
+            rounds: Rounds::default(),
         }
     }
 
