@@ -32,6 +32,11 @@ use crate::queues::DomainQueues;
 /// Rays per encoded batch sent to a peer (160 KiB).
 const BATCH_RAYS: usize = 2048;
 
+/// Most bytes of bundles held for frames not started here yet. Peers run ahead of this
+/// worker's StartFrame by a round trip at most; past this, a peer is sending for a frame
+/// that will not come, and its bundles are dropped.
+const EARLY_BYTES: usize = 256 << 20;
+
 /// What the engine needs to know about itself.
 #[derive(Clone, Debug)]
 pub struct EngineConfig {
@@ -425,12 +430,27 @@ impl Engine {
 
     fn peer_bundle(&mut self, sender: String, job_id: String, batches: Vec<Bytes>) {
         let Some(frame) = self.frame.as_mut().filter(|f| f.job_id == job_id) else {
-            if !self.ended.contains(&job_id) {
-                self.early
-                    .entry(job_id)
-                    .or_default()
-                    .push((sender, batches));
+            if self.ended.contains(&job_id) {
+                return;
             }
+            let bytes: usize = batches.iter().map(Bytes::len).sum();
+            let held: usize = self
+                .early
+                .values()
+                .flatten()
+                .flat_map(|(_, b)| b.iter().map(Bytes::len))
+                .sum();
+            if held + bytes > EARLY_BYTES {
+                error!(
+                    %sender, job = %job_id, bytes, held,
+                    "dropping a bundle for a frame not started here: {EARLY_BYTES} bytes are held already"
+                );
+                return;
+            }
+            self.early
+                .entry(job_id)
+                .or_default()
+                .push((sender, batches));
             return;
         };
         let mut forward: BTreeMap<String, Vec<RayRecord>> = BTreeMap::new();
