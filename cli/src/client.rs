@@ -2,13 +2,16 @@
 //! into sentences a person can act on ("the coordinator is unreachable", "INVALID_ARGUMENT:
 //! width must be ..."), so every cluster command reports errors the same way.
 
+use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::{Context, anyhow};
 use clap::Args;
 use rayfarm_common::proto;
 use rayfarm_common::proto::job_service_client::JobServiceClient;
-use tonic::transport::{Channel, Endpoint};
+use rayfarm_common::security::{ClientSecurity, ConnectTlsArgs, Credential, first_token};
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::{Channel, Identity};
 
 /// Images of big frames travel in one message; the default 4 MiB limit would refuse them.
 const MAX_MESSAGE_BYTES: usize = 256 << 20;
@@ -27,6 +30,54 @@ pub struct CoordinatorArgs {
         default_value = "http://127.0.0.1:50051"
     )]
     pub coordinator: String,
+    #[command(flatten)]
+    pub tls: ConnectTlsArgs,
+    /// PEM certificate to present when the coordinator requires client certificates.
+    #[arg(long, env = "RAYFARM_TLS_CERT", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// PEM private key of --tls-cert.
+    #[arg(long, env = "RAYFARM_TLS_KEY", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+    /// User token for the job API (prefer RAYFARM_TOKEN or --token-file: a flag's value
+    /// shows in process lists).
+    #[arg(
+        long,
+        env = "RAYFARM_TOKEN",
+        hide_env_values = true,
+        conflicts_with = "token_file"
+    )]
+    pub token: Option<String>,
+    /// File whose first token is presented (a coordinator's user tokens file works).
+    #[arg(long, env = "RAYFARM_TOKEN_FILE")]
+    pub token_file: Option<PathBuf>,
+}
+
+impl CoordinatorArgs {
+    /// TLS and the user token these options ask for.
+    pub fn security(&self) -> anyhow::Result<ClientSecurity> {
+        let identity = match (&self.tls_cert, &self.tls_key) {
+            (Some(cert), Some(key)) => {
+                let read = |p: &PathBuf| {
+                    std::fs::read(p).with_context(|| format!("reading {}", p.display()))
+                };
+                Some(Identity::from_pem(read(cert)?, read(key)?))
+            }
+            _ => None,
+        };
+        let token = match &self.token_file {
+            Some(path) => Some(first_token(path)?),
+            None => self.token.clone(),
+        };
+        Ok(ClientSecurity {
+            tls: self.tls.client_config(identity)?,
+            credential: Credential::bearer(token.as_deref())?,
+        })
+    }
+
+    /// Connects to the coordinator these options name, with their TLS and token.
+    pub async fn connect(&self) -> anyhow::Result<Coordinator> {
+        Coordinator::connect_with(&self.coordinator, &self.security()?).await
+    }
 }
 
 /// The async runtime of one command. The commands are I/O-bound request/response clients,
@@ -38,36 +89,33 @@ pub fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
         .context("starting the async runtime")
 }
 
-/// `addr` as a URL: a bare `host:port` gets `http://`.
-pub fn normalize_url(addr: &str) -> String {
-    let addr = addr.trim();
-    if addr.contains("://") {
-        addr.to_string()
-    } else {
-        format!("http://{addr}")
-    }
-}
-
 /// A connected coordinator. Every call maps a failure to a readable error.
 #[derive(Clone)]
 pub struct Coordinator {
     url: String,
-    client: JobServiceClient<Channel>,
+    client: JobServiceClient<InterceptedService<Channel, Credential>>,
 }
 
 impl Coordinator {
-    /// Connects to the coordinator at `addr` (fails fast if nothing answers there).
+    /// Connects to the coordinator at `addr` in plain text without credentials (local
+    /// clusters); fails fast if nothing answers there.
     pub async fn connect(addr: &str) -> anyhow::Result<Self> {
-        let url = normalize_url(addr);
-        let endpoint = Endpoint::from_shared(url.clone())
-            .map_err(|e| anyhow!("{url:?} is not a coordinator address: {}", chain(&e)))?
+        Self::connect_with(addr, &ClientSecurity::default()).await
+    }
+
+    /// Connects to the coordinator at `addr` with `security`.
+    pub async fn connect_with(addr: &str, security: &ClientSecurity) -> anyhow::Result<Self> {
+        let url = security.url(addr);
+        let endpoint = security
+            .endpoint(addr)
+            .map_err(|e| anyhow!("{}", chain(&e)))?
             .tcp_nodelay(true)
             .connect_timeout(CONNECT_TIMEOUT);
         let channel = endpoint
             .connect()
             .await
             .map_err(|e| anyhow!("coordinator at {url} is unreachable: {}", chain(&e)))?;
-        let client = JobServiceClient::new(channel)
+        let client = JobServiceClient::with_interceptor(channel, security.credential.clone())
             .max_decoding_message_size(MAX_MESSAGE_BYTES)
             .max_encoding_message_size(MAX_MESSAGE_BYTES);
         Ok(Self { url, client })
@@ -149,9 +197,33 @@ pub fn rpc_error(url: &str, status: &tonic::Status) -> anyhow::Error {
     } else {
         status.message().to_string()
     };
+    // A failure on this side of the connection carries its cause as a source; a server's
+    // answer never does. The cause is the useful part ("certificate required").
+    let local = std::error::Error::source(status);
+    let detail = match local.map(chain) {
+        Some(cause) if cause.starts_with(&message) => cause,
+        Some(cause) => format!("{message}: {cause}"),
+        None => message.clone(),
+    };
     match status.code() {
-        tonic::Code::Unavailable => anyhow!("coordinator at {url} is unreachable: {message}"),
-        code => anyhow!("{}: {message}", code_name(code)),
+        tonic::Code::Unavailable if local.is_none() => {
+            anyhow!("coordinator at {url} is unreachable: {detail}")
+        }
+        code if local.is_none() => anyhow!("{}: {message}", code_name(code)),
+        // The connection failed, whatever code tonic chose for it. A TLS server hangs up on a
+        // plain-text client, and on a client without the certificate it requires, with
+        // errors that say nothing about TLS: say what to check.
+        code => {
+            let hint = if code == tonic::Code::Unavailable {
+                ""
+            } else if url.starts_with("http://") {
+                " (if it serves TLS, give the CA that signed its certificate: --tls-ca or \
+                 RAYFARM_TLS_CA)"
+            } else {
+                " (if it requires client certificates, give --tls-cert and --tls-key)"
+            };
+            anyhow!("coordinator at {url} is unreachable: {detail}{hint}")
+        }
     }
 }
 
@@ -199,13 +271,6 @@ mod tests {
     use super::*;
 
     #[test]
-    fn bare_host_port_gets_a_scheme() {
-        assert_eq!(normalize_url("10.0.0.1:50051"), "http://10.0.0.1:50051");
-        assert_eq!(normalize_url(" http://h:1 "), "http://h:1");
-        assert_eq!(normalize_url("https://h:1"), "https://h:1");
-    }
-
-    #[test]
     fn rpc_errors_name_the_code_or_the_unreachable_coordinator() {
         let url = "http://127.0.0.1:1";
         let e = rpc_error(url, &tonic::Status::invalid_argument("width must be >= 1"));
@@ -217,6 +282,13 @@ mod tests {
         );
         let e = rpc_error(url, &tonic::Status::new(tonic::Code::NotFound, ""));
         assert!(e.to_string().starts_with("NOT_FOUND: "), "{e}");
+        let e = rpc_error(
+            url,
+            &tonic::Status::from_error(Box::new(std::io::Error::other("broken pipe"))),
+        );
+        assert!(e.to_string().contains("is unreachable"), "{e}");
+        assert!(e.to_string().contains("broken pipe"), "{e}");
+        assert!(e.to_string().contains("--tls-ca"), "{e}");
     }
 
     #[test]

@@ -27,7 +27,7 @@ pub struct WatchArgs {
 
 pub fn run(a: WatchArgs) -> anyhow::Result<()> {
     runtime()?.block_on(async {
-        let mut coord = Coordinator::connect(&a.coordinator.coordinator).await?;
+        let mut coord = a.coordinator.connect().await?;
         let end = follow(&mut coord, &a.job_id, a.quiet).await?;
         println!("job {}: {}", end.job_id, state_name(end.state()));
         if end.state() == JobState::Succeeded && !a.quiet && !end.stats_json.is_empty() {
