@@ -326,3 +326,46 @@ fn mutual_tls_refuses_clients_without_a_certificate() {
     );
     assert!(err.contains("is unreachable"), "{err}");
 }
+
+#[test]
+fn the_demo_ignores_a_real_clusters_credentials_in_the_environment() {
+    let root = tempfile::tempdir().expect("temp dir");
+    let f = certs(&root.path().join("certs"));
+    let demo = root.path().join("demo");
+    // A shell set up for a secured cluster: the demo's local cluster must not turn security
+    // on in its children while its own client talks plain text.
+    let out = std::process::Command::new(rayfarm_tests::bin("rayfarm"))
+        .args([
+            "demo",
+            "--dir",
+            s(&demo),
+            "--triangles",
+            "20000",
+            "--domains",
+            "8",
+        ])
+        .args([
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--spp",
+            "1",
+            "--workers",
+            "2",
+        ])
+        .env("RUST_LOG", "warn")
+        .env("RAYFARM_TLS_CERT", &f.cert)
+        .env("RAYFARM_TLS_KEY", &f.key)
+        .env("RAYFARM_TLS_CA", &f.ca)
+        .env("RAYFARM_CLUSTER_SECRET_FILE", &f.secret)
+        .env("RAYFARM_USER_TOKENS_FILE", &f.tokens)
+        .output()
+        .expect("run rayfarm demo");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(stats_field(&demo.join("demo-stats.json"), "/workers"), 2);
+}

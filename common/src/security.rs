@@ -24,6 +24,19 @@ pub const SECRET_HEADER: &str = "x-rayfarm-secret";
 /// The metadata header carrying a user token (`Bearer TOKEN`).
 pub const TOKEN_HEADER: &str = "authorization";
 
+/// The environment variables that turn security on in the binaries and the CLI.
+pub const ENV_VARS: &[&str] = &[
+    "RAYFARM_TLS_CERT",
+    "RAYFARM_TLS_KEY",
+    "RAYFARM_TLS_CLIENT_CA",
+    "RAYFARM_TLS_CA",
+    "RAYFARM_TLS_DOMAIN",
+    "RAYFARM_CLUSTER_SECRET_FILE",
+    "RAYFARM_USER_TOKENS_FILE",
+    "RAYFARM_TOKEN",
+    "RAYFARM_TOKEN_FILE",
+];
+
 /// Why security configuration could not be loaded.
 #[derive(Debug, thiserror::Error)]
 pub enum SecurityError {
