@@ -369,3 +369,31 @@ fn the_demo_ignores_a_real_clusters_credentials_in_the_environment() {
     );
     assert_eq!(stats_field(&demo.join("demo-stats.json"), "/workers"), 2);
 }
+
+#[test]
+fn certs_keeps_existing_credentials_and_refuses_bad_names() {
+    let root = tempfile::tempdir().expect("temp dir");
+    let dir = root.path().join("certs");
+    let f = certs(&dir);
+    let secret = std::fs::read(&f.secret).expect("secret");
+    let tokens = std::fs::read_to_string(&f.tokens).expect("tokens");
+    assert!(tokens.contains(" admin"), "{tokens}");
+    // Overwriting a cluster's credentials by accident is refused ...
+    let err = rayfarm_tests::rayfarm_err(&["certs", "--out", s(&dir), "--hosts", "localhost"]);
+    assert!(err.contains("already holds ca.pem"), "{err}");
+    assert!(err.contains("--if-missing"), "{err}");
+    // ... and --if-missing replaces only what is gone.
+    std::fs::remove_file(&f.cert).expect("remove");
+    let args = ["certs", "--out", s(&dir), "--hosts", "localhost"];
+    rayfarm_ok(&[&args[..], &["--with-secrets", "--if-missing"]].concat());
+    assert!(f.cert.exists());
+    assert_eq!(std::fs::read(&f.secret).expect("secret"), secret);
+    let err = rayfarm_tests::rayfarm_err(&[
+        "certs",
+        "--out",
+        s(&root.path().join("bad")),
+        "--hosts",
+        "not a name",
+    ]);
+    assert!(err.contains("--hosts"), "{err}");
+}

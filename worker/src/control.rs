@@ -58,6 +58,10 @@ pub async fn run(
             Err(status) => {
                 failures += 1;
                 warn!(coordinator = %me.coordinator, %status, "control stream unavailable");
+                // A TLS coordinator hangs up on plain text with errors that never say TLS.
+                if me.security.tls.is_none() && status.code() != Code::Unavailable {
+                    warn!("if the coordinator serves TLS, give --tls-ca");
+                }
             }
         }
         let _ = events.send(Event::Disconnected);

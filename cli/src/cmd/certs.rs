@@ -58,6 +58,9 @@ pub fn run(a: CertsArgs) -> anyhow::Result<()> {
     if hosts.is_empty() {
         bail!("--hosts names no host");
     }
+    if let Some(bad) = hosts.iter().find(|h| !valid_host(h)) {
+        bail!("--hosts: {bad:?} is neither a DNS name nor an IP address");
+    }
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let path = |name: &str| a.out.join(name);
     let mut wanted = vec![CA_FILE, CERT_FILE, KEY_FILE];
@@ -147,6 +150,26 @@ fn generate(hosts: &[String], days: u32) -> anyhow::Result<(String, String, Stri
     Ok((ca_cert.pem(), node_cert.pem(), node_key.serialize_pem()))
 }
 
+/// An IP address, or a DNS name (letters, digits and hyphens in dot-separated labels, a
+/// leading `*.` wildcard allowed). rcgen would put any ASCII in the certificate, which no
+/// client could then match.
+fn valid_host(host: &str) -> bool {
+    if host.parse::<std::net::IpAddr>().is_ok() {
+        return true;
+    }
+    let name = host.strip_prefix("*.").unwrap_or(host);
+    name.len() <= 253
+        && name.split('.').all(|label| {
+            !label.is_empty()
+                && label.len() <= 63
+                && !label.starts_with('-')
+                && !label.ends_with('-')
+                && label
+                    .bytes()
+                    .all(|b| b.is_ascii_alphanumeric() || b == b'-')
+        })
+}
+
 fn name(common: &str) -> DistinguishedName {
     let mut dn = DistinguishedName::new();
     dn.push(DnType::CommonName, common);
@@ -176,4 +199,26 @@ fn write(path: &Path, text: &str, mode: u32) -> anyhow::Result<()> {
         .with_context(|| format!("creating {}", path.display()))?;
     file.write_all(text.as_bytes())
         .with_context(|| format!("writing {}", path.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::valid_host;
+
+    #[test]
+    fn hosts_are_dns_names_or_ip_addresses() {
+        for ok in [
+            "localhost",
+            "rayfarm",
+            "a-b.c.svc",
+            "*.rayfarm-workers",
+            "10.0.0.1",
+            "::1",
+        ] {
+            assert!(valid_host(ok), "{ok}");
+        }
+        for bad in ["not a name", "", "a..b", "-a", "a_b", "*", "a.*.b"] {
+            assert!(!valid_host(bad), "{bad}");
+        }
+    }
 }
