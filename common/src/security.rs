@@ -41,14 +41,14 @@ pub const ENV_VARS: &[&str] = &[
 #[derive(Debug, thiserror::Error)]
 pub enum SecurityError {
     /// A file could not be read.
-    #[error("cannot read {what} {}: {source}", path.display())]
+    #[error("cannot read {what} {}: {reason}", path.display())]
     Read {
         /// What the file was for ("TLS certificate", "cluster secret file", ...).
         what: &'static str,
         /// The file.
         path: PathBuf,
-        /// The I/O error.
-        source: std::io::Error,
+        /// The I/O error (in the message, not a source: printed once).
+        reason: std::io::Error,
     },
     /// A PEM file holds no PEM block.
     #[error("{what} {} is not PEM (no -----BEGIN line)", path.display())]
@@ -96,16 +96,16 @@ pub enum SecurityError {
         url: String,
     },
     /// An address that is no URL.
-    #[error("{url:?} is not a valid address: {source}")]
+    #[error("{url:?} is not a valid address: {reason}")]
     BadAddress {
         /// The address.
         url: String,
-        /// tonic's reason.
-        source: tonic::transport::Error,
+        /// tonic's reason, with its causes.
+        reason: String,
     },
     /// tonic refused the TLS configuration (e.g. a key that does not parse).
     #[error("TLS configuration refused: {0}")]
-    Tls(#[source] tonic::transport::Error),
+    Tls(String),
 }
 
 /// TLS options of a server (the coordinator, a worker's peer service).
@@ -197,14 +197,31 @@ pub fn endpoint(addr: &str, tls: Option<&ClientTlsConfig>) -> Result<Endpoint, S
         }
         None => format!("http://{rest}"),
     };
-    let endpoint = Endpoint::from_shared(url.clone())
-        .map_err(|source| SecurityError::BadAddress { url, source })?;
+    let endpoint = Endpoint::from_shared(url.clone()).map_err(|e| SecurityError::BadAddress {
+        url,
+        reason: causes(&e),
+    })?;
     match tls {
         Some(config) => endpoint
             .tls_config(config.clone())
-            .map_err(SecurityError::Tls),
+            .map_err(|e| SecurityError::Tls(causes(&e))),
         None => Ok(endpoint),
     }
+}
+
+/// An error and its sources on one line: tonic's transport errors say only "transport
+/// error" and keep the useful part in their sources.
+fn causes(e: &(dyn std::error::Error + 'static)) -> String {
+    let mut text = e.to_string();
+    let mut source = e.source();
+    while let Some(s) = source {
+        let part = s.to_string();
+        if !text.contains(&part) {
+            text = format!("{text}: {part}");
+        }
+        source = s.source();
+    }
+    text
 }
 
 /// How a process reaches rayfarm servers: with TLS or not, and the credential it presents.
@@ -243,10 +260,10 @@ pub fn url(addr: &str, tls: bool) -> String {
 }
 
 fn read(path: &Path, what: &'static str) -> Result<Vec<u8>, SecurityError> {
-    std::fs::read(path).map_err(|source| SecurityError::Read {
+    std::fs::read(path).map_err(|reason| SecurityError::Read {
         what,
         path: path.to_path_buf(),
-        source,
+        reason,
     })
 }
 
