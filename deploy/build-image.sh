@@ -13,7 +13,8 @@ context=$(mktemp -d)
 trap 'rm -rf "$context"' EXIT
 bins=(rayfarm rayfarm-coordinator rayfarm-worker)
 mkdir -p "$context/rootfs/usr/local/bin" "$context/rootfs/etc" \
-    "$context/owned/data" "$context/owned/scenes" "$context/owned/tmp"
+    "$context/owned/data" "$context/owned/scenes" "$context/owned/tmp" \
+    "$context/owned/secrets"
 for b in "${bins[@]}"; do
     strip --strip-debug -o "$context/rootfs/usr/local/bin/$b" "target/release/$b"
 done

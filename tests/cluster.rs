@@ -614,10 +614,10 @@ fn two_of_four_workers_killed_at_once_and_a_replacement_joining_keep_the_image()
 }
 
 /// Counts the lines of `log` containing each of `needles`.
-fn count_lines(log: &[String], needles: &[&str]) -> Vec<usize> {
+fn count_lines(log: &str, needles: &[&str]) -> Vec<usize> {
     needles
         .iter()
-        .map(|n| log.iter().filter(|l| l.contains(n)).count())
+        .map(|n| log.lines().filter(|l| l.contains(n)).count())
         .collect()
 }
 

@@ -1,7 +1,9 @@
 //! The docker-compose cluster of `deploy/`, built from scratch (no registry) and driven from
 //! the host's `rayfarm` CLI: its image equals `render --local`'s; then a worker container is
-//! killed mid-frame and the test reports what the cluster did. Skipped, saying so, where no
-//! Docker engine or compose tool is present.
+//! killed mid-frame and the test reports what the cluster did. Security is on as the compose
+//! file ships it: the host CLI takes the CA and the user token out of the cluster's `secrets`
+//! volume, and without the token it is refused. Skipped, saying so, where no Docker engine or
+//! compose tool is present.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -122,10 +124,35 @@ fn the_compose_cluster_renders_the_local_image_even_when_a_worker_is_killed() {
     project.ok(&["up", "-d"]);
     let port = project.ok(&["port", "coordinator", "50051"]);
     let url = port.trim().to_string();
+    // The CA and the token, copied out of the coordinator's view of the `secrets` volume as
+    // a user would (deploy/README.md). The published address is named by no certificate: the
+    // CLI checks for the cluster's name instead.
+    let dir = tempfile::tempdir().expect("temp dir");
+    let coordinator = project.ok(&["ps", "-q", "coordinator"]).trim().to_string();
+    for file in ["ca.pem", "user-tokens"] {
+        let copied = Command::new("docker")
+            .args(["cp", &format!("{coordinator}:/secrets/{file}")])
+            .arg(dir.path().join(file))
+            .output()
+            .expect("docker cp");
+        assert!(
+            copied.status.success(),
+            "docker cp {file}: {}",
+            String::from_utf8_lossy(&copied.stderr)
+        );
+    }
+    let ca = dir.path().join("ca.pem");
+    let tokens = dir.path().join("user-tokens");
+    let client_env = [
+        ("RAYFARM_COORDINATOR", url.as_str()),
+        ("RAYFARM_TLS_CA", s(&ca)),
+        ("RAYFARM_TLS_DOMAIN", "rayfarm"),
+        ("RAYFARM_TOKEN_FILE", s(&tokens)),
+    ];
     let cli = |args: &[&str]| {
         let out = Command::new(bin("rayfarm"))
             .args(args)
-            .env("RAYFARM_COORDINATOR", &url)
+            .envs(client_env)
             .output()
             .expect("run rayfarm");
         (
@@ -135,13 +162,22 @@ fn the_compose_cluster_renders_the_local_image_even_when_a_worker_is_killed() {
     };
     let (ok, err) = cli(&["status", "--wait-workers", "4", "--timeout", "60"]);
     assert!(ok, "4 workers never registered: {err}");
+    let anonymous = Command::new(bin("rayfarm"))
+        .arg("jobs")
+        .envs(client_env[..3].iter().copied())
+        .output()
+        .expect("run rayfarm");
+    let err = String::from_utf8_lossy(&anonymous.stderr);
+    assert!(
+        !anonymous.status.success() && err.contains("UNAUTHENTICATED"),
+        "a client without a token was not refused: {err}"
+    );
     eprintln!(
         "compose cluster up in {:.1} s",
         started.elapsed().as_secs_f64()
     );
 
     // The same scene, generated on the host with the same seed, is the reference.
-    let dir = tempfile::tempdir().expect("temp dir");
     let scene = dir.path().join("nbody");
     rayfarm_ok(&[
         "prepare",
@@ -191,7 +227,7 @@ fn the_compose_cluster_renders_the_local_image_even_when_a_worker_is_killed() {
         let out = Command::new(bin("rayfarm"))
             .arg("submit")
             .args(SECOND)
-            .env("RAYFARM_COORDINATOR", &url)
+            .envs(client_env)
             .output()
             .expect("submit");
         (
@@ -205,7 +241,7 @@ fn the_compose_cluster_renders_the_local_image_even_when_a_worker_is_killed() {
     loop {
         let listed = Command::new(bin("rayfarm"))
             .args(["jobs", "--json"])
-            .env("RAYFARM_COORDINATOR", &url)
+            .envs(client_env)
             .output()
             .expect("jobs");
         let jobs: serde_json::Value = serde_json::from_slice(&listed.stdout).expect("jobs json");

@@ -96,13 +96,80 @@ fn kubernetes_manifests_hold_the_promised_objects() {
         .and_then(|e| e["value"].as_str())
         .expect("RAYFARM_ADVERTISE");
     assert!(advertise.contains("rayfarm-workers"), "{advertise}");
+
+    // Security is on: TLS to the coordinator, the Secrets mounted where the env points; the
+    // user tokens reach the coordinator only.
+    let coordinator = find("Deployment", "rayfarm-coordinator");
+    assert_eq!(
+        env_value(workers, "RAYFARM_COORDINATOR").map(|u| u.starts_with("https://")),
+        Some(true)
+    );
+    let secrets = |doc: &Yaml| -> Vec<String> {
+        doc["spec"]["template"]["spec"]["volumes"]
+            .as_vec()
+            .expect("volumes")
+            .iter()
+            .filter_map(|v| v["secret"]["secretName"].as_str().map(String::from))
+            .collect()
+    };
+    assert_eq!(
+        secrets(coordinator),
+        [
+            "rayfarm-tls",
+            "rayfarm-cluster-secret",
+            "rayfarm-user-tokens"
+        ]
+    );
+    assert_eq!(secrets(workers), ["rayfarm-tls", "rayfarm-cluster-secret"]);
+    for (doc, vars) in [
+        (
+            coordinator,
+            &[
+                "RAYFARM_TLS_CERT",
+                "RAYFARM_TLS_KEY",
+                "RAYFARM_CLUSTER_SECRET_FILE",
+                "RAYFARM_USER_TOKENS_FILE",
+            ][..],
+        ),
+        (
+            workers,
+            &[
+                "RAYFARM_TLS_CERT",
+                "RAYFARM_TLS_KEY",
+                "RAYFARM_TLS_CA",
+                "RAYFARM_CLUSTER_SECRET_FILE",
+            ][..],
+        ),
+    ] {
+        let mounts = doc["spec"]["template"]["spec"]["containers"][0]["volumeMounts"]
+            .as_vec()
+            .expect("volumeMounts");
+        for var in vars {
+            let file = env_value(doc, var).unwrap_or_else(|| panic!("{var} is set"));
+            assert!(
+                mounts.iter().any(|m| m["mountPath"]
+                    .as_str()
+                    .is_some_and(|dir| file.starts_with(&format!("{dir}/")))),
+                "{var}={file} is on no mounted volume"
+            );
+        }
+    }
+}
+
+/// The value of environment variable `name` of a pod template's first container.
+fn env_value<'a>(doc: &'a Yaml, name: &str) -> Option<&'a str> {
+    doc["spec"]["template"]["spec"]["containers"][0]["env"]
+        .as_vec()?
+        .iter()
+        .find(|e| e["name"].as_str() == Some(name))
+        .and_then(|e| e["value"].as_str())
 }
 
 #[test]
 fn the_compose_file_has_prepare_coordinator_and_scalable_workers() {
     let docs = documents(&deploy().join("docker-compose.yml"));
     let services = &docs[0]["services"];
-    for name in ["prepare", "coordinator", "worker"] {
+    for name in ["certs", "prepare", "coordinator", "worker"] {
         assert!(!services[name].is_badvalue(), "service {name}");
     }
     assert!(
@@ -116,6 +183,30 @@ fn the_compose_file_has_prepare_coordinator_and_scalable_workers() {
     assert_eq!(
         services["coordinator"]["depends_on"]["prepare"]["condition"].as_str(),
         Some("service_completed_successfully")
+    );
+    // Security is on: credentials from the one-shot `certs` service's volume.
+    assert_eq!(
+        services["coordinator"]["depends_on"]["certs"]["condition"].as_str(),
+        Some("service_completed_successfully")
+    );
+    let coordinator_env = &services["coordinator"]["environment"];
+    for var in [
+        "RAYFARM_TLS_CERT",
+        "RAYFARM_TLS_KEY",
+        "RAYFARM_CLUSTER_SECRET_FILE",
+        "RAYFARM_USER_TOKENS_FILE",
+    ] {
+        assert!(
+            coordinator_env[var]
+                .as_str()
+                .is_some_and(|f| f.starts_with("/secrets/")),
+            "coordinator {var}"
+        );
+    }
+    assert!(
+        services["worker"]["environment"]["RAYFARM_COORDINATOR"]
+            .as_str()
+            .is_some_and(|u| u.starts_with("https://"))
     );
 }
 

@@ -5,7 +5,7 @@
 use std::fs::File;
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Child, ChildStdout, Command, Output, Stdio};
+use std::process::{Child, ChildStdout, Command, ExitStatus, Output, Stdio};
 use std::sync::mpsc;
 use std::time::Duration;
 
@@ -97,7 +97,7 @@ pub struct WorkerOpts {
     pub threads: Option<usize>,
     /// Extra environment variables, e.g. fault injection.
     pub env: Vec<(String, String)>,
-    /// Extra command-line arguments.
+    /// Extra command-line arguments, e.g. TLS files.
     pub args: Vec<String>,
 }
 
@@ -140,6 +140,26 @@ impl WorkerOpts {
         self.args.extend([flag.to_string(), value.to_string()]);
         self
     }
+
+    /// With the extra arguments `args`.
+    pub fn args(mut self, args: &[&str]) -> Self {
+        self.args.extend(args.iter().map(|a| a.to_string()));
+        self
+    }
+}
+
+/// What a [`Cluster`] is started with beyond scenes and workers: flags and environment for
+/// the coordinator, environment for every `rayfarm` the cluster runs, and the URL scheme.
+#[derive(Clone, Debug, Default)]
+pub struct ClusterOpts {
+    /// Extra coordinator arguments, e.g. TLS files.
+    pub coordinator_args: Vec<String>,
+    /// Extra coordinator environment, e.g. fault injection.
+    pub coordinator_env: Vec<(String, String)>,
+    /// Environment of the cluster's `rayfarm` commands, e.g. a CA and a token.
+    pub client_env: Vec<(String, String)>,
+    /// The coordinator serves TLS: its URL is `https://`.
+    pub https: bool,
 }
 
 /// One process of a test cluster.
@@ -257,6 +277,7 @@ pub struct Cluster {
     dir: tempfile::TempDir,
     scene_root: PathBuf,
     url: String,
+    client_env: Vec<(String, String)>,
     coordinator: Proc,
     /// How the coordinator was started, to start it again the same way.
     coordinator_args: Vec<String>,
@@ -287,6 +308,24 @@ impl Cluster {
         coordinator_env: &[(&str, &str)],
         workers: &[WorkerOpts],
     ) -> Cluster {
+        let opts = ClusterOpts {
+            coordinator_env: coordinator_env
+                .iter()
+                .map(|(k, v)| (k.to_string(), v.to_string()))
+                .collect(),
+            ..ClusterOpts::default()
+        };
+        Self::start_with(scene_root, default_scene, &opts, workers)
+    }
+
+    /// [`Cluster::start`] with extra coordinator flags and environment, and environment for
+    /// the cluster's `rayfarm` commands.
+    pub fn start_with(
+        scene_root: &Path,
+        default_scene: Option<&str>,
+        opts: &ClusterOpts,
+        workers: &[WorkerOpts],
+    ) -> Cluster {
         let dir = tempfile::tempdir().expect("cluster temp dir");
         let data_dir = dir.path().join("data");
         std::fs::create_dir_all(&data_dir).expect("create data dir");
@@ -301,24 +340,23 @@ impl Cluster {
         if let Some(name) = default_scene {
             args.extend(["--default-scene".to_string(), name.to_string()]);
         }
-        let env: Vec<(String, String)> = coordinator_env
-            .iter()
-            .map(|(k, v)| (k.to_string(), v.to_string()))
-            .collect();
+        args.extend(opts.coordinator_args.iter().cloned());
         let coordinator = Proc::start(
             "coordinator",
             &bin("rayfarm-coordinator"),
             &args,
-            &env,
+            &opts.coordinator_env,
             &dir.path().join("coordinator.log"),
         );
+        let scheme = if opts.https { "https" } else { "http" };
         let mut cluster = Cluster {
-            url: format!("http://{}", coordinator.addr),
+            url: format!("{scheme}://{}", coordinator.addr),
+            client_env: opts.client_env.clone(),
             dir,
             scene_root: scene_root.to_path_buf(),
             coordinator,
             coordinator_args: args,
-            coordinator_env: env,
+            coordinator_env: opts.coordinator_env.clone(),
             former_coordinators: Vec::new(),
             workers: Vec::new(),
         };
@@ -329,7 +367,7 @@ impl Cluster {
         cluster
     }
 
-    /// The coordinator's URL, `http://127.0.0.1:PORT`.
+    /// The coordinator's URL, `http://127.0.0.1:PORT` (`https://` with TLS).
     pub fn coordinator_url(&self) -> &str {
         &self.url
     }
@@ -357,18 +395,6 @@ impl Cluster {
         let proc = Proc::start(&name, &bin("rayfarm-worker"), &args, &opts.env, &log);
         self.workers.push(proc);
         i
-    }
-
-    /// Lines of worker `i`'s log so far.
-    pub fn worker_log(&self, i: usize) -> Vec<String> {
-        std::fs::read(&self.workers[i].log)
-            .map(|b| {
-                String::from_utf8_lossy(&b)
-                    .lines()
-                    .map(String::from)
-                    .collect()
-            })
-            .unwrap_or_default()
     }
 
     /// Kills worker `i` at once (SIGKILL: a crash, not a shutdown) and reaps it.
@@ -424,6 +450,34 @@ impl Cluster {
         self.dir.path().join("data")
     }
 
+    /// Waits until worker `i` exits by itself (panicking after `timeout`); returns its exit
+    /// status.
+    pub fn wait_worker_exit(&mut self, i: usize, timeout: Duration) -> ExitStatus {
+        let start = std::time::Instant::now();
+        loop {
+            if let Some(status) = self.workers[i].child.try_wait().expect("poll worker") {
+                return status;
+            }
+            assert!(
+                start.elapsed() < timeout,
+                "worker {i} did not exit within {timeout:?}"
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// Worker `i`'s log so far.
+    pub fn worker_log(&self, i: usize) -> String {
+        String::from_utf8_lossy(&std::fs::read(&self.workers[i].log).expect("worker log"))
+            .into_owned()
+    }
+
+    /// The coordinator's log so far.
+    pub fn coordinator_log(&self) -> String {
+        String::from_utf8_lossy(&std::fs::read(&self.coordinator.log).expect("coordinator log"))
+            .into_owned()
+    }
+
     /// The peer address worker `i` printed (also once it is killed).
     pub fn worker_addr(&self, i: usize) -> &str {
         &self.workers[i].addr
@@ -451,10 +505,22 @@ impl Cluster {
     /// Runs `rayfarm` against this cluster (`RAYFARM_COORDINATOR` set); returns its output,
     /// whatever the exit status.
     pub fn rayfarm(&self, args: &[&str]) -> Output {
+        let env: Vec<(&str, &str)> = self
+            .client_env
+            .iter()
+            .map(|(k, v)| (k.as_str(), v.as_str()))
+            .collect();
+        self.rayfarm_as(&env, args)
+    }
+
+    /// Runs `rayfarm` against this cluster with only `env` added (not the cluster's client
+    /// environment): a client with other credentials, or none.
+    pub fn rayfarm_as(&self, env: &[(&str, &str)], args: &[&str]) -> Output {
         Command::new(bin("rayfarm"))
             .args(args)
             .env("RUST_LOG", "warn")
             .env("RAYFARM_COORDINATOR", &self.url)
+            .envs(env.iter().copied())
             .output()
             .expect("start rayfarm")
     }

@@ -3,13 +3,16 @@
 //! width must be ..."), so every cluster command reports errors the same way.
 
 use std::error::Error as _;
+use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::{Context, anyhow};
 use clap::Args;
 use rayfarm_common::proto;
 use rayfarm_common::proto::job_service_client::JobServiceClient;
-use tonic::transport::{Channel, Endpoint};
+use rayfarm_common::security::{ClientSecurity, ConnectTlsArgs, Credential, first_token};
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::{Channel, Identity};
 
 /// Images of big frames travel in one message; the default 4 MiB limit would refuse them.
 const MAX_MESSAGE_BYTES: usize = 256 << 20;
@@ -59,6 +62,54 @@ pub struct CoordinatorArgs {
         default_value = "http://127.0.0.1:50051"
     )]
     pub coordinator: String,
+    #[command(flatten)]
+    pub tls: ConnectTlsArgs,
+    /// PEM certificate to present when the coordinator requires client certificates.
+    #[arg(long, env = "RAYFARM_TLS_CERT", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// PEM private key of --tls-cert.
+    #[arg(long, env = "RAYFARM_TLS_KEY", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+    /// User token for the job API (prefer RAYFARM_TOKEN or --token-file: a flag's value
+    /// shows in process lists).
+    #[arg(
+        long,
+        env = "RAYFARM_TOKEN",
+        hide_env_values = true,
+        conflicts_with = "token_file"
+    )]
+    pub token: Option<String>,
+    /// File whose first token is presented (a coordinator's user tokens file works).
+    #[arg(long, env = "RAYFARM_TOKEN_FILE")]
+    pub token_file: Option<PathBuf>,
+}
+
+impl CoordinatorArgs {
+    /// TLS and the user token these options ask for.
+    pub fn security(&self) -> anyhow::Result<ClientSecurity> {
+        let identity = match (&self.tls_cert, &self.tls_key) {
+            (Some(cert), Some(key)) => {
+                let read = |p: &PathBuf| {
+                    std::fs::read(p).with_context(|| format!("reading {}", p.display()))
+                };
+                Some(Identity::from_pem(read(cert)?, read(key)?))
+            }
+            _ => None,
+        };
+        let token = match &self.token_file {
+            Some(path) => Some(first_token(path)?),
+            None => self.token.clone(),
+        };
+        Ok(ClientSecurity {
+            tls: self.tls.client_config(identity)?,
+            credential: Credential::bearer(token.as_deref())?,
+        })
+    }
+
+    /// Connects to the coordinator these options name, with their TLS and token.
+    pub async fn connect(&self) -> anyhow::Result<Coordinator> {
+        Coordinator::connect_with(&self.coordinator, &self.security()?).await
+    }
 }
 
 /// The async runtime of one command. The commands are I/O-bound request/response clients,
@@ -70,39 +121,44 @@ pub fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
         .context("starting the async runtime")
 }
 
-/// `addr` as a URL: a bare `host:port` gets `http://`.
-pub fn normalize_url(addr: &str) -> String {
-    let addr = addr.trim();
-    if addr.contains("://") {
-        addr.to_string()
-    } else {
-        format!("http://{addr}")
-    }
-}
-
 /// A connected coordinator. Every call maps a failure to a readable error.
 #[derive(Clone)]
 pub struct Coordinator {
     url: String,
-    client: JobServiceClient<Channel>,
+    /// The address as given and how it was reached, to connect again the same way.
+    addr: String,
+    security: ClientSecurity,
+    client: JobServiceClient<InterceptedService<Channel, Credential>>,
 }
 
 impl Coordinator {
-    /// Connects to the coordinator at `addr` (fails fast if nothing answers there).
+    /// Connects to the coordinator at `addr` in plain text without credentials (local
+    /// clusters); fails fast if nothing answers there.
     pub async fn connect(addr: &str) -> anyhow::Result<Self> {
-        let url = normalize_url(addr);
-        let endpoint = Endpoint::from_shared(url.clone())
-            .map_err(|e| anyhow!("{url:?} is not a coordinator address: {}", chain(&e)))?
+        Self::connect_with(addr, &ClientSecurity::default()).await
+    }
+
+    /// Connects to the coordinator at `addr` with `security`.
+    pub async fn connect_with(addr: &str, security: &ClientSecurity) -> anyhow::Result<Self> {
+        let url = security.url(addr);
+        let endpoint = security
+            .endpoint(addr)
+            .map_err(|e| anyhow!("{}", chain(&e)))?
             .tcp_nodelay(true)
             .connect_timeout(CONNECT_TIMEOUT);
         let channel = endpoint.connect().await.map_err(|e| Unavailable {
             url: url.clone(),
             reason: chain(&e),
         })?;
-        let client = JobServiceClient::new(channel)
+        let client = JobServiceClient::with_interceptor(channel, security.credential.clone())
             .max_decoding_message_size(MAX_MESSAGE_BYTES)
             .max_encoding_message_size(MAX_MESSAGE_BYTES);
-        Ok(Self { url, client })
+        Ok(Self {
+            url,
+            addr: addr.to_string(),
+            security: security.clone(),
+            client,
+        })
     }
 
     /// Connects again to the same coordinator, retrying unreachable ones with exponential
@@ -111,7 +167,7 @@ impl Coordinator {
     pub async fn reconnect(&mut self, deadline: tokio::time::Instant) -> anyhow::Result<()> {
         let mut delay = Duration::from_millis(250);
         loop {
-            match Self::connect(&self.url).await {
+            match Self::connect_with(&self.addr, &self.security).await {
                 Ok(fresh) => {
                     *self = fresh;
                     return Ok(());
@@ -211,9 +267,27 @@ pub fn rpc_error(url: &str, status: &tonic::Status) -> anyhow::Error {
         status.message().to_string()
     };
     if connection_lost(status) {
+        // A failure on this side of the connection carries its cause as a source; a server's
+        // answer never does. The cause is the useful part ("certificate required").
+        let local = status.source();
+        let detail = match local.map(chain) {
+            Some(cause) if cause.starts_with(&message) => cause,
+            Some(cause) => format!("{message}: {cause}"),
+            None => message,
+        };
+        // A TLS server hangs up on a plain-text client, and on a client without the
+        // certificate it requires, with errors that say nothing about TLS: say what to check.
+        let hint = if status.code() == tonic::Code::Unavailable || local.is_none() {
+            ""
+        } else if url.starts_with("http://") {
+            " (if it serves TLS, give the CA that signed its certificate: --tls-ca or \
+             RAYFARM_TLS_CA)"
+        } else {
+            " (if it requires client certificates, give --tls-cert and --tls-key)"
+        };
         return Unavailable {
             url: url.to_string(),
-            reason: message,
+            reason: format!("{detail}{hint}"),
         }
         .into();
     }
@@ -264,13 +338,6 @@ mod tests {
     use super::*;
 
     #[test]
-    fn bare_host_port_gets_a_scheme() {
-        assert_eq!(normalize_url("10.0.0.1:50051"), "http://10.0.0.1:50051");
-        assert_eq!(normalize_url(" http://h:1 "), "http://h:1");
-        assert_eq!(normalize_url("https://h:1"), "https://h:1");
-    }
-
-    #[test]
     fn rpc_errors_name_the_code_or_the_unreachable_coordinator() {
         let url = "http://127.0.0.1:1";
         let e = rpc_error(url, &tonic::Status::invalid_argument("width must be >= 1"));
@@ -294,6 +361,13 @@ mod tests {
         assert!(!is_unavailable(&rpc_error(url, &sent)));
         let e = rpc_error(url, &tonic::Status::new(tonic::Code::NotFound, ""));
         assert!(e.to_string().starts_with("NOT_FOUND: "), "{e}");
+        let e = rpc_error(
+            url,
+            &tonic::Status::from_error(Box::new(std::io::Error::other("broken pipe"))),
+        );
+        assert!(e.to_string().contains("is unreachable"), "{e}");
+        assert!(e.to_string().contains("broken pipe"), "{e}");
+        assert!(e.to_string().contains("--tls-ca"), "{e}");
     }
 
     #[test]

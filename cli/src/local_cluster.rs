@@ -326,6 +326,11 @@ impl LocalCluster {
             .stderr(Stdio::from(log_file))
             // Logs go to a file: no terminal colour codes in it.
             .env("NO_COLOR", "1");
+        // The local cluster talks plain text on loopback: credentials this shell holds for a
+        // real cluster would turn security on in the children but not in this client.
+        for var in rayfarm_common::security::ENV_VARS {
+            cmd.env_remove(var);
+        }
         #[cfg(unix)]
         cmd.process_group(0);
         let mut child = cmd

@@ -48,6 +48,9 @@ enum Command {
     Bench(cmd::bench::BenchArgs),
     /// Check that a coordinator or worker is up (the gRPC health service).
     Health(cmd::health::HealthArgs),
+    /// Write a private CA, a node certificate for the given hosts and (optionally) a random
+    /// cluster secret and user token: what a cluster needs to turn security on.
+    Certs(cmd::certs::CertsArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -82,5 +85,6 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
         Command::Cancel(a) => cmd::cancel::run(a),
         Command::Bench(a) => cmd::bench::run(a),
         Command::Health(a) => cmd::health::run(a),
+        Command::Certs(a) => cmd::certs::run(a),
     }
 }

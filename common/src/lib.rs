@@ -19,6 +19,7 @@ pub mod render;
 pub mod sampling;
 pub mod scene;
 pub mod schedule;
+pub mod security;
 pub mod telemetry;
 pub mod units;
 pub mod volume;

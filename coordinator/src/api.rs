@@ -5,10 +5,12 @@ use std::sync::Arc;
 
 use rayfarm_common::proto::job_service_server::JobService;
 use rayfarm_common::proto::{self, JobState};
+use rayfarm_common::security::User;
 use tokio::sync::mpsc;
 use tokio_stream::Stream;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status};
+use tracing::info;
 
 use crate::state::Coordinator;
 
@@ -31,7 +33,12 @@ impl JobService for Api {
         &self,
         request: Request<proto::SubmitJobRequest>,
     ) -> Result<Response<proto::SubmitJobResponse>, Status> {
+        // Set by the token check when user tokens are on: who submitted what, for the log.
+        let user = request.extensions().get::<User>().map(|u| u.0.clone());
         let job_id = self.coordinator.submit(request.into_inner().spec)?;
+        if let Some(user) = user {
+            info!(%job_id, %user, "job submitted");
+        }
         Ok(Response::new(proto::SubmitJobResponse { job_id }))
     }
 

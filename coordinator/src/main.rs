@@ -21,9 +21,13 @@ use rayfarm_common::fault::Faults;
 use rayfarm_common::proto::job_service_server::JobServiceServer;
 use rayfarm_common::proto::worker_control_server::WorkerControlServer;
 use rayfarm_common::schedule::dynamic::Options;
+use rayfarm_common::security::{
+    ClusterSecret, RequireSecret, RequireToken, ServeTlsArgs, UserTokens,
+};
+use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Server;
 use tonic::transport::server::TcpIncoming;
-use tracing::info;
+use tracing::{info, warn};
 
 use crate::frame::Rounds;
 use crate::state::{Config, Coordinator};
@@ -74,6 +78,16 @@ struct Args {
     /// dry; `barrier` (Fig. 5 as written) waits until every worker has reported.
     #[arg(long, env = "RAYFARM_ROUNDS", value_enum, default_value_t = Rounds::Async)]
     rounds: Rounds,
+    #[command(flatten)]
+    tls: ServeTlsArgs,
+    /// File holding the cluster secret workers must present to attach (off without it).
+    /// A file, not a value, so the secret shows in no process list.
+    #[arg(long, env = "RAYFARM_CLUSTER_SECRET_FILE")]
+    cluster_secret_file: Option<PathBuf>,
+    /// File of the user tokens the job API accepts, one per line with an optional user name
+    /// after it (off without it: anyone reaching the port may submit).
+    #[arg(long, env = "RAYFARM_USER_TOKENS_FILE")]
+    user_tokens_file: Option<PathBuf>,
     /// More log output (-v debug, -vv trace); RUST_LOG overrides.
     #[arg(short, long, action = clap::ArgAction::Count)]
     verbose: u8,
@@ -85,6 +99,10 @@ fn main() -> std::process::ExitCode {
 }
 
 async fn run(args: Args) -> anyhow::Result<()> {
+    // Credentials are read before binding, so a bad file stops the start with its reason.
+    let tls = args.tls.server_config()?;
+    let secret = ClusterSecret::load(args.cluster_secret_file.as_deref())?;
+    let tokens = UserTokens::load(args.user_tokens_file.as_deref())?;
     std::fs::create_dir_all(&args.data_dir)
         .with_context(|| format!("creating data directory {}", args.data_dir.display()))?;
     let listen = args.listen;
@@ -110,6 +128,16 @@ async fn run(args: Args) -> anyhow::Result<()> {
     // The one line scripts and tests wait for; logs go to stderr.
     println!("listening on {bound}");
     info!(%bound, ?config, "coordinator up");
+    info!(
+        tls = tls.is_some(),
+        mutual_tls = args.tls.tls_client_ca.is_some(),
+        cluster_secret = secret.is_some(),
+        user_tokens = tokens.as_ref().map_or(0, UserTokens::len),
+        "security"
+    );
+    if tls.is_none() && (secret.is_some() || tokens.is_some()) {
+        warn!("credentials without TLS travel in clear text: give --tls-cert and --tls-key");
+    }
     let faults = Faults::from_env();
     if faults.active() {
         info!(?faults, "fault injection is on (test instrumentation)");
@@ -128,14 +156,23 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let api = JobServiceServer::new(api::Api::new(coordinator.clone()))
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
+    let api = InterceptedService::new(api, RequireToken(tokens));
     let control = WorkerControlServer::new(control::Control::new(coordinator, faults))
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
+    let control = InterceptedService::new(control, RequireSecret(secret));
     // The standard gRPC health service, for container health checks and load balancers.
     let (health, health_service) = tonic_health::server::health_reporter();
     health.set_serving::<JobServiceServer<api::Api>>().await;
     let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
-    let server = Server::builder()
+    let mut builder = Server::builder();
+    if let Some(tls) = tls {
+        builder = builder
+            .tls_config(tls)
+            .context("TLS configuration (--tls-cert, --tls-key, --tls-client-ca)")?;
+    }
+    // Health stays outside the interceptors: probes carry no credentials.
+    let server = builder
         .add_service(health_service)
         .add_service(api)
         .add_service(control)

@@ -9,11 +9,11 @@ use rayfarm_common::proto::{
     self, PROTOCOL_VERSION, coordinator_message::Body as FromCoordinator,
     worker_message::Body as ToCoordinator,
 };
+use rayfarm_common::security::ClientSecurity;
 use tokio::sync::mpsc;
 use tokio::time::Instant;
 use tokio_stream::wrappers::UnboundedReceiverStream;
 use tonic::Code;
-use tonic::transport::Endpoint;
 use tracing::{error, info, warn};
 
 use crate::engine::Event;
@@ -28,10 +28,13 @@ pub struct Identity {
     pub advertise: String,
     pub cache_bytes: u64,
     pub threads: u32,
+    /// TLS and the cluster secret for the control stream.
+    pub security: ClientSecurity,
 }
 
 /// Keeps a control stream open for the worker's lifetime. Returns only when the coordinator
-/// refuses this worker for good (another protocol version) or the engine is gone.
+/// refuses this worker for good (another protocol version, no or a wrong cluster secret) or
+/// the engine is gone.
 pub async fn run(
     me: Identity,
     events: mpsc::UnboundedSender<Event>,
@@ -43,12 +46,22 @@ pub async fn run(
         match session(&me, &events, &mut outbound, faults, &mut failures).await {
             Ok(Session::EngineGone) => return Ok(()),
             Ok(Session::Ended) => failures = 0,
-            Err(status) if status.code() == Code::FailedPrecondition => {
+            // Retrying cannot fix another protocol or a wrong secret: exit and say why.
+            Err(status)
+                if matches!(
+                    status.code(),
+                    Code::FailedPrecondition | Code::Unauthenticated
+                ) =>
+            {
                 anyhow::bail!("the coordinator refused this worker: {}", status.message())
             }
             Err(status) => {
                 failures += 1;
                 warn!(coordinator = %me.coordinator, %status, "control stream unavailable");
+                // A TLS coordinator hangs up on plain text with errors that never say TLS.
+                if me.security.tls.is_none() && status.code() != Code::Unavailable {
+                    warn!("if the coordinator serves TLS, give --tls-ca");
+                }
             }
         }
         let _ = events.send(Event::Disconnected);
@@ -71,14 +84,16 @@ async fn session(
     failures: &mut u32,
 ) -> Result<Session, tonic::Status> {
     let unavailable = |e: tonic::transport::Error| tonic::Status::unavailable(e.to_string());
-    let channel = Endpoint::from_shared(me.coordinator.clone())
+    let channel = me
+        .security
+        .endpoint(&me.coordinator)
         .map_err(|e| tonic::Status::invalid_argument(e.to_string()))?
         .tcp_nodelay(true)
         .connect_timeout(Duration::from_secs(5))
         .connect()
         .await
         .map_err(unavailable)?;
-    let mut client = WorkerControlClient::new(channel)
+    let mut client = WorkerControlClient::with_interceptor(channel, me.security.credential.clone())
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
     let (tx, rx) = mpsc::unbounded_channel();

@@ -18,11 +18,15 @@ use clap::Parser;
 use rayfarm_common::bundler::BundlerConfig;
 use rayfarm_common::proto::peer_service_server::PeerServiceServer;
 use rayfarm_common::render::cache::StorageModel;
+use rayfarm_common::security::{
+    ClientSecurity, ClusterSecret, ConnectTlsArgs, Credential, RequireSecret, ServeTlsArgs,
+};
 use rayfarm_common::units::{parse_bytes, parse_rate};
 use tokio::sync::mpsc;
+use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Server;
 use tonic::transport::server::TcpIncoming;
-use tracing::info;
+use tracing::{info, warn};
 
 use crate::engine::{Engine, EngineConfig};
 use crate::peers::{MAX_MESSAGE_BYTES, PeerLinks, PeerServer};
@@ -80,6 +84,14 @@ struct Args {
     /// EMULATION for benchmarks: a fixed delay added to every domain load (e.g. 5ms).
     #[arg(long, env = "RAYFARM_STORAGE_LATENCY", value_parser = parse_duration)]
     storage_latency: Option<Duration>,
+    #[command(flatten)]
+    serve_tls: ServeTlsArgs,
+    #[command(flatten)]
+    connect_tls: ConnectTlsArgs,
+    /// File holding the cluster secret, presented to the coordinator and to peers and
+    /// required of peers (off without it). A file, so the secret shows in no process list.
+    #[arg(long, env = "RAYFARM_CLUSTER_SECRET_FILE")]
+    cluster_secret_file: Option<PathBuf>,
     /// More log output (-v info, -vv debug); RUST_LOG overrides.
     #[arg(short, long, action = clap::ArgAction::Count)]
     verbose: u8,
@@ -111,6 +123,13 @@ fn main() -> std::process::ExitCode {
 }
 
 async fn run(args: Args) -> anyhow::Result<()> {
+    // Credentials are read before binding, so a bad file stops the start with its reason.
+    let serve_tls = args.serve_tls.server_config()?;
+    let secret = ClusterSecret::load(args.cluster_secret_file.as_deref())?;
+    let security = ClientSecurity {
+        tls: args.connect_tls.client_config(args.serve_tls.identity()?)?,
+        credential: Credential::secret(secret.as_ref()),
+    };
     let listener = tokio::net::TcpListener::bind(args.listen)
         .await
         .with_context(|| format!("cannot listen on {}", args.listen))?;
@@ -141,6 +160,18 @@ async fn run(args: Args) -> anyhow::Result<()> {
         );
     }
 
+    info!(
+        serve_tls = serve_tls.is_some(),
+        connect_tls = security.tls.is_some(),
+        cluster_secret = secret.is_some(),
+        "security"
+    );
+    if secret.is_some() && (serve_tls.is_none() || security.tls.is_none()) {
+        warn!(
+            "the cluster secret travels in clear text on links without TLS: give --tls-cert, \
+             --tls-key and --tls-ca"
+        );
+    }
     let faults = Faults::from_env();
     if faults.active() {
         info!(?faults, "fault injection is on (test instrumentation)");
@@ -167,16 +198,24 @@ async fn run(args: Args) -> anyhow::Result<()> {
         },
         events_tx.clone(),
         to_coordinator,
-        PeerLinks::new(worker_id.clone(), faults),
+        PeerLinks::new(worker_id.clone(), faults, security.clone()),
     )?;
     let peer_service = PeerServiceServer::new(PeerServer::new(events_tx.clone()))
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
+    let peer_service = InterceptedService::new(peer_service, RequireSecret(secret));
     // The standard gRPC health service, for container health checks.
     let (health, health_service) = tonic_health::server::health_reporter();
     health.set_serving::<PeerServiceServer<PeerServer>>().await;
     let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
-    let server = Server::builder()
+    let mut builder = Server::builder();
+    if let Some(tls) = serve_tls {
+        builder = builder
+            .tls_config(tls)
+            .context("TLS configuration (--tls-cert, --tls-key, --tls-client-ca)")?;
+    }
+    // Health stays outside the interceptor: probes carry no credentials.
+    let server = builder
         .add_service(health_service)
         .add_service(peer_service)
         .serve_with_incoming(incoming);
@@ -187,6 +226,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
             advertise,
             cache_bytes: args.cache_bytes,
             threads: threads as u32,
+            security,
         },
         events_tx,
         outbound,

@@ -10,11 +10,11 @@ use rayfarm_common::bundler::Tier;
 use rayfarm_common::proto::peer_service_client::PeerServiceClient;
 use rayfarm_common::proto::peer_service_server::PeerService;
 use rayfarm_common::proto::{self, PROTOCOL_VERSION};
+use rayfarm_common::security::ClientSecurity;
 use rayfarm_common::wire::{self, BatchLimits, WireError};
 use tokio::sync::mpsc;
 use tokio_stream::Stream;
 use tokio_stream::wrappers::UnboundedReceiverStream;
-use tonic::transport::Endpoint;
 use tonic::{Request, Response, Status, Streaming};
 use tracing::{debug, error, warn};
 
@@ -34,16 +34,18 @@ const CONNECT_ATTEMPTS: u32 = 20;
 pub struct PeerLinks {
     me: String,
     faults: Faults,
+    security: ClientSecurity,
     links: HashMap<String, mpsc::UnboundedSender<proto::PeerBundle>>,
     sequence: u64,
 }
 
 impl PeerLinks {
-    /// Links from the worker called `me`.
-    pub fn new(me: String, faults: Faults) -> Self {
+    /// Links from the worker called `me`, connecting with `security`.
+    pub fn new(me: String, faults: Faults, security: ClientSecurity) -> Self {
         PeerLinks {
             me,
             faults,
+            security,
             links: HashMap::new(),
             sequence: 0,
         }
@@ -64,10 +66,10 @@ impl PeerLinks {
         let link = self
             .links
             .entry(peer.to_string())
-            .or_insert_with(|| open_link(peer.to_string(), self.faults));
+            .or_insert_with(|| open_link(peer.to_string(), self.faults, &self.security));
         if let Err(mpsc::error::SendError(bundle)) = link.send(bundle) {
             // The link task gave up on this peer; try a fresh link once.
-            let fresh = open_link(peer.to_string(), self.faults);
+            let fresh = open_link(peer.to_string(), self.faults, &self.security);
             if fresh.send(bundle).is_err() {
                 error!(%peer, "cannot reach peer: bundle dropped");
             }
@@ -85,11 +87,16 @@ fn proto_tier(tier: Tier) -> proto::Tier {
     }
 }
 
-fn open_link(peer: String, faults: Faults) -> mpsc::UnboundedSender<proto::PeerBundle> {
+fn open_link(
+    peer: String,
+    faults: Faults,
+    security: &ClientSecurity,
+) -> mpsc::UnboundedSender<proto::PeerBundle> {
     let (tx, rx) = mpsc::unbounded_channel();
     let rx = faults.delayed(&peer, rx);
+    let security = security.clone();
     tokio::spawn(async move {
-        if let Err(e) = run_link(&peer, rx).await {
+        if let Err(e) = run_link(&peer, &security, rx).await {
             warn!(%peer, error = %e, "peer link ended");
         }
     });
@@ -98,9 +105,11 @@ fn open_link(peer: String, faults: Faults) -> mpsc::UnboundedSender<proto::PeerB
 
 async fn run_link(
     peer: &str,
+    security: &ClientSecurity,
     rx: mpsc::UnboundedReceiver<proto::PeerBundle>,
 ) -> anyhow::Result<()> {
-    let endpoint = Endpoint::from_shared(format!("http://{peer}"))?
+    let endpoint = security
+        .endpoint(peer)?
         .tcp_nodelay(true)
         .connect_timeout(Duration::from_secs(5));
     let mut attempt = 0;
@@ -115,7 +124,7 @@ async fn run_link(
             Err(e) => return Err(e.into()),
         }
     };
-    let mut client = PeerServiceClient::new(channel)
+    let mut client = PeerServiceClient::with_interceptor(channel, security.credential.clone())
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
     let mut acks = client

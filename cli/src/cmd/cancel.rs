@@ -5,7 +5,7 @@ use anyhow::Context;
 use clap::Args;
 
 use super::watch::state_name;
-use crate::client::{Coordinator, CoordinatorArgs, runtime};
+use crate::client::{CoordinatorArgs, runtime};
 
 /// Options of `rayfarm cancel`.
 #[derive(Args, Clone, Debug)]
@@ -18,7 +18,7 @@ pub struct CancelArgs {
 
 pub fn run(a: CancelArgs) -> anyhow::Result<()> {
     let state = runtime()?.block_on(async {
-        let mut coord = Coordinator::connect(&a.coordinator.coordinator).await?;
+        let mut coord = a.coordinator.connect().await?;
         coord
             .cancel(&a.job_id)
             .await

@@ -28,7 +28,7 @@ pub fn run(a: FetchArgs) -> anyhow::Result<()> {
     let output = a.output.unwrap_or_else(|| default_output(&a.job_id));
     let format = image_format(&output)?;
     runtime()?.block_on(async {
-        let mut coord = Coordinator::connect(&a.coordinator.coordinator).await?;
+        let mut coord = a.coordinator.connect().await?;
         let result = save_result(
             &mut coord,
             &a.job_id,

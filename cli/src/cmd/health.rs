@@ -5,28 +5,32 @@ use std::time::Duration;
 
 use anyhow::{Context, bail};
 use clap::Args;
-use tonic::transport::Endpoint;
+use rayfarm_common::security::ConnectTlsArgs;
 use tonic_health::pb::HealthCheckRequest;
 use tonic_health::pb::health_check_response::ServingStatus;
 use tonic_health::pb::health_client::HealthClient;
 
-use crate::client::{normalize_url, runtime};
+use crate::client::runtime;
 
 /// Options of `rayfarm health`.
 #[derive(Args, Clone, Debug)]
 pub struct HealthArgs {
     /// Address of a rayfarm-coordinator or rayfarm-worker: HOST:PORT or http://HOST:PORT.
     pub addr: String,
+    /// TLS, for servers started with --tls-cert (the health service needs no credentials).
+    #[command(flatten)]
+    pub tls: ConnectTlsArgs,
     /// Seconds to wait for an answer.
     #[arg(long, default_value_t = 3.0)]
     pub timeout: f64,
 }
 
 pub fn run(a: HealthArgs) -> anyhow::Result<()> {
-    let url = normalize_url(&a.addr);
+    let tls = a.tls.client_config(None)?;
+    let url = rayfarm_common::security::url(&a.addr, tls.is_some());
     let timeout = Duration::try_from_secs_f64(a.timeout).context("--timeout")?;
     let status = runtime()?.block_on(async {
-        let channel = Endpoint::from_shared(url.clone())?
+        let channel = rayfarm_common::security::endpoint(&a.addr, tls.as_ref())?
             .connect_timeout(timeout)
             .timeout(timeout)
             .connect()
@@ -35,7 +39,15 @@ pub fn run(a: HealthArgs) -> anyhow::Result<()> {
         let response = HealthClient::new(channel)
             .check(HealthCheckRequest::default())
             .await
-            .with_context(|| format!("{url} did not answer the health check"))?;
+            .with_context(|| {
+                // In plain text against a TLS server the error says only "broken pipe".
+                let hint = if tls.is_none() {
+                    " (if it serves TLS, give --tls-ca)"
+                } else {
+                    ""
+                };
+                format!("{url} did not answer the health check{hint}")
+            })?;
         anyhow::Ok(response.into_inner().status())
     })?;
     if status != ServingStatus::Serving {

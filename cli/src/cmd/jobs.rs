@@ -10,7 +10,7 @@ use rayfarm_common::proto::{self, JobState};
 use serde_json::json;
 
 use super::watch::state_name;
-use crate::client::{Coordinator, CoordinatorArgs, runtime};
+use crate::client::{CoordinatorArgs, runtime};
 
 /// Options of `rayfarm jobs`.
 #[derive(Args, Clone, Debug)]
@@ -24,7 +24,7 @@ pub struct JobsArgs {
 
 pub fn run(a: JobsArgs) -> anyhow::Result<()> {
     let jobs = runtime()?.block_on(async {
-        let mut coord = Coordinator::connect(&a.coordinator.coordinator).await?;
+        let mut coord = a.coordinator.connect().await?;
         coord.jobs().await
     })?;
     if a.json {

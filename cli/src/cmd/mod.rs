@@ -2,6 +2,7 @@
 
 pub mod bench;
 pub mod cancel;
+pub mod certs;
 pub mod demo;
 pub mod fetch;
 pub mod health;

@@ -31,7 +31,7 @@ pub struct StatusArgs {
 
 pub fn run(a: StatusArgs) -> anyhow::Result<()> {
     let status = runtime()?.block_on(async {
-        let mut coord = Coordinator::connect(&a.coordinator.coordinator).await?;
+        let mut coord = a.coordinator.connect().await?;
         match a.wait_workers {
             Some(n) => {
                 let timeout = Duration::try_from_secs_f64(a.timeout)

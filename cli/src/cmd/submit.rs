@@ -135,7 +135,7 @@ pub fn run(a: SubmitArgs) -> anyhow::Result<()> {
         ride_out: a.reconnect.ride_out()?,
     };
     runtime()?.block_on(async {
-        let mut coord = Coordinator::connect(&a.coordinator.coordinator).await?;
+        let mut coord = a.coordinator.connect().await?;
         let job_id = coord.submit(spec).await.context("submitting the job")?;
         if !a.wait {
             println!("{job_id}");

@@ -53,7 +53,7 @@ impl ReconnectArgs {
 pub fn run(a: WatchArgs) -> anyhow::Result<()> {
     let ride_out = a.reconnect.ride_out()?;
     runtime()?.block_on(async {
-        let mut coord = Coordinator::connect(&a.coordinator.coordinator).await?;
+        let mut coord = a.coordinator.connect().await?;
         let end = follow(&mut coord, &a.job_id, a.quiet, ride_out).await?;
         println!("job {}: {}", end.job_id, state_name(end.state()));
         if end.state() == JobState::Succeeded && !a.quiet && !end.stats_json.is_empty() {

@@ -1,0 +1,655 @@
+//! Transport security and credentials of the gRPC links: TLS from PEM files, the cluster
+//! secret that workers present to the coordinator and to each other, and the user tokens of
+//! the job API.
+//!
+//! Everything is off unless configured, so a loopback demo needs no files. The credentials
+//! are checked by tonic interceptors ([`RequireSecret`], [`RequireToken`]) wrapped around the
+//! services that need them; the health service is never wrapped, so probes work without
+//! credentials.
+
+use std::fmt;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use subtle::ConstantTimeEq;
+use tonic::metadata::{Ascii, MetadataValue};
+use tonic::service::Interceptor;
+use tonic::transport::{Certificate, ClientTlsConfig, Endpoint, Identity, ServerTlsConfig};
+use tonic::{Request, Status};
+use tracing::warn;
+
+/// The metadata header carrying the cluster secret.
+pub const SECRET_HEADER: &str = "x-rayfarm-secret";
+
+/// The metadata header carrying a user token (`Bearer TOKEN`).
+pub const TOKEN_HEADER: &str = "authorization";
+
+/// The environment variables that turn security on in the binaries and the CLI.
+pub const ENV_VARS: &[&str] = &[
+    "RAYFARM_TLS_CERT",
+    "RAYFARM_TLS_KEY",
+    "RAYFARM_TLS_CLIENT_CA",
+    "RAYFARM_TLS_CA",
+    "RAYFARM_TLS_DOMAIN",
+    "RAYFARM_CLUSTER_SECRET_FILE",
+    "RAYFARM_USER_TOKENS_FILE",
+    "RAYFARM_TOKEN",
+    "RAYFARM_TOKEN_FILE",
+];
+
+/// Why security configuration could not be loaded.
+#[derive(Debug, thiserror::Error)]
+pub enum SecurityError {
+    /// A file could not be read.
+    #[error("cannot read {what} {}: {reason}", path.display())]
+    Read {
+        /// What the file was for ("TLS certificate", "cluster secret file", ...).
+        what: &'static str,
+        /// The file.
+        path: PathBuf,
+        /// The I/O error (in the message, not a source: printed once).
+        reason: std::io::Error,
+    },
+    /// A PEM file holds no PEM block.
+    #[error("{what} {} is not PEM (no -----BEGIN line)", path.display())]
+    NotPem {
+        /// What the file was for.
+        what: &'static str,
+        /// The file.
+        path: PathBuf,
+    },
+    /// The cluster secret file is empty.
+    #[error("cluster secret file {} is empty", path.display())]
+    EmptySecret {
+        /// The file.
+        path: PathBuf,
+    },
+    /// A secret or token has characters a gRPC header cannot carry.
+    #[error(
+        "{what} in {} must be printable ASCII without spaces (it travels in a gRPC header)",
+        path.display()
+    )]
+    NotHeaderSafe {
+        /// "the cluster secret" or "the token on line N".
+        what: String,
+        /// The file.
+        path: PathBuf,
+    },
+    /// The user tokens file holds no token.
+    #[error("user tokens file {} holds no token", path.display())]
+    NoTokens {
+        /// The file.
+        path: PathBuf,
+    },
+    /// A token appears twice in the user tokens file.
+    #[error("user tokens file {}: the token on line {line} repeats an earlier one", path.display())]
+    DuplicateToken {
+        /// The file.
+        path: PathBuf,
+        /// 1-based line of the repeat.
+        line: usize,
+    },
+    /// An `https://` address was given but no CA to verify the server with.
+    #[error("{url} asks for TLS: give the CA that signed its certificate (--tls-ca)")]
+    HttpsWithoutCa {
+        /// The address.
+        url: String,
+    },
+    /// An address that is no URL.
+    #[error("{url:?} is not a valid address: {reason}")]
+    BadAddress {
+        /// The address.
+        url: String,
+        /// tonic's reason, with its causes.
+        reason: String,
+    },
+    /// tonic refused the TLS configuration (e.g. a key that does not parse).
+    #[error("TLS configuration refused: {0}")]
+    Tls(String),
+}
+
+/// TLS options of a server (the coordinator, a worker's peer service).
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct ServeTlsArgs {
+    /// PEM certificate (chain) this node presents; with --tls-key, its services are served
+    /// over TLS only. A worker also presents it to servers that ask for client certificates.
+    #[arg(long, env = "RAYFARM_TLS_CERT", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// PEM private key of --tls-cert.
+    #[arg(long, env = "RAYFARM_TLS_KEY", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+    /// Mutual TLS: refuse clients that present no certificate signed by this PEM CA.
+    #[arg(long, env = "RAYFARM_TLS_CLIENT_CA", requires = "tls_cert")]
+    pub tls_client_ca: Option<PathBuf>,
+}
+
+impl ServeTlsArgs {
+    /// The server TLS configuration, or `None` when no certificate is given (plain text).
+    pub fn server_config(&self) -> Result<Option<ServerTlsConfig>, SecurityError> {
+        let (Some(cert), Some(key)) = (&self.tls_cert, &self.tls_key) else {
+            return Ok(None);
+        };
+        let mut config = ServerTlsConfig::new().identity(identity(cert, key)?);
+        if let Some(ca) = &self.tls_client_ca {
+            config = config.client_ca_root(certificate(ca, "TLS client CA")?);
+        }
+        Ok(Some(config))
+    }
+
+    /// This node's certificate and key, when it has them (presented as a client identity).
+    pub fn identity(&self) -> Result<Option<Identity>, SecurityError> {
+        match (&self.tls_cert, &self.tls_key) {
+            (Some(cert), Some(key)) => identity(cert, key).map(Some),
+            _ => Ok(None),
+        }
+    }
+}
+
+/// TLS options of a process that connects to rayfarm servers.
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct ConnectTlsArgs {
+    /// PEM CA certificate(s) the servers' certificates must chain to. Turns TLS on for every
+    /// connection this process makes (addresses become https://).
+    #[arg(long, env = "RAYFARM_TLS_CA")]
+    pub tls_ca: Option<PathBuf>,
+    /// Name the servers' certificates must carry, instead of the host of their address (for
+    /// addresses no certificate names, e.g. container ids or published ports).
+    #[arg(long, env = "RAYFARM_TLS_DOMAIN", requires = "tls_ca")]
+    pub tls_domain: Option<String>,
+}
+
+impl ConnectTlsArgs {
+    /// The client TLS configuration, or `None` without --tls-ca (plain text). `identity` is
+    /// presented to servers that ask for a client certificate.
+    pub fn client_config(
+        &self,
+        identity: Option<Identity>,
+    ) -> Result<Option<ClientTlsConfig>, SecurityError> {
+        let Some(ca) = &self.tls_ca else {
+            return Ok(None);
+        };
+        let mut config = ClientTlsConfig::new().ca_certificate(certificate(ca, "TLS CA")?);
+        if let Some(domain) = &self.tls_domain {
+            config = config.domain_name(domain.clone());
+        }
+        if let Some(identity) = identity {
+            config = config.identity(identity);
+        }
+        Ok(Some(config))
+    }
+}
+
+/// An endpoint for `addr` (`host:port`, `http://…` or `https://…`). With `tls`, the address
+/// becomes `https://` whatever scheme it was given with: tonic would otherwise connect in
+/// plain text to an `http://` address despite the TLS configuration.
+pub fn endpoint(addr: &str, tls: Option<&ClientTlsConfig>) -> Result<Endpoint, SecurityError> {
+    let addr = addr.trim();
+    let rest = addr
+        .strip_prefix("http://")
+        .or_else(|| addr.strip_prefix("https://"))
+        .unwrap_or(addr);
+    let url = match tls {
+        Some(_) => format!("https://{rest}"),
+        None if addr.starts_with("https://") => {
+            return Err(SecurityError::HttpsWithoutCa {
+                url: addr.to_string(),
+            });
+        }
+        None => format!("http://{rest}"),
+    };
+    let endpoint = Endpoint::from_shared(url.clone()).map_err(|e| SecurityError::BadAddress {
+        url,
+        reason: causes(&e),
+    })?;
+    match tls {
+        Some(config) => endpoint
+            .tls_config(config.clone())
+            .map_err(|e| SecurityError::Tls(causes(&e))),
+        None => Ok(endpoint),
+    }
+}
+
+/// An error and its sources on one line: tonic's transport errors say only "transport
+/// error" and keep the useful part in their sources.
+fn causes(e: &(dyn std::error::Error + 'static)) -> String {
+    let mut text = e.to_string();
+    let mut source = e.source();
+    while let Some(s) = source {
+        let part = s.to_string();
+        if !text.contains(&part) {
+            text = format!("{text}: {part}");
+        }
+        source = s.source();
+    }
+    text
+}
+
+/// How a process reaches rayfarm servers: with TLS or not, and the credential it presents.
+#[derive(Clone, Debug, Default)]
+pub struct ClientSecurity {
+    /// TLS for every connection (`None`: plain text).
+    pub tls: Option<ClientTlsConfig>,
+    /// Added to every request.
+    pub credential: Credential,
+}
+
+impl ClientSecurity {
+    /// An endpoint for `addr` with this TLS configuration (see [`endpoint`]).
+    pub fn endpoint(&self, addr: &str) -> Result<Endpoint, SecurityError> {
+        endpoint(addr, self.tls.as_ref())
+    }
+
+    /// The URL connected to for `addr` (for messages).
+    pub fn url(&self, addr: &str) -> String {
+        url(addr, self.tls.is_some())
+    }
+}
+
+/// `addr` as the URL [`endpoint`] connects to (for messages).
+pub fn url(addr: &str, tls: bool) -> String {
+    let addr = addr.trim();
+    let rest = addr
+        .strip_prefix("http://")
+        .or_else(|| addr.strip_prefix("https://"))
+        .unwrap_or(addr);
+    if tls || addr.starts_with("https://") {
+        format!("https://{rest}")
+    } else {
+        format!("http://{rest}")
+    }
+}
+
+fn read(path: &Path, what: &'static str) -> Result<Vec<u8>, SecurityError> {
+    std::fs::read(path).map_err(|reason| SecurityError::Read {
+        what,
+        path: path.to_path_buf(),
+        reason,
+    })
+}
+
+fn read_pem(path: &Path, what: &'static str) -> Result<Vec<u8>, SecurityError> {
+    let pem = read(path, what)?;
+    // A PEM check here names the file; rustls would only say "no certificates" later.
+    if !pem.windows(11).any(|w| w == b"-----BEGIN ") {
+        return Err(SecurityError::NotPem {
+            what,
+            path: path.to_path_buf(),
+        });
+    }
+    Ok(pem)
+}
+
+fn certificate(path: &Path, what: &'static str) -> Result<Certificate, SecurityError> {
+    read_pem(path, what).map(Certificate::from_pem)
+}
+
+fn identity(cert: &Path, key: &Path) -> Result<Identity, SecurityError> {
+    Ok(Identity::from_pem(
+        read_pem(cert, "TLS certificate")?,
+        read_pem(key, "TLS key")?,
+    ))
+}
+
+/// True for bytes a gRPC ASCII header value can carry and that survive trimming.
+fn header_safe(bytes: &[u8]) -> bool {
+    !bytes.is_empty() && bytes.iter().all(|b| b.is_ascii_graphic())
+}
+
+/// The secret every worker presents to the coordinator and to its peers. Never printed.
+#[derive(Clone)]
+pub struct ClusterSecret(Arc<[u8]>);
+
+impl fmt::Debug for ClusterSecret {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str("ClusterSecret(<redacted>)")
+    }
+}
+
+impl ClusterSecret {
+    /// Reads the secret from `path`; surrounding whitespace (a final newline) is ignored.
+    pub fn from_file(path: &Path) -> Result<Self, SecurityError> {
+        let bytes = read(path, "cluster secret file")?;
+        let secret = bytes.trim_ascii();
+        if secret.is_empty() {
+            return Err(SecurityError::EmptySecret {
+                path: path.to_path_buf(),
+            });
+        }
+        if !header_safe(secret) {
+            return Err(SecurityError::NotHeaderSafe {
+                what: "the cluster secret".into(),
+                path: path.to_path_buf(),
+            });
+        }
+        Ok(ClusterSecret(secret.into()))
+    }
+
+    /// Reads the secret if a file is given.
+    pub fn load(path: Option<&Path>) -> Result<Option<Self>, SecurityError> {
+        path.map(Self::from_file).transpose()
+    }
+
+    fn matches(&self, presented: &[u8]) -> bool {
+        bool::from(self.0.as_ref().ct_eq(presented))
+    }
+
+    fn header_value(&self) -> MetadataValue<Ascii> {
+        let mut v =
+            MetadataValue::try_from(self.0.as_ref()).expect("checked printable ASCII when loaded");
+        v.set_sensitive(true);
+        v
+    }
+}
+
+/// The user tokens the job API accepts, each with a name for the logs.
+#[derive(Clone)]
+pub struct UserTokens(Arc<Vec<(Vec<u8>, String)>>);
+
+impl fmt::Debug for UserTokens {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let names: Vec<&str> = self.0.iter().map(|(_, n)| n.as_str()).collect();
+        f.debug_tuple("UserTokens").field(&names).finish()
+    }
+}
+
+impl UserTokens {
+    /// Reads `path`: one token per line, optionally followed by the user's name; blank lines
+    /// and lines starting with `#` are ignored. A token without a name is called `user-LINE`.
+    pub fn from_file(path: &Path) -> Result<Self, SecurityError> {
+        let bytes = read(path, "user tokens file")?;
+        let text = String::from_utf8_lossy(&bytes);
+        let mut tokens: Vec<(Vec<u8>, String)> = Vec::new();
+        for (i, line) in text.lines().enumerate() {
+            let line = line.trim();
+            if line.is_empty() || line.starts_with('#') {
+                continue;
+            }
+            let (token, name) = line.split_once(char::is_whitespace).unwrap_or((line, ""));
+            if !header_safe(token.as_bytes()) {
+                return Err(SecurityError::NotHeaderSafe {
+                    what: format!("the token on line {}", i + 1),
+                    path: path.to_path_buf(),
+                });
+            }
+            if tokens.iter().any(|(t, _)| t == token.as_bytes()) {
+                return Err(SecurityError::DuplicateToken {
+                    path: path.to_path_buf(),
+                    line: i + 1,
+                });
+            }
+            let name = match name.trim() {
+                "" => format!("user-{}", i + 1),
+                n => n.to_string(),
+            };
+            tokens.push((token.as_bytes().to_vec(), name));
+        }
+        if tokens.is_empty() {
+            return Err(SecurityError::NoTokens {
+                path: path.to_path_buf(),
+            });
+        }
+        Ok(UserTokens(Arc::new(tokens)))
+    }
+
+    /// Reads the tokens if a file is given.
+    pub fn load(path: Option<&Path>) -> Result<Option<Self>, SecurityError> {
+        path.map(Self::from_file).transpose()
+    }
+
+    /// Number of tokens.
+    pub fn len(&self) -> usize {
+        self.0.len()
+    }
+
+    /// Never true for a loaded file (an empty one is refused).
+    pub fn is_empty(&self) -> bool {
+        self.0.is_empty()
+    }
+
+    /// The name of `presented`'s user. Every token is compared, in constant time, so the
+    /// time taken tells nothing about which one nearly matched.
+    fn user(&self, presented: &[u8]) -> Option<&str> {
+        let mut found = None;
+        for (token, name) in self.0.iter() {
+            if bool::from(token.as_slice().ct_eq(presented)) {
+                found = Some(name.as_str());
+            }
+        }
+        found
+    }
+}
+
+/// The user a request was authenticated as (in the request's extensions).
+#[derive(Clone, Debug)]
+pub struct User(pub String);
+
+/// Server interceptor: refuses requests without the cluster secret (`UNAUTHENTICATED`).
+/// Without a secret configured, every request passes.
+#[derive(Clone, Debug)]
+pub struct RequireSecret(pub Option<ClusterSecret>);
+
+impl Interceptor for RequireSecret {
+    fn call(&mut self, request: Request<()>) -> Result<Request<()>, Status> {
+        let Some(secret) = &self.0 else {
+            return Ok(request);
+        };
+        let refusal = match request.metadata().get(SECRET_HEADER) {
+            Some(v) if secret.matches(v.as_bytes()) => return Ok(request),
+            None => format!(
+                "no cluster secret: this service requires the {SECRET_HEADER} header \
+                 (start the worker with --cluster-secret-file)"
+            ),
+            Some(_) => "wrong cluster secret (check --cluster-secret-file)".to_string(),
+        };
+        warn!(client = ?request.remote_addr(), "refused: {refusal}");
+        Err(Status::unauthenticated(refusal))
+    }
+}
+
+/// Server interceptor: refuses requests without a known user token (`UNAUTHENTICATED`) and
+/// records the [`User`] of the others. Without tokens configured, every request passes.
+#[derive(Clone, Debug)]
+pub struct RequireToken(pub Option<UserTokens>);
+
+impl Interceptor for RequireToken {
+    fn call(&mut self, mut request: Request<()>) -> Result<Request<()>, Status> {
+        let Some(tokens) = &self.0 else {
+            return Ok(request);
+        };
+        let value = request.metadata().get(TOKEN_HEADER);
+        let refusal = match value.map(|v| v.as_bytes().strip_prefix(b"Bearer ")) {
+            None => {
+                "no user token: the job API requires `authorization: Bearer TOKEN` \
+                 (rayfarm: --token, --token-file or RAYFARM_TOKEN)"
+            }
+            Some(None) => "the authorization header must be `Bearer TOKEN`",
+            Some(Some(token)) => match tokens.user(token.trim_ascii()) {
+                Some(name) => {
+                    let user = User(name.to_string());
+                    request.extensions_mut().insert(user);
+                    return Ok(request);
+                }
+                None => "unknown user token",
+            },
+        };
+        warn!(client = ?request.remote_addr(), "refused: {refusal}");
+        Err(Status::unauthenticated(refusal))
+    }
+}
+
+/// Client interceptor: adds a credential header to every request (nothing when `None`).
+#[derive(Clone, Debug, Default)]
+pub struct Credential(Option<(&'static str, MetadataValue<Ascii>)>);
+
+impl Credential {
+    /// No credential.
+    pub fn none() -> Self {
+        Credential(None)
+    }
+
+    /// The cluster secret, if any.
+    pub fn secret(secret: Option<&ClusterSecret>) -> Self {
+        Credential(secret.map(|s| (SECRET_HEADER, s.header_value())))
+    }
+
+    /// A user token, if any. Fails when it cannot travel in a header.
+    pub fn bearer(token: Option<&str>) -> Result<Self, InvalidToken> {
+        let Some(token) = token.map(str::trim) else {
+            return Ok(Credential(None));
+        };
+        if !header_safe(token.as_bytes()) {
+            return Err(InvalidToken);
+        }
+        let mut v = MetadataValue::try_from(format!("Bearer {token}")).map_err(|_| InvalidToken)?;
+        v.set_sensitive(true);
+        Ok(Credential(Some((TOKEN_HEADER, v))))
+    }
+}
+
+/// A user token that cannot travel in a gRPC header.
+#[derive(Debug, thiserror::Error)]
+#[error("the user token must be printable ASCII without spaces")]
+pub struct InvalidToken;
+
+impl Interceptor for Credential {
+    fn call(&mut self, mut request: Request<()>) -> Result<Request<()>, Status> {
+        if let Some((key, value)) = &self.0 {
+            request.metadata_mut().insert(*key, value.clone());
+        }
+        Ok(request)
+    }
+}
+
+/// The first token of a user tokens file (what a client presents when given the file).
+pub fn first_token(path: &Path) -> Result<String, SecurityError> {
+    let tokens = UserTokens::from_file(path)?;
+    Ok(String::from_utf8_lossy(&tokens.0[0].0).into_owned())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn file(text: &str) -> tempfile::NamedTempFile {
+        let f = tempfile::NamedTempFile::new().unwrap();
+        std::fs::write(f.path(), text).unwrap();
+        f
+    }
+
+    fn with(key: &'static str, value: &str) -> Request<()> {
+        let mut r = Request::new(());
+        r.metadata_mut().insert(key, value.parse().unwrap());
+        r
+    }
+
+    #[test]
+    fn the_secret_is_checked_and_never_printed() {
+        let f = file("s3cret-value\n");
+        let secret = ClusterSecret::from_file(f.path()).unwrap();
+        assert!(!format!("{secret:?}").contains("s3cret"));
+        let mut check = RequireSecret(Some(secret.clone()));
+        assert!(check.call(with(SECRET_HEADER, "s3cret-value")).is_ok());
+        let wrong = check.call(with(SECRET_HEADER, "s3cret-valuX")).unwrap_err();
+        assert_eq!(wrong.code(), tonic::Code::Unauthenticated);
+        assert!(!wrong.message().contains("s3cret"), "{}", wrong.message());
+        let missing = check.call(Request::new(())).unwrap_err();
+        assert_eq!(missing.code(), tonic::Code::Unauthenticated);
+        assert!(missing.message().contains(SECRET_HEADER));
+        // The client side adds exactly what the server expects.
+        let sent = Credential::secret(Some(&secret))
+            .call(Request::new(()))
+            .unwrap();
+        assert!(check.call(sent).is_ok());
+        // Off: anything passes.
+        assert!(RequireSecret(None).call(Request::new(())).is_ok());
+    }
+
+    #[test]
+    fn bad_secret_files_are_refused_with_the_reason() {
+        let empty = file(" \n");
+        assert!(matches!(
+            ClusterSecret::from_file(empty.path()),
+            Err(SecurityError::EmptySecret { .. })
+        ));
+        let spaced = file("two words\n");
+        assert!(matches!(
+            ClusterSecret::from_file(spaced.path()),
+            Err(SecurityError::NotHeaderSafe { .. })
+        ));
+        let e = ClusterSecret::from_file(Path::new("/nonexistent/secret")).unwrap_err();
+        assert!(
+            e.to_string()
+                .starts_with("cannot read cluster secret file /nonexistent/secret")
+        );
+    }
+
+    #[test]
+    fn tokens_name_their_users() {
+        let f = file("# users\nabc123 alice\n\ndef456\n");
+        let tokens = UserTokens::from_file(f.path()).unwrap();
+        assert_eq!(tokens.len(), 2);
+        let mut check = RequireToken(Some(tokens));
+        let ok = check.call(with(TOKEN_HEADER, "Bearer abc123")).unwrap();
+        assert_eq!(ok.extensions().get::<User>().unwrap().0, "alice");
+        let ok = check.call(with(TOKEN_HEADER, "Bearer def456")).unwrap();
+        assert_eq!(ok.extensions().get::<User>().unwrap().0, "user-4");
+        for (req, why) in [
+            (Request::new(()), "no user token"),
+            (with(TOKEN_HEADER, "Bearer nope"), "unknown user token"),
+            (with(TOKEN_HEADER, "abc123"), "must be `Bearer TOKEN`"),
+        ] {
+            let e = check.call(req).unwrap_err();
+            assert_eq!(e.code(), tonic::Code::Unauthenticated);
+            assert!(e.message().contains(why), "{}", e.message());
+        }
+        let sent = Credential::bearer(Some("abc123"))
+            .unwrap()
+            .call(Request::new(()))
+            .unwrap();
+        assert!(check.call(sent).is_ok());
+        assert_eq!(first_token(f.path()).unwrap(), "abc123");
+    }
+
+    #[test]
+    fn bad_token_files_are_refused_with_the_line() {
+        let none = file("# nobody\n");
+        assert!(matches!(
+            UserTokens::from_file(none.path()),
+            Err(SecurityError::NoTokens { .. })
+        ));
+        let twice = file("a x\nb y\na z\n");
+        assert!(matches!(
+            UserTokens::from_file(twice.path()),
+            Err(SecurityError::DuplicateToken { line: 3, .. })
+        ));
+        assert!(Credential::bearer(Some("has space")).is_err());
+    }
+
+    #[test]
+    fn tls_makes_addresses_https_and_https_needs_a_ca() {
+        let tls = ClientTlsConfig::new();
+        for addr in ["h:1", "http://h:1", "https://h:1"] {
+            let e = endpoint(addr, Some(&tls)).unwrap();
+            assert_eq!(e.uri().to_string(), "https://h:1/");
+        }
+        assert_eq!(
+            endpoint("h:1", None).unwrap().uri().scheme_str(),
+            Some("http")
+        );
+        let e = endpoint("https://h:1", None).unwrap_err();
+        assert!(e.to_string().contains("--tls-ca"), "{e}");
+        assert_eq!(url("h:1", true), "https://h:1");
+        assert_eq!(url("http://h:1", false), "http://h:1");
+    }
+
+    #[test]
+    fn a_non_pem_file_is_named() {
+        let f = file("not a certificate");
+        let args = ConnectTlsArgs {
+            tls_ca: Some(f.path().to_path_buf()),
+            tls_domain: None,
+        };
+        let e = args.client_config(None).unwrap_err();
+        assert!(e.to_string().contains("is not PEM"), "{e}");
+    }
+}
