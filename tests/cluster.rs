@@ -682,3 +682,47 @@ fn a_worker_killed_while_loading_tracing_or_sending_costs_time_not_the_image() {
         assert_eq!(stats_field(&json, "/workers"), 2, "killed {point}");
     }
 }
+
+#[test]
+fn a_hung_worker_is_dropped_by_its_peers_and_rejoins_when_it_wakes() {
+    let root = tempfile::tempdir().expect("temp dir");
+    let scene = prepare(root.path(), "nb", 60_000, 16);
+    let (_, largest) = domain_bytes(&scene);
+    let frame = [
+        "--width", "192", "--height", "144", "--spp", "8", "--depth", "3",
+    ];
+    let expected = local_hash(&scene, &frame);
+    // The coordinator would wait two minutes for heartbeats: only the peers can notice.
+    let worker = WorkerOpts::cache(largest).arg("--peer-ack-timeout-ms", "1000");
+    let cluster = Cluster::start_with_env(
+        root.path(),
+        Some("nb"),
+        &[("RAYFARM_WORKER_TIMEOUT_MS", "120000")],
+        &vec![worker; 3],
+    );
+    let json = cluster.dir().join("hung.json");
+    let png = cluster.dir().join("hung.png");
+    // Under the domain schedule the hung worker owns domains for the whole frame, so its peers
+    // keep sending it rays and must notice.
+    let mut waiter = spawn_submit_wait(&cluster, &frame, &["--schedule", "domain"], &png, &json);
+    wait_until("the frame to start", Duration::from_secs(60), || {
+        cluster.status()["running_job_id"]
+            .as_str()
+            .is_some_and(|j| !j.is_empty())
+    });
+    cluster.pause_worker(1);
+    let ok = wait_child(&mut waiter, "the frame", Duration::from_secs(100));
+    assert!(ok, "the frame failed with a hung worker");
+    assert_eq!(hash_of(&json), expected, "with a hung worker");
+    assert_eq!(stats_field(&json, "/workers"), 2);
+    assert!(
+        cluster.coordinator_log().contains("unresponsive to worker"),
+        "the hung worker was not reported by a peer"
+    );
+    // Awake again, it finds its control stream closed, registers afresh and works.
+    cluster.resume_worker(1);
+    cluster.wait_for_workers(3, Duration::from_secs(60));
+    let stats = submit_wait(&cluster, &frame, "after");
+    assert_eq!(hash_of(&stats), expected, "after the hung worker came back");
+    assert_eq!(stats_field(&stats, "/workers"), 3);
+}

@@ -397,6 +397,25 @@ impl Cluster {
         i
     }
 
+    /// Freezes worker `i` (SIGSTOP): alive, connected, and doing nothing, as a hung node.
+    pub fn pause_worker(&self, i: usize) {
+        self.signal_worker(i, "-STOP");
+    }
+
+    /// Lets worker `i` go on after [`Cluster::pause_worker`] (SIGCONT).
+    pub fn resume_worker(&self, i: usize) {
+        self.signal_worker(i, "-CONT");
+    }
+
+    fn signal_worker(&self, i: usize, signal: &str) {
+        let pid = self.workers[i].child.id().to_string();
+        let status = Command::new("kill")
+            .args([signal, &pid])
+            .status()
+            .expect("run kill");
+        assert!(status.success(), "kill {signal} {pid} failed");
+    }
+
     /// Kills worker `i` at once (SIGKILL: a crash, not a shutdown) and reaps it.
     pub fn kill_worker(&mut self, i: usize) {
         let proc = &mut self.workers[i];

@@ -396,6 +396,24 @@ impl Coordinator {
             }
             FromWorker::TileResults(r) => self.tile_results(&mut st, key, r),
             FromWorker::FrameReport(r) => self.frame_report(&mut st, key, r),
+            FromWorker::PeerUnresponsive(p) => {
+                let reporter = worker.id.clone();
+                let silent = st
+                    .workers
+                    .iter()
+                    .find(|(_, w)| w.peer_address == p.peer_address)
+                    .map(|(&k, _)| k);
+                drop(st);
+                match silent {
+                    // Dropping it closes its control stream: if it is only slow, it comes back
+                    // through a fresh registration and joins at the next round.
+                    Some(k) => self.worker_gone(
+                        k,
+                        &format!("unresponsive to worker {reporter}: {}", p.reason),
+                    ),
+                    None => info!(peer = %p.peer_address, "unresponsive peer is no member"),
+                }
+            }
         }
     }
 

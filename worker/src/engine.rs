@@ -72,6 +72,8 @@ pub enum Event {
         job_id: String,
         batches: Vec<Bytes>,
     },
+    /// A peer stopped acknowledging bundles (see `peers::LinkLimits`).
+    PeerUnresponsive { peer: String, reason: String },
     /// A pass of the frame of `job_id` finished.
     PassDone {
         job_id: String,
@@ -161,6 +163,7 @@ impl Engine {
                         Some(f) => {
                             warn!(tiles = b.epochs.len(), lost = ?b.lost_peers, "epochs bumped");
                             f.forget_peers(&b.lost_peers);
+                            self.peers.drop_peers(&b.lost_peers);
                             f.bump_epochs(&b.epochs.into_iter().collect())
                         }
                         None => Ok(()),
@@ -191,6 +194,15 @@ impl Engine {
                 job_id,
                 batches,
             } => self.peer_bundle(sender, job_id, batches),
+            Event::PeerUnresponsive { peer, reason } => {
+                self.peers.drop_peers(std::slice::from_ref(&peer));
+                self.send(proto::worker_message::Body::PeerUnresponsive(
+                    proto::PeerUnresponsive {
+                        peer_address: peer,
+                        reason,
+                    },
+                ));
+            }
             Event::PassDone { job_id, result } => {
                 self.pass_running = false;
                 // A pass of a frame that has ended since is of no use.

@@ -29,7 +29,7 @@ use tonic::transport::server::TcpIncoming;
 use tracing::{info, warn};
 
 use crate::engine::{Engine, EngineConfig};
-use crate::peers::{MAX_MESSAGE_BYTES, PeerLinks, PeerServer};
+use crate::peers::{LinkLimits, MAX_MESSAGE_BYTES, PeerLinks, PeerServer};
 use rayfarm_common::fault::Faults;
 
 /// rayfarm-worker: traces rays for a rayfarm coordinator.
@@ -50,6 +50,13 @@ struct Args {
     /// host's name with the listen port when listening on all interfaces.
     #[arg(long, env = "RAYFARM_ADVERTISE")]
     advertise: Option<String>,
+    /// Bundles sent to one peer and not yet acknowledged; more wait here.
+    #[arg(long, env = "RAYFARM_PEER_WINDOW", default_value_t = 64)]
+    peer_window: usize,
+    /// A peer that acknowledges none of this worker's bundles for this many milliseconds is
+    /// reported to the coordinator, which drops it as lost.
+    #[arg(long, env = "RAYFARM_PEER_ACK_TIMEOUT_MS", default_value_t = 30_000)]
+    peer_ack_timeout_ms: u64,
     /// Worker id shown in status and statistics. Default: the advertised address.
     #[arg(long, env = "RAYFARM_WORKER_ID")]
     worker_id: Option<String>,
@@ -198,7 +205,16 @@ async fn run(args: Args) -> anyhow::Result<()> {
         },
         events_tx.clone(),
         to_coordinator,
-        PeerLinks::new(worker_id.clone(), faults, security.clone()),
+        PeerLinks::new(
+            worker_id.clone(),
+            faults,
+            security.clone(),
+            LinkLimits {
+                window: args.peer_window.max(1),
+                ack_deadline: Duration::from_millis(args.peer_ack_timeout_ms.max(100)),
+            },
+            events_tx.clone(),
+        ),
     )?;
     let peer_service = PeerServiceServer::new(PeerServer::new(events_tx.clone()))
         .max_decoding_message_size(MAX_MESSAGE_BYTES)

@@ -1,9 +1,9 @@
 //! Worker-to-worker ray traffic: outbound links (one long-lived `ExchangeBundles` stream per
 //! peer, opened on first use) and the service that receives peers' bundles.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, VecDeque};
 use std::pin::Pin;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use bytes::Bytes;
 use rayfarm_common::bundler::Tier;
@@ -14,7 +14,7 @@ use rayfarm_common::security::ClientSecurity;
 use rayfarm_common::wire::{self, BatchLimits, WireError};
 use tokio::sync::mpsc;
 use tokio_stream::Stream;
-use tokio_stream::wrappers::UnboundedReceiverStream;
+use tokio_stream::wrappers::{ReceiverStream, UnboundedReceiverStream};
 use tonic::{Request, Response, Status, Streaming};
 use tracing::{debug, error, warn};
 
@@ -35,20 +35,65 @@ pub struct PeerLinks {
     me: String,
     faults: Faults,
     security: ClientSecurity,
-    links: HashMap<String, mpsc::UnboundedSender<proto::PeerBundle>>,
+    limits: LinkLimits,
+    /// Where a link reports a peer that stopped acknowledging.
+    events: mpsc::UnboundedSender<Event>,
+    links: HashMap<String, Link>,
     sequence: u64,
+}
+
+/// How much a link lets a peer owe it.
+#[derive(Clone, Copy, Debug)]
+pub struct LinkLimits {
+    /// Bundles sent and not yet acknowledged; more wait in this worker.
+    pub window: usize,
+    /// A peer that acknowledges nothing for this long is reported as unresponsive.
+    pub ack_deadline: Duration,
+}
+
+/// One outbound stream: its queue and the task that drains it.
+struct Link {
+    tx: mpsc::UnboundedSender<proto::PeerBundle>,
+    task: tokio::task::JoinHandle<()>,
 }
 
 impl PeerLinks {
     /// Links from the worker called `me`, connecting with `security`.
-    pub fn new(me: String, faults: Faults, security: ClientSecurity) -> Self {
+    pub fn new(
+        me: String,
+        faults: Faults,
+        security: ClientSecurity,
+        limits: LinkLimits,
+        events: mpsc::UnboundedSender<Event>,
+    ) -> Self {
         PeerLinks {
             me,
             faults,
             security,
+            limits,
+            events,
             links: HashMap::new(),
             sequence: 0,
         }
+    }
+
+    /// Closes the links to `peers` (they are gone) and frees what waits for them.
+    pub fn drop_peers(&mut self, peers: &[String]) {
+        for peer in peers {
+            if let Some(link) = self.links.remove(peer) {
+                link.task.abort();
+            }
+        }
+    }
+
+    fn open(&self, peer: &str) -> Link {
+        open_link(
+            peer.to_string(),
+            self.faults,
+            &self.security,
+            self.limits,
+            self.events.clone(),
+        )
     }
 
     /// Sends one bundle to `peer`, opening the link if needed. Never blocks.
@@ -63,14 +108,18 @@ impl PeerLinks {
             batches,
         };
         debug!(%peer, sequence = self.sequence, "bundle sent");
-        let link = self
-            .links
-            .entry(peer.to_string())
-            .or_insert_with(|| open_link(peer.to_string(), self.faults, &self.security));
-        if let Err(mpsc::error::SendError(bundle)) = link.send(bundle) {
-            // The link task gave up on this peer; try a fresh link once.
-            let fresh = open_link(peer.to_string(), self.faults, &self.security);
-            if fresh.send(bundle).is_err() {
+        if !self.links.contains_key(peer) {
+            let link = self.open(peer);
+            self.links.insert(peer.to_string(), link);
+        }
+        let Some(link) = self.links.get(peer) else {
+            return;
+        };
+        if let Err(mpsc::error::SendError(bundle)) = link.tx.send(bundle) {
+            // The link task gave up on this peer; try a fresh link once. A bundle lost here
+            // belongs to tiles whose epochs the coordinator bumps when it drops the peer.
+            let fresh = self.open(peer);
+            if fresh.tx.send(bundle).is_err() {
                 error!(%peer, "cannot reach peer: bundle dropped");
             }
             self.links.insert(peer.to_string(), fresh);
@@ -91,50 +140,117 @@ fn open_link(
     peer: String,
     faults: Faults,
     security: &ClientSecurity,
-) -> mpsc::UnboundedSender<proto::PeerBundle> {
+    limits: LinkLimits,
+    events: mpsc::UnboundedSender<Event>,
+) -> Link {
     let (tx, rx) = mpsc::unbounded_channel();
     let rx = faults.delayed(&peer, rx);
     let security = security.clone();
-    tokio::spawn(async move {
-        if let Err(e) = run_link(&peer, &security, rx).await {
-            warn!(%peer, error = %e, "peer link ended");
+    let task = tokio::spawn(async move {
+        match run_link(&peer, &security, limits, rx).await {
+            Ok(()) => {}
+            Err(LinkError::Unresponsive(reason)) => {
+                error!(%peer, %reason, "peer unresponsive: reporting it to the coordinator");
+                let _ = events.send(Event::PeerUnresponsive { peer, reason });
+            }
+            Err(LinkError::Other(e)) => warn!(%peer, error = %e, "peer link ended"),
         }
     });
-    tx
+    Link { tx, task }
+}
+
+/// Why a link ended.
+#[derive(Debug, thiserror::Error)]
+enum LinkError {
+    /// The peer holds bundles it never acknowledges: it is stuck or gone.
+    #[error("{0}")]
+    Unresponsive(String),
+    #[error(transparent)]
+    Other(#[from] anyhow::Error),
+}
+
+impl From<tonic::Status> for LinkError {
+    fn from(s: tonic::Status) -> Self {
+        LinkError::Other(s.into())
+    }
 }
 
 async fn run_link(
     peer: &str,
     security: &ClientSecurity,
-    rx: mpsc::UnboundedReceiver<proto::PeerBundle>,
-) -> anyhow::Result<()> {
+    limits: LinkLimits,
+    mut rx: mpsc::UnboundedReceiver<proto::PeerBundle>,
+) -> Result<(), LinkError> {
     let endpoint = security
-        .endpoint(peer)?
+        .endpoint(peer)
+        .map_err(anyhow::Error::from)?
         .tcp_nodelay(true)
         .connect_timeout(Duration::from_secs(5));
     let mut attempt = 0;
+    // A hung peer accepts the TCP connection in its kernel and then answers nothing: every
+    // step that waits on it has the acknowledgement deadline.
+    let silent = |what: &str| {
+        LinkError::Unresponsive(format!(
+            "{what} within {:.1} s",
+            limits.ack_deadline.as_secs_f64()
+        ))
+    };
     let channel = loop {
-        match endpoint.connect().await {
+        let connected = tokio::time::timeout(limits.ack_deadline, endpoint.connect())
+            .await
+            .map_err(|_| silent("no connection"))?;
+        match connected {
             Ok(c) => break c,
             Err(e) if attempt < CONNECT_ATTEMPTS => {
                 attempt += 1;
                 warn!(%peer, error = %e, attempt, "connecting to peer");
                 tokio::time::sleep(Duration::from_millis(50 << attempt.min(5))).await;
             }
-            Err(e) => return Err(e.into()),
+            Err(e) => return Err(anyhow::Error::from(e).into()),
         }
     };
     let mut client = PeerServiceClient::with_interceptor(channel, security.credential.clone())
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
-    let mut acks = client
-        .exchange_bundles(UnboundedReceiverStream::new(rx))
-        .await?
+    // Never more than the window in the stream, so the window bounds what the peer owes.
+    let (stream_tx, stream_rx) = mpsc::channel(limits.window.max(1));
+    let opened = client.exchange_bundles(ReceiverStream::new(stream_rx));
+    let mut acks = tokio::time::timeout(limits.ack_deadline, opened)
+        .await
+        .map_err(|_| silent("no answer to opening the bundle stream"))??
         .into_inner();
-    while let Some(ack) = acks.message().await? {
-        debug!(%peer, sequence = ack.sequence, "bundle acknowledged");
+    // Sequence and send time of every bundle not yet acknowledged, oldest first.
+    let mut owed: VecDeque<(u64, Instant)> = VecDeque::new();
+    let mut check = tokio::time::interval(limits.ack_deadline / 4);
+    loop {
+        tokio::select! {
+            bundle = rx.recv(), if owed.len() < limits.window.max(1) => {
+                let Some(bundle) = bundle else { return Ok(()) };
+                owed.push_back((bundle.sequence, Instant::now()));
+                if stream_tx.send(bundle).await.is_err() {
+                    return Err(anyhow::anyhow!("the stream to the peer closed").into());
+                }
+            }
+            ack = acks.message() => {
+                let Some(ack) = ack? else { return Ok(()) };
+                debug!(%peer, sequence = ack.sequence, "bundle acknowledged");
+                while owed.front().is_some_and(|&(s, _)| s <= ack.sequence) {
+                    owed.pop_front();
+                }
+            }
+            _ = check.tick() => {
+                if let Some(&(_, sent)) = owed.front()
+                    && sent.elapsed() > limits.ack_deadline
+                {
+                    return Err(LinkError::Unresponsive(format!(
+                        "{} bundles unacknowledged, the oldest for {:.1} s",
+                        owed.len(),
+                        sent.elapsed().as_secs_f64()
+                    )));
+                }
+            }
+        }
     }
-    Ok(())
 }
 
 /// The `PeerService` of this worker: decodes nothing itself, hands bundles to the engine.
