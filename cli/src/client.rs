@@ -17,9 +17,9 @@ use tonic::transport::{Channel, Identity};
 /// Images of big frames travel in one message; the default 4 MiB limit would refuse them.
 const MAX_MESSAGE_BYTES: usize = 256 << 20;
 
-/// How long to wait for the TCP (and HTTP/2) connection before calling a coordinator
-/// unreachable.
-const CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
+/// Deadline of every call until the coordinator's answer begins (a watch stream then runs as
+/// long as the job does).
+const RPC_DEADLINE: Duration = Duration::from_secs(60);
 
 /// The coordinator cannot be reached, or the connection to it broke: it is down, restarting,
 /// or the network is. Worth retrying, unlike a refusal by a coordinator that is up.
@@ -144,8 +144,7 @@ impl Coordinator {
         let endpoint = security
             .endpoint(addr)
             .map_err(|e| anyhow!("{}", chain(&e)))?
-            .tcp_nodelay(true)
-            .connect_timeout(CONNECT_TIMEOUT);
+            .timeout(RPC_DEADLINE);
         let channel = endpoint.connect().await.map_err(|e| Unavailable {
             url: url.clone(),
             reason: chain(&e),

@@ -10,6 +10,7 @@
 use std::fmt;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
+use std::time::Duration;
 
 use subtle::ConstantTimeEq;
 use tonic::metadata::{Ascii, MetadataValue};
@@ -201,12 +202,34 @@ pub fn endpoint(addr: &str, tls: Option<&ClientTlsConfig>) -> Result<Endpoint, S
         url,
         reason: causes(&e),
     })?;
+    // Small messages must not wait for Nagle (NOTES.md), and a server whose machine died
+    // without closing the connection is noticed by HTTP/2 pings, not after TCP's minutes.
+    let endpoint = endpoint
+        .tcp_nodelay(true)
+        .connect_timeout(CONNECT_TIMEOUT)
+        .http2_keep_alive_interval(KEEPALIVE_INTERVAL)
+        .keep_alive_timeout(KEEPALIVE_TIMEOUT)
+        .keep_alive_while_idle(true);
     match tls {
         Some(config) => endpoint
             .tls_config(config.clone())
             .map_err(|e| SecurityError::Tls(causes(&e))),
         None => Ok(endpoint),
     }
+}
+
+/// How long a client waits for a TCP connection.
+pub const CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
+/// Interval of HTTP/2 pings on every rayfarm connection, both ways.
+pub const KEEPALIVE_INTERVAL: Duration = Duration::from_secs(10);
+/// A connection whose ping goes unanswered this long is closed.
+pub const KEEPALIVE_TIMEOUT: Duration = Duration::from_secs(20);
+
+/// A server builder whose connections ping their clients (see [`KEEPALIVE_INTERVAL`]).
+pub fn server_builder() -> tonic::transport::Server {
+    tonic::transport::Server::builder()
+        .http2_keepalive_interval(Some(KEEPALIVE_INTERVAL))
+        .http2_keepalive_timeout(Some(KEEPALIVE_TIMEOUT))
 }
 
 /// An error and its sources on one line: tonic's transport errors say only "transport

@@ -25,7 +25,6 @@ use rayfarm_common::security::{
     ClusterSecret, RequireSecret, RequireToken, ServeTlsArgs, UserTokens,
 };
 use tonic::service::interceptor::InterceptedService;
-use tonic::transport::Server;
 use tonic::transport::server::TcpIncoming;
 use tracing::{info, warn};
 
@@ -165,7 +164,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let (health, health_service) = tonic_health::server::health_reporter();
     health.set_serving::<JobServiceServer<api::Api>>().await;
     let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
-    let mut builder = Server::builder();
+    let mut builder = rayfarm_common::security::server_builder();
     if let Some(tls) = tls {
         builder = builder
             .tls_config(tls)

@@ -88,8 +88,6 @@ async fn session(
         .security
         .endpoint(&me.coordinator)
         .map_err(|e| tonic::Status::invalid_argument(e.to_string()))?
-        .tcp_nodelay(true)
-        .connect_timeout(Duration::from_secs(5))
         .connect()
         .await
         .map_err(unavailable)?;

@@ -24,7 +24,6 @@ use rayfarm_common::security::{
 use rayfarm_common::units::{parse_bytes, parse_rate};
 use tokio::sync::mpsc;
 use tonic::service::interceptor::InterceptedService;
-use tonic::transport::Server;
 use tonic::transport::server::TcpIncoming;
 use tracing::{info, warn};
 
@@ -224,7 +223,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let (health, health_service) = tonic_health::server::health_reporter();
     health.set_serving::<PeerServiceServer<PeerServer>>().await;
     let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
-    let mut builder = Server::builder();
+    let mut builder = rayfarm_common::security::server_builder();
     if let Some(tls) = serve_tls {
         builder = builder
             .tls_config(tls)

@@ -181,11 +181,7 @@ async fn run_link(
     limits: LinkLimits,
     mut rx: mpsc::UnboundedReceiver<proto::PeerBundle>,
 ) -> Result<(), LinkError> {
-    let endpoint = security
-        .endpoint(peer)
-        .map_err(anyhow::Error::from)?
-        .tcp_nodelay(true)
-        .connect_timeout(Duration::from_secs(5));
+    let endpoint = security.endpoint(peer).map_err(anyhow::Error::from)?;
     let mut attempt = 0;
     // A hung peer accepts the TCP connection in its kernel and then answers nothing: every
     // step that waits on it has the acknowledgement deadline.
