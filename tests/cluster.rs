@@ -434,7 +434,16 @@ fn bad_jobs_get_precise_errors_and_the_cluster_renders_the_next() {
     let mut bytes = std::fs::read(&damaged).expect("read");
     let last = bytes.len() - 1;
     bytes[last] ^= 0x40;
-    std::fs::write(&damaged, bytes).expect("write");
+    std::fs::write(&damaged, &bytes).expect("write");
+    // And a copy with that domain file cut short, as by an interrupted copy.
+    let truncated = root.path().join("truncated");
+    std::fs::create_dir_all(&truncated).expect("mkdir");
+    for entry in std::fs::read_dir(&broken).expect("scene dir") {
+        let entry = entry.expect("entry");
+        std::fs::copy(entry.path(), truncated.join(entry.file_name())).expect("copy");
+    }
+    let cut = truncated.join(damaged.file_name().expect("name"));
+    std::fs::write(&cut, &bytes[..bytes.len() / 2]).expect("write");
 
     let cluster = Cluster::start(root.path(), Some("nb"), &[WorkerOpts::default()]);
     let err = refused(&cluster, &["submit", "--width", "0"]);
@@ -445,6 +454,16 @@ fn bad_jobs_get_precise_errors_and_the_cluster_renders_the_next() {
     let err = refused(&cluster, &["submit", "--spp", "70000"]);
     assert!(
         err.contains("INVALID_ARGUMENT") && err.contains("spp"),
+        "{err}"
+    );
+    let err = refused(&cluster, &["submit", "--width", "100000"]);
+    assert!(
+        err.contains("INVALID_ARGUMENT") && err.contains("resolution"),
+        "{err}"
+    );
+    let err = refused(&cluster, &["submit", "--depth", "100000"]);
+    assert!(
+        err.contains("INVALID_ARGUMENT") && err.contains("depth"),
         "{err}"
     );
     let err = refused(&cluster, &["submit", "--schedule", "fastest"]);
@@ -466,6 +485,10 @@ fn bad_jobs_get_precise_errors_and_the_cluster_renders_the_next() {
     args.extend_from_slice(&FRAME);
     let err = refused(&cluster, &args);
     let file = damaged.file_name().and_then(|n| n.to_str()).expect("name");
+    assert!(err.contains("failed") && err.contains(file), "{err}");
+    let mut args = vec!["submit", "--scene", "truncated", "--wait", "--quiet"];
+    args.extend_from_slice(&FRAME);
+    let err = refused(&cluster, &args);
     assert!(err.contains("failed") && err.contains(file), "{err}");
     // The cluster is unharmed: the next job renders the reference image.
     let stats = submit_wait(&cluster, &FRAME, "after");
