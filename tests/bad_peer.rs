@@ -8,14 +8,17 @@
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use bytes::Bytes;
 use rayfarm_common::proto::peer_service_client::PeerServiceClient;
 use rayfarm_common::proto::{self, PROTOCOL_VERSION};
 use rayfarm_common::ray::RayRecord;
 use rayfarm_common::wire;
-use rayfarm_tests::{Cluster, WorkerOpts, bin, rayfarm_ok, s, stats_field};
+use rayfarm_tests::{
+    Cluster, WorkerOpts, bin, hash_of, local_hash, prepare_nbody, s, submit_wait, wait_child,
+    wait_until,
+};
 use tonic::Code;
 
 /// A frame long enough to still be running while the bad bundles arrive (usually; the test
@@ -30,73 +33,7 @@ const NEXT: [&str; 8] = [
 ];
 
 fn prepare(root: &Path, name: &str) -> PathBuf {
-    let out = root.join(name);
-    rayfarm_ok(&[
-        "prepare",
-        "--generate",
-        "nbody",
-        "--triangles",
-        "20000",
-        "--seed",
-        "5",
-        "--domains",
-        "4",
-        "--out",
-        s(&out),
-    ]);
-    out
-}
-
-fn local_hash(scene: &Path, frame: &[&str]) -> String {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let json = dir.path().join("local.json");
-    let png = dir.path().join("local.png");
-    let mut args = vec![
-        "render",
-        "--local",
-        "--scene",
-        s(scene),
-        "--out",
-        s(&png),
-        "--stats-json",
-        s(&json),
-        "--quiet",
-    ];
-    args.extend_from_slice(frame);
-    rayfarm_ok(&args);
-    hash_of(&json)
-}
-
-fn hash_of(stats: &Path) -> String {
-    stats_field(stats, "/image_hash")
-        .as_str()
-        .expect("hash is a string")
-        .to_string()
-}
-
-fn submit_wait(cluster: &Cluster, frame: &[&str], tag: &str) -> PathBuf {
-    let png = cluster.dir().join(format!("{tag}.png"));
-    let json = cluster.dir().join(format!("{tag}.json"));
-    let mut args = vec![
-        "submit",
-        "--wait",
-        "--quiet",
-        "--output",
-        s(&png),
-        "--stats-json",
-        s(&json),
-    ];
-    args.extend_from_slice(frame);
-    cluster.rayfarm_ok(&args);
-    json
-}
-
-fn wait_until(what: &str, timeout: Duration, mut check: impl FnMut() -> bool) {
-    let start = Instant::now();
-    while !check() {
-        assert!(start.elapsed() < timeout, "timed out waiting for {what}");
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    prepare_nbody(root, name, 20_000, 4)
 }
 
 /// Runs `rayfarm` against the cluster expecting failure; returns stderr.
@@ -259,7 +196,7 @@ fn bad_peers_get_precise_statuses_and_the_frame_they_claim_still_renders() {
         .expect("a valid bundle is acknowledged");
 
     assert!(
-        wait_child(&mut waiter, Duration::from_secs(180)),
+        wait_child(&mut waiter, "the frame", Duration::from_secs(180)),
         "the frame failed after bad bundles"
     );
     assert_eq!(hash_of(&json), expected);
@@ -288,20 +225,6 @@ fn bad_peers_get_precise_statuses_and_the_frame_they_claim_still_renders() {
     );
     let stats = submit_wait(&cluster, &NEXT, "next");
     assert_eq!(hash_of(&stats), local_hash(&scene, &NEXT));
-}
-
-fn wait_child(child: &mut std::process::Child, timeout: Duration) -> bool {
-    let start = Instant::now();
-    loop {
-        if let Some(status) = child.try_wait().expect("child status") {
-            return status.success();
-        }
-        if start.elapsed() > timeout {
-            let _ = child.kill();
-            panic!("the frame did not end within {timeout:?}");
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
 }
 
 /// A copy of `scene` named `name` under the same root, with its manifest passed through `edit`.

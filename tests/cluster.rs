@@ -3,82 +3,19 @@
 //! the bit, whatever the number of workers, the cache budgets, the jobs around it and the
 //! order in which messages arrive.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
-use rayfarm_tests::{Cluster, WorkerOpts, bin, rayfarm_ok, s, stats_field};
+use rayfarm_tests::{
+    Cluster, WorkerOpts, bin, hash_of, local_hash, prepare_nbody, rayfarm_ok, s, stats_field,
+    submit_wait, wait_child, wait_until,
+};
 
 /// A frame small enough to render in about a second, deep enough to bounce between domains.
 const FRAME: [&str; 8] = [
     "--width", "96", "--height", "72", "--spp", "2", "--depth", "3",
 ];
-
-/// Prepares a generated scene `name` under `root`.
-fn prepare(root: &Path, name: &str, triangles: u32, domains: u32) -> PathBuf {
-    let out = root.join(name);
-    rayfarm_ok(&[
-        "prepare",
-        "--generate",
-        "nbody",
-        "--triangles",
-        &triangles.to_string(),
-        "--seed",
-        "5",
-        "--domains",
-        &domains.to_string(),
-        "--out",
-        s(&out),
-    ]);
-    out
-}
-
-/// The image hash of `render --local` for `frame`.
-fn local_hash(scene: &Path, frame: &[&str]) -> String {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let json = dir.path().join("local.json");
-    let png = dir.path().join("local.png");
-    let mut args = vec![
-        "render",
-        "--local",
-        "--scene",
-        s(scene),
-        "--out",
-        s(&png),
-        "--stats-json",
-        s(&json),
-        "--quiet",
-    ];
-    args.extend_from_slice(frame);
-    rayfarm_ok(&args);
-    hash_of(&json)
-}
-
-fn hash_of(stats: &Path) -> String {
-    stats_field(stats, "/image_hash")
-        .as_str()
-        .expect("hash is a string")
-        .to_string()
-}
-
-/// `rayfarm submit --wait` on the cluster; returns the statistics file.
-fn submit_wait(cluster: &Cluster, frame: &[&str], tag: &str) -> PathBuf {
-    let png = cluster.dir().join(format!("{tag}.png"));
-    let json = cluster.dir().join(format!("{tag}.json"));
-    let mut args = vec![
-        "submit",
-        "--wait",
-        "--quiet",
-        "--output",
-        s(&png),
-        "--stats-json",
-        s(&json),
-    ];
-    args.extend_from_slice(frame);
-    cluster.rayfarm_ok(&args);
-    assert!(png.exists(), "{} was not written", png.display());
-    json
-}
 
 /// Sizes of a scene's domain files: (total, largest).
 fn domain_bytes(scene: &Path) -> (u64, u64) {
@@ -101,15 +38,6 @@ fn job<'a>(jobs: &'a [serde_json::Value], id: &str) -> &'a serde_json::Value {
     jobs.iter()
         .find(|j| j["job_id"] == id)
         .unwrap_or_else(|| panic!("job {id} not listed"))
-}
-
-/// Polls `check` until it holds; fails the test after `timeout`.
-fn wait_until(what: &str, timeout: Duration, mut check: impl FnMut() -> bool) {
-    let start = Instant::now();
-    while !check() {
-        assert!(start.elapsed() < timeout, "timed out waiting for {what}");
-        std::thread::sleep(Duration::from_millis(20));
-    }
 }
 
 /// Starts `rayfarm submit --wait` for `frame` in the background (the test acts meanwhile).
@@ -138,21 +66,6 @@ fn spawn_submit_wait(
         .expect("start rayfarm submit")
 }
 
-/// Waits for a child process with a timeout, killing it and failing the test after.
-fn wait_child(child: &mut std::process::Child, what: &str, timeout: Duration) -> bool {
-    let start = Instant::now();
-    loop {
-        if let Some(status) = child.try_wait().expect("child status") {
-            return status.success();
-        }
-        if start.elapsed() > timeout {
-            let _ = child.kill();
-            panic!("{what} did not end within {timeout:?}");
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
-}
-
 fn submit(cluster: &Cluster, frame: &[&str], extra: &[&str]) -> String {
     let mut args = vec!["submit"];
     args.extend_from_slice(frame);
@@ -164,7 +77,7 @@ fn submit(cluster: &Cluster, frame: &[&str], extra: &[&str]) -> String {
 #[test]
 fn one_two_and_four_workers_render_the_local_image() {
     let root = tempfile::tempdir().expect("temp dir");
-    let scene = prepare(root.path(), "nb", 40_000, 8);
+    let scene = prepare_nbody(root.path(), "nb", 40_000, 8);
     let (_, largest) = domain_bytes(&scene);
     let expected = local_hash(&scene, &FRAME);
     // Caches of two domains make rays move between workers; caches that hold the scene let
@@ -196,7 +109,7 @@ fn one_two_and_four_workers_render_the_local_image() {
 #[test]
 fn every_schedule_renders_the_local_image_with_one_to_four_workers() {
     let root = tempfile::tempdir().expect("temp dir");
-    let scene = prepare(root.path(), "nb", 30_000, 8);
+    let scene = prepare_nbody(root.path(), "nb", 30_000, 8);
     let (_, largest) = domain_bytes(&scene);
     let expected = local_hash(&scene, &FRAME);
     for n in 1..=4 {
@@ -233,7 +146,7 @@ fn every_schedule_renders_the_local_image_with_one_to_four_workers() {
 fn dynamic_rounds_with_a_barrier_render_the_local_image() {
     // The default is asynchronous rounds; Fig. 5's barrier rounds must agree to the bit.
     let root = tempfile::tempdir().expect("temp dir");
-    let scene = prepare(root.path(), "nb", 30_000, 8);
+    let scene = prepare_nbody(root.path(), "nb", 30_000, 8);
     let (_, largest) = domain_bytes(&scene);
     let expected = local_hash(&scene, &FRAME);
     for n in [2, 4] {
@@ -255,7 +168,7 @@ fn dynamic_rounds_with_a_barrier_render_the_local_image() {
 #[test]
 fn a_scene_four_times_the_cluster_cache_renders_identically() {
     let root = tempfile::tempdir().expect("temp dir");
-    let scene = prepare(root.path(), "big", 60_000, 16);
+    let scene = prepare_nbody(root.path(), "big", 60_000, 16);
     let (total, largest) = domain_bytes(&scene);
     // Each cache holds the largest domain and no more.
     let workers = vec![WorkerOpts::cache(largest); 2];
@@ -282,7 +195,7 @@ fn a_scene_four_times_the_cluster_cache_renders_identically() {
 #[test]
 fn jobs_run_in_priority_order_then_submission_order() {
     let root = tempfile::tempdir().expect("temp dir");
-    let scene = prepare(root.path(), "nb", 20_000, 4);
+    let scene = prepare_nbody(root.path(), "nb", 20_000, 4);
     // No worker yet: all three wait in the queue.
     let mut cluster = Cluster::start(root.path(), Some("nb"), &[]);
     let low = submit(&cluster, &FRAME, &["--priority", "1"]);
@@ -324,7 +237,7 @@ fn jobs_run_in_priority_order_then_submission_order() {
 #[test]
 fn cancel_stops_the_running_job_and_the_cluster_takes_the_next() {
     let root = tempfile::tempdir().expect("temp dir");
-    let scene = prepare(root.path(), "nb", 20_000, 4);
+    let scene = prepare_nbody(root.path(), "nb", 20_000, 4);
     let cluster = Cluster::start(root.path(), Some("nb"), &[WorkerOpts::default()]);
     // Minutes of work, so it is surely still running when cancelled.
     let long = submit(
@@ -354,7 +267,7 @@ fn cancel_stops_the_running_job_and_the_cluster_takes_the_next() {
 #[test]
 fn a_worker_started_mid_frame_gets_work_in_the_next_round() {
     let root = tempfile::tempdir().expect("temp dir");
-    let scene = prepare(root.path(), "nb", 60_000, 16);
+    let scene = prepare_nbody(root.path(), "nb", 60_000, 16);
     let (_, largest) = domain_bytes(&scene);
     // One-domain caches: many rounds, so the frame is still running when the worker joins.
     let frame = [
@@ -383,7 +296,7 @@ fn a_worker_started_mid_frame_gets_work_in_the_next_round() {
 #[test]
 fn random_message_delays_never_commit_a_tile_early() {
     let root = tempfile::tempdir().expect("temp dir");
-    let scene = prepare(root.path(), "nb", 30_000, 8);
+    let scene = prepare_nbody(root.path(), "nb", 30_000, 8);
     let (_, largest) = domain_bytes(&scene);
     let expected = local_hash(&scene, &FRAME);
     for seed in 0..20 {
@@ -416,7 +329,7 @@ fn refused(cluster: &Cluster, args: &[&str]) -> String {
 #[test]
 fn bad_jobs_get_precise_errors_and_the_cluster_renders_the_next() {
     let root = tempfile::tempdir().expect("temp dir");
-    let scene = prepare(root.path(), "nb", 20_000, 4);
+    let scene = prepare_nbody(root.path(), "nb", 20_000, 4);
     // A copy of the scene with one domain file damaged after its checksum was taken.
     let broken = root.path().join("broken");
     std::fs::create_dir_all(&broken).expect("mkdir");
@@ -539,7 +452,7 @@ fn the_demo_runs_a_local_cluster_and_matches_its_local_render() {
 #[test]
 fn queues_past_their_memory_cap_spill_to_disk_and_past_the_spill_cap_fail_clearly() {
     let root = tempfile::tempdir().expect("temp dir");
-    let scene = prepare(root.path(), "nb", 30_000, 8);
+    let scene = prepare_nbody(root.path(), "nb", 30_000, 8);
     let (_, largest) = domain_bytes(&scene);
     // 64 KiB of queue memory: 819 rays, far fewer than a frame queues.
     let tight = WorkerOpts::cache(2 * largest).env("RAYFARM_QUEUE_BYTES", "64KiB");
@@ -572,7 +485,7 @@ fn queues_past_their_memory_cap_spill_to_disk_and_past_the_spill_cap_fail_clearl
 #[test]
 fn a_worker_killed_mid_frame_costs_time_not_the_image() {
     let root = tempfile::tempdir().expect("temp dir");
-    let scene = prepare(root.path(), "nb", 60_000, 16);
+    let scene = prepare_nbody(root.path(), "nb", 60_000, 16);
     let (_, largest) = domain_bytes(&scene);
     let frame = [
         "--width", "192", "--height", "144", "--spp", "8", "--depth", "3",
@@ -610,7 +523,7 @@ fn a_worker_killed_mid_frame_costs_time_not_the_image() {
 #[test]
 fn two_of_four_workers_killed_at_once_and_a_replacement_joining_keep_the_image() {
     let root = tempfile::tempdir().expect("temp dir");
-    let scene = prepare(root.path(), "nb", 60_000, 16);
+    let scene = prepare_nbody(root.path(), "nb", 60_000, 16);
     let (_, largest) = domain_bytes(&scene);
     let frame = [
         "--width", "192", "--height", "144", "--spp", "8", "--depth", "3",
@@ -647,7 +560,7 @@ fn count_lines(log: &str, needles: &[&str]) -> Vec<usize> {
 #[test]
 fn a_worker_killed_while_loading_tracing_or_sending_costs_time_not_the_image() {
     let root = tempfile::tempdir().expect("temp dir");
-    let scene = prepare(root.path(), "nb", 60_000, 16);
+    let scene = prepare_nbody(root.path(), "nb", 60_000, 16);
     let (_, largest) = domain_bytes(&scene);
     let frame = [
         "--width", "192", "--height", "144", "--spp", "8", "--depth", "3",
@@ -709,7 +622,7 @@ fn a_worker_killed_while_loading_tracing_or_sending_costs_time_not_the_image() {
 #[test]
 fn a_hung_worker_is_dropped_by_its_peers_and_rejoins_when_it_wakes() {
     let root = tempfile::tempdir().expect("temp dir");
-    let scene = prepare(root.path(), "nb", 60_000, 16);
+    let scene = prepare_nbody(root.path(), "nb", 60_000, 16);
     let (_, largest) = domain_bytes(&scene);
     let frame = [
         "--width", "192", "--height", "144", "--spp", "8", "--depth", "3",

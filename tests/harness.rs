@@ -7,7 +7,7 @@ use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, ChildStdout, Command, ExitStatus, Output, Stdio};
 use std::sync::mpsc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 /// Path of a workspace binary built in the same profile as this test.
 pub fn bin(name: &str) -> PathBuf {
@@ -587,5 +587,98 @@ impl Drop for Cluster {
             w.stop();
         }
         self.coordinator.stop();
+    }
+}
+
+// Helpers the integration tests share.
+
+/// Prepares a generated scene `name` under `root`.
+pub fn prepare_nbody(root: &Path, name: &str, triangles: u32, domains: u32) -> PathBuf {
+    let out = root.join(name);
+    rayfarm_ok(&[
+        "prepare",
+        "--generate",
+        "nbody",
+        "--triangles",
+        &triangles.to_string(),
+        "--seed",
+        "5",
+        "--domains",
+        &domains.to_string(),
+        "--out",
+        s(&out),
+    ]);
+    out
+}
+
+/// The image hash of `render --local` for `frame`.
+pub fn local_hash(scene: &Path, frame: &[&str]) -> String {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let json = dir.path().join("local.json");
+    let png = dir.path().join("local.png");
+    let mut args = vec![
+        "render",
+        "--local",
+        "--scene",
+        s(scene),
+        "--out",
+        s(&png),
+        "--stats-json",
+        s(&json),
+        "--quiet",
+    ];
+    args.extend_from_slice(frame);
+    rayfarm_ok(&args);
+    hash_of(&json)
+}
+
+/// The image hash in a statistics file.
+pub fn hash_of(stats: &Path) -> String {
+    stats_field(stats, "/image_hash")
+        .as_str()
+        .expect("hash is a string")
+        .to_string()
+}
+
+/// `rayfarm submit --wait` on the cluster; returns the statistics file.
+pub fn submit_wait(cluster: &Cluster, frame: &[&str], tag: &str) -> PathBuf {
+    let png = cluster.dir().join(format!("{tag}.png"));
+    let json = cluster.dir().join(format!("{tag}.json"));
+    let mut args = vec![
+        "submit",
+        "--wait",
+        "--quiet",
+        "--output",
+        s(&png),
+        "--stats-json",
+        s(&json),
+    ];
+    args.extend_from_slice(frame);
+    cluster.rayfarm_ok(&args);
+    assert!(png.exists(), "{} was not written", png.display());
+    json
+}
+
+/// Polls `check` until it holds; fails the test after `timeout`.
+pub fn wait_until(what: &str, timeout: Duration, mut check: impl FnMut() -> bool) {
+    let start = Instant::now();
+    while !check() {
+        assert!(start.elapsed() < timeout, "timed out waiting for {what}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// Waits for a child process with a timeout, killing it and failing the test after.
+pub fn wait_child(child: &mut std::process::Child, what: &str, timeout: Duration) -> bool {
+    let start = Instant::now();
+    loop {
+        if let Some(status) = child.try_wait().expect("child status") {
+            return status.success();
+        }
+        if start.elapsed() > timeout {
+            let _ = child.kill();
+            panic!("{what} did not end within {timeout:?}");
+        }
+        std::thread::sleep(Duration::from_millis(20));
     }
 }

@@ -6,10 +6,13 @@
 
 use std::fs::File;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
-use std::time::{Duration, Instant};
+use std::process::{Command, Stdio};
+use std::time::Duration;
 
-use rayfarm_tests::{Cluster, START_TIMEOUT, WorkerOpts, bin, rayfarm_ok, s, stats_field};
+use rayfarm_tests::{
+    Cluster, START_TIMEOUT, WorkerOpts, bin, hash_of, local_hash, prepare_nbody, s, wait_child,
+    wait_until,
+};
 
 /// A small frame: a second or so.
 const SMALL: [&str; 8] = [
@@ -22,21 +25,7 @@ const BIG: [&str; 8] = [
 ];
 
 fn prepare(root: &Path, name: &str) -> PathBuf {
-    let out = root.join(name);
-    rayfarm_ok(&[
-        "prepare",
-        "--generate",
-        "nbody",
-        "--triangles",
-        "60000",
-        "--seed",
-        "5",
-        "--domains",
-        "16",
-        "--out",
-        s(&out),
-    ]);
-    out
+    prepare_nbody(root, name, 60_000, 16)
 }
 
 fn largest_domain(scene: &Path) -> u64 {
@@ -47,34 +36,6 @@ fn largest_domain(scene: &Path) -> u64 {
         .map(|e| e.metadata().expect("metadata").len())
         .max()
         .expect("domain files")
-}
-
-fn hash_of(stats: &Path) -> String {
-    stats_field(stats, "/image_hash")
-        .as_str()
-        .expect("hash is a string")
-        .to_string()
-}
-
-/// The image hash of `render --local` for `frame`.
-fn local_hash(scene: &Path, frame: &[&str]) -> String {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let json = dir.path().join("local.json");
-    let png = dir.path().join("local.png");
-    let mut args = vec![
-        "render",
-        "--local",
-        "--scene",
-        s(scene),
-        "--out",
-        s(&png),
-        "--stats-json",
-        s(&json),
-        "--quiet",
-    ];
-    args.extend_from_slice(frame);
-    rayfarm_ok(&args);
-    hash_of(&json)
 }
 
 fn submit(cluster: &Cluster, frame: &[&str]) -> String {
@@ -120,30 +81,6 @@ fn worker_ids(cluster: &Cluster) -> Vec<String> {
         .collect();
     ids.sort();
     ids
-}
-
-/// Polls `check` until it holds; fails the test after `timeout`.
-fn wait_until(what: &str, timeout: Duration, mut check: impl FnMut() -> bool) {
-    let start = Instant::now();
-    while !check() {
-        assert!(start.elapsed() < timeout, "timed out waiting for {what}");
-        std::thread::sleep(Duration::from_millis(20));
-    }
-}
-
-/// Waits for a child, killing it and failing the test after `timeout`; true if it succeeded.
-fn wait_child(child: &mut Child, what: &str, timeout: Duration) -> bool {
-    let start = Instant::now();
-    loop {
-        if let Some(status) = child.try_wait().expect("child status") {
-            return status.success();
-        }
-        if start.elapsed() > timeout {
-            let _ = child.kill();
-            panic!("{what} did not end within {timeout:?}");
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
 }
 
 #[test]
