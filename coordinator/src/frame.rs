@@ -11,7 +11,7 @@ use rayfarm_common::cluster::tile_sums;
 use rayfarm_common::frame::{Accept, FrameLedger, TILE_CREDIT, TileGrid};
 use rayfarm_common::proto::{self, Schedule, coordinator_message::Body};
 use rayfarm_common::render::local::FrameSpec;
-use rayfarm_common::schedule::dynamic::{Options, next_round_with};
+use rayfarm_common::schedule::dynamic::{Options, WorkerPlan, next_round_with};
 use rayfarm_common::schedule::static_plans::{domain_owner, image_plane_share};
 use rayfarm_common::schedule::{ClusterState, DomainId, WorkerId, WorkerState};
 use tracing::{debug, info};
@@ -307,7 +307,7 @@ impl RunningFrame {
         if !all_in {
             return Vec::new();
         }
-        let Some(state) = self.cluster_state() else {
+        let Some(state) = self.cluster_state(&BTreeSet::new()) else {
             return Vec::new();
         };
         if !state.has_rays() {
@@ -337,18 +337,21 @@ impl RunningFrame {
         );
         plan.workers()
             .iter()
-            .map(|p| {
-                debug!(worker = p.worker.0, keep = ?p.keep, load = ?p.load, evict = ?p.evict, "plan");
-                let body = Body::RoundPlan(proto::RoundPlan {
-                    job_id: self.job_id.clone(),
-                    round: self.round,
-                    work_on: p.work().map(|d| d.0).collect(),
-                    evict: p.evict.iter().map(|d| d.0).collect(),
-                    holders: holders.clone(),
-                });
-                (p.worker.0, msg(body))
-            })
+            .map(|p| self.plan_message(p, &holders))
             .collect()
+    }
+
+    /// `p` as this round's message to its worker.
+    fn plan_message(&self, p: &WorkerPlan, holders: &[proto::DomainHolders]) -> Outgoing {
+        debug!(worker = p.worker.0, keep = ?p.keep, load = ?p.load, evict = ?p.evict, "plan");
+        let body = Body::RoundPlan(proto::RoundPlan {
+            job_id: self.job_id.clone(),
+            round: self.round,
+            work_on: p.work().map(|d| d.0).collect(),
+            evict: p.evict.iter().map(|d| d.0).collect(),
+            holders: holders.to_vec(),
+        });
+        (p.worker.0, msg(body))
     }
 
     /// Asynchronous rounds: plans every member that has run dry, from the latest reports of
@@ -366,7 +369,13 @@ impl RunningFrame {
         if dry.is_empty() {
             return Vec::new();
         }
-        let Some(state) = self.cluster_state_async(&dry) else {
+        let busy: BTreeSet<u32> = self
+            .members
+            .keys()
+            .copied()
+            .filter(|k| !dry.contains(k))
+            .collect();
+        let Some(state) = self.cluster_state(&busy) else {
             return Vec::new();
         };
         if !state.has_rays() {
@@ -402,16 +411,7 @@ impl RunningFrame {
         );
         let mut out: Vec<Outgoing> = changed
             .iter()
-            .map(|p| {
-                let body = Body::RoundPlan(proto::RoundPlan {
-                    job_id: self.job_id.clone(),
-                    round: self.round,
-                    work_on: p.work().map(|d| d.0).collect(),
-                    evict: p.evict.iter().map(|d| d.0).collect(),
-                    holders: holders.clone(),
-                });
-                (p.worker.0, msg(body))
-            })
+            .map(|p| self.plan_message(p, &holders))
             .collect();
         let planned: BTreeSet<u32> = changed.iter().map(|p| p.worker.0).collect();
         for &key in self.members.keys().filter(|k| !planned.contains(k)) {
@@ -478,9 +478,11 @@ impl RunningFrame {
             .collect()
     }
 
-    /// The cluster for planning the `dry` members: their reports as they are; busy members
-    /// hold their plan and what they reported resident, with no slot to spare.
-    fn cluster_state_async(&self, dry: &BTreeSet<u32>) -> Option<ClusterState> {
+    /// The cluster as the schedule sees it, from the latest reports. Members in `busy` are
+    /// planned already and not re-planned now (asynchronous rounds): they hold their plan and
+    /// what they reported resident, with no slot to spare. Members that have not reported
+    /// yet take no part (barrier rounds wait until all have).
+    fn cluster_state(&self, busy: &BTreeSet<u32>) -> Option<ClusterState> {
         let domains = self.domain_bytes.len() as u32;
         let largest = self.domain_bytes.iter().copied().max().unwrap_or(1).max(1);
         let mut queued: BTreeMap<DomainId, u64> = BTreeMap::new();
@@ -495,7 +497,9 @@ impl RunningFrame {
                 .filter(|&&d| d < domains)
                 .map(|&d| DomainId(d))
                 .collect();
-            if dry.contains(&key) {
+            if !busy.contains(&key) {
+                // Domains differ in size: count the slots by the largest, but never fewer
+                // than what the worker holds now.
                 let capacity = ((m.cache_bytes / largest) as usize)
                     .max(1)
                     .max(resident.len());
@@ -508,35 +512,6 @@ impl RunningFrame {
                     workers.push(WorkerState::new(WorkerId(key), resident, capacity));
                 }
             }
-            for (&d, &n) in &report.queued_rays {
-                if d < domains {
-                    *queued.entry(DomainId(d)).or_default() += n;
-                }
-            }
-        }
-        ClusterState::new(workers, queued).ok()
-    }
-
-    /// The cluster as the schedule sees it, from the latest reports.
-    fn cluster_state(&self) -> Option<ClusterState> {
-        let domains = self.domain_bytes.len() as u32;
-        let largest = self.domain_bytes.iter().copied().max().unwrap_or(1).max(1);
-        let mut queued: BTreeMap<DomainId, u64> = BTreeMap::new();
-        let mut workers = Vec::new();
-        for (&key, m) in &self.members {
-            let report = m.report.as_ref()?;
-            let resident: BTreeSet<DomainId> = report
-                .resident_domains
-                .iter()
-                .filter(|&&d| d < domains)
-                .map(|&d| DomainId(d))
-                .collect();
-            // Domains differ in size: count the slots by the largest, but never fewer than
-            // what the worker holds now.
-            let capacity = ((m.cache_bytes / largest) as usize)
-                .max(1)
-                .max(resident.len());
-            workers.push(WorkerState::new(WorkerId(key), resident, capacity));
             for (&d, &n) in &report.queued_rays {
                 if d < domains {
                     *queued.entry(DomainId(d)).or_default() += n;
