@@ -246,6 +246,31 @@ fn a_secured_cluster_refuses_strangers_and_renders_the_local_image() {
         cluster.coordinator_log().contains("user=admin"),
         "the submitting user is not logged"
     );
+
+    // `rayfarm bench` measures a secured cluster with the same CA and token.
+    let csv = root.path().join("bench.csv");
+    let url = cluster.coordinator_url().to_string();
+    cluster.rayfarm_ok(&[
+        "bench",
+        "--coordinator",
+        &url,
+        "--scene",
+        s(&scene),
+        "--schedules",
+        "dynamic",
+        "--repeats",
+        "1",
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--spp",
+        "1",
+        "--csv",
+        s(&csv),
+    ]);
+    let rows = std::fs::read_to_string(&csv).expect("bench CSV");
+    assert_eq!(rows.lines().count(), 2, "{rows}");
 }
 
 /// Opens a peer stream to the worker at `addr`: refused without the secret

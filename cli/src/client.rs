@@ -63,6 +63,13 @@ pub struct CoordinatorArgs {
     )]
     pub coordinator: String,
     #[command(flatten)]
+    pub auth: ClientAuthArgs,
+}
+
+/// How a client proves itself to a coordinator: TLS and a user token (all off by default).
+#[derive(Args, Clone, Debug)]
+pub struct ClientAuthArgs {
+    #[command(flatten)]
     pub tls: ConnectTlsArgs,
     /// PEM certificate to present when the coordinator requires client certificates.
     #[arg(long, env = "RAYFARM_TLS_CERT", requires = "tls_key")]
@@ -84,7 +91,7 @@ pub struct CoordinatorArgs {
     pub token_file: Option<PathBuf>,
 }
 
-impl CoordinatorArgs {
+impl ClientAuthArgs {
     /// TLS and the user token these options ask for.
     pub fn security(&self) -> anyhow::Result<ClientSecurity> {
         let identity = match (&self.tls_cert, &self.tls_key) {
@@ -105,10 +112,12 @@ impl CoordinatorArgs {
             credential: Credential::bearer(token.as_deref())?,
         })
     }
+}
 
+impl CoordinatorArgs {
     /// Connects to the coordinator these options name, with their TLS and token.
     pub async fn connect(&self) -> anyhow::Result<Coordinator> {
-        Coordinator::connect_with(&self.coordinator, &self.security()?).await
+        Coordinator::connect_with(&self.coordinator, &self.auth.security()?).await
     }
 }
 

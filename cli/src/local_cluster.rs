@@ -162,12 +162,13 @@ pub fn threads_per_worker(workers: usize) -> usize {
 /// The job a session is waiting for, if any, and where it runs: what an interrupted or
 /// failed session cancels so the cluster does not go on rendering it.
 #[derive(Default)]
-pub struct JobInFlight(RefCell<Option<(String, String)>>);
+pub struct JobInFlight(RefCell<Option<(Coordinator, String)>>);
 
 impl JobInFlight {
-    /// Records job `job_id` on the coordinator at `url` as the one in flight.
-    pub fn set(&self, url: &str, job_id: &str) {
-        self.0.replace(Some((url.to_string(), job_id.to_string())));
+    /// Records job `job_id` on `coordinator` as the one in flight.
+    pub fn set(&self, coordinator: &Coordinator, job_id: &str) {
+        self.0
+            .replace(Some((coordinator.clone(), job_id.to_string())));
     }
 
     /// The job in flight has ended.
@@ -178,13 +179,10 @@ impl JobInFlight {
     /// Cancels the job in flight (if any), giving up quietly after a moment: this is cleanup
     /// on the way out.
     pub async fn cancel_quietly(&self) {
-        let Some((url, job_id)) = self.0.take() else {
+        let Some((mut coord, job_id)) = self.0.take() else {
             return;
         };
-        let cancel = async {
-            let mut coord = Coordinator::connect(&url).await?;
-            coord.cancel(&job_id).await
-        };
+        let cancel = coord.cancel(&job_id);
         let _ = tokio::time::timeout(Duration::from_secs(3), cancel).await;
     }
 }

@@ -88,3 +88,15 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
         Command::Certs(a) => cmd::certs::run(a),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use clap::CommandFactory;
+
+    /// Clap checks flag names, env twins and relations only when asked; a clash among the
+    /// flattened option groups would otherwise surface as a panic in a user's hands.
+    #[test]
+    fn every_command_line_is_well_formed() {
+        super::Cli::command().debug_assert();
+    }
+}

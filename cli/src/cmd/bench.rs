@@ -20,12 +20,13 @@ use rayfarm_common::cluster::job::{parse_schedule, schedule_name};
 use rayfarm_common::cluster::stats::ClusterStats;
 use rayfarm_common::proto;
 use rayfarm_common::scene::Manifest;
+use rayfarm_common::security::ClientSecurity;
 
 use super::watch::{ended_ok, follow, parse_stats};
 use crate::bench::csv_out::{Setup, write_runs_file};
 use crate::bench::report::{bench_table, bound_footnote, hash_verdict};
 use crate::bench::{HashCheck, RunOutcome, bound, check_hashes, run_order, summarize};
-use crate::client::{Coordinator, runtime};
+use crate::client::{ClientAuthArgs, Coordinator, runtime};
 use crate::local_cluster::{
     ClusterConfig, JobInFlight, interruptible, scene_root_and_name, threads_per_worker,
     with_local_cluster,
@@ -89,6 +90,9 @@ pub struct BenchArgs {
     /// benchmark a shared cluster.)
     #[arg(long, env = "RAYFARM_BENCH_COORDINATOR")]
     pub coordinator: Option<String>,
+    /// TLS and token for --coordinator (a local cluster needs none and ignores them).
+    #[command(flatten)]
+    pub auth: ClientAuthArgs,
     /// Storage bandwidth of every worker it starts, e.g. 100MiB/s (passed on as the workers'
     /// --storage-bandwidth); also the bound's load term: the scene's bytes at this rate.
     #[arg(long, env = "RAYFARM_STORAGE_BANDWIDTH", value_parser = parse_rate)]
@@ -243,8 +247,9 @@ pub fn run(a: BenchArgs) -> anyhow::Result<()> {
     let (runs, setup) = match &a.coordinator {
         Some(url) => {
             let in_flight = JobInFlight::default();
-            let runs =
-                runtime()?.block_on(interruptible(&in_flight, bench(url, &plan, &in_flight)))?;
+            let security = a.auth.security()?;
+            let session = bench(url, &security, &plan, &in_flight);
+            let runs = runtime()?.block_on(interruptible(&in_flight, session))?;
             (runs, setup(&a, &plan, None))
         }
         None => run_local(&a, &plan)?,
@@ -281,7 +286,7 @@ fn run_local(a: &BenchArgs, plan: &Plan) -> anyhow::Result<(BenchRuns, Setup)> {
     config.worker_extra = worker_extra(a);
     let in_flight = JobInFlight::default();
     let result = runtime()?.block_on(with_local_cluster(&config, &in_flight, async |url| {
-        bench(&url, plan, &in_flight).await
+        bench(&url, &ClientSecurity::default(), plan, &in_flight).await
     }));
     let failed = result.as_ref().map_or(true, |b| {
         b.stopped.is_some() || b.runs.iter().any(|r| r.result.is_err())
@@ -361,8 +366,13 @@ struct BenchRuns {
 /// stderr per run. A failed run is recorded and the bench goes on, unless the cluster itself
 /// is no longer the one measured (the coordinator stopped answering, or a worker left or
 /// joined): then it stops, keeping the runs so far.
-async fn bench(url: &str, plan: &Plan, in_flight: &JobInFlight) -> anyhow::Result<BenchRuns> {
-    let mut coord = Coordinator::connect(url).await?;
+async fn bench(
+    url: &str,
+    security: &ClientSecurity,
+    plan: &Plan,
+    in_flight: &JobInFlight,
+) -> anyhow::Result<BenchRuns> {
+    let mut coord = Coordinator::connect_with(url, security).await?;
     let status = coord
         .cluster_status()
         .await
@@ -454,7 +464,7 @@ async fn run_one(
         Ok(id) => id,
         Err(e) => return (None, Err(format!("{e:#}"))),
     };
-    in_flight.set(coord.url(), &job_id);
+    in_flight.set(coord, &job_id);
     // The bench's coordinator is its own child: if it dies, the run is over.
     let end = match follow(coord, &job_id, true, Duration::ZERO).await {
         Ok(end) => end,

@@ -135,7 +135,7 @@ fn run_cluster(a: &DemoArgs, scene: &Path, cache_bytes: u64) -> anyhow::Result<(
             .submit(spec)
             .await
             .context("submitting the demo frame")?;
-        in_flight.set(&url, &job_id);
+        in_flight.set(&coord, &job_id);
         eprintln!("job {job_id} submitted to {url}");
         wait_and_save(&mut coord, &job_id, &wait).await?;
         in_flight.clear();
