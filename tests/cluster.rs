@@ -8,8 +8,8 @@ use std::process::{Command, Stdio};
 use std::time::Duration;
 
 use rayfarm_tests::{
-    Cluster, WorkerOpts, bin, hash_of, local_hash, prepare_nbody, rayfarm_ok, s, stats_field,
-    submit_wait, wait_child, wait_until,
+    Cluster, WorkerOpts, bin, domain_bytes, hash_of, job, jobs, local_hash, prepare_nbody,
+    rayfarm_ok, s, stats_field, submit_wait, wait_child, wait_until,
 };
 
 /// A frame small enough to render in about a second, deep enough to bounce between domains.
@@ -17,27 +17,16 @@ const FRAME: [&str; 8] = [
     "--width", "96", "--height", "72", "--spp", "2", "--depth", "3",
 ];
 
-/// Sizes of a scene's domain files: (total, largest).
-fn domain_bytes(scene: &Path) -> (u64, u64) {
-    let sizes: Vec<u64> = std::fs::read_dir(scene)
-        .expect("scene dir")
-        .filter_map(Result::ok)
-        .filter(|e| e.file_name() != "scene.toml")
-        .map(|e| e.metadata().expect("metadata").len())
-        .collect();
-    (sizes.iter().sum(), sizes.iter().copied().max().unwrap_or(0))
-}
+/// A frame long enough for a test to act on the cluster while it renders.
+const MANY_ROUNDS: [&str; 8] = [
+    "--width", "192", "--height", "144", "--spp", "8", "--depth", "3",
+];
 
-/// `rayfarm jobs --json`, by job id.
-fn jobs(cluster: &Cluster) -> Vec<serde_json::Value> {
-    let out = cluster.rayfarm_ok(&["jobs", "--json"]);
-    serde_json::from_slice(&out.stdout).expect("jobs --json parses")
-}
-
-fn job<'a>(jobs: &'a [serde_json::Value], id: &str) -> &'a serde_json::Value {
-    jobs.iter()
-        .find(|j| j["job_id"] == id)
-        .unwrap_or_else(|| panic!("job {id} not listed"))
+/// Whether the coordinator is rendering a frame now.
+fn frame_running(cluster: &Cluster) -> bool {
+    cluster.status()["running_job_id"]
+        .as_str()
+        .is_some_and(|j| !j.is_empty())
 }
 
 /// Starts `rayfarm submit --wait` for `frame` in the background (the test acts meanwhile).
@@ -270,9 +259,7 @@ fn a_worker_started_mid_frame_gets_work_in_the_next_round() {
     let scene = prepare_nbody(root.path(), "nb", 60_000, 16);
     let (_, largest) = domain_bytes(&scene);
     // One-domain caches: many rounds, so the frame is still running when the worker joins.
-    let frame = [
-        "--width", "192", "--height", "144", "--spp", "8", "--depth", "3",
-    ];
+    let frame = MANY_ROUNDS;
     let mut cluster = Cluster::start(root.path(), Some("nb"), &[WorkerOpts::cache(largest)]);
     let json = cluster.dir().join("join.json");
     let png = cluster.dir().join("join.png");
@@ -487,9 +474,7 @@ fn a_worker_killed_mid_frame_costs_time_not_the_image() {
     let root = tempfile::tempdir().expect("temp dir");
     let scene = prepare_nbody(root.path(), "nb", 60_000, 16);
     let (_, largest) = domain_bytes(&scene);
-    let frame = [
-        "--width", "192", "--height", "144", "--spp", "8", "--depth", "3",
-    ];
+    let frame = MANY_ROUNDS;
     let expected = local_hash(&scene, &frame);
     for schedule in ["dynamic", "domain", "hybrid", "image-plane"] {
         // One-domain caches: many rounds, rays on every worker, so the kill lands mid-frame.
@@ -505,11 +490,7 @@ fn a_worker_killed_mid_frame_costs_time_not_the_image() {
         wait_until(
             &format!("the {schedule} frame to start"),
             Duration::from_secs(60),
-            || {
-                cluster.status()["running_job_id"]
-                    .as_str()
-                    .is_some_and(|j| !j.is_empty())
-            },
+            || frame_running(&cluster),
         );
         cluster.kill_worker(1);
         let ok = wait_child(&mut waiter, "the frame", Duration::from_secs(120));
@@ -525,9 +506,7 @@ fn two_of_four_workers_killed_at_once_and_a_replacement_joining_keep_the_image()
     let root = tempfile::tempdir().expect("temp dir");
     let scene = prepare_nbody(root.path(), "nb", 60_000, 16);
     let (_, largest) = domain_bytes(&scene);
-    let frame = [
-        "--width", "192", "--height", "144", "--spp", "8", "--depth", "3",
-    ];
+    let frame = MANY_ROUNDS;
     let mut cluster = Cluster::start(
         root.path(),
         Some("nb"),
@@ -562,9 +541,7 @@ fn a_worker_killed_while_loading_tracing_or_sending_costs_time_not_the_image() {
     let root = tempfile::tempdir().expect("temp dir");
     let scene = prepare_nbody(root.path(), "nb", 60_000, 16);
     let (_, largest) = domain_bytes(&scene);
-    let frame = [
-        "--width", "192", "--height", "144", "--spp", "8", "--depth", "3",
-    ];
+    let frame = MANY_ROUNDS;
     let expected = local_hash(&scene, &frame);
     let verbose = "info,rayfarm_common::render::cache=debug,rayfarm_worker=debug";
     // Each kill point: how the victim runs so that it lingers there, and the log lines that
@@ -624,9 +601,7 @@ fn a_hung_worker_is_dropped_by_its_peers_and_rejoins_when_it_wakes() {
     let root = tempfile::tempdir().expect("temp dir");
     let scene = prepare_nbody(root.path(), "nb", 60_000, 16);
     let (_, largest) = domain_bytes(&scene);
-    let frame = [
-        "--width", "192", "--height", "144", "--spp", "8", "--depth", "3",
-    ];
+    let frame = MANY_ROUNDS;
     let expected = local_hash(&scene, &frame);
     // The coordinator would wait two minutes for heartbeats: only the peers can notice.
     let worker = WorkerOpts::cache(largest).arg("--peer-ack-timeout-ms", "1000");
@@ -642,9 +617,7 @@ fn a_hung_worker_is_dropped_by_its_peers_and_rejoins_when_it_wakes() {
     // keep sending it rays and must notice.
     let mut waiter = spawn_submit_wait(&cluster, &frame, &["--schedule", "domain"], &png, &json);
     wait_until("the frame to start", Duration::from_secs(60), || {
-        cluster.status()["running_job_id"]
-            .as_str()
-            .is_some_and(|j| !j.is_empty())
+        frame_running(&cluster)
     });
     cluster.pause_worker(1);
     let ok = wait_child(&mut waiter, "the frame", Duration::from_secs(100));

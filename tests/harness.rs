@@ -682,3 +682,27 @@ pub fn wait_child(child: &mut std::process::Child, what: &str, timeout: Duration
         std::thread::sleep(Duration::from_millis(20));
     }
 }
+
+/// Sizes of a scene's domain files: (total, largest).
+pub fn domain_bytes(scene: &Path) -> (u64, u64) {
+    let sizes: Vec<u64> = std::fs::read_dir(scene)
+        .expect("scene dir")
+        .filter_map(Result::ok)
+        .filter(|e| e.file_name() != "scene.toml")
+        .map(|e| e.metadata().expect("metadata").len())
+        .collect();
+    (sizes.iter().sum(), sizes.iter().copied().max().unwrap_or(0))
+}
+
+/// `rayfarm jobs --json`, by job id.
+pub fn jobs(cluster: &Cluster) -> Vec<serde_json::Value> {
+    let out = cluster.rayfarm_ok(&["jobs", "--json"]);
+    serde_json::from_slice(&out.stdout).expect("jobs --json parses")
+}
+
+/// The job `id` among `jobs`.
+pub fn job<'a>(jobs: &'a [serde_json::Value], id: &str) -> &'a serde_json::Value {
+    jobs.iter()
+        .find(|j| j["job_id"] == id)
+        .unwrap_or_else(|| panic!("job {id} not listed in {jobs:?}"))
+}

@@ -10,8 +10,8 @@ use std::process::{Command, Stdio};
 use std::time::Duration;
 
 use rayfarm_tests::{
-    Cluster, START_TIMEOUT, WorkerOpts, bin, hash_of, local_hash, prepare_nbody, s, wait_child,
-    wait_until,
+    Cluster, START_TIMEOUT, WorkerOpts, bin, domain_bytes, hash_of, job, jobs, local_hash,
+    prepare_nbody, s, wait_child, wait_until,
 };
 
 /// A small frame: a second or so.
@@ -28,16 +28,6 @@ fn prepare(root: &Path, name: &str) -> PathBuf {
     prepare_nbody(root, name, 60_000, 16)
 }
 
-fn largest_domain(scene: &Path) -> u64 {
-    std::fs::read_dir(scene)
-        .expect("scene dir")
-        .filter_map(Result::ok)
-        .filter(|e| e.file_name() != "scene.toml")
-        .map(|e| e.metadata().expect("metadata").len())
-        .max()
-        .expect("domain files")
-}
-
 fn submit(cluster: &Cluster, frame: &[&str]) -> String {
     let mut args = vec!["submit"];
     args.extend_from_slice(frame);
@@ -51,17 +41,6 @@ fn fetch(cluster: &Cluster, id: &str) -> String {
     let json = cluster.dir().join(format!("{id}.json"));
     cluster.rayfarm_ok(&["fetch", id, "-o", s(&png), "--stats-json", s(&json)]);
     hash_of(&json)
-}
-
-fn jobs(cluster: &Cluster) -> Vec<serde_json::Value> {
-    let out = cluster.rayfarm_ok(&["jobs", "--json"]);
-    serde_json::from_slice(&out.stdout).expect("jobs --json parses")
-}
-
-fn job<'a>(jobs: &'a [serde_json::Value], id: &str) -> &'a serde_json::Value {
-    jobs.iter()
-        .find(|j| j["job_id"] == id)
-        .unwrap_or_else(|| panic!("job {id} not listed in {jobs:?}"))
 }
 
 fn ms(job: &serde_json::Value, field: &str) -> i64 {
@@ -89,7 +68,7 @@ fn restart_the_coordinator_mid_frame_queued_and_finished_jobs_survive() {
     let scene = prepare(root.path(), "nb");
     let small_hash = local_hash(&scene, &SMALL);
     let big_hash = local_hash(&scene, &BIG);
-    let cache = largest_domain(&scene);
+    let cache = domain_bytes(&scene).1;
     let mut cluster = Cluster::start(root.path(), Some("nb"), &vec![WorkerOpts::cache(cache); 2]);
     let workers_before = worker_ids(&cluster);
 

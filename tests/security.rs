@@ -10,7 +10,10 @@ use std::time::Duration;
 use rayfarm_common::proto;
 use rayfarm_common::proto::peer_service_client::PeerServiceClient;
 use rayfarm_common::security::{ClusterSecret, ConnectTlsArgs, Credential, endpoint};
-use rayfarm_tests::{Cluster, ClusterOpts, WorkerOpts, rayfarm_ok, s, stats_field};
+use rayfarm_tests::{
+    Cluster, ClusterOpts, WorkerOpts, domain_bytes, hash_of, local_hash, prepare_nbody, rayfarm_ok,
+    s, stats_field,
+};
 
 const FRAME: [&str; 8] = [
     "--width", "96", "--height", "72", "--spp", "2", "--depth", "3",
@@ -43,52 +46,6 @@ fn certs(dir: &Path) -> Files {
     }
 }
 
-fn prepare(root: &Path) -> PathBuf {
-    let out = root.join("nb");
-    rayfarm_ok(&[
-        "prepare",
-        "--generate",
-        "nbody",
-        "--triangles",
-        "30000",
-        "--seed",
-        "5",
-        "--domains",
-        "8",
-        "--out",
-        s(&out),
-    ]);
-    out
-}
-
-fn image_hash(stats: &Path) -> String {
-    stats_field(stats, "/image_hash")
-        .as_str()
-        .expect("hash")
-        .to_string()
-}
-
-fn local_hash(scene: &Path, dir: &Path) -> String {
-    let json = dir.join("local.json");
-    let mut args = vec!["render", "--local", "--scene", s(scene), "--quiet"];
-    let png = dir.join("local.png");
-    args.extend(["--out", s(&png), "--stats-json", s(&json)]);
-    args.extend_from_slice(&FRAME);
-    rayfarm_ok(&args);
-    image_hash(&json)
-}
-
-/// Largest domain file of a scene.
-fn largest_domain(scene: &Path) -> u64 {
-    std::fs::read_dir(scene)
-        .expect("scene dir")
-        .filter_map(Result::ok)
-        .filter(|e| e.file_name() != "scene.toml")
-        .map(|e| e.metadata().expect("metadata").len())
-        .max()
-        .unwrap_or(0)
-}
-
 /// Runs a `rayfarm` that must fail; returns its stderr.
 fn fails(out: std::process::Output, what: &str) -> String {
     let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
@@ -111,8 +68,8 @@ fn registered_workers(cluster: &Cluster) -> usize {
 fn a_secured_cluster_refuses_strangers_and_renders_the_local_image() {
     let root = tempfile::tempdir().expect("temp dir");
     let f = certs(&root.path().join("certs"));
-    let scene = prepare(root.path());
-    let expected = local_hash(&scene, root.path());
+    let scene = prepare_nbody(root.path(), "nb", 30_000, 8);
+    let expected = local_hash(&scene, &FRAME);
 
     let server_tls = [
         "--tls-cert",
@@ -134,7 +91,7 @@ fn a_secured_cluster_refuses_strangers_and_renders_the_local_image() {
         ..ClusterOpts::default()
     };
     // Caches of two domains: rays must cross between the workers, over TLS with the secret.
-    let member = WorkerOpts::cache(2 * largest_domain(&scene))
+    let member = WorkerOpts::cache(2 * domain_bytes(&scene).1)
         .args(&server_tls)
         .args(&["--tls-ca", s(&f.ca)]);
     let mut cluster =
@@ -238,7 +195,7 @@ fn a_secured_cluster_refuses_strangers_and_renders_the_local_image() {
     args.extend(["--stats-json", s(&json)]);
     args.extend_from_slice(&FRAME);
     cluster.rayfarm_ok(&args);
-    assert_eq!(image_hash(&json), expected);
+    assert_eq!(hash_of(&json), expected);
     assert_eq!(stats_field(&json, "/workers"), 2);
     let migrated = stats_field(&json, "/rays_migrated").as_u64().unwrap_or(0);
     assert!(migrated > 0, "no rays crossed between the workers");
