@@ -11,6 +11,7 @@ mod fuzz_support;
 
 use std::io::Write;
 
+use fuzz_support::ByteEdit;
 use proptest::prelude::*;
 use rayfarm_common::mesh::{
     MeshError, ParseErrorKind, TriangleMesh, parse_mesh, write_obj, write_ply_ascii,
@@ -144,46 +145,12 @@ fn valid_files_round_trip() {
     );
 }
 
-#[derive(Clone, Debug)]
-enum Mutation {
-    FlipBit(usize, u8),
-    SetByte(usize, u8),
-    Truncate(usize),
-    Delete(usize, usize),
-    Insert(usize, Vec<u8>),
-}
-
-fn mutation() -> impl Strategy<Value = Mutation> {
+fn mutation() -> impl Strategy<Value = ByteEdit> {
     let byte = prop_oneof![
         any::<u8>(),
         prop::sample::select(b"0123456789 \n-/.e".to_vec())
     ];
-    prop_oneof![
-        (any::<usize>(), 0u8..8).prop_map(|(at, bit)| Mutation::FlipBit(at, bit)),
-        (any::<usize>(), byte).prop_map(|(at, v)| Mutation::SetByte(at, v)),
-        any::<usize>().prop_map(Mutation::Truncate),
-        (any::<usize>(), 1usize..64).prop_map(|(at, n)| Mutation::Delete(at, n)),
-        (any::<usize>(), prop::collection::vec(any::<u8>(), 1..64))
-            .prop_map(|(at, b)| Mutation::Insert(at, b)),
-    ]
-}
-
-fn apply(bytes: &mut Vec<u8>, m: &Mutation) {
-    let len = bytes.len();
-    match m {
-        Mutation::FlipBit(i, bit) if len > 0 => bytes[i % len] ^= 1 << bit,
-        Mutation::SetByte(i, v) if len > 0 => bytes[i % len] = *v,
-        Mutation::Truncate(n) => bytes.truncate(n % (len + 1)),
-        Mutation::Delete(i, n) => {
-            let i = i % (len + 1);
-            bytes.drain(i..(i + n).min(len));
-        }
-        Mutation::Insert(i, b) => {
-            let i = i % (len + 1);
-            bytes.splice(i..i, b.iter().copied());
-        }
-        _ => {}
-    }
+    fuzz_support::byte_edit(byte, 64)
 }
 
 #[test]
@@ -196,7 +163,7 @@ fn mutated_files() {
         input,
         |((f, _, mut bytes), edits)| {
             for m in &edits {
-                apply(&mut bytes, m);
+                m.apply(&mut bytes);
             }
             check_any(FORMATS[f].0, &bytes)?;
             check_every_reader(&bytes)
@@ -233,7 +200,7 @@ fn mutated_gzip_streams() {
         |((f, _, bytes), edits)| {
             let mut gz = gzip(&bytes);
             for m in &edits {
-                apply(&mut gz, m);
+                m.apply(&mut gz);
             }
             check_any(&format!("{}.gz", FORMATS[f].0), &gz)
         },

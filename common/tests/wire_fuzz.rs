@@ -9,6 +9,7 @@
 
 mod fuzz_support;
 
+use fuzz_support::ByteEdit;
 use proptest::prelude::*;
 use rayfarm_common::ray::RayRecord;
 use rayfarm_common::wire::{
@@ -83,13 +84,7 @@ fn valid_batch() -> impl Strategy<Value = Vec<RayRecord>> {
 /// One way of breaking an encoded batch.
 #[derive(Clone, Debug)]
 enum Mutation {
-    FlipBit(usize, u8),
-    SetByte(usize, u8),
-    Truncate(usize),
-    /// Removes `len` bytes at a position.
-    Delete(usize, usize),
-    /// Inserts bytes at a position.
-    Insert(usize, Vec<u8>),
+    Edit(ByteEdit),
     /// Replaces the header's count.
     Count(u32),
     /// Overwrites a whole record field-sized span with an awkward value.
@@ -108,47 +103,22 @@ fn mutation() -> impl Strategy<Value = Mutation> {
         [0; 4],
     ]);
     prop_oneof![
-        (any::<usize>(), 0u8..8).prop_map(|(at, bit)| Mutation::FlipBit(at, bit)),
-        (any::<usize>(), any::<u8>()).prop_map(|(at, v)| Mutation::SetByte(at, v)),
-        any::<usize>().prop_map(Mutation::Truncate),
-        (any::<usize>(), 1usize..2 * RECORD).prop_map(|(at, n)| Mutation::Delete(at, n)),
-        (
-            any::<usize>(),
-            prop::collection::vec(any::<u8>(), 1..2 * RECORD)
-        )
-            .prop_map(|(at, b)| Mutation::Insert(at, b)),
-        prop_oneof![
+        // Five kinds of byte edit, each as likely as the two below.
+        5 => fuzz_support::byte_edit(any::<u8>(), 2 * RECORD).prop_map(Mutation::Edit),
+        1 => prop_oneof![
             Just(u32::MAX),
             Just(1 << 31),
             Just(LIMITS.max_records as u32 + 1),
             any::<u32>()
         ]
         .prop_map(Mutation::Count),
-        (any::<usize>(), awkward).prop_map(|(at, v)| Mutation::Poison(at, v)),
+        1 => (any::<usize>(), awkward).prop_map(|(at, v)| Mutation::Poison(at, v)),
     ]
 }
 
 fn apply(bytes: &mut Vec<u8>, m: &Mutation) {
-    let at = |i: usize, len: usize| if len == 0 { 0 } else { i % len };
     match m {
-        Mutation::FlipBit(i, bit) if !bytes.is_empty() => {
-            let i = at(*i, bytes.len());
-            bytes[i] ^= 1 << bit;
-        }
-        Mutation::SetByte(i, v) if !bytes.is_empty() => {
-            let i = at(*i, bytes.len());
-            bytes[i] = *v;
-        }
-        Mutation::Truncate(n) => bytes.truncate(n % (bytes.len() + 1)),
-        Mutation::Delete(i, n) => {
-            let i = at(*i, bytes.len() + 1);
-            let end = (i + n).min(bytes.len());
-            bytes.drain(i..end);
-        }
-        Mutation::Insert(i, b) => {
-            let i = at(*i, bytes.len() + 1);
-            bytes.splice(i..i, b.iter().copied());
-        }
+        Mutation::Edit(e) => e.apply(bytes),
         Mutation::Count(c) if bytes.len() >= 12 => bytes[8..12].copy_from_slice(&c.to_le_bytes()),
         // Aligned to a 4-byte field of a record, so the value lands on a whole field.
         Mutation::Poison(i, v) if bytes.len() > HEADER_BYTES => {

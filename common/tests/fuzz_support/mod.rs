@@ -103,3 +103,56 @@ pub fn check<S: Strategy>(
     }
     println!("fuzz {name}: {} inputs tried", tried.get());
 }
+
+/// One edit of an encoded input: the byte-level damage every suite that parses bytes tries.
+#[derive(Clone, Debug)]
+#[allow(dead_code, reason = "the manifest suite edits lines, not bytes")]
+pub enum ByteEdit {
+    FlipBit(usize, u8),
+    SetByte(usize, u8),
+    Truncate(usize),
+    /// Removes up to `len` bytes at a position.
+    Delete(usize, usize),
+    /// Inserts bytes at a position.
+    Insert(usize, Vec<u8>),
+}
+
+/// Edits drawing set bytes from `byte` and deleting or inserting up to `span` bytes, each kind
+/// equally likely.
+#[allow(dead_code, reason = "the manifest suite edits lines, not bytes")]
+pub fn byte_edit(
+    byte: impl Strategy<Value = u8> + 'static,
+    span: usize,
+) -> impl Strategy<Value = ByteEdit> {
+    use proptest::prelude::*;
+    prop_oneof![
+        (any::<usize>(), 0u8..8).prop_map(|(at, bit)| ByteEdit::FlipBit(at, bit)),
+        (any::<usize>(), byte).prop_map(|(at, v)| ByteEdit::SetByte(at, v)),
+        any::<usize>().prop_map(ByteEdit::Truncate),
+        (any::<usize>(), 1usize..span).prop_map(|(at, n)| ByteEdit::Delete(at, n)),
+        (any::<usize>(), prop::collection::vec(any::<u8>(), 1..span))
+            .prop_map(|(at, b)| ByteEdit::Insert(at, b)),
+    ]
+}
+
+impl ByteEdit {
+    /// Applies the edit; positions wrap around the input's length.
+    #[allow(dead_code, reason = "the manifest suite edits lines, not bytes")]
+    pub fn apply(&self, bytes: &mut Vec<u8>) {
+        let len = bytes.len();
+        match self {
+            ByteEdit::FlipBit(i, bit) if len > 0 => bytes[i % len] ^= 1 << bit,
+            ByteEdit::SetByte(i, v) if len > 0 => bytes[i % len] = *v,
+            ByteEdit::Truncate(n) => bytes.truncate(n % (len + 1)),
+            ByteEdit::Delete(i, n) => {
+                let i = i % (len + 1);
+                bytes.drain(i..(i + n).min(len));
+            }
+            ByteEdit::Insert(i, b) => {
+                let i = i % (len + 1);
+                bytes.splice(i..i, b.iter().copied());
+            }
+            _ => {}
+        }
+    }
+}
