@@ -1,5 +1,5 @@
 //! `rayfarm render --local` gives the same image, to the bit, whatever the domain count, the
-//! thread count and the cache budget; and bad scenes get clear errors.
+//! thread count, the cache budget and the ray placement; and bad scenes get clear errors.
 
 use std::path::{Path, PathBuf};
 
@@ -30,9 +30,21 @@ struct Rendered {
 }
 
 fn render(scene: &Path, out_dir: &Path, threads: u32, cache: &str, tag: &str) -> Rendered {
+    render_with(scene, out_dir, threads, cache, tag, &[])
+}
+
+fn render_with(
+    scene: &Path,
+    out_dir: &Path,
+    threads: u32,
+    cache: &str,
+    tag: &str,
+    extra: &[&str],
+) -> Rendered {
     let png = out_dir.join(format!("{tag}.png"));
     let json = out_dir.join(format!("{tag}.json"));
-    rayfarm_ok(&[
+    let threads = threads.to_string();
+    let mut args = vec![
         "render",
         "--local",
         "--scene",
@@ -48,13 +60,15 @@ fn render(scene: &Path, out_dir: &Path, threads: u32, cache: &str, tag: &str) ->
         "--depth",
         "3",
         "--threads",
-        &threads.to_string(),
+        &threads,
         "--cache-bytes",
         cache,
         "--stats-json",
         s(&json),
         "--quiet",
-    ]);
+    ];
+    args.extend_from_slice(extra);
+    rayfarm_ok(&args);
     Rendered {
         hash: stats_field(&json, "/image_hash")
             .as_str()
@@ -99,6 +113,30 @@ fn generated_scene_renders_identically_at_1_8_and_64_domains_any_threads_any_cac
                 }
             }
         }
+    }
+}
+
+#[test]
+fn speculative_placement_renders_the_same_image_with_fewer_loads() {
+    let tmp = tempfile::tempdir().unwrap();
+    for domains in [8, 64] {
+        let scene = generate(tmp.path(), domains);
+        let chained = render(&scene, tmp.path(), 2, "1", &format!("chained{domains}"));
+        for threads in [1, 2] {
+            let tag = format!("speculative{domains}t{threads}");
+            let r = render_with(&scene, tmp.path(), threads, "1", &tag, &["--speculate"]);
+            assert_eq!(r.hash, chained.hash, "{domains} domains, {threads} threads");
+            assert_eq!(r.png, chained.png);
+            assert!(
+                r.loads < chained.loads,
+                "{domains} domains: {} loads speculating, {} chained",
+                r.loads,
+                chained.loads
+            );
+        }
+        let whole = render_with(&scene, tmp.path(), 2, "1GiB", "whole", &["--speculate"]);
+        assert_eq!(whole.hash, chained.hash);
+        assert_eq!(whole.loads, domains as u64);
     }
 }
 
@@ -152,7 +190,7 @@ fn write_ply(path: &Path) {
 }
 
 #[test]
-fn mesh_scene_renders_identically_at_1_8_and_64_domains() {
+fn mesh_scene_renders_identically_at_1_8_and_64_domains_chained_or_speculative() {
     let tmp = tempfile::tempdir().unwrap();
     let ply = tmp.path().join("sphere.ply");
     write_ply(&ply);
@@ -168,9 +206,11 @@ fn mesh_scene_renders_identically_at_1_8_and_64_domains() {
             s(&out),
         ]);
         hashes.push(render(&out, tmp.path(), 2, "1", &format!("m{domains}")).hash);
+        // Triangles crossing domain boundaries: each copy finds its own stretch's hits.
+        let tag = format!("m{domains}s");
+        hashes.push(render_with(&out, tmp.path(), 2, "1", &tag, &["--speculate"]).hash);
     }
-    assert_eq!(hashes[0], hashes[1]);
-    assert_eq!(hashes[0], hashes[2]);
+    assert!(hashes.iter().all(|h| *h == hashes[0]), "{hashes:?}");
 }
 
 fn args<'a>(scene: &'a str, out: &'a str) -> Vec<&'a str> {

@@ -43,8 +43,9 @@ pub struct RayRecord {
     pub tile: u32,
     /// Epoch of that tile when the ray was born (stale rays are dropped after a fault).
     pub epoch: u32,
-    /// Unused; zero.
-    pub _pad2: u32,
+    /// Under speculative placement, the ray's group at the place it was born, whose copies
+    /// this is (see `render::speculation`); zero otherwise.
+    pub group: u32,
     /// The ray's share of its tile's credit (frame completion).
     pub credit: u64,
 }
@@ -52,6 +53,13 @@ pub struct RayRecord {
 const _: () = assert!(std::mem::size_of::<RayRecord>() == 80);
 
 impl RayRecord {
+    /// How many resolved hits lie between this ray and its camera ray: a radiance ray's depth,
+    /// one more for a shadow ray (it leaves the hit that made it). Rays of one generation can
+    /// only be made once the previous generation has been traced.
+    pub fn generation(&self) -> u16 {
+        self.depth + u16::from(self.kind == RayKind::Shadow as u8)
+    }
+
     /// The ray's kind.
     pub fn kind(&self) -> RayKind {
         if self.kind == RayKind::Shadow as u8 {

@@ -150,8 +150,8 @@ fn check_record(r: &RayRecord, l: &BatchLimits) -> Result<(), &'static str> {
     if r.kind != RayKind::Radiance as u8 && r.kind != RayKind::Shadow as u8 {
         return Err("unknown kind");
     }
-    if r._pad != 0 || r._pad2 != 0 {
-        return Err("padding is not zero");
+    if r._pad != 0 || r.group != 0 {
+        return Err("padding or speculative group is not zero");
     }
     if !finite(&r.origin) || !finite(&r.dir) || !finite(&r.throughput) {
         return Err("non-finite origin, direction or throughput");

@@ -91,6 +91,7 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
             threads: None,
             cache_bytes,
             wave_rays: 1 << 20,
+            speculate: false,
             stats_json: Some(a.dir.join("demo-stats.json")),
             quiet: false,
         });

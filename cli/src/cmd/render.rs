@@ -53,6 +53,11 @@ pub struct RenderArgs {
     /// Camera rays issued whenever fewer rays than this are queued (bounds memory).
     #[arg(long, default_value_t = 1 << 20)]
     pub wave_rays: usize,
+    /// Queue each new ray in every domain along it at once and trace the oldest generation
+    /// first (predictive scheduling): a domain is loaded about once per bounce instead of once
+    /// per pass of rays through it. Same image; more ray segments. Pays when loads dominate.
+    #[arg(long)]
+    pub speculate: bool,
     /// Also write the statistics as JSON here.
     #[arg(long)]
     pub stats_json: Option<PathBuf>,
@@ -76,7 +81,7 @@ fn camera_override(scene: &Camera, a: &RenderArgs) -> Option<Camera> {
 
 pub fn run(a: RenderArgs) -> anyhow::Result<()> {
     if !a.local {
-        bail!("pass --local: rendering on a cluster is not built yet");
+        bail!("pass --local (to render on a cluster, use `rayfarm submit` or `rayfarm demo`)");
     }
     let manifest = Manifest::load(&a.scene)?;
     let frame = FrameSpec {
@@ -92,6 +97,7 @@ pub fn run(a: RenderArgs) -> anyhow::Result<()> {
             .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())),
         cache_bytes: a.cache_bytes,
         wave_rays: a.wave_rays,
+        speculate: a.speculate,
     };
     let bar = if a.quiet {
         ProgressBar::hidden()

@@ -7,9 +7,9 @@ use std::ops::ControlFlow;
 
 use glam::Vec3;
 
+use super::speculation::{Outcome, SurfaceHit, Verdict};
 use crate::bvh::{TraceRay, Traverser};
 use crate::frame::{split_credit, split_path_credit};
-use crate::geometry::PackedTriangle;
 use crate::ray::{RayKind, RayRecord};
 use crate::sampling::{Purpose, uniform};
 use crate::scene::{DomainData, DomainTree, Light, Manifest, Material, Sky};
@@ -194,7 +194,8 @@ impl SceneView {
                     if let Some(hit) = traverser.nearest_hit(nodes, tris, &tr, t0, t1) {
                         let tri = &tris[hit.slot as usize];
                         children.clear();
-                        self.shade(ray, origin + dir * hit.t, tri, &mut children, counters);
+                        let surface = (tri.normal(), tri.material);
+                        self.shade(ray, origin + dir * hit.t, surface, &mut children, counters);
                         self.hand_on_credit(ray, &mut children, sink);
                         continue;
                     }
@@ -204,6 +205,108 @@ impl SceneView {
                 counters.forwarded += 1;
             }
             self.send(*ray, next, sink);
+        }
+    }
+
+    /// Every domain with geometry along `ray`, nearest first: where a speculative ray is
+    /// queued at once.
+    pub fn domains_along(&self, ray: &RayRecord) -> Vec<u32> {
+        let mut out = Vec::new();
+        self.tree.walk(
+            ray.origin.into(),
+            ray.dir.into(),
+            ray.t_min,
+            ray.t_max,
+            |d, _, _| {
+                if self.has_triangles[d as usize] {
+                    out.push(d);
+                }
+                ControlFlow::Continue(())
+            },
+        );
+        out
+    }
+
+    /// Traces one speculative copy of a ray against its domain `data` alone. Nothing moves
+    /// on: what was found is reported back to where the ray was born.
+    pub fn trace_copy(
+        &self,
+        data: &DomainData,
+        ray: &RayRecord,
+        traverser: &mut Traverser,
+        counters: &mut KernelCounters,
+    ) -> Verdict {
+        let mut order = 0u32;
+        let mut interval = None;
+        self.tree.walk(
+            ray.origin.into(),
+            ray.dir.into(),
+            ray.t_min,
+            ray.t_max,
+            |d, a, b| {
+                if d == data.domain() {
+                    interval = Some((a, b));
+                    return ControlFlow::Break(());
+                }
+                if self.has_triangles[d as usize] {
+                    order += 1;
+                }
+                ControlFlow::Continue(())
+            },
+        );
+        // A copy queued for a domain off its path finds nothing there.
+        let Some((t0, t1)) = interval else {
+            return Verdict::Clear;
+        };
+        let tr = TraceRay::new(Vec3::from(ray.origin), Vec3::from(ray.dir));
+        let (nodes, tris) = (data.nodes(), data.packed());
+        match ray.kind() {
+            RayKind::Shadow => {
+                counters.shadow_segments += 1;
+                if traverser.any_hit(nodes, tris, &tr, t0, t1) {
+                    Verdict::Blocked
+                } else {
+                    Verdict::Clear
+                }
+            }
+            RayKind::Radiance => {
+                counters.radiance_segments += 1;
+                match traverser.nearest_hit(nodes, tris, &tr, t0, t1) {
+                    Some(hit) => {
+                        let tri = &tris[hit.slot as usize];
+                        Verdict::Hit(SurfaceHit {
+                            order,
+                            t: hit.t,
+                            normal: tri.normal().into(),
+                            material: tri.material,
+                        })
+                    }
+                    None => Verdict::Clear,
+                }
+            }
+        }
+    }
+
+    /// Finishes a speculative ray once all its copies are in: exactly what tracing it one
+    /// domain at a time would have done, since a shadow ray is blocked if any domain blocks it
+    /// and a radiance ray stops in the nearest domain along it that it hits.
+    pub fn conclude(
+        &self,
+        ray: &RayRecord,
+        outcome: &Outcome,
+        sink: &mut impl RaySink,
+        counters: &mut KernelCounters,
+    ) {
+        match (ray.kind(), outcome.nearest) {
+            (RayKind::Shadow, _) if outcome.blocked => sink.retire(ray, [0.0; 3]),
+            (RayKind::Radiance, Some(hit)) => {
+                let (origin, dir) = (Vec3::from(ray.origin), Vec3::from(ray.dir));
+                let mut children = Vec::with_capacity(self.lights.len() + 1);
+                let surface = (Vec3::from(hit.normal), hit.material);
+                self.shade(ray, origin + dir * hit.t, surface, &mut children, counters);
+                self.hand_on_credit(ray, &mut children, sink);
+            }
+            _ => self.escape(ray, sink),
         }
     }
 
@@ -250,18 +353,18 @@ impl SceneView {
         }
     }
 
-    /// The children of a radiance ray that hit `tri` at `p`: shadow rays towards the lights and
-    /// at most one bounce, pushed to `out` without credit.
+    /// The children of a radiance ray that hit a surface (geometric normal, material) at `p`:
+    /// shadow rays towards the lights and at most one bounce, pushed to `out` without credit.
     fn shade(
         &self,
         ray: &RayRecord,
         p: Vec3,
-        tri: &PackedTriangle,
+        surface: (Vec3, u32),
         out: &mut Vec<RayRecord>,
         counters: &mut KernelCounters,
     ) {
         let dir = Vec3::from(ray.dir);
-        let mut n = tri.normal();
+        let (mut n, material) = surface;
         if n.dot(dir) > 0.0 {
             n = -n;
         }
@@ -281,7 +384,7 @@ impl SceneView {
             ..*ray
         };
         // Materials are checked against the manifest when a domain is loaded.
-        match self.materials[tri.material as usize] {
+        match self.materials[material as usize] {
             Material::Diffuse { albedo } => {
                 let albedo = Vec3::from(albedo);
                 self.direct_light(ray, origin, n, throughput * albedo, out, counters);

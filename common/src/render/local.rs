@@ -13,11 +13,14 @@ use super::cache::DomainCache;
 use super::film::Film;
 use super::kernel::{KernelCounters, RaySink, SceneView};
 use super::primary::primary_ray;
+use super::speculation::{Groups, Verdict};
 use super::stats::{RenderStats, peak_rss_bytes};
+use crate::bvh::Traverser;
 use crate::camera::PinholeCamera;
 use crate::frame::{TILE_CREDIT, TileGrid};
 use crate::ray::RayRecord;
-use crate::scene::{Camera, Manifest, SceneError};
+use crate::scene::{Camera, DomainData, Manifest, SceneError};
+use crate::schedule::speculative::{GenerationCounts, QueueView, next_queue};
 
 /// Largest image side accepted.
 pub const MAX_SIDE: u32 = 16384;
@@ -75,6 +78,9 @@ pub struct LocalOptions {
     pub cache_bytes: u64,
     /// Camera rays issued whenever fewer than this many rays are queued.
     pub wave_rays: usize,
+    /// Queue every new ray in all domains along it at once (`speculation`), oldest
+    /// generation first: fewer domain loads, more ray segments traced.
+    pub speculate: bool,
 }
 
 /// Why a local render failed.
@@ -182,7 +188,7 @@ fn render_in_pool(
         .ok_or_else(|| RenderError::Frame("image does not fit the tile grid".into()))?;
     let returned: Vec<AtomicU64> = (0..grid.count()).map(|_| AtomicU64::new(0)).collect();
     let mut cache = DomainCache::new(dir, manifest, options.cache_bytes);
-    let mut queues: Vec<Vec<RayRecord>> = vec![Vec::new(); view.domain_count()];
+    let mut queues = Queues::new(view.domain_count(), options.speculate);
     let mut counters = KernelCounters::default();
     let total_primary = frame.width as u64 * frame.height as u64 * frame.spp as u64;
     let mut issued = 0u64;
@@ -194,44 +200,26 @@ fn render_in_pool(
         returned: &returned,
     };
     loop {
-        let queued: usize = queues.iter().map(Vec::len).sum();
-        if queued < wave as usize && issued < total_primary {
+        if queues.total() < wave as usize && issued < total_primary {
             let end = (issued + wave).min(total_primary);
             let outs = issue_primaries(&view, &camera, &grid, frame.spp, issued..end, new_sink);
             counters.primary_rays += end - issued;
             issued = end;
-            distribute(&mut queues, outs);
+            queues.place(&view, outs);
             continue;
         }
-        // Fullest queue first; ties go to the lowest domain id.
-        let Some((d, len)) = queues
-            .iter()
-            .enumerate()
-            .map(|(d, q)| (d, q.len()))
-            .max_by_key(|&(d, len)| (len, std::cmp::Reverse(d)))
-            .filter(|&(_, len)| len > 0)
-        else {
+        let Some(d) = queues.next(&cache.resident()) else {
             break;
         };
-        let data = cache.get(d as u32)?;
-        let rays = std::mem::take(&mut queues[d]);
-        let _pass = info_span!("trace_queue", domain = d, rays = len).entered();
-        let results: Vec<(Vec<RayRecord>, KernelCounters)> = rays
-            .par_chunks(CHUNK)
-            .map(|chunk| {
-                let mut sink = new_sink(Vec::with_capacity(chunk.len() * 2));
-                let mut c = KernelCounters::default();
-                view.trace(&data, chunk, &mut sink, &mut c);
-                (sink.out, c)
-            })
-            .collect();
+        let data = cache.get(d)?;
+        let rays = queues.take(d);
+        let _pass = info_span!("trace_queue", domain = d, rays = rays.len()).entered();
+        let outs = match &mut queues.groups {
+            None => trace_chained(&view, &data, &rays, new_sink, &mut counters),
+            Some(groups) => trace_speculative(&view, &data, &rays, groups, new_sink, &mut counters),
+        };
         passes += 1;
-        let mut outs = Vec::with_capacity(results.len());
-        for (out, c) in results {
-            counters.add(&c);
-            outs.push(out);
-        }
-        distribute(&mut queues, outs);
+        queues.place(&view, outs);
         on_progress(&Progress {
             tiles_done: returned
                 .iter()
@@ -305,10 +293,129 @@ fn issue_primaries<'a>(
         .collect()
 }
 
-fn distribute(queues: &mut [Vec<RayRecord>], outs: Vec<Vec<RayRecord>>) {
-    for out in outs {
-        for ray in out {
-            queues[ray.domain as usize].push(ray);
+/// Traces a domain's queue one domain at a time: rays that miss move on to the next domain.
+fn trace_chained<'a>(
+    view: &SceneView,
+    data: &DomainData,
+    rays: &[RayRecord],
+    new_sink: impl Fn(Vec<RayRecord>) -> QueueSink<'a> + Sync,
+    counters: &mut KernelCounters,
+) -> Vec<Vec<RayRecord>> {
+    let results: Vec<(Vec<RayRecord>, KernelCounters)> = rays
+        .par_chunks(CHUNK)
+        .map(|chunk| {
+            let mut sink = new_sink(Vec::with_capacity(chunk.len() * 2));
+            let mut c = KernelCounters::default();
+            view.trace(data, chunk, &mut sink, &mut c);
+            (sink.out, c)
+        })
+        .collect();
+    results
+        .into_iter()
+        .map(|(out, c)| {
+            counters.add(&c);
+            out
+        })
+        .collect()
+}
+
+/// Traces speculative copies queued for a domain and concludes every ray whose last copy
+/// this was; returns the rays those conclusions made.
+fn trace_speculative<'a>(
+    view: &SceneView,
+    data: &DomainData,
+    rays: &[RayRecord],
+    groups: &mut Groups,
+    new_sink: impl Fn(Vec<RayRecord>) -> QueueSink<'a> + Sync,
+    counters: &mut KernelCounters,
+) -> Vec<Vec<RayRecord>> {
+    let verdicts: Vec<(Vec<Verdict>, KernelCounters)> = rays
+        .par_chunks(CHUNK)
+        .map(|chunk| {
+            let mut c = KernelCounters::default();
+            let mut traverser = Traverser::new();
+            let v = chunk
+                .iter()
+                .map(|r| view.trace_copy(data, r, &mut traverser, &mut c))
+                .collect();
+            (v, c)
+        })
+        .collect();
+    let mut sink = new_sink(Vec::new());
+    for (chunk, (verdicts, c)) in rays.chunks(CHUNK).zip(verdicts) {
+        counters.add(&c);
+        for (copy, verdict) in chunk.iter().zip(verdicts) {
+            // Every copy here was made by `Queues::place` in this frame.
+            let settled = groups
+                .settle(copy.group, verdict)
+                .expect("copy of a waiting ray");
+            if let Some((ray, outcome)) = settled {
+                view.conclude(&ray, &outcome, &mut sink, counters);
+            }
         }
+    }
+    vec![sink.out]
+}
+
+/// One queue per domain. Rays are placed in the first domain along them, or, speculating,
+/// in all of them at once.
+struct Queues {
+    rays: Vec<Vec<RayRecord>>,
+    /// Speculating: the rays waiting for their copies, and the generations queued.
+    groups: Option<Groups>,
+    generations: GenerationCounts,
+}
+
+impl Queues {
+    fn new(domains: usize, speculate: bool) -> Self {
+        Queues {
+            rays: vec![Vec::new(); domains],
+            groups: speculate.then(Groups::new),
+            generations: GenerationCounts::new(domains),
+        }
+    }
+
+    fn total(&self) -> usize {
+        self.rays.iter().map(Vec::len).sum()
+    }
+
+    /// Queues rays routed to their first domain (`SceneView::route_new` or the kernel).
+    fn place(&mut self, view: &SceneView, outs: Vec<Vec<RayRecord>>) {
+        for ray in outs.into_iter().flatten() {
+            match &mut self.groups {
+                None => self.rays[ray.domain as usize].push(ray),
+                Some(groups) => {
+                    for copy in groups.spread(ray, &view.domains_along(&ray)) {
+                        self.generations.add(copy.domain, copy.generation());
+                        self.rays[copy.domain as usize].push(copy);
+                    }
+                }
+            }
+        }
+    }
+
+    /// The queue to trace next: the fullest, or, speculating, `speculative::next_queue`.
+    fn next(&self, resident: &[u32]) -> Option<u32> {
+        let lens = (0u32..).zip(self.rays.iter().map(Vec::len));
+        if self.groups.is_none() {
+            // Ties go to the lowest domain id.
+            return lens
+                .filter(|&(_, len)| len > 0)
+                .max_by_key(|&(d, len)| (len, std::cmp::Reverse(d)))
+                .map(|(d, _)| d);
+        }
+        next_queue(lens.filter_map(|(domain, len)| {
+            Some(QueueView {
+                domain,
+                rays: len as u64,
+                oldest: self.generations.oldest(domain)?,
+                resident: resident.contains(&domain),
+            })
+        }))
+    }
+
+    fn take(&mut self, domain: u32) -> Vec<RayRecord> {
+        self.generations.clear(domain);
+        std::mem::take(&mut self.rays[domain as usize])
     }
 }

@@ -6,6 +6,7 @@ pub mod film;
 pub mod kernel;
 pub mod local;
 pub mod primary;
+pub mod speculation;
 pub mod stats;
 
 pub use film::Film;

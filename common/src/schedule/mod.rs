@@ -7,12 +7,14 @@
 //! The policies follow Navrátil et al., "Dynamic Ray Scheduling to Improve Ray
 //! Coherence and Bandwidth Utilization" (EGPGV 2012):
 //! - [`static_plans`]: the image-plane and domain decompositions (Figs. 3-4);
-//! - [`dynamic`]: the ray-weighted schedule, `ScheduleNextRound` (Figs. 5-6).
+//! - [`dynamic`]: the ray-weighted schedule, `ScheduleNextRound` (Figs. 5-6);
+//! - [`speculative`]: the queue order for speculatively placed rays (Park et al.).
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::fmt;
 
 pub mod dynamic;
+pub mod speculative;
 pub mod static_plans;
 
 /// Identifies one spatial domain (a brick of scene data loaded as a unit).

@@ -1,0 +1,116 @@
+//! Which queue to trace next when rays are placed speculatively (see
+//! `render::speculation`).
+//!
+//! A generation of rays is made only once the previous one has been traced, and placed
+//! speculatively a generation needs each domain only once. So the oldest generation goes
+//! first: each domain is then loaded about once per generation, not once per trip of a ray
+//! through it. Among the queues holding that generation a domain already in memory goes
+//! first (it costs no load), then the fullest; ties go to the lowest domain id.
+
+/// One domain's queue as the policy sees it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct QueueView {
+    /// The domain.
+    pub domain: u32,
+    /// Rays queued for it.
+    pub rays: u64,
+    /// The oldest generation among them (`RayRecord::generation`).
+    pub oldest: u16,
+    /// Whether the domain is in memory.
+    pub resident: bool,
+}
+
+/// The domain to trace next, or `None` when no rays are queued.
+pub fn next_queue(queues: impl IntoIterator<Item = QueueView>) -> Option<u32> {
+    let queues: Vec<QueueView> = queues.into_iter().filter(|q| q.rays > 0).collect();
+    let oldest = queues.iter().map(|q| q.oldest).min()?;
+    queues
+        .iter()
+        .filter(|q| q.oldest == oldest)
+        .max_by_key(|q| (q.resident, q.rays, std::cmp::Reverse(q.domain)))
+        .map(|q| q.domain)
+}
+
+/// Rays queued per domain and generation, kept alongside the queues so the policy needs no
+/// scan of the rays.
+#[derive(Clone, Debug, Default)]
+pub struct GenerationCounts {
+    counts: Vec<Vec<u64>>,
+}
+
+impl GenerationCounts {
+    /// Empty counts for `domains` domains.
+    pub fn new(domains: usize) -> Self {
+        GenerationCounts {
+            counts: vec![Vec::new(); domains],
+        }
+    }
+
+    /// One more ray of `generation` queued for `domain` (below the domain count).
+    pub fn add(&mut self, domain: u32, generation: u16) {
+        let c = &mut self.counts[domain as usize];
+        let g = generation as usize;
+        if c.len() <= g {
+            c.resize(g + 1, 0);
+        }
+        c[g] += 1;
+    }
+
+    /// `domain`'s queue was emptied.
+    pub fn clear(&mut self, domain: u32) {
+        self.counts[domain as usize].clear();
+    }
+
+    /// The oldest generation queued for `domain`, if any.
+    pub fn oldest(&self, domain: u32) -> Option<u16> {
+        self.counts[domain as usize]
+            .iter()
+            .position(|&n| n > 0)
+            .map(|g| g as u16)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn q(domain: u32, rays: u64, oldest: u16, resident: bool) -> QueueView {
+        QueueView {
+            domain,
+            rays,
+            oldest,
+            resident,
+        }
+    }
+
+    #[test]
+    fn the_oldest_generation_goes_first_even_when_its_queue_is_small() {
+        let pick = next_queue([q(0, 1000, 2, true), q(1, 3, 1, false), q(2, 5, 1, false)]);
+        assert_eq!(pick, Some(2));
+    }
+
+    #[test]
+    fn a_resident_domain_beats_a_fuller_one_of_the_same_generation() {
+        let pick = next_queue([q(0, 1000, 0, false), q(1, 3, 0, true)]);
+        assert_eq!(pick, Some(1));
+    }
+
+    #[test]
+    fn ties_go_to_the_lowest_domain_and_empty_queues_are_ignored() {
+        assert_eq!(next_queue([q(5, 4, 0, false), q(3, 4, 0, false)]), Some(3));
+        assert_eq!(next_queue([q(0, 0, 0, true)]), None);
+        assert_eq!(next_queue([]), None);
+    }
+
+    #[test]
+    fn counts_track_the_oldest_generation_per_domain() {
+        let mut c = GenerationCounts::new(2);
+        assert_eq!(c.oldest(0), None);
+        c.add(0, 3);
+        c.add(0, 1);
+        assert_eq!(c.oldest(0), Some(1));
+        assert_eq!(c.oldest(1), None);
+        c.clear(0);
+        assert_eq!(c.oldest(0), None);
+    }
+}
