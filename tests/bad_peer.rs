@@ -1,10 +1,11 @@
 //! Bad input from outside, against a real cluster: a client that speaks the peer protocol
 //! (the generated tonic client) sends a worker garbage batches, truncated batches, lying
-//! counts, bad records and bundles of another protocol version while a frame runs. Each gets
-//! a precise gRPC status and a log line with context, and the frame the bad bundles claim to
-//! belong to still renders the image of `rayfarm render --local`. Then scenes whose manifest
-//! does not parse or lies about its domains fail their jobs precisely, and the next job
-//! renders the reference image.
+//! counts, bad records, verdicts in the wrong tier or naming unknown materials, and bundles
+//! of another protocol version while a (predictive) frame runs. Each gets a precise gRPC
+//! status and a log line with context, and the frame the bad bundles claim to belong to
+//! still renders the image of `rayfarm render --local`. Then scenes whose manifest does not
+//! parse or lies about its domains fail their jobs precisely, and the next job renders the
+//! reference image.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -14,7 +15,7 @@ use bytes::Bytes;
 use rayfarm_common::proto::peer_service_client::PeerServiceClient;
 use rayfarm_common::proto::{self, PROTOCOL_VERSION};
 use rayfarm_common::ray::RayRecord;
-use rayfarm_common::wire;
+use rayfarm_common::wire::{self, VerdictRecord};
 use rayfarm_tests::{
     Cluster, WorkerOpts, bin, hash_of, local_hash, prepare_nbody, s, submit_wait, wait_child,
     wait_until,
@@ -22,7 +23,8 @@ use rayfarm_tests::{
 use tonic::Code;
 
 /// A frame long enough to still be running while the bad bundles arrive (usually; the test
-/// holds either way), deep enough to send rays between workers.
+/// holds either way), deep enough to send rays between workers. It runs predictive, so that
+/// verdicts travel too.
 const FRAME: [&str; 8] = [
     "--width", "192", "--height", "144", "--spp", "8", "--depth", "3",
 ];
@@ -55,6 +57,25 @@ fn ray() -> RayRecord {
         t_max: f32::INFINITY,
         throughput: [1.0; 3],
         ..bytemuck::Zeroable::zeroed()
+    }
+}
+
+/// A verdict on a speculative copy of `ray()`, hitting material `material`.
+fn verdict(material: u32) -> VerdictRecord {
+    VerdictRecord {
+        group: 12345,
+        kind: VerdictRecord::HIT,
+        t: 1.0,
+        normal: [0.0, 1.0, 0.0],
+        material,
+        ..bytemuck::Zeroable::zeroed()
+    }
+}
+
+fn results(job_id: &str, batches: Vec<Vec<u8>>) -> proto::PeerBundle {
+    proto::PeerBundle {
+        tier: proto::Tier::Results as i32,
+        ..bundle(job_id, batches)
     }
 }
 
@@ -107,6 +128,7 @@ fn bad_peers_get_precise_statuses_and_the_frame_they_claim_still_renders() {
             s(&json),
         ])
         .args(FRAME)
+        .args(["--schedule", "predictive"])
         .env("RAYFARM_COORDINATOR", cluster.coordinator_url())
         .stdout(Stdio::null())
         .spawn()
@@ -125,7 +147,7 @@ fn bad_peers_get_precise_statuses_and_the_frame_they_claim_still_renders() {
     let mut lying_count = valid.clone();
     lying_count[8..12].copy_from_slice(&u32::MAX.to_le_bytes());
     let mut other_layout = valid.clone();
-    other_layout[4] = 2;
+    other_layout[4] = 9;
     let mut nan_ray = ray();
     nan_ray.dir = [f32::NAN, 0.0, 1.0];
     let bad_record = wire::encode_batch(&[ray(), nan_ray]);
@@ -158,13 +180,34 @@ fn bad_peers_get_precise_statuses_and_the_frame_they_claim_still_renders() {
             "batch layout of another version",
             bundle(&job, vec![other_layout]),
             Code::FailedPrecondition,
-            "version 2",
+            "version 9",
         ),
         (
             "bad record after a good batch",
-            bundle(&job, vec![valid, bad_record]),
+            bundle(&job, vec![valid.clone(), bad_record]),
             Code::InvalidArgument,
-            "batch 1: ray record 1: non-finite",
+            "batch 1: record 1: non-finite",
+        ),
+        (
+            "verdicts in the rays' tier",
+            bundle(&job, vec![wire::encode_verdicts(&[verdict(0)])]),
+            Code::InvalidArgument,
+            "bad magic",
+        ),
+        (
+            "rays in the verdicts' tier",
+            results(&job, vec![valid.clone()]),
+            Code::InvalidArgument,
+            "bad magic",
+        ),
+        (
+            "a verdict hitting a material the scene lacks",
+            results(
+                &job,
+                vec![wire::encode_verdicts(&[verdict(0), verdict(u32::MAX)])],
+            ),
+            Code::InvalidArgument,
+            "batch 0: record 1: material out of range",
         ),
         (
             "another protocol version",
@@ -194,6 +237,12 @@ fn bad_peers_get_precise_statuses_and_the_frame_they_claim_still_renders() {
     runtime
         .block_on(exchange(&addr, unrelated))
         .expect("a valid bundle is acknowledged");
+    // Well-formed verdicts for rays the worker is not waiting on are acknowledged, and
+    // refused by the groups (they never settle another ray).
+    let strays = results(&job, vec![wire::encode_verdicts(&[verdict(0), verdict(0)])]);
+    runtime
+        .block_on(exchange(&addr, strays))
+        .expect("well-formed verdicts are acknowledged");
 
     assert!(
         wait_child(&mut waiter, "the frame", Duration::from_secs(180)),

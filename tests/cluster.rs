@@ -108,7 +108,7 @@ fn every_schedule_renders_the_local_image_with_one_to_four_workers() {
             Some("nb"),
             &vec![WorkerOpts::cache(2 * largest); n],
         );
-        for schedule in ["image-plane", "domain", "dynamic", "hybrid"] {
+        for schedule in ["image-plane", "domain", "dynamic", "hybrid", "predictive"] {
             let mut frame = FRAME.to_vec();
             frame.extend(["--schedule", schedule, "--cold-cache"]);
             let stats = submit_wait(&cluster, &frame, &format!("{schedule}-{n}"));
@@ -126,6 +126,12 @@ fn every_schedule_renders_the_local_image_with_one_to_four_workers() {
                     migrated > Some(0),
                     "domain schedule with {n} workers moved no rays"
                 );
+            }
+            // Verdicts of speculative copies travel in the results tier, and only they do.
+            let verdict_bundles = stats_field(&stats, "/tiers/1/bundles").as_u64();
+            match (schedule, n) {
+                ("predictive", 2..) => assert!(verdict_bundles > Some(0), "{n} workers"),
+                _ => assert_eq!(verdict_bundles, Some(0), "{schedule} with {n} workers"),
             }
         }
     }
@@ -145,12 +151,21 @@ fn dynamic_rounds_with_a_barrier_render_the_local_image() {
             &[("RAYFARM_ROUNDS", "barrier")],
             &vec![WorkerOpts::cache(largest); n],
         );
-        let mut frame = FRAME.to_vec();
-        frame.extend(["--schedule", "dynamic", "--cold-cache"]);
-        let stats = submit_wait(&cluster, &frame, &format!("barrier-{n}"));
-        assert_eq!(hash_of(&stats), expected, "barrier rounds with {n} workers");
-        let rounds = stats_field(&stats, "/rounds").as_u64().unwrap_or(0);
-        assert!(rounds > 1, "{n} workers planned {rounds} rounds");
+        for schedule in ["dynamic", "predictive"] {
+            let mut frame = FRAME.to_vec();
+            frame.extend(["--schedule", schedule, "--cold-cache"]);
+            let stats = submit_wait(&cluster, &frame, &format!("barrier-{schedule}-{n}"));
+            assert_eq!(
+                hash_of(&stats),
+                expected,
+                "{schedule}, barrier, {n} workers"
+            );
+            let rounds = stats_field(&stats, "/rounds").as_u64().unwrap_or(0);
+            assert!(
+                rounds > 1,
+                "{schedule}: {n} workers planned {rounds} rounds"
+            );
+        }
     }
 }
 
@@ -260,23 +275,32 @@ fn a_worker_started_mid_frame_gets_work_in_the_next_round() {
     let (_, largest) = domain_bytes(&scene);
     // One-domain caches: many rounds, so the frame is still running when the worker joins.
     let frame = MANY_ROUNDS;
-    let mut cluster = Cluster::start(root.path(), Some("nb"), &[WorkerOpts::cache(largest)]);
-    let json = cluster.dir().join("join.json");
-    let png = cluster.dir().join("join.png");
-    let mut waiter = spawn_submit_wait(&cluster, &frame, &[], &png, &json);
-    wait_until("round 2 of the frame", Duration::from_secs(60), || {
-        cluster.status()["round"].as_u64() >= Some(2)
-    });
-    cluster.add_worker(&WorkerOpts::cache(largest));
-    let ok = wait_child(&mut waiter, "the frame", Duration::from_secs(120));
-    assert!(ok, "submit --wait failed");
-    assert_eq!(hash_of(&json), local_hash(&scene, &frame));
-    let per_worker = stats_field(&json, "/per_worker");
-    let per_worker = per_worker.as_array().expect("per-worker stats");
-    assert_eq!(per_worker.len(), 2, "both workers report: {per_worker:?}");
-    for w in per_worker {
-        let traced = w["rays"]["radiance_segments"].as_u64().unwrap_or(0);
-        assert!(traced > 0, "worker {} traced nothing", w["worker_id"]);
+    let expected = local_hash(&scene, &frame);
+    // Predictive: the others must learn where the newcomer's verdicts go.
+    for schedule in ["dynamic", "predictive"] {
+        let mut cluster = Cluster::start(root.path(), Some("nb"), &[WorkerOpts::cache(largest)]);
+        let json = cluster.dir().join("join.json");
+        let png = cluster.dir().join("join.png");
+        let mut waiter =
+            spawn_submit_wait(&cluster, &frame, &["--schedule", schedule], &png, &json);
+        wait_until("round 2 of the frame", Duration::from_secs(60), || {
+            cluster.status()["round"].as_u64() >= Some(2)
+        });
+        cluster.add_worker(&WorkerOpts::cache(largest));
+        let ok = wait_child(&mut waiter, "the frame", Duration::from_secs(120));
+        assert!(ok, "{schedule}: submit --wait failed");
+        assert_eq!(hash_of(&json), expected, "{schedule}");
+        let per_worker = stats_field(&json, "/per_worker");
+        let per_worker = per_worker.as_array().expect("per-worker stats");
+        assert_eq!(per_worker.len(), 2, "both workers report: {per_worker:?}");
+        for w in per_worker {
+            let traced = w["rays"]["radiance_segments"].as_u64().unwrap_or(0);
+            assert!(
+                traced > 0,
+                "{schedule}: worker {} traced nothing",
+                w["worker_id"]
+            );
+        }
     }
 }
 
@@ -286,8 +310,8 @@ fn random_message_delays_never_commit_a_tile_early() {
     let scene = prepare_nbody(root.path(), "nb", 30_000, 8);
     let (_, largest) = domain_bytes(&scene);
     let expected = local_hash(&scene, &FRAME);
-    for seed in 0..20 {
-        let seed = seed.to_string();
+    for n in 0..20usize {
+        let seed = n.to_string();
         let delays = [
             ("RAYFARM_FAULT_DELAY_MS", "3"),
             ("RAYFARM_FAULT_SEED", seed.as_str()),
@@ -296,8 +320,12 @@ fn random_message_delays_never_commit_a_tile_early() {
             .iter()
             .fold(WorkerOpts::cache(2 * largest), |w, (k, v)| w.env(k, v));
         let cluster = Cluster::start_with_env(root.path(), Some("nb"), &delays, &vec![worker; 3]);
-        let stats = submit_wait(&cluster, &FRAME, "delayed");
-        assert_eq!(hash_of(&stats), expected, "seed {seed}");
+        // Half the seeds run predictive: verdicts arrive out of order too.
+        let schedule = ["dynamic", "predictive"][n % 2];
+        let mut frame = FRAME.to_vec();
+        frame.extend(["--schedule", schedule]);
+        let stats = submit_wait(&cluster, &frame, "delayed");
+        assert_eq!(hash_of(&stats), expected, "seed {seed}, {schedule}");
     }
 }
 
@@ -476,7 +504,7 @@ fn a_worker_killed_mid_frame_costs_time_not_the_image() {
     let (_, largest) = domain_bytes(&scene);
     let frame = MANY_ROUNDS;
     let expected = local_hash(&scene, &frame);
-    for schedule in ["dynamic", "domain", "hybrid", "image-plane"] {
+    for schedule in ["dynamic", "domain", "hybrid", "image-plane", "predictive"] {
         // One-domain caches: many rounds, rays on every worker, so the kill lands mid-frame.
         let mut cluster = Cluster::start(
             root.path(),

@@ -6,7 +6,7 @@
 tonic::include_proto!("rayfarm.v1");
 
 /// Version of the worker and peer protocols; a peer of another version is refused.
-pub const PROTOCOL_VERSION: u32 = 2;
+pub const PROTOCOL_VERSION: u32 = 3;
 
 #[cfg(test)]
 mod tests {

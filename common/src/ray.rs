@@ -13,7 +13,7 @@ pub enum RayKind {
     Shadow = 1,
 }
 
-/// One ray in flight. 80 bytes, no padding holes, so batches travel as raw bytes.
+/// One ray in flight. 88 bytes, no padding holes, so batches travel as raw bytes.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
 pub struct RayRecord {
@@ -48,9 +48,14 @@ pub struct RayRecord {
     pub group: u32,
     /// The ray's share of its tile's credit (frame completion).
     pub credit: u64,
+    /// Under speculative placement, the worker holding the ray's group (the coordinator's
+    /// key for it), where this copy's verdict goes; zero otherwise.
+    pub resolver: u32,
+    /// Unused; zero.
+    pub _pad2: u32,
 }
 
-const _: () = assert!(std::mem::size_of::<RayRecord>() == 80);
+const _: () = assert!(std::mem::size_of::<RayRecord>() == 88);
 
 impl RayRecord {
     /// How many resolved hits lie between this ray and its camera ray: a radiance ray's depth,

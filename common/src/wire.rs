@@ -1,6 +1,8 @@
-//! Ray batches on the wire: a 16-byte header, then the ray records as raw little-endian bytes,
-//! carried in one protobuf `bytes` field (never one protobuf message per ray). Decoding checks
-//! every record, because the bytes come from another process that may be broken or hostile.
+//! Batches on the wire: a 16-byte header, then fixed-size records as raw little-endian bytes,
+//! carried in one protobuf `bytes` field (never one protobuf message per ray). Ray batches
+//! carry rays; verdict batches carry what speculative copies found back to their rays' groups.
+//! Decoding checks every record, because the bytes come from another process that may be
+//! broken or hostile.
 
 use crate::ray::{RayKind, RayRecord};
 
@@ -9,13 +11,43 @@ compile_error!(
     "ray batches are raw little-endian records; big-endian hosts need a byte-swapping codec"
 );
 
-/// First bytes of every batch.
+/// First bytes of every ray batch.
 pub const MAGIC: [u8; 4] = *b"RFRB";
-/// Layout version of the batch.
-pub const VERSION: u16 = 1;
+/// First bytes of every verdict batch.
+pub const VERDICT_MAGIC: [u8; 4] = *b"RFVB";
+/// Layout version of both kinds of batch.
+pub const VERSION: u16 = 2;
 /// Bytes before the first record.
 pub const HEADER_BYTES: usize = 16;
 const RECORD_BYTES: usize = std::mem::size_of::<RayRecord>();
+const VERDICT_BYTES: usize = std::mem::size_of::<VerdictRecord>();
+
+/// What a speculative copy found, on its way back to the ray's group
+/// (`render::speculation`). 48 bytes, no padding holes.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct VerdictRecord {
+    /// The group at the receiving worker.
+    pub group: u32,
+    /// The copy's tile, epoch, pixel and sample: the group checks they are its ray's, so a
+    /// stale verdict never settles a group that reused the id.
+    pub tile: u32,
+    pub epoch: u32,
+    pub pixel: u32,
+    pub sample: u32,
+    /// `CLEAR`, `BLOCKED` or `HIT`.
+    pub kind: u8,
+    /// Zero.
+    pub _pad: [u8; 3],
+    /// A hit: the domain's place along the ray, the distance, the surface's normal and
+    /// material (`SurfaceHit`); zero otherwise.
+    pub order: u32,
+    pub t: f32,
+    pub normal: [f32; 3],
+    pub material: u32,
+}
+
+const _: () = assert!(VERDICT_BYTES == 48);
 
 /// What a batch's records must satisfy to be accepted.
 #[derive(Clone, Copy, Debug)]
@@ -26,6 +58,8 @@ pub struct BatchLimits {
     pub pixels: u32,
     /// Largest bounce count.
     pub max_depth: u16,
+    /// Materials in the scene: every hit's material must be below.
+    pub materials: u32,
     /// Largest number of records in one batch.
     pub max_records: usize,
 }
@@ -34,21 +68,19 @@ pub struct BatchLimits {
 #[derive(Clone, Debug, thiserror::Error, PartialEq)]
 pub enum WireError {
     /// Shorter than the header, or not a whole number of records.
-    #[error(
-        "ray batch of {0} bytes is truncated or not a whole number of {RECORD_BYTES}-byte records"
-    )]
+    #[error("batch of {0} bytes is truncated or not a whole number of records")]
     Length(usize),
     /// Wrong magic.
-    #[error("not a ray batch (bad magic)")]
+    #[error("not a ray or verdict batch, or not the one expected (bad magic)")]
     Magic,
     /// A version this build does not read.
-    #[error("ray batch version {0} is not the supported {VERSION}")]
+    #[error("batch version {0} is not the supported {VERSION}")]
     Version(u16),
     /// Header bytes this version leaves unused are not zero.
-    #[error("ray batch header has non-zero reserved bytes")]
+    #[error("batch header has non-zero reserved bytes")]
     Reserved,
     /// The header's count disagrees with the records present.
-    #[error("ray batch says {said} records, holds {held}")]
+    #[error("batch says {said} records, holds {held}")]
     Count {
         /// Count in the header.
         said: u32,
@@ -56,7 +88,7 @@ pub enum WireError {
         held: usize,
     },
     /// More records than a batch may hold.
-    #[error("ray batch holds {held} records, more than the limit of {limit}")]
+    #[error("batch holds {held} records, more than the limit of {limit}")]
     TooMany {
         /// Records present.
         held: usize,
@@ -64,7 +96,7 @@ pub enum WireError {
         limit: usize,
     },
     /// A record is out of range.
-    #[error("ray record {index}: {reason}")]
+    #[error("record {index}: {reason}")]
     Record {
         /// Position in the batch.
         index: usize,
@@ -81,6 +113,7 @@ impl BatchLimits {
             domains: u32::MAX,
             pixels: u32::MAX,
             max_depth: u16::MAX,
+            materials: u32::MAX,
             max_records,
         }
     }
@@ -88,14 +121,7 @@ impl BatchLimits {
 
 /// Encodes rays as one batch.
 pub fn encode_batch(rays: &[RayRecord]) -> Vec<u8> {
-    let mut out = Vec::with_capacity(HEADER_BYTES + rays.len() * RECORD_BYTES);
-    out.extend_from_slice(&MAGIC);
-    out.extend_from_slice(&VERSION.to_le_bytes());
-    out.extend_from_slice(&0u16.to_le_bytes());
-    out.extend_from_slice(&(rays.len() as u32).to_le_bytes());
-    out.extend_from_slice(&0u32.to_le_bytes());
-    out.extend_from_slice(bytemuck::cast_slice(rays));
-    out
+    encode(MAGIC, rays)
 }
 
 /// Decodes and checks a batch.
@@ -107,10 +133,26 @@ pub fn decode_batch(bytes: &[u8], limits: &BatchLimits) -> Result<Vec<RayRecord>
 
 /// Checks a batch without copying it; returns its number of records.
 pub fn check_batch(bytes: &[u8], limits: &BatchLimits) -> Result<usize, WireError> {
+    let held = check_header(bytes, MAGIC, RECORD_BYTES, limits.max_records)?;
+    for (index, raw) in bytes[HEADER_BYTES..].chunks_exact(RECORD_BYTES).enumerate() {
+        let r: RayRecord = bytemuck::pod_read_unaligned(raw);
+        check_record(&r, limits).map_err(|reason| WireError::Record { index, reason })?;
+    }
+    Ok(held)
+}
+
+/// Checks the header and length of a batch of `record_bytes`-byte records; returns their
+/// number.
+fn check_header(
+    bytes: &[u8],
+    magic: [u8; 4],
+    record_bytes: usize,
+    max_records: usize,
+) -> Result<usize, WireError> {
     let len = bytes.len();
     // Identity before size, so that garbage is called garbage rather than a truncated batch.
     match bytes.get(0..4) {
-        Some(magic) if magic != MAGIC => return Err(WireError::Magic),
+        Some(m) if m != magic => return Err(WireError::Magic),
         Some(_) => {}
         None => return Err(WireError::Length(len)),
     }
@@ -120,7 +162,7 @@ pub fn check_batch(bytes: &[u8], limits: &BatchLimits) -> Result<usize, WireErro
             return Err(WireError::Version(version));
         }
     }
-    if len < HEADER_BYTES || !(len - HEADER_BYTES).is_multiple_of(RECORD_BYTES) {
+    if len < HEADER_BYTES || !(len - HEADER_BYTES).is_multiple_of(record_bytes) {
         return Err(WireError::Length(len));
     }
     // Zero, as in records, so that an accepted batch has exactly one encoding.
@@ -128,21 +170,82 @@ pub fn check_batch(bytes: &[u8], limits: &BatchLimits) -> Result<usize, WireErro
         return Err(WireError::Reserved);
     }
     let said = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
-    let held = (len - HEADER_BYTES) / RECORD_BYTES;
-    if held > limits.max_records {
+    let held = (len - HEADER_BYTES) / record_bytes;
+    if held > max_records {
         return Err(WireError::TooMany {
             held,
-            limit: limits.max_records,
+            limit: max_records,
         });
     }
     if said as usize != held {
         return Err(WireError::Count { said, held });
     }
-    for (index, raw) in bytes[HEADER_BYTES..].chunks_exact(RECORD_BYTES).enumerate() {
-        let r: RayRecord = bytemuck::pod_read_unaligned(raw);
-        check_record(&r, limits).map_err(|reason| WireError::Record { index, reason })?;
+    Ok(held)
+}
+
+fn encode<T: bytemuck::Pod>(magic: [u8; 4], records: &[T]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(HEADER_BYTES + std::mem::size_of_val(records));
+    out.extend_from_slice(&magic);
+    out.extend_from_slice(&VERSION.to_le_bytes());
+    out.extend_from_slice(&0u16.to_le_bytes());
+    out.extend_from_slice(&(records.len() as u32).to_le_bytes());
+    out.extend_from_slice(&0u32.to_le_bytes());
+    out.extend_from_slice(bytemuck::cast_slice(records));
+    out
+}
+
+/// Encodes verdicts as one batch (the bundler's results tier carries them).
+pub fn encode_verdicts(verdicts: &[VerdictRecord]) -> Vec<u8> {
+    encode(VERDICT_MAGIC, verdicts)
+}
+
+/// Decodes and checks a batch of verdicts.
+pub fn decode_verdicts(
+    bytes: &[u8],
+    limits: &BatchLimits,
+) -> Result<Vec<VerdictRecord>, WireError> {
+    check_verdicts(bytes, limits)?;
+    Ok(bytemuck::pod_collect_to_vec(&bytes[HEADER_BYTES..]))
+}
+
+/// Checks a batch of verdicts without copying it; returns its number of records.
+pub fn check_verdicts(bytes: &[u8], limits: &BatchLimits) -> Result<usize, WireError> {
+    let held = check_header(bytes, VERDICT_MAGIC, VERDICT_BYTES, limits.max_records)?;
+    for (index, raw) in bytes[HEADER_BYTES..]
+        .chunks_exact(VERDICT_BYTES)
+        .enumerate()
+    {
+        let v: VerdictRecord = bytemuck::pod_read_unaligned(raw);
+        check_verdict(&v, limits).map_err(|reason| WireError::Record { index, reason })?;
     }
     Ok(held)
+}
+
+fn check_verdict(v: &VerdictRecord, l: &BatchLimits) -> Result<(), &'static str> {
+    if v._pad != [0; 3] {
+        return Err("padding is not zero");
+    }
+    if v.pixel >= l.pixels {
+        return Err("pixel out of range");
+    }
+    match v.kind {
+        VerdictRecord::CLEAR | VerdictRecord::BLOCKED => {
+            if v.order != 0 || v.t != 0.0 || v.normal != [0.0; 3] || v.material != 0 {
+                return Err("a verdict without a hit carries hit fields");
+            }
+        }
+        VerdictRecord::HIT => {
+            let finite = v.t.is_finite() && v.normal.iter().all(|x| x.is_finite());
+            if !(finite && v.t >= 0.0) {
+                return Err("non-finite or negative hit");
+            }
+            if v.material >= l.materials {
+                return Err("material out of range");
+            }
+        }
+        _ => return Err("unknown verdict kind"),
+    }
+    Ok(())
 }
 
 fn check_record(r: &RayRecord, l: &BatchLimits) -> Result<(), &'static str> {
@@ -150,8 +253,8 @@ fn check_record(r: &RayRecord, l: &BatchLimits) -> Result<(), &'static str> {
     if r.kind != RayKind::Radiance as u8 && r.kind != RayKind::Shadow as u8 {
         return Err("unknown kind");
     }
-    if r._pad != 0 || r.group != 0 {
-        return Err("padding or speculative group is not zero");
+    if r._pad != 0 || r._pad2 != 0 {
+        return Err("padding is not zero");
     }
     if !finite(&r.origin) || !finite(&r.dir) || !finite(&r.throughput) {
         return Err("non-finite origin, direction or throughput");
@@ -184,6 +287,7 @@ mod tests {
         domains: 8,
         pixels: 1000,
         max_depth: 4,
+        materials: 4,
         max_records: 1 << 16,
     };
 
@@ -236,8 +340,60 @@ mod tests {
         assert_eq!(decode_batch(&b, &LIMITS), Err(WireError::Version(9)));
     }
 
+    fn verdict(i: u32) -> VerdictRecord {
+        let hit = i % 3 == 2;
+        VerdictRecord {
+            group: i,
+            tile: i / 7,
+            epoch: 1,
+            pixel: i % 1000,
+            sample: i,
+            kind: (i % 3) as u8,
+            order: if hit { i % 5 } else { 0 },
+            t: if hit { i as f32 } else { 0.0 },
+            normal: if hit { [0.0, 1.0, 0.0] } else { [0.0; 3] },
+            material: if hit { i % 4 } else { 0 },
+            ..bytemuck::Zeroable::zeroed()
+        }
+    }
+
+    #[test]
+    fn verdicts_round_trip_and_bad_ones_are_refused() {
+        let vs: Vec<VerdictRecord> = (0..30).map(verdict).collect();
+        assert_eq!(decode_verdicts(&encode_verdicts(&vs), &LIMITS).unwrap(), vs);
+        let refused = |edit: fn(&mut VerdictRecord)| {
+            let mut v = vs.clone();
+            edit(&mut v[5]);
+            decode_verdicts(&encode_verdicts(&v), &LIMITS).unwrap_err()
+        };
+        let reason = |reason| WireError::Record { index: 5, reason };
+        assert_eq!(refused(|v| v.kind = 3), reason("unknown verdict kind"));
+        assert_eq!(refused(|v| v.material = 4), reason("material out of range"));
+        assert_eq!(
+            refused(|v| v.t = f32::NAN),
+            reason("non-finite or negative hit")
+        );
+        assert_eq!(refused(|v| v.pixel = 1000), reason("pixel out of range"));
+        assert_eq!(
+            refused(|v| v.kind = VerdictRecord::CLEAR),
+            reason("a verdict without a hit carries hit fields")
+        );
+        // Neither kind of batch passes for the other.
+        let rays = encode_batch(&[ray(1)]);
+        assert_eq!(decode_verdicts(&rays, &LIMITS), Err(WireError::Magic));
+        assert_eq!(
+            decode_batch(&encode_verdicts(&vs), &LIMITS),
+            Err(WireError::Magic)
+        );
+    }
+
     proptest! {
         #![proptest_config(ProptestConfig::with_cases(5000))]
+
+        #[test]
+        fn garbage_verdicts_never_panic(bytes in proptest::collection::vec(any::<u8>(), 0..1024)) {
+            let _ = decode_verdicts(&bytes, &LIMITS);
+        }
 
         #[test]
         fn garbage_never_panics(bytes in proptest::collection::vec(any::<u8>(), 0..2048)) {

@@ -127,8 +127,18 @@ impl RunningFrame {
         })
     }
 
-    fn start_message(&self, tiles: Vec<u32>) -> proto::CoordinatorMessage {
+    /// Every member's peer address by key.
+    fn roster(&self) -> std::collections::HashMap<u32, String> {
+        self.members
+            .iter()
+            .map(|(&k, m)| (k, m.peer_address.clone()))
+            .collect()
+    }
+
+    fn start_message(&self, key: u32, tiles: Vec<u32>) -> proto::CoordinatorMessage {
         msg(Body::StartFrame(proto::StartFrame {
+            worker_key: key,
+            roster: self.roster(),
             job_id: self.job_id.clone(),
             spec: Some(self.spec.clone()),
             tile_size: TILE_SIZE,
@@ -162,11 +172,13 @@ impl RunningFrame {
                 .map(|i| (i..count).step_by(n as usize).collect())
                 .collect(),
         };
-        let mut out = Vec::new();
-        for ((key, member), tiles) in workers.into_iter().zip(tiles) {
-            out.push((key, self.start_message(tiles)));
-            self.members.insert(key, member);
-        }
+        let keys: Vec<u32> = workers.iter().map(|&(k, _)| k).collect();
+        self.members.extend(workers);
+        let mut out: Vec<Outgoing> = keys
+            .into_iter()
+            .zip(tiles)
+            .map(|(key, tiles)| (key, self.start_message(key, tiles)))
+            .collect();
         if matches!(self.schedule, Schedule::Domain | Schedule::Hybrid) {
             out.extend(self.owner_plans());
         }
@@ -205,10 +217,22 @@ impl RunningFrame {
             .collect()
     }
 
-    /// Lets a worker that registered mid-frame take part from the next round.
-    pub fn join(&mut self, key: u32, member: Member) -> Outgoing {
+    /// Lets a worker that registered mid-frame take part from the next round; the others
+    /// learn its key and address.
+    pub fn join(&mut self, key: u32, member: Member) -> Vec<Outgoing> {
         self.members.insert(key, member);
-        (key, self.start_message(Vec::new()))
+        let roster = Body::Roster(proto::Roster {
+            job_id: self.job_id.clone(),
+            members: self.roster(),
+        });
+        let mut out = vec![(key, self.start_message(key, Vec::new()))];
+        out.extend(
+            self.members
+                .keys()
+                .filter(|&&k| k != key)
+                .map(|&k| (k, msg(roster.clone()))),
+        );
+        out
     }
 
     /// Domains in the scene.
@@ -285,7 +309,7 @@ impl RunningFrame {
         };
         member.report = Some(report);
         match self.schedule {
-            Schedule::Dynamic | Schedule::Unspecified => match self.rounds {
+            Schedule::Dynamic | Schedule::Predictive | Schedule::Unspecified => match self.rounds {
                 Rounds::Barrier => self.plan_if_round_over(),
                 Rounds::Async => self.plan_dry_members(),
             },
@@ -307,9 +331,16 @@ impl RunningFrame {
         if !all_in {
             return Vec::new();
         }
-        let Some(state) = self.cluster_state(&BTreeSet::new()) else {
+        let Some(mut state) = self.cluster_state(&BTreeSet::new(), true) else {
             return Vec::new();
         };
+        if !state.has_rays() {
+            // As in asynchronous rounds: everyone has reported, so plan the younger rays.
+            match self.cluster_state(&BTreeSet::new(), false) {
+                Some(all) => state = all,
+                None => return Vec::new(),
+            }
+        }
         if !state.has_rays() {
             // Rays or results are still on the wire: a worker reports again when they land.
             return Vec::new();
@@ -375,9 +406,18 @@ impl RunningFrame {
             .copied()
             .filter(|k| !dry.contains(k))
             .collect();
-        let Some(state) = self.cluster_state(&busy) else {
+        let Some(mut state) = self.cluster_state(&busy, true) else {
             return Vec::new();
         };
+        if !state.has_rays() && busy.is_empty() {
+            // Predictive: nothing of the oldest generation is queued and no one is busy.
+            // Its last copies are on the wire, or lost with a worker; plan the rest rather
+            // than risk waiting for nothing.
+            match self.cluster_state(&busy, false) {
+                Some(all) => state = all,
+                None => return Vec::new(),
+            }
+        }
         if !state.has_rays() {
             return Vec::new();
         }
@@ -433,7 +473,8 @@ impl RunningFrame {
             .iter()
             .flat_map(|(&k, m)| m.plan.iter().map(move |&d| (d, k)))
             .collect();
-        let mut moved: BTreeMap<u32, BTreeMap<u32, u64>> = BTreeMap::new();
+        // Per new holder: domain -> (rays, oldest generation among them).
+        let mut moved: BTreeMap<u32, BTreeMap<u32, (u64, Option<u32>)>> = BTreeMap::new();
         for m in self.members.values_mut() {
             let Some(report) = m.report.as_mut() else {
                 continue;
@@ -446,19 +487,26 @@ impl RunningFrame {
                 .filter(|d| holder_of.contains_key(d) && !keeps(d))
                 .collect();
             for d in leaving {
+                let generation = report.oldest_generation.remove(&d);
                 if let Some(n) = report.queued_rays.remove(&d) {
-                    *moved
+                    let entry = moved
                         .entry(holder_of[&d])
                         .or_default()
                         .entry(d)
-                        .or_default() += n;
+                        .or_default();
+                    entry.0 += n;
+                    entry.1 = entry.1.into_iter().chain(generation).min();
                 }
             }
         }
         for (key, queues) in moved {
             if let Some(report) = self.members.get_mut(&key).and_then(|m| m.report.as_mut()) {
-                for (d, n) in queues {
+                for (d, (n, generation)) in queues {
                     *report.queued_rays.entry(d).or_default() += n;
+                    if let Some(g) = generation {
+                        let oldest = report.oldest_generation.entry(d).or_insert(g);
+                        *oldest = (*oldest).min(g);
+                    }
                 }
             }
         }
@@ -481,9 +529,40 @@ impl RunningFrame {
     /// The cluster as the schedule sees it, from the latest reports. Members in `busy` are
     /// planned already and not re-planned now (asynchronous rounds): they hold their plan and
     /// what they reported resident, with no slot to spare. Members that have not reported
-    /// yet take no part (barrier rounds wait until all have).
-    fn cluster_state(&self, busy: &BTreeSet<u32>) -> Option<ClusterState> {
+    /// yet take no part (barrier rounds wait until all have). Under the predictive schedule
+    /// only queues holding the oldest generation still being traced count: a generation
+    /// needs each domain once, so younger rays wait for it rather than cost a load of their
+    /// own. While that generation's last copies are on the wire, nothing is planned
+    /// (`oldest_first`; without it every queue counts).
+    fn cluster_state(&self, busy: &BTreeSet<u32>, oldest_first: bool) -> Option<ClusterState> {
         let domains = self.domain_bytes.len() as u32;
+        let oldest = (oldest_first && self.schedule == Schedule::Predictive)
+            .then(|| {
+                self.members
+                    .values()
+                    .filter_map(|m| m.report.as_ref())
+                    .flat_map(|r| {
+                        r.oldest_generation
+                            .values()
+                            .copied()
+                            .chain(r.oldest_waiting)
+                    })
+                    .min()
+            })
+            .flatten();
+        // Younger rays of a domain in memory somewhere cost no load: they count, so that the
+        // domain is kept for them rather than evicted and loaded again a generation later.
+        let in_memory: BTreeSet<u32> = self
+            .members
+            .values()
+            .flat_map(|m| {
+                let resident = m.report.iter().flat_map(|r| r.resident_domains.iter());
+                resident.chain(m.plan.iter()).copied()
+            })
+            .collect();
+        let counts = |r: &proto::QueueReport, d: &u32| {
+            oldest.is_none_or(|g| r.oldest_generation.get(d) == Some(&g) || in_memory.contains(d))
+        };
         let largest = self.domain_bytes.iter().copied().max().unwrap_or(1).max(1);
         let mut queued: BTreeMap<DomainId, u64> = BTreeMap::new();
         let mut workers = Vec::new();
@@ -513,7 +592,7 @@ impl RunningFrame {
                 }
             }
             for (&d, &n) in &report.queued_rays {
-                if d < domains {
+                if d < domains && counts(report, &d) {
                     *queued.entry(DomainId(d)).or_default() += n;
                 }
             }

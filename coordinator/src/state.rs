@@ -366,7 +366,7 @@ impl Coordinator {
         if let Some(frame) = st.running.as_mut() {
             let out = frame.join(key, member);
             info!(job = %frame.job_id, round = frame.round, "worker joins the running frame");
-            send(&st, vec![out]);
+            send(&st, out);
         } else {
             self.try_start(&mut st);
         }

@@ -20,7 +20,7 @@ use rayfarm_common::render::SceneView;
 use rayfarm_common::render::cache::{CacheCounters, DomainCache, StorageModel};
 use rayfarm_common::render::stats::peak_rss_bytes;
 use rayfarm_common::scene::Manifest;
-use rayfarm_common::wire::{self, BatchLimits};
+use rayfarm_common::wire::{self, BatchLimits, VerdictRecord};
 use tokio::sync::mpsc;
 use tracing::{debug, error, info, info_span, warn};
 
@@ -28,6 +28,7 @@ use crate::frame::{Frame, Mode};
 use crate::pass::{self, FrameView, PassError, PassInput, PassOutput};
 use crate::peers::PeerLinks;
 use crate::queues::DomainQueues;
+use crate::speculation::Speculation;
 
 /// Rays per encoded batch sent to a peer (160 KiB).
 const BATCH_RAYS: usize = 2048;
@@ -66,10 +67,11 @@ pub enum Event {
     Control(proto::CoordinatorMessage),
     /// The control stream ended; frame state is dropped (the coordinator forgets this worker).
     Disconnected,
-    /// A bundle from a peer, not yet decoded.
+    /// A bundle from a peer, not yet decoded: ray batches, or in the results tier verdicts.
     PeerBundle {
         sender: String,
         job_id: String,
+        tier: proto::Tier,
         batches: Vec<Bytes>,
     },
     /// A peer stopped acknowledging bundles (see `peers::LinkLimits`).
@@ -95,7 +97,7 @@ pub struct Engine {
     cache: Option<(PathBuf, Arc<Mutex<DomainCache>>)>,
     pass_running: bool,
     /// Bundles that arrived for a job this worker has not started yet.
-    early: BTreeMap<String, Vec<(String, Vec<Bytes>)>>,
+    early: BTreeMap<String, Vec<(String, proto::Tier, Vec<Bytes>)>>,
     /// Recently ended jobs: their late bundles are dropped.
     ended: Vec<String>,
 }
@@ -174,6 +176,7 @@ impl Engine {
                 }
                 Some(FromCoordinator::EndFrame(e)) => self.end_frame(&e.job_id),
                 Some(FromCoordinator::Holders(h)) => self.holders(h),
+                Some(FromCoordinator::Roster(r)) => self.roster(r),
                 Some(FromCoordinator::HandOutTiles(h)) => {
                     if let Some(f) = self.frame.as_mut().filter(|f| f.job_id == h.job_id) {
                         let tiles = f.shared.grid.count();
@@ -192,8 +195,9 @@ impl Engine {
             Event::PeerBundle {
                 sender,
                 job_id,
+                tier,
                 batches,
-            } => self.peer_bundle(sender, job_id, batches),
+            } => self.peer_bundle(sender, job_id, tier, batches),
             Event::PeerUnresponsive { peer, reason } => {
                 self.peers.drop_peers(std::slice::from_ref(&peer));
                 self.send(proto::worker_message::Body::PeerUnresponsive(
@@ -232,8 +236,8 @@ impl Engine {
                 }
                 info!(tiles = s.primary_tiles.len(), "frame started");
                 self.frame = Some(frame);
-                for (sender, batches) in self.early.remove(&s.job_id).unwrap_or_default() {
-                    self.peer_bundle(sender, s.job_id.clone(), batches);
+                for (sender, tier, batches) in self.early.remove(&s.job_id).unwrap_or_default() {
+                    self.peer_bundle(sender, s.job_id.clone(), tier, batches);
                 }
             }
             Err(e) => {
@@ -272,6 +276,7 @@ impl Engine {
             domains: manifest.domains.len() as u32,
             pixels: frame.width * frame.height,
             max_depth: frame.max_depth as u16,
+            materials: manifest.materials.len() as u32,
             max_records: 1 << 20,
         };
         if self.cache.as_ref().is_none_or(|(d, _)| *d != dir) {
@@ -289,6 +294,7 @@ impl Engine {
             Ok(Schedule::ImagePlane) => Mode::ImagePlane,
             Ok(Schedule::Domain) => Mode::Domain,
             Ok(Schedule::Dynamic | Schedule::Unspecified) => Mode::Dynamic,
+            Ok(Schedule::Predictive) => Mode::Predictive,
             // Decided again with each plan, once the owned domains are known.
             Ok(Schedule::Hybrid) => Mode::Hybrid {
                 demand_loads: false,
@@ -317,6 +323,9 @@ impl Engine {
             queues,
         );
         frame.round = s.round;
+        if mode == Mode::Predictive {
+            frame.speculation = Some(Speculation::new(s.worker_key, s.roster.clone()));
+        }
         for (&tile, &epoch) in &s.epochs {
             if let Some(e) = frame.epochs.get_mut(tile as usize) {
                 *e = epoch;
@@ -384,6 +393,21 @@ impl Engine {
         }
     }
 
+    /// A worker joined the frame: verdicts held for it can go.
+    fn roster(&mut self, r: proto::Roster) {
+        let Some(frame) = self.frame.as_mut().filter(|f| f.job_id == r.job_id) else {
+            return;
+        };
+        let Some(spec) = frame.speculation.as_mut() else {
+            return;
+        };
+        let job_id = frame.job_id.clone();
+        for (peer, verdicts) in spec.set_roster(r.members) {
+            self.send_verdicts(&job_id, peer, &verdicts);
+        }
+        self.send_due_bundles();
+    }
+
     fn end_frame(&mut self, job_id: &str) {
         self.early.remove(job_id);
         self.ended.push(job_id.to_string());
@@ -440,7 +464,13 @@ impl Engine {
         }
     }
 
-    fn peer_bundle(&mut self, sender: String, job_id: String, batches: Vec<Bytes>) {
+    fn peer_bundle(
+        &mut self,
+        sender: String,
+        job_id: String,
+        tier: proto::Tier,
+        batches: Vec<Bytes>,
+    ) {
         let Some(frame) = self.frame.as_mut().filter(|f| f.job_id == job_id) else {
             if self.ended.contains(&job_id) {
                 return;
@@ -450,7 +480,7 @@ impl Engine {
                 .early
                 .values()
                 .flatten()
-                .flat_map(|(_, b)| b.iter().map(Bytes::len))
+                .flat_map(|(_, _, b)| b.iter().map(Bytes::len))
                 .sum();
             if held + bytes > EARLY_BYTES {
                 error!(
@@ -462,9 +492,12 @@ impl Engine {
             self.early
                 .entry(job_id)
                 .or_default()
-                .push((sender, batches));
+                .push((sender, tier, batches));
             return;
         };
+        if tier == proto::Tier::Results {
+            return self.peer_verdicts(&sender, batches);
+        }
         let mut forward: BTreeMap<String, Vec<RayRecord>> = BTreeMap::new();
         for batch in batches {
             let rays = match wire::decode_batch(&batch, &frame.limits) {
@@ -491,6 +524,25 @@ impl Engine {
         }
     }
 
+    /// Verdicts from a peer for rays born here.
+    fn peer_verdicts(&mut self, sender: &str, batches: Vec<Bytes>) {
+        let Some(frame) = self.frame.as_mut() else {
+            return;
+        };
+        let Some(spec) = frame.speculation.as_mut() else {
+            warn!(%sender, "dropping verdicts: this frame places no rays speculatively");
+            return;
+        };
+        for batch in batches {
+            match wire::decode_verdicts(&batch, &frame.limits) {
+                Ok(verdicts) => spec.settle(&verdicts),
+                Err(e) => error!(%sender, error = %e, "dropping a malformed verdict batch"),
+            }
+        }
+        // Concluding them makes new work, which the coordinator should hear of.
+        frame.reported = false;
+    }
+
     fn pass_done(&mut self, out: PassOutput) {
         let Some(frame) = self.frame.as_mut() else {
             return;
@@ -511,11 +563,33 @@ impl Engine {
         let Some(frame) = self.frame.as_mut() else {
             return;
         };
-        let out_rays = match frame.route(out.rays) {
+        let job_id = frame.job_id.clone();
+        let (rays, verdicts) = match frame.speculation.as_mut() {
+            Some(spec) => {
+                // Rays born of a tile restarted while the pass ran would wait forever.
+                let (born, paths): (Vec<RayRecord>, Vec<Vec<u32>>) = out
+                    .rays
+                    .into_iter()
+                    .zip(out.paths)
+                    .filter(|(r, _)| frame.epochs.get(r.tile as usize) == Some(&r.epoch))
+                    .unzip();
+                let copies = spec.spread(&born, &paths);
+                // Copies queued here for domains no one traces yet must be reported.
+                frame.reported = false;
+                (copies, spec.address(out.verdicts))
+            }
+            None => (out.rays, BTreeMap::new()),
+        };
+        for (peer, verdicts) in verdicts {
+            self.send_verdicts(&job_id, peer, &verdicts);
+        }
+        let Some(frame) = self.frame.as_mut() else {
+            return;
+        };
+        let out_rays = match frame.route(rays) {
             Ok(r) => r,
             Err(e) => return self.fail_frame(e.to_string()),
         };
-        let job_id = frame.job_id.clone();
         for (peer, rays) in out_rays {
             self.send_rays(&job_id, peer, &rays);
         }
@@ -532,7 +606,9 @@ impl Engine {
             return;
         };
         let mut primaries = Vec::new();
-        let mut queued = frame.queued_total();
+        // Rays born here and waiting for verdicts count too: they bound the groups' memory.
+        let waiting = frame.speculation.as_ref().map_or(0, |s| s.waiting());
+        let mut queued = frame.queued_total() + waiting;
         while queued < self.config.wave_rays
             && let Some(tile) = frame.to_issue.pop_front()
         {
@@ -543,7 +619,12 @@ impl Engine {
             Ok(t) => t,
             Err(e) => return self.fail_frame(e.to_string()),
         };
-        if primaries.is_empty() && trace.is_none() {
+        let speculative = frame
+            .speculation
+            .as_mut()
+            .map(|s| std::mem::take(&mut s.to_conclude));
+        let concluding = speculative.as_ref().is_some_and(|c| !c.is_empty());
+        if primaries.is_empty() && trace.is_none() && !concluding {
             self.report_idle();
             return;
         }
@@ -554,6 +635,7 @@ impl Engine {
             frame: frame.shared.clone(),
             primaries,
             trace,
+            speculative,
             cache: cache.clone(),
         };
         self.pass_running = true;
@@ -587,6 +669,15 @@ impl Engine {
             round: frame.round,
             resident_domains: resident,
             queued_rays: frame.queue_sizes().into_iter().collect(),
+            oldest_generation: match frame.mode {
+                Mode::Predictive => frame.oldest_generations().into_iter().collect(),
+                _ => Default::default(),
+            },
+            oldest_waiting: frame
+                .speculation
+                .as_ref()
+                .and_then(|s| s.oldest_waiting())
+                .map(u32::from),
         };
         debug!(
             round = frame.round,
@@ -609,28 +700,40 @@ impl Engine {
             frame.counters.rays_sent += rays.len() as u64;
         }
         for chunk in rays.chunks(BATCH_RAYS) {
-            let mut msg = Bytes::from(wire::encode_batch(chunk));
+            let msg = Bytes::from(wire::encode_batch(chunk));
             if let Some(frame) = self.frame.as_mut() {
                 frame.counters.bytes_sent += msg.len() as u64;
             }
-            loop {
-                match self
-                    .bundler
-                    .push(peer.clone(), Tier::Migrated, msg, self.now())
-                {
-                    Ok(()) => break,
-                    Err(e) if matches!(e.kind, PushErrorKind::PeerFull { .. }) => {
-                        // The peer's bulk queue is full: send what it holds, then retry.
-                        let bundles = self.bundler.flush_peer(&peer);
-                        self.send_bundles_for(job_id, bundles);
-                        msg = e.into_message();
-                    }
-                    Err(e) => {
-                        error!(%peer, error = %e, "ray batch refused by the bundler");
-                        break;
-                    }
+            self.push_bundled(job_id, &peer, Tier::Migrated, msg);
+        }
+    }
+
+    fn push_bundled(&mut self, job_id: &str, peer: &String, tier: Tier, mut msg: Bytes) {
+        loop {
+            match self.bundler.push(peer.clone(), tier, msg, self.now()) {
+                Ok(()) => break,
+                Err(e) if matches!(e.kind, PushErrorKind::PeerFull { .. }) => {
+                    // The peer's bulk queue is full: send what it holds, then retry.
+                    let bundles = self.bundler.flush_peer(peer);
+                    self.send_bundles_for(job_id, bundles);
+                    msg = e.into_message();
+                }
+                Err(e) => {
+                    error!(%peer, error = %e, "batch refused by the bundler");
+                    break;
                 }
             }
+        }
+    }
+
+    /// Queues verdicts for a peer in the bundler's results tier (they free its memory).
+    fn send_verdicts(&mut self, job_id: &str, peer: String, verdicts: &[VerdictRecord]) {
+        for chunk in verdicts.chunks(BATCH_RAYS) {
+            let msg = Bytes::from(wire::encode_verdicts(chunk));
+            if let Some(frame) = self.frame.as_mut() {
+                frame.counters.bytes_sent += msg.len() as u64;
+            }
+            self.push_bundled(job_id, &peer, Tier::Results, msg);
         }
     }
 

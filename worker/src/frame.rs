@@ -9,10 +9,12 @@ use std::time::{Duration, Instant};
 use rayfarm_common::ray::RayRecord;
 use rayfarm_common::render::KernelCounters;
 use rayfarm_common::render::cache::CacheCounters;
+use rayfarm_common::schedule::speculative::{GenerationCounts, QueueView, next_queue};
 use rayfarm_common::wire::BatchLimits;
 
 use crate::pass::FrameView;
 use crate::queues::{DomainQueues, QueueError};
+use crate::speculation::Speculation;
 
 /// Counters of one frame on this worker.
 #[derive(Default)]
@@ -34,6 +36,9 @@ pub enum Mode {
     /// Dynamic (Figs. 5-6): the planned domains, plus any domain still mapped here; rays go
     /// to this round's holders.
     Dynamic,
+    /// Predictive (Park et al.): dynamic rounds, with each new ray queued in every domain
+    /// along it at once (`speculation`) and the oldest generation traced first.
+    Predictive,
     /// Hybrid (Reinhard et al.): camera rays and their shadow rays, coherent, are traced by
     /// the worker whose tile they are, loading what they need (`demand_loads`; off when the
     /// cache is too small, then they migrate too); incoherent rays migrate to the domains'
@@ -52,6 +57,10 @@ pub struct Frame {
     /// Current epoch of every tile: rays of older epochs are dropped.
     pub epochs: Vec<u32>,
     queues: DomainQueues,
+    /// Rays queued per domain and generation (an upper bound after a fault dropped rays).
+    generations: GenerationCounts,
+    /// Under the predictive schedule, the rays born here waiting for their copies' verdicts.
+    pub speculation: Option<Speculation>,
     pub round: u64,
     work_on: BTreeSet<u32>,
     /// Domains mapped here now. Rays for them are traced here even when the plan gave the
@@ -93,6 +102,8 @@ impl Frame {
             limits,
             to_issue: to_issue.into(),
             epochs: vec![0; tiles],
+            generations: GenerationCounts::new(queues.domains() as usize),
+            speculation: None,
             queues,
             round: 0,
             work_on: BTreeSet::new(),
@@ -166,7 +177,7 @@ impl Frame {
             // Every ray queued under hybrid was kept here on purpose (see `keeps`).
             Mode::ImagePlane | Mode::Hybrid { .. } => true,
             Mode::Domain => self.work_on.contains(&domain),
-            Mode::Dynamic => self.planned_or_resident(domain),
+            Mode::Dynamic | Mode::Predictive => self.planned_or_resident(domain),
         }
     }
 
@@ -217,6 +228,9 @@ impl Frame {
         }
         for (d, rays) in local {
             self.queues.push(d, &rays)?;
+            for r in &rays {
+                self.generations.add(d, r.generation());
+            }
         }
         Ok(out)
     }
@@ -233,25 +247,54 @@ impl Frame {
         for d in domains {
             let len = self.queues.len(d) as usize;
             queued.extend(self.queues.take(d, len)?);
+            self.generations.clear(d);
         }
         // Rays this worker still keeps go back to its queues.
         self.route(queued)
     }
 
-    /// Takes up to `max` rays of the fullest queue this worker traces now (ties: the lower
-    /// domain id).
+    /// Takes up to `max` rays of the queue to trace next among those this worker traces now:
+    /// the fullest (ties: the lower domain id), or under the predictive schedule
+    /// `speculative::next_queue`.
     pub fn take_work(&mut self, max: usize) -> Result<Option<(u32, Vec<RayRecord>)>, QueueError> {
         // Hybrid traces its own domains' (data-parallel) queues before demand-driven work.
         let first = |d: u32| matches!(self.mode, Mode::Hybrid { .. }) && self.work_on.contains(&d);
-        let fullest = (0..self.queues.domains())
+        let queues = (0..self.queues.domains())
             .filter(|&d| self.traces(d))
             .map(|d| (d, self.queues.len(d)))
-            .filter(|&(_, len)| len > 0)
-            .max_by_key(|&(d, len)| (first(d), len, std::cmp::Reverse(d)));
-        let Some((d, _)) = fullest else {
+            .filter(|&(_, len)| len > 0);
+        let next = if self.mode == Mode::Predictive {
+            next_queue(queues.map(|(domain, rays)| QueueView {
+                domain,
+                rays,
+                oldest: self.generations.oldest(domain).unwrap_or(0),
+                resident: self.resident.contains(&domain),
+            }))
+        } else {
+            queues
+                .max_by_key(|&(d, len)| (first(d), len, std::cmp::Reverse(d)))
+                .map(|(d, _)| d)
+        };
+        let Some(d) = next else {
             return Ok(None);
         };
-        Ok(Some((d, self.queues.take(d, max)?)))
+        let rays = self.queues.take(d, max)?;
+        if self.queues.len(d) == 0 {
+            self.generations.clear(d);
+        } else {
+            for r in &rays {
+                self.generations.remove(d, r.generation());
+            }
+        }
+        Ok(Some((d, rays)))
+    }
+
+    /// The oldest generation queued per non-empty queue.
+    pub fn oldest_generations(&self) -> BTreeMap<u32, u32> {
+        (0..self.queues.domains())
+            .filter(|&d| self.queues.len(d) > 0)
+            .filter_map(|d| Some((d, u32::from(self.generations.oldest(d)?))))
+            .collect()
     }
 
     /// Rays queued here, over all domains.
@@ -275,6 +318,9 @@ impl Frame {
     /// Sends nothing more to `peers` (they are gone); their domains' rays wait here for the
     /// next plan.
     pub fn forget_peers(&mut self, peers: &[String]) {
+        if let Some(s) = self.speculation.as_mut() {
+            s.retain_current(&self.epochs, peers);
+        }
         for holders in self.holders.values_mut() {
             holders.retain(|h| !peers.contains(h));
         }
@@ -291,6 +337,9 @@ impl Frame {
         }
         self.to_issue.retain(|t| !bumps.contains_key(t));
         self.reported = false;
+        if let Some(s) = self.speculation.as_mut() {
+            s.retain_current(&self.epochs, &[]);
+        }
         let epochs = &self.epochs;
         self.queues
             .retain(|r| epochs.get(r.tile as usize) == Some(&r.epoch))

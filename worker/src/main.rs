@@ -8,6 +8,7 @@ mod frame;
 mod pass;
 mod peers;
 mod queues;
+mod speculation;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;

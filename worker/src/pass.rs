@@ -6,6 +6,7 @@ use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use rayfarm_common::bvh::Traverser;
 use rayfarm_common::camera::PinholeCamera;
 use rayfarm_common::cluster::tile_sums;
 use rayfarm_common::frame::TileGrid;
@@ -14,8 +15,11 @@ use rayfarm_common::ray::RayRecord;
 use rayfarm_common::render::cache::DomainCache;
 use rayfarm_common::render::film::to_fixed;
 use rayfarm_common::render::primary::primary_ray;
+use rayfarm_common::render::speculation::Outcome;
 use rayfarm_common::render::{KernelCounters, RaySink, SceneView};
+use rayfarm_common::scene::DomainData;
 use rayfarm_common::scene::SceneError;
+use rayfarm_common::wire::VerdictRecord;
 use rayon::prelude::*;
 use tracing::{debug, info_span};
 
@@ -37,13 +41,21 @@ pub struct PassInput {
     pub primaries: Vec<(u32, u32)>,
     /// A domain and the rays queued for it.
     pub trace: Option<(u32, Vec<RayRecord>)>,
+    /// Predictive schedule: the queued rays are speculative copies, and these rays, whose
+    /// verdicts are all in, are concluded.
+    pub speculative: Option<Vec<(RayRecord, Outcome)>>,
     pub cache: Arc<Mutex<DomainCache>>,
 }
 
 /// What a pass produced.
 pub struct PassOutput {
-    /// Rays that continue, each with the domain it continues in.
+    /// Rays that continue, each with the domain it continues in; speculative, the rays born
+    /// (camera rays and the children of concluded rays), each with its first domain.
     pub rays: Vec<RayRecord>,
+    /// Speculative: the domains along each born ray, in the order of `rays`.
+    pub paths: Vec<Vec<u32>>,
+    /// Speculative: each traced copy's verdict, with the worker it goes to.
+    pub verdicts: Vec<(u32, VerdictRecord)>,
     /// Credit and pixel sums of the rays that retired, one entry per (tile, epoch).
     pub results: Vec<proto::TileResult>,
     pub counters: KernelCounters,
@@ -140,12 +152,59 @@ pub fn run(input: PassInput) -> Result<PassOutput, PassError> {
             .map(|&(t, _)| frame.grid.tile_pixel_count(t) as u64 * frame.spp as u64)
             .sum();
     }
-    if let Some((domain, rays)) = &input.trace {
-        let data = {
-            // A poisoned lock means a pass panicked; the cache itself is still consistent.
-            let mut cache = input.cache.lock().unwrap_or_else(|p| p.into_inner());
-            cache.get(*domain)?
-        };
+    if let Some(conclude) = &input.speculative {
+        let concluded = conclude
+            .par_chunks(CHUNK)
+            .map(|chunk| {
+                let mut s = Sink::default();
+                let mut c = KernelCounters::default();
+                for (ray, outcome) in chunk {
+                    frame.view.conclude(ray, outcome, &mut s, &mut c);
+                }
+                (s, c)
+            })
+            .reduce(
+                || (Sink::default(), KernelCounters::default()),
+                |(a, mut ca), (b, cb)| {
+                    ca.add(&cb);
+                    (a.merge(b), ca)
+                },
+            );
+        sink = sink.merge(concluded.0);
+        counters.add(&concluded.1);
+    }
+    let mut verdicts = Vec::new();
+    if let (Some((domain, rays)), Some(_)) = (&input.trace, &input.speculative) {
+        let data = load(&input.cache, *domain)?;
+        let _span = info_span!("trace_copies", domain, rays = rays.len()).entered();
+        debug!("tracing a queue");
+        let (v, c) = rays
+            .par_chunks(CHUNK)
+            .map(|chunk| {
+                let mut c = KernelCounters::default();
+                let mut traverser = Traverser::new();
+                let v: Vec<(u32, VerdictRecord)> = chunk
+                    .iter()
+                    .map(|r| {
+                        let verdict = frame.view.trace_copy(&data, r, &mut traverser, &mut c);
+                        (r.resolver, VerdictRecord::new(r, verdict))
+                    })
+                    .collect();
+                (v, c)
+            })
+            .reduce(
+                || (Vec::new(), KernelCounters::default()),
+                |(mut a, mut ca), (b, cb)| {
+                    ca.add(&cb);
+                    a.extend(b);
+                    (a, ca)
+                },
+            );
+        verdicts = v;
+        counters.add(&c);
+        debug!("queue traced");
+    } else if let Some((domain, rays)) = &input.trace {
+        let data = load(&input.cache, *domain)?;
         let _span = info_span!("trace_queue", domain, rays = rays.len()).entered();
         debug!("tracing a queue");
         let (traced, c) = rays
@@ -184,10 +243,26 @@ pub fn run(input: PassInput) -> Result<PassOutput, PassError> {
             }
         })
         .collect();
+    let paths = match input.speculative {
+        Some(_) => sink
+            .out
+            .par_iter()
+            .map(|r| frame.view.domains_along(r))
+            .collect(),
+        None => Vec::new(),
+    };
     Ok(PassOutput {
         rays: sink.out,
+        paths,
+        verdicts,
         results,
         counters,
         busy: start.elapsed(),
     })
+}
+
+fn load(cache: &Mutex<DomainCache>, domain: u32) -> Result<Arc<DomainData>, PassError> {
+    // A poisoned lock means a pass panicked; the cache itself is still consistent.
+    let mut cache = cache.lock().unwrap_or_else(|p| p.into_inner());
+    cache.get(domain)
 }

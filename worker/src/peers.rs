@@ -306,6 +306,8 @@ impl PeerService for PeerServer {
                 let event = Event::PeerBundle {
                     sender: bundle.sender,
                     job_id: bundle.job_id,
+                    // Checked above.
+                    tier: proto::Tier::try_from(bundle.tier).unwrap_or(proto::Tier::Migrated),
                     batches: bundle.batches,
                 };
                 if events.send(event).is_err() {
@@ -333,15 +335,20 @@ fn check_bundle(bundle: &proto::PeerBundle) -> Result<(), Status> {
             bundle.sender, bundle.protocol_version
         )));
     }
-    if proto::Tier::try_from(bundle.tier).is_err() {
+    let Ok(tier) = proto::Tier::try_from(bundle.tier) else {
         return Err(Status::invalid_argument(format!(
             "bundle {} has unknown tier {}",
             bundle.sequence, bundle.tier
         )));
-    }
+    };
     let limits = BatchLimits::any_frame(MAX_BATCH_RECORDS);
+    // The results tier carries verdicts (predictive schedule), every other tier rays.
+    let check = match tier {
+        proto::Tier::Results => wire::check_verdicts,
+        _ => wire::check_batch,
+    };
     for (i, batch) in bundle.batches.iter().enumerate() {
-        if let Err(e) = wire::check_batch(batch, &limits) {
+        if let Err(e) = check(batch, &limits) {
             let msg = format!("bundle {} batch {i}: {e}", bundle.sequence);
             return Err(match e {
                 WireError::Magic | WireError::Reserved | WireError::Record { .. } => {

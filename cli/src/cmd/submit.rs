@@ -36,7 +36,8 @@ pub struct SubmitArgs {
     /// Maximum bounces.
     #[arg(long, env = "RAYFARM_DEPTH", default_value_t = 3)]
     pub depth: u32,
-    /// How rays are scheduled across workers: dynamic, image-plane, domain or hybrid.
+    /// How rays are scheduled across workers: dynamic, image-plane, domain, hybrid or
+    /// predictive.
     #[arg(long, env = "RAYFARM_SCHEDULE", default_value = "dynamic", value_parser = parse_schedule)]
     pub schedule: proto::Schedule,
     /// Higher runs first; equal priorities run in submission order.

@@ -9,11 +9,12 @@ use crate::scene::Camera;
 pub const TILE_SIZE: u32 = 32;
 
 /// Schedule names as users type them, with their protobuf values.
-pub const SCHEDULES: [(&str, proto::Schedule); 4] = [
+pub const SCHEDULES: [(&str, proto::Schedule); 5] = [
     ("dynamic", proto::Schedule::Dynamic),
     ("image-plane", proto::Schedule::ImagePlane),
     ("domain", proto::Schedule::Domain),
     ("hybrid", proto::Schedule::Hybrid),
+    ("predictive", proto::Schedule::Predictive),
 ];
 
 /// The schedule called `name`.

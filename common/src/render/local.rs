@@ -21,6 +21,7 @@ use crate::frame::{TILE_CREDIT, TileGrid};
 use crate::ray::RayRecord;
 use crate::scene::{Camera, DomainData, Manifest, SceneError};
 use crate::schedule::speculative::{GenerationCounts, QueueView, next_queue};
+use crate::wire::VerdictRecord;
 
 /// Largest image side accepted.
 pub const MAX_SIDE: u32 = 16384;
@@ -347,7 +348,7 @@ fn trace_speculative<'a>(
         for (copy, verdict) in chunk.iter().zip(verdicts) {
             // Every copy here was made by `Queues::place` in this frame.
             let settled = groups
-                .settle(copy.group, verdict)
+                .settle(&VerdictRecord::new(copy, verdict))
                 .expect("copy of a waiting ray");
             if let Some((ray, outcome)) = settled {
                 view.conclude(&ray, &outcome, &mut sink, counters);
@@ -385,7 +386,7 @@ impl Queues {
             match &mut self.groups {
                 None => self.rays[ray.domain as usize].push(ray),
                 Some(groups) => {
-                    for copy in groups.spread(ray, &view.domains_along(&ray)) {
+                    for copy in groups.spread(ray, &view.domains_along(&ray), 0) {
                         self.generations.add(copy.domain, copy.generation());
                         self.rays[copy.domain as usize].push(copy);
                     }

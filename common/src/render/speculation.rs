@@ -10,6 +10,7 @@
 //! ray's occluder, which the answer then ignores.
 
 use crate::ray::RayRecord;
+use crate::wire::VerdictRecord;
 
 /// What a radiance ray's copy found in its domain: enough to shade the hit later, without
 /// the domain's data.
@@ -35,6 +36,58 @@ pub enum Verdict {
     Blocked,
     /// A radiance ray's nearest hit in this domain.
     Hit(SurfaceHit),
+}
+
+impl VerdictRecord {
+    /// Kind of a verdict that found nothing.
+    pub const CLEAR: u8 = 0;
+    /// Kind of a verdict that found an occluder.
+    pub const BLOCKED: u8 = 1;
+    /// Kind of a verdict that found a hit.
+    pub const HIT: u8 = 2;
+
+    /// `verdict` on `copy`, to go back to the copy's group.
+    pub fn new(copy: &RayRecord, verdict: Verdict) -> Self {
+        let mut r = VerdictRecord {
+            group: copy.group,
+            tile: copy.tile,
+            epoch: copy.epoch,
+            pixel: copy.pixel,
+            sample: copy.sample,
+            kind: Self::CLEAR,
+            _pad: [0; 3],
+            order: 0,
+            t: 0.0,
+            normal: [0.0; 3],
+            material: 0,
+        };
+        match verdict {
+            Verdict::Clear => {}
+            Verdict::Blocked => r.kind = Self::BLOCKED,
+            Verdict::Hit(hit) => {
+                r.kind = Self::HIT;
+                r.order = hit.order;
+                r.t = hit.t;
+                r.normal = hit.normal;
+                r.material = hit.material;
+            }
+        }
+        r
+    }
+
+    /// The verdict carried (an unknown kind, refused by the wire checks, reads as clear).
+    pub fn verdict(&self) -> Verdict {
+        match self.kind {
+            Self::BLOCKED => Verdict::Blocked,
+            Self::HIT => Verdict::Hit(SurfaceHit {
+                order: self.order,
+                t: self.t,
+                normal: self.normal,
+                material: self.material,
+            }),
+            _ => Verdict::Clear,
+        }
+    }
 }
 
 /// All verdicts of a ray combined.
@@ -73,6 +126,9 @@ pub enum GroupError {
     /// No ray waits under this group: a verdict for a group already concluded, or never made.
     #[error("verdict for group {0}, which is not waiting")]
     Unknown(u32),
+    /// The group's ray is another one: a stale verdict for an id since reused.
+    #[error("verdict for group {0} names another ray")]
+    Mismatch(u32),
 }
 
 /// The rays born here that wait for their copies; group ids are reused once concluded.
@@ -80,6 +136,8 @@ pub enum GroupError {
 pub struct Groups {
     slots: Vec<Option<Group>>,
     free: Vec<u32>,
+    /// Rays waiting per generation (`RayRecord::generation`).
+    by_generation: Vec<u64>,
 }
 
 impl Groups {
@@ -89,14 +147,25 @@ impl Groups {
     }
 
     /// Makes `ray` wait for one verdict from each of `domains` (non-empty: a ray that meets
-    /// no domain concludes at once) and returns its copies, one per domain, without credit.
-    pub fn spread(&mut self, ray: RayRecord, domains: &[u32]) -> impl Iterator<Item = RayRecord> {
+    /// no domain concludes at once) and returns its copies, one per domain, without credit,
+    /// their verdicts addressed to `resolver` (this worker).
+    pub fn spread(
+        &mut self,
+        ray: RayRecord,
+        domains: &[u32],
+        resolver: u32,
+    ) -> impl Iterator<Item = RayRecord> {
         debug_assert!(!domains.is_empty());
         let group = Group {
             ray,
             waiting: domains.len() as u32,
             outcome: Outcome::default(),
         };
+        let g = ray.generation() as usize;
+        if self.by_generation.len() <= g {
+            self.by_generation.resize(g + 1, 0);
+        }
+        self.by_generation[g] += 1;
         let id = match self.free.pop() {
             Some(id) => {
                 self.slots[id as usize] = Some(group);
@@ -110,6 +179,7 @@ impl Groups {
         domains.iter().map(move |&domain| RayRecord {
             domain,
             group: id,
+            resolver,
             credit: 0,
             ..ray
         })
@@ -118,22 +188,35 @@ impl Groups {
     /// Takes one copy's verdict; returns the ray and its outcome when it was the last.
     pub fn settle(
         &mut self,
-        id: u32,
-        verdict: Verdict,
+        record: &VerdictRecord,
     ) -> Result<Option<(RayRecord, Outcome)>, GroupError> {
+        let id = record.group;
         let slot = self
             .slots
             .get_mut(id as usize)
             .ok_or(GroupError::Unknown(id))?;
         let group = slot.as_mut().ok_or(GroupError::Unknown(id))?;
-        group.outcome.add(verdict);
+        let r = &group.ray;
+        if (r.tile, r.epoch, r.pixel, r.sample)
+            != (record.tile, record.epoch, record.pixel, record.sample)
+        {
+            return Err(GroupError::Mismatch(id));
+        }
+        group.outcome.add(record.verdict());
         group.waiting -= 1;
         if group.waiting > 0 {
             return Ok(None);
         }
         let done = slot.take().map(|g| (g.ray, g.outcome));
-        self.free.push(id);
+        self.release(id, &done.as_ref().map(|d| d.0));
         Ok(done)
+    }
+
+    fn release(&mut self, id: u32, ray: &Option<RayRecord>) {
+        self.free.push(id);
+        if let Some(n) = ray.and_then(|r| self.by_generation.get_mut(r.generation() as usize)) {
+            *n -= 1;
+        }
     }
 
     /// Rays waiting.
@@ -141,12 +224,20 @@ impl Groups {
         self.slots.len() - self.free.len()
     }
 
+    /// The oldest generation among the rays waiting: copies of it are still to be traced.
+    pub fn oldest_waiting(&self) -> Option<u16> {
+        self.by_generation
+            .iter()
+            .position(|&n| n > 0)
+            .map(|g| g as u16)
+    }
+
     /// Drops waiting rays `keep` refuses (a fault restarted their tiles).
     pub fn retain(&mut self, mut keep: impl FnMut(&RayRecord) -> bool) {
-        for (id, slot) in self.slots.iter_mut().enumerate() {
-            if slot.as_ref().is_some_and(|g| !keep(&g.ray)) {
-                *slot = None;
-                self.free.push(id as u32);
+        for id in 0..self.slots.len() {
+            if self.slots[id].as_ref().is_some_and(|g| !keep(&g.ray)) {
+                let dropped = self.slots[id].take().map(|g| g.ray);
+                self.release(id as u32, &dropped);
             }
         }
     }
@@ -169,14 +260,23 @@ mod tests {
     fn ray(credit: u64) -> RayRecord {
         RayRecord {
             credit,
+            pixel: 5,
             ..RayRecord::zeroed()
         }
+    }
+
+    fn spread(groups: &mut Groups, r: RayRecord, domains: &[u32]) -> RayRecord {
+        groups.spread(r, domains, 3).next().unwrap()
+    }
+
+    fn settle(groups: &mut Groups, copy: &RayRecord, v: Verdict) -> Option<(RayRecord, Outcome)> {
+        groups.settle(&VerdictRecord::new(copy, v)).unwrap()
     }
 
     #[test]
     fn copies_go_to_every_domain_without_credit() {
         let mut groups = Groups::new();
-        let copies: Vec<_> = groups.spread(ray(7), &[4, 9, 2]).collect();
+        let copies: Vec<_> = groups.spread(ray(7), &[4, 9, 2], 3).collect();
         assert_eq!(
             copies.iter().map(|c| c.domain).collect::<Vec<_>>(),
             [4, 9, 2]
@@ -186,16 +286,31 @@ mod tests {
                 .iter()
                 .all(|c| c.credit == 0 && c.group == copies[0].group)
         );
+        assert!(copies.iter().all(|c| c.resolver == 3));
         assert_eq!(groups.waiting(), 1);
+        assert_eq!(groups.oldest_waiting(), Some(0));
+        let shadow = RayRecord {
+            depth: 2,
+            kind: crate::ray::RayKind::Shadow as u8,
+            ..ray(1)
+        };
+        let copy = groups.spread(shadow, &[1], 3).next().unwrap();
+        assert_eq!(groups.oldest_waiting(), Some(0));
+        groups.retain(|r| r.depth > 0);
+        assert_eq!(groups.oldest_waiting(), Some(3));
+        groups
+            .settle(&VerdictRecord::new(&copy, Verdict::Clear))
+            .unwrap();
+        assert_eq!(groups.oldest_waiting(), None);
     }
 
     #[test]
     fn the_nearest_domain_with_a_hit_wins_whatever_the_order_verdicts_arrive_in() {
         let mut groups = Groups::new();
-        let id = groups.spread(ray(7), &[1, 2, 3]).next().unwrap().group;
-        assert_eq!(groups.settle(id, hit(2, 0.5)), Ok(None));
-        assert_eq!(groups.settle(id, Verdict::Clear), Ok(None));
-        let (r, outcome) = groups.settle(id, hit(1, 9.0)).unwrap().unwrap();
+        let copy = spread(&mut groups, ray(7), &[1, 2, 3]);
+        assert_eq!(settle(&mut groups, &copy, hit(2, 0.5)), None);
+        assert_eq!(settle(&mut groups, &copy, Verdict::Clear), None);
+        let (r, outcome) = settle(&mut groups, &copy, hit(1, 9.0)).unwrap();
         assert_eq!(r.credit, 7, "the concluded ray keeps its credit");
         assert_eq!(outcome.nearest.map(|h| h.order), Some(1));
         assert!(!outcome.blocked);
@@ -205,32 +320,35 @@ mod tests {
     #[test]
     fn one_blocking_copy_blocks_the_shadow_ray() {
         let mut groups = Groups::new();
-        let id = groups.spread(ray(1), &[1, 2]).next().unwrap().group;
-        groups.settle(id, Verdict::Blocked).unwrap();
-        let (_, outcome) = groups.settle(id, Verdict::Clear).unwrap().unwrap();
+        let copy = spread(&mut groups, ray(1), &[1, 2]);
+        settle(&mut groups, &copy, Verdict::Blocked);
+        let (_, outcome) = settle(&mut groups, &copy, Verdict::Clear).unwrap();
         assert!(outcome.blocked);
+    }
+
+    #[test]
+    fn verdicts_survive_the_wire_form() {
+        let copy = spread(&mut Groups::new(), ray(1), &[1]);
+        for v in [Verdict::Clear, Verdict::Blocked, hit(4, 2.5)] {
+            assert_eq!(VerdictRecord::new(&copy, v).verdict(), v);
+        }
     }
 
     #[test]
     fn ids_are_reused_and_stale_verdicts_are_refused() {
         let mut groups = Groups::new();
-        let a = groups.spread(ray(1), &[1]).next().unwrap().group;
-        groups.settle(a, Verdict::Clear).unwrap().unwrap();
-        assert_eq!(
-            groups.settle(a, Verdict::Clear),
-            Err(GroupError::Unknown(a))
-        );
-        assert_eq!(
-            groups.settle(99, Verdict::Clear),
-            Err(GroupError::Unknown(99))
-        );
-        let b = groups.spread(ray(2), &[1, 2]).next().unwrap().group;
-        assert_eq!(a, b);
+        let a = spread(&mut groups, ray(1), &[1]);
+        settle(&mut groups, &a, Verdict::Clear).unwrap();
+        let stale = VerdictRecord::new(&a, Verdict::Clear);
+        assert_eq!(groups.settle(&stale), Err(GroupError::Unknown(a.group)));
+        let far = VerdictRecord { group: 99, ..stale };
+        assert_eq!(groups.settle(&far), Err(GroupError::Unknown(99)));
+        let b = spread(&mut groups, RayRecord { epoch: 1, ..ray(2) }, &[1, 2]);
+        assert_eq!(a.group, b.group);
+        assert_eq!(groups.settle(&stale), Err(GroupError::Mismatch(b.group)));
         groups.retain(|r| r.credit != 2);
         assert_eq!(groups.waiting(), 0);
-        assert_eq!(
-            groups.settle(b, Verdict::Clear),
-            Err(GroupError::Unknown(b))
-        );
+        let late = VerdictRecord::new(&b, Verdict::Clear);
+        assert_eq!(groups.settle(&late), Err(GroupError::Unknown(b.group)));
     }
 }

@@ -56,6 +56,13 @@ impl GenerationCounts {
         c[g] += 1;
     }
 
+    /// One ray of `generation` taken from `domain`'s queue.
+    pub fn remove(&mut self, domain: u32, generation: u16) {
+        if let Some(n) = self.counts[domain as usize].get_mut(generation as usize) {
+            *n = n.saturating_sub(1);
+        }
+    }
+
     /// `domain`'s queue was emptied.
     pub fn clear(&mut self, domain: u32) {
         self.counts[domain as usize].clear();
@@ -109,6 +116,9 @@ mod tests {
         c.add(0, 3);
         c.add(0, 1);
         assert_eq!(c.oldest(0), Some(1));
+        c.remove(0, 1);
+        assert_eq!(c.oldest(0), Some(3));
+        c.add(0, 1);
         assert_eq!(c.oldest(1), None);
         c.clear(0);
         assert_eq!(c.oldest(0), None);

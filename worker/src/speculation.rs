@@ -1,0 +1,147 @@
+//! The predictive schedule on a worker: the rays born here wait in groups for their
+//! speculative copies' verdicts, which come back from whichever workers traced the copies
+//! (see `rayfarm_common::render::speculation`). Verdicts travel in the bundler's results
+//! tier to the worker named in the copy, looked up in the frame's roster.
+
+use std::collections::{BTreeMap, BTreeSet, HashMap};
+
+use rayfarm_common::ray::RayRecord;
+use rayfarm_common::render::speculation::{GroupError, Groups, Outcome};
+use rayfarm_common::wire::VerdictRecord;
+use tracing::{debug, warn};
+
+/// See the module documentation.
+pub struct Speculation {
+    /// This worker's key: the resolver named in the copies of rays born here.
+    pub me: u32,
+    /// Peer address of every worker of the frame, by key.
+    roster: HashMap<u32, String>,
+    groups: Groups,
+    /// Rays whose verdicts are all in, for the next pass to conclude.
+    pub to_conclude: Vec<(RayRecord, Outcome)>,
+    /// Verdicts for workers not in the roster yet (one that joined the frame and whose
+    /// copies arrived before the coordinator's word of it).
+    unaddressed: BTreeMap<u32, Vec<VerdictRecord>>,
+    /// Workers lost from the frame: verdicts for them are dropped.
+    gone: BTreeSet<u32>,
+    /// Verdicts refused: stale (their ray's tile restarted) or not for a waiting ray.
+    pub refused: u64,
+}
+
+impl Speculation {
+    pub fn new(me: u32, roster: HashMap<u32, String>) -> Self {
+        Speculation {
+            me,
+            roster,
+            groups: Groups::new(),
+            to_conclude: Vec::new(),
+            unaddressed: BTreeMap::new(),
+            gone: BTreeSet::new(),
+            refused: 0,
+        }
+    }
+
+    /// Adopts a new roster; returns the held verdicts that now have an address.
+    pub fn set_roster(
+        &mut self,
+        roster: HashMap<u32, String>,
+    ) -> Vec<(String, Vec<VerdictRecord>)> {
+        self.roster = roster;
+        let known: Vec<u32> = self
+            .unaddressed
+            .keys()
+            .copied()
+            .filter(|k| self.roster.contains_key(k))
+            .collect();
+        known
+            .into_iter()
+            .filter_map(|k| Some((self.roster[&k].clone(), self.unaddressed.remove(&k)?)))
+            .collect()
+    }
+
+    /// Makes each ray born here wait for its copies, one per domain of its path (`paths`, in
+    /// the same order), and returns the copies.
+    pub fn spread(&mut self, born: &[RayRecord], paths: &[Vec<u32>]) -> Vec<RayRecord> {
+        let mut copies = Vec::with_capacity(paths.iter().map(Vec::len).sum());
+        for (ray, path) in born.iter().zip(paths) {
+            copies.extend(self.groups.spread(*ray, path, self.me));
+        }
+        copies
+    }
+
+    /// Takes verdicts for rays born here; the rays they conclude join `to_conclude`.
+    pub fn settle(&mut self, verdicts: &[VerdictRecord]) {
+        for v in verdicts {
+            match self.groups.settle(v) {
+                Ok(Some(done)) => self.to_conclude.push(done),
+                Ok(None) => {}
+                Err(e @ (GroupError::Unknown(_) | GroupError::Mismatch(_))) => {
+                    // After a fault, verdicts on the wire for restarted tiles land here.
+                    debug!(error = %e, tile = v.tile, epoch = v.epoch, "verdict refused");
+                    self.refused += 1;
+                }
+            }
+        }
+    }
+
+    /// Sends each verdict where its copy says: settled here if this worker is the
+    /// resolver, else grouped by peer address (held back for resolvers not yet known).
+    pub fn address(
+        &mut self,
+        verdicts: Vec<(u32, VerdictRecord)>,
+    ) -> BTreeMap<String, Vec<VerdictRecord>> {
+        let mut out: BTreeMap<String, Vec<VerdictRecord>> = BTreeMap::new();
+        let mut mine = Vec::new();
+        for (resolver, v) in verdicts {
+            if resolver == self.me {
+                mine.push(v);
+            } else if let Some(peer) = self.roster.get(&resolver) {
+                out.entry(peer.clone()).or_default().push(v);
+            } else if self.gone.contains(&resolver) {
+                self.refused += 1;
+            } else {
+                self.unaddressed.entry(resolver).or_default().push(v);
+            }
+        }
+        self.settle(&mine);
+        out
+    }
+
+    /// Rays waiting for verdicts.
+    pub fn waiting(&self) -> usize {
+        self.groups.waiting()
+    }
+
+    /// The oldest generation among them, if any.
+    pub fn oldest_waiting(&self) -> Option<u16> {
+        self.groups.oldest_waiting()
+    }
+
+    /// Drops everything of tiles whose epoch moved on (a fault restarted them), and the
+    /// verdicts held for lost workers.
+    pub fn retain_current(&mut self, epochs: &[u32], lost: &[String]) {
+        let current = |tile: u32, epoch: u32| epochs.get(tile as usize) == Some(&epoch);
+        self.groups.retain(|r| current(r.tile, r.epoch));
+        self.to_conclude.retain(|(r, _)| current(r.tile, r.epoch));
+        for held in self.unaddressed.values_mut() {
+            held.retain(|v| current(v.tile, v.epoch));
+        }
+        let gone: Vec<u32> = self
+            .roster
+            .iter()
+            .filter(|(_, a)| lost.contains(a))
+            .map(|(&k, _)| k)
+            .collect();
+        for k in gone {
+            self.roster.remove(&k);
+            self.gone.insert(k);
+            if let Some(held) = self.unaddressed.remove(&k) {
+                warn!(
+                    worker = k,
+                    verdicts = held.len(),
+                    "dropping verdicts for a lost worker"
+                );
+            }
+        }
+    }
+}
