@@ -70,7 +70,8 @@ struct Args {
     worker_timeout_ms: u64,
     /// Copies of busy domains beyond the paper's algorithm (each costs a load): `none` is
     /// Fig. 5 as written; `idle` gives workers left idle a copy of the busiest domain;
-    /// `free-slots` fills every free cache slot with copies of wanted domains.
+    /// `free-slots` fills every free cache slot with copies of wanted domains. The dynamic
+    /// schedule only: predictive never copies.
     #[arg(long, env = "RAYFARM_REPLICATE", value_enum, default_value_t = Replicate::FreeSlots)]
     replicate: Replicate,
     /// How the dynamic schedule's rounds advance: `async` plans a worker as soon as it runs

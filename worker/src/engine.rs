@@ -434,6 +434,7 @@ impl Engine {
             bytes_sent: c.bytes_sent,
             rays_received: c.rays_received,
             rays_spilled: frame.spilled(),
+            verdicts_refused: frame.speculation.as_ref().map_or(0, |s| s.refused),
             tiers: tier_traffic(self.bundler.stats()),
             busy_seconds,
             load_seconds: cache.load_nanos as f64 / 1e9,

@@ -58,6 +58,10 @@ pub struct WorkerFrameStats {
     /// Rays that did not fit its queue memory and went to disk for a while.
     #[serde(default)]
     pub rays_spilled: u64,
+    /// Predictive schedule: verdicts that settled no waiting ray (stale after a fault, or
+    /// not for a ray born here).
+    #[serde(default)]
+    pub verdicts_refused: u64,
     /// Bundles sent to peers, per tier.
     pub tiers: Vec<TierTraffic>,
     /// Seconds spent in passes (tracing, issuing camera rays, domain loads).
