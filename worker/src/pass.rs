@@ -153,25 +153,13 @@ pub fn run(input: PassInput) -> Result<PassOutput, PassError> {
             .sum();
     }
     if let Some(conclude) = &input.speculative {
-        let concluded = conclude
-            .par_chunks(CHUNK)
-            .map(|chunk| {
-                let mut s = Sink::default();
-                let mut c = KernelCounters::default();
-                for (ray, outcome) in chunk {
-                    frame.view.conclude(ray, outcome, &mut s, &mut c);
-                }
-                (s, c)
-            })
-            .reduce(
-                || (Sink::default(), KernelCounters::default()),
-                |(a, mut ca), (b, cb)| {
-                    ca.add(&cb);
-                    (a.merge(b), ca)
-                },
-            );
-        sink = sink.merge(concluded.0);
-        counters.add(&concluded.1);
+        let (concluded, c) = in_chunks(conclude, |chunk, s, c| {
+            for (ray, outcome) in chunk {
+                frame.view.conclude(ray, outcome, s, c);
+            }
+        });
+        sink = sink.merge(concluded);
+        counters.add(&c);
     }
     let mut verdicts = Vec::new();
     if let (Some((domain, rays)), Some(_)) = (&input.trace, &input.speculative) {
@@ -207,24 +195,7 @@ pub fn run(input: PassInput) -> Result<PassOutput, PassError> {
         let data = load(&input.cache, *domain)?;
         let _span = info_span!("trace_queue", domain, rays = rays.len()).entered();
         debug!("tracing a queue");
-        let (traced, c) = rays
-            .par_chunks(CHUNK)
-            .map(|chunk| {
-                let mut s = Sink {
-                    out: Vec::with_capacity(chunk.len() * 2),
-                    ..Sink::default()
-                };
-                let mut c = KernelCounters::default();
-                frame.view.trace(&data, chunk, &mut s, &mut c);
-                (s, c)
-            })
-            .reduce(
-                || (Sink::default(), KernelCounters::default()),
-                |(a, mut ca), (b, cb)| {
-                    ca.add(&cb);
-                    (a.merge(b), ca)
-                },
-            );
+        let (traced, c) = in_chunks(rays, |chunk, s, c| frame.view.trace(&data, chunk, s, c));
         sink = sink.merge(traced);
         counters.add(&c);
         debug!("queue traced");
@@ -259,6 +230,32 @@ pub fn run(input: PassInput) -> Result<PassOutput, PassError> {
         counters,
         busy: start.elapsed(),
     })
+}
+
+/// Runs `work` over `items` in parallel chunks, each with its own sink and counters, and
+/// merges what they produced.
+fn in_chunks<T: Sync>(
+    items: &[T],
+    work: impl Fn(&[T], &mut Sink, &mut KernelCounters) + Sync + Send,
+) -> (Sink, KernelCounters) {
+    items
+        .par_chunks(CHUNK)
+        .map(|chunk| {
+            let mut s = Sink {
+                out: Vec::with_capacity(chunk.len() * 2),
+                ..Sink::default()
+            };
+            let mut c = KernelCounters::default();
+            work(chunk, &mut s, &mut c);
+            (s, c)
+        })
+        .reduce(
+            || (Sink::default(), KernelCounters::default()),
+            |(a, mut ca), (b, cb)| {
+                ca.add(&cb);
+                (a.merge(b), ca)
+            },
+        )
 }
 
 fn load(cache: &Mutex<DomainCache>, domain: u32) -> Result<Arc<DomainData>, PassError> {

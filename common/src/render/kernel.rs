@@ -90,23 +90,23 @@ impl SceneView {
         self.has_triangles.len()
     }
 
+    /// Visits the domains `ray` crosses, nearest first, with its interval in each.
+    fn walk(&self, ray: &RayRecord, visit: impl FnMut(u32, f32, f32) -> ControlFlow<()>) {
+        let (origin, dir) = (ray.origin.into(), ray.dir.into());
+        self.tree.walk(origin, dir, ray.t_min, ray.t_max, visit);
+    }
+
     /// Sends a new ray to the first domain along it, or retires it at once if it meets none.
     pub fn route_new(&self, ray: RayRecord, sink: &mut impl RaySink) {
         let mut first = None;
-        self.tree.walk(
-            ray.origin.into(),
-            ray.dir.into(),
-            ray.t_min,
-            ray.t_max,
-            |d, _, _| {
-                if self.has_triangles[d as usize] {
-                    first = Some(d);
-                    ControlFlow::Break(())
-                } else {
-                    ControlFlow::Continue(())
-                }
-            },
-        );
+        self.walk(&ray, |d, _, _| {
+            if self.has_triangles[d as usize] {
+                first = Some(d);
+                ControlFlow::Break(())
+            } else {
+                ControlFlow::Continue(())
+            }
+        });
         self.send(ray, first, sink);
     }
 
@@ -138,23 +138,17 @@ impl SceneView {
     fn segment(&self, ray: &RayRecord, domain: u32) -> (Option<(f32, f32)>, Option<u32>) {
         let mut interval = None;
         let mut next = None;
-        self.tree.walk(
-            ray.origin.into(),
-            ray.dir.into(),
-            ray.t_min,
-            ray.t_max,
-            |d, a, b| {
-                if interval.is_some() {
-                    if self.has_triangles[d as usize] {
-                        next = Some(d);
-                        return ControlFlow::Break(());
-                    }
-                } else if d == domain {
-                    interval = Some((a, b));
+        self.walk(ray, |d, a, b| {
+            if interval.is_some() {
+                if self.has_triangles[d as usize] {
+                    next = Some(d);
+                    return ControlFlow::Break(());
                 }
-                ControlFlow::Continue(())
-            },
-        );
+            } else if d == domain {
+                interval = Some((a, b));
+            }
+            ControlFlow::Continue(())
+        });
         (interval, next)
     }
 
@@ -212,18 +206,12 @@ impl SceneView {
     /// queued at once.
     pub fn domains_along(&self, ray: &RayRecord) -> Vec<u32> {
         let mut out = Vec::new();
-        self.tree.walk(
-            ray.origin.into(),
-            ray.dir.into(),
-            ray.t_min,
-            ray.t_max,
-            |d, _, _| {
-                if self.has_triangles[d as usize] {
-                    out.push(d);
-                }
-                ControlFlow::Continue(())
-            },
-        );
+        self.walk(ray, |d, _, _| {
+            if self.has_triangles[d as usize] {
+                out.push(d);
+            }
+            ControlFlow::Continue(())
+        });
         out
     }
 
@@ -238,22 +226,16 @@ impl SceneView {
     ) -> Verdict {
         let mut order = 0u32;
         let mut interval = None;
-        self.tree.walk(
-            ray.origin.into(),
-            ray.dir.into(),
-            ray.t_min,
-            ray.t_max,
-            |d, a, b| {
-                if d == data.domain() {
-                    interval = Some((a, b));
-                    return ControlFlow::Break(());
-                }
-                if self.has_triangles[d as usize] {
-                    order += 1;
-                }
-                ControlFlow::Continue(())
-            },
-        );
+        self.walk(ray, |d, a, b| {
+            if d == data.domain() {
+                interval = Some((a, b));
+                return ControlFlow::Break(());
+            }
+            if self.has_triangles[d as usize] {
+                order += 1;
+            }
+            ControlFlow::Continue(())
+        });
         // A copy queued for a domain off its path finds nothing there.
         let Some((t0, t1)) = interval else {
             return Verdict::Clear;
