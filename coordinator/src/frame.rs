@@ -415,34 +415,36 @@ impl RunningFrame {
             .copied()
             .filter(|k| !dry.contains(k))
             .collect();
-        let Some(mut state) = self.cluster_state(&busy, true) else {
-            return Vec::new();
+        // Predictive plans the oldest generation first. With no one busy, a generation that
+        // cannot move on (its last copies on the wire or lost with a worker) must not stall
+        // the frame: then everything queued is planned.
+        let filters: &[bool] = match busy.is_empty() {
+            true => &[true, false],
+            false => &[true],
         };
-        if !state.has_rays() && busy.is_empty() {
-            // Predictive: nothing of the oldest generation is queued and no one is busy.
-            // Its last copies are on the wire, or lost with a worker; plan the rest rather
-            // than risk waiting for nothing.
-            match self.cluster_state(&busy, false) {
-                Some(all) => state = all,
-                None => return Vec::new(),
+        let mut changed = Vec::new();
+        for &oldest_first in filters {
+            let Some(state) = self.cluster_state(&busy, oldest_first) else {
+                return Vec::new();
+            };
+            if !state.has_rays() {
+                continue;
             }
-            if state.has_rays() {
-                debug!("planning younger rays while the oldest generation is on the wire");
+            let plan = next_round_with(&state, self.options);
+            changed = plan
+                .workers()
+                .iter()
+                .filter(|p| dry.contains(&p.worker.0))
+                .filter(|p| {
+                    let work: BTreeSet<u32> = p.work().map(|d| d.0).collect();
+                    !p.evict.is_empty() || work != self.members[&p.worker.0].plan
+                })
+                .cloned()
+                .collect();
+            if !changed.is_empty() {
+                break;
             }
         }
-        if !state.has_rays() {
-            return Vec::new();
-        }
-        let plan = next_round_with(&state, self.options);
-        let changed: Vec<_> = plan
-            .workers()
-            .iter()
-            .filter(|p| dry.contains(&p.worker.0))
-            .filter(|p| {
-                let work: BTreeSet<u32> = p.work().map(|d| d.0).collect();
-                !p.evict.is_empty() || work != self.members[&p.worker.0].plan
-            })
-            .collect();
         if changed.is_empty() {
             return Vec::new();
         }
@@ -480,9 +482,12 @@ impl RunningFrame {
     /// them, but its next report may be far off: account for the move now, so that its older
     /// figures do not keep a dry holder waiting on rays it has already traced.
     fn move_queued_to_holders(&mut self) {
+        // A dry holder reports again when the rays reach it; counted there now, they would
+        // stay after it traced them and mislead every later plan.
         let holder_of: BTreeMap<u32, u32> = self
             .members
             .iter()
+            .filter(|(_, m)| !m.is_dry())
             .flat_map(|(&k, m)| m.plan.iter().map(move |&d| (d, k)))
             .collect();
         // Per new holder: domain -> (rays, oldest generation among them).
@@ -641,5 +646,98 @@ impl RunningFrame {
             elapsed * f64::from(total - done) / f64::from(done)
         };
         (done, total, segments as f64 / elapsed.max(1e-9), eta)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn predictive_frame() -> RunningFrame {
+        let spec = proto::JobSpec {
+            width: 64,
+            height: 64,
+            spp: 1,
+            max_depth: 3,
+            schedule: Schedule::Predictive as i32,
+            ..Default::default()
+        };
+        let frame = FrameSpec {
+            width: 64,
+            height: 64,
+            spp: 1,
+            max_depth: 3,
+            camera: None,
+        };
+        let options = Options {
+            replicate_onto_idle: false,
+            fill_free_slots: true,
+        };
+        RunningFrame::new(
+            "j".into(),
+            spec,
+            frame,
+            vec![100; 4],
+            options,
+            Rounds::Async,
+        )
+        .expect("frame")
+    }
+
+    fn report(round: u64, resident: &[u32], queued: &[(u32, u64, u32)]) -> proto::QueueReport {
+        proto::QueueReport {
+            job_id: "j".into(),
+            round,
+            resident_domains: resident.to_vec(),
+            queued_rays: queued.iter().map(|&(d, n, _)| (d, n)).collect(),
+            oldest_generation: queued.iter().map(|&(d, _, g)| (d, g)).collect(),
+            oldest_waiting: None,
+        }
+    }
+
+    fn planned_domains(out: &[Outgoing], key: u32) -> Vec<u32> {
+        out.iter()
+            .filter(|(k, _)| *k == key)
+            .filter_map(|(_, m)| match &m.body {
+                Some(Body::RoundPlan(p)) => Some(p.work_on.clone()),
+                _ => None,
+            })
+            .flatten()
+            .collect()
+    }
+
+    #[test]
+    fn predictive_never_copies_domains_into_free_slots() {
+        assert!(!predictive_frame().options.fill_free_slots);
+    }
+
+    #[test]
+    fn the_oldest_generation_is_planned_first() {
+        let mut f = predictive_frame();
+        let member = || Member::new("w".into(), 200);
+        f.start(vec![(0, member()), (1, member())]);
+        f.report(1, report(0, &[], &[]));
+        // Domain 2 has more rays, but domain 3 holds the older generation.
+        let out = f.report(0, report(0, &[], &[(2, 900, 2), (3, 5, 1)]));
+        let planned = [planned_domains(&out, 0), planned_domains(&out, 1)].concat();
+        assert_eq!(planned, [3], "{out:?}");
+    }
+
+    #[test]
+    fn with_every_worker_dry_a_stuck_generation_does_not_stall_the_frame() {
+        let mut f = predictive_frame();
+        let member = || Member::new("w".into(), 200);
+        f.start(vec![(0, member()), (1, member())]);
+        // Worker 0 holds domain 0, whose older rays it has planned already; worker 1 is
+        // free. Only domain 0 counts under the oldest-first rule, and its plan is unchanged:
+        // the younger rays of domain 1 must be planned all the same.
+        f.members.get_mut(&0).expect("member").plan = [0].into();
+        f.members.get_mut(&0).expect("member").planned_round = 1;
+        f.round = 1;
+        let busy = f.report(0, report(1, &[0], &[(0, 5, 1), (1, 7, 2)]));
+        assert!(busy.is_empty(), "worker 1 has not reported: wait for it");
+        let out = f.report(1, report(0, &[], &[]));
+        let planned = [planned_domains(&out, 0), planned_domains(&out, 1)].concat();
+        assert!(planned.contains(&1), "{out:?}");
     }
 }

@@ -46,9 +46,10 @@ pub struct BenchArgs {
     #[arg(long, env = "RAYFARM_BENCH_WORKERS", default_value_t = 4,
           value_parser = clap::value_parser!(u32).range(1..=64))]
     pub workers: u32,
-    /// Schedules to compare, comma-separated: dynamic, image-plane, domain, hybrid.
+    /// Schedules to compare, comma-separated: dynamic, image-plane, domain, hybrid,
+    /// predictive.
     #[arg(long, env = "RAYFARM_BENCH_SCHEDULES", value_delimiter = ',',
-          default_value = "dynamic,image-plane,domain", value_parser = parse_schedule)]
+          default_value = "dynamic,predictive,image-plane,domain", value_parser = parse_schedule)]
     pub schedules: Vec<proto::Schedule>,
     /// Domain cache budget of each worker, e.g. 8MiB [default: a quarter of the scene, so
     /// domains are paged in and out as on a farm]. Not used with --coordinator.
@@ -638,12 +639,13 @@ mod tests {
     }
 
     #[test]
-    fn defaults_compare_the_three_schedules_three_times_at_512() {
+    fn defaults_compare_four_schedules_three_times_at_512() {
         let a = parse(&[]).unwrap();
         assert_eq!(
             a.schedules,
             vec![
                 proto::Schedule::Dynamic,
+                proto::Schedule::Predictive,
                 proto::Schedule::ImagePlane,
                 proto::Schedule::Domain
             ]
