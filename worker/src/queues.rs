@@ -218,8 +218,9 @@ mod tests {
         let rays: Vec<RayRecord> = (0..5).map(ray).collect();
         q.push(0, &rays).unwrap();
         let err = q.push(0, &rays[..1]).unwrap_err().to_string();
+        let memory = format!("{} bytes in memory", 2 * RAY_BYTES);
         assert!(
-            err.contains("--queue-bytes") && err.contains("160 bytes in memory"),
+            err.contains("--queue-bytes") && err.contains(&memory),
             "{err}"
         );
     }
