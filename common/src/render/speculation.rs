@@ -10,6 +10,7 @@
 //! ray's occluder, which the answer then ignores.
 
 use crate::ray::RayRecord;
+use crate::schedule::speculative::Generations;
 use crate::wire::VerdictRecord;
 
 /// What a radiance ray's copy found in its domain: enough to shade the hit later, without
@@ -137,7 +138,7 @@ pub struct Groups {
     slots: Vec<Option<Group>>,
     free: Vec<u32>,
     /// Rays waiting per generation (`RayRecord::generation`).
-    by_generation: Vec<u64>,
+    by_generation: Generations,
 }
 
 impl Groups {
@@ -161,11 +162,7 @@ impl Groups {
             waiting: domains.len() as u32,
             outcome: Outcome::default(),
         };
-        let g = ray.generation() as usize;
-        if self.by_generation.len() <= g {
-            self.by_generation.resize(g + 1, 0);
-        }
-        self.by_generation[g] += 1;
+        self.by_generation.add(ray.generation());
         let id = match self.free.pop() {
             Some(id) => {
                 self.slots[id as usize] = Some(group);
@@ -214,8 +211,8 @@ impl Groups {
 
     fn release(&mut self, id: u32, ray: &Option<RayRecord>) {
         self.free.push(id);
-        if let Some(n) = ray.and_then(|r| self.by_generation.get_mut(r.generation() as usize)) {
-            *n -= 1;
+        if let Some(r) = ray {
+            self.by_generation.remove(r.generation());
         }
     }
 
@@ -226,10 +223,7 @@ impl Groups {
 
     /// The oldest generation among the rays waiting: copies of it are still to be traced.
     pub fn oldest_waiting(&self) -> Option<u16> {
-        self.by_generation
-            .iter()
-            .position(|&n| n > 0)
-            .map(|g| g as u16)
+        self.by_generation.oldest()
     }
 
     /// Drops waiting rays `keep` refuses (a fault restarted their tiles).

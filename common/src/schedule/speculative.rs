@@ -31,36 +31,63 @@ pub fn next_queue(queues: impl IntoIterator<Item = QueueView>) -> Option<u32> {
         .map(|q| q.domain)
 }
 
+/// How many rays there are of each generation, and which is the oldest.
+#[derive(Clone, Debug, Default)]
+pub struct Generations {
+    counts: Vec<u64>,
+}
+
+impl Generations {
+    /// One more ray of `generation`.
+    pub fn add(&mut self, generation: u16) {
+        let g = generation as usize;
+        if self.counts.len() <= g {
+            self.counts.resize(g + 1, 0);
+        }
+        self.counts[g] += 1;
+    }
+
+    /// One ray of `generation` less.
+    pub fn remove(&mut self, generation: u16) {
+        if let Some(n) = self.counts.get_mut(generation as usize) {
+            *n = n.saturating_sub(1);
+        }
+    }
+
+    /// No rays at all.
+    pub fn clear(&mut self) {
+        self.counts.clear();
+    }
+
+    /// The oldest generation with a ray, if any.
+    pub fn oldest(&self) -> Option<u16> {
+        self.counts.iter().position(|&n| n > 0).map(|g| g as u16)
+    }
+}
+
 /// Rays queued per domain and generation, kept alongside the queues so the policy needs no
 /// scan of the rays.
 #[derive(Clone, Debug, Default)]
 pub struct GenerationCounts {
-    counts: Vec<Vec<u64>>,
+    counts: Vec<Generations>,
 }
 
 impl GenerationCounts {
     /// Empty counts for `domains` domains.
     pub fn new(domains: usize) -> Self {
         GenerationCounts {
-            counts: vec![Vec::new(); domains],
+            counts: vec![Generations::default(); domains],
         }
     }
 
     /// One more ray of `generation` queued for `domain` (below the domain count).
     pub fn add(&mut self, domain: u32, generation: u16) {
-        let c = &mut self.counts[domain as usize];
-        let g = generation as usize;
-        if c.len() <= g {
-            c.resize(g + 1, 0);
-        }
-        c[g] += 1;
+        self.counts[domain as usize].add(generation);
     }
 
     /// One ray of `generation` taken from `domain`'s queue.
     pub fn remove(&mut self, domain: u32, generation: u16) {
-        if let Some(n) = self.counts[domain as usize].get_mut(generation as usize) {
-            *n = n.saturating_sub(1);
-        }
+        self.counts[domain as usize].remove(generation);
     }
 
     /// `domain`'s queue was emptied.
@@ -70,10 +97,7 @@ impl GenerationCounts {
 
     /// The oldest generation queued for `domain`, if any.
     pub fn oldest(&self, domain: u32) -> Option<u16> {
-        self.counts[domain as usize]
-            .iter()
-            .position(|&n| n > 0)
-            .map(|g| g as u16)
+        self.counts[domain as usize].oldest()
     }
 }
 
