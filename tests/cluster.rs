@@ -374,38 +374,23 @@ fn bad_jobs_get_precise_errors_and_the_cluster_renders_the_next() {
     std::fs::write(&cut, &bytes[..bytes.len() / 2]).expect("write");
 
     let cluster = Cluster::start(root.path(), Some("nb"), &[WorkerOpts::default()]);
-    let err = refused(&cluster, &["submit", "--width", "0"]);
-    assert!(
-        err.contains("INVALID_ARGUMENT") && err.contains("resolution"),
-        "{err}"
-    );
-    let err = refused(&cluster, &["submit", "--spp", "70000"]);
-    assert!(
-        err.contains("INVALID_ARGUMENT") && err.contains("spp"),
-        "{err}"
-    );
-    let err = refused(&cluster, &["submit", "--width", "100000"]);
-    assert!(
-        err.contains("INVALID_ARGUMENT") && err.contains("resolution"),
-        "{err}"
-    );
-    let err = refused(&cluster, &["submit", "--depth", "100000"]);
-    assert!(
-        err.contains("INVALID_ARGUMENT") && err.contains("depth"),
-        "{err}"
-    );
-    let err = refused(&cluster, &["submit", "--schedule", "fastest"]);
-    assert!(err.contains("unknown schedule"), "{err}");
-    let err = refused(&cluster, &["submit", "--scene", "no-such-scene"]);
-    assert!(
-        err.contains("NOT_FOUND") && err.contains("no-such-scene"),
-        "{err}"
-    );
-    let err = refused(&cluster, &["submit", "--scene", "../etc"]);
-    assert!(
-        err.contains("INVALID_ARGUMENT") && err.contains("scene root"),
-        "{err}"
-    );
+    // Each command, and what its error must name.
+    let cases: [(&[&str], &[&str]); 7] = [
+        (&["--width", "0"], &["INVALID_ARGUMENT", "resolution"]),
+        (&["--spp", "70000"], &["INVALID_ARGUMENT", "spp"]),
+        (&["--width", "100000"], &["INVALID_ARGUMENT", "resolution"]),
+        (&["--depth", "100000"], &["INVALID_ARGUMENT", "depth"]),
+        (&["--schedule", "fastest"], &["unknown schedule"]),
+        (
+            &["--scene", "no-such-scene"],
+            &["NOT_FOUND", "no-such-scene"],
+        ),
+        (&["--scene", "../etc"], &["INVALID_ARGUMENT", "scene root"]),
+    ];
+    for (args, names) in cases {
+        let err = refused(&cluster, &[&["submit"], args].concat());
+        assert!(names.iter().all(|n| err.contains(n)), "{args:?}: {err}");
+    }
     let err = refused(&cluster, &["fetch", "job-that-never-was", "-o", "x.png"]);
     assert!(err.contains("NOT_FOUND"), "{err}");
     // The damaged domain fails its job, naming the file, when a worker first loads it.
