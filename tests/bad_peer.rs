@@ -12,10 +12,10 @@ use std::process::{Command, Stdio};
 use std::time::Duration;
 
 use bytes::Bytes;
-use rayfarm_common::proto::peer_service_client::PeerServiceClient;
-use rayfarm_common::proto::{self, PROTOCOL_VERSION};
-use rayfarm_common::ray::RayRecord;
-use rayfarm_common::wire::{self, VerdictRecord};
+use rayfarm_core::ray::RayRecord;
+use rayfarm_core::wire::{self, VerdictRecord};
+use rayfarm_node::proto::peer_service_client::PeerServiceClient;
+use rayfarm_node::proto::{self, PROTOCOL_VERSION};
 use rayfarm_tests::{
     Cluster, WorkerOpts, bin, hash_of, local_hash, prepare_nbody, s, submit_wait, wait_child,
     wait_until,

@@ -7,9 +7,9 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use rayfarm_common::proto;
-use rayfarm_common::proto::peer_service_client::PeerServiceClient;
-use rayfarm_common::security::{ClusterSecret, ConnectTlsArgs, Credential, endpoint};
+use rayfarm_node::proto;
+use rayfarm_node::proto::peer_service_client::PeerServiceClient;
+use rayfarm_node::security::{ClusterSecret, ConnectTlsArgs, Credential, endpoint};
 use rayfarm_tests::{
     Cluster, ClusterOpts, WorkerOpts, domain_bytes, hash_of, local_hash, prepare_nbody, rayfarm_ok,
     s, stats_field,

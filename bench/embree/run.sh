@@ -40,7 +40,7 @@ if [[ -z ${SCENE:-} ]]; then
     fi
 fi
 
-cargo build --release -p rayfarm-common --example embree_compare
+cargo build --release -p rayfarm-core --example embree_compare
 pin=()
 if [[ -n ${BENCH_CPU:-} ]]; then
     pin=(taskset -c "$BENCH_CPU")

@@ -8,9 +8,9 @@ use std::time::Duration;
 
 use anyhow::{Context, anyhow};
 use clap::Args;
-use rayfarm_common::proto;
-use rayfarm_common::proto::job_service_client::JobServiceClient;
-use rayfarm_common::security::{ClientSecurity, ConnectTlsArgs, Credential, first_token};
+use rayfarm_node::proto;
+use rayfarm_node::proto::job_service_client::JobServiceClient;
+use rayfarm_node::security::{ClientSecurity, ConnectTlsArgs, Credential, first_token};
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::{Channel, Identity};
 

@@ -326,7 +326,7 @@ impl LocalCluster {
             .env("NO_COLOR", "1");
         // The local cluster talks plain text on loopback: credentials this shell holds for a
         // real cluster would turn security on in the children but not in this client.
-        for var in rayfarm_common::security::ENV_VARS {
+        for var in rayfarm_node::security::ENV_VARS {
             cmd.env_remove(var);
         }
         #[cfg(unix)]

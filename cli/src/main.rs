@@ -1,5 +1,5 @@
 //! `rayfarm`: what a person types. Prepare scenes, render them locally, and (with the cluster)
-//! submit and watch jobs. A thin layer over `rayfarm-common`.
+//! submit and watch jobs. A thin layer over `rayfarm-core`.
 
 mod bench;
 mod client;
@@ -60,7 +60,7 @@ fn main() -> std::process::ExitCode {
         1 => "info",
         _ => "debug",
     };
-    rayfarm_common::telemetry::init_logging(default);
+    rayfarm_node::telemetry::init_logging(default);
     let result = dispatch(cli.command);
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

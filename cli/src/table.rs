@@ -3,10 +3,10 @@
 //! the same helpers so the two tables read alike.
 
 use comfy_table::{Table, presets::UTF8_FULL_CONDENSED};
-use rayfarm_common::cluster::stats::{ClusterStats, WorkerFrameStats};
-use rayfarm_common::render::cache::CacheCounters;
-use rayfarm_common::render::kernel::KernelCounters;
-use rayfarm_common::render::stats::RenderStats;
+use rayfarm_core::cluster::stats::{ClusterStats, WorkerFrameStats};
+use rayfarm_core::render::cache::CacheCounters;
+use rayfarm_core::render::kernel::KernelCounters;
+use rayfarm_core::render::stats::RenderStats;
 
 use crate::units::human;
 
@@ -154,8 +154,8 @@ fn two_columns(rows: Vec<(&str, String)>) -> Table {
 
 #[cfg(test)]
 mod tests {
-    use rayfarm_common::bundler::TierStats;
-    use rayfarm_common::cluster::stats::TierTraffic;
+    use rayfarm_core::bundler::TierStats;
+    use rayfarm_core::cluster::stats::TierTraffic;
 
     use super::*;
 

@@ -1,7 +1,7 @@
 //! Command-line values: human-friendly byte sizes ("512MiB", "2G", "1000000") and X,Y,Z triples.
 
 /// Parses a byte size for clap.
-pub use rayfarm_common::units::parse_bytes as bytes;
+pub use rayfarm_core::units::parse_bytes as bytes;
 
 /// Formats a byte count for tables.
 pub fn human(bytes: u64) -> String {

@@ -3,9 +3,9 @@
 use std::pin::Pin;
 use std::sync::Arc;
 
-use rayfarm_common::proto::job_service_server::JobService;
-use rayfarm_common::proto::{self, JobState};
-use rayfarm_common::security::User;
+use rayfarm_node::proto::job_service_server::JobService;
+use rayfarm_node::proto::{self, JobState};
+use rayfarm_node::security::User;
 use tokio::sync::mpsc;
 use tokio_stream::Stream;
 use tokio_stream::wrappers::ReceiverStream;

@@ -4,8 +4,8 @@
 use std::pin::Pin;
 use std::sync::Arc;
 
-use rayfarm_common::proto::worker_control_server::WorkerControl;
-use rayfarm_common::proto::{self, worker_message::Body};
+use rayfarm_node::proto::worker_control_server::WorkerControl;
+use rayfarm_node::proto::{self, worker_message::Body};
 use tokio::sync::mpsc;
 use tokio_stream::Stream;
 use tokio_stream::wrappers::UnboundedReceiverStream;
@@ -13,7 +13,7 @@ use tonic::{Request, Response, Status, Streaming};
 use tracing::warn;
 
 use crate::state::Coordinator;
-use rayfarm_common::fault::Faults;
+use rayfarm_node::fault::Faults;
 
 /// The worker control service.
 pub struct Control {

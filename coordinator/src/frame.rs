@@ -6,14 +6,14 @@
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::Instant;
 
-use rayfarm_common::cluster::job::TILE_SIZE;
-use rayfarm_common::cluster::tile_sums;
-use rayfarm_common::frame::{Accept, FrameLedger, TILE_CREDIT, TileGrid};
-use rayfarm_common::proto::{self, Schedule, coordinator_message::Body};
-use rayfarm_common::render::local::FrameSpec;
-use rayfarm_common::schedule::dynamic::{Options, WorkerPlan, next_round_with};
-use rayfarm_common::schedule::static_plans::{domain_owner, image_plane_share};
-use rayfarm_common::schedule::{ClusterState, DomainId, WorkerId, WorkerState};
+use rayfarm_core::cluster::tile_sums;
+use rayfarm_core::frame::TILE_SIZE;
+use rayfarm_core::frame::{Accept, FrameLedger, TILE_CREDIT, TileGrid};
+use rayfarm_core::render::local::FrameSpec;
+use rayfarm_core::schedule::dynamic::{Options, WorkerPlan, next_round_with};
+use rayfarm_core::schedule::static_plans::{domain_owner, image_plane_share};
+use rayfarm_core::schedule::{ClusterState, DomainId, WorkerId, WorkerState};
+use rayfarm_node::proto::{self, Schedule, coordinator_message::Body};
 use tracing::{debug, info};
 
 /// A message for one worker, by the coordinator's worker key.

@@ -17,11 +17,11 @@ use std::time::Duration;
 
 use anyhow::Context;
 use clap::Parser;
-use rayfarm_common::fault::Faults;
-use rayfarm_common::proto::job_service_server::JobServiceServer;
-use rayfarm_common::proto::worker_control_server::WorkerControlServer;
-use rayfarm_common::schedule::dynamic::Options;
-use rayfarm_common::security::{
+use rayfarm_core::schedule::dynamic::Options;
+use rayfarm_node::fault::Faults;
+use rayfarm_node::proto::job_service_server::JobServiceServer;
+use rayfarm_node::proto::worker_control_server::WorkerControlServer;
+use rayfarm_node::security::{
     ClusterSecret, RequireSecret, RequireToken, ServeTlsArgs, UserTokens,
 };
 use tonic::service::interceptor::InterceptedService;
@@ -95,7 +95,7 @@ struct Args {
 
 fn main() -> std::process::ExitCode {
     let args = Args::parse();
-    rayfarm_common::telemetry::server_main(args.verbose, None, run(args))
+    rayfarm_node::telemetry::server_main(args.verbose, None, run(args))
 }
 
 async fn run(args: Args) -> anyhow::Result<()> {
@@ -165,7 +165,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let (health, health_service) = tonic_health::server::health_reporter();
     health.set_serving::<JobServiceServer<api::Api>>().await;
     let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
-    let mut builder = rayfarm_common::security::server_builder();
+    let mut builder = rayfarm_node::security::server_builder();
     if let Some(tls) = tls {
         builder = builder
             .tls_config(tls)
@@ -176,7 +176,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         .add_service(health_service)
         .add_service(api)
         .add_service(control)
-        .serve_with_incoming_shutdown(incoming, rayfarm_common::telemetry::shutdown_signal());
+        .serve_with_incoming_shutdown(incoming, rayfarm_node::telemetry::shutdown_signal());
     tokio::select! {
         r = server => r.context("server failed")?,
         () = reaper => {}

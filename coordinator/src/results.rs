@@ -4,9 +4,9 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
-use rayfarm_common::cluster::stats::ClusterStats;
-use rayfarm_common::proto::ImageFormat;
-use rayfarm_common::render::Film;
+use rayfarm_core::cluster::stats::ClusterStats;
+use rayfarm_core::render::Film;
+use rayfarm_node::proto::ImageFormat;
 
 /// The directory of one job's results.
 pub fn job_dir(data_dir: &Path, job_id: &str) -> PathBuf {

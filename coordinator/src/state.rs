@@ -8,16 +8,16 @@ use std::path::PathBuf;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
-use rayfarm_common::cluster::job::{frame_spec, schedule_name, state_name};
-use rayfarm_common::cluster::scene_ref;
-use rayfarm_common::cluster::stats::{ClusterStats, WorkerFrameStats};
-use rayfarm_common::proto::{
+use rayfarm_core::cluster::scene_ref;
+use rayfarm_core::cluster::stats::{ClusterStats, WorkerFrameStats};
+use rayfarm_core::render::Film;
+use rayfarm_core::scene::Manifest;
+use rayfarm_core::schedule::dynamic::Options;
+use rayfarm_node::job::{frame_spec, schedule_name, state_name};
+use rayfarm_node::proto::{
     self, JobState, PROTOCOL_VERSION, Schedule, coordinator_message::Body,
     worker_message::Body as FromWorker,
 };
-use rayfarm_common::render::Film;
-use rayfarm_common::scene::Manifest;
-use rayfarm_common::schedule::dynamic::Options;
 use tokio::sync::{mpsc, oneshot, watch};
 use tonic::Status;
 use tracing::{error, info, info_span, warn};
@@ -812,7 +812,7 @@ fn restore(st: &mut State, data_dir: &std::path::Path, stored: StoredJob) {
 
 #[cfg(test)]
 mod tests {
-    use rayfarm_common::prepare::generate::{NbodyOptions, prepare_nbody};
+    use rayfarm_core::prepare::generate::{NbodyOptions, prepare_nbody};
 
     use super::*;
 

@@ -12,7 +12,7 @@
 
 use std::path::{Path, PathBuf};
 
-use rayfarm_common::proto;
+use rayfarm_node::proto;
 use redb::{ReadableDatabase, ReadableTable, TableDefinition};
 
 /// File name of the database inside the data directory.

@@ -4,12 +4,12 @@
 
 use std::time::Duration;
 
-use rayfarm_common::proto::worker_control_client::WorkerControlClient;
-use rayfarm_common::proto::{
+use rayfarm_node::proto::worker_control_client::WorkerControlClient;
+use rayfarm_node::proto::{
     self, PROTOCOL_VERSION, coordinator_message::Body as FromCoordinator,
     worker_message::Body as ToCoordinator,
 };
-use rayfarm_common::security::ClientSecurity;
+use rayfarm_node::security::ClientSecurity;
 use tokio::sync::mpsc;
 use tokio::time::Instant;
 use tokio_stream::wrappers::UnboundedReceiverStream;
@@ -18,7 +18,7 @@ use tracing::{error, info, warn};
 
 use crate::engine::Event;
 use crate::peers::MAX_MESSAGE_BYTES;
-use rayfarm_common::fault::Faults;
+use rayfarm_node::fault::Faults;
 
 /// Who this worker is, as told to the coordinator.
 #[derive(Clone, Debug)]

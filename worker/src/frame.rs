@@ -6,11 +6,11 @@ use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use rayfarm_common::ray::RayRecord;
-use rayfarm_common::render::KernelCounters;
-use rayfarm_common::render::cache::CacheCounters;
-use rayfarm_common::schedule::speculative::{GenerationCounts, QueueView, next_queue};
-use rayfarm_common::wire::BatchLimits;
+use rayfarm_core::ray::RayRecord;
+use rayfarm_core::render::KernelCounters;
+use rayfarm_core::render::cache::CacheCounters;
+use rayfarm_core::schedule::speculative::{GenerationCounts, QueueView, next_queue};
+use rayfarm_core::wire::BatchLimits;
 
 use crate::pass::FrameView;
 use crate::queues::{DomainQueues, QueueError};

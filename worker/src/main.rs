@@ -16,13 +16,13 @@ use std::time::Duration;
 
 use anyhow::Context;
 use clap::Parser;
-use rayfarm_common::bundler::BundlerConfig;
-use rayfarm_common::proto::peer_service_server::PeerServiceServer;
-use rayfarm_common::render::cache::StorageModel;
-use rayfarm_common::security::{
+use rayfarm_core::bundler::BundlerConfig;
+use rayfarm_core::render::cache::StorageModel;
+use rayfarm_core::units::{parse_bytes, parse_rate};
+use rayfarm_node::proto::peer_service_server::PeerServiceServer;
+use rayfarm_node::security::{
     ClientSecurity, ClusterSecret, ConnectTlsArgs, Credential, RequireSecret, ServeTlsArgs,
 };
-use rayfarm_common::units::{parse_bytes, parse_rate};
 use tokio::sync::mpsc;
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::server::TcpIncoming;
@@ -30,7 +30,7 @@ use tracing::{info, warn};
 
 use crate::engine::{Engine, EngineConfig};
 use crate::peers::{LinkLimits, MAX_MESSAGE_BYTES, PeerLinks, PeerServer};
-use rayfarm_common::fault::Faults;
+use rayfarm_node::fault::Faults;
 
 /// rayfarm-worker: traces rays for a rayfarm coordinator.
 #[derive(Parser, Debug)]
@@ -126,7 +126,7 @@ fn parse_duration(s: &str) -> Result<Duration, String> {
 fn main() -> std::process::ExitCode {
     let args = Args::parse();
     // Two async threads route and talk; tracing has its own pool.
-    rayfarm_common::telemetry::server_main(args.verbose, Some(2), run(args))
+    rayfarm_node::telemetry::server_main(args.verbose, Some(2), run(args))
 }
 
 async fn run(args: Args) -> anyhow::Result<()> {
@@ -224,7 +224,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let (health, health_service) = tonic_health::server::health_reporter();
     health.set_serving::<PeerServiceServer<PeerServer>>().await;
     let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
-    let mut builder = rayfarm_common::security::server_builder();
+    let mut builder = rayfarm_node::security::server_builder();
     if let Some(tls) = serve_tls {
         builder = builder
             .tls_config(tls)
@@ -252,7 +252,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         r = server => r.context("peer server failed"),
         r = control => r,
         () = engine.run(events_rx) => Ok(()),
-        _ = rayfarm_common::telemetry::shutdown_signal() => {
+        _ = rayfarm_node::telemetry::shutdown_signal() => {
             info!("shutting down");
             Ok(())
         }

@@ -6,12 +6,12 @@ use std::pin::Pin;
 use std::time::{Duration, Instant};
 
 use bytes::Bytes;
-use rayfarm_common::bundler::Tier;
-use rayfarm_common::proto::peer_service_client::PeerServiceClient;
-use rayfarm_common::proto::peer_service_server::PeerService;
-use rayfarm_common::proto::{self, PROTOCOL_VERSION};
-use rayfarm_common::security::ClientSecurity;
-use rayfarm_common::wire::{self, BatchLimits, WireError};
+use rayfarm_core::bundler::Tier;
+use rayfarm_core::wire::{self, BatchLimits, WireError};
+use rayfarm_node::proto::peer_service_client::PeerServiceClient;
+use rayfarm_node::proto::peer_service_server::PeerService;
+use rayfarm_node::proto::{self, PROTOCOL_VERSION};
+use rayfarm_node::security::ClientSecurity;
 use tokio::sync::mpsc;
 use tokio_stream::Stream;
 use tokio_stream::wrappers::{ReceiverStream, UnboundedReceiverStream};
@@ -19,7 +19,7 @@ use tonic::{Request, Response, Status, Streaming};
 use tracing::{debug, error, warn};
 
 use crate::engine::Event;
-use rayfarm_common::fault::Faults;
+use rayfarm_node::fault::Faults;
 
 /// Largest gRPC message accepted or sent between workers.
 pub const MAX_MESSAGE_BYTES: usize = 64 << 20;

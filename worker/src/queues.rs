@@ -7,7 +7,7 @@ use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::Path;
 
 use bytemuck::Zeroable;
-use rayfarm_common::ray::RayRecord;
+use rayfarm_core::ray::RayRecord;
 
 /// Bytes of one queued ray.
 const RAY_BYTES: u64 = std::mem::size_of::<RayRecord>() as u64;

@@ -1,13 +1,13 @@
 //! The predictive schedule on a worker: the rays born here wait in groups for their
 //! speculative copies' verdicts, which come back from whichever workers traced the copies
-//! (see `rayfarm_common::render::speculation`). Verdicts travel in the bundler's results
+//! (see `rayfarm_core::render::speculation`). Verdicts travel in the bundler's results
 //! tier to the worker named in the copy, looked up in the frame's roster.
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 
-use rayfarm_common::ray::RayRecord;
-use rayfarm_common::render::speculation::{GroupError, Groups, Outcome};
-use rayfarm_common::wire::VerdictRecord;
+use rayfarm_core::ray::RayRecord;
+use rayfarm_core::render::speculation::{GroupError, Groups, Outcome};
+use rayfarm_core::wire::VerdictRecord;
 use tracing::{debug, warn};
 
 /// See the module documentation.

@@ -9,7 +9,7 @@ pub mod chart;
 pub mod csv_out;
 pub mod report;
 
-use rayfarm_common::cluster::stats::ClusterStats;
+use rayfarm_core::cluster::stats::ClusterStats;
 
 /// Tier names in the order the statistics and the table show them.
 pub const TIERS: [&str; 4] = ["control", "results", "migrated", "tasks"];
@@ -308,10 +308,10 @@ pub fn check_hashes(runs: &[RunOutcome]) -> HashCheck {
 
 #[cfg(test)]
 pub(crate) mod tests {
-    use rayfarm_common::bundler::TierStats;
-    use rayfarm_common::cluster::stats::{TierTraffic, WorkerFrameStats};
-    use rayfarm_common::render::cache::CacheCounters;
-    use rayfarm_common::render::kernel::KernelCounters;
+    use rayfarm_core::bundler::TierStats;
+    use rayfarm_core::cluster::stats::{TierTraffic, WorkerFrameStats};
+    use rayfarm_core::render::cache::CacheCounters;
+    use rayfarm_core::render::kernel::KernelCounters;
 
     use super::*;
 

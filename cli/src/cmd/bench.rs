@@ -16,11 +16,11 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, anyhow, bail};
 use clap::{Args, ValueEnum};
-use rayfarm_common::cluster::job::{parse_schedule, schedule_name};
-use rayfarm_common::cluster::stats::ClusterStats;
-use rayfarm_common::proto;
-use rayfarm_common::scene::Manifest;
-use rayfarm_common::security::ClientSecurity;
+use rayfarm_core::cluster::stats::ClusterStats;
+use rayfarm_core::scene::Manifest;
+use rayfarm_node::job::{parse_schedule, schedule_name};
+use rayfarm_node::proto;
+use rayfarm_node::security::ClientSecurity;
 
 use super::watch::{ended_ok, follow, parse_stats};
 use crate::bench::csv_out::{Setup, write_runs_file};
@@ -146,7 +146,7 @@ pub struct Rate {
 pub fn parse_rate(s: &str) -> Result<Rate, String> {
     Ok(Rate {
         text: s.trim().to_string(),
-        bytes_per_second: rayfarm_common::units::parse_rate(s)?,
+        bytes_per_second: rayfarm_core::units::parse_rate(s)?,
     })
 }
 

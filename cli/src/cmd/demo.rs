@@ -8,8 +8,8 @@ use std::time::Duration;
 
 use anyhow::Context;
 use clap::Args;
-use rayfarm_common::proto;
-use rayfarm_common::scene::Manifest;
+use rayfarm_core::scene::Manifest;
+use rayfarm_node::proto;
 
 use super::prepare::{Generator, PrepareArgs};
 use super::render::RenderArgs;

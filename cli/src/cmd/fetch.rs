@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
 use clap::Args;
-use rayfarm_common::proto;
+use rayfarm_node::proto;
 
 use crate::client::{Coordinator, CoordinatorArgs, runtime};
 

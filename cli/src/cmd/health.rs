@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use anyhow::{Context, bail};
 use clap::Args;
-use rayfarm_common::security::ConnectTlsArgs;
+use rayfarm_node::security::ConnectTlsArgs;
 use tonic_health::pb::HealthCheckRequest;
 use tonic_health::pb::health_check_response::ServingStatus;
 use tonic_health::pb::health_client::HealthClient;
@@ -27,10 +27,10 @@ pub struct HealthArgs {
 
 pub fn run(a: HealthArgs) -> anyhow::Result<()> {
     let tls = a.tls.client_config(None)?;
-    let url = rayfarm_common::security::url(&a.addr, tls.is_some());
+    let url = rayfarm_node::security::url(&a.addr, tls.is_some());
     let timeout = Duration::try_from_secs_f64(a.timeout).context("--timeout")?;
     let status = runtime()?.block_on(async {
-        let channel = rayfarm_common::security::endpoint(&a.addr, tls.as_ref())?
+        let channel = rayfarm_node::security::endpoint(&a.addr, tls.as_ref())?
             .connect_timeout(timeout)
             .timeout(timeout)
             .connect()

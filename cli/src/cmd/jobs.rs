@@ -5,8 +5,8 @@ use std::time::{SystemTime, UNIX_EPOCH};
 
 use clap::Args;
 use comfy_table::{ContentArrangement, Table, presets::UTF8_FULL_CONDENSED};
-use rayfarm_common::cluster::job::schedule_name;
-use rayfarm_common::proto::{self, JobState};
+use rayfarm_node::job::schedule_name;
+use rayfarm_node::proto::{self, JobState};
 use serde_json::json;
 
 use super::watch::state_name;

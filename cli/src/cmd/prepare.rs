@@ -4,10 +4,10 @@ use std::path::PathBuf;
 
 use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
-use rayfarm_common::prepare::generate::{NbodyOptions, prepare_nbody};
-use rayfarm_common::prepare::prepare_mesh;
-use rayfarm_common::prepare::volume_scene::prepare_volume;
-use rayfarm_common::scene::Manifest;
+use rayfarm_core::prepare::generate::{NbodyOptions, prepare_nbody};
+use rayfarm_core::prepare::prepare_mesh;
+use rayfarm_core::prepare::volume_scene::prepare_volume;
+use rayfarm_core::scene::Manifest;
 
 use crate::units;
 
@@ -64,7 +64,7 @@ pub struct PrepareArgs {
 
 pub fn run(a: PrepareArgs) -> anyhow::Result<()> {
     if a.if_missing
-        && let Ok(m) = rayfarm_common::scene::Manifest::load(&a.out)
+        && let Ok(m) = rayfarm_core::scene::Manifest::load(&a.out)
         && m.check_domains(&a.out, true).is_ok()
     {
         println!("{}: already prepared, left as it is", a.out.display());
@@ -100,7 +100,7 @@ pub fn run(a: PrepareArgs) -> anyhow::Result<()> {
             )?
         }
         (None, Some(input), None) => {
-            let mesh = rayfarm_common::mesh::read_mesh(input)?;
+            let mesh = rayfarm_core::mesh::read_mesh(input)?;
             prepare_mesh(&mesh, &name_of(&a), &a.out, a.domains, a.force)?
         }
         (None, None, _) => bail!("give an INPUT mesh or volume, or --generate nbody"),
@@ -141,6 +141,6 @@ fn print_summary(out: &std::path::Path, m: &Manifest) {
     // The kernel's own high-water mark (what `/usr/bin/time -v` reports), for scripts and tests.
     println!(
         "peak RSS: {} bytes",
-        rayfarm_common::render::stats::peak_rss_bytes()
+        rayfarm_core::render::stats::peak_rss_bytes()
     );
 }

@@ -5,8 +5,8 @@ use std::path::PathBuf;
 use anyhow::{Context, bail};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use rayfarm_common::render::local::{FrameSpec, LocalOptions, Progress, render_local};
-use rayfarm_common::scene::{Camera, Manifest};
+use rayfarm_core::render::local::{FrameSpec, LocalOptions, Progress, render_local};
+use rayfarm_core::scene::{Camera, Manifest};
 
 use crate::table::stats_table;
 use crate::units;

@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 use anyhow::bail;
 use clap::Args;
 use comfy_table::{ContentArrangement, Table, presets::UTF8_FULL_CONDENSED};
-use rayfarm_common::proto;
+use rayfarm_node::proto;
 use serde_json::json;
 
 use crate::client::{Coordinator, CoordinatorArgs, runtime};

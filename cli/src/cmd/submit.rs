@@ -7,8 +7,8 @@ use std::time::Duration;
 
 use anyhow::Context;
 use clap::Args;
-use rayfarm_common::cluster::job::parse_schedule;
-use rayfarm_common::proto;
+use rayfarm_node::job::parse_schedule;
+use rayfarm_node::proto;
 
 use super::fetch::{default_output, image_format, save_result};
 use super::watch::{ReconnectArgs, ended_ok, follow, parse_stats, print_stats};

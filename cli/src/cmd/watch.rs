@@ -7,8 +7,8 @@ use std::time::Duration;
 use anyhow::{Context, anyhow, bail};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressFinish, ProgressStyle};
-use rayfarm_common::cluster::stats::ClusterStats;
-use rayfarm_common::proto::{self, JobState};
+use rayfarm_core::cluster::stats::ClusterStats;
+use rayfarm_node::proto::{self, JobState};
 
 use crate::client::{Coordinator, CoordinatorArgs, is_unavailable, runtime};
 use crate::table::{cluster_stats_table, worker_stats_table};
@@ -64,7 +64,7 @@ pub fn run(a: WatchArgs) -> anyhow::Result<()> {
     })
 }
 
-pub use rayfarm_common::cluster::job::state_name;
+pub use rayfarm_node::job::state_name;
 
 /// Whether a job in `state` will not change any more.
 pub fn is_final(state: JobState) -> bool {

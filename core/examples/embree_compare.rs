@@ -22,11 +22,11 @@ use std::time::Instant;
 
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
-use rayfarm_common::bvh::{Hit, TraceRay, Traverser};
-use rayfarm_common::camera::PinholeCamera;
-use rayfarm_common::geometry::PackedTriangle;
-use rayfarm_common::sampling::{Purpose, uniform};
-use rayfarm_common::scene::{DomainData, DomainTree, Manifest};
+use rayfarm_core::bvh::{Hit, TraceRay, Traverser};
+use rayfarm_core::camera::PinholeCamera;
+use rayfarm_core::geometry::PackedTriangle;
+use rayfarm_core::sampling::{Purpose, uniform};
+use rayfarm_core::scene::{DomainData, DomainTree, Manifest};
 use serde_json::{Value, json};
 
 type Result<T> = std::result::Result<T, Box<dyn Error>>;

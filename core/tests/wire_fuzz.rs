@@ -11,8 +11,8 @@ mod fuzz_support;
 
 use fuzz_support::ByteEdit;
 use proptest::prelude::*;
-use rayfarm_common::ray::RayRecord;
-use rayfarm_common::wire::{
+use rayfarm_core::ray::RayRecord;
+use rayfarm_core::wire::{
     BatchLimits, HEADER_BYTES, WireError, check_batch, decode_batch, encode_batch,
 };
 

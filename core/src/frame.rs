@@ -41,6 +41,9 @@
 use std::error::Error;
 use std::fmt;
 
+/// Tile side in pixels: the unit of credit, epochs and results.
+pub const TILE_SIZE: u32 = 32;
+
 /// Credit carried by one tile's primary rays together. `2^62`: large enough that paths of
 /// [`MAX_DEPTH`] bounces never run out (see the module docs), and small enough that two valid
 /// credits can be added in a `u64` without overflow, so workers may merge results.

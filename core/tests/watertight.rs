@@ -2,7 +2,7 @@
 //! always hits one of the triangles that share it, so surfaces have no pinholes.
 
 use glam::Vec3;
-use rayfarm_common::geometry::PackedTriangle;
+use rayfarm_core::geometry::PackedTriangle;
 
 /// A closed, subdivided octahedron: every edge is shared by two triangles with identical bits.
 fn closed_mesh(levels: u32) -> Vec<[[f32; 3]; 3]> {

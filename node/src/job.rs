@@ -1,12 +1,10 @@
 //! A job's frame as the user API carries it, checked once on the coordinator and read the
 //! same way by every worker.
 
-use crate::proto;
-use crate::render::local::FrameSpec;
-use crate::scene::Camera;
+use rayfarm_core::render::local::FrameSpec;
+use rayfarm_core::scene::Camera;
 
-/// Tile side in pixels: the unit of credit, epochs and results.
-pub const TILE_SIZE: u32 = 32;
+use crate::proto;
 
 /// Schedule names as users type them, with their protobuf values.
 pub const SCHEDULES: [(&str, proto::Schedule); 5] = [

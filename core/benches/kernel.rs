@@ -2,22 +2,22 @@
 //! the interval the kernel gives it), BVH build time,
 //! and domain load time (map vs rebuild), on the built-in scene at 1M triangles in one domain.
 //!
-//! `cargo bench -p rayfarm-common --bench kernel`
+//! `cargo bench -p rayfarm-core --bench kernel`
 
 use std::hint::black_box;
 use std::path::PathBuf;
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use glam::Vec3;
-use rayfarm_common::bvh::{self, TraceRay, Traverser};
-use rayfarm_common::camera::PinholeCamera;
-use rayfarm_common::geometry::PackedTriangle;
-use rayfarm_common::prepare::generate::{NbodyOptions, prepare_nbody};
-use rayfarm_common::ray::RayRecord;
-use rayfarm_common::render::kernel::{KernelCounters, RaySink, SceneView};
-use rayfarm_common::sampling::{Purpose, uniform};
-use rayfarm_common::scene::partition::clip_to_box;
-use rayfarm_common::scene::{DomainData, Manifest};
+use rayfarm_core::bvh::{self, TraceRay, Traverser};
+use rayfarm_core::camera::PinholeCamera;
+use rayfarm_core::geometry::PackedTriangle;
+use rayfarm_core::prepare::generate::{NbodyOptions, prepare_nbody};
+use rayfarm_core::ray::RayRecord;
+use rayfarm_core::render::kernel::{KernelCounters, RaySink, SceneView};
+use rayfarm_core::sampling::{Purpose, uniform};
+use rayfarm_core::scene::partition::clip_to_box;
+use rayfarm_core::scene::{DomainData, Manifest};
 
 const TRIANGLES: u64 = 1_000_000;
 /// Camera rays per side: 1024x1024, as in `bench/embree`.

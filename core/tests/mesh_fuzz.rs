@@ -13,7 +13,7 @@ use std::io::Write;
 
 use fuzz_support::ByteEdit;
 use proptest::prelude::*;
-use rayfarm_common::mesh::{
+use rayfarm_core::mesh::{
     MeshError, ParseErrorKind, TriangleMesh, parse_mesh, write_obj, write_ply_ascii,
     write_ply_binary, write_stl_ascii, write_stl_binary,
 };

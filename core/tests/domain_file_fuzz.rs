@@ -2,7 +2,7 @@
 //! counts and offsets lie (with the checksum recomputed so the lies reach the structural checks).
 
 use proptest::prelude::*;
-use rayfarm_common::scene::domain_file::{SourceTriangle, parse_domain_bytes, write_domain};
+use rayfarm_core::scene::domain_file::{SourceTriangle, parse_domain_bytes, write_domain};
 
 const HEADER: usize = 136;
 
@@ -24,7 +24,7 @@ fn write_valid_file() -> Vec<u8> {
             }
         })
         .collect();
-    let b = rayfarm_common::geometry::Aabb {
+    let b = rayfarm_core::geometry::Aabb {
         min: [0.0; 3],
         max: [3.0; 3],
     };

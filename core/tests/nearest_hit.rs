@@ -6,10 +6,10 @@ use std::path::Path;
 
 use glam::Vec3;
 use proptest::prelude::*;
-use rayfarm_common::bvh::{Hit, TraceRay, Traverser};
-use rayfarm_common::mesh::TriangleMesh;
-use rayfarm_common::prepare::prepare_mesh;
-use rayfarm_common::scene::{DomainData, Manifest};
+use rayfarm_core::bvh::{Hit, TraceRay, Traverser};
+use rayfarm_core::mesh::TriangleMesh;
+use rayfarm_core::prepare::prepare_mesh;
+use rayfarm_core::scene::{DomainData, Manifest};
 
 /// Random triangles in the unit cube plus a fan sharing vertices (so ties on shared edges occur).
 fn mesh(seed: u64, n: usize) -> TriangleMesh {

@@ -185,7 +185,7 @@ fn render_in_pool(
         frame.height,
     );
     let film = Film::new(frame.width, frame.height, frame.spp);
-    let grid = TileGrid::new(frame.width, frame.height, crate::cluster::job::TILE_SIZE)
+    let grid = TileGrid::new(frame.width, frame.height, crate::frame::TILE_SIZE)
         .ok_or_else(|| RenderError::Frame("image does not fit the tile grid".into()))?;
     let returned: Vec<AtomicU64> = (0..grid.count()).map(|_| AtomicU64::new(0)).collect();
     let mut cache = DomainCache::new(dir, manifest, options.cache_bytes);

@@ -12,9 +12,9 @@ mod fuzz_support;
 use std::sync::OnceLock;
 
 use proptest::prelude::*;
-use rayfarm_common::geometry::Aabb;
-use rayfarm_common::scene::domain_file::SourceTriangle;
-use rayfarm_common::scene::{
+use rayfarm_core::geometry::Aabb;
+use rayfarm_core::scene::domain_file::SourceTriangle;
+use rayfarm_core::scene::{
     Camera, DomainEntry, KdNode, Light, Manifest, Material, SceneError, Sky, write_domain,
 };
 
@@ -71,7 +71,7 @@ fn write_scene() -> Scene {
         });
     }
     let manifest = Manifest {
-        format: rayfarm_common::scene::manifest::FORMAT_VERSION,
+        format: rayfarm_core::scene::manifest::FORMAT_VERSION,
         name: "fuzz".into(),
         bounds,
         triangles: 50,

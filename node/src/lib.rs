@@ -1,0 +1,9 @@
+//! What every rayfarm process on the network shares, over the pure core (`rayfarm-core`): the
+//! generated gRPC types and services, TLS and credentials, logging, test fault injection, and a
+//! job's frame as the user API carries it.
+
+pub mod fault;
+pub mod job;
+pub mod proto;
+pub mod security;
+pub mod telemetry;
