@@ -9,6 +9,34 @@ use std::process::{Child, ChildStdout, Command, ExitStatus, Output, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
+/// The files of `rayfarm certs --with-secrets` for loopback (see [`certs`]).
+pub struct CertFiles {
+    pub ca: PathBuf,
+    pub cert: PathBuf,
+    pub key: PathBuf,
+    pub secret: PathBuf,
+    pub tokens: PathBuf,
+}
+
+/// Runs `rayfarm certs --with-secrets` for loopback into `dir`.
+pub fn certs(dir: &Path) -> CertFiles {
+    rayfarm_ok(&[
+        "certs",
+        "--out",
+        s(dir),
+        "--hosts",
+        "localhost,127.0.0.1",
+        "--with-secrets",
+    ]);
+    CertFiles {
+        ca: dir.join("ca.pem"),
+        cert: dir.join("node.pem"),
+        key: dir.join("node-key.pem"),
+        secret: dir.join("cluster-secret"),
+        tokens: dir.join("user-tokens"),
+    }
+}
+
 /// Path of a workspace binary built in the same profile as this test.
 pub fn bin(name: &str) -> PathBuf {
     let exe = std::env::current_exe().expect("test executable path");
@@ -160,6 +188,8 @@ pub struct ClusterOpts {
     pub client_env: Vec<(String, String)>,
     /// The coordinator serves TLS: its URL is `https://`.
     pub https: bool,
+    /// The coordinator's limit on open descriptors (`RLIMIT_NOFILE`), set before it starts.
+    pub coordinator_descriptor_limit: Option<u64>,
 }
 
 /// One process of a test cluster.
@@ -180,10 +210,28 @@ impl Proc {
         program: &Path,
         args: &[String],
         env: &[(String, String)],
+        descriptor_limit: Option<u64>,
         log: &Path,
     ) -> Proc {
         let log_file = File::create(log).expect("create log file");
         let mut cmd = Command::new(program);
+        if let Some(limit) = descriptor_limit {
+            use std::os::unix::process::CommandExt;
+            let limit = libc::rlimit {
+                rlim_cur: limit,
+                rlim_max: limit,
+            };
+            // SAFETY: setrlimit is async-signal-safe and touches only the child's limits.
+            unsafe {
+                cmd.pre_exec(move || {
+                    if libc::setrlimit(libc::RLIMIT_NOFILE, &limit) == 0 {
+                        Ok(())
+                    } else {
+                        Err(std::io::Error::last_os_error())
+                    }
+                });
+            }
+        }
         cmd.args(args)
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
@@ -282,6 +330,7 @@ pub struct Cluster {
     /// How the coordinator was started, to start it again the same way.
     coordinator_args: Vec<String>,
     coordinator_env: Vec<(String, String)>,
+    coordinator_descriptor_limit: Option<u64>,
     /// Coordinators killed by the test (their logs are still shown).
     former_coordinators: Vec<Proc>,
     /// By index of start, killed ones included.
@@ -346,6 +395,7 @@ impl Cluster {
             &bin("rayfarm-coordinator"),
             &args,
             &opts.coordinator_env,
+            opts.coordinator_descriptor_limit,
             &dir.path().join("coordinator.log"),
         );
         let scheme = if opts.https { "https" } else { "http" };
@@ -357,6 +407,7 @@ impl Cluster {
             coordinator,
             coordinator_args: args,
             coordinator_env: opts.coordinator_env.clone(),
+            coordinator_descriptor_limit: opts.coordinator_descriptor_limit,
             former_coordinators: Vec::new(),
             workers: Vec::new(),
         };
@@ -392,7 +443,7 @@ impl Cluster {
         args.extend(opts.args.iter().cloned());
         let name = format!("worker-{i}");
         let log = self.dir.path().join(format!("{name}.log"));
-        let proc = Proc::start(&name, &bin("rayfarm-worker"), &args, &opts.env, &log);
+        let proc = Proc::start(&name, &bin("rayfarm-worker"), &args, &opts.env, None, &log);
         self.workers.push(proc);
         i
     }
@@ -454,6 +505,7 @@ impl Cluster {
             &bin("rayfarm-coordinator"),
             &args,
             &self.coordinator_env,
+            self.coordinator_descriptor_limit,
             &log,
         );
         assert_eq!(
@@ -462,6 +514,24 @@ impl Cluster {
         );
         let old = std::mem::replace(&mut self.coordinator, fresh);
         self.former_coordinators.push(old);
+    }
+
+    /// The coordinator's resident memory (VmRSS), bytes.
+    pub fn coordinator_rss(&self) -> u64 {
+        let status =
+            std::fs::read_to_string(format!("/proc/{}/status", self.coordinator.child.id()))
+                .expect("coordinator's /proc status");
+        status
+            .lines()
+            .find_map(|l| l.strip_prefix("VmRSS:"))
+            .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
+            .expect("VmRSS in /proc status")
+            * 1024
+    }
+
+    /// The coordinator's address, `127.0.0.1:PORT`.
+    pub fn coordinator_addr(&self) -> &str {
+        &self.coordinator.addr
     }
 
     /// The coordinator's data directory.

@@ -11,40 +11,13 @@ use rayfarm_node::proto;
 use rayfarm_node::proto::peer_service_client::PeerServiceClient;
 use rayfarm_node::security::{ClusterSecret, ConnectTlsArgs, Credential, endpoint};
 use rayfarm_tests::{
-    Cluster, ClusterOpts, WorkerOpts, domain_bytes, hash_of, local_hash, prepare_nbody, rayfarm_ok,
-    s, stats_field,
+    CertFiles as Files, Cluster, ClusterOpts, WorkerOpts, certs, domain_bytes, hash_of, local_hash,
+    prepare_nbody, rayfarm_ok, s, stats_field,
 };
 
 const FRAME: [&str; 8] = [
     "--width", "96", "--height", "72", "--spp", "2", "--depth", "3",
 ];
-
-/// The files of `rayfarm certs --with-secrets` for loopback.
-struct Files {
-    ca: PathBuf,
-    cert: PathBuf,
-    key: PathBuf,
-    secret: PathBuf,
-    tokens: PathBuf,
-}
-
-fn certs(dir: &Path) -> Files {
-    rayfarm_ok(&[
-        "certs",
-        "--out",
-        s(dir),
-        "--hosts",
-        "localhost,127.0.0.1",
-        "--with-secrets",
-    ]);
-    Files {
-        ca: dir.join("ca.pem"),
-        cert: dir.join("node.pem"),
-        key: dir.join("node-key.pem"),
-        secret: dir.join("cluster-secret"),
-        tokens: dir.join("user-tokens"),
-    }
-}
 
 /// Runs a `rayfarm` that must fail; returns its stderr.
 fn fails(out: std::process::Output, what: &str) -> String {

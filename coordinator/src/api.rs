@@ -3,6 +3,7 @@
 use std::pin::Pin;
 use std::sync::Arc;
 
+use rayfarm_node::bounds::check_field;
 use rayfarm_node::proto::job_service_server::JobService;
 use rayfarm_node::proto::{self, JobState};
 use rayfarm_node::security::User;
@@ -35,7 +36,11 @@ impl JobService for Api {
     ) -> Result<Response<proto::SubmitJobResponse>, Status> {
         // Set by the token check when user tokens are on: who submitted what, for the log.
         let user = request.extensions().get::<User>().map(|u| u.0.clone());
-        let job_id = self.coordinator.submit(request.into_inner().spec)?;
+        let spec = request.into_inner().spec;
+        if let Some(spec) = &spec {
+            check_field("scene", &spec.scene)?;
+        }
+        let job_id = self.coordinator.submit(spec)?;
         if let Some(user) = user {
             info!(%job_id, %user, "job submitted");
         }
@@ -48,7 +53,9 @@ impl JobService for Api {
         &self,
         request: Request<proto::WatchJobRequest>,
     ) -> Result<Response<WatchStream>, Status> {
-        let mut rx = self.coordinator.watch(&request.into_inner().job_id)?;
+        let job_id = request.into_inner().job_id;
+        check_field("job_id", &job_id)?;
+        let mut rx = self.coordinator.watch(&job_id)?;
         let (tx, out) = mpsc::channel(4);
         tokio::spawn(async move {
             loop {
@@ -81,7 +88,9 @@ impl JobService for Api {
         &self,
         request: Request<proto::CancelJobRequest>,
     ) -> Result<Response<proto::CancelJobResponse>, Status> {
-        let state = self.coordinator.cancel(&request.into_inner().job_id)?;
+        let job_id = request.into_inner().job_id;
+        check_field("job_id", &job_id)?;
+        let state = self.coordinator.cancel(&job_id)?;
         Ok(Response::new(proto::CancelJobResponse {
             state: state as i32,
         }))
@@ -92,6 +101,7 @@ impl JobService for Api {
         request: Request<proto::FetchResultRequest>,
     ) -> Result<Response<proto::FetchResultResponse>, Status> {
         let r = request.into_inner();
+        check_field("job_id", &r.job_id)?;
         let (path, stats_json, image_hash) = self.coordinator.result(&r.job_id, r.format())?;
         let image = tokio::fs::read(&path).await.map_err(|e| {
             Status::data_loss(format!(

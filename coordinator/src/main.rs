@@ -19,20 +19,25 @@ use anyhow::Context;
 use clap::Parser;
 use rayfarm_core::schedule::dynamic::Options;
 use rayfarm_node::fault::Faults;
+use rayfarm_node::listen::ConnectionArgs;
 use rayfarm_node::proto::job_service_server::JobServiceServer;
 use rayfarm_node::proto::worker_control_server::WorkerControlServer;
 use rayfarm_node::security::{
     ClusterSecret, RequireSecret, RequireToken, ServeTlsArgs, UserTokens,
 };
 use tonic::service::interceptor::InterceptedService;
-use tonic::transport::server::TcpIncoming;
 use tracing::{info, warn};
 
 use crate::frame::Rounds;
 use crate::state::{Config, Coordinator};
 
-/// Largest gRPC message accepted or sent (tile results of a big pass, fetched images).
+/// Largest gRPC message accepted or sent on the worker link (tile results of a big pass) and
+/// sent by the job API (fetched images).
 const MAX_MESSAGE_BYTES: usize = 256 << 20;
+/// Largest request the job API accepts: job specs and ids are a few hundred bytes, so a
+/// bigger message is refused before it is decoded (a token holder cannot make the
+/// coordinator hold a 250 MiB scene name).
+const MAX_API_REQUEST_BYTES: usize = 64 << 10;
 
 /// Extensions of the dynamic schedule that copy domains.
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
@@ -47,9 +52,16 @@ enum Replicate {
 #[command(version, about)]
 struct Args {
     /// Address to serve the job API and workers on; port 0 lets the OS choose (the chosen
-    /// address is printed on stdout).
-    #[arg(long, env = "RAYFARM_LISTEN", default_value = "0.0.0.0:50051")]
+    /// address is printed on stdout). Other than loopback it needs TLS, the cluster secret
+    /// and user tokens, or --insecure.
+    #[arg(long, env = "RAYFARM_LISTEN", default_value = "127.0.0.1:50051")]
     listen: SocketAddr,
+    /// Serve a non-loopback --listen address without TLS, cluster secret or user tokens
+    /// (anyone reaching it may submit, cancel, or attach as a worker): a trusted network only.
+    #[arg(long, env = "RAYFARM_INSECURE")]
+    insecure: bool,
+    #[command(flatten)]
+    connections: ConnectionArgs,
     /// Where jobs and results are kept: the job database `rayfarm.redb` (queued, running and
     /// finished jobs survive a restart; a damaged file stops the coordinator, never replaced)
     /// and `jobs/<id>/` with each finished job's images and statistics. One coordinator per
@@ -103,6 +115,15 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let tls = args.tls.server_config()?;
     let secret = ClusterSecret::load(args.cluster_secret_file.as_deref())?;
     let tokens = UserTokens::load(args.user_tokens_file.as_deref())?;
+    let missing: Vec<&str> = [
+        (tls.is_none(), "TLS (--tls-cert, --tls-key)"),
+        (secret.is_none(), "a cluster secret (--cluster-secret-file)"),
+        (tokens.is_none(), "user tokens (--user-tokens-file)"),
+    ]
+    .into_iter()
+    .filter_map(|(missing, what)| missing.then_some(what))
+    .collect();
+    rayfarm_node::security::check_exposure(args.listen, &missing, args.insecure)?;
     std::fs::create_dir_all(&args.data_dir)
         .with_context(|| format!("creating data directory {}", args.data_dir.display()))?;
     let listen = args.listen;
@@ -154,7 +175,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         }
     };
     let api = JobServiceServer::new(api::Api::new(coordinator.clone()))
-        .max_decoding_message_size(MAX_MESSAGE_BYTES)
+        .max_decoding_message_size(MAX_API_REQUEST_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
     let api = InterceptedService::new(api, RequireToken(tokens));
     let control = WorkerControlServer::new(control::Control::new(coordinator, faults))
@@ -164,15 +185,15 @@ async fn run(args: Args) -> anyhow::Result<()> {
     // The standard gRPC health service, for container health checks and load balancers.
     let (health, health_service) = tonic_health::server::health_reporter();
     health.set_serving::<JobServiceServer<api::Api>>().await;
-    let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
-    let mut builder = rayfarm_node::security::server_builder();
-    if let Some(tls) = tls {
-        builder = builder
-            .tls_config(tls)
-            .context("TLS configuration (--tls-cert, --tls-key, --tls-client-ca)")?;
-    }
+    info!(
+        max_connections = args.connections.effective_max_connections(),
+        per_peer = args.connections.max_connections_per_peer,
+        handshake_timeout_ms = args.connections.handshake_timeout_ms,
+        "connection limits"
+    );
+    let incoming = rayfarm_node::listen::incoming(listener, tls, &args.connections);
     // Health stays outside the interceptors: probes carry no credentials.
-    let server = builder
+    let server = rayfarm_node::security::server_builder()
         .add_service(health_service)
         .add_service(api)
         .add_service(control)

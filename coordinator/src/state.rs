@@ -324,6 +324,8 @@ impl Coordinator {
 
     /// Registers a worker whose messages go to `tx`; returns its key.
     pub fn register(self: &Arc<Self>, r: &proto::Register, tx: WorkerTx) -> Result<u32, Status> {
+        rayfarm_node::bounds::check_field("worker_id", &r.worker_id)?;
+        rayfarm_node::bounds::check_field("peer_address", &r.peer_address)?;
         if r.protocol_version != PROTOCOL_VERSION {
             return Err(Status::failed_precondition(format!(
                 "worker speaks protocol {}, the coordinator {PROTOCOL_VERSION}",

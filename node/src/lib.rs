@@ -2,8 +2,10 @@
 //! generated gRPC types and services, TLS and credentials, logging, test fault injection, and a
 //! job's frame as the user API carries it.
 
+pub mod bounds;
 pub mod fault;
 pub mod job;
+pub mod listen;
 pub mod proto;
 pub mod security;
 pub mod telemetry;

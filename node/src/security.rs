@@ -13,9 +13,14 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use subtle::ConstantTimeEq;
+use tokio_rustls::TlsAcceptor;
+use tokio_rustls::rustls;
+use tokio_rustls::rustls::pki_types::pem::PemObject;
+use tokio_rustls::rustls::pki_types::{CertificateDer, PrivateKeyDer};
+use tokio_rustls::rustls::server::WebPkiClientVerifier;
 use tonic::metadata::{Ascii, MetadataValue};
 use tonic::service::Interceptor;
-use tonic::transport::{Certificate, ClientTlsConfig, Endpoint, Identity, ServerTlsConfig};
+use tonic::transport::{Certificate, ClientTlsConfig, Endpoint, Identity};
 use tonic::{Request, Status};
 use tracing::warn;
 
@@ -126,15 +131,42 @@ pub struct ServeTlsArgs {
 
 impl ServeTlsArgs {
     /// The server TLS configuration, or `None` when no certificate is given (plain text).
-    pub fn server_config(&self) -> Result<Option<ServerTlsConfig>, SecurityError> {
+    /// The handshake itself is done by [`crate::listen`], under its deadline.
+    pub fn server_config(&self) -> Result<Option<TlsAcceptor>, SecurityError> {
         let (Some(cert), Some(key)) = (&self.tls_cert, &self.tls_key) else {
             return Ok(None);
         };
-        let mut config = ServerTlsConfig::new().identity(identity(cert, key)?);
-        if let Some(ca) = &self.tls_client_ca {
-            config = config.client_ca_root(certificate(ca, "TLS client CA")?);
-        }
-        Ok(Some(config))
+        let chain = CertificateDer::pem_slice_iter(&read_pem(cert, "TLS certificate")?)
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| SecurityError::Tls(format!("{}: {e}", cert.display())))?;
+        let key_der = PrivateKeyDer::from_pem_slice(&read_pem(key, "TLS key")?)
+            .map_err(|e| SecurityError::Tls(format!("{}: {e}", key.display())))?;
+        let provider = Arc::new(rustls::crypto::ring::default_provider());
+        let builder = rustls::ServerConfig::builder_with_provider(provider.clone())
+            .with_safe_default_protocol_versions()
+            .map_err(|e| SecurityError::Tls(e.to_string()))?;
+        let builder = match &self.tls_client_ca {
+            None => builder.with_no_client_auth(),
+            Some(ca) => {
+                let mut roots = rustls::RootCertStore::empty();
+                for c in CertificateDer::pem_slice_iter(&read_pem(ca, "TLS client CA")?) {
+                    let c = c.map_err(|e| SecurityError::Tls(format!("{}: {e}", ca.display())))?;
+                    roots
+                        .add(c)
+                        .map_err(|e| SecurityError::Tls(format!("{}: {e}", ca.display())))?;
+                }
+                let verifier = WebPkiClientVerifier::builder_with_provider(roots.into(), provider)
+                    .build()
+                    .map_err(|e| SecurityError::Tls(format!("{}: {e}", ca.display())))?;
+                builder.with_client_cert_verifier(verifier)
+            }
+        };
+        let mut config = builder.with_single_cert(chain, key_der).map_err(|e| {
+            SecurityError::Tls(format!("{} and {}: {e}", cert.display(), key.display()))
+        })?;
+        // gRPC is HTTP/2 only.
+        config.alpn_protocols = vec![b"h2".to_vec()];
+        Ok(Some(TlsAcceptor::from(Arc::new(config))))
     }
 
     /// This node's certificate and key, when it has them (presented as a client identity).
@@ -225,11 +257,70 @@ pub const KEEPALIVE_INTERVAL: Duration = Duration::from_secs(10);
 /// A connection whose ping goes unanswered this long is closed.
 pub const KEEPALIVE_TIMEOUT: Duration = Duration::from_secs(20);
 
-/// A server builder whose connections ping their clients (see [`KEEPALIVE_INTERVAL`]).
+/// Most streams one client may have open on one connection (HTTP/2
+/// `SETTINGS_MAX_CONCURRENT_STREAMS`): rayfarm's clients use a handful; a hostile one that
+/// opens thousands and never finishes them is refused past this many.
+pub const MAX_STREAMS_PER_CONNECTION: u32 = 64;
+/// Largest header list (the request's metadata) a server accepts. Credentials and gRPC's own
+/// headers need well under 1 KiB.
+pub const MAX_HEADER_LIST_BYTES: u32 = 16 << 10;
+/// A handler that has not answered within this is cancelled (`DEADLINE_EXCEEDED`); for a
+/// unary call this includes receiving its body, so a request left unfinished ends here. The
+/// long-lived streams (a worker's control stream, ray bundles) answer at once and run on.
+pub const REQUEST_TIMEOUT: Duration = Duration::from_secs(60);
+
+/// A server builder whose connections ping their clients (see [`KEEPALIVE_INTERVAL`]) and
+/// are bounded in streams, header size and request time. Connections themselves are capped
+/// and handshaken by [`crate::listen::incoming`].
 pub fn server_builder() -> tonic::transport::Server {
     tonic::transport::Server::builder()
         .http2_keepalive_interval(Some(KEEPALIVE_INTERVAL))
         .http2_keepalive_timeout(Some(KEEPALIVE_TIMEOUT))
+        .max_concurrent_streams(MAX_STREAMS_PER_CONNECTION)
+        .http2_max_header_list_size(MAX_HEADER_LIST_BYTES)
+        .http2_max_pending_accept_reset_streams(Some(32))
+        .timeout(REQUEST_TIMEOUT)
+}
+
+/// Why a server refuses to listen where it was asked to.
+#[derive(Debug, thiserror::Error)]
+#[error(
+    "refusing to serve {listen} without {missing}: anyone who can reach that address could \
+     use this node. Listen on loopback (127.0.0.1), configure them, or pass --insecure on a \
+     network you trust"
+)]
+pub struct Exposed {
+    /// The address asked for.
+    pub listen: std::net::SocketAddr,
+    /// The missing protections, e.g. "TLS and user tokens".
+    pub missing: String,
+}
+
+/// Checks that a server listening on `listen` is not reachable from other machines without
+/// the protections it lacks (`missing`, each like "TLS"): a loopback address is always fine;
+/// any other needs `insecure`, and then a warning is logged.
+pub fn check_exposure(
+    listen: std::net::SocketAddr,
+    missing: &[&str],
+    insecure: bool,
+) -> Result<(), Exposed> {
+    if missing.is_empty() || listen.ip().is_loopback() {
+        return Ok(());
+    }
+    let missing = match missing {
+        [one] => one.to_string(),
+        [init @ .., last] => format!("{} and {last}", init.join(", ")),
+        [] => unreachable!("checked above"),
+    };
+    if insecure {
+        warn!(
+            %listen,
+            "--insecure: serving without {missing}; anyone who can reach this address can use \
+             this node"
+        );
+        return Ok(());
+    }
+    Err(Exposed { listen, missing })
 }
 
 /// An error and its sources on one line: tonic's transport errors say only "transport
@@ -663,6 +754,22 @@ mod tests {
         assert!(e.to_string().contains("--tls-ca"), "{e}");
         assert_eq!(url("h:1", true), "https://h:1");
         assert_eq!(url("http://h:1", false), "http://h:1");
+    }
+
+    #[test]
+    fn only_loopback_may_go_without_protection() {
+        let lo: std::net::SocketAddr = "127.0.0.1:1".parse().unwrap();
+        let any: std::net::SocketAddr = "0.0.0.0:1".parse().unwrap();
+        assert!(check_exposure(lo, &["TLS"], false).is_ok());
+        assert!(check_exposure(any, &[], false).is_ok());
+        assert!(check_exposure(any, &["TLS"], true).is_ok());
+        let e = check_exposure(any, &["TLS", "the cluster secret", "user tokens"], false);
+        let e = e.unwrap_err().to_string();
+        assert!(
+            e.contains("without TLS, the cluster secret and user tokens")
+                && e.contains("--insecure"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -25,12 +25,12 @@ use rayfarm_node::security::{
 };
 use tokio::sync::mpsc;
 use tonic::service::interceptor::InterceptedService;
-use tonic::transport::server::TcpIncoming;
 use tracing::{info, warn};
 
 use crate::engine::{Engine, EngineConfig};
 use crate::peers::{LinkLimits, MAX_MESSAGE_BYTES, PeerLinks, PeerServer};
 use rayfarm_node::fault::Faults;
+use rayfarm_node::listen::ConnectionArgs;
 
 /// rayfarm-worker: traces rays for a rayfarm coordinator.
 #[derive(Parser, Debug)]
@@ -44,8 +44,15 @@ struct Args {
     )]
     coordinator: String,
     /// Address to serve peers on; port 0 lets the OS choose (the chosen address is printed).
-    #[arg(long, env = "RAYFARM_WORKER_LISTEN", default_value = "0.0.0.0:0")]
+    /// Other than loopback it needs TLS and the cluster secret, or --insecure.
+    #[arg(long, env = "RAYFARM_WORKER_LISTEN", default_value = "127.0.0.1:0")]
     listen: SocketAddr,
+    /// Serve a non-loopback --listen address without TLS or cluster secret (anyone reaching
+    /// it may push rays into this worker's frames): a trusted network only.
+    #[arg(long, env = "RAYFARM_INSECURE")]
+    insecure: bool,
+    #[command(flatten)]
+    connections: ConnectionArgs,
     /// Address peers reach this worker at (host:port). Default: the listen address, or this
     /// host's name with the listen port when listening on all interfaces.
     #[arg(long, env = "RAYFARM_ADVERTISE")]
@@ -137,6 +144,14 @@ async fn run(args: Args) -> anyhow::Result<()> {
         tls: args.connect_tls.client_config(args.serve_tls.identity()?)?,
         credential: Credential::secret(secret.as_ref()),
     };
+    let missing: Vec<&str> = [
+        (serve_tls.is_none(), "TLS (--tls-cert, --tls-key)"),
+        (secret.is_none(), "a cluster secret (--cluster-secret-file)"),
+    ]
+    .into_iter()
+    .filter_map(|(missing, what)| missing.then_some(what))
+    .collect();
+    rayfarm_node::security::check_exposure(args.listen, &missing, args.insecure)?;
     let listener = tokio::net::TcpListener::bind(args.listen)
         .await
         .with_context(|| format!("cannot listen on {}", args.listen))?;
@@ -223,15 +238,9 @@ async fn run(args: Args) -> anyhow::Result<()> {
     // The standard gRPC health service, for container health checks.
     let (health, health_service) = tonic_health::server::health_reporter();
     health.set_serving::<PeerServiceServer<PeerServer>>().await;
-    let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
-    let mut builder = rayfarm_node::security::server_builder();
-    if let Some(tls) = serve_tls {
-        builder = builder
-            .tls_config(tls)
-            .context("TLS configuration (--tls-cert, --tls-key, --tls-client-ca)")?;
-    }
+    let incoming = rayfarm_node::listen::incoming(listener, serve_tls, &args.connections);
     // Health stays outside the interceptor: probes carry no credentials.
-    let server = builder
+    let server = rayfarm_node::security::server_builder()
         .add_service(health_service)
         .add_service(peer_service)
         .serve_with_incoming(incoming);

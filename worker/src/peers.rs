@@ -292,8 +292,8 @@ impl PeerService for PeerServer {
                     // with the next.
                     error!(
                         %remote,
-                        sender = %bundle.sender,
-                        job = %bundle.job_id,
+                        sender = %rayfarm_node::bounds::shown(&bundle.sender),
+                        job = %rayfarm_node::bounds::shown(&bundle.job_id),
                         sequence = bundle.sequence,
                         code = ?status.code(),
                         error = %status.message(),
@@ -329,6 +329,8 @@ impl PeerService for PeerServer {
 /// tier, and each batch's structure and frame-independent record fields. The engine checks the
 /// rest (domain, pixel and depth ranges) against the frame.
 fn check_bundle(bundle: &proto::PeerBundle) -> Result<(), Status> {
+    rayfarm_node::bounds::check_field("sender", &bundle.sender)?;
+    rayfarm_node::bounds::check_field("job_id", &bundle.job_id)?;
     if bundle.protocol_version != PROTOCOL_VERSION {
         return Err(Status::failed_precondition(format!(
             "peer {} speaks protocol {}, this worker {PROTOCOL_VERSION}",

@@ -1,0 +1,347 @@
+//! Attacks on real processes by hostile clients written here: a server reachable from other
+//! machines only with protection (or --insecure); silent connections that would hold every
+//! descriptor; oversized fields and thousands of unfinished HTTP/2 streams that would hold
+//! memory. Each time a legitimate client keeps being served and the coordinator's memory
+//! (VmRSS) stays within a stated bound.
+
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use rayfarm_node::proto;
+use rayfarm_node::proto::job_service_client::JobServiceClient;
+use rayfarm_tests::{Cluster, ClusterOpts, bin, certs, s, wait_child};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::{TcpSocket, TcpStream};
+
+/// Where the hostile connections come from: another loopback address than the legitimate
+/// client's 127.0.0.1, as an attacker on another machine would.
+const HOSTILE_IP: [u8; 4] = [127, 0, 0, 2];
+
+fn runtime() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap()
+}
+
+/// A connection from [`HOSTILE_IP`] to `addr`.
+async fn hostile_connect(addr: &str) -> std::io::Result<TcpStream> {
+    let socket = TcpSocket::new_v4()?;
+    socket.bind((std::net::Ipv4Addr::from(HOSTILE_IP), 0).into())?;
+    socket.connect(addr.parse().unwrap()).await
+}
+
+#[test]
+fn only_loopback_is_served_without_protection_unless_insecure() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let coordinator = |extra: &[&str]| {
+        let mut cmd = Command::new(bin("rayfarm-coordinator"));
+        cmd.args(["--listen", "0.0.0.0:0", "--data-dir", s(&data)])
+            .args(extra)
+            .env("NO_COLOR", "1")
+            .env("RUST_LOG", "warn")
+            .stdin(Stdio::null());
+        cmd
+    };
+    let out = coordinator(&[]).output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "served 0.0.0.0 without protection");
+    for word in [
+        "0.0.0.0",
+        "TLS",
+        "cluster secret",
+        "user tokens",
+        "--insecure",
+    ] {
+        assert!(err.contains(word), "{word:?} missing from: {err}");
+    }
+    let out = Command::new(bin("rayfarm-worker"))
+        .args(["--listen", "0.0.0.0:0"])
+        .env("RUST_LOG", "warn")
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "a worker served 0.0.0.0 unprotected");
+    assert!(err.contains("--insecure"), "{err}");
+
+    // With --insecure it serves, and says so.
+    let log = dir.path().join("insecure.log");
+    let mut child = coordinator(&["--insecure"])
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::piped())
+        .stderr(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    std::io::BufRead::read_line(
+        &mut std::io::BufReader::new(child.stdout.take().unwrap()),
+        &mut line,
+    )
+    .unwrap();
+    let _ = child.kill();
+    wait_child(&mut child, "insecure coordinator", Duration::from_secs(10));
+    assert!(line.starts_with("listening on 0.0.0.0:"), "{line:?}");
+    let log = std::fs::read_to_string(&log).unwrap();
+    assert!(log.contains("--insecure: serving without"), "{log}");
+}
+
+/// Holds `n` hostile connections that never send a byte; returns them and how many the
+/// coordinator closed at once (past its per-peer cap).
+async fn hold_silent(addr: &str, n: usize) -> (Vec<TcpStream>, usize) {
+    let mut held = Vec::new();
+    for _ in 0..n {
+        match hostile_connect(addr).await {
+            Ok(c) => held.push(c),
+            Err(e) => panic!("hostile connect failed: {e}"),
+        }
+    }
+    // A connection past the cap is closed by the server: reading it ends at once.
+    let mut closed = 0;
+    let mut open = Vec::new();
+    for mut c in held {
+        let mut b = [0u8; 1];
+        match tokio::time::timeout(Duration::from_millis(20), c.read(&mut b)).await {
+            Ok(_) => closed += 1,
+            Err(_) => open.push(c),
+        }
+    }
+    (open, closed)
+}
+
+/// Waits until every connection in `held` is closed by the server.
+async fn all_closed(held: Vec<TcpStream>, limit: Duration) {
+    let start = Instant::now();
+    for mut c in held {
+        let mut b = [0u8; 64];
+        let left = limit.saturating_sub(start.elapsed());
+        match tokio::time::timeout(left, c.read(&mut b)).await {
+            Ok(Ok(0)) | Ok(Err(_)) => {}
+            Ok(Ok(_)) => panic!("the server sent bytes to a silent connection"),
+            Err(_) => panic!("a silent connection was still open after {limit:?}"),
+        }
+    }
+}
+
+#[test]
+fn silent_connections_do_not_starve_a_legitimate_client_under_a_low_descriptor_limit() {
+    let rt = runtime();
+    let tls_dir = tempfile::tempdir().unwrap();
+    let f = certs(tls_dir.path());
+    let scenes = tempfile::tempdir().unwrap();
+    let limits = ["--handshake-timeout-ms", "1500"];
+    let plain = ClusterOpts {
+        coordinator_args: limits.iter().map(|a| a.to_string()).collect(),
+        coordinator_descriptor_limit: Some(256),
+        ..ClusterOpts::default()
+    };
+    let mut tls_args: Vec<String> = [
+        "--tls-cert",
+        s(&f.cert),
+        "--tls-key",
+        s(&f.key),
+        "--cluster-secret-file",
+        s(&f.secret),
+        "--user-tokens-file",
+        s(&f.tokens),
+    ]
+    .iter()
+    .map(|a| a.to_string())
+    .collect();
+    tls_args.extend(limits.iter().map(|a| a.to_string()));
+    let tls = ClusterOpts {
+        coordinator_args: tls_args,
+        client_env: vec![
+            ("RAYFARM_TLS_CA".into(), s(&f.ca).into()),
+            ("RAYFARM_TOKEN_FILE".into(), s(&f.tokens).into()),
+        ],
+        https: true,
+        coordinator_descriptor_limit: Some(256),
+        ..ClusterOpts::default()
+    };
+    for (name, opts) in [("plain text", plain), ("TLS", tls)] {
+        let cluster = Cluster::start_with(scenes.path(), None, &opts, &[]);
+        // More silent connections than the coordinator has descriptors.
+        let connected = Instant::now();
+        let (held, closed) = rt.block_on(hold_silent(cluster.coordinator_addr(), 300));
+        assert_eq!(
+            held.len(),
+            64,
+            "{name}: the per-peer cap (64) holds, {closed} closed"
+        );
+        // While they are held, a client at another address is served, in time.
+        for _ in 0..3 {
+            let start = Instant::now();
+            cluster.rayfarm_ok(&["jobs"]);
+            assert!(
+                start.elapsed() < Duration::from_secs(5),
+                "{name}: jobs took {:?}",
+                start.elapsed()
+            );
+        }
+        // And the silent ones are closed by the handshake deadline.
+        rt.block_on(all_closed(held, Duration::from_secs(10)));
+        eprintln!(
+            "{name}: 300 silent connections, {closed} closed at once, 64 held, all closed {:?} \
+             after connecting",
+            connected.elapsed()
+        );
+        cluster.rayfarm_ok(&["jobs"]);
+    }
+}
+
+/// The HPACK encoding of one header as a literal with a literal name (RFC 7541, 6.2.2).
+fn hpack_literal(out: &mut Vec<u8>, name: &str, value: &str) {
+    assert!(name.len() < 127 && value.len() < 127);
+    out.push(0x00);
+    out.push(name.len() as u8);
+    out.extend_from_slice(name.as_bytes());
+    out.push(value.len() as u8);
+    out.extend_from_slice(value.as_bytes());
+}
+
+/// An HTTP/2 frame header.
+fn frame(out: &mut Vec<u8>, kind: u8, flags: u8, stream: u32, payload: &[u8]) {
+    let len = payload.len() as u32;
+    out.extend_from_slice(&len.to_be_bytes()[1..]);
+    out.push(kind);
+    out.push(flags);
+    out.extend_from_slice(&stream.to_be_bytes());
+    out.extend_from_slice(payload);
+}
+
+/// Opens `streams` CancelJob requests on one connection, each with headers and no body (never
+/// finished), reading everything the server sends; returns the number of RST_STREAM and
+/// GOAWAY frames it answered with.
+async fn unfinished_streams(addr: &str, streams: u32) -> (u32, u32) {
+    let mut conn = hostile_connect(addr).await.unwrap();
+    let mut headers = Vec::new();
+    hpack_literal(&mut headers, ":method", "POST");
+    hpack_literal(&mut headers, ":scheme", "http");
+    hpack_literal(&mut headers, ":path", "/rayfarm.v1.JobService/CancelJob");
+    hpack_literal(&mut headers, ":authority", "localhost");
+    hpack_literal(&mut headers, "content-type", "application/grpc");
+    hpack_literal(&mut headers, "te", "trailers");
+    let mut out = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n".to_vec();
+    frame(&mut out, 0x4, 0, 0, &[]); // SETTINGS
+    for i in 0..streams {
+        // HEADERS with END_HEADERS, without END_STREAM.
+        frame(&mut out, 0x1, 0x4, 1 + 2 * i, &headers);
+    }
+    let (mut rd, mut wr) = conn.split();
+    let read = async {
+        let (mut resets, mut goaways) = (0, 0);
+        let mut header = [0u8; 9];
+        loop {
+            let got = tokio::time::timeout(Duration::from_secs(3), rd.read_exact(&mut header));
+            match got.await {
+                Ok(Ok(_)) => {}
+                _ => break,
+            }
+            let len = u32::from_be_bytes([0, header[0], header[1], header[2]]) as usize;
+            let mut payload = vec![0u8; len];
+            if rd.read_exact(&mut payload).await.is_err() {
+                break;
+            }
+            match header[3] {
+                0x3 => resets += 1,
+                0x7 => goaways += 1,
+                _ => {}
+            }
+        }
+        (resets, goaways)
+    };
+    let write = async {
+        let _ = wr.write_all(&out).await;
+    };
+    let (counts, ()) = tokio::join!(read, write);
+    counts
+}
+
+#[test]
+fn oversized_fields_and_unfinished_streams_hold_no_memory() {
+    let rt = runtime();
+    let scenes = tempfile::tempdir().unwrap();
+    let cluster = Cluster::start(scenes.path(), None, &[]);
+    let url = cluster.coordinator_url().to_string();
+    let before = cluster.coordinator_rss();
+    let mut client = rt
+        .block_on(JobServiceClient::connect(url.clone()))
+        .unwrap()
+        .max_encoding_message_size(usize::MAX);
+
+    // A field a little too long: refused by its size, never echoed.
+    let long = "x".repeat(1000);
+    let e = rt
+        .block_on(client.cancel_job(proto::CancelJobRequest {
+            job_id: long.clone(),
+        }))
+        .unwrap_err();
+    assert_eq!(e.code(), tonic::Code::InvalidArgument, "{e}");
+    assert!(e.message().contains("1000 bytes"), "{}", e.message());
+    assert!(!e.message().contains("xxxx"), "{}", e.message());
+    let spec = proto::JobSpec {
+        scene: long.clone(),
+        ..Default::default()
+    };
+    let e = rt
+        .block_on(client.submit_job(proto::SubmitJobRequest { spec: Some(spec) }))
+        .unwrap_err();
+    assert_eq!(e.code(), tonic::Code::InvalidArgument, "{e}");
+    assert!(!e.message().contains("xxxx"), "{}", e.message());
+
+    // Huge ones (three 64 MiB job ids, a 64 MiB scene name): refused before decoding.
+    let huge = "y".repeat(64 << 20);
+    for _ in 0..3 {
+        let e = rt
+            .block_on(client.cancel_job(proto::CancelJobRequest {
+                job_id: huge.clone(),
+            }))
+            .unwrap_err();
+        assert!(
+            e.message().len() < 1000,
+            "{} bytes of error",
+            e.message().len()
+        );
+        assert!(!e.message().contains("yyyy"));
+    }
+    let spec = proto::JobSpec {
+        scene: huge.clone(),
+        ..Default::default()
+    };
+    let e = rt
+        .block_on(client.submit_job(proto::SubmitJobRequest { spec: Some(spec) }))
+        .unwrap_err();
+    assert!(
+        e.message().len() < 1000,
+        "{} bytes of error",
+        e.message().len()
+    );
+    let after_fields = cluster.coordinator_rss();
+
+    // 10,000 streams opened and never finished on one connection.
+    let (resets, goaways) = rt.block_on(unfinished_streams(cluster.coordinator_addr(), 10_000));
+    let after_streams = cluster.coordinator_rss();
+    // Everything past the stream cap is refused (or the connection ended).
+    assert!(
+        resets >= 10_000 - 64 || goaways > 0,
+        "{resets} streams reset, {goaways} GOAWAY"
+    );
+    cluster.rayfarm_ok(&["jobs"]);
+    let mib = |b: u64| b as f64 / (1 << 20) as f64;
+    eprintln!(
+        "coordinator VmRSS: {:.1} MiB at start, {:.1} MiB after oversized fields, {:.1} MiB \
+         after 10,000 unfinished streams ({resets} reset, {goaways} GOAWAY)",
+        mib(before),
+        mib(after_fields),
+        mib(after_streams)
+    );
+    // The bound: 64 MiB over the start (the requests themselves were 256 MiB and more).
+    assert!(
+        after_fields.max(after_streams) < before + (64 << 20),
+        "VmRSS grew from {:.1} to {:.1} MiB",
+        mib(before),
+        mib(after_fields.max(after_streams))
+    );
+}
