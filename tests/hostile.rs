@@ -9,7 +9,10 @@ use std::time::{Duration, Instant};
 
 use rayfarm_node::proto;
 use rayfarm_node::proto::job_service_client::JobServiceClient;
-use rayfarm_tests::{Cluster, ClusterOpts, bin, certs, s, wait_child};
+use rayfarm_tests::{
+    Cluster, ClusterOpts, WorkerOpts, bin, certs, hash_of, local_hash, prepare_nbody, s,
+    submit_wait, wait_child,
+};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpSocket, TcpStream};
 
@@ -345,4 +348,82 @@ fn oversized_fields_and_unfinished_streams_hold_no_memory() {
         mib(before),
         mib(after_fields.max(after_streams))
     );
+}
+
+const FRAME: [&str; 8] = [
+    "--width", "48", "--height", "32", "--spp", "1", "--depth", "2",
+];
+
+#[test]
+fn hostile_scene_files_are_refused_at_once_without_their_contents() {
+    let root = tempfile::tempdir().unwrap();
+    let outside = tempfile::tempdir().unwrap();
+    let scene = prepare_nbody(root.path(), "nb", 2000, 2);
+    let secret = outside.path().join("secret");
+    std::fs::write(&secret, "TOPSECRET-LINE = 42\n").unwrap();
+    std::fs::create_dir(outside.path().join("scene")).unwrap();
+    std::fs::write(
+        outside.path().join("scene/scene.toml"),
+        "TOPSECRET-LINE = 1\n",
+    )
+    .unwrap();
+    let r = root.path();
+    let link = |target: &std::path::Path, name: &str| {
+        std::fs::create_dir_all(r.join(name)).unwrap();
+        std::os::unix::fs::symlink(target, r.join(name).join("scene.toml")).unwrap();
+    };
+    link(&secret, "secret");
+    link(std::path::Path::new("/etc/passwd"), "passwd");
+    link(std::path::Path::new("/dev/zero"), "zero");
+    link(&outside.path().join("nothing"), "dangling");
+    std::os::unix::fs::symlink(outside.path().join("scene"), r.join("escape")).unwrap();
+    std::fs::create_dir(r.join("fifo")).unwrap();
+    let fifo = std::ffi::CString::new(s(&r.join("fifo/scene.toml"))).unwrap();
+    // SAFETY: mkfifo reads the path it is given.
+    assert_eq!(unsafe { libc::mkfifo(fifo.as_ptr(), 0o644) }, 0);
+    std::fs::create_dir(r.join("huge")).unwrap();
+    let huge = std::fs::File::create(r.join("huge/scene.toml")).unwrap();
+    huge.set_len(64 << 20).unwrap();
+    std::fs::create_dir(r.join("inside")).unwrap();
+    std::fs::write(r.join("inside/scene.toml"), "password = \"hunter2\"\n").unwrap();
+
+    let cluster = Cluster::start(r, Some("nb"), &[WorkerOpts::default()]);
+    let absolute = outside.path().join("scene");
+    let cases: [(&str, &str); 10] = [
+        ("fifo", "not a regular file"),
+        ("fifo", "not a regular file"),
+        ("huge", "more than the"),
+        ("inside", "line 1, column 1"),
+        ("secret", "NOT_FOUND"),
+        ("passwd", "NOT_FOUND"),
+        ("zero", "NOT_FOUND"),
+        ("dangling", "NOT_FOUND"),
+        ("escape", "NOT_FOUND"),
+        (s(&absolute), "--allow-absolute-scenes"),
+    ];
+    for (name, why) in cases {
+        let start = Instant::now();
+        let out = cluster.rayfarm(&["submit", "--scene", name]);
+        let took = start.elapsed();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{name}: accepted");
+        assert!(err.contains(why), "{name}: {why:?} missing from {err}");
+        for secret in ["TOPSECRET", "root:", "hunter2", "password"] {
+            assert!(!err.contains(secret), "{name}: {secret:?} in {err}");
+        }
+        // Nothing about paths outside the root, but what the caller named itself.
+        let named = name.starts_with('/');
+        assert!(named || !err.contains(s(outside.path())), "{name}: {err}");
+        assert!(took < Duration::from_secs(5), "{name}: {took:?}");
+    }
+    // A missing scene and one leading outside get the same answer.
+    let missing = String::from_utf8_lossy(&cluster.rayfarm(&["submit", "--scene", "none"]).stderr)
+        .replace("\"none\"", "\"X\"");
+    let escape = String::from_utf8_lossy(&cluster.rayfarm(&["submit", "--scene", "escape"]).stderr)
+        .replace("\"escape\"", "\"X\"");
+    assert_eq!(missing, escape);
+    // The coordinator kept serving (heartbeats included): the worker is still there and the
+    // next job renders the image of render --local.
+    let stats = submit_wait(&cluster, &FRAME, "after");
+    assert_eq!(hash_of(&stats), local_hash(&scene, &FRAME));
 }

@@ -2,27 +2,68 @@
 
 use std::pin::Pin;
 use std::sync::Arc;
+use std::time::Duration;
+
+use rayfarm_core::scene::Manifest;
 
 use rayfarm_node::bounds::check_field;
 use rayfarm_node::proto::job_service_server::JobService;
 use rayfarm_node::proto::{self, JobState};
 use rayfarm_node::security::User;
-use tokio::sync::mpsc;
+use tokio::sync::{Semaphore, mpsc};
 use tokio_stream::Stream;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status};
-use tracing::info;
+use tracing::{info, warn};
 
 use crate::state::Coordinator;
 
 /// The user API served by the coordinator.
 pub struct Api {
     coordinator: Arc<Coordinator>,
+    /// Scene reads in progress: storage that hangs holds at most this many blocking threads.
+    scene_reads: Arc<Semaphore>,
 }
+
+/// A scene manifest not read within this fails its submission (`DEADLINE_EXCEEDED`).
+const SCENE_READ_TIMEOUT: Duration = Duration::from_secs(10);
+/// Most scene manifests read at once.
+const MAX_SCENE_READS: usize = 8;
 
 impl Api {
     pub fn new(coordinator: Arc<Coordinator>) -> Self {
-        Api { coordinator }
+        Api {
+            coordinator,
+            scene_reads: Arc::new(Semaphore::new(MAX_SCENE_READS)),
+        }
+    }
+
+    /// Reads `scene`'s manifest on a blocking thread, within [`SCENE_READ_TIMEOUT`], so slow
+    /// or hung storage never stalls the async runtime (heartbeats, other calls).
+    async fn read_scene(&self, scene: &str) -> Result<Manifest, Status> {
+        let permit = self.scene_reads.clone().try_acquire_owned().map_err(|_| {
+            Status::resource_exhausted(format!(
+                "{MAX_SCENE_READS} scene reads are in progress; try again"
+            ))
+        })?;
+        let coordinator = self.coordinator.clone();
+        let name = scene.to_string();
+        let read = tokio::task::spawn_blocking(move || {
+            let _permit = permit;
+            coordinator.open_scene(&name)
+        });
+        match tokio::time::timeout(SCENE_READ_TIMEOUT, read).await {
+            Ok(Ok(result)) => result.map(|(_, manifest)| manifest),
+            Ok(Err(e)) => Err(Status::internal(format!(
+                "reading scene {scene:?} failed: {e}"
+            ))),
+            Err(_) => {
+                warn!(scene, "scene read timed out");
+                Err(Status::deadline_exceeded(format!(
+                    "scene {scene:?} could not be read within {SCENE_READ_TIMEOUT:?}"
+                )))
+            }
+        }
     }
 }
 
@@ -40,7 +81,9 @@ impl JobService for Api {
         if let Some(spec) = &spec {
             check_field("scene", &spec.scene)?;
         }
-        let job_id = self.coordinator.submit(spec)?;
+        let spec = self.coordinator.spec_with_defaults(spec)?;
+        let manifest = self.read_scene(&spec.scene).await?;
+        let job_id = self.coordinator.enqueue(spec, &manifest)?;
         if let Some(user) = user {
             info!(%job_id, %user, "job submitted");
         }

@@ -71,6 +71,10 @@ struct Args {
     /// Directory that job scene names are relative to (this node's mount point).
     #[arg(long, env = "RAYFARM_SCENE_ROOT", default_value = ".")]
     scene_root: PathBuf,
+    /// Accept absolute scene paths as well as names under --scene-root (for clusters where
+    /// every node sees the same paths). Off: a job cannot name files elsewhere on the host.
+    #[arg(long, env = "RAYFARM_ALLOW_ABSOLUTE_SCENES")]
+    allow_absolute_scenes: bool,
     /// Scene rendered by jobs that name none.
     #[arg(long, env = "RAYFARM_DEFAULT_SCENE")]
     default_scene: Option<String>,
@@ -130,6 +134,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let config = Config {
         data_dir: args.data_dir,
         scene_root: args.scene_root,
+        allow_absolute_scenes: args.allow_absolute_scenes,
         default_scene: args.default_scene,
         heartbeat: Duration::from_millis(args.heartbeat_ms.max(10)),
         worker_timeout: Duration::from_millis(args.worker_timeout_ms.max(100)),

@@ -32,6 +32,8 @@ use crate::store::{Store, StoreError, StoredJob};
 pub struct Config {
     pub data_dir: PathBuf,
     pub scene_root: PathBuf,
+    /// Scenes may be absolute paths (else names under `scene_root` only).
+    pub allow_absolute_scenes: bool,
     pub default_scene: Option<String>,
     /// Heartbeat interval asked of workers.
     pub heartbeat: Duration,
@@ -159,8 +161,21 @@ impl Coordinator {
 
     // ----- the user API -----
 
-    /// Checks and queues a job; returns its id.
+    /// Checks and queues a job; returns its id. Reads the scene's manifest on the calling
+    /// thread: the job API reads it off the async runtime ([`Coordinator::spec_with_defaults`],
+    /// [`Coordinator::open_scene`], [`Coordinator::enqueue`]).
+    #[cfg(test)]
     pub fn submit(self: &Arc<Self>, spec: Option<proto::JobSpec>) -> Result<String, Status> {
+        let spec = self.spec_with_defaults(spec)?;
+        let (_, manifest) = self.open_scene(&spec.scene)?;
+        self.enqueue(spec, &manifest)
+    }
+
+    /// The job's spec with the defaults filled in (schedule, scene), or why it has none.
+    pub fn spec_with_defaults(
+        &self,
+        spec: Option<proto::JobSpec>,
+    ) -> Result<proto::JobSpec, Status> {
         let mut spec =
             spec.ok_or_else(|| Status::invalid_argument("the request has no job spec"))?;
         let schedule = Schedule::try_from(spec.schedule)
@@ -173,7 +188,15 @@ impl Coordinator {
         if spec.scene.is_empty() {
             spec.scene = self.config.default_scene.clone().unwrap_or_default();
         }
-        let (_, manifest) = self.open_scene(&spec.scene)?;
+        Ok(spec)
+    }
+
+    /// Checks `spec` against its scene's `manifest` and queues the job; returns its id.
+    pub fn enqueue(
+        self: &Arc<Self>,
+        spec: proto::JobSpec,
+        manifest: &Manifest,
+    ) -> Result<String, Status> {
         frame_spec(&spec, &manifest.camera).map_err(Status::invalid_argument)?;
         let mut st = self.lock();
         st.seq += 1;
@@ -207,17 +230,28 @@ impl Coordinator {
         Ok(id)
     }
 
-    fn open_scene(&self, scene: &str) -> Result<(PathBuf, Manifest), Status> {
-        let dir = scene_ref::resolve(&self.config.scene_root, scene).map_err(|e| match e {
+    /// The directory and manifest of `scene`, resolved under the scene root (see
+    /// [`scene_ref`]). Errors name the scene and the position of a fault in its manifest,
+    /// never the manifest's text nor anything about paths outside the root.
+    pub fn open_scene(&self, scene: &str) -> Result<(PathBuf, Manifest), Status> {
+        let dir = scene_ref::resolve(
+            &self.config.scene_root,
+            scene,
+            self.config.allow_absolute_scenes,
+        )
+        .map_err(|e| match e {
             scene_ref::SceneRefError::Missing => Status::failed_precondition(e.to_string()),
-            scene_ref::SceneRefError::Escapes(_) => Status::invalid_argument(e.to_string()),
+            scene_ref::SceneRefError::Escapes(_) | scene_ref::SceneRefError::Absolute(_) => {
+                Status::invalid_argument(e.to_string())
+            }
+            scene_ref::SceneRefError::NotFound(_) => Status::not_found(e.to_string()),
+            scene_ref::SceneRefError::Root(..) => {
+                error!(error = %e, "scene root unusable");
+                Status::unavailable(format!(
+                    "scene {scene:?}: the coordinator's scene root is unusable"
+                ))
+            }
         })?;
-        if !dir.is_dir() {
-            return Err(Status::not_found(format!(
-                "scene {scene:?} not found: {} is not a directory",
-                dir.display()
-            )));
-        }
         let manifest = Manifest::load(&dir)
             .map_err(|e| Status::failed_precondition(format!("scene {scene:?}: {e}")))?;
         Ok((dir, manifest))
@@ -822,6 +856,7 @@ mod tests {
         Config {
             data_dir: root.join("data"),
             scene_root: root.join("scenes"),
+            allow_absolute_scenes: false,
             default_scene: None,
             heartbeat: Duration::from_secs(1),
             worker_timeout: Duration::from_secs(10),

@@ -46,6 +46,8 @@ pub struct EngineConfig {
     /// Address peers reach this worker at.
     pub advertise: String,
     pub scene_root: PathBuf,
+    /// Scenes may be absolute paths (else names under `scene_root` only).
+    pub allow_absolute_scenes: bool,
     pub cache_bytes: u64,
     pub threads: usize,
     /// Camera rays are issued while fewer than this many rays are queued here.
@@ -259,7 +261,11 @@ impl Engine {
             .spec
             .as_ref()
             .ok_or_else(|| anyhow::anyhow!("StartFrame without a job spec"))?;
-        let dir = scene_ref::resolve(&self.config.scene_root, &spec.scene)?;
+        let dir = scene_ref::resolve(
+            &self.config.scene_root,
+            &spec.scene,
+            self.config.allow_absolute_scenes,
+        )?;
         let manifest = Manifest::load(&dir)?;
         let frame = job::frame_spec(spec, &manifest.camera).map_err(anyhow::Error::msg)?;
         let grid = TileGrid::new(frame.width, frame.height, s.tile_size)

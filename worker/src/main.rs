@@ -73,6 +73,10 @@ struct Args {
     /// Directory that job scene names are relative to (this node's mount point).
     #[arg(long, env = "RAYFARM_SCENE_ROOT", default_value = ".")]
     scene_root: PathBuf,
+    /// Accept absolute scene paths as well as names under --scene-root (give it to the
+    /// coordinator and every worker alike).
+    #[arg(long, env = "RAYFARM_ALLOW_ABSOLUTE_SCENES")]
+    allow_absolute_scenes: bool,
     /// Tracing threads (default: all cores).
     #[arg(long, env = "RAYFARM_THREADS")]
     threads: Option<usize>,
@@ -205,6 +209,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
             worker_id: worker_id.clone(),
             advertise: advertise.clone(),
             scene_root: args.scene_root.clone(),
+            allow_absolute_scenes: args.allow_absolute_scenes,
             cache_bytes: args.cache_bytes,
             threads,
             wave_rays: args.wave_rays.max(1),

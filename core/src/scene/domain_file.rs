@@ -184,7 +184,7 @@ impl DomainData {
         verify_checksum: bool,
         materials: u32,
     ) -> Result<DomainData, SceneError> {
-        let file = std::fs::File::open(path).map_err(|e| SceneError::io(path, e))?;
+        let (file, _) = super::open_regular(path, u64::MAX, "domain file")?;
         // SAFETY: domain files are written once, then renamed into place and never modified;
         // a file changed under us is a broken deployment, and every value read is bounds-checked.
         let map = unsafe { Mmap::map(&file) }.map_err(|e| SceneError::io(path, e))?;

@@ -145,17 +145,73 @@ pub struct DomainEntry {
     pub checksum: String,
 }
 
+/// Largest manifest read (far above any real one: 16 domains take about 4 KiB).
+pub const MAX_MANIFEST_BYTES: u64 = 4 << 20;
+
+/// A TOML error as `line L, column C: what` without any of the text: toml's own message
+/// quotes the offending line, and serde's quote values (`invalid type: string "…"`) and
+/// unknown keys, which for a file that is no manifest would be its contents.
+fn toml_error(text: &str, mut e: toml::de::Error) -> String {
+    let at = e.span().map(|span| {
+        let before = &text.as_bytes()[..span.start.min(text.len())];
+        let line = before.iter().filter(|&&b| b == b'\n').count() + 1;
+        let column = before.iter().rev().take_while(|&&b| b != b'\n').count() + 1;
+        format!("line {line}, column {column}: ")
+    });
+    // Without the input, the message says which key it was in rather than quoting the line.
+    e.set_input(None);
+    let what = e.to_string().trim_end().replace('\n', " ");
+    format!("{}{}", at.unwrap_or_default(), redact(&what))
+}
+
+/// `message` with every `"quoted"` literal and the name after `unknown field`/`unknown
+/// variant` withheld.
+fn redact(message: &str) -> String {
+    let mut out = String::with_capacity(message.len());
+    let mut rest = message;
+    while let Some(i) = rest.find('"') {
+        out.push_str(&rest[..i]);
+        out.push_str("\"…\"");
+        rest = match rest[i + 1..].find('"') {
+            Some(j) => &rest[i + 1 + j + 1..],
+            None => "",
+        };
+    }
+    out.push_str(rest);
+    for lead in ["unknown field `", "unknown variant `"] {
+        if let Some(i) = out.find(lead) {
+            let start = i + lead.len();
+            if let Some(len) = out[start..].find('`') {
+                out.replace_range(start..start + len, "…");
+            }
+        }
+    }
+    out
+}
+
 impl Manifest {
-    /// Reads and checks `DIR/scene.toml`.
+    /// Reads and checks `DIR/scene.toml`: a regular file of at most [`MAX_MANIFEST_BYTES`],
+    /// else refused before reading. Errors name the file and the position, never its text.
     pub fn load(dir: &Path) -> Result<Manifest, SceneError> {
+        use std::io::Read;
         let path = dir.join(MANIFEST_FILE);
-        let text = std::fs::read_to_string(&path).map_err(|e| SceneError::io(&path, e))?;
+        let (file, bytes) = super::open_regular(&path, MAX_MANIFEST_BYTES, "manifest")?;
+        let mut raw = Vec::with_capacity(bytes as usize);
+        // `take`: a file that grows while being read stops at the cap all the same.
+        file.take(MAX_MANIFEST_BYTES)
+            .read_to_end(&mut raw)
+            .map_err(|e| SceneError::io(&path, e))?;
+        let text = String::from_utf8(raw).map_err(|e| SceneError::Manifest {
+            path: path.clone(),
+            reason: format!("not UTF-8 text (byte {})", e.utf8_error().valid_up_to()),
+        })?;
         Manifest::parse(&text).map_err(|reason| SceneError::Manifest { path, reason })
     }
 
-    /// Parses and checks manifest text.
+    /// Parses and checks manifest text. A syntax or type error gives its line and column and
+    /// what was expected, without quoting the text (see [`toml_error`]).
     pub fn parse(text: &str) -> Result<Manifest, String> {
-        let m: Manifest = toml::from_str(text).map_err(|e| e.to_string())?;
+        let m: Manifest = toml::from_str(text).map_err(|e| toml_error(text, e))?;
         m.check()?;
         Ok(m)
     }

@@ -4,7 +4,8 @@ pub mod domain_file;
 pub mod manifest;
 pub mod partition;
 
-use std::path::PathBuf;
+use std::fs::File;
+use std::path::{Path, PathBuf};
 
 pub use domain_file::{DomainData, DomainSummary, write_domain};
 pub use manifest::{Camera, DomainEntry, Light, Manifest, Material, Sky};
@@ -32,6 +33,24 @@ pub enum SceneError {
         /// What is wrong.
         reason: String,
     },
+    /// A scene file that is no regular file (a FIFO, a device, a directory): never read.
+    #[error("{path}: not a regular file")]
+    NotRegular {
+        /// The file.
+        path: PathBuf,
+    },
+    /// A file larger than it may be: refused before reading.
+    #[error("{path}: {bytes} bytes, more than the {max} a {what} may have")]
+    TooLarge {
+        /// The file.
+        path: PathBuf,
+        /// Its size.
+        bytes: u64,
+        /// The most accepted.
+        max: u64,
+        /// What the file is ("manifest").
+        what: &'static str,
+    },
     /// A domain file is truncated, corrupt or does not match the manifest.
     #[error("{path}: bad domain file: {reason}")]
     Domain {
@@ -49,6 +68,37 @@ impl SceneError {
             source,
         }
     }
+}
+
+/// Opens `path` for reading if it is a regular file of at most `max_bytes` (`what` names the
+/// kind of file in the error); returns it with its size. The open never blocks: a FIFO or a
+/// device named as a scene file is refused by its type, before any byte is read.
+pub(crate) fn open_regular(
+    path: &Path,
+    max_bytes: u64,
+    what: &'static str,
+) -> Result<(File, u64), SceneError> {
+    use std::os::unix::fs::OpenOptionsExt;
+    let file = std::fs::OpenOptions::new()
+        .read(true)
+        .custom_flags(libc::O_NONBLOCK)
+        .open(path)
+        .map_err(|e| SceneError::io(path, e))?;
+    let meta = file.metadata().map_err(|e| SceneError::io(path, e))?;
+    if !meta.is_file() {
+        return Err(SceneError::NotRegular {
+            path: path.to_path_buf(),
+        });
+    }
+    if meta.len() > max_bytes {
+        return Err(SceneError::TooLarge {
+            path: path.to_path_buf(),
+            bytes: meta.len(),
+            max: max_bytes,
+            what,
+        });
+    }
+    Ok((file, meta.len()))
 }
 
 /// Writes `bytes` to `path` through a temporary name in the same directory, so a reader never
