@@ -521,7 +521,7 @@ impl Cluster {
         &self.workers[i].addr
     }
 
-    /// Waits until exactly `n` workers are registered with the coordinator (asking as a user
+    /// Waits until at least `n` workers are registered with the coordinator (asking as a user
     /// would: `rayfarm status --wait-workers N`); panics after `timeout`.
     pub fn wait_for_workers(&self, n: usize, timeout: Duration) {
         self.rayfarm_ok(&[
