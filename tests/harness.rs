@@ -459,12 +459,7 @@ impl Cluster {
     }
 
     fn signal_worker(&self, i: usize, signal: &str) {
-        let pid = self.workers[i].child.id().to_string();
-        let status = Command::new("kill")
-            .args([signal, &pid])
-            .status()
-            .expect("run kill");
-        assert!(status.success(), "kill {signal} {pid} failed");
+        signal_pid(self.workers[i].child.id(), signal);
     }
 
     /// Kills worker `i` at once (SIGKILL: a crash, not a shutdown) and reaps it.
@@ -484,6 +479,30 @@ impl Cluster {
         );
         self.coordinator.stop();
         self.coordinator.killed = true;
+    }
+
+    /// Sends the coordinator `signal` (e.g. "-TERM") and waits up to `timeout` for it to exit;
+    /// returns its exit status and how long it took. Panics if it is still running then.
+    /// [`Cluster::restart_coordinator`] may follow.
+    pub fn stop_coordinator(&mut self, signal: &str, timeout: Duration) -> (ExitStatus, Duration) {
+        assert!(
+            !self.coordinator.killed,
+            "the coordinator was already stopped"
+        );
+        let pid = self.coordinator.child.id();
+        signal_pid(pid, signal);
+        let start = Instant::now();
+        loop {
+            if let Some(status) = self.coordinator.child.try_wait().expect("poll coordinator") {
+                self.coordinator.killed = true;
+                return (status, start.elapsed());
+            }
+            assert!(
+                start.elapsed() < timeout,
+                "the coordinator did not exit within {timeout:?} of kill {signal}"
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
     }
 
     /// Starts the coordinator again after [`Cluster::kill_coordinator`], with the same
@@ -572,7 +591,7 @@ impl Cluster {
         &self.workers[i].addr
     }
 
-    /// Waits until exactly `n` workers are registered with the coordinator (asking as a user
+    /// Waits until at least `n` workers are registered with the coordinator (asking as a user
     /// would: `rayfarm status --wait-workers N`); panics after `timeout`.
     pub fn wait_for_workers(&self, n: usize, timeout: Duration) {
         self.rayfarm_ok(&[
@@ -727,6 +746,16 @@ pub fn submit_wait(cluster: &Cluster, frame: &[&str], tag: &str) -> PathBuf {
     cluster.rayfarm_ok(&args);
     assert!(png.exists(), "{} was not written", png.display());
     json
+}
+
+/// Sends `signal` (as `kill` takes it, e.g. "-TERM") to process `pid`.
+pub fn signal_pid(pid: u32, signal: &str) {
+    let pid = pid.to_string();
+    let status = Command::new("kill")
+        .args([signal, &pid])
+        .status()
+        .expect("run kill");
+    assert!(status.success(), "kill {signal} {pid} failed");
 }
 
 /// Polls `check` until it holds; fails the test after `timeout`.

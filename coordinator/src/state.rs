@@ -47,6 +47,9 @@ pub struct Config {
     pub rounds: Rounds,
 }
 
+/// What workers and clients are told once the coordinator is stopping.
+pub const SHUTTING_DOWN: &str = "the coordinator is shutting down";
+
 /// Where a worker's messages go.
 pub type WorkerTx = mpsc::UnboundedSender<Result<proto::CoordinatorMessage, Status>>;
 
@@ -97,6 +100,8 @@ struct State {
     next_key: u32,
     running: Option<RunningFrame>,
     finishing: BTreeMap<String, Finishing>,
+    /// Set by [`Coordinator::shut_down`]: no worker attaches and no frame starts any more.
+    stopping: bool,
 }
 
 /// See the module documentation.
@@ -134,6 +139,7 @@ impl Coordinator {
             next_key: 0,
             running: None,
             finishing: BTreeMap::new(),
+            stopping: false,
         };
         for stored in loaded.jobs {
             restore(&mut st, &config.data_dir, stored);
@@ -372,6 +378,9 @@ impl Coordinator {
             ));
         }
         let mut st = self.lock();
+        if st.stopping {
+            return Err(Status::unavailable(SHUTTING_DOWN));
+        }
         if st.workers.values().any(|w| w.id == r.worker_id) {
             return Err(Status::already_exists(format!(
                 "a worker called {} is already attached",
@@ -533,6 +542,24 @@ impl Coordinator {
         send(&st, out);
     }
 
+    /// Stops for good (SIGTERM or Ctrl-C): tells every worker the coordinator is going away
+    /// (its control stream ends with `UNAVAILABLE`, so it reconnects with backoff to the next
+    /// coordinator), abandons the running frame, and closes the job database so a successor
+    /// can open it at once. Nothing is lost: every job change is already on disk, and the job
+    /// that was running is still recorded as running, so the next coordinator on this data
+    /// directory queues it again at fresh tile epochs.
+    pub fn shut_down(&self) {
+        let mut st = self.lock();
+        st.stopping = true;
+        for (_, worker) in std::mem::take(&mut st.workers) {
+            let _ = worker.tx.send(Err(Status::unavailable(SHUTTING_DOWN)));
+        }
+        if let Some(frame) = st.running.take() {
+            info!(job = %frame.job_id, "job interrupted: it starts over when a coordinator opens this data directory again");
+        }
+        st.store.close();
+    }
+
     /// Drops workers that have been silent longer than the timeout.
     pub fn reap_silent_workers(self: &Arc<Self>) {
         let silent: Vec<u32> = {
@@ -555,7 +582,7 @@ impl Coordinator {
 
     /// Starts the next queued job if the cluster is free and has workers.
     fn try_start(self: &Arc<Self>, st: &mut State) {
-        while st.running.is_none() && !st.workers.is_empty() {
+        while !st.stopping && st.running.is_none() && !st.workers.is_empty() {
             let Some(id) = st.queue.pop() else {
                 return;
             };

@@ -62,9 +62,6 @@ impl FrameSpec {
         }
         if let Some(c) = &self.camera {
             c.check()?;
-            if c.eye == c.look_at {
-                return Err("camera eye and look-at must be distinct".into());
-            }
         }
         Ok(())
     }
