@@ -366,6 +366,10 @@ impl Coordinator {
         info!(worker = %r.worker_id, key, peer = %r.peer_address, cache_bytes = r.cache_bytes, threads = r.threads, "worker attached");
         let member = Member::new(r.peer_address.clone(), r.cache_bytes);
         if let Some(frame) = st.running.as_mut() {
+            if frame.sidelined.contains(&r.worker_id) {
+                info!(job = %frame.job_id, worker = %r.worker_id, "worker sits out the running frame: a peer could not reach it");
+                return Ok(key);
+            }
             let out = frame.join(key, member);
             info!(job = %frame.job_id, round = frame.round, "worker joins the running frame");
             send(&st, out);
@@ -405,15 +409,17 @@ impl Coordinator {
                     .iter()
                     .find(|(_, w)| w.peer_address == p.peer_address)
                     .map(|(&k, _)| k);
-                drop(st);
-                match silent {
-                    // Dropping it closes its control stream: if it is only slow, it comes back
-                    // through a fresh registration and joins at the next round.
-                    Some(k) => self.worker_gone(
-                        k,
-                        &format!("unresponsive to worker {reporter}: {}", p.reason),
-                    ),
-                    None => info!(peer = %p.peer_address, "unresponsive peer is no member"),
+                // Judged after a grace period, with the other side's reports (`accusations`).
+                match (silent, st.running.as_mut()) {
+                    (Some(k), Some(frame))
+                        if frame.members().any(|m| m == k) && frame.members().any(|m| m == key) =>
+                    {
+                        warn!(worker = %reporter, peer = %p.peer_address, reason = %p.reason, "a worker reports a peer unreachable");
+                        frame.accusations.add(key, k, Instant::now(), &p.reason);
+                    }
+                    _ => {
+                        info!(worker = %reporter, peer = %p.peer_address, "unresponsive peer is no member of a running frame: ignored")
+                    }
                 }
             }
         }
@@ -493,6 +499,8 @@ impl Coordinator {
                     .push(frame.job_id.clone(), frame.spec.priority, seq);
                 set_state(&mut st, &frame.job_id, JobState::Queued, "");
             }
+            // Workers sitting out the frame are still here: they start it over.
+            self.try_start(&mut st);
             return;
         }
         info!(worker = %worker.id, "re-issuing the unfinished tiles on the remaining workers");
@@ -515,6 +523,31 @@ impl Coordinator {
             }
             self.worker_gone(key, "no heartbeat");
         }
+        while let Some((key, why)) = self.judge_accusations() {
+            // Dropping it closes its control stream: if it is only slow or cut off, it comes
+            // back through a fresh registration and joins the next frame.
+            self.worker_gone(key, &why);
+        }
+    }
+
+    /// The member to drop for its peers' reports, if their grace period is over (see
+    /// [`crate::accusations`]); it sits out the rest of the frame.
+    fn judge_accusations(&self) -> Option<(u32, String)> {
+        let grace = (self.config.heartbeat * 2).max(Duration::from_millis(500));
+        let mut st = self.lock();
+        let frame = st.running.as_mut()?;
+        let members = frame.members().collect();
+        let v = frame.accusations.judge(Instant::now(), grace, &members)?;
+        let id_of = |k| st.workers.get(&k).map(|w| w.id.clone()).unwrap_or_default();
+        let (accused, accuser) = (id_of(v.accused), id_of(v.accuser));
+        if let Some(frame) = st.running.as_mut() {
+            frame.sidelined.insert(accused);
+        }
+        let why = format!(
+            "unresponsive to worker {accuser} (reported by {} peers): {}",
+            v.accusers, v.reason
+        );
+        Some((v.accused, why))
     }
 
     // ----- frames -----
