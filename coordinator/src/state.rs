@@ -53,6 +53,11 @@ struct Job {
     seq: u64,
     /// Frames started so far (see [`StoredJob::attempts`]).
     attempts: u32,
+    /// The epoch every tile of its next frame starts at, at least: one past the highest
+    /// epoch an earlier frame of it used in this process. A frame that lost every worker
+    /// bumped epochs with each loss; a worker dropped from it may still send rays and
+    /// results of those epochs, which the restarted frame must never take for its own.
+    epoch_floor: u32,
     progress: watch::Sender<proto::WatchJobResponse>,
     image_hash: String,
     stats_json: String,
@@ -190,6 +195,7 @@ impl Coordinator {
             summary,
             seq,
             attempts: 0,
+            epoch_floor: 0,
             progress: progress_channel(&id, JobState::Queued, "", ""),
             image_hash: String::new(),
             stats_json: String::new(),
@@ -383,6 +389,14 @@ impl Coordinator {
     pub fn worker_message(self: &Arc<Self>, key: u32, body: FromWorker) {
         let mut st = self.lock();
         let Some(worker) = st.workers.get_mut(&key) else {
+            // Its stream outlived its membership (a healed partition delivers what it sent
+            // meanwhile): whatever it says is stale.
+            if !matches!(body, FromWorker::Heartbeat(_)) {
+                info!(
+                    key,
+                    "message from a worker no longer attached: refused as stale"
+                );
+            }
             return;
         };
         worker.last_seen = Instant::now();
@@ -494,6 +508,11 @@ impl Coordinator {
             // starts over when workers come back.
             if let Some(frame) = st.running.take() {
                 warn!(job = %frame.job_id, "every worker of the frame is gone: job re-queued");
+                let grid = frame.ledger.grid().count();
+                let used = (0..grid).filter_map(|t| frame.ledger.epoch(t)).max();
+                if let Some(job) = st.jobs.get_mut(&frame.job_id) {
+                    job.epoch_floor = used.unwrap_or(0).saturating_add(1);
+                }
                 let seq = st.jobs.get(&frame.job_id).map_or(0, |j| j.seq);
                 st.queue
                     .push(frame.job_id.clone(), frame.spec.priority, seq);
@@ -569,7 +588,8 @@ impl Coordinator {
                     // workers were all lost) starts every tile at a new epoch, so rays and
                     // results of the abandoned run still in flight are dropped as stale.
                     let tiles: Vec<u32> = (0..frame.ledger.grid().count()).collect();
-                    for _ in 0..attempts {
+                    let floor = st.jobs.get(&id).map_or(0, |j| j.epoch_floor);
+                    for _ in 0..attempts.max(floor) {
                         frame.ledger.bump(&tiles);
                     }
                     let members: Vec<(u32, Member)> = st
@@ -805,6 +825,7 @@ fn restore(st: &mut State, data_dir: &std::path::Path, stored: StoredJob) {
         summary,
         seq: stored.seq,
         attempts: stored.attempts,
+        epoch_floor: 0,
         image_hash: stored.image_hash,
         stats_json: stored.stats_json,
     };
@@ -867,26 +888,32 @@ mod tests {
     /// Attaches a worker (its control stream is the channel) and returns the epochs of every
     /// tile in the StartFrame it is sent, tile by tile.
     fn start_epochs(c: &Arc<Coordinator>) -> BTreeMap<u32, u32> {
+        start_epochs_of(c, "w").1
+    }
+
+    /// [`start_epochs`] of a worker called `id`; also returns its key.
+    fn start_epochs_of(c: &Arc<Coordinator>, id: &str) -> (u32, BTreeMap<u32, u32>) {
         let (tx, mut rx) = mpsc::unbounded_channel();
         let register = proto::Register {
             protocol_version: PROTOCOL_VERSION,
-            worker_id: "w".into(),
-            peer_address: "127.0.0.1:1".into(),
+            worker_id: id.into(),
+            peer_address: format!("{id}:1"),
             cache_bytes: 1 << 30,
             threads: 1,
         };
-        c.register(&register, tx).expect("registered");
+        let key = c.register(&register, tx).expect("registered");
         while let Ok(msg) = rx.try_recv() {
             if let Some(Body::StartFrame(s)) = msg.expect("no error").body {
-                return s.epochs.into_iter().collect();
+                // Its channel stays open while the test runs, as a live worker's would.
+                std::mem::forget(rx);
+                return (key, s.epochs.into_iter().collect());
             }
         }
         panic!("no StartFrame sent");
     }
 
-    #[test]
-    fn a_job_restarted_after_a_coordinator_restart_starts_its_tiles_at_a_new_epoch() {
-        let root = tempfile::tempdir().unwrap();
+    /// A scene `nb` under `root` and a small job of it.
+    fn small_job(root: &std::path::Path) -> proto::JobSpec {
         let options = NbodyOptions {
             name: "nb".into(),
             triangles: 2000,
@@ -895,16 +922,43 @@ mod tests {
             max_memory: None,
             force: false,
         };
-        prepare_nbody(&root.path().join("scenes").join("nb"), &options).unwrap();
-        std::fs::create_dir_all(root.path().join("data")).unwrap();
-        let spec = proto::JobSpec {
+        prepare_nbody(&root.join("scenes").join("nb"), &options).unwrap();
+        std::fs::create_dir_all(root.join("data")).unwrap();
+        proto::JobSpec {
             scene: "nb".into(),
             width: 64,
             height: 32,
             spp: 1,
             max_depth: 1,
             ..Default::default()
-        };
+        }
+    }
+
+    #[test]
+    fn a_job_whose_workers_were_all_lost_restarts_above_every_epoch_it_used() {
+        let root = tempfile::tempdir().unwrap();
+        let spec = small_job(root.path());
+        let c = Coordinator::open(config(root.path())).unwrap();
+        c.submit(Some(spec)).unwrap();
+        let (a, first) = start_epochs_of(&c, "a");
+        assert!(first.is_empty(), "a first frame starts at epoch 0");
+        let (b, _) = start_epochs_of(&c, "b");
+        // Losing a bumps every tile to epoch 1; losing b too re-queues the job.
+        c.worker_gone(a, "test");
+        c.worker_gone(b, "test");
+        assert_eq!(c.list()[0].state(), JobState::Queued);
+        // Worker b, dropped but still running, may send epoch-1 rays: the new frame is above.
+        let (_, again) = start_epochs_of(&c, "c");
+        assert!(
+            !again.is_empty() && again.values().all(|&e| e >= 2),
+            "{again:?}"
+        );
+    }
+
+    #[test]
+    fn a_job_restarted_after_a_coordinator_restart_starts_its_tiles_at_a_new_epoch() {
+        let root = tempfile::tempdir().unwrap();
+        let spec = small_job(root.path());
         let c = Coordinator::open(config(root.path())).unwrap();
         let id = c.submit(Some(spec.clone())).unwrap();
         assert!(
