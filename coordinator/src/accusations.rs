@@ -1,10 +1,12 @@
 //! Workers' reports that a peer is unreachable, and which worker to drop for them.
 //!
 //! A report says a link is broken, not which end is at fault: a worker cut off from its peers
-//! reports every one of them, and each of them reports it. Acting on the first report would
-//! drop a healthy worker on the word of the cut-off one. So reports wait a short grace period
-//! for the other side's, then the worker reported by the most distinct members goes (on a
-//! tie, the one reported first): the cut-off worker, whose accusations go with it.
+//! (or on a link too slow for its bundles) reports every one of them, and some of them report
+//! it. Acting on the first report would drop a healthy worker on the word of the cut-off one.
+//! So reports wait a short grace period for the others, then the worker at an end of the most
+//! distinct broken links goes, whichever side reported them (on a tie, the one reported first):
+//! the cut-off worker, whose reports go with it. A hung worker is at the end of every link
+//! reported; a single broken link between two healthy workers costs one of them.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::{Duration, Instant};
@@ -24,14 +26,16 @@ pub struct Accusations {
     pending: Vec<Accusation>,
 }
 
-/// The worker to drop, with the first reason given against it and who gave it.
+/// The worker to drop, and the first report involving it.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Verdict {
-    pub accused: u32,
+    pub drop: u32,
+    /// Distinct members it has a broken link with.
+    pub links: usize,
+    /// That first report: who reported whom, and why.
     pub accuser: u32,
+    pub accused: u32,
     pub reason: String,
-    /// Distinct members that reported it.
-    pub accusers: usize,
 }
 
 impl Accusations {
@@ -67,23 +71,28 @@ impl Accusations {
         if now.saturating_duration_since(oldest.at) < grace {
             return None;
         }
-        // Distinct accusers of each accused, and its first report (reports are in order).
-        let mut accusers: BTreeMap<u32, BTreeSet<u32>> = BTreeMap::new();
+        // The distinct peers each worker has a broken link with.
+        let mut links: BTreeMap<u32, BTreeSet<u32>> = BTreeMap::new();
         for a in &self.pending {
-            accusers.entry(a.accused).or_default().insert(a.accuser);
+            links.entry(a.accused).or_default().insert(a.accuser);
+            links.entry(a.accuser).or_default().insert(a.accused);
         }
-        let most = accusers.values().map(BTreeSet::len).max()?;
-        let first = self
-            .pending
-            .iter()
-            .find(|a| accusers[&a.accused].len() == most)?
-            .clone();
-        self.forget(first.accused);
+        let most = links.values().map(BTreeSet::len).max()?;
+        // Reports are in order of arrival: the first one naming a worker with the most broken
+        // links decides, the accused before the accuser.
+        let (drop, first) = self.pending.iter().find_map(|a| {
+            [a.accused, a.accuser]
+                .into_iter()
+                .find(|k| links[k].len() == most)
+                .map(|k| (k, a.clone()))
+        })?;
+        self.forget(drop);
         Some(Verdict {
-            accused: first.accused,
+            drop,
+            links: most,
             accuser: first.accuser,
+            accused: first.accused,
             reason: first.reason,
-            accusers: most,
         })
     }
 }
@@ -107,7 +116,7 @@ mod tests {
         let v = a
             .judge(t0 + GRACE, GRACE, &members(&[1, 2]))
             .expect("verdict");
-        assert_eq!((v.accused, v.accuser, v.accusers), (2, 1, 1));
+        assert_eq!((v.drop, v.links, v.accuser, v.accused), (2, 1, 1, 2));
         assert_eq!(a.judge(t0 + GRACE * 2, GRACE, &members(&[1])), None);
     }
 
@@ -123,10 +132,24 @@ mod tests {
         a.add(0, 1, ms(90), "no connection");
         let all = members(&[0, 1, 2]);
         let v = a.judge(ms(600), GRACE, &all).expect("verdict");
-        assert_eq!((v.accused, v.accusers), (1, 2));
-        assert_eq!(v.accuser, 2);
+        assert_eq!((v.drop, v.links), (1, 2));
+        assert_eq!((v.accuser, v.accused), (1, 0));
         // Its own reports went with it.
         assert_eq!(a.judge(ms(2000), GRACE, &members(&[0, 2])), None);
+    }
+
+    #[test]
+    fn a_worker_that_reports_every_peer_goes_though_none_reported_it() {
+        // Its own link is too slow for its bundles: it finds both peers unresponsive.
+        let t0 = Instant::now();
+        let mut a = Accusations::default();
+        a.add(1, 0, t0, "36 bundles unacknowledged");
+        a.add(1, 2, t0, "57 bundles unacknowledged");
+        let v = a
+            .judge(t0 + GRACE, GRACE, &members(&[0, 1, 2]))
+            .expect("verdict");
+        assert_eq!((v.drop, v.links), (1, 2));
+        assert_eq!(a.judge(t0 + GRACE, GRACE, &members(&[0, 2])), None);
     }
 
     #[test]
@@ -138,7 +161,7 @@ mod tests {
         let v = a
             .judge(t0 + GRACE, GRACE, &members(&[0, 1, 2]))
             .expect("verdict");
-        assert_eq!((v.accused, v.accuser), (1, 0));
+        assert_eq!((v.drop, v.accuser), (1, 0));
         a.add(2, 0, t0, "c");
         // Worker 2 left before the judgement: its report counts for nothing.
         assert_eq!(a.judge(t0 + GRACE, GRACE, &members(&[0, 1])), None);

@@ -45,6 +45,11 @@ pub struct Config {
     pub rounds: Rounds,
 }
 
+/// Least time a worker's report of an unreachable peer waits for the other side's reports
+/// (see [`crate::accusations`]): both sides notice a broken link within about this long of
+/// each other when their deadlines are alike.
+const ACCUSATION_GRACE: Duration = Duration::from_secs(2);
+
 /// Where a worker's messages go.
 pub type WorkerTx = mpsc::UnboundedSender<Result<proto::CoordinatorMessage, Status>>;
 
@@ -552,21 +557,22 @@ impl Coordinator {
     /// The member to drop for its peers' reports, if their grace period is over (see
     /// [`crate::accusations`]); it sits out the rest of the frame.
     fn judge_accusations(&self) -> Option<(u32, String)> {
-        let grace = (self.config.heartbeat * 2).max(Duration::from_millis(500));
+        let grace = (self.config.heartbeat * 2).max(ACCUSATION_GRACE);
         let mut st = self.lock();
         let frame = st.running.as_mut()?;
         let members = frame.members().collect();
         let v = frame.accusations.judge(Instant::now(), grace, &members)?;
         let id_of = |k| st.workers.get(&k).map(|w| w.id.clone()).unwrap_or_default();
-        let (accused, accuser) = (id_of(v.accused), id_of(v.accuser));
+        let (dropped, accused, accuser) = (id_of(v.drop), id_of(v.accused), id_of(v.accuser));
         if let Some(frame) = st.running.as_mut() {
-            frame.sidelined.insert(accused);
+            frame.sidelined.insert(dropped);
         }
         let why = format!(
-            "unresponsive to worker {accuser} (reported by {} peers): {}",
-            v.accusers, v.reason
+            "broken links to {} peers; first report: {accused} unresponsive to worker \
+             {accuser}: {}",
+            v.links, v.reason
         );
-        Some((v.accused, why))
+        Some((v.drop, why))
     }
 
     // ----- frames -----
