@@ -3,6 +3,7 @@
 //! returns the messages to send instead of sending them, so the coordinator's locking and
 //! I/O stay outside.
 
+use crate::accusations::Accusations;
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::Instant;
 
@@ -86,6 +87,13 @@ pub struct RunningFrame {
     pending_tiles: std::collections::VecDeque<u32>,
     /// Tiles per hand-out.
     batch: usize,
+    /// Ids of workers dropped because a peer could not reach them: they sit out the rest of
+    /// this frame when they register again (they join the next one), or a worker that its
+    /// peers cannot reach would be dropped, rejoin, get work and be dropped again, each time
+    /// restarting every unfinished tile, for as long as its links are cut.
+    pub sidelined: std::collections::BTreeSet<String>,
+    /// Members' reports of members they cannot reach, waiting to be judged.
+    pub accusations: Accusations,
 }
 
 fn msg(body: Body) -> proto::CoordinatorMessage {
@@ -133,6 +141,8 @@ impl RunningFrame {
             rounds,
             pending_tiles: Default::default(),
             batch: 1,
+            sidelined: Default::default(),
+            accusations: Accusations::default(),
         })
     }
 

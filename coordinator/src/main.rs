@@ -3,6 +3,7 @@
 //! tile results until every tile's credit is back. Jobs are kept in a database in the data
 //! directory, so a restarted coordinator carries on with them (`store`).
 
+mod accusations;
 mod api;
 mod control;
 mod frame;

@@ -50,6 +50,11 @@ pub struct Config {
 /// What workers and clients are told once the coordinator is stopping.
 pub const SHUTTING_DOWN: &str = "the coordinator is shutting down";
 
+/// Least time a worker's report of an unreachable peer waits for the other side's reports
+/// (see [`crate::accusations`]): both sides notice a broken link within about this long of
+/// each other when their deadlines are alike.
+const ACCUSATION_GRACE: Duration = Duration::from_secs(2);
+
 /// Where a worker's messages go.
 pub type WorkerTx = mpsc::UnboundedSender<Result<proto::CoordinatorMessage, Status>>;
 
@@ -58,6 +63,11 @@ struct Job {
     seq: u64,
     /// Frames started so far (see [`StoredJob::attempts`]).
     attempts: u32,
+    /// The epoch every tile of its next frame starts at, at least: one past the highest
+    /// epoch an earlier frame of it used in this process. A frame that lost every worker
+    /// bumped epochs with each loss; a worker dropped from it may still send rays and
+    /// results of those epochs, which the restarted frame must never take for its own.
+    epoch_floor: u32,
     progress: watch::Sender<proto::WatchJobResponse>,
     image_hash: String,
     stats_json: String,
@@ -219,6 +229,7 @@ impl Coordinator {
             summary,
             seq,
             attempts: 0,
+            epoch_floor: 0,
             progress: progress_channel(&id, JobState::Queued, "", ""),
             image_hash: String::new(),
             stats_json: String::new(),
@@ -409,6 +420,10 @@ impl Coordinator {
         info!(worker = %r.worker_id, key, peer = %r.peer_address, cache_bytes = r.cache_bytes, threads = r.threads, "worker attached");
         let member = Member::new(r.peer_address.clone(), r.cache_bytes);
         if let Some(frame) = st.running.as_mut() {
+            if frame.sidelined.contains(&r.worker_id) {
+                info!(job = %frame.job_id, worker = %r.worker_id, "worker sits out the running frame: a peer could not reach it");
+                return Ok(key);
+            }
             let out = frame.join(key, member);
             info!(job = %frame.job_id, round = frame.round, "worker joins the running frame");
             send(&st, out);
@@ -422,6 +437,14 @@ impl Coordinator {
     pub fn worker_message(self: &Arc<Self>, key: u32, body: FromWorker) {
         let mut st = self.lock();
         let Some(worker) = st.workers.get_mut(&key) else {
+            // Its stream outlived its membership (a healed partition delivers what it sent
+            // meanwhile): whatever it says is stale.
+            if !matches!(body, FromWorker::Heartbeat(_)) {
+                info!(
+                    key,
+                    "message from a worker no longer attached: refused as stale"
+                );
+            }
             return;
         };
         worker.last_seen = Instant::now();
@@ -448,15 +471,17 @@ impl Coordinator {
                     .iter()
                     .find(|(_, w)| w.peer_address == p.peer_address)
                     .map(|(&k, _)| k);
-                drop(st);
-                match silent {
-                    // Dropping it closes its control stream: if it is only slow, it comes back
-                    // through a fresh registration and joins at the next round.
-                    Some(k) => self.worker_gone(
-                        k,
-                        &format!("unresponsive to worker {reporter}: {}", p.reason),
-                    ),
-                    None => info!(peer = %p.peer_address, "unresponsive peer is no member"),
+                // Judged after a grace period, with the other side's reports (`accusations`).
+                match (silent, st.running.as_mut()) {
+                    (Some(k), Some(frame))
+                        if frame.members().any(|m| m == k) && frame.members().any(|m| m == key) =>
+                    {
+                        warn!(worker = %reporter, peer = %p.peer_address, reason = %p.reason, "a worker reports a peer unreachable");
+                        frame.accusations.add(key, k, Instant::now(), &p.reason);
+                    }
+                    _ => {
+                        info!(worker = %reporter, peer = %p.peer_address, "unresponsive peer is no member of a running frame: ignored")
+                    }
                 }
             }
         }
@@ -531,11 +556,18 @@ impl Coordinator {
             // starts over when workers come back.
             if let Some(frame) = st.running.take() {
                 warn!(job = %frame.job_id, "every worker of the frame is gone: job re-queued");
+                let grid = frame.ledger.grid().count();
+                let used = (0..grid).filter_map(|t| frame.ledger.epoch(t)).max();
+                if let Some(job) = st.jobs.get_mut(&frame.job_id) {
+                    job.epoch_floor = used.unwrap_or(0).saturating_add(1);
+                }
                 let seq = st.jobs.get(&frame.job_id).map_or(0, |j| j.seq);
                 st.queue
                     .push(frame.job_id.clone(), frame.spec.priority, seq);
                 set_state(&mut st, &frame.job_id, JobState::Queued, "");
             }
+            // Workers sitting out the frame are still here: they start it over.
+            self.try_start(&mut st);
             return;
         }
         info!(worker = %worker.id, "re-issuing the unfinished tiles on the remaining workers");
@@ -576,6 +608,32 @@ impl Coordinator {
             }
             self.worker_gone(key, "no heartbeat");
         }
+        while let Some((key, why)) = self.judge_accusations() {
+            // Dropping it closes its control stream: if it is only slow or cut off, it comes
+            // back through a fresh registration and joins the next frame.
+            self.worker_gone(key, &why);
+        }
+    }
+
+    /// The member to drop for its peers' reports, if their grace period is over (see
+    /// [`crate::accusations`]); it sits out the rest of the frame.
+    fn judge_accusations(&self) -> Option<(u32, String)> {
+        let grace = (self.config.heartbeat * 2).max(ACCUSATION_GRACE);
+        let mut st = self.lock();
+        let frame = st.running.as_mut()?;
+        let members = frame.members().collect();
+        let v = frame.accusations.judge(Instant::now(), grace, &members)?;
+        let id_of = |k| st.workers.get(&k).map(|w| w.id.clone()).unwrap_or_default();
+        let (dropped, accused, accuser) = (id_of(v.drop), id_of(v.accused), id_of(v.accuser));
+        if let Some(frame) = st.running.as_mut() {
+            frame.sidelined.insert(dropped);
+        }
+        let why = format!(
+            "broken links to {} peers; first report: {accused} unresponsive to worker \
+             {accuser}: {}",
+            v.links, v.reason
+        );
+        Some((v.drop, why))
     }
 
     // ----- frames -----
@@ -597,7 +655,8 @@ impl Coordinator {
                     // workers were all lost) starts every tile at a new epoch, so rays and
                     // results of the abandoned run still in flight are dropped as stale.
                     let tiles: Vec<u32> = (0..frame.ledger.grid().count()).collect();
-                    for _ in 0..attempts {
+                    let floor = st.jobs.get(&id).map_or(0, |j| j.epoch_floor);
+                    for _ in 0..attempts.max(floor) {
                         frame.ledger.bump(&tiles);
                     }
                     let members: Vec<(u32, Member)> = st
@@ -833,6 +892,7 @@ fn restore(st: &mut State, data_dir: &std::path::Path, stored: StoredJob) {
         summary,
         seq: stored.seq,
         attempts: stored.attempts,
+        epoch_floor: 0,
         image_hash: stored.image_hash,
         stats_json: stored.stats_json,
     };
@@ -896,26 +956,32 @@ mod tests {
     /// Attaches a worker (its control stream is the channel) and returns the epochs of every
     /// tile in the StartFrame it is sent, tile by tile.
     fn start_epochs(c: &Arc<Coordinator>) -> BTreeMap<u32, u32> {
+        start_epochs_of(c, "w").1
+    }
+
+    /// [`start_epochs`] of a worker called `id`; also returns its key.
+    fn start_epochs_of(c: &Arc<Coordinator>, id: &str) -> (u32, BTreeMap<u32, u32>) {
         let (tx, mut rx) = mpsc::unbounded_channel();
         let register = proto::Register {
             protocol_version: PROTOCOL_VERSION,
-            worker_id: "w".into(),
-            peer_address: "127.0.0.1:1".into(),
+            worker_id: id.into(),
+            peer_address: format!("{id}:1"),
             cache_bytes: 1 << 30,
             threads: 1,
         };
-        c.register(&register, tx).expect("registered");
+        let key = c.register(&register, tx).expect("registered");
         while let Ok(msg) = rx.try_recv() {
             if let Some(Body::StartFrame(s)) = msg.expect("no error").body {
-                return s.epochs.into_iter().collect();
+                // Its channel stays open while the test runs, as a live worker's would.
+                std::mem::forget(rx);
+                return (key, s.epochs.into_iter().collect());
             }
         }
         panic!("no StartFrame sent");
     }
 
-    #[test]
-    fn a_job_restarted_after_a_coordinator_restart_starts_its_tiles_at_a_new_epoch() {
-        let root = tempfile::tempdir().unwrap();
+    /// A scene `nb` under `root` and a small job of it.
+    fn small_job(root: &std::path::Path) -> proto::JobSpec {
         let options = NbodyOptions {
             name: "nb".into(),
             triangles: 2000,
@@ -924,16 +990,43 @@ mod tests {
             max_memory: None,
             force: false,
         };
-        prepare_nbody(&root.path().join("scenes").join("nb"), &options).unwrap();
-        std::fs::create_dir_all(root.path().join("data")).unwrap();
-        let spec = proto::JobSpec {
+        prepare_nbody(&root.join("scenes").join("nb"), &options).unwrap();
+        std::fs::create_dir_all(root.join("data")).unwrap();
+        proto::JobSpec {
             scene: "nb".into(),
             width: 64,
             height: 32,
             spp: 1,
             max_depth: 1,
             ..Default::default()
-        };
+        }
+    }
+
+    #[test]
+    fn a_job_whose_workers_were_all_lost_restarts_above_every_epoch_it_used() {
+        let root = tempfile::tempdir().unwrap();
+        let spec = small_job(root.path());
+        let c = Coordinator::open(config(root.path())).unwrap();
+        c.submit(Some(spec)).unwrap();
+        let (a, first) = start_epochs_of(&c, "a");
+        assert!(first.is_empty(), "a first frame starts at epoch 0");
+        let (b, _) = start_epochs_of(&c, "b");
+        // Losing a bumps every tile to epoch 1; losing b too re-queues the job.
+        c.worker_gone(a, "test");
+        c.worker_gone(b, "test");
+        assert_eq!(c.list()[0].state(), JobState::Queued);
+        // Worker b, dropped but still running, may send epoch-1 rays: the new frame is above.
+        let (_, again) = start_epochs_of(&c, "c");
+        assert!(
+            !again.is_empty() && again.values().all(|&e| e >= 2),
+            "{again:?}"
+        );
+    }
+
+    #[test]
+    fn a_job_restarted_after_a_coordinator_restart_starts_its_tiles_at_a_new_epoch() {
+        let root = tempfile::tempdir().unwrap();
+        let spec = small_job(root.path());
         let c = Coordinator::open(config(root.path())).unwrap();
         let id = c.submit(Some(spec.clone())).unwrap();
         assert!(
