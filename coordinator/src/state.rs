@@ -10,7 +10,6 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use rayfarm_core::cluster::scene_ref;
 use rayfarm_core::cluster::stats::{ClusterStats, WorkerFrameStats};
-use rayfarm_core::render::Film;
 use rayfarm_core::scene::Manifest;
 use rayfarm_core::schedule::dynamic::Options;
 use rayfarm_node::job::{frame_spec, schedule_name, state_name};
@@ -22,7 +21,7 @@ use tokio::sync::{mpsc, oneshot, watch};
 use tonic::Status;
 use tracing::{error, info, info_span, warn};
 
-use crate::frame::{Member, Outgoing, Rounds, RunningFrame};
+use crate::frame::{CommittedTile, Member, Outgoing, Rounds, RunningFrame};
 use crate::queue::JobQueue;
 use crate::results;
 use crate::store::{Store, StoreError, StoredJob};
@@ -492,12 +491,16 @@ impl Coordinator {
             return;
         };
         match frame.results(key, r) {
-            Ok(false) => {
-                if let Some(f) = st.running.as_ref() {
+            Ok(committed) => {
+                if let Err(e) = write_tiles(frame, &committed) {
+                    let msg = format!("{e:#}");
+                    self.fail_running(st, &msg);
+                } else if frame.ledger.is_complete() {
+                    self.complete(st);
+                } else if let Some(f) = st.running.as_ref() {
                     publish_progress(st, f);
                 }
             }
-            Ok(true) => self.complete(st),
             Err(e) => {
                 let worker = st
                     .workers
@@ -692,7 +695,8 @@ impl Coordinator {
         let (_, manifest) = self.open_scene(&spec.scene)?;
         let frame = frame_spec(&spec, &manifest.camera).map_err(Status::invalid_argument)?;
         let domain_bytes = manifest.domains.iter().map(|d| d.bytes).collect();
-        RunningFrame::new(
+        let spp = frame.spp;
+        let mut frame = RunningFrame::new(
             id.to_string(),
             spec,
             frame,
@@ -700,7 +704,12 @@ impl Coordinator {
             self.config.schedule_options,
             self.config.rounds,
         )
-        .map_err(Status::invalid_argument)
+        .map_err(Status::invalid_argument)?;
+        let grid = *frame.ledger.grid();
+        let film = results::create_film(&self.config.data_dir, id, grid, spp)
+            .map_err(|e| Status::internal(format!("{e:#}")))?;
+        frame.film = Some(film);
+        Ok(frame)
     }
 
     fn fail_running(self: &Arc<Self>, st: &mut State, error: &str) {
@@ -762,13 +771,12 @@ impl Coordinator {
         };
         stats.absorb(reports);
         let data_dir = self.config.data_dir.clone();
-        let sums = frame.ledger.image_sums();
-        let (w, h, spp) = (spec.width, spec.height, spec.spp);
         let job = id.clone();
+        let film = frame.film;
         let written = tokio::task::spawn_blocking(move || {
-            let film = Film::from_fixed(w, h, spp, &sums);
-            stats.image_hash = format!("{:016x}", film.hash());
-            results::write(&data_dir, &job, &film, &stats).map(|json| (json, stats.image_hash))
+            let film = film.ok_or_else(|| anyhow::anyhow!("the frame has no film"))?;
+            // The film file goes with `film` once both images are written.
+            results::write(&data_dir, &job, &film, &mut stats)
         })
         .await;
         let mut st = self.lock();
@@ -785,6 +793,17 @@ impl Coordinator {
             Err(e) => set_state(&mut st, &id, JobState::Failed, &format!("{e}")),
         }
     }
+}
+
+/// Writes committed tiles to the running frame's film.
+fn write_tiles(frame: &RunningFrame, committed: &[CommittedTile]) -> anyhow::Result<()> {
+    let Some(film) = frame.film.as_ref() else {
+        return Ok(());
+    };
+    for (tile, sums) in committed {
+        film.write_tile(*tile, sums)?;
+    }
+    Ok(())
 }
 
 fn not_found(id: &str) -> Status {

@@ -80,6 +80,11 @@ pub fn run(a: RenderArgs) -> anyhow::Result<()> {
         cache_bytes: a.cache_bytes,
         wave_rays: a.wave_rays,
         speculate: a.speculate,
+        // Next to the output: the temporary directory may be memory (tmpfs).
+        film_dir: Some(match a.out.parent() {
+            Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+            _ => PathBuf::from("."),
+        }),
     };
     let bar = if a.quiet {
         ProgressBar::hidden()
