@@ -252,8 +252,8 @@ impl TriangleBlock {
             let s = first + lane.min(count - 1);
             let t = &tris[s];
             for (i, p) in t.vertices().iter().enumerate() {
-                for a in 0..3 {
-                    b.v[i][a][lane] = p[a];
+                for (axis, &c) in b.v[i].iter_mut().zip(p.as_ref()) {
+                    axis[lane] = c;
                 }
             }
             b.id_lo[lane] = t.id_lo;
