@@ -253,8 +253,12 @@ impl Proc {
                 });
             }
         }
+        if host.is_some() {
+            // On a test host: `stop` kills the group, whatever `ip netns exec` started.
+            // (Loopback processes stay in the test's group: an interrupted run takes them.)
+            cmd.process_group(0);
+        }
         cmd.args(args)
-            .process_group(0)
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
             .stderr(log_file);
@@ -293,13 +297,13 @@ impl Proc {
         }
     }
 
-    /// Kills its whole process group (`ip netns exec` and whatever it started) and reaps it.
+    /// Kills it (on a test host its whole process group) and reaps it.
     fn stop(&mut self) {
-        if self.child.try_wait().ok().flatten().is_none() {
+        if self.host.is_some() && self.child.try_wait().ok().flatten().is_none() {
             let group = format!("-{}", self.child.id());
             let _ = Command::new("kill").args(["-KILL", "--", &group]).output();
-            let _ = self.child.kill();
         }
+        let _ = self.child.kill();
         let _ = self.child.wait();
     }
 }

@@ -259,7 +259,8 @@ impl Net {
     /// its `eth0` (what it sends) and on its switch port (what it receives).
     pub fn shape(&self, host: &Host, rate: &str) {
         let tbf = |ns: &str, dev: &str| {
-            // Half a millisecond's worth of burst at least 32 kbit, queueing at most 200 ms.
+            // A 32 kbit bucket; packets that would wait over 200 ms are dropped, as a
+            // congested link's queue does.
             let args = [
                 "-n", ns, "qdisc", "replace", "dev", dev, "root", "tbf", "rate", rate, "burst",
                 "32kbit", "latency", "200ms",
