@@ -483,6 +483,11 @@ impl Cluster {
         cluster
     }
 
+    /// The running coordinator's process id.
+    pub fn coordinator_pid(&self) -> u32 {
+        self.coordinator.child.id()
+    }
+
     /// The coordinator's URL, `http://127.0.0.1:PORT` (`https://` with TLS).
     pub fn coordinator_url(&self) -> &str {
         &self.url
@@ -929,4 +934,15 @@ pub fn job<'a>(jobs: &'a [serde_json::Value], id: &str) -> &'a serde_json::Value
     jobs.iter()
         .find(|j| j["job_id"] == id)
         .unwrap_or_else(|| panic!("job {id} not listed in {jobs:?}"))
+}
+
+/// A process's peak resident memory (`VmHWM` in `/proc/PID/status`) in bytes.
+pub fn peak_rss(pid: u32) -> u64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).expect("proc status");
+    let kib: u64 = status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+        .expect("VmHWM in proc status");
+    kib * 1024
 }

@@ -241,17 +241,21 @@ impl Coordinator {
         Ok(resp.map_err(|s| self.rpc_error(&s))?.into_inner().state())
     }
 
-    /// A finished job's image, encoded as `format`, and its statistics.
-    pub async fn fetch(
+    /// A finished job's image file as a stream of chunks from byte `offset`; the first
+    /// carries the file's size and checksum.
+    pub async fn fetch_stream(
         &mut self,
         job_id: &str,
         format: proto::ImageFormat,
-    ) -> anyhow::Result<proto::FetchResultResponse> {
-        let req = proto::FetchResultRequest {
+        offset: u64,
+    ) -> anyhow::Result<tonic::Streaming<proto::FetchResultChunk>> {
+        let req = proto::FetchResultStreamRequest {
             job_id: job_id.to_string(),
             format: format as i32,
+            offset,
+            chunk_bytes: 0,
         };
-        let resp = self.client.fetch_result(req).await;
+        let resp = self.client.fetch_result_stream(req).await;
         Ok(resp.map_err(|s| self.rpc_error(&s))?.into_inner())
     }
 

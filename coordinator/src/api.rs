@@ -1,8 +1,10 @@
 //! `JobService`: the user API, a thin layer over [`Coordinator`].
 
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
 use std::pin::Pin;
-use std::sync::Arc;
-use std::time::Duration;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, SystemTime};
 
 use rayfarm_core::scene::Manifest;
 
@@ -10,6 +12,7 @@ use rayfarm_node::bounds::check_field;
 use rayfarm_node::proto::job_service_server::JobService;
 use rayfarm_node::proto::{self, JobState};
 use rayfarm_node::security::User;
+use tokio::io::{AsyncReadExt, AsyncSeekExt};
 use tokio::sync::{Semaphore, mpsc};
 use tokio_stream::Stream;
 use tokio_stream::wrappers::ReceiverStream;
@@ -23,6 +26,9 @@ pub struct Api {
     coordinator: Arc<Coordinator>,
     /// Scene reads in progress: storage that hangs holds at most this many blocking threads.
     scene_reads: Arc<Semaphore>,
+    /// Size and checksum of result files already streamed, by path (results never change
+    /// once written; the size and modification time guard against a file replaced by hand).
+    checksums: Mutex<HashMap<PathBuf, (SystemTime, u64, String)>>,
 }
 
 /// A scene manifest not read within this fails its submission (`DEADLINE_EXCEEDED`).
@@ -35,6 +41,7 @@ impl Api {
         Api {
             coordinator,
             scene_reads: Arc::new(Semaphore::new(MAX_SCENE_READS)),
+            checksums: Mutex::default(),
         }
     }
 
@@ -65,9 +72,41 @@ impl Api {
             }
         }
     }
+
+    /// The size and checksum of a result file, read once per file.
+    async fn checksum(&self, path: &Path) -> std::io::Result<(u64, String)> {
+        let meta = tokio::fs::metadata(path).await?;
+        let modified = meta.modified()?;
+        let known = self.lock_checksums().get(path).cloned();
+        if let Some((m, len, sum)) = known
+            && m == modified
+            && len == meta.len()
+        {
+            return Ok((len, sum));
+        }
+        let owned = path.to_path_buf();
+        let (len, sum) =
+            tokio::task::spawn_blocking(move || rayfarm_node::result_file::checksum(&owned))
+                .await
+                .map_err(std::io::Error::other)??;
+        self.lock_checksums()
+            .insert(path.to_path_buf(), (modified, len, sum.clone()));
+        Ok((len, sum))
+    }
+
+    fn lock_checksums(
+        &self,
+    ) -> std::sync::MutexGuard<'_, HashMap<PathBuf, (SystemTime, u64, String)>> {
+        self.checksums.lock().unwrap_or_else(|p| p.into_inner())
+    }
 }
 
+/// Chunk size of a streamed fetch when the client names none, and the largest it may ask.
+const DEFAULT_CHUNK: u32 = 1 << 20;
+const MAX_CHUNK: u32 = 4 << 20;
+
 type WatchStream = Pin<Box<dyn Stream<Item = Result<proto::WatchJobResponse, Status>> + Send>>;
+type ChunkStream = Pin<Box<dyn Stream<Item = Result<proto::FetchResultChunk, Status>> + Send>>;
 
 #[tonic::async_trait]
 impl JobService for Api {
@@ -158,6 +197,74 @@ impl JobService for Api {
             stats_json,
             image_hash,
         }))
+    }
+
+    type FetchResultStreamStream = ChunkStream;
+
+    async fn fetch_result_stream(
+        &self,
+        request: Request<proto::FetchResultStreamRequest>,
+    ) -> Result<Response<ChunkStream>, Status> {
+        let r = request.into_inner();
+        check_field("job_id", &r.job_id)?;
+        let (path, stats_json, image_hash) = self.coordinator.result(&r.job_id, r.format())?;
+        let unreadable = |e: std::io::Error| {
+            Status::data_loss(format!(
+                "result of {} unreadable: {}: {e}",
+                r.job_id,
+                path.display()
+            ))
+        };
+        let (total, checksum) = self.checksum(&path).await.map_err(unreadable)?;
+        if r.offset > total {
+            return Err(Status::out_of_range(format!(
+                "offset {} is past the end of the {total}-byte result of {}",
+                r.offset, r.job_id
+            )));
+        }
+        let chunk = match r.chunk_bytes {
+            0 => DEFAULT_CHUNK,
+            n => n.min(MAX_CHUNK),
+        } as usize;
+        let mut file = tokio::fs::File::open(&path).await.map_err(unreadable)?;
+        file.seek(std::io::SeekFrom::Start(r.offset))
+            .await
+            .map_err(unreadable)?;
+        let mut header = Some(proto::FetchResultHeader {
+            total_bytes: total,
+            checksum,
+            stats_json,
+            image_hash,
+        });
+        // A few chunks in flight at most: a slow client slows the reads, memory stays bounded.
+        let (tx, out) = mpsc::channel(4);
+        let job_id = r.job_id.clone();
+        let mut offset = r.offset;
+        tokio::spawn(async move {
+            loop {
+                let mut data = vec![0u8; chunk.min((total - offset) as usize)];
+                if let Err(e) = file.read_exact(&mut data).await {
+                    let status = Status::data_loss(format!("result of {job_id}: {e}"));
+                    let _ = tx.send(Err(status)).await;
+                    return;
+                }
+                let len = data.len() as u64;
+                let msg = proto::FetchResultChunk {
+                    header: header.take(),
+                    offset,
+                    data: data.into(),
+                };
+                if tx.send(Ok(msg)).await.is_err() {
+                    return;
+                }
+                offset += len;
+                if offset >= total {
+                    return;
+                }
+            }
+        });
+        info!(job = %r.job_id, offset = r.offset, total, "streaming a result");
+        Ok(Response::new(Box::pin(ReceiverStream::new(out))))
     }
 
     async fn get_cluster_status(

@@ -1,11 +1,12 @@
 //! What every rayfarm process on the network shares, over the pure core (`rayfarm-core`): the
-//! generated gRPC types and services, TLS and credentials, logging, test fault injection, and a
-//! job's frame as the user API carries it.
+//! generated gRPC types and services, TLS and credentials, logging, test fault injection, a job's
+//! frame as the user API carries it, and the checksum of a fetched result file.
 
 pub mod bounds;
 pub mod fault;
 pub mod job;
 pub mod listen;
 pub mod proto;
+pub mod result_file;
 pub mod security;
 pub mod telemetry;

@@ -1,13 +1,15 @@
 //! `rayfarm fetch ID`: a finished job's image (and statistics) onto local disk. The same
 //! code saves the result of `submit --wait` and `demo`.
 
+use std::io::Write;
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 
 use anyhow::{Context, bail};
 use clap::Args;
 use rayfarm_node::proto;
 
-use crate::client::{Coordinator, CoordinatorArgs, runtime};
+use crate::client::{Coordinator, CoordinatorArgs, is_unavailable, runtime};
 
 /// Options of `rayfarm fetch`.
 #[derive(Args, Clone, Debug)]
@@ -39,6 +41,7 @@ pub fn run(a: FetchArgs) -> anyhow::Result<()> {
             &output,
             format,
             a.stats_json.as_deref(),
+            Duration::ZERO,
         )
         .await?;
         println!("image hash: {}", result.image_hash);
@@ -92,28 +95,125 @@ pub fn check_writable(path: &Path) -> anyhow::Result<()> {
         .map_err(|e| anyhow::anyhow!("{}: cannot write in {}: {e}", path.display(), dir.display()))
 }
 
-/// Fetches job `job_id`'s result as `format`, writes the image to `output` and, if asked, the
-/// statistics to `stats_json` (pretty-printed). Returns what the coordinator sent.
+/// Where the bytes of an image being fetched go until all are in and checked.
+pub fn part_path(output: &Path) -> PathBuf {
+    let mut name = output.as_os_str().to_owned();
+    name.push(".part");
+    PathBuf::from(name)
+}
+
+/// Fetches job `job_id`'s result as `format`, streamed chunk by chunk into `<output>.part`
+/// (resuming after what an earlier, interrupted fetch left there), checks the whole file
+/// against the coordinator's checksum and renames it to `output`; writes the statistics to
+/// `stats_json` (pretty-printed) if asked. A stream lost midway is resumed at the byte it
+/// stopped at, reconnecting until `ride_out` has passed. Returns what the coordinator said
+/// of the result.
 pub async fn save_result(
     coord: &mut Coordinator,
     job_id: &str,
     output: &Path,
     format: proto::ImageFormat,
     stats_json: Option<&Path>,
-) -> anyhow::Result<proto::FetchResultResponse> {
-    let result = coord
-        .fetch(job_id, format)
-        .await
-        .with_context(|| format!("fetching the result of job {job_id}"))?;
-    if result.image.is_empty() {
-        bail!("the coordinator sent an empty image for job {job_id}");
+    ride_out: Duration,
+) -> anyhow::Result<proto::FetchResultHeader> {
+    let part = part_path(output);
+    let mut file = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&part)
+        .with_context(|| format!("opening {}", part.display()))?;
+    let deadline = tokio::time::Instant::now() + ride_out;
+    let header = loop {
+        match stream_into(coord, job_id, format, &mut file, &part).await {
+            Ok(header) => break header,
+            Err(e) if is_unavailable(&e) && tokio::time::Instant::now() < deadline => {
+                tracing::warn!(error = %e, "fetch interrupted; resuming");
+                coord.reconnect(deadline).await?;
+            }
+            Err(e) => {
+                return Err(e.context(format!(
+                    "fetching the result of job {job_id} (the bytes received are kept in {}: \
+                     the same command resumes after them)",
+                    part.display()
+                )));
+            }
+        }
+    };
+    drop(file);
+    let (len, sum) = rayfarm_node::result_file::checksum(&part)
+        .with_context(|| format!("reading {}", part.display()))?;
+    if len != header.total_bytes || sum != header.checksum {
+        let _ = std::fs::remove_file(&part);
+        bail!(
+            "the fetched result of job {job_id} ({len} bytes, checksum {sum}) differs from the \
+             coordinator's ({} bytes, checksum {}); removed it, fetch again",
+            header.total_bytes,
+            header.checksum
+        );
     }
-    std::fs::write(output, &result.image)
-        .with_context(|| format!("writing {}", output.display()))?;
+    std::fs::rename(&part, output)
+        .with_context(|| format!("renaming {} to {}", part.display(), output.display()))?;
     if let Some(path) = stats_json {
-        write_stats_json(path, &result.stats_json)?;
+        write_stats_json(path, &header.stats_json)?;
     }
-    Ok(result)
+    Ok(header)
+}
+
+/// Appends the rest of the result to `file` from where it ends; returns the header once the
+/// stream has delivered every byte.
+async fn stream_into(
+    coord: &mut Coordinator,
+    job_id: &str,
+    format: proto::ImageFormat,
+    file: &mut std::fs::File,
+    part: &Path,
+) -> anyhow::Result<proto::FetchResultHeader> {
+    let mut have = file
+        .metadata()
+        .with_context(|| format!("reading {}", part.display()))?
+        .len();
+    let mut stream = coord.fetch_stream(job_id, format, have).await;
+    if let Err(e) = &stream
+        && have > 0
+        && e.to_string().contains("OUT_OF_RANGE")
+    {
+        // Left by a fetch of another file: start over.
+        file.set_len(0)?;
+        have = 0;
+        stream = coord.fetch_stream(job_id, format, 0).await;
+    }
+    let mut stream = stream?;
+    let mut header = None;
+    if have > 0 {
+        tracing::info!(offset = have, "resuming a fetch");
+    }
+    loop {
+        let chunk = match stream.message().await {
+            Ok(Some(chunk)) => chunk,
+            Ok(None) => break,
+            Err(status) => return Err(coord.rpc_error(&status)),
+        };
+        if let Some(h) = chunk.header {
+            header = Some(h);
+        }
+        if chunk.offset != have {
+            bail!(
+                "the coordinator sent bytes from {} where {have} were expected",
+                chunk.offset
+            );
+        }
+        file.write_all(&chunk.data)
+            .with_context(|| format!("writing {}", part.display()))?;
+        have += chunk.data.len() as u64;
+    }
+    let header = header.context("the coordinator's stream ended without a header")?;
+    if have != header.total_bytes {
+        bail!(
+            "the coordinator's stream ended at byte {have} of {}",
+            header.total_bytes
+        );
+    }
+    Ok(header)
 }
 
 /// Writes the coordinator's statistics JSON, re-indented for people, keeping every field.

@@ -160,7 +160,15 @@ pub async fn wait_and_save(
     let format = image_format(&output)?;
     let end = follow(coord, job_id, opts.quiet, opts.ride_out).await?;
     ended_ok(&end)?;
-    let saved = save_result(coord, job_id, &output, format, opts.stats_json.as_deref()).await;
+    let saved = save_result(
+        coord,
+        job_id,
+        &output,
+        format,
+        opts.stats_json.as_deref(),
+        opts.ride_out,
+    )
+    .await;
     let result = match saved {
         Err(e) if opts.fetch_again => {
             return Err(e.context(format!(

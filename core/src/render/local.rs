@@ -216,6 +216,8 @@ fn render_in_pool(
             counters.primary_rays += end - issued;
             issued = end;
             queues.place(&view, outs);
+            // Camera rays that meet nothing retire at once: their tiles may be finished.
+            tiles_done += commit_finished(&mut open, &returned, &film)?;
             continue;
         }
         let Some(d) = queues.next(&cache.resident()) else {

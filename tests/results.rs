@@ -1,0 +1,206 @@
+//! Results at any size: a 16384x16384 frame renders with the coordinator's memory bounded
+//! (its film lives in a file, its images are encoded row by row) and equals `render --local`,
+//! whose memory is bounded too; results are fetched as a stream that resumes where it broke.
+
+use std::io::BufReader;
+use std::path::Path;
+use std::time::Instant;
+
+use rayfarm_node::proto::{self, job_service_client::JobServiceClient};
+use rayfarm_tests::{
+    Cluster, WorkerOpts, hash_of, local_hash, peak_rss, prepare_nbody, rayfarm_ok, s, stats_field,
+    submit_wait,
+};
+
+/// Decodes a PNG row by row; returns its size.
+fn png_size_after_decoding(path: &Path) -> (u32, u32) {
+    let file = std::fs::File::open(path).expect("open png");
+    let mut reader = png::Decoder::new(BufReader::new(file))
+        .read_info()
+        .expect("png header");
+    let (w, h) = (reader.info().width, reader.info().height);
+    let mut rows = 0;
+    while reader.next_row().expect("png row").is_some() {
+        rows += 1;
+    }
+    assert_eq!(rows, h, "rows decoded");
+    (w, h)
+}
+
+/// The largest frame the API takes, as cheap as it gets: one sample, no bounces, the scene a
+/// speck far from the camera (so nearly every ray sees only the sky, yet every pixel of every
+/// tile carries a sum to the coordinator).
+const HUGE: [&str; 10] = [
+    "--width",
+    "16384",
+    "--height",
+    "16384",
+    "--spp",
+    "1",
+    "--depth",
+    "0",
+    "--eye",
+    "0.5,0.7,200",
+];
+
+#[test]
+fn a_16k_frame_fits_in_512_mib_of_coordinator_and_equals_the_local_render() {
+    let root = tempfile::tempdir().unwrap();
+    let scene = prepare_nbody(root.path(), "speck", 2000, 2);
+    let start = Instant::now();
+    let out = tempfile::tempdir().unwrap();
+    let (png, json) = (out.path().join("local.png"), out.path().join("local.json"));
+    let mut args = vec![
+        "render",
+        "--local",
+        "--scene",
+        s(&scene),
+        "--out",
+        s(&png),
+        "--stats-json",
+        s(&json),
+        "--quiet",
+        "--threads",
+        "2",
+    ];
+    args.extend_from_slice(&HUGE);
+    rayfarm_ok(&args);
+    let local = hash_of(&json);
+    let local_rss = stats_field(&json, "/peak_rss_bytes").as_u64().unwrap();
+    let local_secs = start.elapsed().as_secs_f64();
+
+    let cluster = Cluster::start(
+        root.path(),
+        Some("speck"),
+        &[WorkerOpts::cache(64 << 20).threads(2)],
+    );
+    let start = Instant::now();
+    let stats = submit_wait(&cluster, &HUGE, "huge");
+    let cluster_secs = start.elapsed().as_secs_f64();
+    let coordinator_rss = peak_rss(cluster.coordinator_pid());
+    eprintln!(
+        "16384x16384: render --local {local_secs:.0} s, peak RSS {} MiB; cluster {cluster_secs:.0} s, \
+         coordinator VmHWM {} MiB",
+        local_rss >> 20,
+        coordinator_rss >> 20
+    );
+    assert_eq!(hash_of(&stats), local, "cluster and local images differ");
+    assert!(
+        coordinator_rss < 512 << 20,
+        "the coordinator peaked at {} MiB",
+        coordinator_rss >> 20
+    );
+    assert!(
+        local_rss < 512 << 20,
+        "render --local peaked at {} MiB",
+        local_rss >> 20
+    );
+    let fetched = cluster.dir().join("huge.png");
+    assert_eq!(png_size_after_decoding(&fetched), (16384, 16384));
+    assert_eq!(png_size_after_decoding(&png), (16384, 16384));
+    // The film file goes once the images are written.
+    let job = stats_field(&stats, "/job_id");
+    let film = cluster
+        .data_dir()
+        .join("jobs")
+        .join(job.as_str().unwrap())
+        .join("film.bin");
+    assert!(!film.exists(), "{} left behind", film.display());
+}
+
+/// Reads a streamed fetch of `job` from `offset`, stopping after `max_chunks` chunks; returns
+/// the header (of the first chunk) and the bytes.
+async fn fetch_part(
+    url: &str,
+    job: &str,
+    offset: u64,
+    max_chunks: usize,
+) -> (proto::FetchResultHeader, Vec<u8>) {
+    let mut client = JobServiceClient::connect(url.to_string()).await.unwrap();
+    let req = proto::FetchResultStreamRequest {
+        job_id: job.to_string(),
+        format: proto::ImageFormat::Exr as i32,
+        offset,
+        chunk_bytes: 4096,
+    };
+    let mut stream = client.fetch_result_stream(req).await.unwrap().into_inner();
+    let mut header = None;
+    let mut bytes = Vec::new();
+    for _ in 0..max_chunks {
+        let Some(chunk) = stream.message().await.unwrap() else {
+            break;
+        };
+        header = header.or(chunk.header);
+        assert_eq!(chunk.offset, offset + bytes.len() as u64);
+        bytes.extend_from_slice(&chunk.data);
+    }
+    (header.expect("the first chunk has the header"), bytes)
+}
+
+#[test]
+fn a_fetch_interrupted_halfway_resumes_and_yields_the_same_bytes() {
+    let root = tempfile::tempdir().unwrap();
+    let scene = prepare_nbody(root.path(), "nb", 3000, 2);
+    let frame = [
+        "--width", "160", "--height", "120", "--spp", "2", "--depth", "2",
+    ];
+    let cluster = Cluster::start(root.path(), Some("nb"), &[WorkerOpts::cache(64 << 20)]);
+    let stats = submit_wait(&cluster, &frame, "first");
+    assert_eq!(hash_of(&stats), local_hash(&scene, &frame));
+    let job = stats_field(&stats, "/job_id").as_str().unwrap().to_string();
+    let whole = cluster.dir().join("whole.exr");
+    cluster.rayfarm_ok(&["fetch", &job, "-o", s(&whole)]);
+    let expected = std::fs::read(&whole).unwrap();
+    assert!(expected.len() > 3 * 4096, "{} bytes", expected.len());
+
+    // Over the API: half the chunks, the connection dropped, then the rest from that offset.
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    let url = cluster.coordinator_url().to_string();
+    let half = expected.len().div_ceil(4096) / 2;
+    let (header, mut bytes) = runtime.block_on(fetch_part(&url, &job, 0, half));
+    assert_eq!(bytes.len(), half * 4096);
+    assert_eq!(header.total_bytes, expected.len() as u64);
+    let (again, rest) = runtime.block_on(fetch_part(&url, &job, bytes.len() as u64, usize::MAX));
+    bytes.extend_from_slice(&rest);
+    assert_eq!(bytes, expected);
+    let checksum = format!("{:016x}", xxhash_rust::xxh3::xxh3_64(&bytes));
+    assert_eq!(
+        (header.checksum.as_str(), again.checksum.as_str()),
+        (checksum.as_str(), checksum.as_str())
+    );
+
+    // The CLI resumes after the bytes an interrupted fetch left in `<output>.part`.
+    let out = cluster.dir().join("resumed.exr");
+    let part = cluster.dir().join("resumed.exr.part");
+    std::fs::write(&part, &expected[..expected.len() / 2]).unwrap();
+    cluster.rayfarm_ok(&["fetch", &job, "-o", s(&out)]);
+    assert_eq!(std::fs::read(&out).unwrap(), expected);
+    assert!(!part.exists());
+    // Bytes that are not the result's are caught by the checksum, and removed.
+    let mut wrong = expected[..expected.len() / 2].to_vec();
+    wrong[100] ^= 0xff;
+    std::fs::write(&part, &wrong).unwrap();
+    let failed = cluster.rayfarm(&["fetch", &job, "-o", s(&out)]);
+    let stderr = String::from_utf8_lossy(&failed.stderr);
+    assert!(
+        !failed.status.success() && stderr.contains("checksum"),
+        "{stderr}"
+    );
+    assert!(!part.exists());
+    // Past the end is refused.
+    let past = runtime.block_on(async {
+        let mut client = JobServiceClient::connect(url.clone()).await.unwrap();
+        let req = proto::FetchResultStreamRequest {
+            job_id: job.clone(),
+            format: proto::ImageFormat::Png as i32,
+            offset: u64::MAX,
+            chunk_bytes: 0,
+        };
+        client
+            .fetch_result_stream(req)
+            .await
+            .err()
+            .map(|e| e.code())
+    });
+    assert_eq!(past, Some(tonic::Code::OutOfRange));
+}
