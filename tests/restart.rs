@@ -202,3 +202,41 @@ fn a_damaged_job_database_stops_the_coordinator_naming_the_file() {
         "the file was changed"
     );
 }
+
+#[test]
+fn a_job_whose_frame_kills_the_coordinator_three_times_fails_and_the_queue_moves_on() {
+    let root = tempfile::tempdir().expect("temp dir");
+    let scene = prepare(root.path(), "nb");
+    let small_hash = local_hash(&scene, &SMALL);
+    let cache = domain_bytes(&scene).1;
+    let mut cluster = Cluster::start(root.path(), Some("nb"), &vec![WorkerOpts::cache(cache); 2]);
+    let done = submit(&cluster, &SMALL);
+    cluster.rayfarm_ok(&["watch", &done, "--quiet"]);
+
+    // P stands for a job that brings the coordinator down whenever its frame runs.
+    let p = submit(&cluster, &BIG);
+    let q = submit(&cluster, &SMALL);
+    for attempt in 1..=3 {
+        wait_until(
+            &format!("P's frame to start ({attempt})"),
+            Duration::from_secs(120),
+            || cluster.status()["running_job_id"] == p.as_str(),
+        );
+        cluster.kill_coordinator();
+        cluster.restart_coordinator();
+    }
+    // The third restart does not start P again: it fails, and Q renders as it would have.
+    cluster.rayfarm_ok(&["watch", &q, "--quiet"]);
+    assert_eq!(fetch(&cluster, &q), small_hash);
+    let end = jobs(&cluster);
+    let failed = job(&end, &p);
+    assert_eq!(failed["state"], "failed");
+    let why = failed["error"].as_str().unwrap_or("");
+    assert!(
+        why.contains("started 3 times") && why.contains("--max-attempts is 3"),
+        "{why}"
+    );
+    // Nothing else is lost.
+    assert_eq!(job(&end, &q)["state"], "succeeded");
+    assert_eq!(fetch(&cluster, &done), small_hash);
+}

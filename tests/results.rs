@@ -43,7 +43,10 @@ const HUGE: [&str; 10] = [
     "0.5,0.7,200",
 ];
 
+/// Minutes on this 2-core machine (121 s local, 671 s on the cluster under load): a benchmark
+/// run by hand, `cargo test --release -p rayfarm-tests --test results -- --ignored --nocapture`.
 #[test]
+#[ignore = "long: 268 M camera rays twice; run with --ignored"]
 fn a_16k_frame_fits_in_512_mib_of_coordinator_and_equals_the_local_render() {
     let root = tempfile::tempdir().unwrap();
     let scene = prepare_nbody(root.path(), "speck", 2000, 2);

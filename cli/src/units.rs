@@ -4,20 +4,7 @@
 pub use rayfarm_core::units::parse_bytes as bytes;
 
 /// Formats a byte count for tables.
-pub fn human(bytes: u64) -> String {
-    const UNITS: [&str; 5] = ["B", "KiB", "MiB", "GiB", "TiB"];
-    let mut v = bytes as f64;
-    let mut u = 0;
-    while v >= 1024.0 && u + 1 < UNITS.len() {
-        v /= 1024.0;
-        u += 1;
-    }
-    if u == 0 {
-        format!("{bytes} B")
-    } else {
-        format!("{v:.1} {}", UNITS[u])
-    }
-}
+pub use rayfarm_core::units::format_bytes as human;
 
 /// Parses "X,Y,Z" for clap (volume dimensions, camera positions).
 pub fn triple<T: std::str::FromStr>(s: &str) -> Result<[T; 3], String>

@@ -4,6 +4,7 @@
 //! directory, so a restarted coordinator carries on with them (`store`).
 
 mod accusations;
+mod admission;
 mod api;
 mod control;
 mod frame;
@@ -98,6 +99,15 @@ struct Args {
     /// dry; `barrier` (Fig. 5 as written) waits until every worker has reported.
     #[arg(long, env = "RAYFARM_ROUNDS", value_enum, default_value_t = Rounds::Async)]
     rounds: Rounds,
+    /// Largest film file, set of images, or worker memory for one tile's camera rays a job's
+    /// frame may need; a job past it (or past the data directory's free disk) is refused at
+    /// submit with RESOURCE_EXHAUSTED. A 16384x16384 frame's film is 6 GiB.
+    #[arg(long, env = "RAYFARM_MAX_FRAME_BYTES", value_parser = rayfarm_core::units::parse_bytes, default_value = "16GiB")]
+    max_frame_bytes: u64,
+    /// A job whose frame has started this many times without finishing (coordinator crashes
+    /// and lost workers included) fails instead of being queued again.
+    #[arg(long, env = "RAYFARM_MAX_ATTEMPTS", default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..))]
+    max_attempts: u32,
     #[command(flatten)]
     tls: ServeTlsArgs,
     /// File holding the cluster secret workers must present to attach (off without it).
@@ -148,6 +158,8 @@ async fn run(args: Args) -> anyhow::Result<()> {
             fill_free_slots: matches!(args.replicate, Replicate::FreeSlots),
         },
         rounds: args.rounds,
+        max_frame_bytes: args.max_frame_bytes,
+        max_attempts: args.max_attempts,
     };
     // The jobs are loaded before listening: nobody sees a coordinator without them.
     let coordinator = Coordinator::open(config.clone())?;

@@ -21,6 +21,7 @@ use tokio::sync::{mpsc, oneshot, watch};
 use tonic::Status;
 use tracing::{error, info, info_span, warn};
 
+use crate::admission::{Needs, free_disk};
 use crate::frame::{CommittedTile, Member, Outgoing, Rounds, RunningFrame};
 use crate::queue::JobQueue;
 use crate::results;
@@ -44,6 +45,10 @@ pub struct Config {
     pub schedule_options: Options,
     /// How the dynamic schedule's rounds advance.
     pub rounds: Rounds,
+    /// Admission: the most a frame may need of each figure (`admission::Needs`).
+    pub max_frame_bytes: u64,
+    /// Starts of a job's frame after which it fails instead of starting again.
+    pub max_attempts: u32,
 }
 
 /// What workers and clients are told once the coordinator is stopping.
@@ -67,6 +72,8 @@ struct Job {
     /// bumped epochs with each loss; a worker dropped from it may still send rays and
     /// results of those epochs, which the restarted frame must never take for its own.
     epoch_floor: u32,
+    /// Times each worker (by id) was lost during this job's frames, in this process.
+    workers_lost: BTreeMap<String, u32>,
     progress: watch::Sender<proto::WatchJobResponse>,
     image_hash: String,
     stats_json: String,
@@ -212,7 +219,8 @@ impl Coordinator {
         spec: proto::JobSpec,
         manifest: &Manifest,
     ) -> Result<String, Status> {
-        frame_spec(&spec, &manifest.camera).map_err(Status::invalid_argument)?;
+        let frame = frame_spec(&spec, &manifest.camera).map_err(Status::invalid_argument)?;
+        self.admit(&frame)?;
         let mut st = self.lock();
         st.seq += 1;
         let seq = st.seq;
@@ -229,6 +237,7 @@ impl Coordinator {
             seq,
             attempts: 0,
             epoch_floor: 0,
+            workers_lost: BTreeMap::new(),
             progress: progress_channel(&id, JobState::Queued, "", ""),
             image_hash: String::new(),
             stats_json: String::new(),
@@ -244,6 +253,22 @@ impl Coordinator {
         info!(job = %id, scene = %spec.scene, width = spec.width, height = spec.height, spp = spec.spp, priority = spec.priority, "job queued");
         self.try_start(&mut st);
         Ok(id)
+    }
+
+    /// Refuses a frame whose needs pass the limits (see `admission`).
+    fn admit(&self, frame: &rayfarm_core::render::local::FrameSpec) -> Result<(), Status> {
+        let needs = Needs::of(frame)
+            .ok_or_else(|| Status::invalid_argument("the image does not fit the tile grid"))?;
+        let dir = &self.config.data_dir;
+        let free = free_disk(dir).map_err(|e| {
+            Status::internal(format!("free disk of {} unknown: {e}", dir.display()))
+        })?;
+        needs
+            .check(self.config.max_frame_bytes, dir, free)
+            .map_err(|reason| {
+                warn!(%reason, "job refused");
+                Status::resource_exhausted(reason)
+            })
     }
 
     /// The directory and manifest of `scene`, resolved under the scene root (see
@@ -554,6 +579,28 @@ impl Coordinator {
         let Some(out) = st.running.as_mut().and_then(|f| f.lose(key)) else {
             return;
         };
+        let max = self.config.max_attempts;
+        let job_id = st
+            .running
+            .as_ref()
+            .map(|f| f.job_id.clone())
+            .unwrap_or_default();
+        let losses = st.jobs.get_mut(&job_id).map_or(0, |j| {
+            let n = j.workers_lost.entry(worker.id.clone()).or_insert(0);
+            *n += 1;
+            *n
+        });
+        if losses >= max {
+            // The same worker lost again and again on one job: the job is the likelier
+            // culprit. It fails; the workers stay.
+            let reason = format!(
+                "worker {} was lost {losses} times during this job's frames (last: {why}); \
+                 --max-attempts is {max}",
+                worker.id
+            );
+            self.fail_running(&mut st, &reason);
+            return;
+        }
         if out.is_empty() {
             // No worker left: the job goes back to the front of its priority class and
             // starts over when workers come back.
@@ -652,6 +699,17 @@ impl Coordinator {
             };
             let _span = info_span!("start_job", job = %id).entered();
             let attempts = st.jobs.get(&id).map_or(0, |j| j.attempts);
+            if attempts >= self.config.max_attempts {
+                // A job that kills the coordinator (or loses every worker) each time it runs
+                // would otherwise be a crash loop; the queue moves on.
+                let reason = format!(
+                    "its frame started {attempts} times without finishing (the coordinator \
+                     stopped or every worker was lost each time); --max-attempts is {}",
+                    self.config.max_attempts
+                );
+                set_state(st, &id, JobState::Failed, &reason);
+                continue;
+            }
             match self.prepare_frame(&id, spec) {
                 Ok(mut frame) => {
                     // A job started before (by a coordinator since restarted, or before its
@@ -671,14 +729,17 @@ impl Coordinator {
                     info!(
                         workers = out.len(),
                         tiles = frame.ledger.grid().count(),
+                        attempt = attempts + 1,
                         "frame started"
                     );
-                    send(st, out);
                     if let Some(job) = st.jobs.get_mut(&id) {
                         job.summary.started_unix_ms = unix_ms();
                         job.attempts = attempts.saturating_add(1);
                     }
+                    // The start is on disk before any worker hears of it: a frame that kills
+                    // the coordinator counts against the job's attempts all the same.
                     set_state(st, &id, JobState::Running, "");
+                    send(st, out);
                     publish_progress(st, &frame);
                     st.running = Some(frame);
                 }
@@ -912,6 +973,7 @@ fn restore(st: &mut State, data_dir: &std::path::Path, stored: StoredJob) {
         seq: stored.seq,
         attempts: stored.attempts,
         epoch_floor: 0,
+        workers_lost: BTreeMap::new(),
         image_hash: stored.image_hash,
         stats_json: stored.stats_json,
     };
@@ -969,6 +1031,8 @@ mod tests {
             report_timeout: Duration::from_secs(1),
             schedule_options: Options::default(),
             rounds: Rounds::default(),
+            max_frame_bytes: 16 << 30,
+            max_attempts: 3,
         }
     }
 
@@ -997,6 +1061,40 @@ mod tests {
             }
         }
         panic!("no StartFrame sent");
+    }
+
+    #[test]
+    fn a_worker_lost_three_times_on_one_job_fails_the_job_and_stays() {
+        let root = tempfile::tempdir().unwrap();
+        let spec = small_job(root.path());
+        let c = Coordinator::open(config(root.path())).unwrap();
+        let attach = |id: &str| {
+            let (tx, rx) = mpsc::unbounded_channel();
+            let register = proto::Register {
+                protocol_version: PROTOCOL_VERSION,
+                worker_id: id.into(),
+                peer_address: format!("{id}:1"),
+                cache_bytes: 1 << 30,
+                threads: 1,
+            };
+            (c.register(&register, tx).expect("registered"), rx)
+        };
+        let _stays = attach("stays");
+        let id = c.submit(Some(spec)).unwrap();
+        for lost in 1..=3 {
+            assert_eq!(c.list()[0].state(), JobState::Running, "loss {lost}");
+            let (key, _rx) = attach("flaky");
+            c.worker_gone(key, "stream closed");
+        }
+        let job = c.list().into_iter().find(|j| j.job_id == id).unwrap();
+        assert_eq!(job.state(), JobState::Failed);
+        assert!(
+            job.error.contains("worker flaky was lost 3 times")
+                && job.error.contains("--max-attempts is 3"),
+            "{}",
+            job.error
+        );
+        assert_eq!(c.status().workers.len(), 1, "the other worker stays");
     }
 
     /// A scene `nb` under `root` and a small job of it.
