@@ -936,13 +936,14 @@ pub fn job<'a>(jobs: &'a [serde_json::Value], id: &str) -> &'a serde_json::Value
         .unwrap_or_else(|| panic!("job {id} not listed in {jobs:?}"))
 }
 
-/// A process's peak resident memory (`VmHWM` in `/proc/PID/status`) in bytes.
-pub fn peak_rss(pid: u32) -> u64 {
+/// A field of `/proc/PID/status` in bytes (its value is in kB), e.g. `VmHWM:` (peak
+/// resident memory) or `VmSize:`.
+pub fn proc_status_bytes(pid: u32, field: &str) -> u64 {
     let status = std::fs::read_to_string(format!("/proc/{pid}/status")).expect("proc status");
     let kib: u64 = status
         .lines()
-        .find_map(|l| l.strip_prefix("VmHWM:"))
+        .find_map(|l| l.strip_prefix(field))
         .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
-        .expect("VmHWM in proc status");
+        .unwrap_or_else(|| panic!("no {field} in {status}"));
     kib * 1024
 }

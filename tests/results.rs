@@ -4,12 +4,13 @@
 
 use std::io::BufReader;
 use std::path::Path;
+use std::process::Command;
 use std::time::Instant;
 
 use rayfarm_node::proto::{self, job_service_client::JobServiceClient};
 use rayfarm_tests::{
-    Cluster, WorkerOpts, hash_of, local_hash, peak_rss, prepare_nbody, rayfarm_ok, s, stats_field,
-    submit_wait,
+    Cluster, ClusterOpts, WorkerOpts, hash_of, local_hash, prepare_nbody, proc_status_bytes,
+    rayfarm_ok, s, stats_field, submit_wait,
 };
 
 /// Decodes a PNG row by row; returns its size.
@@ -80,7 +81,7 @@ fn a_16k_frame_fits_in_512_mib_of_coordinator_and_equals_the_local_render() {
     let start = Instant::now();
     let stats = submit_wait(&cluster, &HUGE, "huge");
     let cluster_secs = start.elapsed().as_secs_f64();
-    let coordinator_rss = peak_rss(cluster.coordinator_pid());
+    let coordinator_rss = proc_status_bytes(cluster.coordinator_pid(), "VmHWM:");
     eprintln!(
         "16384x16384: render --local {local_secs:.0} s, peak RSS {} MiB; cluster {cluster_secs:.0} s, \
          coordinator VmHWM {} MiB",
@@ -206,4 +207,59 @@ fn a_fetch_interrupted_halfway_resumes_and_yields_the_same_bytes() {
             .map(|e| e.code())
     });
     assert_eq!(past, Some(tonic::Code::OutOfRange));
+}
+
+#[test]
+fn under_a_memory_cap_a_job_past_the_limits_is_refused_at_submit_and_the_next_renders() {
+    let root = tempfile::tempdir().unwrap();
+    let scene = prepare_nbody(root.path(), "nb", 3000, 2);
+    let opts = ClusterOpts {
+        coordinator_args: vec!["--max-frame-bytes".into(), "64MiB".into()],
+        ..ClusterOpts::default()
+    };
+    let cluster = Cluster::start_with(
+        root.path(),
+        Some("nb"),
+        &opts,
+        &[WorkerOpts::cache(64 << 20)],
+    );
+    // The cap: 256 MiB of address space beyond what the coordinator has mapped now.
+    let pid = cluster.coordinator_pid();
+    let cap = proc_status_bytes(pid, "VmSize:") + (256 << 20);
+    let prlimit = Command::new("prlimit")
+        .args([format!("--pid={pid}"), format!("--as={cap}:{cap}")])
+        .status()
+        .expect("run prlimit");
+    assert!(prlimit.success());
+    let limits = std::fs::read_to_string(format!("/proc/{pid}/limits")).unwrap();
+    assert!(limits.contains(&cap.to_string()), "{limits}");
+
+    let refused = [
+        (
+            &["--width", "4096", "--height", "4096", "--spp", "1"][..],
+            "384.0 MiB for its film file",
+        ),
+        (
+            &["--width", "64", "--height", "64", "--spp", "1024"][..],
+            "88.0 MiB for the camera rays of one tile in a worker",
+        ),
+    ];
+    for (frame, figure) in refused {
+        let mut args = vec!["submit"];
+        args.extend_from_slice(frame);
+        let out = cluster.rayfarm(&args);
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{frame:?} was accepted");
+        assert!(
+            stderr.contains("RESOURCE_EXHAUSTED")
+                && stderr.contains(figure)
+                && stderr.contains("--max-frame-bytes of 64.0 MiB"),
+            "{stderr}"
+        );
+    }
+    let frame = [
+        "--width", "96", "--height", "72", "--spp", "2", "--depth", "2",
+    ];
+    let stats = submit_wait(&cluster, &frame, "next");
+    assert_eq!(hash_of(&stats), local_hash(&scene, &frame));
 }
