@@ -252,7 +252,7 @@ impl JobService for Api {
                 let msg = proto::FetchResultChunk {
                     header: header.take(),
                     offset,
-                    data: data.into(),
+                    data,
                 };
                 if tx.send(Ok(msg)).await.is_err() {
                     return;
