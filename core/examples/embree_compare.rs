@@ -10,7 +10,16 @@
 //!
 //! ```text
 //! embree_compare SCENE_DIR --embree PATH [--size N] [--reps N] [--high]
+//! embree_compare SCENE_DIR --count SET [--size N]
 //! ```
+//!
+//! `--rebuild` traces a BVH built in memory with this build's settings instead of the file's
+//! (to compare build settings without preparing again). Times are the tracing thread's CPU
+//! time on both sides, so a shared machine's other processes do not count against either.
+//!
+//! `--count coherent|incoherent` traces that set once on rayfarm's side only, in
+//! `counted_pass`, for instruction counts: `valgrind --tool=callgrind
+//! --toggle-collect='*counted_pass*' embree_compare SCENE --count coherent` (README, "Benchmarks").
 
 use std::error::Error;
 use std::fs::File;
@@ -18,11 +27,10 @@ use std::io::{BufWriter, Write};
 use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
-use std::time::Instant;
 
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
-use rayfarm_core::bvh::{Hit, TraceRay, Traverser};
+use rayfarm_core::bvh::{Bvh, Hit, TraceRay, Traverser};
 use rayfarm_core::camera::PinholeCamera;
 use rayfarm_core::geometry::PackedTriangle;
 use rayfarm_core::sampling::{Purpose, uniform};
@@ -57,15 +65,19 @@ const EMBREE_MISS: u32 = u32::MAX;
 struct Options {
     scene: PathBuf,
     embree: PathBuf,
+    count: Option<String>,
+    rebuild: bool,
     size: u32,
     reps: usize,
     high: bool,
 }
 
 fn parse_args() -> Result<Options> {
-    let usage = "usage: embree_compare SCENE_DIR --embree PATH [--size N] [--reps N] [--high]";
+    let usage = "usage: embree_compare SCENE_DIR (--embree PATH | --count SET) [--size N] [--reps N] [--high] [--rebuild]";
     let mut scene = None;
     let mut embree = None;
+    let mut count = None;
+    let mut rebuild = false;
     let mut size = 1024;
     let mut reps = 5;
     let mut high = false;
@@ -77,9 +89,11 @@ fn parse_args() -> Result<Options> {
         };
         match a.as_str() {
             "--embree" => embree = Some(PathBuf::from(value()?)),
+            "--count" => count = Some(value()?),
             "--size" => size = value()?.parse()?,
             "--reps" => reps = value()?.parse()?,
             "--high" => high = true,
+            "--rebuild" => rebuild = true,
             "-h" | "--help" => return Err(usage.into()),
             s if s.starts_with("--") => return Err(format!("unknown option {s}\n{usage}").into()),
             _ if scene.is_none() => scene = Some(PathBuf::from(a)),
@@ -88,7 +102,12 @@ fn parse_args() -> Result<Options> {
     }
     Ok(Options {
         scene: scene.ok_or(usage)?,
-        embree: embree.ok_or(usage)?,
+        embree: match (&embree, &count) {
+            (None, None) => return Err(usage.into()),
+            _ => embree.unwrap_or_default(),
+        },
+        count,
+        rebuild,
         size,
         reps: reps.max(1),
         high,
@@ -116,19 +135,43 @@ impl Timing {
     }
 }
 
-/// One closest-hit pass of rayfarm's kernel over `rays` on this thread. Preparing each
-/// `TraceRay` is inside the timed loop, as filling each `RTCRayHit` is on the Embree side.
-fn trace_rayfarm(domain: &DomainData, rays: &[BenchRay], hits: &mut Vec<Option<Hit>>) -> f64 {
-    let bvh = domain.bvh();
+/// CPU seconds of this thread: on a shared machine, time spent descheduled is not the
+/// tracer's (the C++ side measures the same way).
+fn thread_seconds() -> f64 {
+    let mut t = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: `t` is a valid timespec to write; the clock id is a constant the kernel knows.
+    unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut t) };
+    t.tv_sec as f64 + t.tv_nsec as f64 * 1e-9
+}
+
+/// One closest-hit pass of rayfarm's kernel over `rays` on this thread, in thread CPU seconds.
+/// Preparing each `TraceRay` is inside the timed loop, as filling each `RTCRayHit` is on the
+/// Embree side.
+fn trace_rayfarm(bvh: Bvh, rays: &[BenchRay], hits: &mut Vec<Option<Hit>>) -> f64 {
     hits.clear();
     hits.reserve(rays.len());
     let mut traverser = Traverser::new();
-    let start = Instant::now();
+    let start = thread_seconds();
     for r in rays {
         let ray = TraceRay::new(r.origin.into(), r.dir.into());
         hits.push(traverser.nearest_hit(bvh, &ray, r.t_min, r.t_max));
     }
-    start.elapsed().as_secs_f64()
+    thread_seconds() - start
+}
+
+/// One untimed pass for instruction counts; returns the number of hits.
+#[inline(never)]
+fn counted_pass(bvh: Bvh, rays: &[BenchRay]) -> usize {
+    let mut traverser = Traverser::new();
+    rays.iter()
+        .filter(|r| {
+            let ray = TraceRay::new(r.origin.into(), r.dir.into());
+            traverser.nearest_hit(bvh, &ray, r.t_min, r.t_max).is_some()
+        })
+        .count()
 }
 
 /// The ray limited to the interval the render kernel traces it over in the (only) domain, as
@@ -355,20 +398,43 @@ fn main() -> Result<()> {
     // Verifying the checksum also reads the whole file, so no timed pass pays for page faults.
     let domain = DomainData::open(&opts.scene.join(&entry.file), checksum, true, materials)?;
 
+    // `--rebuild`: this build's BVH settings on the scene's triangles, without preparing again.
+    let rebuilt = opts.rebuild.then(|| {
+        let mut p = domain.packed().to_vec();
+        let t = std::time::Instant::now();
+        let b = rayfarm_core::bvh::build(&mut p);
+        eprintln!(
+            "rebuilt the BVH in {:.2} s: {} nodes, {} blocks",
+            t.elapsed().as_secs_f64(),
+            b.nodes.len(),
+            b.blocks.len()
+        );
+        (p, b)
+    });
+    let (bvh, tris) = match &rebuilt {
+        Some((p, b)) => (Bvh::new(&b.nodes, &b.blocks, p.len())?, p.as_slice()),
+        None => (domain.bvh(), domain.packed()),
+    };
     // A first untimed pass over the camera rays finds the hits the diffuse rays start from.
     let tree = manifest.domain_tree();
     let (camera, pixels) = camera_rays(&manifest, &tree, opts.size);
     let mut hits = Vec::new();
-    trace_rayfarm(&domain, &camera, &mut hits);
-    let diffuse = diffuse_rays(
-        &camera,
-        &pixels,
-        &hits,
-        domain.packed(),
-        &tree,
-        manifest.ray_epsilon,
-    );
+    trace_rayfarm(bvh, &camera, &mut hits);
+    let diffuse = diffuse_rays(&camera, &pixels, &hits, tris, &tree, manifest.ray_epsilon);
     let sets: [(&str, &[BenchRay]); 2] = [("coherent", &camera), ("incoherent", &diffuse)];
+    if let Some(name) = &opts.count {
+        let (_, rays) = sets
+            .iter()
+            .find(|(n, _)| n == name)
+            .ok_or_else(|| format!("--count {name}: expected coherent or incoherent"))?;
+        let found = counted_pass(bvh, rays);
+        println!(
+            "{name}: {} rays, {found} hits, kernel {}",
+            rays.len(),
+            Traverser::new().kernel().name()
+        );
+        return Ok(());
+    }
 
     let dir = tempfile::Builder::new()
         .prefix("embree-compare")
@@ -394,7 +460,7 @@ fn main() -> Result<()> {
     for (_, rays) in &sets {
         let mut hits = Vec::new();
         let seconds = (0..opts.reps)
-            .map(|_| trace_rayfarm(&domain, rays, &mut hits))
+            .map(|_| trace_rayfarm(bvh, rays, &mut hits))
             .collect();
         ours.push((Timing(seconds), hits));
     }
@@ -477,6 +543,7 @@ fn main() -> Result<()> {
         "scene": opts.scene.display().to_string(),
         "triangles": domain.packed().len(),
         "bvh_nodes": domain.nodes().len(),
+        "rayfarm_kernel": Traverser::new().kernel().name(),
         "image": [opts.size, opts.size],
         "reps": opts.reps,
         "embree": report["embree"],

@@ -28,8 +28,8 @@ pub const SLOT_EMPTY: u32 = 0;
 /// An inner child: `child` is a node index.
 pub const SLOT_INNER: u32 = u32::MAX;
 
-/// Most triangles in one leaf of a built tree (two blocks).
-pub const MAX_LEAF_TRIANGLES: u32 = 8;
+/// Most triangles in one leaf of a built tree (three blocks).
+pub const MAX_LEAF_TRIANGLES: u32 = 12;
 /// Most blocks a leaf may name in a file, so a corrupt file cannot make one leaf huge.
 pub const MAX_LEAF_BLOCKS: u32 = 16;
 
@@ -83,11 +83,16 @@ pub fn build(triangles: &mut Vec<PackedTriangle>) -> Built {
             }
         })
         .collect();
+    // The fast, medium and slow presets traced within noise of each other (README,
+    // "Benchmarks"); medium builds 872k triangles in about 2 s.
     let mut params = obvhs::BvhBuildParams::medium_build();
     // Spatial pre-splits clip references to sub-boxes; our padding argument needs whole-triangle boxes.
     params.pre_split = false;
-    // Leaves of at most one block, measured fastest (README, "Benchmarks").
+    // Leaves of up to three blocks, and a collapse that favours them (cost of a node visit
+    // relative to a triangle test): measured fastest for 8-wide nodes, where leaves of one
+    // block were 10-20% slower (README, "Benchmarks").
     params.max_prims_per_leaf = LEAF_TRIANGLES;
+    params.collapse_traversal_cost = 6.0;
     let bvh = obvhs::bvh2::builder::build_bvh2_from_tris(&tris, params, &mut Duration::default());
     drop(tris);
     let reordered: Vec<PackedTriangle> = bvh
@@ -100,8 +105,7 @@ pub fn build(triangles: &mut Vec<PackedTriangle>) -> Built {
 }
 
 /// Triangles per leaf asked of the binary builder.
-const LEAF_TRIANGLES: u32 = 4;
-const _: () = assert!(LEAF_TRIANGLES <= MAX_LEAF_TRIANGLES);
+const LEAF_TRIANGLES: u32 = MAX_LEAF_TRIANGLES;
 
 fn surface_area(n: &obvhs::bvh2::node::Bvh2Node) -> f32 {
     n.aabb.half_area()
@@ -265,13 +269,63 @@ pub fn validate(
     Ok(deepest)
 }
 
-/// The leaves and nodes of one domain's tree, as the domain file holds them.
+/// The nodes and leaf blocks of one domain's tree, checked by [`validate`]: traversal relies
+/// on that check to index them without bounds tests.
 #[derive(Clone, Copy, Debug)]
 pub struct Bvh<'a> {
+    nodes: &'a [BvhNode],
+    blocks: &'a [TriangleBlock],
+}
+
+impl<'a> Bvh<'a> {
+    /// The tree of `nodes` and `blocks` over `triangle_count` packed triangles, if [`validate`]
+    /// accepts it.
+    pub fn new(
+        nodes: &'a [BvhNode],
+        blocks: &'a [TriangleBlock],
+        triangle_count: usize,
+    ) -> Result<Self, String> {
+        validate(nodes, blocks, triangle_count)?;
+        Ok(Bvh { nodes, blocks })
+    }
+
+    /// A tree the caller has validated (a loaded domain file).
+    pub(crate) fn trusted(nodes: &'a [BvhNode], blocks: &'a [TriangleBlock]) -> Self {
+        Bvh { nodes, blocks }
+    }
+
     /// Nodes, root first.
-    pub nodes: &'a [BvhNode],
+    pub fn nodes(&self) -> &'a [BvhNode] {
+        self.nodes
+    }
+
     /// Leaf blocks.
-    pub blocks: &'a [TriangleBlock],
+    pub fn blocks(&self) -> &'a [TriangleBlock] {
+        self.blocks
+    }
+
+    /// Node `i`.
+    ///
+    /// # Safety
+    /// `i` must be a child index read from this tree's nodes (or 0): [`validate`] checked those.
+    #[inline(always)]
+    unsafe fn node(&self, i: u32) -> &'a BvhNode {
+        // SAFETY: as the caller promises.
+        unsafe { self.nodes.get_unchecked(i as usize) }
+    }
+
+    /// A leaf's blocks.
+    ///
+    /// # Safety
+    /// `first` and `count` must be a leaf child's `child` and `meta` from this tree's nodes.
+    #[inline(always)]
+    unsafe fn leaf(&self, first: u32, count: u32) -> &'a [TriangleBlock] {
+        // SAFETY: as the caller promises; `validate` checked every leaf's range.
+        unsafe {
+            self.blocks
+                .get_unchecked(first as usize..first as usize + count as usize)
+        }
+    }
 }
 
 /// A ray prepared for box and triangle tests.
@@ -303,13 +357,22 @@ impl TraceRay {
             safe(dir.y).recip(),
             safe(dir.z).recip(),
         ];
-        let near_row = [0, 1, 2].map(|a| if inv[a] >= 0.0 { a } else { a + 3 });
+        let o = origin.to_array();
+        // Rows 0..3 are minima, 3..6 maxima: a ray travelling down an axis enters at the maximum.
+        let rows = |a: usize| {
+            if inv[a] >= 0.0 {
+                (a, a + 3)
+            } else {
+                (a + 3, a)
+            }
+        };
+        let r = [rows(0), rows(1), rows(2)];
         TraceRay {
             sheared: ShearedRay::new(origin, dir),
             inv,
-            origin_inv: [0, 1, 2].map(|a| origin[a] * inv[a]),
-            near_row,
-            far_row: near_row.map(|r| (r + 3) % 6),
+            origin_inv: [o[0] * inv[0], o[1] * inv[1], o[2] * inv[2]],
+            near_row: [r[0].0, r[1].0, r[2].0],
+            far_row: [r[0].1, r[1].1, r[2].1],
         }
     }
 }
@@ -421,7 +484,7 @@ struct Entry {
 /// Traversal state reused across rays: zeroing a fresh stack for every ray cost more than
 /// traversing a coherent ray's whole path.
 pub struct Traverser {
-    stack: Vec<Entry>,
+    stack: Stack,
     kernel: Kernel,
 }
 
@@ -440,7 +503,7 @@ impl Traverser {
     /// A traverser running `kernel`, if this CPU can.
     pub fn with_kernel(kernel: Kernel) -> Option<Self> {
         kernel.supported().then(|| Traverser {
-            stack: Vec::with_capacity(MAX_DEPTH * (WIDTH - 1) + 1),
+            stack: Stack::new(),
             kernel,
         })
     }
@@ -534,41 +597,83 @@ impl Isa for Scalar {
 fn leaf_nearest<K: Isa>(blocks: &[TriangleBlock], ray: &K::Ray, t0: f32, best: &mut Hit) {
     for b in blocks {
         let ts = K::block(b, ray);
+        // Candidates first, without branches: most lanes miss.
+        let mut lanes = 0u32;
         for (lane, &t) in ts.iter().enumerate() {
             // A miss is infinity, which must not win against an unbounded t1.
-            if t >= t0
-                && t <= best.t
-                && t != f32::INFINITY
-                && nearer(t, b.id(lane), best.t, best.id)
-            {
+            let candidate = t >= t0 && t <= best.t && t != f32::INFINITY;
+            lanes |= (candidate as u32) << lane;
+        }
+        while lanes != 0 {
+            let lane = lanes.trailing_zeros() as usize;
+            lanes &= lanes - 1;
+            let (t, id) = (ts[lane], b.id(lane));
+            if nearer(t, id, best.t, best.id) {
                 *best = Hit {
                     t,
                     slot: b.slot[lane],
-                    id: b.id(lane),
+                    id,
                 };
             }
         }
     }
 }
 
+/// The traversal stack: sized for the deepest valid tree, so pushes need no capacity test.
+struct Stack {
+    entries: Box<[Entry]>,
+    len: usize,
+}
+
+/// Entries a traversal can hold: each level leaves at most `WIDTH - 1` siblings waiting.
+const STACK_ENTRIES: usize = MAX_DEPTH * (WIDTH - 1) + 1;
+
+impl Stack {
+    fn new() -> Self {
+        Stack {
+            entries: vec![
+                Entry {
+                    child: 0,
+                    meta: 0,
+                    near: 0.0,
+                };
+                STACK_ENTRIES
+            ]
+            .into_boxed_slice(),
+            len: 0,
+        }
+    }
+
+    /// # Safety
+    /// Fewer than [`STACK_ENTRIES`] entries may be held: true of a traversal of a tree no
+    /// deeper than [`MAX_DEPTH`] (a validated one), which pushes at most `WIDTH - 1` per level.
+    #[inline(always)]
+    unsafe fn push(&mut self, e: Entry) {
+        // SAFETY: as the caller promises.
+        unsafe { *self.entries.get_unchecked_mut(self.len) = e };
+        self.len += 1;
+    }
+
+    #[inline(always)]
+    fn pop(&mut self) -> Option<Entry> {
+        self.len = self.len.checked_sub(1)?;
+        // SAFETY: `len` was below the number held.
+        Some(unsafe { *self.entries.get_unchecked(self.len) })
+    }
+}
+
 /// Ordered traversal: the nearest entered child is visited next, the others wait on the stack
-/// with their entry distance, so a subtree beyond the best hit is skipped unopened; equal
-/// distances are still visited, for the id tie-break.
+/// with their entry distance (sorted, the nearest on top), so a subtree beyond the best hit is
+/// skipped unopened; equal distances are still visited, for the id tie-break.
 #[inline(always)]
-fn nearest<K: Isa>(
-    stack: &mut Vec<Entry>,
-    bvh: Bvh,
-    ray: &TraceRay,
-    t0: f32,
-    t1: f32,
-) -> Option<Hit> {
+fn nearest<K: Isa>(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32) -> Option<Hit> {
     let r = K::prepare(ray);
     let mut best = Hit {
         t: t1,
         slot: u32::MAX,
         id: u64::MAX,
     };
-    stack.clear();
+    stack.len = 0;
     let mut cur = Entry {
         child: 0,
         meta: SLOT_INNER,
@@ -576,7 +681,8 @@ fn nearest<K: Isa>(
     };
     loop {
         if cur.meta == SLOT_INNER {
-            let node = &bvh.nodes[cur.child as usize];
+            // SAFETY: the root or a child index of a validated tree.
+            let node = unsafe { bvh.node(cur.child) };
             let (near, mut mask) = K::slab(node, &r, t0, best.t);
             if mask != 0 {
                 let slot = mask.trailing_zeros() as usize;
@@ -590,9 +696,11 @@ fn nearest<K: Isa>(
                     cur = first;
                     continue;
                 }
-                // Push the entered children farthest first, so the nearest is popped next.
-                let base = stack.len();
-                stack.push(first);
+                // Insert the entered children so the stack stays sorted within this node's
+                // run, farthest deepest; the nearest becomes `cur`.
+                let base = stack.len;
+                // SAFETY: a validated tree's traversal holds fewer than STACK_ENTRIES.
+                unsafe { stack.push(first) };
                 while mask != 0 {
                     let slot = mask.trailing_zeros() as usize;
                     mask &= mask - 1;
@@ -601,23 +709,25 @@ fn nearest<K: Isa>(
                         meta: node.meta[slot],
                         near: near[slot],
                     };
-                    let mut at = stack.len();
-                    stack.push(entry);
-                    while at > base && stack[at - 1].near < entry.near {
-                        stack[at] = stack[at - 1];
+                    let mut at = stack.len;
+                    // SAFETY: as above.
+                    unsafe { stack.push(entry) };
+                    let e = &mut stack.entries[..stack.len];
+                    while at > base && e[at - 1].near < entry.near {
+                        e[at] = e[at - 1];
                         at -= 1;
                     }
-                    stack[at] = entry;
+                    e[at] = entry;
+                }
+                if let Some(e) = stack.pop() {
+                    cur = e;
+                    continue;
                 }
             }
         } else {
-            let first = cur.child as usize;
-            leaf_nearest::<K>(
-                &bvh.blocks[first..first + cur.meta as usize],
-                &r,
-                t0,
-                &mut best,
-            );
+            // SAFETY: a leaf child's range of a validated tree.
+            let blocks = unsafe { bvh.leaf(cur.child, cur.meta) };
+            leaf_nearest::<K>(blocks, &r, t0, &mut best);
         }
         loop {
             match stack.pop() {
@@ -636,35 +746,43 @@ fn nearest<K: Isa>(
 #[inline(always)]
 fn leaf_any<K: Isa>(blocks: &[TriangleBlock], ray: &K::Ray, t0: f32, t1: f32) -> bool {
     blocks.iter().any(|b| {
-        K::block(b, ray)
-            .iter()
-            .any(|&t| t >= t0 && t <= t1 && t != f32::INFINITY)
+        let ts = K::block(b, ray);
+        let mut hit = false;
+        for t in ts {
+            hit |= t >= t0 && t <= t1 && t != f32::INFINITY;
+        }
+        hit
     })
 }
 
 /// Shadow-ray traversal: no order and no distances kept; a node's leaf children are tested at
 /// once (a blocker ends the ray), its inner children wait on the stack.
 #[inline(always)]
-fn any<K: Isa>(stack: &mut Vec<Entry>, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32) -> bool {
+fn any<K: Isa>(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32) -> bool {
     let r = K::prepare(ray);
-    stack.clear();
+    stack.len = 0;
     let mut node = 0u32;
     loop {
-        let n = &bvh.nodes[node as usize];
+        // SAFETY: the root or a child index of a validated tree.
+        let n = unsafe { bvh.node(node) };
         let (_, mut mask) = K::slab(n, &r, t0, t1);
         while mask != 0 {
             let slot = mask.trailing_zeros() as usize;
             mask &= mask - 1;
             let (child, meta) = (n.child[slot], n.meta[slot]);
             if meta == SLOT_INNER {
-                stack.push(Entry {
-                    child,
-                    meta,
-                    near: 0.0,
-                });
+                // SAFETY: a validated tree's traversal holds fewer than STACK_ENTRIES.
+                unsafe {
+                    stack.push(Entry {
+                        child,
+                        meta,
+                        near: 0.0,
+                    })
+                };
             } else {
-                let first = child as usize;
-                if leaf_any::<K>(&bvh.blocks[first..first + meta as usize], &r, t0, t1) {
+                // SAFETY: a leaf child's range of a validated tree.
+                let blocks = unsafe { bvh.leaf(child, meta) };
+                if leaf_any::<K>(blocks, &r, t0, t1) {
                     return true;
                 }
             }
@@ -683,7 +801,7 @@ mod x86 {
 
     use std::arch::x86_64::*;
 
-    use super::{Bvh, BvhNode, Entry, Hit, Isa, TraceRay, WIDTH, any, nearest};
+    use super::{Bvh, BvhNode, Hit, Isa, Stack, TraceRay, WIDTH, any, nearest};
     use crate::geometry::{BLOCK, ShearedSse, TriangleBlock};
 
     /// Four lanes at a time: a node's two halves in turn.
@@ -723,7 +841,8 @@ mod x86 {
                 for half in 0..2 {
                     let at = half * 4;
                     let plane = |row: usize, a: usize| {
-                        let b = _mm_load_ps(node.bounds[row][at..].as_ptr());
+                        // SAFETY: rows are below 6 (`TraceRay::new`), `at` is 0 or 4.
+                        let b = _mm_load_ps(node.bounds.get_unchecked(row).as_ptr().add(at));
                         _mm_sub_ps(_mm_mul_ps(b, r.inv[a]), r.origin_inv[a])
                     };
                     let near = _mm_max_ps(
@@ -783,7 +902,8 @@ mod x86 {
             // 64-byte aligned rows.
             let mask = unsafe {
                 let plane = |row: usize, a: usize| {
-                    let b = _mm256_load_ps(node.bounds[row].as_ptr());
+                    // SAFETY: rows are below 6 (`TraceRay::new`).
+                    let b = _mm256_load_ps(node.bounds.get_unchecked(row).as_ptr());
                     _mm256_fmsub_ps(b, r.inv[a], r.origin_inv[a])
                 };
                 let near = _mm256_max_ps(
@@ -811,7 +931,7 @@ mod x86 {
     /// The CPU must support AVX2 and FMA.
     #[target_feature(enable = "avx2,fma")]
     pub unsafe fn nearest_avx2(
-        stack: &mut Vec<Entry>,
+        stack: &mut Stack,
         bvh: Bvh,
         ray: &TraceRay,
         t0: f32,
@@ -823,13 +943,7 @@ mod x86 {
     /// # Safety
     /// The CPU must support AVX2 and FMA.
     #[target_feature(enable = "avx2,fma")]
-    pub unsafe fn any_avx2(
-        stack: &mut Vec<Entry>,
-        bvh: Bvh,
-        ray: &TraceRay,
-        t0: f32,
-        t1: f32,
-    ) -> bool {
+    pub unsafe fn any_avx2(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32) -> bool {
         any::<Avx2>(stack, bvh, ray, t0, t1)
     }
 }

@@ -113,22 +113,22 @@ impl ShearedRay {
     #[inline]
     pub fn new(origin: Vec3, dir: Vec3) -> Self {
         let a = dir.abs();
-        let kz = if a.x >= a.y && a.x >= a.z {
-            0
+        let d = dir.to_array();
+        let (kz, mut kx, mut ky) = if a.x >= a.y && a.x >= a.z {
+            (0, 1, 2)
         } else if a.y >= a.z {
-            1
+            (1, 2, 0)
         } else {
-            2
+            (2, 0, 1)
         };
-        let (mut kx, mut ky) = ((kz + 1) % 3, (kz + 2) % 3);
         // Keep the winding: a negative dominant component mirrors the projection.
-        if dir[kz] < 0.0 {
+        if d[kz] < 0.0 {
             std::mem::swap(&mut kx, &mut ky);
         }
         ShearedRay {
             origin,
             axes: [kx, ky, kz],
-            shear: Vec3::new(dir[kx] / dir[kz], dir[ky] / dir[kz], 1.0 / dir[kz]),
+            shear: Vec3::new(d[kx] / d[kz], d[ky] / d[kz], 1.0 / d[kz]),
         }
     }
 }
@@ -335,6 +335,12 @@ impl TriangleBlock {
                 _mm_or_ps(_mm_cmpgt_ps(u, zero), _mm_cmpgt_ps(v, zero)),
                 _mm_cmpgt_ps(w, zero),
             );
+            let outside = _mm_and_ps(neg, pos);
+            let mut redo = _mm_movemask_ps(edge_zero) as u32;
+            // Most blocks a ray reaches miss on every lane: stop before the distance.
+            if _mm_movemask_ps(outside) == 0xf && redo == 0 {
+                return [f32::INFINITY; BLOCK];
+            }
             let det = _mm_add_ps(_mm_add_ps(u, v), w);
             let t_scaled = _mm_add_ps(
                 _mm_add_ps(
@@ -347,15 +353,11 @@ impl TriangleBlock {
                 _mm_and_ps(_mm_cmpgt_ps(det, zero), _mm_cmple_ps(t_scaled, zero)),
                 _mm_and_ps(_mm_cmplt_ps(det, zero), _mm_cmpge_ps(t_scaled, zero)),
             );
-            let miss = _mm_or_ps(
-                _mm_or_ps(_mm_and_ps(neg, pos), _mm_cmpeq_ps(det, zero)),
-                wrong_side,
-            );
+            let miss = _mm_or_ps(_mm_or_ps(outside, _mm_cmpeq_ps(det, zero)), wrong_side);
             let t = _mm_div_ps(t_scaled, det);
             let t = _mm_or_ps(_mm_and_ps(miss, r.inf), _mm_andnot_ps(miss, t));
             let mut out = [0.0f32; BLOCK];
             _mm_storeu_ps(out.as_mut_ptr(), t);
-            let mut redo = _mm_movemask_ps(edge_zero) as u32;
             while redo != 0 {
                 let lane = redo.trailing_zeros() as usize;
                 redo &= redo - 1;
@@ -385,11 +387,12 @@ impl ShearedSse {
     pub fn new(ray: &ShearedRay) -> Self {
         use std::arch::x86_64::_mm_set1_ps;
         let [kx, ky, kz] = ray.axes;
+        let o = ray.origin.to_array();
         // SAFETY: SSE2 is part of x86-64.
         unsafe {
             ShearedSse {
                 ray: *ray,
-                origin: [kx, ky, kz].map(|k| _mm_set1_ps(ray.origin[k])),
+                origin: [_mm_set1_ps(o[kx]), _mm_set1_ps(o[ky]), _mm_set1_ps(o[kz])],
                 sx: _mm_set1_ps(ray.shear.x),
                 sy: _mm_set1_ps(ray.shear.y),
                 sz: _mm_set1_ps(ray.shear.z),

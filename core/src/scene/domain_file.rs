@@ -327,10 +327,8 @@ impl DomainData {
 
     /// The BVH, nodes and leaf blocks, for traversal.
     pub fn bvh(&self) -> bvh::Bvh<'_> {
-        bvh::Bvh {
-            nodes: self.nodes(),
-            blocks: self.blocks(),
-        }
+        // Checked by `bvh::validate` when the file was opened.
+        bvh::Bvh::trusted(self.nodes(), self.blocks())
     }
 
     /// Triangles in BVH leaf order.

@@ -172,7 +172,8 @@ impl DomainTree {
         let Some((t0, t1)) = clip_to_box(&self.bounds, origin, dir, t_min, t_max) else {
             return;
         };
-        let mut stack: Vec<(u32, f32, f32)> = Vec::with_capacity(32);
+        // Walked for every ray segment: no heap allocation unless the tree is unusually deep.
+        let mut stack = WalkStack::default();
         let mut cur = (0u32, t0, t1);
         loop {
             let (i, lo, hi) = cur;
@@ -317,6 +318,45 @@ pub fn clip_to_box(
         hi = hi.min(t1.max(t2));
     }
     (lo <= hi).then_some((lo, hi))
+}
+
+/// The far sides a walk will come back to: the first 32 in place, any deeper ones on the heap.
+struct WalkStack {
+    inline: [(u32, f32, f32); 32],
+    len: usize,
+    spill: Vec<(u32, f32, f32)>,
+}
+
+impl Default for WalkStack {
+    fn default() -> Self {
+        WalkStack {
+            inline: [(0, 0.0, 0.0); 32],
+            len: 0,
+            spill: Vec::new(),
+        }
+    }
+}
+
+impl WalkStack {
+    #[inline(always)]
+    fn push(&mut self, e: (u32, f32, f32)) {
+        if self.len < self.inline.len() {
+            self.inline[self.len] = e;
+            self.len += 1;
+        } else {
+            self.spill.push(e);
+        }
+    }
+
+    #[inline(always)]
+    fn pop(&mut self) -> Option<(u32, f32, f32)> {
+        // Entries past the inline ones are the newest.
+        if let Some(e) = self.spill.pop() {
+            return Some(e);
+        }
+        self.len = self.len.checked_sub(1)?;
+        Some(self.inline[self.len])
+    }
 }
 
 #[cfg(test)]
