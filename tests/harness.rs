@@ -62,16 +62,27 @@ pub fn bin(name: &str) -> PathBuf {
 
 /// Runs `rayfarm` with `args`; returns its output, whatever the exit status.
 pub fn rayfarm(args: &[&str]) -> Output {
+    rayfarm_env(args, &[])
+}
+
+/// Runs `rayfarm` with `args` and extra environment variables; returns its output.
+pub fn rayfarm_env(args: &[&str], env: &[(&str, &str)]) -> Output {
     Command::new(bin("rayfarm"))
         .args(args)
         .env("RUST_LOG", "warn")
+        .envs(env.iter().copied())
         .output()
         .expect("start rayfarm")
 }
 
 /// Runs `rayfarm` and fails the test, showing stderr, unless it succeeds.
 pub fn rayfarm_ok(args: &[&str]) -> Output {
-    let out = rayfarm(args);
+    rayfarm_ok_env(args, &[])
+}
+
+/// [`rayfarm_ok`] with extra environment variables.
+pub fn rayfarm_ok_env(args: &[&str], env: &[(&str, &str)]) -> Output {
+    let out = rayfarm_env(args, env);
     assert!(
         out.status.success(),
         "rayfarm {} failed:\n{}",

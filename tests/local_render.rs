@@ -3,7 +3,8 @@
 
 use std::path::{Path, PathBuf};
 
-use rayfarm_tests::{file_hash, rayfarm_err, rayfarm_ok, s, stats_field};
+use rayfarm_core::bvh::Kernel;
+use rayfarm_tests::{file_hash, rayfarm_err, rayfarm_ok, rayfarm_ok_env, s, stats_field};
 
 fn generate(dir: &Path, domains: u32) -> PathBuf {
     let out = dir.join(format!("nbody-{domains}"));
@@ -41,6 +42,18 @@ fn render_with(
     tag: &str,
     extra: &[&str],
 ) -> Rendered {
+    render_env(scene, out_dir, threads, cache, tag, extra, &[])
+}
+
+fn render_env(
+    scene: &Path,
+    out_dir: &Path,
+    threads: u32,
+    cache: &str,
+    tag: &str,
+    extra: &[&str],
+    env: &[(&str, &str)],
+) -> Rendered {
     let png = out_dir.join(format!("{tag}.png"));
     let json = out_dir.join(format!("{tag}.json"));
     let threads = threads.to_string();
@@ -68,7 +81,7 @@ fn render_with(
         "--quiet",
     ];
     args.extend_from_slice(extra);
-    rayfarm_ok(&args);
+    rayfarm_ok_env(&args, env);
     Rendered {
         hash: stats_field(&json, "/image_hash")
             .as_str()
@@ -114,6 +127,47 @@ fn generated_scene_renders_identically_at_1_8_and_64_domains_any_threads_any_cac
             }
         }
     }
+}
+
+/// The image hash of `generate(_, 1)` rendered by `render` at 2 threads, as the 4-wide BVH of
+/// domain file format 3 (commit 77f3361) drew it: the 8-wide kernels must not move a pixel.
+const HASH_BEFORE_8_WIDE: &str = "26496b5f9c8ca2cb";
+
+#[test]
+fn every_traversal_kernel_renders_the_hash_of_the_4_wide_tree() {
+    let tmp = tempfile::tempdir().unwrap();
+    for domains in [1, 8] {
+        let scene = generate(tmp.path(), domains);
+        for kernel in Kernel::ALL.into_iter().filter(|k| k.supported()) {
+            for threads in [1, 2] {
+                let tag = format!("{}-{domains}-{threads}", kernel.name());
+                let env = [("RAYFARM_KERNEL", kernel.name())];
+                let r = render_env(&scene, tmp.path(), threads, "1GiB", &tag, &[], &env);
+                assert_eq!(r.hash, HASH_BEFORE_8_WIDE, "{tag}");
+            }
+        }
+    }
+}
+
+#[test]
+fn a_scene_of_an_older_domain_format_is_refused_with_re_run_prepare() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = generate(tmp.path(), 1);
+    let file = std::fs::read_dir(&scene)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .find(|p| p.extension().is_some_and(|e| e == "rfd"))
+        .unwrap();
+    // What a file of format 3 starts with: the same magic, version 3.
+    let mut bytes = std::fs::read(&file).unwrap();
+    bytes[8..12].copy_from_slice(&3u32.to_le_bytes());
+    std::fs::write(&file, bytes).unwrap();
+    let out = tmp.path().join("old.png");
+    let err = rayfarm_err(&args(s(&scene), s(&out)));
+    assert!(
+        err.contains("version 3") && err.contains("re-run `rayfarm prepare`"),
+        "{err}"
+    );
 }
 
 #[test]

@@ -592,6 +592,29 @@ impl Isa for Scalar {
     }
 }
 
+/// Asks the cache for the nodes and first leaf blocks of the children in `mask`.
+#[inline(always)]
+fn prefetch_children(bvh: Bvh, node: &BvhNode, mut mask: u32) {
+    #[cfg(target_arch = "x86_64")]
+    while mask != 0 {
+        use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
+        let slot = mask.trailing_zeros() as usize;
+        mask &= mask - 1;
+        let (child, meta) = (node.child[slot] as usize, node.meta[slot]);
+        let (base, lines) = if meta == SLOT_INNER {
+            (bvh.nodes.as_ptr().wrapping_add(child).cast::<i8>(), 4)
+        } else {
+            (bvh.blocks.as_ptr().wrapping_add(child).cast::<i8>(), 3)
+        };
+        for line in 0..lines {
+            // SAFETY: a prefetch never faults; the address is only a hint.
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(64 * line)) };
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (bvh, node, mask);
+}
+
 /// Tests a leaf's blocks, keeping the nearest hit (ties to the lower id).
 #[inline(always)]
 fn leaf_nearest<K: Isa>(blocks: &[TriangleBlock], ray: &K::Ray, t0: f32, best: &mut Hit) {
@@ -696,6 +719,9 @@ fn nearest<K: Isa>(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32
                     cur = first;
                     continue;
                 }
+                // Every entered child's memory is asked for now, so the cache misses of the
+                // siblings overlap with the work on the nearest.
+                prefetch_children(bvh, node, mask | 1 << slot);
                 // Insert the entered children so the stack stays sorted within this node's
                 // run, farthest deepest; the nearest becomes `cur`.
                 let base = stack.len;
@@ -766,6 +792,9 @@ fn any<K: Isa>(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32) ->
         // SAFETY: the root or a child index of a validated tree.
         let n = unsafe { bvh.node(node) };
         let (_, mut mask) = K::slab(n, &r, t0, t1);
+        if mask & (mask - 1) != 0 {
+            prefetch_children(bvh, n, mask);
+        }
         while mask != 0 {
             let slot = mask.trailing_zeros() as usize;
             mask &= mask - 1;
