@@ -184,8 +184,11 @@ int main(int argc, char** argv) {
     }
 
     // One thread for the build and the trace: the comparison is per core. Embree picks its
-    // widest ISA at run time, whatever -march this file was compiled with.
-    const std::string config = std::string("threads=1") + (verbose ? ",verbose=1" : "");
+    // widest ISA at run time, whatever -march this file was compiled with; EMBREE_MAX_ISA
+    // (sse2, sse4.2, avx, avx2, avx512) caps it, e.g. to compare on an AVX2-only machine's terms.
+    const char* max_isa = std::getenv("EMBREE_MAX_ISA");
+    const std::string config = std::string("threads=1") + (verbose ? ",verbose=1" : "") +
+                               (max_isa && *max_isa ? std::string(",max_isa=") + max_isa : "");
     RTCDevice device = rtcNewDevice(config.c_str());
     if (!device) die("rtcNewDevice failed");
     rtcSetDeviceErrorFunction(device, on_embree_error, nullptr);

@@ -6,7 +6,9 @@
 # Environment: CARGO_TARGET_DIR (default ./target; the scene and the C++ binary live there too),
 # TRIANGLES (generator's target count, default 1000000), SCENE (an existing one-domain scene to
 # use instead; it is not rebuilt),
-# BENCH_CPU (pin the whole run to this CPU with taskset, e.g. 1; default: no pinning).
+# BENCH_CPU (pin the whole run to this CPU with taskset, e.g. 1; default: no pinning),
+# EMBREE_MAX_ISA (cap Embree's ISA: sse4.2, avx2, avx512; default: the widest the CPU has),
+# RAYFARM_KERNEL (force rayfarm's traversal kernel: scalar, sse, avx2; default: the widest).
 set -euo pipefail
 
 root=$(cd "$(dirname "$0")/../.." && pwd)

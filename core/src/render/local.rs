@@ -114,6 +114,45 @@ pub enum RenderError {
 /// Rays traced per rayon task: large enough to amortise, small enough to balance.
 const CHUNK: usize = 4096;
 
+/// Ray buffers handed back after use, so passes reuse memory instead of faulting in fresh
+/// pages: growing new queues and chunk outputs took a third of a one-thread render's time in
+/// the kernel zeroing pages (README, "Benchmarks").
+struct Buffers(std::sync::Mutex<Vec<Vec<RayRecord>>>);
+
+impl Buffers {
+    /// Buffers kept at most; the rest are freed.
+    const KEPT: usize = 64;
+
+    fn new() -> Self {
+        Buffers(std::sync::Mutex::new(Vec::new()))
+    }
+
+    /// An empty buffer with room for `capacity` rays: the smallest kept one that has it, or
+    /// with `capacity` 0 (a queue, which grows) the largest.
+    fn get(&self, capacity: usize) -> Vec<RayRecord> {
+        let mut kept = self.0.lock().unwrap_or_else(|p| p.into_inner());
+        let by_size = kept.iter().enumerate().map(|(i, v)| (v.capacity(), i));
+        let pick = if capacity == 0 {
+            by_size.max()
+        } else {
+            by_size.filter(|&(c, _)| c >= capacity).min()
+        };
+        let mut v = pick.map(|(_, i)| kept.swap_remove(i)).unwrap_or_default();
+        drop(kept);
+        v.reserve(capacity);
+        v
+    }
+
+    /// Gives `v`'s memory back for another pass.
+    fn put(&self, mut v: Vec<RayRecord>) {
+        v.clear();
+        let mut kept = self.0.lock().unwrap_or_else(|p| p.into_inner());
+        if kept.len() < Self::KEPT && v.capacity() > 0 {
+            kept.push(v);
+        }
+    }
+}
+
 struct QueueSink<'a> {
     out: Vec<RayRecord>,
     film: &'a OpenTiles,
@@ -206,16 +245,17 @@ fn render_in_pool(
     let mut passes = 0u64;
     let mut tiles_done = 0u32;
     let wave = options.wave_rays.max(1) as u64;
+    let buffers = Buffers::new();
     loop {
         let queued = queues.total();
         let room = open.in_memory() < max_open || queued == 0;
         if queued < wave as usize && issued < total_primary && room {
             let end = (issued + wave).min(total_primary);
-            let new_sink = sinks(&open, &returned);
+            let new_sink = sinks(&open, &returned, &buffers);
             let outs = issue_primaries(&view, &camera, &grid, frame.spp, issued..end, new_sink);
             counters.primary_rays += end - issued;
             issued = end;
-            queues.place(&view, outs);
+            queues.place(&view, outs, &buffers);
             // Camera rays that meet nothing retire at once: their tiles may be finished.
             tiles_done += commit_finished(&mut open, &returned, &film)?;
             continue;
@@ -224,15 +264,16 @@ fn render_in_pool(
             break;
         };
         let data = cache.get(d)?;
-        let rays = queues.take(d);
+        let rays = queues.take(d, &buffers);
         let _pass = info_span!("trace_queue", domain = d, rays = rays.len()).entered();
-        let new_sink = sinks(&open, &returned);
+        let new_sink = sinks(&open, &returned, &buffers);
         let outs = match &mut queues.groups {
             None => trace_chained(&view, &data, &rays, new_sink, &mut counters),
             Some(groups) => trace_speculative(&view, &data, &rays, groups, new_sink, &mut counters),
         };
         passes += 1;
-        queues.place(&view, outs);
+        buffers.put(rays);
+        queues.place(&view, outs, &buffers);
         tiles_done += commit_finished(&mut open, &returned, &film)?;
         on_progress(&Progress {
             tiles_done,
@@ -286,9 +327,10 @@ fn render_in_pool(
 fn sinks<'a>(
     open: &'a OpenTiles,
     returned: &'a [AtomicU64],
-) -> impl Fn(Vec<RayRecord>) -> QueueSink<'a> + Sync {
-    move |out| QueueSink {
-        out,
+    buffers: &'a Buffers,
+) -> impl Fn(usize) -> QueueSink<'a> + Sync {
+    move |capacity| QueueSink {
+        out: buffers.get(capacity),
         film: open,
         returned,
     }
@@ -321,12 +363,12 @@ fn issue_primaries<'a>(
     grid: &TileGrid,
     spp: u32,
     range: std::ops::Range<u64>,
-    new_sink: impl Fn(Vec<RayRecord>) -> QueueSink<'a> + Sync,
+    new_sink: impl Fn(usize) -> QueueSink<'a> + Sync,
 ) -> Vec<Vec<RayRecord>> {
     let idx: Vec<u64> = range.collect();
     idx.par_chunks(CHUNK)
         .map(|chunk| {
-            let mut sink = new_sink(Vec::with_capacity(chunk.len()));
+            let mut sink = new_sink(chunk.len());
             for &i in chunk {
                 let (pixel, sample) = ((i / spp as u64) as u32, (i % spp as u64) as u32);
                 let ray = primary_ray(camera, grid, spp, pixel, sample);
@@ -342,13 +384,13 @@ fn trace_chained<'a>(
     view: &SceneView,
     data: &DomainData,
     rays: &[RayRecord],
-    new_sink: impl Fn(Vec<RayRecord>) -> QueueSink<'a> + Sync,
+    new_sink: impl Fn(usize) -> QueueSink<'a> + Sync,
     counters: &mut KernelCounters,
 ) -> Vec<Vec<RayRecord>> {
     let results: Vec<(Vec<RayRecord>, KernelCounters)> = rays
         .par_chunks(CHUNK)
         .map(|chunk| {
-            let mut sink = new_sink(Vec::with_capacity(chunk.len() * 2));
+            let mut sink = new_sink(chunk.len() * 2);
             let mut c = KernelCounters::default();
             view.trace(data, chunk, &mut sink, &mut c);
             (sink.out, c)
@@ -370,7 +412,7 @@ fn trace_speculative<'a>(
     data: &DomainData,
     rays: &[RayRecord],
     groups: &mut Groups,
-    new_sink: impl Fn(Vec<RayRecord>) -> QueueSink<'a> + Sync,
+    new_sink: impl Fn(usize) -> QueueSink<'a> + Sync,
     counters: &mut KernelCounters,
 ) -> Vec<Vec<RayRecord>> {
     let verdicts: Vec<(Vec<Verdict>, KernelCounters)> = rays
@@ -385,7 +427,7 @@ fn trace_speculative<'a>(
             (v, c)
         })
         .collect();
-    let mut sink = new_sink(Vec::new());
+    let mut sink = new_sink(0);
     for (chunk, (verdicts, c)) in rays.chunks(CHUNK).zip(verdicts) {
         counters.add(&c);
         for (copy, verdict) in chunk.iter().zip(verdicts) {
@@ -424,17 +466,21 @@ impl Queues {
     }
 
     /// Queues rays routed to their first domain (`SceneView::route_new` or the kernel).
-    fn place(&mut self, view: &SceneView, outs: Vec<Vec<RayRecord>>) {
-        for ray in outs.into_iter().flatten() {
-            match &mut self.groups {
-                None => self.rays[ray.domain as usize].push(ray),
-                Some(groups) => {
-                    for copy in groups.spread(ray, &view.domains_along(&ray), 0) {
-                        self.generations.add(copy.domain, copy.generation());
-                        self.rays[copy.domain as usize].push(copy);
+    /// The emptied `outs` go back to `buffers`.
+    fn place(&mut self, view: &SceneView, outs: Vec<Vec<RayRecord>>, buffers: &Buffers) {
+        for mut out in outs {
+            for ray in out.drain(..) {
+                match &mut self.groups {
+                    None => self.rays[ray.domain as usize].push(ray),
+                    Some(groups) => {
+                        for copy in groups.spread(ray, &view.domains_along(&ray), 0) {
+                            self.generations.add(copy.domain, copy.generation());
+                            self.rays[copy.domain as usize].push(copy);
+                        }
                     }
                 }
             }
+            buffers.put(out);
         }
     }
 
@@ -458,8 +504,9 @@ impl Queues {
         }))
     }
 
-    fn take(&mut self, domain: u32) -> Vec<RayRecord> {
+    /// Domain `domain`'s queue, replaced by an empty buffer from `buffers`.
+    fn take(&mut self, domain: u32, buffers: &Buffers) -> Vec<RayRecord> {
         self.generations.clear(domain);
-        std::mem::take(&mut self.rays[domain as usize])
+        std::mem::replace(&mut self.rays[domain as usize], buffers.get(0))
     }
 }
