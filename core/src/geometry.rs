@@ -244,7 +244,7 @@ pub struct TriangleBlock {
 const _: () = assert!(std::mem::size_of::<TriangleBlock>() == 192);
 
 impl TriangleBlock {
-    /// The block of `tris[slots]` (one to four), padded with the last.
+    /// The block of `tris[first .. first + count]` (one to four), padded with the last.
     pub fn new(tris: &[PackedTriangle], first: usize, count: usize) -> Self {
         assert!((1..=BLOCK).contains(&count));
         let mut b = TriangleBlock::zeroed();
