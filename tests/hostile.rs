@@ -426,3 +426,76 @@ fn hostile_scene_files_are_refused_at_once_without_their_contents() {
     let stats = submit_wait(&cluster, &FRAME, "after");
     assert_eq!(hash_of(&stats), local_hash(&scene, &FRAME));
 }
+
+/// A node with the cluster credentials (none configured here: loopback) attaches as a worker.
+async fn fake_worker(
+    url: &str,
+    id: &str,
+    peer_address: &str,
+) -> (
+    tokio::sync::mpsc::Sender<proto::WorkerMessage>,
+    Result<tonic::Streaming<proto::CoordinatorMessage>, tonic::Status>,
+) {
+    use proto::worker_message::Body;
+    let mut client = proto::worker_control_client::WorkerControlClient::connect(url.to_string())
+        .await
+        .unwrap();
+    let (tx, rx) = tokio::sync::mpsc::channel(16);
+    tx.send(proto::WorkerMessage {
+        body: Some(Body::Register(proto::Register {
+            protocol_version: proto::PROTOCOL_VERSION,
+            worker_id: id.into(),
+            peer_address: peer_address.into(),
+            cache_bytes: 1 << 20,
+            threads: 1,
+        })),
+    })
+    .await
+    .unwrap();
+    let stream = tokio_stream::wrappers::ReceiverStream::new(rx);
+    let answer = client.attach(stream).await.map(tonic::Response::into_inner);
+    (tx, answer)
+}
+
+#[test]
+fn one_node_can_neither_take_a_workers_address_nor_drop_it_alone() {
+    use proto::worker_message::Body;
+    let rt = runtime();
+    let root = tempfile::tempdir().unwrap();
+    let cluster = Cluster::start(root.path(), None, &[WorkerOpts::default()]);
+    let url = cluster.coordinator_url().to_string();
+    let victim = cluster.status()["workers"][0]["peer_address"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    // Its address: refused.
+    let (_tx, answer) = rt.block_on(fake_worker(&url, "impostor", &victim));
+    let e = answer
+        .err()
+        .expect("registered with another worker's address");
+    assert_eq!(e.code(), tonic::Code::AlreadyExists, "{e}");
+    // Its own address, then a report that the real worker is unresponsive: noted, not acted
+    // on while the coordinator still hears from the worker.
+    let (tx, answer) = rt.block_on(fake_worker(&url, "accuser", "127.0.0.1:9"));
+    let _stream = answer.expect("the accuser registers");
+    for _ in 0..3 {
+        rt.block_on(tx.send(proto::WorkerMessage {
+            body: Some(Body::PeerUnresponsive(proto::PeerUnresponsive {
+                peer_address: victim.clone(),
+                reason: "made up".into(),
+            })),
+        }))
+        .unwrap();
+    }
+    rayfarm_tests::wait_until("the report to be logged", Duration::from_secs(10), || {
+        cluster.coordinator_log().contains("not acted on")
+    });
+    // Three heartbeat intervals later, the worker is still attached.
+    std::thread::sleep(Duration::from_secs(3));
+    let workers = cluster.status()["workers"].as_array().unwrap().clone();
+    assert!(
+        workers.iter().any(|w| w["peer_address"] == victim.as_str()),
+        "the accused worker was dropped: {workers:?}"
+    );
+    assert!(!cluster.coordinator_log().contains("made up"));
+}

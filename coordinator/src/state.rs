@@ -97,6 +97,18 @@ struct State {
     next_key: u32,
     running: Option<RunningFrame>,
     finishing: BTreeMap<String, Finishing>,
+    /// Workers reported unresponsive by peers, with who reported them: a report is acted on
+    /// only when a second peer agrees or the coordinator stops hearing from the worker too, so
+    /// one node with the cluster credentials cannot drop another at will.
+    suspects: BTreeMap<u32, Suspicion>,
+}
+
+/// Peers' reports about one worker (see `State::suspects`).
+#[derive(Default)]
+struct Suspicion {
+    reporters: BTreeSet<u32>,
+    /// The latest report, for the log when it is acted on.
+    reason: String,
 }
 
 /// See the module documentation.
@@ -134,6 +146,7 @@ impl Coordinator {
             next_key: 0,
             running: None,
             finishing: BTreeMap::new(),
+            suspects: BTreeMap::new(),
         };
         for stored in loaded.jobs {
             restore(&mut st, &config.data_dir, stored);
@@ -378,6 +391,18 @@ impl Coordinator {
                 r.worker_id
             )));
         }
+        // Another worker's address would take its rays: refused like a duplicate id (a worker
+        // that restarted on the same address gets in once its old entry is reaped).
+        if st
+            .workers
+            .values()
+            .any(|w| w.peer_address == r.peer_address)
+        {
+            return Err(Status::already_exists(format!(
+                "a worker at peer address {} is already attached",
+                r.peer_address
+            )));
+        }
         let key = st.next_key;
         st.next_key += 1;
         let registered = Body::Registered(proto::Registered {
@@ -434,23 +459,53 @@ impl Coordinator {
             FromWorker::FrameReport(r) => self.frame_report(&mut st, key, r),
             FromWorker::PeerUnresponsive(p) => {
                 let reporter = worker.id.clone();
-                let silent = st
+                let suspect = st
                     .workers
                     .iter()
                     .find(|(_, w)| w.peer_address == p.peer_address)
                     .map(|(&k, _)| k);
-                drop(st);
-                match silent {
-                    // Dropping it closes its control stream: if it is only slow, it comes back
-                    // through a fresh registration and joins at the next round.
-                    Some(k) => self.worker_gone(
-                        k,
-                        &format!("unresponsive to worker {reporter}: {}", p.reason),
+                match suspect {
+                    Some(k) if k == key => warn!(key, "a worker reported itself unresponsive"),
+                    Some(k) => {
+                        let reason = format!(
+                            "unresponsive to worker {reporter}: {}",
+                            rayfarm_node::bounds::shown(&p.reason)
+                        );
+                        let suspicion = st.suspects.entry(k).or_default();
+                        suspicion.reporters.insert(key);
+                        suspicion.reason.clone_from(&reason);
+                        let confirmed =
+                            suspicion.reporters.len() >= 2 || self.silent_for_a_while(&st, k);
+                        if confirmed {
+                            drop(st);
+                            // Dropping it closes its control stream: if it is only slow, it
+                            // comes back through a fresh registration and joins at the next
+                            // round.
+                            self.worker_gone(k, &reason);
+                        } else {
+                            info!(
+                                suspect = k,
+                                %reporter,
+                                "peer reported unresponsive; not acted on until the \
+                                 coordinator stops hearing from it or a second peer reports it"
+                            );
+                        }
+                    }
+                    None => info!(
+                        peer = %rayfarm_node::bounds::shown(&p.peer_address),
+                        "unresponsive peer is no member"
                     ),
-                    None => info!(peer = %p.peer_address, "unresponsive peer is no member"),
                 }
             }
         }
+    }
+
+    /// True when worker `key` has sent nothing for two heartbeat intervals: the coordinator's
+    /// own view agrees with a peer that finds it unresponsive.
+    fn silent_for_a_while(&self, st: &State, key: u32) -> bool {
+        st.workers
+            .get(&key)
+            .is_some_and(|w| w.last_seen.elapsed() > 2 * self.config.heartbeat)
     }
 
     fn tile_results(self: &Arc<Self>, st: &mut State, key: u32, r: proto::TileResults) {
@@ -535,6 +590,20 @@ impl Coordinator {
 
     /// Drops workers that have been silent longer than the timeout.
     pub fn reap_silent_workers(self: &Arc<Self>) {
+        // Suspects the coordinator now finds silent too.
+        let confirmed: Vec<(u32, String)> = {
+            let mut st = self.lock();
+            let live: BTreeSet<u32> = st.workers.keys().copied().collect();
+            st.suspects.retain(|k, _| live.contains(k));
+            st.suspects
+                .iter()
+                .filter(|&(&k, _)| self.silent_for_a_while(&st, k))
+                .map(|(&k, s)| (k, format!("{}, and silent to the coordinator", s.reason)))
+                .collect()
+        };
+        for (key, why) in confirmed {
+            self.worker_gone(key, &why);
+        }
         let silent: Vec<u32> = {
             let st = self.lock();
             st.workers
