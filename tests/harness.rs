@@ -1,13 +1,19 @@
 //! Shared pieces of the integration tests: find the real binaries, run them, read their output,
-//! and run a real cluster of them on loopback ([`Cluster`]).
+//! and run a real cluster of them on loopback or on namespaced test hosts ([`Cluster`],
+//! [`hosts`]).
 //! The binaries are built by `cargo build --release --bins` (README's test command does it).
+
+pub mod hosts;
 
 use std::fs::File;
 use std::io::{BufRead, BufReader};
+use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
 use std::process::{Child, ChildStdout, Command, ExitStatus, Output, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
+
+use crate::hosts::{Host, Net};
 
 /// The files of `rayfarm certs --with-secrets` for loopback (see [`certs`]).
 pub struct CertFiles {
@@ -192,19 +198,34 @@ pub struct ClusterOpts {
     pub coordinator_descriptor_limit: Option<u64>,
 }
 
+/// Flags a server needs to serve on an address other than loopback without TLS (the test
+/// hosts' addresses).
+const OFF_LOOPBACK_FLAGS: &[&str] = &["--insecure"];
+
 /// One process of a test cluster.
 struct Proc {
     name: String,
     child: Child,
     log: PathBuf,
     addr: String,
+    /// The test host it runs on (`None`: this machine's loopback).
+    host: Option<Host>,
     /// Killed by the test (its log is still shown).
     killed: bool,
 }
 
+/// A command running `program` on `host`, or here when there is none.
+fn command_on(host: Option<&Host>, program: &Path) -> Command {
+    match host {
+        Some(host) => Net::command(host, program),
+        None => Command::new(program),
+    }
+}
+
 impl Proc {
-    /// Starts `program args` with its stderr in `log`, and waits for its `listening on ADDR`
-    /// line (panicking, with the end of its log, if it exits or stays silent).
+    /// Starts `program args` (on `host` if any, in a process group of its own) with its
+    /// stderr in `log`, and waits for its `listening on ADDR` line (panicking, with the end of
+    /// its log, if it exits or stays silent).
     fn start(
         name: &str,
         program: &Path,
@@ -212,11 +233,11 @@ impl Proc {
         env: &[(String, String)],
         descriptor_limit: Option<u64>,
         log: &Path,
+        host: Option<&Host>,
     ) -> Proc {
         let log_file = File::create(log).expect("create log file");
-        let mut cmd = Command::new(program);
+        let mut cmd = command_on(host, program);
         if let Some(limit) = descriptor_limit {
-            use std::os::unix::process::CommandExt;
             let limit = libc::rlimit {
                 rlim_cur: limit,
                 rlim_max: limit,
@@ -233,6 +254,7 @@ impl Proc {
             }
         }
         cmd.args(args)
+            .process_group(0)
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
             .stderr(log_file);
@@ -252,6 +274,7 @@ impl Proc {
                 child,
                 log: log.to_path_buf(),
                 addr,
+                host: host.cloned(),
                 killed: false,
             },
             failure => {
@@ -270,8 +293,13 @@ impl Proc {
         }
     }
 
+    /// Kills its whole process group (`ip netns exec` and whatever it started) and reaps it.
     fn stop(&mut self) {
-        let _ = self.child.kill();
+        if self.child.try_wait().ok().flatten().is_none() {
+            let group = format!("-{}", self.child.id());
+            let _ = Command::new("kill").args(["-KILL", "--", &group]).output();
+            let _ = self.child.kill();
+        }
         let _ = self.child.wait();
     }
 }
@@ -318,10 +346,16 @@ fn log_tail(path: &Path, n: usize) -> String {
         .collect()
 }
 
-/// A real cluster on loopback: `rayfarm-coordinator` and `rayfarm-worker` processes, each
-/// logging to a file in a temporary directory. Dropping it kills every process; if the test
-/// is failing, the tails of all logs are printed first.
+/// A real cluster, on loopback or with every process on a test host of its own
+/// ([`Cluster::start_on_hosts`]): `rayfarm-coordinator` and `rayfarm-worker` processes, each
+/// logging to a file in a temporary directory. Dropping it kills every process (then removes
+/// the hosts); if the test is failing, the tails of all logs are printed first.
 pub struct Cluster {
+    /// The test hosts (`None`: loopback). Declared first, dropped after the processes
+    /// (`Drop::drop` kills those).
+    net: Option<Net>,
+    /// Where the cluster's `rayfarm` commands run, on test hosts.
+    client_host: Option<Host>,
     dir: tempfile::TempDir,
     scene_root: PathBuf,
     url: String,
@@ -375,17 +409,41 @@ impl Cluster {
         opts: &ClusterOpts,
         workers: &[WorkerOpts],
     ) -> Cluster {
+        Self::start_inner(None, scene_root, default_scene, opts, workers)
+    }
+
+    /// [`Cluster::start_with`] with every process on a host of its own on `net`: the
+    /// coordinator on host `coordinator`, worker `i` on `worker-i`, and the cluster's `rayfarm`
+    /// commands on `client`, each host with its own address (see [`hosts`]).
+    pub fn start_on_hosts(
+        net: Net,
+        scene_root: &Path,
+        default_scene: Option<&str>,
+        opts: &ClusterOpts,
+        workers: &[WorkerOpts],
+    ) -> Cluster {
+        Self::start_inner(Some(net), scene_root, default_scene, opts, workers)
+    }
+
+    fn start_inner(
+        mut net: Option<Net>,
+        scene_root: &Path,
+        default_scene: Option<&str>,
+        opts: &ClusterOpts,
+        workers: &[WorkerOpts],
+    ) -> Cluster {
+        let client_host = net.as_mut().map(|n| n.add_host("client"));
+        let host = net.as_mut().map(|n| n.add_host("coordinator"));
         let dir = tempfile::tempdir().expect("cluster temp dir");
         let data_dir = dir.path().join("data");
         std::fs::create_dir_all(&data_dir).expect("create data dir");
-        let mut args = vec![
-            "--listen".to_string(),
-            "127.0.0.1:0".to_string(),
+        let mut args = listen_args(host.as_ref());
+        args.extend([
             "--data-dir".to_string(),
             s(&data_dir).to_string(),
             "--scene-root".to_string(),
             s(scene_root).to_string(),
-        ];
+        ]);
         if let Some(name) = default_scene {
             args.extend(["--default-scene".to_string(), name.to_string()]);
         }
@@ -397,9 +455,12 @@ impl Cluster {
             &opts.coordinator_env,
             opts.coordinator_descriptor_limit,
             &dir.path().join("coordinator.log"),
+            host.as_ref(),
         );
         let scheme = if opts.https { "https" } else { "http" };
         let mut cluster = Cluster {
+            net,
+            client_host,
             url: format!("{scheme}://{}", coordinator.addr),
             client_env: opts.client_env.clone(),
             dir,
@@ -427,23 +488,30 @@ impl Cluster {
     /// listening, not until it is registered (see [`Cluster::wait_for_workers`]).
     pub fn add_worker(&mut self, opts: &WorkerOpts) -> usize {
         let i = self.workers.len();
-        let mut args = vec![
-            "--coordinator".to_string(),
-            self.url.clone(),
-            "--listen".to_string(),
-            "127.0.0.1:0".to_string(),
+        let name = format!("worker-{i}");
+        let host = self.net.as_mut().map(|n| n.add_host(&name));
+        let mut args = vec!["--coordinator".to_string(), self.url.clone()];
+        args.extend(listen_args(host.as_ref()));
+        args.extend([
             "--cache-bytes".to_string(),
             opts.cache_bytes.to_string(),
             "--scene-root".to_string(),
             s(&self.scene_root).to_string(),
-        ];
+        ]);
         if let Some(t) = opts.threads {
             args.extend(["--threads".to_string(), t.to_string()]);
         }
         args.extend(opts.args.iter().cloned());
-        let name = format!("worker-{i}");
         let log = self.dir.path().join(format!("{name}.log"));
-        let proc = Proc::start(&name, &bin("rayfarm-worker"), &args, &opts.env, None, &log);
+        let proc = Proc::start(
+            &name,
+            &bin("rayfarm-worker"),
+            &args,
+            &opts.env,
+            None,
+            &log,
+            host.as_ref(),
+        );
         self.workers.push(proc);
         i
     }
@@ -459,12 +527,7 @@ impl Cluster {
     }
 
     fn signal_worker(&self, i: usize, signal: &str) {
-        let pid = self.workers[i].child.id().to_string();
-        let status = Command::new("kill")
-            .args([signal, &pid])
-            .status()
-            .expect("run kill");
-        assert!(status.success(), "kill {signal} {pid} failed");
+        signal_pid(self.workers[i].child.id(), signal);
     }
 
     /// Kills worker `i` at once (SIGKILL: a crash, not a shutdown) and reaps it.
@@ -484,6 +547,30 @@ impl Cluster {
         );
         self.coordinator.stop();
         self.coordinator.killed = true;
+    }
+
+    /// Sends the coordinator `signal` (e.g. "-TERM") and waits up to `timeout` for it to exit;
+    /// returns its exit status and how long it took. Panics if it is still running then.
+    /// [`Cluster::restart_coordinator`] may follow.
+    pub fn stop_coordinator(&mut self, signal: &str, timeout: Duration) -> (ExitStatus, Duration) {
+        assert!(
+            !self.coordinator.killed,
+            "the coordinator was already stopped"
+        );
+        let pid = self.coordinator.child.id();
+        signal_pid(pid, signal);
+        let start = Instant::now();
+        loop {
+            if let Some(status) = self.coordinator.child.try_wait().expect("poll coordinator") {
+                self.coordinator.killed = true;
+                return (status, start.elapsed());
+            }
+            assert!(
+                start.elapsed() < timeout,
+                "the coordinator did not exit within {timeout:?} of kill {signal}"
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
     }
 
     /// Starts the coordinator again after [`Cluster::kill_coordinator`], with the same
@@ -507,6 +594,7 @@ impl Cluster {
             &self.coordinator_env,
             self.coordinator_descriptor_limit,
             &log,
+            self.coordinator.host.as_ref(),
         );
         assert_eq!(
             fresh.addr, self.coordinator.addr,
@@ -572,7 +660,7 @@ impl Cluster {
         &self.workers[i].addr
     }
 
-    /// Waits until exactly `n` workers are registered with the coordinator (asking as a user
+    /// Waits until at least `n` workers are registered with the coordinator (asking as a user
     /// would: `rayfarm status --wait-workers N`); panics after `timeout`.
     pub fn wait_for_workers(&self, n: usize, timeout: Duration) {
         self.rayfarm_ok(&[
@@ -605,13 +693,51 @@ impl Cluster {
     /// Runs `rayfarm` against this cluster with only `env` added (not the cluster's client
     /// environment): a client with other credentials, or none.
     pub fn rayfarm_as(&self, env: &[(&str, &str)], args: &[&str]) -> Output {
-        Command::new(bin("rayfarm"))
-            .args(args)
+        let mut cmd = self.client_command(&bin("rayfarm"));
+        cmd.args(args)
             .env("RUST_LOG", "warn")
-            .env("RAYFARM_COORDINATOR", &self.url)
             .envs(env.iter().copied())
             .output()
             .expect("start rayfarm")
+    }
+
+    /// A command running `program` where the cluster's clients run (here, or on the test
+    /// host `client`), with `RAYFARM_COORDINATOR` set: for `rayfarm` runs the test spawns.
+    pub fn client_command(&self, program: &Path) -> Command {
+        let mut cmd = command_on(self.client_host.as_ref(), program);
+        cmd.env("RAYFARM_COORDINATOR", &self.url);
+        cmd
+    }
+
+    /// The test hosts; panics on a loopback cluster.
+    pub fn net(&self) -> &Net {
+        self.net
+            .as_ref()
+            .expect("a cluster started with Cluster::start_on_hosts")
+    }
+
+    /// The host the coordinator runs on; panics on a loopback cluster.
+    pub fn coordinator_host(&self) -> &Host {
+        self.coordinator
+            .host
+            .as_ref()
+            .expect("a cluster started with Cluster::start_on_hosts")
+    }
+
+    /// The host worker `i` runs on; panics on a loopback cluster.
+    pub fn worker_host(&self, i: usize) -> &Host {
+        self.workers[i]
+            .host
+            .as_ref()
+            .expect("a cluster started with Cluster::start_on_hosts")
+    }
+
+    /// The hosts of every worker but `i` (killed ones included).
+    pub fn other_worker_hosts(&self, i: usize) -> Vec<&Host> {
+        (0..self.workers.len())
+            .filter(|&j| j != i)
+            .map(|j| self.worker_host(j))
+            .collect()
     }
 
     /// [`Cluster::rayfarm`], failing the test (showing stderr) unless it succeeds.
@@ -646,6 +772,20 @@ impl Cluster {
             );
         }
     }
+}
+
+/// `--listen ADDR` for a server on `host` (its address, or loopback), on a port the OS
+/// chooses, with the flags serving off loopback needs.
+fn listen_args(host: Option<&Host>) -> Vec<String> {
+    let mut args = vec!["--listen".to_string()];
+    match host {
+        Some(h) => {
+            args.push(format!("{}:0", h.addr));
+            args.extend(OFF_LOOPBACK_FLAGS.iter().map(|f| f.to_string()));
+        }
+        None => args.push("127.0.0.1:0".to_string()),
+    }
+    args
 }
 
 impl Drop for Cluster {
@@ -727,6 +867,16 @@ pub fn submit_wait(cluster: &Cluster, frame: &[&str], tag: &str) -> PathBuf {
     cluster.rayfarm_ok(&args);
     assert!(png.exists(), "{} was not written", png.display());
     json
+}
+
+/// Sends `signal` (as `kill` takes it, e.g. "-TERM") to process `pid`.
+pub fn signal_pid(pid: u32, signal: &str) {
+    let pid = pid.to_string();
+    let status = Command::new("kill")
+        .args([signal, &pid])
+        .status()
+        .expect("run kill");
+    assert!(status.success(), "kill {signal} {pid} failed");
 }
 
 /// Polls `check` until it holds; fails the test after `timeout`.

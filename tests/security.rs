@@ -4,7 +4,6 @@
 //! refused, a client without a token gets UNAUTHENTICATED, a plain-text client fails
 //! clearly), and the cluster still renders the image of `render --local` to the bit.
 
-use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use rayfarm_node::proto;

@@ -5,8 +5,10 @@
 //!
 //! Children start in their own process group, so a Ctrl-C in the terminal reaches only
 //! `rayfarm`, which then cancels the job in flight ([`JobInFlight`]) and stops them in order
-//! (SIGTERM, a grace period, then SIGKILL). If `rayfarm` leaves by another path, dropping the
-//! [`LocalCluster`] kills what is left.
+//! (SIGTERM, a grace period, then SIGKILL). SIGTERM and SIGHUP (a closed terminal, `kill`,
+//! a service manager) are handled the same way. If `rayfarm` leaves by another path, dropping
+//! the [`LocalCluster`] kills what is left, and on Linux every child is started with
+//! `PR_SET_PDEATHSIG`, so even a `rayfarm` killed by SIGKILL takes its children with it.
 
 use std::cell::RefCell;
 use std::ffi::OsString;
@@ -187,21 +189,49 @@ impl JobInFlight {
     }
 }
 
-/// Runs `session` until it ends or Ctrl-C (an "interrupted" error); if it did not succeed,
-/// cancels the job it left in flight.
+/// The session was stopped by a signal (Ctrl-C, SIGTERM or SIGHUP).
+#[derive(Debug, thiserror::Error)]
+#[error("interrupted by {0}")]
+pub struct Interrupted(pub &'static str);
+
+/// Completes with the signal's name on Ctrl-C (SIGINT) or, on Unix, SIGTERM or SIGHUP; fails
+/// if a handler cannot be installed.
+pub async fn stop_signal() -> anyhow::Result<&'static str> {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{SignalKind, signal};
+        let mut term = signal(SignalKind::terminate()).context("listening for SIGTERM")?;
+        let mut hup = signal(SignalKind::hangup()).context("listening for SIGHUP")?;
+        tokio::select! {
+            r = tokio::signal::ctrl_c() => r.map(|()| "Ctrl-C").context("listening for Ctrl-C"),
+            _ = term.recv() => Ok("SIGTERM"),
+            _ = hup.recv() => Ok("SIGHUP"),
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        tokio::signal::ctrl_c()
+            .await
+            .context("listening for Ctrl-C")?;
+        Ok("Ctrl-C")
+    }
+}
+
+/// Runs `session` until it ends or a stop signal arrives (an [`Interrupted`] error); if it
+/// did not succeed, cancels the job it left in flight.
 pub async fn interruptible<T>(
     in_flight: &JobInFlight,
     session: impl Future<Output = anyhow::Result<T>>,
 ) -> anyhow::Result<T> {
     let outcome = tokio::select! {
         r = session => r,
-        r = tokio::signal::ctrl_c() => match r {
-            Ok(()) => {
+        r = stop_signal() => match r {
+            Ok(signal) => {
                 // End whatever progress line was being written.
                 eprintln!();
-                Err(anyhow!("interrupted"))
+                Err(Interrupted(signal).into())
             }
-            Err(e) => Err(anyhow!("listening for Ctrl-C: {e}")),
+            Err(e) => Err(e),
         },
     };
     if outcome.is_err() {
@@ -331,6 +361,8 @@ impl LocalCluster {
         }
         #[cfg(unix)]
         cmd.process_group(0);
+        #[cfg(target_os = "linux")]
+        die_with_parent(&mut cmd);
         let mut child = cmd
             .spawn()
             .with_context(|| format!("starting {}", program.display()))?;
@@ -431,6 +463,28 @@ impl Drop for LocalCluster {
         for p in &mut self.procs {
             let _ = p.child.start_kill();
         }
+    }
+}
+
+/// Makes the child receive SIGKILL when this process dies, however it dies (SIGKILL
+/// included), so no coordinator or worker outlives the `rayfarm` that started it.
+#[cfg(target_os = "linux")]
+fn die_with_parent(cmd: &mut Command) {
+    let parent = std::process::id();
+    // SAFETY: the closure runs in the child between fork and exec and calls only prctl(2) and
+    // getppid(2), which are async-signal-safe, and allocates nothing on success.
+    unsafe {
+        cmd.pre_exec(move || {
+            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            // The parent may have died before the prctl took effect: then nothing will
+            // signal this child, so it must not start.
+            if u32::try_from(libc::getppid()).ok() != Some(parent) {
+                return Err(std::io::Error::other("the parent exited while starting"));
+            }
+            Ok(())
+        });
     }
 }
 

@@ -7,6 +7,7 @@ mod cmd;
 mod local_cluster;
 mod table;
 mod units;
+mod view;
 
 use clap::{Parser, Subcommand};
 
@@ -54,6 +55,7 @@ enum Command {
 }
 
 fn main() -> std::process::ExitCode {
+    restore_sigpipe();
     let cli = Cli::parse();
     let default = match cli.verbose {
         0 => "warn",
@@ -68,6 +70,19 @@ fn main() -> std::process::ExitCode {
             eprintln!("error: {e:#}");
             std::process::ExitCode::FAILURE
         }
+    }
+}
+
+/// Rust ignores SIGPIPE, which turns `rayfarm jobs --json | head -1` into a panic ("failed
+/// printing to stdout: Broken pipe") once the reader has gone. A command-line tool should
+/// instead end quietly, as `cat` does: restore the default action. The servers keep Rust's
+/// default (they write to sockets, whose errors they handle).
+fn restore_sigpipe() {
+    #[cfg(unix)]
+    // SAFETY: signal(2) with SIG_DFL installs no handler code; it runs before any thread
+    // starts.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
 }
 

@@ -3,12 +3,14 @@
 //! returns the messages to send instead of sending them, so the coordinator's locking and
 //! I/O stay outside.
 
+use crate::accusations::Accusations;
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::Instant;
 
 use rayfarm_core::cluster::tile_sums;
 use rayfarm_core::frame::TILE_SIZE;
 use rayfarm_core::frame::{Accept, FrameLedger, TILE_CREDIT, TileGrid};
+use rayfarm_core::render::Film;
 use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::schedule::dynamic::{Options, WorkerPlan, next_round_with};
 use rayfarm_core::schedule::static_plans::{domain_owner, image_plane_share};
@@ -67,6 +69,9 @@ impl Member {
     }
 }
 
+/// A tile the ledger committed, with its fixed-point sums for the film.
+pub type CommittedTile = (u32, Vec<[i64; 3]>);
+
 /// See the module documentation.
 pub struct RunningFrame {
     pub job_id: String,
@@ -86,6 +91,16 @@ pub struct RunningFrame {
     pending_tiles: std::collections::VecDeque<u32>,
     /// Tiles per hand-out.
     batch: usize,
+    /// Ids of workers dropped because a peer could not reach them: they sit out the rest of
+    /// this frame when they register again (they join the next one), or a worker that its
+    /// peers cannot reach would be dropped, rejoin, get work and be dropped again, each time
+    /// restarting every unfinished tile, for as long as its links are cut.
+    pub sidelined: std::collections::BTreeSet<String>,
+    /// Members' reports of members they cannot reach, waiting to be judged.
+    pub accusations: Accusations,
+    /// Where committed tiles go: the coordinator's state writes them (this module does no
+    /// I/O); `None` in unit tests.
+    pub film: Option<Film>,
 }
 
 fn msg(body: Body) -> proto::CoordinatorMessage {
@@ -133,6 +148,9 @@ impl RunningFrame {
             rounds,
             pending_tiles: Default::default(),
             batch: 1,
+            sidelined: Default::default(),
+            accusations: Accusations::default(),
+            film: None,
         })
     }
 
@@ -617,21 +635,30 @@ impl RunningFrame {
         ClusterState::new(workers, queued).ok()
     }
 
-    /// Accepts a worker's tile results. Returns whether the frame is now complete; an error
-    /// means the worker sent results that cannot be right (the job must fail).
-    pub fn results(&mut self, key: u32, results: proto::TileResults) -> Result<bool, String> {
+    /// Accepts a worker's tile results. Returns the tiles they committed with their sums,
+    /// taken out of the ledger for the film; an error means the worker sent results that
+    /// cannot be right (the job must fail).
+    pub fn results(
+        &mut self,
+        key: u32,
+        results: proto::TileResults,
+    ) -> Result<Vec<CommittedTile>, String> {
         if let Some(m) = self.members.get_mut(&key) {
             m.segments = m.segments.max(results.segments_traced);
         }
+        let mut committed = Vec::new();
         for r in results.results {
             let sums = tile_sums::decode(&r.sums).map_err(|e| format!("tile {}: {e}", r.tile))?;
             match self.ledger.accept(r.tile, r.epoch, r.credit, &sums) {
-                Ok(Accept::Completed) => debug!(tile = r.tile, "tile complete"),
+                Ok(Accept::Completed) => {
+                    debug!(tile = r.tile, "tile complete");
+                    committed.push((r.tile, self.ledger.take_sums(r.tile)));
+                }
                 Ok(Accept::Pending | Accept::Stale) => {}
                 Err(reject) => return Err(reject.to_string()),
             }
         }
-        Ok(self.ledger.is_complete())
+        Ok(committed)
     }
 
     /// Progress for watchers: (tiles done, tiles, segments per second, ETA seconds or -1).

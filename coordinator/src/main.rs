@@ -3,6 +3,7 @@
 //! tile results until every tile's credit is back. Jobs are kept in a database in the data
 //! directory, so a restarted coordinator carries on with them (`store`).
 
+mod accusations;
 mod api;
 mod control;
 mod frame;
@@ -38,6 +39,9 @@ const MAX_MESSAGE_BYTES: usize = 256 << 20;
 /// bigger message is refused before it is decoded (a token holder cannot make the
 /// coordinator hold a 250 MiB scene name).
 const MAX_API_REQUEST_BYTES: usize = 64 << 10;
+
+/// How long connections (watching clients) may stay open after a stop signal.
+const STOP_GRACE: Duration = Duration::from_secs(2);
 
 /// Extensions of the dynamic schedule that copy domains.
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
@@ -193,7 +197,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         .max_decoding_message_size(MAX_API_REQUEST_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
     let api = InterceptedService::new(api, RequireToken(tokens));
-    let control = WorkerControlServer::new(control::Control::new(coordinator, faults))
+    let control = WorkerControlServer::new(control::Control::new(coordinator.clone(), faults))
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
     let control = InterceptedService::new(control, RequireSecret(secret));
@@ -208,14 +212,30 @@ async fn run(args: Args) -> anyhow::Result<()> {
     );
     let incoming = rayfarm_node::listen::incoming(listener, tls, &args.connections);
     // Health stays outside the interceptors: probes carry no credentials.
+    let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
     let server = rayfarm_node::security::server_builder()
         .add_service(health_service)
         .add_service(api)
         .add_service(control)
-        .serve_with_incoming_shutdown(incoming, rayfarm_node::telemetry::shutdown_signal());
+        .serve_with_incoming_shutdown(incoming, async {
+            let _ = stop_rx.await;
+        });
+    tokio::pin!(server);
     tokio::select! {
-        r = server => r.context("server failed")?,
+        r = &mut server => r.context("server failed")?,
         () = reaper => {}
+        () = rayfarm_node::telemetry::shutdown_signal() => {
+            // Workers hold their control streams open for as long as they live, so waiting
+            // for connections to close would wait for ever: tell the workers first (they
+            // reconnect with backoff), release the database, then give the remaining clients
+            // a moment before their connections are dropped.
+            info!("stopping: telling the workers, closing the job database");
+            coordinator.shut_down();
+            let _ = stop_tx.send(());
+            if tokio::time::timeout(STOP_GRACE, &mut server).await.is_err() {
+                info!(grace = ?STOP_GRACE, "clients still connected: closing their connections");
+            }
+        }
     }
     info!("coordinator stopped");
     Ok(())

@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use rayfarm_core::cluster::stats::ClusterStats;
+use rayfarm_core::frame::TileGrid;
 use rayfarm_core::render::Film;
 use rayfarm_node::proto::ImageFormat;
 
@@ -22,20 +23,38 @@ pub fn image_path(data_dir: &Path, job_id: &str, format: ImageFormat) -> PathBuf
     job_dir(data_dir, job_id).join(name)
 }
 
-/// Writes the image in both formats and the statistics; returns the statistics as JSON.
+/// The film file of a job's running frame: the committed tiles' fixed-point sums.
+pub fn film_path(data_dir: &Path, job_id: &str) -> PathBuf {
+    job_dir(data_dir, job_id).join("film.bin")
+}
+
+/// A fresh film for a job's frame in its directory (removed when dropped).
+pub fn create_film(
+    data_dir: &Path,
+    job_id: &str,
+    grid: TileGrid,
+    spp: u32,
+) -> anyhow::Result<Film> {
+    let dir = job_dir(data_dir, job_id);
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    Ok(Film::create(&film_path(data_dir, job_id), grid, spp)?)
+}
+
+/// Encodes the image in both formats from the film in one pass and writes the statistics
+/// with the image hash; returns the statistics as JSON and the hash.
 pub fn write(
     data_dir: &Path,
     job_id: &str,
     film: &Film,
-    stats: &ClusterStats,
-) -> anyhow::Result<String> {
+    stats: &mut ClusterStats,
+) -> anyhow::Result<(String, String)> {
     let dir = job_dir(data_dir, job_id);
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
-    for format in [ImageFormat::Png, ImageFormat::Exr] {
-        film.save(&image_path(data_dir, job_id, format))?;
-    }
+    let png = image_path(data_dir, job_id, ImageFormat::Png);
+    let exr = image_path(data_dir, job_id, ImageFormat::Exr);
+    stats.image_hash = format!("{:016x}", film.save_all(&[&png, &exr])?);
     let json = serde_json::to_string_pretty(stats)?;
     std::fs::write(dir.join("stats.json"), &json)
         .with_context(|| format!("writing {}", dir.join("stats.json").display()))?;
-    Ok(json)
+    Ok((json, stats.image_hash.clone()))
 }

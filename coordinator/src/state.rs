@@ -10,7 +10,6 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use rayfarm_core::cluster::scene_ref;
 use rayfarm_core::cluster::stats::{ClusterStats, WorkerFrameStats};
-use rayfarm_core::render::Film;
 use rayfarm_core::scene::Manifest;
 use rayfarm_core::schedule::dynamic::Options;
 use rayfarm_node::job::{frame_spec, schedule_name, state_name};
@@ -23,7 +22,7 @@ use tokio::sync::{mpsc, oneshot, watch};
 use tonic::Status;
 use tracing::{error, info, info_span, warn};
 
-use crate::frame::{Member, Outgoing, Rounds, RunningFrame};
+use crate::frame::{CommittedTile, Member, Outgoing, Rounds, RunningFrame};
 use crate::queue::JobQueue;
 use crate::results;
 use crate::store::{Store, StoreError, StoredJob};
@@ -52,6 +51,14 @@ pub struct Config {
     pub rounds: Rounds,
 }
 
+/// What workers and clients are told once the coordinator is stopping.
+pub const SHUTTING_DOWN: &str = "the coordinator is shutting down";
+
+/// Least time a worker's report of an unreachable peer waits for the other side's reports
+/// (see [`crate::accusations`]): both sides notice a broken link within about this long of
+/// each other when their deadlines are alike.
+const ACCUSATION_GRACE: Duration = Duration::from_secs(2);
+
 /// Where a worker's messages go.
 pub type WorkerTx = mpsc::UnboundedSender<Result<proto::CoordinatorMessage, Status>>;
 
@@ -62,6 +69,11 @@ struct Job {
     seq: u64,
     /// Frames started so far (see [`StoredJob::attempts`]).
     attempts: u32,
+    /// The epoch every tile of its next frame starts at, at least: one past the highest
+    /// epoch an earlier frame of it used in this process. A frame that lost every worker
+    /// bumped epochs with each loss; a worker dropped from it may still send rays and
+    /// results of those epochs, which the restarted frame must never take for its own.
+    epoch_floor: u32,
     progress: watch::Sender<proto::WatchJobResponse>,
     image_hash: String,
     stats_json: String,
@@ -104,18 +116,8 @@ struct State {
     next_key: u32,
     running: Option<RunningFrame>,
     finishing: BTreeMap<String, Finishing>,
-    /// Workers reported unresponsive by peers, with who reported them: a report is acted on
-    /// only when a second peer agrees or the coordinator stops hearing from the worker too, so
-    /// one node with the cluster credentials cannot drop another at will.
-    suspects: BTreeMap<u32, Suspicion>,
-}
-
-/// Peers' reports about one worker (see `State::suspects`).
-#[derive(Default)]
-struct Suspicion {
-    reporters: BTreeSet<u32>,
-    /// The latest report, for the log when it is acted on.
-    reason: String,
+    /// Set by [`Coordinator::shut_down`]: no worker attaches and no frame starts any more.
+    stopping: bool,
 }
 
 /// See the module documentation.
@@ -153,7 +155,7 @@ impl Coordinator {
             next_key: 0,
             running: None,
             finishing: BTreeMap::new(),
-            suspects: BTreeMap::new(),
+            stopping: false,
         };
         for stored in loaded.jobs {
             restore(&mut st, &config.data_dir, stored);
@@ -241,6 +243,7 @@ impl Coordinator {
             cost,
             seq,
             attempts: 0,
+            epoch_floor: 0,
             progress: progress_channel(&id, JobState::Queued, "", ""),
             image_hash: String::new(),
             stats_json: String::new(),
@@ -436,6 +439,9 @@ impl Coordinator {
             ));
         }
         let mut st = self.lock();
+        if st.stopping {
+            return Err(Status::unavailable(SHUTTING_DOWN));
+        }
         if st.workers.values().any(|w| w.id == r.worker_id) {
             return Err(Status::already_exists(format!(
                 "a worker called {} is already attached",
@@ -476,6 +482,10 @@ impl Coordinator {
         info!(worker = %r.worker_id, key, peer = %r.peer_address, cache_bytes = r.cache_bytes, threads = r.threads, "worker attached");
         let member = Member::new(r.peer_address.clone(), r.cache_bytes);
         if let Some(frame) = st.running.as_mut() {
+            if frame.sidelined.contains(&r.worker_id) {
+                info!(job = %frame.job_id, worker = %r.worker_id, "worker sits out the running frame: a peer could not reach it");
+                return Ok(key);
+            }
             let out = frame.join(key, member);
             info!(job = %frame.job_id, round = frame.round, "worker joins the running frame");
             send(&st, out);
@@ -489,6 +499,14 @@ impl Coordinator {
     pub fn worker_message(self: &Arc<Self>, key: u32, body: FromWorker) {
         let mut st = self.lock();
         let Some(worker) = st.workers.get_mut(&key) else {
+            // Its stream outlived its membership (a healed partition delivers what it sent
+            // meanwhile): whatever it says is stale.
+            if !matches!(body, FromWorker::Heartbeat(_)) {
+                info!(
+                    key,
+                    "message from a worker no longer attached: refused as stale"
+                );
+            }
             return;
         };
         worker.last_seen = Instant::now();
@@ -510,53 +528,25 @@ impl Coordinator {
             FromWorker::FrameReport(r) => self.frame_report(&mut st, key, r),
             FromWorker::PeerUnresponsive(p) => {
                 let reporter = worker.id.clone();
-                let suspect = st
+                let silent = st
                     .workers
                     .iter()
                     .find(|(_, w)| w.peer_address == p.peer_address)
                     .map(|(&k, _)| k);
-                match suspect {
-                    Some(k) if k == key => warn!(key, "a worker reported itself unresponsive"),
-                    Some(k) => {
-                        let reason = format!(
-                            "unresponsive to worker {reporter}: {}",
-                            rayfarm_node::bounds::shown(&p.reason)
-                        );
-                        let suspicion = st.suspects.entry(k).or_default();
-                        suspicion.reporters.insert(key);
-                        suspicion.reason.clone_from(&reason);
-                        let confirmed =
-                            suspicion.reporters.len() >= 2 || self.silent_for_a_while(&st, k);
-                        if confirmed {
-                            drop(st);
-                            // Dropping it closes its control stream: if it is only slow, it
-                            // comes back through a fresh registration and joins at the next
-                            // round.
-                            self.worker_gone(k, &reason);
-                        } else {
-                            info!(
-                                suspect = k,
-                                %reporter,
-                                "peer reported unresponsive; not acted on until the \
-                                 coordinator stops hearing from it or a second peer reports it"
-                            );
-                        }
+                // Judged after a grace period, with the other side's reports (`accusations`).
+                match (silent, st.running.as_mut()) {
+                    (Some(k), Some(frame))
+                        if frame.members().any(|m| m == k) && frame.members().any(|m| m == key) =>
+                    {
+                        warn!(worker = %reporter, peer = %p.peer_address, reason = %rayfarm_node::bounds::shown(&p.reason), "a worker reports a peer unreachable");
+                        frame.accusations.add(key, k, Instant::now(), &p.reason);
                     }
-                    None => info!(
-                        peer = %rayfarm_node::bounds::shown(&p.peer_address),
-                        "unresponsive peer is no member"
-                    ),
+                    _ => {
+                        info!(worker = %reporter, peer = %rayfarm_node::bounds::shown(&p.peer_address), "unresponsive peer is no member of a running frame: ignored")
+                    }
                 }
             }
         }
-    }
-
-    /// True when worker `key` has sent nothing for two heartbeat intervals: the coordinator's
-    /// own view agrees with a peer that finds it unresponsive.
-    fn silent_for_a_while(&self, st: &State, key: u32) -> bool {
-        st.workers
-            .get(&key)
-            .is_some_and(|w| w.last_seen.elapsed() > 2 * self.config.heartbeat)
     }
 
     fn tile_results(self: &Arc<Self>, st: &mut State, key: u32, r: proto::TileResults) {
@@ -564,12 +554,16 @@ impl Coordinator {
             return;
         };
         match frame.results(key, r) {
-            Ok(false) => {
-                if let Some(f) = st.running.as_ref() {
+            Ok(committed) => {
+                if let Err(e) = write_tiles(frame, &committed) {
+                    let msg = format!("{e:#}");
+                    self.fail_running(st, &msg);
+                } else if frame.ledger.is_complete() {
+                    self.complete(st);
+                } else if let Some(f) = st.running.as_ref() {
                     publish_progress(st, f);
                 }
             }
-            Ok(true) => self.complete(st),
             Err(e) => {
                 let worker = st
                     .workers
@@ -628,33 +622,44 @@ impl Coordinator {
             // starts over when workers come back.
             if let Some(frame) = st.running.take() {
                 warn!(job = %frame.job_id, "every worker of the frame is gone: job re-queued");
+                let grid = frame.ledger.grid().count();
+                let used = (0..grid).filter_map(|t| frame.ledger.epoch(t)).max();
+                if let Some(job) = st.jobs.get_mut(&frame.job_id) {
+                    job.epoch_floor = used.unwrap_or(0).saturating_add(1);
+                }
                 let seq = st.jobs.get(&frame.job_id).map_or(0, |j| j.seq);
                 st.queue
                     .push(frame.job_id.clone(), frame.spec.priority, seq);
                 set_state(&mut st, &frame.job_id, JobState::Queued, "");
             }
+            // Workers sitting out the frame are still here: they start it over.
+            self.try_start(&mut st);
             return;
         }
         info!(worker = %worker.id, "re-issuing the unfinished tiles on the remaining workers");
         send(&st, out);
     }
 
+    /// Stops for good (SIGTERM or Ctrl-C): tells every worker the coordinator is going away
+    /// (its control stream ends with `UNAVAILABLE`, so it reconnects with backoff to the next
+    /// coordinator), abandons the running frame, and closes the job database so a successor
+    /// can open it at once. Nothing is lost: every job change is already on disk, and the job
+    /// that was running is still recorded as running, so the next coordinator on this data
+    /// directory queues it again at fresh tile epochs.
+    pub fn shut_down(&self) {
+        let mut st = self.lock();
+        st.stopping = true;
+        for (_, worker) in std::mem::take(&mut st.workers) {
+            let _ = worker.tx.send(Err(Status::unavailable(SHUTTING_DOWN)));
+        }
+        if let Some(frame) = st.running.take() {
+            info!(job = %frame.job_id, "job interrupted: it starts over when a coordinator opens this data directory again");
+        }
+        st.store.close();
+    }
+
     /// Drops workers that have been silent longer than the timeout.
     pub fn reap_silent_workers(self: &Arc<Self>) {
-        // Suspects the coordinator now finds silent too.
-        let confirmed: Vec<(u32, String)> = {
-            let mut st = self.lock();
-            let live: BTreeSet<u32> = st.workers.keys().copied().collect();
-            st.suspects.retain(|k, _| live.contains(k));
-            st.suspects
-                .iter()
-                .filter(|&(&k, _)| self.silent_for_a_while(&st, k))
-                .map(|(&k, s)| (k, format!("{}, and silent to the coordinator", s.reason)))
-                .collect()
-        };
-        for (key, why) in confirmed {
-            self.worker_gone(key, &why);
-        }
         let silent: Vec<u32> = {
             let st = self.lock();
             st.workers
@@ -669,13 +674,39 @@ impl Coordinator {
             }
             self.worker_gone(key, "no heartbeat");
         }
+        while let Some((key, why)) = self.judge_accusations() {
+            // Dropping it closes its control stream: if it is only slow or cut off, it comes
+            // back through a fresh registration and joins the next frame.
+            self.worker_gone(key, &why);
+        }
+    }
+
+    /// The member to drop for its peers' reports, if their grace period is over (see
+    /// [`crate::accusations`]); it sits out the rest of the frame.
+    fn judge_accusations(&self) -> Option<(u32, String)> {
+        let grace = (self.config.heartbeat * 2).max(ACCUSATION_GRACE);
+        let mut st = self.lock();
+        let frame = st.running.as_mut()?;
+        let members = frame.members().collect();
+        let v = frame.accusations.judge(Instant::now(), grace, &members)?;
+        let id_of = |k| st.workers.get(&k).map(|w| w.id.clone()).unwrap_or_default();
+        let (dropped, accused, accuser) = (id_of(v.drop), id_of(v.accused), id_of(v.accuser));
+        if let Some(frame) = st.running.as_mut() {
+            frame.sidelined.insert(dropped);
+        }
+        let why = format!(
+            "broken links to {} peers; first report: {accused} unresponsive to worker \
+             {accuser}: {}",
+            v.links, v.reason
+        );
+        Some((v.drop, why))
     }
 
     // ----- frames -----
 
     /// Starts the next queued job if the cluster is free and has workers.
     fn try_start(self: &Arc<Self>, st: &mut State) {
-        while st.running.is_none() && !st.workers.is_empty() {
+        while !st.stopping && st.running.is_none() && !st.workers.is_empty() {
             let Some(id) = st.queue.pop() else {
                 return;
             };
@@ -690,7 +721,8 @@ impl Coordinator {
                     // workers were all lost) starts every tile at a new epoch, so rays and
                     // results of the abandoned run still in flight are dropped as stale.
                     let tiles: Vec<u32> = (0..frame.ledger.grid().count()).collect();
-                    for _ in 0..attempts {
+                    let floor = st.jobs.get(&id).map_or(0, |j| j.epoch_floor);
+                    for _ in 0..attempts.max(floor) {
                         frame.ledger.bump(&tiles);
                     }
                     let members: Vec<(u32, Member)> = st
@@ -726,7 +758,8 @@ impl Coordinator {
         let (_, manifest) = self.open_scene(&spec.scene)?;
         let frame = frame_spec(&spec, &manifest.camera).map_err(Status::invalid_argument)?;
         let domain_bytes = manifest.domains.iter().map(|d| d.bytes).collect();
-        RunningFrame::new(
+        let spp = frame.spp;
+        let mut frame = RunningFrame::new(
             id.to_string(),
             spec,
             frame,
@@ -734,7 +767,12 @@ impl Coordinator {
             self.config.schedule_options,
             self.config.rounds,
         )
-        .map_err(Status::invalid_argument)
+        .map_err(Status::invalid_argument)?;
+        let grid = *frame.ledger.grid();
+        let film = results::create_film(&self.config.data_dir, id, grid, spp)
+            .map_err(|e| Status::internal(format!("{e:#}")))?;
+        frame.film = Some(film);
+        Ok(frame)
     }
 
     fn fail_running(self: &Arc<Self>, st: &mut State, error: &str) {
@@ -796,13 +834,12 @@ impl Coordinator {
         };
         stats.absorb(reports);
         let data_dir = self.config.data_dir.clone();
-        let sums = frame.ledger.image_sums();
-        let (w, h, spp) = (spec.width, spec.height, spec.spp);
         let job = id.clone();
+        let film = frame.film;
         let written = tokio::task::spawn_blocking(move || {
-            let film = Film::from_fixed(w, h, spp, &sums);
-            stats.image_hash = format!("{:016x}", film.hash());
-            results::write(&data_dir, &job, &film, &stats).map(|json| (json, stats.image_hash))
+            let film = film.ok_or_else(|| anyhow::anyhow!("the frame has no film"))?;
+            // The film file goes with `film` once both images are written.
+            results::write(&data_dir, &job, &film, &mut stats)
         })
         .await;
         let mut st = self.lock();
@@ -819,6 +856,17 @@ impl Coordinator {
             Err(e) => set_state(&mut st, &id, JobState::Failed, &format!("{e}")),
         }
     }
+}
+
+/// Writes committed tiles to the running frame's film.
+fn write_tiles(frame: &RunningFrame, committed: &[CommittedTile]) -> anyhow::Result<()> {
+    let Some(film) = frame.film.as_ref() else {
+        return Ok(());
+    };
+    for (tile, sums) in committed {
+        film.write_tile(*tile, sums)?;
+    }
+    Ok(())
 }
 
 fn not_found(id: &str) -> Status {
@@ -936,6 +984,7 @@ fn restore(st: &mut State, data_dir: &std::path::Path, stored: StoredJob) {
         summary,
         seq: stored.seq,
         attempts: stored.attempts,
+        epoch_floor: 0,
         image_hash: stored.image_hash,
         stats_json: stored.stats_json,
     };
@@ -1001,26 +1050,32 @@ mod tests {
     /// Attaches a worker (its control stream is the channel) and returns the epochs of every
     /// tile in the StartFrame it is sent, tile by tile.
     fn start_epochs(c: &Arc<Coordinator>) -> BTreeMap<u32, u32> {
+        start_epochs_of(c, "w").1
+    }
+
+    /// [`start_epochs`] of a worker called `id`; also returns its key.
+    fn start_epochs_of(c: &Arc<Coordinator>, id: &str) -> (u32, BTreeMap<u32, u32>) {
         let (tx, mut rx) = mpsc::unbounded_channel();
         let register = proto::Register {
             protocol_version: PROTOCOL_VERSION,
-            worker_id: "w".into(),
-            peer_address: "127.0.0.1:1".into(),
+            worker_id: id.into(),
+            peer_address: format!("{id}:1"),
             cache_bytes: 1 << 30,
             threads: 1,
         };
-        c.register(&register, tx).expect("registered");
+        let key = c.register(&register, tx).expect("registered");
         while let Ok(msg) = rx.try_recv() {
             if let Some(Body::StartFrame(s)) = msg.expect("no error").body {
-                return s.epochs.into_iter().collect();
+                // Its channel stays open while the test runs, as a live worker's would.
+                std::mem::forget(rx);
+                return (key, s.epochs.into_iter().collect());
             }
         }
         panic!("no StartFrame sent");
     }
 
-    #[test]
-    fn a_job_restarted_after_a_coordinator_restart_starts_its_tiles_at_a_new_epoch() {
-        let root = tempfile::tempdir().unwrap();
+    /// A scene `nb` under `root` and a small job of it.
+    fn small_job(root: &std::path::Path) -> proto::JobSpec {
         let options = NbodyOptions {
             name: "nb".into(),
             triangles: 2000,
@@ -1029,16 +1084,43 @@ mod tests {
             max_memory: None,
             force: false,
         };
-        prepare_nbody(&root.path().join("scenes").join("nb"), &options).unwrap();
-        std::fs::create_dir_all(root.path().join("data")).unwrap();
-        let spec = proto::JobSpec {
+        prepare_nbody(&root.join("scenes").join("nb"), &options).unwrap();
+        std::fs::create_dir_all(root.join("data")).unwrap();
+        proto::JobSpec {
             scene: "nb".into(),
             width: 64,
             height: 32,
             spp: 1,
             max_depth: 1,
             ..Default::default()
-        };
+        }
+    }
+
+    #[test]
+    fn a_job_whose_workers_were_all_lost_restarts_above_every_epoch_it_used() {
+        let root = tempfile::tempdir().unwrap();
+        let spec = small_job(root.path());
+        let c = Coordinator::open(config(root.path())).unwrap();
+        c.submit(Some(spec)).unwrap();
+        let (a, first) = start_epochs_of(&c, "a");
+        assert!(first.is_empty(), "a first frame starts at epoch 0");
+        let (b, _) = start_epochs_of(&c, "b");
+        // Losing a bumps every tile to epoch 1; losing b too re-queues the job.
+        c.worker_gone(a, "test");
+        c.worker_gone(b, "test");
+        assert_eq!(c.list()[0].state(), JobState::Queued);
+        // Worker b, dropped but still running, may send epoch-1 rays: the new frame is above.
+        let (_, again) = start_epochs_of(&c, "c");
+        assert!(
+            !again.is_empty() && again.values().all(|&e| e >= 2),
+            "{again:?}"
+        );
+    }
+
+    #[test]
+    fn a_job_restarted_after_a_coordinator_restart_starts_its_tiles_at_a_new_epoch() {
+        let root = tempfile::tempdir().unwrap();
+        let spec = small_job(root.path());
         let c = Coordinator::open(config(root.path())).unwrap();
         let id = c.submit(Some(spec.clone())).unwrap();
         assert!(

@@ -88,6 +88,9 @@ pub enum StoreError {
         what: &'static str,
         source: Box<redb::Error>,
     },
+    /// Closed by a coordinator that is stopping.
+    #[error("job database {path} is closed: the coordinator is shutting down")]
+    Closed { path: PathBuf },
     /// A record does not decode.
     #[error("job database {path}: the record of job {id:?} is unreadable")]
     Record {
@@ -130,7 +133,8 @@ pub struct Loaded {
 
 /// See the module documentation.
 pub struct Store {
-    db: redb::Database,
+    /// `None` once closed ([`Store::close`]): the file's lock is released.
+    db: Option<redb::Database>,
     path: PathBuf,
 }
 
@@ -160,7 +164,7 @@ impl Store {
                     source,
                 },
             })?;
-        let store = Store { db, path };
+        let store = Store { db: Some(db), path };
         store.init()?;
         Ok(store)
     }
@@ -168,6 +172,22 @@ impl Store {
     /// The database file.
     pub fn path(&self) -> &Path {
         &self.path
+    }
+
+    /// Closes the database and releases its lock, so another coordinator may open the file
+    /// at once (a stopping coordinator does this before its last connections close). Later
+    /// writes fail with [`StoreError::Closed`].
+    pub fn close(&mut self) {
+        if self.db.take().is_some() {
+            tracing::info!(store = %self.path.display(), "job database closed");
+        }
+    }
+
+    /// The open database.
+    fn db(&self) -> Result<&redb::Database, StoreError> {
+        self.db.as_ref().ok_or_else(|| StoreError::Closed {
+            path: self.path.clone(),
+        })
     }
 
     fn err(&self, what: &'static str) -> impl Fn(redb::Error) -> StoreError + '_ {
@@ -181,7 +201,7 @@ impl Store {
     /// Creates the tables of a new file and checks the layout of an old one.
     fn init(&self) -> Result<(), StoreError> {
         let e = self.err("creating the tables");
-        let txn = self.db.begin_write().map_err(|x| e(x.into()))?;
+        let txn = self.db()?.begin_write().map_err(|x| e(x.into()))?;
         {
             txn.open_table(JOBS).map_err(|x| e(x.into()))?;
             let mut meta = txn.open_table(META).map_err(|x| e(x.into()))?;
@@ -208,7 +228,7 @@ impl Store {
     /// Every stored job and the highest sequence number.
     pub fn load(&self) -> Result<Loaded, StoreError> {
         let e = self.err("reading the jobs");
-        let txn = self.db.begin_read().map_err(|x| e(x.into()))?;
+        let txn = self.db()?.begin_read().map_err(|x| e(x.into()))?;
         let table = txn.open_table(JOBS).map_err(|x| e(x.into()))?;
         let meta = txn.open_table(META).map_err(|x| e(x.into()))?;
         let mut loaded = Loaded {
@@ -245,7 +265,7 @@ impl Store {
     pub fn put(&self, job: &StoredJob) -> Result<(), StoreError> {
         let e = self.err("writing a job");
         let bytes = prost::Message::encode_to_vec(job);
-        let txn = self.db.begin_write().map_err(|x| e(x.into()))?;
+        let txn = self.db()?.begin_write().map_err(|x| e(x.into()))?;
         {
             let mut table = txn.open_table(JOBS).map_err(|x| e(x.into()))?;
             table
@@ -322,6 +342,18 @@ mod tests {
         let err = Store::open(dir.path()).unwrap_err();
         assert!(matches!(err, StoreError::InUse { .. }), "{err}");
         assert!(err.to_string().contains(FILE_NAME), "{err}");
+    }
+
+    #[test]
+    fn a_closed_store_releases_the_file_and_refuses_writes() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut first = Store::open(dir.path()).unwrap();
+        first.put(&job("a", 1, JobState::Queued)).unwrap();
+        first.close();
+        let err = first.put(&job("b", 2, JobState::Queued)).unwrap_err();
+        assert!(matches!(err, StoreError::Closed { .. }), "{err}");
+        let second = Store::open(dir.path()).unwrap();
+        assert_eq!(second.load().unwrap().jobs.len(), 1);
     }
 
     #[test]

@@ -9,7 +9,7 @@ use std::path::PathBuf;
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use glam::Vec3;
-use rayfarm_core::bvh::{self, TraceRay, Traverser};
+use rayfarm_core::bvh::{self, Kernel, TraceRay, Traverser};
 use rayfarm_core::camera::PinholeCamera;
 use rayfarm_core::geometry::PackedTriangle;
 use rayfarm_core::prepare::generate::{NbodyOptions, prepare_nbody};
@@ -31,7 +31,9 @@ struct Bench {
 
 fn scene() -> Bench {
     let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../target/bench-scenes/nbody-1m-1");
-    if Manifest::load(&dir).is_err() {
+    // Made again when missing or of an older domain file format.
+    let current = Manifest::load(&dir).is_ok_and(|m| m.open_domain(&dir, 0, false).is_ok());
+    if !current {
         prepare_nbody(
             &dir,
             &NbodyOptions {
@@ -77,13 +79,13 @@ fn primary_rays(m: &Manifest) -> Vec<Segment> {
 
 /// From every primary hit, a cosine-distributed direction about the surface normal.
 fn diffuse_rays(b: &Bench, primary: &[Segment]) -> Vec<Segment> {
-    let (nodes, tris) = (b.data.nodes(), b.data.packed());
+    let (bvh, tris) = (b.data.bvh(), b.data.packed());
     let mut traverser = Traverser::new();
     primary
         .iter()
         .enumerate()
         .filter_map(|(i, &(o, d, t0, t1))| {
-            let hit = traverser.nearest_hit(nodes, tris, &TraceRay::new(o, d), t0, t1)?;
+            let hit = traverser.nearest_hit(bvh, &TraceRay::new(o, d), t0, t1)?;
             let mut n = tris[hit.slot as usize].normal();
             if n.dot(d) > 0.0 {
                 n = -n;
@@ -99,17 +101,52 @@ fn diffuse_rays(b: &Bench, primary: &[Segment]) -> Vec<Segment> {
         .collect()
 }
 
-fn trace_all(b: &Bench, rays: &[Segment]) -> usize {
-    let (nodes, tris) = (b.data.nodes(), b.data.packed());
+fn trace_all(b: &Bench, rays: &[Segment], kernel: Kernel) -> usize {
+    let bvh = b.data.bvh();
     // One traverser for the whole set, as the kernel keeps one per batch.
-    let mut traverser = Traverser::new();
+    let mut traverser = Traverser::with_kernel(kernel).expect("supported kernel");
     rays.iter()
         .filter(|&&(o, d, t0, t1)| {
             traverser
-                .nearest_hit(nodes, tris, &TraceRay::new(o, d), t0, t1)
+                .nearest_hit(bvh, &TraceRay::new(o, d), t0, t1)
                 .is_some()
         })
         .count()
+}
+
+/// Shadow rays: from every primary hit towards a fixed point light above the scene.
+fn shadow_all(b: &Bench, rays: &[Segment], kernel: Kernel) -> usize {
+    let bvh = b.data.bvh();
+    let mut traverser = Traverser::with_kernel(kernel).expect("supported kernel");
+    rays.iter()
+        .filter(|&&(o, d, t0, t1)| traverser.any_hit(bvh, &TraceRay::new(o, d), t0, t1))
+        .count()
+}
+
+/// From every primary hit, a segment towards a point above the scene's box.
+fn shadow_rays(b: &Bench, primary: &[Segment]) -> Vec<Segment> {
+    let (bvh, tris) = (b.data.bvh(), b.data.packed());
+    let mut traverser = Traverser::new();
+    let bounds = b.manifest.bounds;
+    let light = Vec3::new(
+        (bounds.min[0] + bounds.max[0]) * 0.3,
+        bounds.max[1] * 2.0,
+        (bounds.min[2] + bounds.max[2]) * 0.6,
+    );
+    primary
+        .iter()
+        .filter_map(|&(o, d, t0, t1)| {
+            let hit = traverser.nearest_hit(bvh, &TraceRay::new(o, d), t0, t1)?;
+            let mut n = tris[hit.slot as usize].normal();
+            if n.dot(d) > 0.0 {
+                n = -n;
+            }
+            let p = o + d * hit.t + n * 1e-4;
+            let to = light - p;
+            let (a, e) = clip_to_box(&b.manifest.bounds, p, to, 0.0, 1.0)?;
+            Some((p, to, a, e))
+        })
+        .collect()
 }
 
 struct CountSink(usize);
@@ -126,15 +163,28 @@ fn kernel(c: &mut Criterion) {
     let b = scene();
     let primary = primary_rays(&b.manifest);
     let diffuse = diffuse_rays(&b, &primary);
+    let shadow = shadow_rays(&b, &primary);
     let mut g = c.benchmark_group("trace_1m_one_core");
-    g.throughput(Throughput::Elements(primary.len() as u64));
-    g.bench_function("coherent_primary", |bch| {
-        bch.iter(|| black_box(trace_all(&b, &primary)))
-    });
-    g.throughput(Throughput::Elements(diffuse.len() as u64));
-    g.bench_function("incoherent_diffuse", |bch| {
-        bch.iter(|| black_box(trace_all(&b, &diffuse)))
-    });
+    for kernel in Kernel::ALL.into_iter().filter(|k| k.supported()) {
+        g.throughput(Throughput::Elements(primary.len() as u64));
+        g.bench_with_input(
+            BenchmarkId::new("coherent_primary", kernel.name()),
+            &kernel,
+            |bch, &k| bch.iter(|| black_box(trace_all(&b, &primary, k))),
+        );
+        g.throughput(Throughput::Elements(diffuse.len() as u64));
+        g.bench_with_input(
+            BenchmarkId::new("incoherent_diffuse", kernel.name()),
+            &kernel,
+            |bch, &k| bch.iter(|| black_box(trace_all(&b, &diffuse, k))),
+        );
+        g.throughput(Throughput::Elements(shadow.len() as u64));
+        g.bench_with_input(
+            BenchmarkId::new("shadow_any_hit", kernel.name()),
+            &kernel,
+            |bch, &k| bch.iter(|| black_box(shadow_all(&b, &shadow, k))),
+        );
+    }
     // The whole kernel on camera rays: traversal plus shading and spawning children.
     let view = SceneView::new(&b.manifest, 3);
     // Camera rays of a 256x256 image (the kernel also shades, so fewer rays suffice).
@@ -166,7 +216,7 @@ fn build_and_load(c: &mut Criterion) {
     g.bench_function("bvh_build", |bch| {
         bch.iter(|| {
             let mut t = tris.clone();
-            black_box(bvh::build(&mut t).len())
+            black_box(bvh::build(&mut t).nodes.len())
         })
     });
     for verify in [false, true] {
@@ -192,7 +242,7 @@ fn build_and_load(c: &mut Criterion) {
                     .zip(mats.iter().zip(ids))
                     .map(|(ix, (&m, &id))| PackedTriangle::new(&ix.map(|k| v[k as usize]), id, m))
                     .collect();
-                black_box(bvh::build(&mut t).len())
+                black_box(bvh::build(&mut t).nodes.len())
             })
         },
     );

@@ -119,14 +119,14 @@ impl Timing {
 /// One closest-hit pass of rayfarm's kernel over `rays` on this thread. Preparing each
 /// `TraceRay` is inside the timed loop, as filling each `RTCRayHit` is on the Embree side.
 fn trace_rayfarm(domain: &DomainData, rays: &[BenchRay], hits: &mut Vec<Option<Hit>>) -> f64 {
-    let (nodes, tris) = (domain.nodes(), domain.packed());
+    let bvh = domain.bvh();
     hits.clear();
     hits.reserve(rays.len());
     let mut traverser = Traverser::new();
     let start = Instant::now();
     for r in rays {
         let ray = TraceRay::new(r.origin.into(), r.dir.into());
-        hits.push(traverser.nearest_hit(nodes, tris, &ray, r.t_min, r.t_max));
+        hits.push(traverser.nearest_hit(bvh, &ray, r.t_min, r.t_max));
     }
     start.elapsed().as_secs_f64()
 }

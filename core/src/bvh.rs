@@ -1,52 +1,76 @@
 //! The per-domain bounding volume hierarchy. `obvhs` builds a binary tree; we collapse it into
-//! a 4-wide tree whose nodes hold their children's boxes side by side (one SIMD lane per
-//! child), store it flat in the domain file, and traverse it here with a domain's hit interval
-//! and the triangle-id tie-break (which `obvhs`'s own traversal cannot express). Testing four
-//! boxes in one go halves the depth and the per-box cost of a binary tree.
+//! an 8-wide tree whose nodes hold their children's boxes side by side (one SIMD lane per
+//! child), with leaves of [`TriangleBlock`]s (four triangles as structure-of-arrays), store
+//! both flat in the domain file, and traverse them here with a domain's hit interval and the
+//! triangle-id tie-break (which `obvhs`'s own traversal cannot express).
+//!
+//! Three kernels traverse the same tree: AVX2 + FMA (all eight boxes of a node in one
+//! register), SSE (two halves of four) and scalar (one box at a time), chosen at run time by
+//! [`Kernel::selected`] and forced with `RAYFARM_KERNEL=avx2|sse|scalar`. Every kernel finds
+//! the same nearest hit to the bit: the triangle test has the same operations in every lane
+//! and kernel, the boxes are padded so that no rounding of the box test (FMA or not) can drop
+//! the subtree holding a hit, and ties are broken by the scene-wide triangle id, so the
+//! visiting order, which differs between kernels, never decides the winner.
 
+use std::sync::OnceLock;
 use std::time::Duration;
 
 use bytemuck::{Pod, Zeroable};
-use glam::{Vec3, Vec3A, Vec4};
+use glam::{Vec3, Vec3A};
 
-use crate::geometry::{PackedTriangle, ShearedRay, nearer};
+use crate::geometry::{BLOCK, PackedTriangle, ShearedRay, TriangleBlock, nearer};
 
 /// Width of a node.
-pub const WIDTH: usize = 4;
+pub const WIDTH: usize = 8;
 
 /// What a child slot holds, in [`BvhNode::meta`].
 pub const SLOT_EMPTY: u32 = 0;
 /// An inner child: `child` is a node index.
 pub const SLOT_INNER: u32 = u32::MAX;
 
-/// One node of the 4-wide BVH: the four children's boxes as structure-of-arrays, then per
-/// child its index and what it is. A leaf child (`meta` = triangle count, 1..) holds
-/// triangles `child .. child + meta` of the domain's packed array; an empty slot has a box at
-/// +infinity that no ray can enter.
-#[repr(C, align(16))]
+/// Most triangles in one leaf of a built tree (two blocks).
+pub const MAX_LEAF_TRIANGLES: u32 = 8;
+/// Most blocks a leaf may name in a file, so a corrupt file cannot make one leaf huge.
+pub const MAX_LEAF_BLOCKS: u32 = 16;
+
+/// One node of the 8-wide BVH: the eight children's boxes as structure-of-arrays (`bounds[0..3]`
+/// minima x, y, z; `bounds[3..6]` maxima), then per child its index and what it is. A leaf
+/// child (`meta` = block count, 1..) holds blocks `child .. child + meta` of the domain's
+/// block array; an empty slot has an inverted box (minimum +inf, maximum -inf) that no ray
+/// can enter.
+#[repr(C, align(64))]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
 pub struct BvhNode {
-    /// Box minima, one lane per child: x, y, z.
-    pub min: [[f32; WIDTH]; 3],
-    /// Box maxima, one lane per child: x, y, z.
-    pub max: [[f32; WIDTH]; 3],
-    /// Node index (inner) or first triangle (leaf) per child.
+    /// Box minima (x, y, z) then maxima (x, y, z), one lane per child.
+    pub bounds: [[f32; WIDTH]; 6],
+    /// Node index (inner) or first block (leaf) per child.
     pub child: [u32; WIDTH],
-    /// [`SLOT_EMPTY`], [`SLOT_INNER`], or a leaf's triangle count.
+    /// [`SLOT_EMPTY`], [`SLOT_INNER`], or a leaf's block count.
     pub meta: [u32; WIDTH],
 }
 
-const _: () = assert!(std::mem::size_of::<BvhNode>() == 128);
+const _: () = assert!(std::mem::size_of::<BvhNode>() == 256);
 
 /// Relative padding of every box: the triangle test and the box test round differently, and a
 /// box that misses a hit by one ulp would make the nearest hit depend on the tree.
 const BOX_PAD: f32 = 1e-5;
 
-/// Builds the BVH over `triangles` and reorders them into leaf order, so leaves index the
-/// packed array directly.
-pub fn build(triangles: &mut Vec<PackedTriangle>) -> Vec<BvhNode> {
+/// A built tree: nodes and leaf blocks.
+pub struct Built {
+    /// Nodes, root first.
+    pub nodes: Vec<BvhNode>,
+    /// Leaf blocks.
+    pub blocks: Vec<TriangleBlock>,
+}
+
+/// Builds the BVH over `triangles` and reorders them into leaf order, so blocks index the
+/// packed array in runs.
+pub fn build(triangles: &mut Vec<PackedTriangle>) -> Built {
     if triangles.is_empty() {
-        return Vec::new();
+        return Built {
+            nodes: Vec::new(),
+            blocks: Vec::new(),
+        };
     }
     let tris: Vec<obvhs::triangle::Triangle> = triangles
         .iter()
@@ -62,9 +86,8 @@ pub fn build(triangles: &mut Vec<PackedTriangle>) -> Vec<BvhNode> {
     let mut params = obvhs::BvhBuildParams::medium_build();
     // Spatial pre-splits clip references to sub-boxes; our padding argument needs whole-triangle boxes.
     params.pre_split = false;
-    // Four triangles a leaf, one per child lane, measured fastest for 4-wide traversal
-    // (README, "Benchmarks").
-    params.max_prims_per_leaf = 4;
+    // Leaves of at most one block, measured fastest (README, "Benchmarks").
+    params.max_prims_per_leaf = LEAF_TRIANGLES;
     let bvh = obvhs::bvh2::builder::build_bvh2_from_tris(&tris, params, &mut Duration::default());
     drop(tris);
     let reordered: Vec<PackedTriangle> = bvh
@@ -73,35 +96,56 @@ pub fn build(triangles: &mut Vec<PackedTriangle>) -> Vec<BvhNode> {
         .map(|&i| triangles[i as usize])
         .collect();
     *triangles = reordered;
-    widen(&bvh.nodes)
+    widen(&bvh.nodes, triangles)
 }
+
+/// Triangles per leaf asked of the binary builder.
+const LEAF_TRIANGLES: u32 = 4;
+const _: () = assert!(LEAF_TRIANGLES <= MAX_LEAF_TRIANGLES);
 
 fn surface_area(n: &obvhs::bvh2::node::Bvh2Node) -> f32 {
     n.aabb.half_area()
 }
 
-/// Collapses a binary tree into a 4-wide one: each wide node takes its binary node's two
-/// children and keeps opening the largest inner child until it has four.
-fn widen(bin: &[obvhs::bvh2::node::Bvh2Node]) -> Vec<BvhNode> {
-    let empty = BvhNode {
-        min: [[f32::INFINITY; WIDTH]; 3],
-        max: [[f32::INFINITY; WIDTH]; 3],
-        child: [0; WIDTH],
-        meta: [SLOT_EMPTY; WIDTH],
+const EMPTY_NODE: BvhNode = BvhNode {
+    bounds: [
+        [f32::INFINITY; WIDTH],
+        [f32::INFINITY; WIDTH],
+        [f32::INFINITY; WIDTH],
+        [f32::NEG_INFINITY; WIDTH],
+        [f32::NEG_INFINITY; WIDTH],
+        [f32::NEG_INFINITY; WIDTH],
+    ],
+    child: [0; WIDTH],
+    meta: [SLOT_EMPTY; WIDTH],
+};
+
+/// Collapses a binary tree into an 8-wide one: each wide node takes its binary node's two
+/// children and keeps opening the largest inner child until it has eight. Leaves become runs
+/// of blocks.
+fn widen(bin: &[obvhs::bvh2::node::Bvh2Node], tris: &[PackedTriangle]) -> Built {
+    let mut out = vec![EMPTY_NODE];
+    let mut blocks = Vec::with_capacity(tris.len().div_ceil(BLOCK) + 1);
+    let mut leaf = |n: &obvhs::bvh2::node::Bvh2Node| -> (u32, u32) {
+        let first = blocks.len() as u32;
+        let (start, count) = (n.first_index as usize, n.prim_count as usize);
+        for b in (0..count).step_by(BLOCK) {
+            blocks.push(TriangleBlock::new(tris, start + b, (count - b).min(BLOCK)));
+        }
+        (first, blocks.len() as u32 - first)
     };
-    let mut out = vec![empty];
-    // (binary node whose children fill the wide node, wide node index)
-    let mut todo = Vec::new();
     if bin[0].prim_count > 0 {
-        set_slot(&mut out[0], 0, &bin[0], SLOT_EMPTY);
-        out[0].meta[0] = bin[0].prim_count;
-        out[0].child[0] = bin[0].first_index;
-        return out;
+        let (first, n) = leaf(&bin[0]);
+        set_slot(&mut out[0], 0, &bin[0], first, n);
+        return Built { nodes: out, blocks };
     }
-    todo.push((0usize, 0usize));
+    // (binary node whose children fill the wide node, wide node index)
+    let mut todo = vec![(0usize, 0usize)];
+    let mut kids = Vec::with_capacity(WIDTH);
     while let Some((b, w)) = todo.pop() {
         let first = bin[b].first_index as usize;
-        let mut kids = vec![first, first + 1];
+        kids.clear();
+        kids.extend([first, first + 1]);
         while kids.len() < WIDTH {
             let open = kids
                 .iter()
@@ -117,40 +161,61 @@ fn widen(bin: &[obvhs::bvh2::node::Bvh2Node]) -> Vec<BvhNode> {
         for (slot, &k) in kids.iter().enumerate() {
             let n = &bin[k];
             if n.prim_count > 0 {
-                set_slot(&mut out[w], slot, n, n.prim_count);
-                out[w].child[slot] = n.first_index;
+                let (first, count) = leaf(n);
+                set_slot(&mut out[w], slot, n, first, count);
             } else {
                 let index = out.len();
-                out.push(empty);
-                set_slot(&mut out[w], slot, n, SLOT_INNER);
-                out[w].child[slot] = index as u32;
+                out.push(EMPTY_NODE);
+                set_slot(&mut out[w], slot, n, index as u32, SLOT_INNER);
                 todo.push((k, index));
             }
         }
     }
-    out
+    Built { nodes: out, blocks }
 }
 
-fn set_slot(node: &mut BvhNode, slot: usize, n: &obvhs::bvh2::node::Bvh2Node, meta: u32) {
+fn set_slot(
+    node: &mut BvhNode,
+    slot: usize,
+    n: &obvhs::bvh2::node::Bvh2Node,
+    child: u32,
+    meta: u32,
+) {
     let min = Vec3::from(n.aabb.min);
     let max = Vec3::from(n.aabb.max);
     let pad = (min.abs().max(max.abs()) * BOX_PAD).max(Vec3::splat(1e-30));
     let (lo, hi) = (min - pad, max + pad);
     for a in 0..3 {
-        node.min[a][slot] = lo[a];
-        node.max[a][slot] = hi[a];
+        node.bounds[a][slot] = lo[a];
+        node.bounds[a + 3][slot] = hi[a];
     }
+    node.child[slot] = child;
     node.meta[slot] = meta;
 }
 
 /// The deepest tree accepted, so a corrupt file cannot make traversal stacks huge.
 pub const MAX_DEPTH: usize = 96;
 
-/// Checks that `nodes` form one tree over `triangle_count` triangles no deeper than
-/// [`MAX_DEPTH`], so traversal can index without bounds failures; returns the depth.
-pub fn validate(nodes: &[BvhNode], triangle_count: usize) -> Result<usize, String> {
+/// Checks that `nodes` form one tree over `blocks` no deeper than [`MAX_DEPTH`], and that every
+/// block names triangles of the `triangle_count` packed ones, so traversal can index without
+/// bounds failures; returns the depth.
+pub fn validate(
+    nodes: &[BvhNode],
+    blocks: &[TriangleBlock],
+    triangle_count: usize,
+) -> Result<usize, String> {
+    if let Some((i, b)) = blocks
+        .iter()
+        .enumerate()
+        .find(|(_, b)| b.slot.iter().any(|&s| s as usize >= triangle_count))
+    {
+        return Err(format!(
+            "BVH block {i} names triangle {} of {triangle_count}",
+            b.slot.iter().max().unwrap_or(&0)
+        ));
+    }
     if nodes.is_empty() {
-        return if triangle_count == 0 {
+        return if blocks.is_empty() {
             Ok(0)
         } else {
             Err("triangles without a BVH".into())
@@ -180,11 +245,17 @@ pub fn validate(nodes: &[BvhNode], triangle_count: usize) -> Result<usize, Strin
                     }
                     todo.push((c, d + 1));
                 }
+                count if count > MAX_LEAF_BLOCKS => {
+                    return Err(format!(
+                        "BVH node {i} has a leaf of {count} blocks (at most {MAX_LEAF_BLOCKS})"
+                    ));
+                }
                 count => {
                     let end = c + count as usize;
-                    if end > triangle_count {
+                    if end > blocks.len() {
                         return Err(format!(
-                            "BVH node {i} names triangles up to {end} of {triangle_count}"
+                            "BVH node {i} names blocks up to {end} of {}",
+                            blocks.len()
                         ));
                     }
                 }
@@ -194,12 +265,24 @@ pub fn validate(nodes: &[BvhNode], triangle_count: usize) -> Result<usize, Strin
     Ok(deepest)
 }
 
-/// A ray prepared for box tests.
-#[derive(Clone, Copy)]
+/// The leaves and nodes of one domain's tree, as the domain file holds them.
+#[derive(Clone, Copy, Debug)]
+pub struct Bvh<'a> {
+    /// Nodes, root first.
+    pub nodes: &'a [BvhNode],
+    /// Leaf blocks.
+    pub blocks: &'a [TriangleBlock],
+}
+
+/// A ray prepared for box and triangle tests.
+#[derive(Clone, Copy, Debug)]
 pub struct TraceRay {
     sheared: ShearedRay,
-    inv: [Vec4; 3],
-    origin_inv: [Vec4; 3],
+    inv: [f32; 3],
+    origin_inv: [f32; 3],
+    /// Per axis, the `bounds` row the ray enters through (minimum if it travels up the axis).
+    near_row: [usize; 3],
+    far_row: [usize; 3],
 }
 
 impl TraceRay {
@@ -220,29 +303,14 @@ impl TraceRay {
             safe(dir.y).recip(),
             safe(dir.z).recip(),
         ];
+        let near_row = [0, 1, 2].map(|a| if inv[a] >= 0.0 { a } else { a + 3 });
         TraceRay {
             sheared: ShearedRay::new(origin, dir),
-            inv: inv.map(Vec4::splat),
-            origin_inv: [0, 1, 2].map(|a| Vec4::splat(origin[a] * inv[a])),
+            inv,
+            origin_inv: [0, 1, 2].map(|a| origin[a] * inv[a]),
+            near_row,
+            far_row: near_row.map(|r| (r + 3) % 6),
         }
-    }
-
-    /// Entry distances into the node's four child boxes within `[t0, t1]`, and a bit mask of
-    /// the children that are entered.
-    #[inline(always)]
-    fn slab4(&self, node: &BvhNode, t0: f32, t1: f32) -> (Vec4, u32) {
-        let mut near = Vec4::splat(t0);
-        let mut far = Vec4::splat(t1);
-        for a in 0..3 {
-            // Not `mul_add`: without FMA in the target features it becomes a libm call.
-            let lo = Vec4::from(node.min[a]) * self.inv[a] - self.origin_inv[a];
-            let hi = Vec4::from(node.max[a]) * self.inv[a] - self.origin_inv[a];
-            near = near.max(lo.min(hi));
-            far = far.min(lo.max(hi));
-        }
-        // Empty slots sit at +infinity: their entry is infinite, so `near < inf` drops them.
-        let hit = near.cmple(far) & near.cmplt(Vec4::splat(f32::INFINITY));
-        (near, hit.bitmask())
     }
 }
 
@@ -257,7 +325,92 @@ pub struct Hit {
     pub id: u64,
 }
 
-/// A child to visit: node index or first triangle, its `meta`, and its entry distance.
+/// Which instructions traverse the tree. All give the same hits to the bit.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Kernel {
+    /// One box and one triangle at a time: runs anywhere, the reference.
+    Scalar,
+    /// Four boxes (two halves of a node) and four triangles at a time, SSE2: any x86-64.
+    Sse,
+    /// Eight boxes at a time with AVX2 and FMA, four triangles with SSE.
+    Avx2,
+}
+
+impl Kernel {
+    /// Every kernel, slowest first.
+    pub const ALL: [Kernel; 3] = [Kernel::Scalar, Kernel::Sse, Kernel::Avx2];
+
+    /// The name `RAYFARM_KERNEL` takes.
+    pub fn name(self) -> &'static str {
+        match self {
+            Kernel::Scalar => "scalar",
+            Kernel::Sse => "sse",
+            Kernel::Avx2 => "avx2",
+        }
+    }
+
+    /// The kernel named `name` (as `RAYFARM_KERNEL` spells it).
+    pub fn parse(name: &str) -> Result<Kernel, String> {
+        Kernel::ALL
+            .into_iter()
+            .find(|k| k.name() == name.trim().to_ascii_lowercase())
+            .ok_or_else(|| format!("RAYFARM_KERNEL={name:?}: expected avx2, sse or scalar"))
+    }
+
+    /// Whether this CPU can run the kernel.
+    pub fn supported(self) -> bool {
+        match self {
+            Kernel::Scalar => true,
+            #[cfg(target_arch = "x86_64")]
+            Kernel::Sse => true,
+            #[cfg(target_arch = "x86_64")]
+            Kernel::Avx2 => is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma"),
+            #[cfg(not(target_arch = "x86_64"))]
+            _ => false,
+        }
+    }
+
+    /// The fastest kernel this CPU runs.
+    pub fn detect() -> Kernel {
+        Kernel::ALL
+            .into_iter()
+            .rev()
+            .find(|k| k.supported())
+            .unwrap_or(Kernel::Scalar)
+    }
+
+    /// The process's kernel: `RAYFARM_KERNEL` if set to one this CPU runs, else [`Kernel::detect`].
+    /// Decided once; a value that cannot be honoured is reported and the detected kernel used.
+    pub fn selected() -> Kernel {
+        static SELECTED: OnceLock<Kernel> = OnceLock::new();
+        *SELECTED.get_or_init(|| {
+            let detected = Kernel::detect();
+            let Ok(value) = std::env::var("RAYFARM_KERNEL") else {
+                return detected;
+            };
+            match Kernel::parse(&value) {
+                Ok(k) if k.supported() => {
+                    tracing::info!(kernel = k.name(), "traversal kernel forced");
+                    k
+                }
+                Ok(k) => {
+                    tracing::warn!(
+                        forced = k.name(),
+                        kernel = detected.name(),
+                        "this CPU cannot run the forced traversal kernel"
+                    );
+                    detected
+                }
+                Err(e) => {
+                    tracing::warn!(kernel = detected.name(), "{e}");
+                    detected
+                }
+            }
+        })
+    }
+}
+
+/// A child to visit: node index or first block, its `meta`, and its entry distance.
 #[derive(Clone, Copy)]
 struct Entry {
     child: u32,
@@ -269,6 +422,7 @@ struct Entry {
 /// traversing a coherent ray's whole path.
 pub struct Traverser {
     stack: Vec<Entry>,
+    kernel: Kernel,
 }
 
 impl Default for Traverser {
@@ -278,125 +432,421 @@ impl Default for Traverser {
 }
 
 impl Traverser {
-    /// A traverser with a stack for trees of [`MAX_DEPTH`].
+    /// A traverser running [`Kernel::selected`].
     pub fn new() -> Self {
-        Traverser {
+        Self::with_kernel(Kernel::selected()).expect("the selected kernel is supported")
+    }
+
+    /// A traverser running `kernel`, if this CPU can.
+    pub fn with_kernel(kernel: Kernel) -> Option<Self> {
+        kernel.supported().then(|| Traverser {
             stack: Vec::with_capacity(MAX_DEPTH * (WIDTH - 1) + 1),
-        }
+            kernel,
+        })
+    }
+
+    /// The kernel this traverser runs.
+    pub fn kernel(&self) -> Kernel {
+        self.kernel
     }
 
     /// Nearest hit with `t0 <= t <= t1`, ties broken by the lower scene-wide id.
-    pub fn nearest_hit(
-        &mut self,
-        nodes: &[BvhNode],
-        tris: &[PackedTriangle],
-        ray: &TraceRay,
-        t0: f32,
-        t1: f32,
-    ) -> Option<Hit> {
-        let mut best = Hit {
-            t: t1,
-            slot: u32::MAX,
-            id: u64::MAX,
-        };
-        if nodes.is_empty() {
+    pub fn nearest_hit(&mut self, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32) -> Option<Hit> {
+        if bvh.nodes.is_empty() {
             return None;
         }
         let stack = &mut self.stack;
-        stack.clear();
-        stack.push(Entry {
-            child: 0,
-            meta: SLOT_INNER,
-            near: t0,
-        });
-        // Entries keep their entry distance, so a subtree beyond the best hit is skipped unopened;
-        // equal distances are still visited, for the id tie-break.
-        while let Some(e) = stack.pop() {
-            if e.near > best.t {
-                continue;
+        match self.kernel {
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: a traverser holds only a kernel this CPU supports (`with_kernel`).
+            Kernel::Avx2 => unsafe { x86::nearest_avx2(stack, bvh, ray, t0, t1) },
+            #[cfg(target_arch = "x86_64")]
+            Kernel::Sse => nearest::<x86::Sse>(stack, bvh, ray, t0, t1),
+            _ => nearest::<Scalar>(stack, bvh, ray, t0, t1),
+        }
+    }
+
+    /// Whether anything is hit with `t0 <= t <= t1` (shadow rays).
+    pub fn any_hit(&mut self, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32) -> bool {
+        if bvh.nodes.is_empty() {
+            return false;
+        }
+        let stack = &mut self.stack;
+        match self.kernel {
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: as in `nearest_hit`.
+            Kernel::Avx2 => unsafe { x86::any_avx2(stack, bvh, ray, t0, t1) },
+            #[cfg(target_arch = "x86_64")]
+            Kernel::Sse => any::<x86::Sse>(stack, bvh, ray, t0, t1),
+            _ => any::<Scalar>(stack, bvh, ray, t0, t1),
+        }
+    }
+}
+
+/// The box and triangle tests of one instruction set; the traversal loops are written once over it.
+trait Isa {
+    /// The ray with its values broadcast to this set's registers.
+    type Ray;
+    fn prepare(ray: &TraceRay) -> Self::Ray;
+    /// Entry distances into the node's eight child boxes within `[t0, t1]`, and a bit mask of
+    /// the children that are entered.
+    fn slab(node: &BvhNode, ray: &Self::Ray, t0: f32, t1: f32) -> ([f32; WIDTH], u32);
+    /// The watertight test of a block's four lanes (infinity for a miss).
+    fn block(block: &TriangleBlock, ray: &Self::Ray) -> [f32; BLOCK];
+}
+
+struct Scalar;
+
+impl Isa for Scalar {
+    type Ray = TraceRay;
+
+    #[inline(always)]
+    fn prepare(ray: &TraceRay) -> TraceRay {
+        *ray
+    }
+
+    #[inline(always)]
+    fn slab(node: &BvhNode, ray: &TraceRay, t0: f32, t1: f32) -> ([f32; WIDTH], u32) {
+        let mut out = [0.0; WIDTH];
+        let mut mask = 0;
+        for (lane, entry) in out.iter_mut().enumerate() {
+            let (mut near, mut far) = (t0, t1);
+            for a in 0..3 {
+                let tn = node.bounds[ray.near_row[a]][lane] * ray.inv[a] - ray.origin_inv[a];
+                let tf = node.bounds[ray.far_row[a]][lane] * ray.inv[a] - ray.origin_inv[a];
+                near = near.max(tn);
+                far = far.min(tf);
             }
-            if e.meta != SLOT_INNER {
-                let first = e.child as usize;
-                for (k, tri) in tris[first..first + e.meta as usize].iter().enumerate() {
-                    let t = tri.intersect_t(&ray.sheared);
-                    // A miss is infinity, which must not win against an unbounded t1.
-                    if t >= t0 && t != f32::INFINITY && nearer(t, tri.id(), best.t, best.id) {
-                        best = Hit {
-                            t,
-                            slot: (first + k) as u32,
-                            id: tri.id(),
-                        };
-                    }
-                }
-                continue;
+            *entry = near;
+            mask |= ((near <= far) as u32) << lane;
+        }
+        (out, mask)
+    }
+
+    #[inline(always)]
+    fn block(block: &TriangleBlock, ray: &TraceRay) -> [f32; BLOCK] {
+        block.intersect_scalar(&ray.sheared)
+    }
+}
+
+/// Tests a leaf's blocks, keeping the nearest hit (ties to the lower id).
+#[inline(always)]
+fn leaf_nearest<K: Isa>(blocks: &[TriangleBlock], ray: &K::Ray, t0: f32, best: &mut Hit) {
+    for b in blocks {
+        let ts = K::block(b, ray);
+        for (lane, &t) in ts.iter().enumerate() {
+            // A miss is infinity, which must not win against an unbounded t1.
+            if t >= t0
+                && t <= best.t
+                && t != f32::INFINITY
+                && nearer(t, b.id(lane), best.t, best.id)
+            {
+                *best = Hit {
+                    t,
+                    slot: b.slot[lane],
+                    id: b.id(lane),
+                };
             }
-            let node = &nodes[e.child as usize];
-            let (near, mut mask) = ray.slab4(node, t0, best.t);
-            let near = near.to_array();
-            // Push the entered children farthest first, so the nearest is popped next.
-            let base = stack.len();
-            while mask != 0 {
+        }
+    }
+}
+
+/// Ordered traversal: the nearest entered child is visited next, the others wait on the stack
+/// with their entry distance, so a subtree beyond the best hit is skipped unopened; equal
+/// distances are still visited, for the id tie-break.
+#[inline(always)]
+fn nearest<K: Isa>(
+    stack: &mut Vec<Entry>,
+    bvh: Bvh,
+    ray: &TraceRay,
+    t0: f32,
+    t1: f32,
+) -> Option<Hit> {
+    let r = K::prepare(ray);
+    let mut best = Hit {
+        t: t1,
+        slot: u32::MAX,
+        id: u64::MAX,
+    };
+    stack.clear();
+    let mut cur = Entry {
+        child: 0,
+        meta: SLOT_INNER,
+        near: t0,
+    };
+    loop {
+        if cur.meta == SLOT_INNER {
+            let node = &bvh.nodes[cur.child as usize];
+            let (near, mut mask) = K::slab(node, &r, t0, best.t);
+            if mask != 0 {
                 let slot = mask.trailing_zeros() as usize;
                 mask &= mask - 1;
-                let entry = Entry {
+                let first = Entry {
                     child: node.child[slot],
                     meta: node.meta[slot],
                     near: near[slot],
                 };
-                let mut at = stack.len();
-                stack.push(entry);
-                while at > base && stack[at - 1].near < entry.near {
-                    stack[at] = stack[at - 1];
-                    at -= 1;
+                if mask == 0 {
+                    cur = first;
+                    continue;
                 }
-                stack[at] = entry;
+                // Push the entered children farthest first, so the nearest is popped next.
+                let base = stack.len();
+                stack.push(first);
+                while mask != 0 {
+                    let slot = mask.trailing_zeros() as usize;
+                    mask &= mask - 1;
+                    let entry = Entry {
+                        child: node.child[slot],
+                        meta: node.meta[slot],
+                        near: near[slot],
+                    };
+                    let mut at = stack.len();
+                    stack.push(entry);
+                    while at > base && stack[at - 1].near < entry.near {
+                        stack[at] = stack[at - 1];
+                        at -= 1;
+                    }
+                    stack[at] = entry;
+                }
+            }
+        } else {
+            let first = cur.child as usize;
+            leaf_nearest::<K>(
+                &bvh.blocks[first..first + cur.meta as usize],
+                &r,
+                t0,
+                &mut best,
+            );
+        }
+        loop {
+            match stack.pop() {
+                None => return (best.slot != u32::MAX).then_some(best),
+                Some(e) if e.near > best.t => continue,
+                Some(e) => {
+                    cur = e;
+                    break;
+                }
             }
         }
-        (best.slot != u32::MAX).then_some(best)
+    }
+}
+
+/// Whether a leaf's blocks hold a hit in `[t0, t1]`.
+#[inline(always)]
+fn leaf_any<K: Isa>(blocks: &[TriangleBlock], ray: &K::Ray, t0: f32, t1: f32) -> bool {
+    blocks.iter().any(|b| {
+        K::block(b, ray)
+            .iter()
+            .any(|&t| t >= t0 && t <= t1 && t != f32::INFINITY)
+    })
+}
+
+/// Shadow-ray traversal: no order and no distances kept; a node's leaf children are tested at
+/// once (a blocker ends the ray), its inner children wait on the stack.
+#[inline(always)]
+fn any<K: Isa>(stack: &mut Vec<Entry>, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32) -> bool {
+    let r = K::prepare(ray);
+    stack.clear();
+    let mut node = 0u32;
+    loop {
+        let n = &bvh.nodes[node as usize];
+        let (_, mut mask) = K::slab(n, &r, t0, t1);
+        while mask != 0 {
+            let slot = mask.trailing_zeros() as usize;
+            mask &= mask - 1;
+            let (child, meta) = (n.child[slot], n.meta[slot]);
+            if meta == SLOT_INNER {
+                stack.push(Entry {
+                    child,
+                    meta,
+                    near: 0.0,
+                });
+            } else {
+                let first = child as usize;
+                if leaf_any::<K>(&bvh.blocks[first..first + meta as usize], &r, t0, t1) {
+                    return true;
+                }
+            }
+        }
+        match stack.pop() {
+            Some(e) => node = e.child,
+            None => return false,
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    //! The SSE and AVX2 box tests; the triangle test is SSE in both
+    //! ([`TriangleBlock::intersect_sse`]).
+
+    use std::arch::x86_64::*;
+
+    use super::{Bvh, BvhNode, Entry, Hit, Isa, TraceRay, WIDTH, any, nearest};
+    use crate::geometry::{BLOCK, ShearedSse, TriangleBlock};
+
+    /// Four lanes at a time: a node's two halves in turn.
+    pub struct Sse;
+
+    pub struct SseRay {
+        tri: ShearedSse,
+        inv: [__m128; 3],
+        origin_inv: [__m128; 3],
+        near_row: [usize; 3],
+        far_row: [usize; 3],
     }
 
-    /// Whether anything is hit with `t0 <= t <= t1` (shadow rays).
-    pub fn any_hit(
-        &mut self,
-        nodes: &[BvhNode],
-        tris: &[PackedTriangle],
+    impl Isa for Sse {
+        type Ray = SseRay;
+
+        #[inline(always)]
+        fn prepare(ray: &TraceRay) -> SseRay {
+            // SAFETY: SSE2 is part of x86-64.
+            unsafe {
+                SseRay {
+                    tri: ShearedSse::new(&ray.sheared),
+                    inv: ray.inv.map(|v| _mm_set1_ps(v)),
+                    origin_inv: ray.origin_inv.map(|v| _mm_set1_ps(v)),
+                    near_row: ray.near_row,
+                    far_row: ray.far_row,
+                }
+            }
+        }
+
+        #[inline(always)]
+        fn slab(node: &BvhNode, r: &SseRay, t0: f32, t1: f32) -> ([f32; WIDTH], u32) {
+            let mut out = [0.0f32; WIDTH];
+            let mut mask = 0;
+            // SAFETY: SSE2 is part of x86-64; loads read the node's 64-byte aligned rows.
+            unsafe {
+                for half in 0..2 {
+                    let at = half * 4;
+                    let plane = |row: usize, a: usize| {
+                        let b = _mm_load_ps(node.bounds[row][at..].as_ptr());
+                        _mm_sub_ps(_mm_mul_ps(b, r.inv[a]), r.origin_inv[a])
+                    };
+                    let near = _mm_max_ps(
+                        _mm_max_ps(plane(r.near_row[0], 0), plane(r.near_row[1], 1)),
+                        _mm_max_ps(plane(r.near_row[2], 2), _mm_set1_ps(t0)),
+                    );
+                    let far = _mm_min_ps(
+                        _mm_min_ps(plane(r.far_row[0], 0), plane(r.far_row[1], 1)),
+                        _mm_min_ps(plane(r.far_row[2], 2), _mm_set1_ps(t1)),
+                    );
+                    _mm_storeu_ps(out[at..].as_mut_ptr(), near);
+                    mask |= (_mm_movemask_ps(_mm_cmple_ps(near, far)) as u32) << at;
+                }
+            }
+            (out, mask)
+        }
+
+        #[inline(always)]
+        fn block(block: &TriangleBlock, r: &SseRay) -> [f32; BLOCK] {
+            // SAFETY: SSE2 is part of x86-64.
+            unsafe { block.intersect_sse(&r.tri) }
+        }
+    }
+
+    /// All eight lanes at once, box planes with one fused multiply-subtract each.
+    struct Avx2;
+
+    struct Avx2Ray {
+        tri: ShearedSse,
+        inv: [__m256; 3],
+        origin_inv: [__m256; 3],
+        near_row: [usize; 3],
+        far_row: [usize; 3],
+    }
+
+    impl Isa for Avx2 {
+        type Ray = Avx2Ray;
+
+        #[inline(always)]
+        fn prepare(ray: &TraceRay) -> Avx2Ray {
+            // SAFETY: only reached from the `avx2,fma` functions below.
+            unsafe {
+                Avx2Ray {
+                    tri: ShearedSse::new(&ray.sheared),
+                    inv: ray.inv.map(|v| _mm256_set1_ps(v)),
+                    origin_inv: ray.origin_inv.map(|v| _mm256_set1_ps(v)),
+                    near_row: ray.near_row,
+                    far_row: ray.far_row,
+                }
+            }
+        }
+
+        #[inline(always)]
+        fn slab(node: &BvhNode, r: &Avx2Ray, t0: f32, t1: f32) -> ([f32; WIDTH], u32) {
+            let mut out = [0.0f32; WIDTH];
+            // SAFETY: only reached from the `avx2,fma` functions below; loads read the node's
+            // 64-byte aligned rows.
+            let mask = unsafe {
+                let plane = |row: usize, a: usize| {
+                    let b = _mm256_load_ps(node.bounds[row].as_ptr());
+                    _mm256_fmsub_ps(b, r.inv[a], r.origin_inv[a])
+                };
+                let near = _mm256_max_ps(
+                    _mm256_max_ps(plane(r.near_row[0], 0), plane(r.near_row[1], 1)),
+                    _mm256_max_ps(plane(r.near_row[2], 2), _mm256_set1_ps(t0)),
+                );
+                let far = _mm256_min_ps(
+                    _mm256_min_ps(plane(r.far_row[0], 0), plane(r.far_row[1], 1)),
+                    _mm256_min_ps(plane(r.far_row[2], 2), _mm256_set1_ps(t1)),
+                );
+                _mm256_storeu_ps(out.as_mut_ptr(), near);
+                _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(near, far)) as u32
+            };
+            (out, mask)
+        }
+
+        #[inline(always)]
+        fn block(block: &TriangleBlock, r: &Avx2Ray) -> [f32; BLOCK] {
+            // SAFETY: SSE2 is part of x86-64.
+            unsafe { block.intersect_sse(&r.tri) }
+        }
+    }
+
+    /// # Safety
+    /// The CPU must support AVX2 and FMA.
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn nearest_avx2(
+        stack: &mut Vec<Entry>,
+        bvh: Bvh,
+        ray: &TraceRay,
+        t0: f32,
+        t1: f32,
+    ) -> Option<Hit> {
+        nearest::<Avx2>(stack, bvh, ray, t0, t1)
+    }
+
+    /// # Safety
+    /// The CPU must support AVX2 and FMA.
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn any_avx2(
+        stack: &mut Vec<Entry>,
+        bvh: Bvh,
         ray: &TraceRay,
         t0: f32,
         t1: f32,
     ) -> bool {
-        if nodes.is_empty() {
-            return false;
+        any::<Avx2>(stack, bvh, ray, t0, t1)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn kernel_names_parse_and_unknown_ones_are_refused() {
+        for k in Kernel::ALL {
+            assert_eq!(Kernel::parse(k.name()), Ok(k));
         }
-        let stack = &mut self.stack;
-        stack.clear();
-        stack.push(Entry {
-            child: 0,
-            meta: SLOT_INNER,
-            near: t0,
-        });
-        while let Some(e) = stack.pop() {
-            if e.meta != SLOT_INNER {
-                let first = e.child as usize;
-                for tri in &tris[first..first + e.meta as usize] {
-                    let t = tri.intersect_t(&ray.sheared);
-                    if t >= t0 && t <= t1 && t != f32::INFINITY {
-                        return true;
-                    }
-                }
-                continue;
-            }
-            let node = &nodes[e.child as usize];
-            let (_, mut mask) = ray.slab4(node, t0, t1);
-            while mask != 0 {
-                let slot = mask.trailing_zeros() as usize;
-                mask &= mask - 1;
-                stack.push(Entry {
-                    child: node.child[slot],
-                    meta: node.meta[slot],
-                    near: 0.0,
-                });
-            }
-        }
-        false
+        assert_eq!(Kernel::parse(" AVX2 "), Ok(Kernel::Avx2));
+        let e = Kernel::parse("avx512").unwrap_err();
+        assert!(e.contains("avx2, sse or scalar"), "{e}");
+        assert!(Kernel::Scalar.supported());
+        assert!(Kernel::detect().supported());
     }
 }

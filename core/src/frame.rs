@@ -217,6 +217,21 @@ impl TileGrid {
         self.height
     }
 
+    /// Side of a full tile in pixels.
+    pub fn tile_size(&self) -> u32 {
+        self.tile_size
+    }
+
+    /// Tiles per row of tiles.
+    pub fn tiles_x(&self) -> u32 {
+        self.tiles_x
+    }
+
+    /// Rows of tiles.
+    pub fn tiles_y(&self) -> u32 {
+        self.tiles_y
+    }
+
     /// Number of pixels in the image.
     pub fn pixel_count(&self) -> usize {
         self.width as usize * self.height as usize
@@ -550,8 +565,18 @@ impl FrameLedger {
         self.done == self.grid.count()
     }
 
-    /// Committed fixed-point sums for the whole image, indexed by pixel; pixels of unfinished
-    /// tiles are zero, since their partial sums may still be dropped.
+    /// Takes the fixed-point sums of a committed tile, in [`TileGrid::pixels`] order, out of
+    /// the ledger (to the film file), so memory holds only the tiles in flight. Empty for a
+    /// tile that got no light, is not committed, or was taken before.
+    pub fn take_sums(&mut self, tile: u32) -> Vec<[i64; 3]> {
+        match self.tiles.get_mut(tile as usize) {
+            Some(state) if state.done => std::mem::take(&mut state.sums),
+            _ => Vec::new(),
+        }
+    }
+
+    /// Committed fixed-point sums (not yet taken) for the whole image, indexed by pixel;
+    /// pixels of unfinished tiles are zero, since their partial sums may still be dropped.
     pub fn image_sums(&self) -> Vec<[i64; 3]> {
         let mut image = vec![[0; 3]; self.grid.pixel_count()];
         for (tile, state) in (0..).zip(&self.tiles) {
@@ -770,6 +795,18 @@ mod tests {
         l.accept(1, 1, 10, &[(3, [3, 3, 3])]).unwrap();
         let image = l.image_sums();
         assert_eq!((image[0], image[2], image[3]), ([1; 3], [0; 3], [3; 3]));
+    }
+
+    #[test]
+    fn taken_sums_leave_the_ledger_once() {
+        let mut l = FrameLedger::new(grid(), 2);
+        l.accept(0, 0, 1, &[(0, [1, 2, 3])]).unwrap();
+        assert!(l.take_sums(0).is_empty(), "not committed yet");
+        l.accept(0, 0, 1, &[(1, [4, 5, 6])]).unwrap();
+        assert_eq!(l.take_sums(0), vec![[1, 2, 3], [4, 5, 6], [0; 3], [0; 3]]);
+        assert!(l.take_sums(0).is_empty());
+        assert!(l.take_sums(99).is_empty());
+        assert!(l.is_tile_done(0));
     }
 
     #[test]

@@ -219,3 +219,182 @@ impl PackedTriangle {
 pub fn nearer(t: f32, id: u64, best_t: f32, best_id: u64) -> bool {
     t < best_t || (t == best_t && id < best_id)
 }
+
+/// Triangles tested together: one SSE register's worth.
+pub const BLOCK: usize = 4;
+
+/// Four triangles as structure-of-arrays, so one watertight test covers all four: `v[vertex]
+/// [axis][lane]`, then per lane the scene-wide id (for the tie-break without touching the packed
+/// array) and the triangle's position in the packed array. A leaf whose triangle count is not a
+/// multiple of four repeats its last triangle: a duplicate has the same distance and id, so it
+/// never changes a nearest hit or an any-hit answer, and no lane needs masking.
+#[repr(C, align(64))]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct TriangleBlock {
+    /// Vertex coordinates: `v[vertex][axis][lane]`.
+    pub v: [[[f32; BLOCK]; 3]; 3],
+    /// Low halves of the scene-wide ids.
+    pub id_lo: [u32; BLOCK],
+    /// High halves of the scene-wide ids.
+    pub id_hi: [u32; BLOCK],
+    /// Position of each lane's triangle in the domain's packed array.
+    pub slot: [u32; BLOCK],
+}
+
+const _: () = assert!(std::mem::size_of::<TriangleBlock>() == 192);
+
+impl TriangleBlock {
+    /// The block of `tris[slots]` (one to four), padded with the last.
+    pub fn new(tris: &[PackedTriangle], first: usize, count: usize) -> Self {
+        assert!((1..=BLOCK).contains(&count));
+        let mut b = TriangleBlock::zeroed();
+        for lane in 0..BLOCK {
+            let s = first + lane.min(count - 1);
+            let t = &tris[s];
+            for (i, p) in t.vertices().iter().enumerate() {
+                for (axis, &c) in b.v[i].iter_mut().zip(p.as_ref()) {
+                    axis[lane] = c;
+                }
+            }
+            b.id_lo[lane] = t.id_lo;
+            b.id_hi[lane] = t.id_hi;
+            b.slot[lane] = s as u32;
+        }
+        b
+    }
+
+    /// Scene-wide id of a lane's triangle.
+    #[inline(always)]
+    pub fn id(&self, lane: usize) -> u64 {
+        ((self.id_hi[lane] as u64) << 32) | self.id_lo[lane] as u64
+    }
+
+    /// One lane as a packed triangle (the material is not kept here).
+    #[inline(always)]
+    pub fn lane(&self, lane: usize) -> PackedTriangle {
+        let p = |i: usize| [0, 1, 2].map(|a| self.v[i][a][lane]);
+        PackedTriangle {
+            v0: p(0),
+            id_lo: self.id_lo[lane],
+            v1: p(1),
+            material: 0,
+            v2: p(2),
+            id_hi: self.id_hi[lane],
+        }
+    }
+
+    /// The watertight test of every lane, one at a time: the reference the SIMD test equals.
+    #[inline(always)]
+    pub fn intersect_scalar(&self, r: &ShearedRay) -> [f32; BLOCK] {
+        std::array::from_fn(|lane| self.lane(lane).intersect_t(r))
+    }
+
+    /// The watertight test of all four lanes with SSE: the same operations in the same order as
+    /// [`PackedTriangle::intersect_t`] (no fused multiply-add), so every lane's distance has
+    /// the same bits as the scalar test. Lanes with an exactly zero edge function, which the
+    /// scalar test decides in double precision, are handed to it.
+    ///
+    /// # Safety
+    /// The CPU must support SSE2 (every x86-64 CPU does).
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    pub unsafe fn intersect_sse(&self, r: &ShearedSse) -> [f32; BLOCK] {
+        use std::arch::x86_64::*;
+        let [kx, ky, kz] = r.ray.axes;
+        // SAFETY: SSE2 is part of x86-64; the loads read this block's aligned arrays.
+        unsafe {
+            let rel = |i: usize| {
+                let p = &self.v[i];
+                (
+                    _mm_sub_ps(_mm_load_ps(p[kx].as_ptr()), r.origin[0]),
+                    _mm_sub_ps(_mm_load_ps(p[ky].as_ptr()), r.origin[1]),
+                    _mm_sub_ps(_mm_load_ps(p[kz].as_ptr()), r.origin[2]),
+                )
+            };
+            let (a, b, c) = (rel(0), rel(1), rel(2));
+            let shear = |p: (__m128, __m128, __m128)| {
+                (
+                    _mm_sub_ps(p.0, _mm_mul_ps(r.sx, p.2)),
+                    _mm_sub_ps(p.1, _mm_mul_ps(r.sy, p.2)),
+                )
+            };
+            let ((ax, ay), (bx, by), (cx, cy)) = (shear(a), shear(b), shear(c));
+            let u = _mm_sub_ps(_mm_mul_ps(cx, by), _mm_mul_ps(cy, bx));
+            let v = _mm_sub_ps(_mm_mul_ps(ax, cy), _mm_mul_ps(ay, cx));
+            let w = _mm_sub_ps(_mm_mul_ps(bx, ay), _mm_mul_ps(by, ax));
+            let zero = _mm_setzero_ps();
+            let edge_zero = _mm_or_ps(
+                _mm_or_ps(_mm_cmpeq_ps(u, zero), _mm_cmpeq_ps(v, zero)),
+                _mm_cmpeq_ps(w, zero),
+            );
+            let neg = _mm_or_ps(
+                _mm_or_ps(_mm_cmplt_ps(u, zero), _mm_cmplt_ps(v, zero)),
+                _mm_cmplt_ps(w, zero),
+            );
+            let pos = _mm_or_ps(
+                _mm_or_ps(_mm_cmpgt_ps(u, zero), _mm_cmpgt_ps(v, zero)),
+                _mm_cmpgt_ps(w, zero),
+            );
+            let det = _mm_add_ps(_mm_add_ps(u, v), w);
+            let t_scaled = _mm_add_ps(
+                _mm_add_ps(
+                    _mm_mul_ps(u, _mm_mul_ps(r.sz, a.2)),
+                    _mm_mul_ps(v, _mm_mul_ps(r.sz, b.2)),
+                ),
+                _mm_mul_ps(w, _mm_mul_ps(r.sz, c.2)),
+            );
+            let wrong_side = _mm_or_ps(
+                _mm_and_ps(_mm_cmpgt_ps(det, zero), _mm_cmple_ps(t_scaled, zero)),
+                _mm_and_ps(_mm_cmplt_ps(det, zero), _mm_cmpge_ps(t_scaled, zero)),
+            );
+            let miss = _mm_or_ps(
+                _mm_or_ps(_mm_and_ps(neg, pos), _mm_cmpeq_ps(det, zero)),
+                wrong_side,
+            );
+            let t = _mm_div_ps(t_scaled, det);
+            let t = _mm_or_ps(_mm_and_ps(miss, r.inf), _mm_andnot_ps(miss, t));
+            let mut out = [0.0f32; BLOCK];
+            _mm_storeu_ps(out.as_mut_ptr(), t);
+            let mut redo = _mm_movemask_ps(edge_zero) as u32;
+            while redo != 0 {
+                let lane = redo.trailing_zeros() as usize;
+                redo &= redo - 1;
+                out[lane] = self.lane(lane).intersect_t(&r.ray);
+            }
+            out
+        }
+    }
+}
+
+/// A [`ShearedRay`] with its values broadcast to SSE registers, made once per traversal.
+#[cfg(target_arch = "x86_64")]
+#[derive(Clone, Copy)]
+pub struct ShearedSse {
+    ray: ShearedRay,
+    origin: [std::arch::x86_64::__m128; 3],
+    sx: std::arch::x86_64::__m128,
+    sy: std::arch::x86_64::__m128,
+    sz: std::arch::x86_64::__m128,
+    inf: std::arch::x86_64::__m128,
+}
+
+#[cfg(target_arch = "x86_64")]
+impl ShearedSse {
+    /// Broadcasts `ray`; the origin is permuted into the ray's axes.
+    #[inline(always)]
+    pub fn new(ray: &ShearedRay) -> Self {
+        use std::arch::x86_64::_mm_set1_ps;
+        let [kx, ky, kz] = ray.axes;
+        // SAFETY: SSE2 is part of x86-64.
+        unsafe {
+            ShearedSse {
+                ray: *ray,
+                origin: [kx, ky, kz].map(|k| _mm_set1_ps(ray.origin[k])),
+                sx: _mm_set1_ps(ray.shear.x),
+                sy: _mm_set1_ps(ray.shear.y),
+                sz: _mm_set1_ps(ray.shear.z),
+                inf: _mm_set1_ps(f32::INFINITY),
+            }
+        }
+    }
+}

@@ -32,11 +32,11 @@ fn write_valid_file() -> Vec<u8> {
     std::fs::read(&path).unwrap()
 }
 
-/// Recomputes the checksum, which sits after magic(8) version(4) domain(4) counts(32) bounds(24).
+/// Recomputes the checksum, which sits after magic(8) version(4) domain(4) counts(40) bounds(24).
 fn reseal(bytes: &mut [u8]) {
-    bytes[72..80].fill(0);
+    bytes[80..88].fill(0);
     let sum = xxhash_rust::xxh3::xxh3_64(bytes);
-    bytes[72..80].copy_from_slice(&sum.to_le_bytes());
+    bytes[80..88].copy_from_slice(&sum.to_le_bytes());
 }
 
 #[test]
@@ -50,10 +50,24 @@ fn a_valid_file_reads_back() {
     // Resealing after an edit the structure allows must be accepted, or the fuzzing below
     // would only ever exercise the checksum.
     let mut f = valid_file();
-    f[48] ^= 1; // a bit of the bounds
+    f[60] ^= 1; // a bit of the bounds
     assert!(parse_domain_bytes(&f, 2).is_err());
     reseal(&mut f);
     assert!(parse_domain_bytes(&f, 2).is_ok());
+}
+
+#[test]
+fn a_file_of_an_older_format_is_refused_with_its_version_and_what_to_do() {
+    let mut f = valid_file();
+    f[8..12].copy_from_slice(&3u32.to_le_bytes());
+    reseal(&mut f);
+    let e = parse_domain_bytes(&f, 2).unwrap_err().to_string();
+    assert!(
+        e.contains("version 3")
+            && e.contains("version 4")
+            && e.contains("re-run `rayfarm prepare`"),
+        "{e}"
+    );
 }
 
 proptest! {

@@ -6,7 +6,7 @@ use std::path::Path;
 
 use glam::Vec3;
 use proptest::prelude::*;
-use rayfarm_core::bvh::{Hit, TraceRay, Traverser};
+use rayfarm_core::bvh::{Hit, Kernel, TraceRay, Traverser};
 use rayfarm_core::mesh::TriangleMesh;
 use rayfarm_core::prepare::prepare_mesh;
 use rayfarm_core::scene::{DomainData, Manifest};
@@ -57,13 +57,27 @@ fn load(dir: &Path) -> Loaded {
     Loaded { manifest, domains }
 }
 
-fn by_domains(s: &Loaded, o: Vec3, d: Vec3) -> Option<(f32, u64)> {
+/// The kernels this CPU runs: every test below holds on each.
+fn kernels() -> Vec<Kernel> {
+    Kernel::ALL.into_iter().filter(|k| k.supported()).collect()
+}
+
+fn traverser(k: Kernel) -> Traverser {
+    Traverser::with_kernel(k).unwrap()
+}
+
+/// Distance bits and id: kernels must agree to the bit, not within a tolerance.
+fn bits(hit: Option<(f32, u64)>) -> Option<(u32, u64)> {
+    hit.map(|(t, id)| (t.to_bits(), id))
+}
+
+fn by_domains(s: &Loaded, o: Vec3, d: Vec3, k: Kernel) -> Option<(f32, u64)> {
     let tree = s.manifest.domain_tree();
     let ray = TraceRay::new(o, d);
     let mut found = None;
     tree.walk(o, d, 0.0, f32::INFINITY, |dom, a, b| {
         let data = &s.domains[dom as usize];
-        match Traverser::new().nearest_hit(data.nodes(), data.packed(), &ray, a, b) {
+        match traverser(k).nearest_hit(data.bvh(), &ray, a, b) {
             Some(Hit { t, id, .. }) => {
                 found = Some((t, id));
                 ControlFlow::Break(())
@@ -74,16 +88,10 @@ fn by_domains(s: &Loaded, o: Vec3, d: Vec3) -> Option<(f32, u64)> {
     found
 }
 
-fn whole(s: &Loaded, o: Vec3, d: Vec3) -> Option<(f32, u64)> {
+fn whole(s: &Loaded, o: Vec3, d: Vec3, k: Kernel) -> Option<(f32, u64)> {
     let data = &s.domains[0];
-    Traverser::new()
-        .nearest_hit(
-            data.nodes(),
-            data.packed(),
-            &TraceRay::new(o, d),
-            0.0,
-            f32::INFINITY,
-        )
+    traverser(k)
+        .nearest_hit(data.bvh(), &TraceRay::new(o, d), 0.0, f32::INFINITY)
         .map(|h| (h.t, h.id))
 }
 
@@ -126,10 +134,16 @@ proptest! {
                 if next() < 0.1 { d.z = 0.0; }
                 if d.length_squared() < 1e-6 { continue; }
                 let d = d.normalize();
-                let expect = whole(one, o, d);
+                let expect = whole(one, o, d, Kernel::Scalar);
                 hits += expect.is_some() as usize;
-                for s in many {
-                    prop_assert_eq!(by_domains(s, o, d), expect, "{} domains, o={:?} d={:?}", s.domains.len(), o, d);
+                for k in kernels() {
+                    prop_assert_eq!(bits(whole(one, o, d, k)), bits(expect), "{:?} o={:?} d={:?}", k, o, d);
+                    let data = &one.domains[0];
+                    let blocked = traverser(k).any_hit(data.bvh(), &TraceRay::new(o, d), 0.0, f32::INFINITY);
+                    prop_assert_eq!(blocked, expect.is_some(), "{:?} any-hit o={:?} d={:?}", k, o, d);
+                    for s in many {
+                        prop_assert_eq!(bits(by_domains(s, o, d, k)), bits(expect), "{:?}, {} domains, o={:?} d={:?}", k, s.domains.len(), o, d);
+                    }
                 }
             }
             prop_assert!(hits > 50);

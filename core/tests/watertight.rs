@@ -2,7 +2,8 @@
 //! always hits one of the triangles that share it, so surfaces have no pinholes.
 
 use glam::Vec3;
-use rayfarm_core::geometry::PackedTriangle;
+use rayfarm_core::bvh::{self, Bvh, Kernel, TraceRay, Traverser};
+use rayfarm_core::geometry::{PackedTriangle, nearer};
 
 /// A closed, subdivided octahedron: every edge is shared by two triangles with identical bits.
 fn closed_mesh(levels: u32) -> Vec<[[f32; 3]; 3]> {
@@ -72,4 +73,61 @@ fn rays_through_vertices_and_edges_of_a_closed_mesh_never_escape() {
         "{escaped} of {} rays slipped through an edge or vertex",
         targets.len() * origins.len()
     );
+}
+
+/// The same rays through the BVH on every traversal kernel: each finds a hit, any-hit agrees,
+/// and the hit is the brute-force nearest (ties to the lower id) to the bit.
+#[test]
+fn every_kernel_finds_the_brute_force_nearest_hit_through_vertices_and_edges() {
+    let mesh = closed_mesh(4);
+    let original: Vec<PackedTriangle> = mesh
+        .iter()
+        .enumerate()
+        .map(|(i, t)| PackedTriangle::new(t, i as u64, 0))
+        .collect();
+    let mut packed = original.clone();
+    let built = bvh::build(&mut packed);
+    let tree = Bvh {
+        nodes: &built.nodes,
+        blocks: &built.blocks,
+    };
+    let origins = [
+        Vec3::ZERO,
+        Vec3::new(0.1, -0.05, 0.02),
+        Vec3::new(-0.3, 0.2, 0.1),
+    ];
+    let mut checked = 0;
+    for kernel in Kernel::ALL.into_iter().filter(|k| k.supported()) {
+        let mut traverser = Traverser::with_kernel(kernel).unwrap();
+        for o in origins {
+            for t in &mesh {
+                let [a, b, c] = t.map(Vec3::from);
+                for target in [a, b, c, (a + b) * 0.5, (b + c) * 0.5, (c + a) * 0.5] {
+                    let d = (target - o).normalize();
+                    let mut expect: Option<(f32, u64)> = None;
+                    for tri in &original {
+                        if let Some(t) = tri.intersect(o, d) {
+                            let (bt, bid) = expect.unwrap_or((f32::INFINITY, u64::MAX));
+                            if nearer(t, tri.id(), bt, bid) {
+                                expect = Some((t, tri.id()));
+                            }
+                        }
+                    }
+                    let ray = TraceRay::new(o, d);
+                    let got = traverser
+                        .nearest_hit(tree, &ray, 0.0, f32::INFINITY)
+                        .map(|h| (h.t.to_bits(), h.id));
+                    assert_eq!(
+                        got,
+                        expect.map(|(t, id)| (t.to_bits(), id)),
+                        "{kernel:?} o={o:?} d={d:?}"
+                    );
+                    assert!(got.is_some(), "{kernel:?}: o={o:?} d={d:?} escaped");
+                    assert!(traverser.any_hit(tree, &ray, 0.0, f32::INFINITY));
+                    checked += 1;
+                }
+            }
+        }
+    }
+    assert!(checked > 0);
 }

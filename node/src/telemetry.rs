@@ -35,6 +35,9 @@ pub async fn shutdown_signal() {
     let _ = tokio::signal::ctrl_c().await;
 }
 
+/// How long a server's blocking tasks get to finish once `run` has returned.
+const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(1);
+
 /// The `main` of a server binary: logging at the level `-v` asks for, a tokio runtime (with
 /// `worker_threads` threads, or one per core), then `run`; an error is logged, printed and
 /// turned into a failing exit code.
@@ -58,12 +61,16 @@ where
             return ExitCode::FAILURE;
         }
     };
-    match runtime.block_on(run) {
+    let code = match runtime.block_on(run) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             tracing::error!("{e:#}");
             eprintln!("error: {e:#}");
             ExitCode::FAILURE
         }
-    }
+    };
+    // Blocking work still in flight (a tracing pass, a file being written) must not hold the
+    // process past a stop signal: dropping the runtime would wait for it.
+    runtime.shutdown_timeout(SHUTDOWN_GRACE);
+    code
 }

@@ -28,8 +28,8 @@ use crate::bench::report::{bench_table, bound_footnote, hash_verdict};
 use crate::bench::{HashCheck, RunOutcome, bound, check_hashes, run_order, summarize};
 use crate::client::{ClientAuthArgs, Coordinator, runtime};
 use crate::local_cluster::{
-    ClusterConfig, JobInFlight, interruptible, scene_root_and_name, threads_per_worker,
-    with_local_cluster,
+    ClusterConfig, Interrupted, JobInFlight, interruptible, scene_root_and_name,
+    threads_per_worker, with_local_cluster,
 };
 use crate::units::{self, human};
 
@@ -289,9 +289,12 @@ fn run_local(a: &BenchArgs, plan: &Plan) -> anyhow::Result<(BenchRuns, Setup)> {
     let result = runtime()?.block_on(with_local_cluster(&config, &in_flight, async |url| {
         bench(&url, &ClientSecurity::default(), plan, &in_flight).await
     }));
-    let failed = result.as_ref().map_or(true, |b| {
-        b.stopped.is_some() || b.runs.iter().any(|r| r.result.is_err())
-    });
+    // An interrupted bench was stopped on purpose: nothing to read, nothing kept.
+    let interrupted = result.as_ref().is_err_and(|e| e.is::<Interrupted>());
+    let failed = !interrupted
+        && result.as_ref().map_or(true, |b| {
+            b.stopped.is_some() || b.runs.iter().any(|r| r.result.is_err())
+        });
     match temp {
         Some(t) if failed => eprintln!(
             "kept the cluster's logs and results in {}",

@@ -1,8 +1,10 @@
-//! `rayfarm cancel ID`: stop a queued or running job; prints the state it ended up in (a job
-//! that had already ended keeps its state).
+//! `rayfarm cancel ID`: stop a queued or running job and print `job ID: cancelled`. A job that
+//! had already succeeded or failed keeps its state, and saying so is an error: nothing was
+//! cancelled. Cancelling a cancelled job again is not.
 
-use anyhow::Context;
+use anyhow::{Context, bail};
 use clap::Args;
+use rayfarm_node::proto::JobState;
 
 use super::watch::state_name;
 use crate::client::{CoordinatorArgs, runtime};
@@ -24,6 +26,13 @@ pub fn run(a: CancelArgs) -> anyhow::Result<()> {
             .await
             .with_context(|| format!("cancelling job {}", a.job_id))
     })?;
+    if state != JobState::Cancelled {
+        bail!(
+            "job {} had already {} (nothing to cancel)",
+            a.job_id,
+            state_name(state)
+        );
+    }
     println!("job {}: {}", a.job_id, state_name(state));
     Ok(())
 }

@@ -16,6 +16,7 @@ use super::render::RenderArgs;
 use super::submit::{WaitOptions, wait_and_save};
 use crate::client::{Coordinator, runtime};
 use crate::local_cluster::{ClusterConfig, JobInFlight, threads_per_worker, with_local_cluster};
+use crate::view::{CameraArgs, FrameArgs};
 
 /// Options of `rayfarm demo`.
 #[derive(Args, Clone, Debug)]
@@ -81,13 +82,13 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
             local: true,
             scene,
             out: a.dir.join("demo.png"),
-            width: a.width,
-            height: a.height,
-            spp: a.spp,
-            depth: DEPTH,
-            eye: None,
-            look_at: None,
-            fov: None,
+            frame: FrameArgs {
+                width: a.width,
+                height: a.height,
+                spp: a.spp,
+                depth: DEPTH,
+            },
+            camera: CameraArgs::default(),
             threads: None,
             cache_bytes,
             wave_rays: 1 << 20,
@@ -128,6 +129,8 @@ fn run_cluster(a: &DemoArgs, scene: &Path, cache_bytes: u64) -> anyhow::Result<(
         quiet: false,
         // The demo's coordinator is its own child: if it dies, the demo is over.
         ride_out: Duration::ZERO,
+        // The cluster stops with the demo; its results stay in the coordinator's data dir.
+        fetch_again: false,
     };
     let in_flight = JobInFlight::default();
     runtime()?.block_on(with_local_cluster(&config, &in_flight, async |url| {

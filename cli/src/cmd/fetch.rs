@@ -27,6 +27,10 @@ pub struct FetchArgs {
 pub fn run(a: FetchArgs) -> anyhow::Result<()> {
     let output = a.output.unwrap_or_else(|| default_output(&a.job_id));
     let format = image_format(&output)?;
+    check_writable(&output)?;
+    if let Some(p) = &a.stats_json {
+        check_writable(p)?;
+    }
     runtime()?.block_on(async {
         let mut coord = a.coordinator.connect().await?;
         let result = save_result(
@@ -61,6 +65,31 @@ pub fn image_format(path: &Path) -> anyhow::Result<proto::ImageFormat> {
             path.display()
         ),
     }
+}
+
+/// Refuses an output path that cannot be written (a missing or read-only directory), so a
+/// frame is not rendered, or fetched, only to fail at the very end. The file itself is not
+/// created: a test file next to it is made and removed.
+pub fn check_writable(path: &Path) -> anyhow::Result<()> {
+    let dir = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    if !dir.is_dir() {
+        bail!(
+            "{}: the directory {} does not exist (create it first)",
+            path.display(),
+            dir.display()
+        );
+    }
+    if path.is_dir() {
+        bail!("{}: is a directory; give a file name", path.display());
+    }
+    tempfile::Builder::new()
+        .prefix(".rayfarm-write-check-")
+        .tempfile_in(dir)
+        .map(drop)
+        .map_err(|e| anyhow::anyhow!("{}: cannot write in {}: {e}", path.display(), dir.display()))
 }
 
 /// Fetches job `job_id`'s result as `format`, writes the image to `output` and, if asked, the
@@ -113,5 +142,17 @@ mod tests {
         assert!(e.to_string().contains(".png"), "{e}");
         assert!(image_format(Path::new("noext")).is_err());
         assert_eq!(default_output("j3"), PathBuf::from("j3.png"));
+    }
+
+    #[test]
+    fn outputs_in_missing_directories_are_refused_up_front() {
+        let tmp = tempfile::tempdir().unwrap();
+        check_writable(&tmp.path().join("x.png")).unwrap();
+        let e = check_writable(&tmp.path().join("nodir/x.png")).unwrap_err();
+        assert!(e.to_string().contains("does not exist"), "{e}");
+        let e = check_writable(tmp.path()).unwrap_err();
+        assert!(e.to_string().contains("is a directory"), "{e}");
+        // Nothing is left behind by the check.
+        assert_eq!(std::fs::read_dir(tmp.path()).unwrap().count(), 0);
     }
 }

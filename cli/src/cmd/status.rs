@@ -1,5 +1,5 @@
 //! `rayfarm status`: the workers the coordinator knows, what they hold and what is queued for
-//! them, and the running job. `--wait-workers N` waits until exactly N workers are registered,
+//! them, and the running job. `--wait-workers N` waits until at least N workers are registered,
 //! which scripts (and `demo`, and the integration tests) need before submitting.
 
 use std::collections::HashMap;
@@ -21,7 +21,7 @@ pub struct StatusArgs {
     /// Print the status as JSON instead of tables.
     #[arg(long)]
     pub json: bool,
-    /// First wait until exactly this many workers are registered.
+    /// First wait until at least this many workers are registered.
     #[arg(long, value_name = "N")]
     pub wait_workers: Option<usize>,
     /// Give up waiting for --wait-workers after this many seconds.
@@ -61,7 +61,7 @@ pub fn run(a: StatusArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Polls the cluster status (with a short, growing pause) until exactly `n` workers are
+/// Polls the cluster status (with a short, growing pause) until at least `n` workers are
 /// registered; returns that status. Errors after `timeout`, saying how many there were.
 pub async fn wait_for_workers(
     coord: &mut Coordinator,
@@ -72,12 +72,12 @@ pub async fn wait_for_workers(
     let mut pause = Duration::from_millis(20);
     loop {
         let status = coord.cluster_status().await?;
-        if status.workers.len() == n {
+        if status.workers.len() >= n {
             return Ok(status);
         }
         if Instant::now() >= deadline {
             bail!(
-                "{} workers registered with the coordinator at {} after {:.0?}; expected {n}",
+                "{} workers registered with the coordinator at {} after {:.0?}; waited for {n}",
                 status.workers.len(),
                 coord.url(),
                 timeout

@@ -5,15 +5,17 @@
 use std::path::PathBuf;
 use std::time::Duration;
 
-use anyhow::Context;
+use anyhow::{Context, anyhow};
 use clap::Args;
+use clap::builder::BoolishValueParser;
 use rayfarm_node::job::parse_schedule;
 use rayfarm_node::proto;
 
-use super::fetch::{default_output, image_format, save_result};
+use super::fetch::{check_writable, default_output, image_format, save_result};
 use super::watch::{ReconnectArgs, ended_ok, follow, parse_stats, print_stats};
 use crate::client::{Coordinator, CoordinatorArgs, runtime};
-use crate::units;
+use crate::local_cluster::stop_signal;
+use crate::view::{CameraArgs, FrameArgs};
 
 /// Options of `rayfarm submit`.
 #[derive(Args, Clone, Debug)]
@@ -24,18 +26,8 @@ pub struct SubmitArgs {
     /// [default: the coordinator's default scene].
     #[arg(long, env = "RAYFARM_SCENE")]
     pub scene: Option<String>,
-    /// Image width.
-    #[arg(long, env = "RAYFARM_WIDTH", default_value_t = 640)]
-    pub width: u32,
-    /// Image height.
-    #[arg(long, env = "RAYFARM_HEIGHT", default_value_t = 480)]
-    pub height: u32,
-    /// Samples per pixel.
-    #[arg(long, env = "RAYFARM_SPP", default_value_t = 4)]
-    pub spp: u32,
-    /// Maximum bounces.
-    #[arg(long, env = "RAYFARM_DEPTH", default_value_t = 3)]
-    pub depth: u32,
+    #[command(flatten)]
+    pub frame: FrameArgs,
     /// How rays are scheduled across workers: dynamic, image-plane, domain, hybrid or
     /// predictive.
     #[arg(long, env = "RAYFARM_SCHEDULE", default_value = "dynamic", value_parser = parse_schedule)]
@@ -50,22 +42,12 @@ pub struct SubmitArgs {
     pub priority: i32,
     /// Drop every worker's cached domains before the frame, so it pays for every domain load
     /// (for comparing schedules; by default caches stay warm across frames of a scene).
-    #[arg(long, env = "RAYFARM_COLD_CACHE")]
+    #[arg(long, env = "RAYFARM_COLD_CACHE", value_parser = BoolishValueParser::new())]
     pub cold_cache: bool,
-    /// Camera position X,Y,Z [default: the scene's camera].
-    #[arg(long, env = "RAYFARM_EYE", value_parser = units::triple::<f32>, allow_negative_numbers = true)]
-    pub eye: Option<[f32; 3]>,
-    /// Point the camera looks at, X,Y,Z [default: the scene's].
-    #[arg(long, env = "RAYFARM_LOOK_AT", value_parser = units::triple::<f32>, allow_negative_numbers = true)]
-    pub look_at: Option<[f32; 3]>,
-    /// Camera up direction, X,Y,Z [default: the scene's].
-    #[arg(long, env = "RAYFARM_UP", value_parser = units::triple::<f32>, allow_negative_numbers = true)]
-    pub up: Option<[f32; 3]>,
-    /// Vertical field of view in degrees [default: the scene's].
-    #[arg(long, env = "RAYFARM_FOV")]
-    pub fov: Option<f32>,
+    #[command(flatten)]
+    pub camera: CameraArgs,
     /// Follow the job to its end, then save the image and print the statistics.
-    #[arg(long, env = "RAYFARM_WAIT")]
+    #[arg(long, env = "RAYFARM_WAIT", value_parser = BoolishValueParser::new())]
     pub wait: bool,
     /// With --wait: output image, .png (8-bit sRGB) or .exr (linear float)
     /// [default: <job id>.png].
@@ -75,7 +57,7 @@ pub struct SubmitArgs {
     #[arg(long, env = "RAYFARM_STATS_JSON", requires = "wait")]
     pub stats_json: Option<PathBuf>,
     /// With --wait: no progress bar and no statistics table.
-    #[arg(long, env = "RAYFARM_QUIET")]
+    #[arg(long, env = "RAYFARM_QUIET", value_parser = BoolishValueParser::new())]
     pub quiet: bool,
     /// With --wait: how long to ride out a lost coordinator.
     #[command(flatten)]
@@ -86,23 +68,13 @@ impl SubmitArgs {
     /// The job the flags describe. A camera goes along only when a camera flag is given, and
     /// then only with the fields given: the coordinator fills the rest from the scene.
     pub fn job_spec(&self) -> proto::JobSpec {
-        let camera = (self.eye.is_some()
-            || self.look_at.is_some()
-            || self.up.is_some()
-            || self.fov.is_some())
-        .then(|| proto::Camera {
-            eye: self.eye.map(Vec::from).unwrap_or_default(),
-            look_at: self.look_at.map(Vec::from).unwrap_or_default(),
-            up: self.up.map(Vec::from).unwrap_or_default(),
-            fov_y_degrees: self.fov.unwrap_or(0.0),
-        });
         proto::JobSpec {
             scene: self.scene.clone().unwrap_or_default(),
-            camera,
-            width: self.width,
-            height: self.height,
-            spp: self.spp,
-            max_depth: self.depth,
+            camera: self.camera.to_proto(),
+            width: self.frame.width,
+            height: self.frame.height,
+            spp: self.frame.spp,
+            max_depth: self.frame.depth,
             schedule: self.schedule as i32,
             priority: self.priority,
             cold_cache: self.cold_cache,
@@ -121,12 +93,20 @@ pub struct WaitOptions {
     pub quiet: bool,
     /// How long to keep reconnecting to a lost coordinator (zero: not at all).
     pub ride_out: Duration,
+    /// The coordinator outlives this command: a result that could not be saved can be
+    /// fetched again, and the error says how.
+    pub fetch_again: bool,
 }
 
 pub fn run(a: SubmitArgs) -> anyhow::Result<()> {
-    // Refuse a bad output name before the cluster spends a frame on it.
+    // Refuse a bad output name, or one that cannot be written, before the cluster spends a
+    // frame on it.
     if let Some(out) = &a.output {
         image_format(out)?;
+        check_writable(out)?;
+    }
+    if let Some(p) = &a.stats_json {
+        check_writable(p)?;
     }
     let spec = a.job_spec();
     let wait = WaitOptions {
@@ -134,6 +114,7 @@ pub fn run(a: SubmitArgs) -> anyhow::Result<()> {
         stats_json: a.stats_json,
         quiet: a.quiet,
         ride_out: a.reconnect.ride_out()?,
+        fetch_again: true,
     };
     runtime()?.block_on(async {
         let mut coord = a.coordinator.connect().await?;
@@ -142,7 +123,25 @@ pub fn run(a: SubmitArgs) -> anyhow::Result<()> {
             println!("{job_id}");
             return Ok(());
         }
-        wait_and_save(&mut coord, &job_id, &wait).await.map(drop)
+        if wait.output.is_none() {
+            check_writable(&default_output(&job_id))?;
+        }
+        // The id first, so the job can be found again whatever happens to this command.
+        println!("job {job_id}");
+        let _ = std::io::Write::flush(&mut std::io::stdout());
+        tokio::select! {
+            r = wait_and_save(&mut coord, &job_id, &wait) => r.map(drop),
+            signal = stop_signal() => {
+                let signal = signal?;
+                eprintln!();
+                Err(anyhow!(
+                    "interrupted by {signal}: stopped following job {job_id}, which goes on on \
+                     the cluster; `rayfarm watch {job_id}` follows it again, `rayfarm cancel \
+                     {job_id}` stops it, `rayfarm fetch {job_id} -o FILE` saves its image once \
+                     it has succeeded"
+                ))
+            }
+        }
     })
 }
 
@@ -161,7 +160,16 @@ pub async fn wait_and_save(
     let format = image_format(&output)?;
     let end = follow(coord, job_id, opts.quiet, opts.ride_out).await?;
     ended_ok(&end)?;
-    let result = save_result(coord, job_id, &output, format, opts.stats_json.as_deref()).await?;
+    let saved = save_result(coord, job_id, &output, format, opts.stats_json.as_deref()).await;
+    let result = match saved {
+        Err(e) if opts.fetch_again => {
+            return Err(e.context(format!(
+                "job {job_id} succeeded but its result was not saved; `rayfarm fetch {job_id} -o \
+                 FILE` saves it"
+            )));
+        }
+        r => r?,
+    };
     if !opts.quiet {
         let stats = parse_stats(&result.stats_json)?;
         print_stats(&stats);

@@ -6,6 +6,7 @@ use std::time::Duration;
 
 use anyhow::{Context, anyhow, bail};
 use clap::Args;
+use clap::builder::BoolishValueParser;
 use indicatif::{ProgressBar, ProgressFinish, ProgressStyle};
 use rayfarm_core::cluster::stats::ClusterStats;
 use rayfarm_node::proto::{self, JobState};
@@ -21,7 +22,7 @@ pub struct WatchArgs {
     /// The job to watch (as printed by `rayfarm submit`).
     pub job_id: String,
     /// No progress bar and no statistics table; only the final state.
-    #[arg(long, env = "RAYFARM_QUIET")]
+    #[arg(long, env = "RAYFARM_QUIET", value_parser = BoolishValueParser::new())]
     pub quiet: bool,
     #[command(flatten)]
     pub reconnect: ReconnectArgs,

@@ -1,13 +1,37 @@
 //! The film: per-pixel sums in fixed point, so the image does not depend on the order in
-//! which contributions arrive.
+//! which contributions arrive, kept in a file so no process ever holds a whole image.
+//!
+//! A [`Film`] is a file of finished tiles: each tile of the [`TileGrid`] has a slot of
+//! `tile_size²` pixels, three little-endian `i64` sums per pixel in the tile's row-by-row
+//! order, written once when the tile is complete. The file is sparse until then, and an
+//! unwritten slot reads as black. Whoever renders keeps only the tiles in flight in memory
+//! ([`OpenTiles`] in this process, the tile ledger on the coordinator). Encoding, and the
+//! image hash, read the file one row of tiles at a time: PNG rows and EXR scan lines are
+//! written as they are read, so memory is bounded by one row of tiles whatever the
+//! resolution.
 
-use std::path::Path;
-use std::sync::atomic::{AtomicI64, Ordering};
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::os::unix::fs::FileExt;
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+use std::sync::atomic::{AtomicI64, AtomicUsize, Ordering};
+
+use exr::block::writer::ChunksWriter;
+use exr::block::{BlockIndex, UncompressedBlock};
+use exr::meta::BlockDescription;
+use exr::meta::attribute::{ChannelDescription, ChannelList, Compression, LineOrder, SampleType};
+use exr::meta::header::Header;
+use xxhash_rust::xxh3::Xxh3Default;
+
+use crate::frame::TileGrid;
 
 /// One unit of radiance in fixed point.
 pub const FIXED_ONE: f64 = (1u64 << 24) as f64;
 /// Contributions are clamped here so a pathological path cannot overflow a pixel's sum.
 const MAX_CONTRIBUTION: f64 = 1.0e6;
+/// Bytes of one pixel in the film file: three `i64` sums.
+pub const PIXEL_BYTES: u64 = 24;
 
 /// Converts one channel of one contribution to fixed point.
 #[inline]
@@ -22,125 +46,404 @@ pub fn to_fixed(v: f32) -> i64 {
     }
 }
 
-/// What can go wrong writing an image.
+/// What can go wrong with a film or writing an image. Every variant names the file.
 #[derive(Debug, thiserror::Error)]
 pub enum ImageError {
     /// The extension is neither .png nor .exr.
     #[error("{0}: unknown image format (use .png or .exr)")]
     UnknownFormat(String),
-    /// Encoding or writing failed.
-    #[error("{path}: {source}")]
-    Write {
-        /// The file.
+    /// The film file could not be created, written or read.
+    #[error("film {path}: {source}")]
+    Film {
+        /// The film file (or the directory of an unnamed one).
         path: String,
         /// The cause.
-        source: image::ImageError,
+        source: std::io::Error,
+    },
+    /// Encoding or writing an image failed.
+    #[error("{path}: {reason}")]
+    Write {
+        /// The image file.
+        path: String,
+        /// The cause.
+        reason: String,
     },
 }
 
-/// Accumulated light per pixel.
+/// A film file: the fixed-point sums of finished tiles (see the module documentation).
 pub struct Film {
-    width: u32,
-    height: u32,
+    file: File,
+    /// What errors name: the file, or for an unnamed temporary file its directory.
+    shown: String,
+    /// A named file removed when the film is dropped.
+    remove: Option<PathBuf>,
+    grid: TileGrid,
     spp: u32,
-    sums: Vec<AtomicI64>,
 }
 
 impl Film {
-    /// A black film for `spp` samples per pixel.
-    pub fn new(width: u32, height: u32, spp: u32) -> Self {
-        let n = width as usize * height as usize * 3;
-        Film {
-            width,
-            height,
-            spp,
-            sums: (0..n).map(|_| AtomicI64::new(0)).collect(),
-        }
+    /// Bytes the film file of `grid` takes on disk once every tile is written.
+    pub fn file_bytes(grid: &TileGrid) -> u64 {
+        u64::from(grid.count()) * Self::slot_pixels(grid) * PIXEL_BYTES
     }
 
-    /// A film holding already accumulated fixed-point sums, one `[r, g, b]` per pixel (as
-    /// the coordinator assembles them from tile results).
-    pub fn from_fixed(width: u32, height: u32, spp: u32, sums: &[[i64; 3]]) -> Self {
-        let film = Film::new(width, height, spp);
-        for (cells, rgb) in film.sums.chunks_exact(3).zip(sums) {
-            for (cell, v) in cells.iter().zip(rgb) {
-                cell.store(*v, Ordering::Relaxed);
-            }
-        }
-        film
+    fn slot_pixels(grid: &TileGrid) -> u64 {
+        u64::from(grid.tile_size()) * u64::from(grid.tile_size())
+    }
+
+    /// A black film in a new file at `path` (replacing one left there), removed when the
+    /// film is dropped.
+    pub fn create(path: &Path, grid: TileGrid, spp: u32) -> Result<Film, ImageError> {
+        let shown = path.display().to_string();
+        let err = |source| ImageError::Film {
+            path: shown.clone(),
+            source,
+        };
+        let file = File::options()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(true)
+            .open(path)
+            .map_err(err)?;
+        let film = Film {
+            file,
+            shown: shown.clone(),
+            remove: Some(path.to_path_buf()),
+            grid,
+            spp,
+        };
+        film.file.set_len(Self::file_bytes(&grid)).map_err(err)?;
+        Ok(film)
+    }
+
+    /// A black film in an unnamed temporary file in `dir`, gone when the film is dropped.
+    pub fn temporary_in(dir: &Path, grid: TileGrid, spp: u32) -> Result<Film, ImageError> {
+        let shown = format!("(temporary) in {}", dir.display());
+        let err = |source| ImageError::Film {
+            path: shown.clone(),
+            source,
+        };
+        let file = tempfile::tempfile_in(dir).map_err(err)?;
+        file.set_len(Self::file_bytes(&grid)).map_err(err)?;
+        Ok(Film {
+            file,
+            shown,
+            remove: None,
+            grid,
+            spp,
+        })
     }
 
     /// Width in pixels.
     pub fn width(&self) -> u32 {
-        self.width
+        self.grid.width()
     }
 
     /// Height in pixels.
     pub fn height(&self) -> u32 {
-        self.height
+        self.grid.height()
     }
 
-    /// Adds light to a pixel; safe from any thread. Out-of-range pixels are ignored.
-    pub fn deposit(&self, pixel: u32, rgb: [f32; 3]) {
-        let base = pixel as usize * 3;
-        if let Some(cells) = self.sums.get(base..base + 3) {
-            for (cell, v) in cells.iter().zip(rgb) {
-                let f = to_fixed(v);
-                if f != 0 {
-                    cell.fetch_add(f, Ordering::Relaxed);
+    /// The tiles the film is cut into.
+    pub fn grid(&self) -> &TileGrid {
+        &self.grid
+    }
+
+    fn io_error(&self, source: std::io::Error) -> ImageError {
+        ImageError::Film {
+            path: self.shown.clone(),
+            source,
+        }
+    }
+
+    /// Writes a finished tile's sums, in [`TileGrid::pixels`] order. Fewer sums than the
+    /// tile has pixels leave the rest black; an unknown tile or too many sums is refused.
+    pub fn write_tile(&self, tile: u32, sums: &[[i64; 3]]) -> Result<(), ImageError> {
+        let pixels = self.grid.tile_pixel_count(tile);
+        if tile >= self.grid.count() || sums.len() > pixels {
+            return Err(self.io_error(std::io::Error::other(format!(
+                "tile {tile} with {} pixel sums does not fit the film",
+                sums.len()
+            ))));
+        }
+        let mut bytes = Vec::with_capacity(sums.len() * PIXEL_BYTES as usize);
+        for rgb in sums {
+            for c in rgb {
+                bytes.extend_from_slice(&c.to_le_bytes());
+            }
+        }
+        let offset = u64::from(tile) * Self::slot_pixels(&self.grid) * PIXEL_BYTES;
+        self.file
+            .write_all_at(&bytes, offset)
+            .map_err(|e| self.io_error(e))
+    }
+
+    /// Reads one row of tiles as image rows: `rows` rows of `width` pixels, row-major.
+    fn read_band(
+        &self,
+        band: u32,
+        buf: &mut Vec<u8>,
+        rows: &mut Vec<[i64; 3]>,
+    ) -> Result<(), ImageError> {
+        let g = &self.grid;
+        let slot = (Self::slot_pixels(g) * PIXEL_BYTES) as usize;
+        let tiles_x = g.tiles_x() as usize;
+        buf.resize(tiles_x * slot, 0);
+        let first = u64::from(band) * u64::from(g.tiles_x());
+        self.file
+            .read_exact_at(buf, first * slot as u64)
+            .map_err(|e| self.io_error(e))?;
+        let ts = g.tile_size();
+        let y0 = band * ts;
+        let band_rows = ts.min(g.height() - y0) as usize;
+        let width = g.width() as usize;
+        rows.clear();
+        rows.resize(band_rows * width, [0; 3]);
+        for tx in 0..tiles_x {
+            let x0 = tx * ts as usize;
+            let tw = (ts as usize).min(width - x0);
+            let tile = &buf[tx * slot..(tx + 1) * slot];
+            for r in 0..band_rows {
+                let src = &tile[r * tw * PIXEL_BYTES as usize..(r + 1) * tw * PIXEL_BYTES as usize];
+                let dst = &mut rows[r * width + x0..r * width + x0 + tw];
+                for (px, bytes) in dst.iter_mut().zip(src.chunks_exact(PIXEL_BYTES as usize)) {
+                    for (c, b) in px.iter_mut().zip(bytes.chunks_exact(8)) {
+                        *c = i64::from_le_bytes(b.try_into().expect("8 bytes"));
+                    }
                 }
             }
         }
+        Ok(())
     }
 
-    /// The raw sums, three per pixel.
-    pub fn fixed_sums(&self) -> Vec<i64> {
-        self.sums
-            .iter()
-            .map(|c| c.load(Ordering::Relaxed))
-            .collect()
-    }
-
-    /// xxh3-64 of the fixed-point sums: two renders agree to the bit iff their hashes agree.
-    pub fn hash(&self) -> u64 {
-        let sums = self.fixed_sums();
-        xxhash_rust::xxh3::xxh3_64(bytemuck::cast_slice(&sums))
-    }
-
-    /// Linear radiance, RGB per pixel, averaged over samples.
-    pub fn linear(&self) -> Vec<f32> {
-        let scale = 1.0 / (FIXED_ONE * self.spp.max(1) as f64);
-        self.sums
-            .iter()
-            .map(|c| (c.load(Ordering::Relaxed) as f64 * scale) as f32)
-            .collect()
-    }
-
-    /// Writes `.png` (8-bit sRGB) or `.exr` (linear float) by the path's extension.
-    pub fn save(&self, path: &Path) -> Result<(), ImageError> {
-        let ext = path
-            .extension()
-            .and_then(|e| e.to_str())
-            .map(|e| e.to_ascii_lowercase());
-        let err = |source| ImageError::Write {
-            path: path.display().to_string(),
-            source,
-        };
-        match ext.as_deref() {
-            Some("png") => {
-                let bytes: Vec<u8> = self.linear().into_iter().map(srgb_byte).collect();
-                image::RgbImage::from_raw(self.width, self.height, bytes)
-                    .expect("buffer has width*height*3 bytes")
-                    .save(path)
-                    .map_err(err)
+    /// Calls `each` with every image row, top to bottom, reading one row of tiles at a time.
+    fn for_each_row(
+        &self,
+        mut each: impl FnMut(&[[i64; 3]]) -> Result<(), ImageError>,
+    ) -> Result<(), ImageError> {
+        let (mut buf, mut rows) = (Vec::new(), Vec::new());
+        let width = self.width() as usize;
+        for band in 0..self.grid.tiles_y() {
+            self.read_band(band, &mut buf, &mut rows)?;
+            for row in rows.chunks_exact(width) {
+                each(row)?;
             }
-            Some("exr") => image::Rgb32FImage::from_raw(self.width, self.height, self.linear())
-                .expect("buffer has width*height*3 floats")
-                .save(path)
-                .map_err(err),
-            _ => Err(ImageError::UnknownFormat(path.display().to_string())),
+        }
+        Ok(())
+    }
+
+    /// xxh3-64 of the fixed-point sums in pixel order (three `i64` per pixel, row-major):
+    /// two renders agree to the bit iff their hashes agree.
+    pub fn hash(&self) -> Result<u64, ImageError> {
+        let mut hasher = Xxh3Default::new();
+        self.for_each_row(|row| {
+            hasher.update(bytemuck::cast_slice(row));
+            Ok(())
+        })?;
+        Ok(hasher.digest())
+    }
+
+    /// Writes `.png` (8-bit sRGB) or `.exr` (linear float) by the path's extension; returns
+    /// the image hash.
+    pub fn save(&self, path: &Path) -> Result<u64, ImageError> {
+        self.save_all(&[path])
+    }
+
+    /// Writes every image in `paths` (each `.png` or `.exr`, by its extension) in one pass
+    /// over the film; returns the image hash ([`hash`](Self::hash)).
+    pub fn save_all(&self, paths: &[&Path]) -> Result<u64, ImageError> {
+        let mut pngs = Vec::new();
+        let mut exrs = Vec::new();
+        for path in paths {
+            match image_kind(path) {
+                Some(Kind::Png) => pngs.push(PngRows::create(path, self.width(), self.height())?),
+                Some(Kind::Exr) => exrs.push(*path),
+                None => return Err(ImageError::UnknownFormat(path.display().to_string())),
+            }
+        }
+        let mut hasher = Xxh3Default::new();
+        let mut each_row = |row: &[[i64; 3]], linear: &[f32]| {
+            hasher.update(bytemuck::cast_slice(row));
+            for png in &mut pngs {
+                png.write_row(linear)?;
+            }
+            Ok(())
+        };
+        match exrs.as_slice() {
+            [] => {
+                let mut linear = Vec::new();
+                self.for_each_row(|row| {
+                    self.linear(row, &mut linear);
+                    each_row(row, &linear)
+                })?
+            }
+            // More than one EXR is never asked for; one pass writes one, the rest re-read.
+            [first, rest @ ..] => {
+                write_exr(self, first, &mut each_row)?;
+                for path in rest {
+                    write_exr(self, path, &mut |_, _| Ok(()))?;
+                }
+            }
+        }
+        for png in pngs {
+            png.finish()?;
+        }
+        Ok(hasher.digest())
+    }
+
+    /// Linear radiance of a row of sums, averaged over samples, RGB per pixel.
+    fn linear(&self, row: &[[i64; 3]], out: &mut Vec<f32>) {
+        let scale = 1.0 / (FIXED_ONE * self.spp.max(1) as f64);
+        out.clear();
+        out.extend(row.iter().flatten().map(|&c| (c as f64 * scale) as f32));
+    }
+}
+
+impl Drop for Film {
+    fn drop(&mut self) {
+        if let Some(path) = &self.remove {
+            let _ = std::fs::remove_file(path);
         }
     }
+}
+
+enum Kind {
+    Png,
+    Exr,
+}
+
+fn image_kind(path: &Path) -> Option<Kind> {
+    let ext = path.extension()?.to_str()?.to_ascii_lowercase();
+    match ext.as_str() {
+        "png" => Some(Kind::Png),
+        "exr" => Some(Kind::Exr),
+        _ => None,
+    }
+}
+
+fn write_error(path: &Path, reason: impl ToString) -> ImageError {
+    ImageError::Write {
+        path: path.display().to_string(),
+        reason: reason.to_string(),
+    }
+}
+
+/// A PNG written row by row.
+struct PngRows {
+    path: PathBuf,
+    stream: png::StreamWriter<'static, BufWriter<File>>,
+    bytes: Vec<u8>,
+}
+
+impl PngRows {
+    fn create(path: &Path, width: u32, height: u32) -> Result<Self, ImageError> {
+        let file = File::create(path).map_err(|e| write_error(path, e))?;
+        let mut encoder = png::Encoder::new(BufWriter::new(file), width, height);
+        encoder.set_color(png::ColorType::Rgb);
+        encoder.set_depth(png::BitDepth::Eight);
+        // fdeflate: an order of magnitude faster than zlib's levels on large frames.
+        encoder.set_compression(png::Compression::Fast);
+        let stream = encoder
+            .write_header()
+            .and_then(|w| w.into_stream_writer())
+            .map_err(|e| write_error(path, e))?;
+        Ok(PngRows {
+            path: path.to_path_buf(),
+            stream,
+            bytes: Vec::new(),
+        })
+    }
+
+    fn write_row(&mut self, linear: &[f32]) -> Result<(), ImageError> {
+        self.bytes.clear();
+        self.bytes.extend(linear.iter().map(|&v| srgb_byte(v)));
+        self.stream
+            .write_all(&self.bytes)
+            .map_err(|e| write_error(&self.path, e))
+    }
+
+    fn finish(self) -> Result<(), ImageError> {
+        let path = self.path;
+        self.stream.finish().map_err(|e| write_error(&path, e))
+    }
+}
+
+/// Called with each image row's sums and linear values, top to bottom.
+type RowSink<'a> = dyn FnMut(&[[i64; 3]], &[f32]) -> Result<(), ImageError> + 'a;
+
+/// Writes the film as an RLE-compressed scan-line EXR (R, G, B as 32-bit floats), calling
+/// `each_row` with every row's sums and linear values as they go by.
+fn write_exr(film: &Film, path: &Path, each_row: &mut RowSink<'_>) -> Result<(), ImageError> {
+    let (width, height) = (film.width() as usize, film.height() as usize);
+    let channels = ChannelList::new(
+        ["B", "G", "R"]
+            .into_iter()
+            .map(|n| ChannelDescription::named(n, SampleType::F32))
+            .collect(),
+    );
+    let header = Header::new("rayfarm".into(), (width, height), channels.list).with_encoding(
+        Compression::RLE,
+        BlockDescription::ScanLines,
+        LineOrder::Increasing,
+    );
+    let file = File::create(path).map_err(|e| write_error(path, e))?;
+    // The film's and the callback's errors travel through exr's closure as I/O errors and
+    // come out here.
+    let mut failure: Option<ImageError> = None;
+    let result = exr::block::write(
+        BufWriter::new(file),
+        smallvec_of(header),
+        true,
+        |meta, chunks| {
+            let mut linear = Vec::with_capacity(width * 3);
+            let mut y = 0;
+            let rows = film.for_each_row(|row| {
+                film.linear(row, &mut linear);
+                each_row(row, &linear)?;
+                // One block per scan line (RLE); per channel, in the header's order B, G, R.
+                let mut data = Vec::with_capacity(width * 12);
+                for channel in [2, 1, 0] {
+                    for px in linear.chunks_exact(3) {
+                        data.extend_from_slice(&px[channel].to_ne_bytes());
+                    }
+                }
+                let block = UncompressedBlock {
+                    index: BlockIndex {
+                        layer: 0,
+                        pixel_position: exr::math::Vec2(0, y),
+                        pixel_size: exr::math::Vec2(width, 1),
+                        level: exr::math::Vec2(0, 0),
+                    },
+                    data,
+                };
+                block
+                    .compress_to_chunk(&meta.headers)
+                    .and_then(|chunk| chunks.write_chunk(y, chunk))
+                    .map_err(|e| write_error(path, e))?;
+                y += 1;
+                Ok(())
+            });
+            match rows {
+                Ok(()) => Ok(()),
+                Err(e) => {
+                    failure = Some(e);
+                    Err(exr::error::Error::Io(std::io::Error::other("stopped")))
+                }
+            }
+        },
+    );
+    match (failure, result) {
+        (Some(e), _) => Err(e),
+        (None, Err(e)) => Err(write_error(path, e)),
+        (None, Ok(())) => Ok(()),
+    }
+}
+
+fn smallvec_of(header: Header) -> exr::meta::Headers {
+    let mut headers = exr::meta::Headers::new();
+    headers.push(header);
+    headers
 }
 
 /// Linear to 8-bit sRGB.
@@ -154,24 +457,194 @@ fn srgb_byte(v: f32) -> u8 {
     (s * 255.0 + 0.5) as u8
 }
 
+/// The sums of the tiles still being rendered in this process, safe to add to from any
+/// thread. A tile's sums are allocated at its first contribution and leave memory for the
+/// film file when the tile is committed, so memory holds only the tiles in flight.
+pub struct OpenTiles {
+    grid: TileGrid,
+    slots: Vec<OnceLock<Box<[AtomicI64]>>>,
+    committed: Vec<bool>,
+    allocated: AtomicUsize,
+}
+
+impl OpenTiles {
+    /// No tile open yet.
+    pub fn new(grid: TileGrid) -> Self {
+        OpenTiles {
+            grid,
+            slots: (0..grid.count()).map(|_| OnceLock::new()).collect(),
+            committed: vec![false; grid.count() as usize],
+            allocated: AtomicUsize::new(0),
+        }
+    }
+
+    /// Adds light to `pixel` of `tile`; contributions to pixels outside the tile, or to a
+    /// committed tile, are ignored.
+    pub fn deposit(&self, tile: u32, pixel: u32, rgb: [f32; 3]) {
+        let fixed = rgb.map(to_fixed);
+        if fixed == [0; 3] {
+            return;
+        }
+        let Some(local) = self.grid.local_index(tile, pixel) else {
+            return;
+        };
+        if self.committed[tile as usize] {
+            return;
+        }
+        let cells = self.slots[tile as usize].get_or_init(|| {
+            self.allocated.fetch_add(1, Ordering::Relaxed);
+            let n = self.grid.tile_pixel_count(tile) * 3;
+            (0..n).map(|_| AtomicI64::new(0)).collect()
+        });
+        for (cell, v) in cells[local * 3..local * 3 + 3].iter().zip(fixed) {
+            if v != 0 {
+                cell.fetch_add(v, Ordering::Relaxed);
+            }
+        }
+    }
+
+    /// Tiles holding sums in memory.
+    pub fn in_memory(&self) -> usize {
+        self.allocated.load(Ordering::Relaxed)
+    }
+
+    /// Writes `tile`'s sums to `film` and frees them; later deposits to it are ignored.
+    pub fn commit(&mut self, tile: u32, film: &Film) -> Result<(), ImageError> {
+        let Some(done) = self.committed.get_mut(tile as usize) else {
+            return Ok(());
+        };
+        if std::mem::replace(done, true) {
+            return Ok(());
+        }
+        if let Some(cells) = self.slots[tile as usize].take() {
+            self.allocated.fetch_sub(1, Ordering::Relaxed);
+            let sums: Vec<[i64; 3]> = cells
+                .chunks_exact(3)
+                .map(|c| [0, 1, 2].map(|i| c[i].load(Ordering::Relaxed)))
+                .collect();
+            film.write_tile(tile, &sums)?;
+        }
+        Ok(())
+    }
+
+    /// Whether `tile` has been committed.
+    pub fn is_committed(&self, tile: u32) -> bool {
+        self.committed.get(tile as usize).copied().unwrap_or(false)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
+    fn grid(w: u32, h: u32) -> TileGrid {
+        TileGrid::new(w, h, 4).unwrap()
+    }
+
+    /// The sums of every pixel, row-major, as the hash covers them.
+    fn film_with(dir: &Path, g: TileGrid, sums: impl Fn(u32) -> [i64; 3]) -> Film {
+        let film = Film::temporary_in(dir, g, 1).unwrap();
+        for tile in 0..g.count() {
+            let s: Vec<[i64; 3]> = g.pixels(tile).map(&sums).collect();
+            film.write_tile(tile, &s).unwrap();
+        }
+        film
+    }
+
     #[test]
-    fn order_of_deposits_does_not_change_the_hash() {
-        let a = Film::new(2, 1, 1);
-        let b = Film::new(2, 1, 1);
+    fn the_hash_is_the_xxh3_of_the_sums_in_pixel_order() {
+        let dir = tempfile::tempdir().unwrap();
+        // Edge tiles smaller than the slot on both sides.
+        let g = grid(10, 7);
+        let value = |p: u32| [p as i64, -(p as i64) * 3, i64::MAX - p as i64];
+        let film = film_with(dir.path(), g, value);
+        let flat: Vec<i64> = (0..70).flat_map(value).collect();
+        let expected = xxhash_rust::xxh3::xxh3_64(bytemuck::cast_slice(&flat));
+        assert_eq!(film.hash().unwrap(), expected);
+        let png = dir.path().join("a.png");
+        let exr = dir.path().join("a.exr");
+        assert_eq!(film.save_all(&[&png, &exr]).unwrap(), expected);
+    }
+
+    #[test]
+    fn images_decode_to_the_film_row_by_row() {
+        let dir = tempfile::tempdir().unwrap();
+        let g = grid(9, 6);
+        let value = |p: u32| {
+            let v = (p as f64 / 54.0 * FIXED_ONE) as i64;
+            [v, v / 2, FIXED_ONE as i64 - v]
+        };
+        let film = film_with(dir.path(), g, value);
+        let (png, exr) = (dir.path().join("a.png"), dir.path().join("a.exr"));
+        film.save_all(&[&png, &exr]).unwrap();
+        let decoded = image::open(&png).unwrap().to_rgb8();
+        assert_eq!(decoded.dimensions(), (9, 6));
+        let exr_img = image::open(&exr).unwrap().to_rgb32f();
+        assert_eq!(exr_img.dimensions(), (9, 6));
+        for p in 0..54u32 {
+            let (x, y) = (p % 9, p / 9);
+            let linear = value(p).map(|c| (c as f64 / FIXED_ONE) as f32);
+            assert_eq!(exr_img.get_pixel(x, y).0, linear, "pixel {p}");
+            assert_eq!(
+                decoded.get_pixel(x, y).0,
+                linear.map(srgb_byte),
+                "pixel {p}"
+            );
+        }
+    }
+
+    #[test]
+    fn unwritten_tiles_are_black_and_bad_tiles_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let g = grid(8, 8);
+        let path = dir.path().join("film.bin");
+        let film = Film::create(&path, g, 1).unwrap();
+        assert_eq!(
+            std::fs::metadata(&path).unwrap().len(),
+            Film::file_bytes(&g)
+        );
+        film.write_tile(3, &[[1, 2, 3]]).unwrap();
+        let mut flat = vec![0i64; 64 * 3];
+        // Tile 3 is the bottom-right one; its first pixel is (4, 4).
+        flat[(4 * 8 + 4) * 3..(4 * 8 + 4) * 3 + 3].copy_from_slice(&[1, 2, 3]);
+        assert_eq!(
+            film.hash().unwrap(),
+            xxhash_rust::xxh3::xxh3_64(bytemuck::cast_slice(&flat))
+        );
+        assert!(film.write_tile(4, &[]).is_err());
+        assert!(film.write_tile(0, &[[0; 3]; 17]).is_err());
+        drop(film);
+        assert!(!path.exists(), "a named film is removed with it");
+    }
+
+    #[test]
+    fn open_tiles_commit_to_the_film_and_free_their_memory() {
+        let dir = tempfile::tempdir().unwrap();
+        let g = grid(8, 4);
+        let film = Film::temporary_in(dir.path(), g, 1).unwrap();
+        let mut open = OpenTiles::new(g);
         let vals = [[0.1, 0.2, 0.3], [1e-7, 5.0, 0.0], [0.333, 0.333, 0.334]];
         for v in vals {
-            a.deposit(1, v);
+            open.deposit(0, 1, v);
         }
-        for v in vals.iter().rev() {
-            b.deposit(1, *v);
+        open.deposit(1, 4, [1.0; 3]);
+        open.deposit(1, 0, [1.0; 3]); // pixel 0 is not in tile 1: ignored
+        assert_eq!(open.in_memory(), 2);
+        open.commit(0, &film).unwrap();
+        open.commit(1, &film).unwrap();
+        open.deposit(1, 4, [1.0; 3]); // committed: ignored
+        assert_eq!(open.in_memory(), 0);
+        let mut flat = vec![0i64; 32 * 3];
+        for v in vals {
+            for (c, x) in flat[3..6].iter_mut().zip(v) {
+                *c += to_fixed(x);
+            }
         }
-        assert_eq!(a.hash(), b.hash());
-        b.deposit(0, [1e-3, 0.0, 0.0]);
-        assert_ne!(a.hash(), b.hash());
+        flat[12..15].copy_from_slice(&[1 << 24; 3]);
+        assert_eq!(
+            film.hash().unwrap(),
+            xxhash_rust::xxh3::xxh3_64(bytemuck::cast_slice(&flat))
+        );
     }
 
     #[test]
@@ -179,8 +652,5 @@ mod tests {
         assert_eq!(to_fixed(f32::NAN), 0);
         assert_eq!(to_fixed(-1.0), 0);
         assert_eq!(to_fixed(1.0), 1 << 24);
-        let f = Film::new(1, 1, 1);
-        f.deposit(5, [1.0; 3]);
-        assert_eq!(f.fixed_sums(), vec![0; 3]);
     }
 }

@@ -160,7 +160,7 @@ impl SceneView {
         sink: &mut impl RaySink,
         counters: &mut KernelCounters,
     ) {
-        let nodes = data.nodes();
+        let bvh = data.bvh();
         let tris = data.packed();
         let mut traverser = Traverser::new();
         let mut children = Vec::with_capacity(self.lights.len() + 1);
@@ -177,7 +177,7 @@ impl SceneView {
             match ray.kind() {
                 RayKind::Shadow => {
                     counters.shadow_segments += 1;
-                    if traverser.any_hit(nodes, tris, &tr, t0, t1) {
+                    if traverser.any_hit(bvh, &tr, t0, t1) {
                         // Occluded: no light, but the credit still goes home.
                         sink.retire(ray, [0.0; 3]);
                         continue;
@@ -185,7 +185,7 @@ impl SceneView {
                 }
                 RayKind::Radiance => {
                     counters.radiance_segments += 1;
-                    if let Some(hit) = traverser.nearest_hit(nodes, tris, &tr, t0, t1) {
+                    if let Some(hit) = traverser.nearest_hit(bvh, &tr, t0, t1) {
                         let tri = &tris[hit.slot as usize];
                         children.clear();
                         let surface = (tri.normal(), tri.material);
@@ -241,11 +241,11 @@ impl SceneView {
             return Verdict::Clear;
         };
         let tr = TraceRay::new(Vec3::from(ray.origin), Vec3::from(ray.dir));
-        let (nodes, tris) = (data.nodes(), data.packed());
+        let (bvh, tris) = (data.bvh(), data.packed());
         match ray.kind() {
             RayKind::Shadow => {
                 counters.shadow_segments += 1;
-                if traverser.any_hit(nodes, tris, &tr, t0, t1) {
+                if traverser.any_hit(bvh, &tr, t0, t1) {
                     Verdict::Blocked
                 } else {
                     Verdict::Clear
@@ -253,7 +253,7 @@ impl SceneView {
             }
             RayKind::Radiance => {
                 counters.radiance_segments += 1;
-                match traverser.nearest_hit(nodes, tris, &tr, t0, t1) {
+                match traverser.nearest_hit(bvh, &tr, t0, t1) {
                     Some(hit) => {
                         let tri = &tris[hit.slot as usize];
                         Verdict::Hit(SurfaceHit {

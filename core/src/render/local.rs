@@ -2,7 +2,7 @@
 //! the fullest queue, a byte-budgeted domain cache. Every distributed render must equal its
 //! image bit for bit.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
@@ -10,7 +10,7 @@ use rayon::prelude::*;
 use tracing::{info, info_span};
 
 use super::cache::DomainCache;
-use super::film::Film;
+use super::film::{Film, ImageError, OpenTiles};
 use super::kernel::{KernelCounters, RaySink, SceneView};
 use super::primary::primary_ray;
 use super::speculation::{Groups, Verdict};
@@ -62,9 +62,6 @@ impl FrameSpec {
         }
         if let Some(c) = &self.camera {
             c.check()?;
-            if c.eye == c.look_at {
-                return Err("camera eye and look-at must be distinct".into());
-            }
         }
         Ok(())
     }
@@ -82,6 +79,9 @@ pub struct LocalOptions {
     /// Queue every new ray in all domains along it at once (`speculation`), oldest
     /// generation first: fewer domain loads, more ray segments traced.
     pub speculate: bool,
+    /// Where the film file goes (an unnamed temporary file; the system's temporary
+    /// directory when `None`). It takes [`Film::file_bytes`] on disk.
+    pub film_dir: Option<PathBuf>,
 }
 
 /// Why a local render failed.
@@ -93,6 +93,9 @@ pub enum RenderError {
     /// The scene could not be read.
     #[error(transparent)]
     Scene(#[from] SceneError),
+    /// The film file failed.
+    #[error(transparent)]
+    Film(#[from] ImageError),
     /// The thread pool could not start.
     #[error("thread pool: {0}")]
     Threads(String),
@@ -113,7 +116,7 @@ const CHUNK: usize = 4096;
 
 struct QueueSink<'a> {
     out: Vec<RayRecord>,
-    film: &'a Film,
+    film: &'a OpenTiles,
     /// Credit returned per tile: the local renderer checks the kernel conserves it exactly,
     /// as the cluster will rely on it to know when a tile is done.
     returned: &'a [AtomicU64],
@@ -124,7 +127,7 @@ impl RaySink for QueueSink<'_> {
         self.out.push(ray);
     }
     fn retire(&mut self, ray: &RayRecord, rgb: [f32; 3]) {
-        self.film.deposit(ray.pixel, rgb);
+        self.film.deposit(ray.tile, ray.pixel, rgb);
         if let Some(t) = self.returned.get(ray.tile as usize) {
             t.fetch_add(ray.credit, Ordering::Relaxed);
         }
@@ -184,9 +187,16 @@ fn render_in_pool(
         frame.width,
         frame.height,
     );
-    let film = Film::new(frame.width, frame.height, frame.spp);
     let grid = TileGrid::new(frame.width, frame.height, crate::frame::TILE_SIZE)
         .ok_or_else(|| RenderError::Frame("image does not fit the tile grid".into()))?;
+    let film_dir = options.film_dir.clone().unwrap_or_else(std::env::temp_dir);
+    let film = Film::temporary_in(&film_dir, grid, frame.spp)?;
+    let mut open = OpenTiles::new(grid);
+    // Tiles in memory are bounded: past this many, queued rays are traced before more camera
+    // rays are issued (a few waves' worth of tiles; a wave covers rows of pixels).
+    let wave_tiles =
+        options.wave_rays as u64 / (u64::from(frame.spp) * u64::from(TILE_PIXELS)).max(1);
+    let max_open = 4 * (wave_tiles as usize + 2 * grid.tiles_x() as usize);
     let returned: Vec<AtomicU64> = (0..grid.count()).map(|_| AtomicU64::new(0)).collect();
     let mut cache = DomainCache::new(dir, manifest, options.cache_bytes);
     let mut queues = Queues::new(view.domain_count(), options.speculate);
@@ -194,15 +204,14 @@ fn render_in_pool(
     let total_primary = frame.width as u64 * frame.height as u64 * frame.spp as u64;
     let mut issued = 0u64;
     let mut passes = 0u64;
+    let mut tiles_done = 0u32;
     let wave = options.wave_rays.max(1) as u64;
-    let new_sink = |out| QueueSink {
-        out,
-        film: &film,
-        returned: &returned,
-    };
     loop {
-        if queues.total() < wave as usize && issued < total_primary {
+        let queued = queues.total();
+        let room = open.in_memory() < max_open || queued == 0;
+        if queued < wave as usize && issued < total_primary && room {
             let end = (issued + wave).min(total_primary);
+            let new_sink = sinks(&open, &returned);
             let outs = issue_primaries(&view, &camera, &grid, frame.spp, issued..end, new_sink);
             counters.primary_rays += end - issued;
             issued = end;
@@ -215,23 +224,24 @@ fn render_in_pool(
         let data = cache.get(d)?;
         let rays = queues.take(d);
         let _pass = info_span!("trace_queue", domain = d, rays = rays.len()).entered();
+        let new_sink = sinks(&open, &returned);
         let outs = match &mut queues.groups {
             None => trace_chained(&view, &data, &rays, new_sink, &mut counters),
             Some(groups) => trace_speculative(&view, &data, &rays, groups, new_sink, &mut counters),
         };
         passes += 1;
         queues.place(&view, outs);
+        tiles_done += commit_finished(&mut open, &returned, &film)?;
         on_progress(&Progress {
-            tiles_done: returned
-                .iter()
-                .filter(|r| r.load(Ordering::Relaxed) == TILE_CREDIT)
-                .count() as u32,
+            tiles_done,
             tiles_total: grid.count(),
             segments: counters.segments(),
             loads: cache.counters().loads,
             elapsed: start.elapsed().as_secs_f64(),
         });
     }
+    tiles_done += commit_finished(&mut open, &returned, &film)?;
+    debug_assert!(tiles_done <= grid.count());
     for (tile, r) in returned.iter().enumerate() {
         let r = r.load(Ordering::Relaxed);
         if r != TILE_CREDIT {
@@ -259,7 +269,7 @@ fn render_in_pool(
         rays_per_s_per_core: rays_per_s / threads as f64,
         queue_passes: passes,
         peak_rss_bytes: peak_rss_bytes(),
-        image_hash: format!("{:016x}", film.hash()),
+        image_hash: format!("{:016x}", film.hash()?),
     };
     info!(
         wall,
@@ -268,6 +278,37 @@ fn render_in_pool(
         "frame done"
     );
     Ok((film, stats))
+}
+
+/// Makes the sinks of one pass's chunks.
+fn sinks<'a>(
+    open: &'a OpenTiles,
+    returned: &'a [AtomicU64],
+) -> impl Fn(Vec<RayRecord>) -> QueueSink<'a> + Sync {
+    move |out| QueueSink {
+        out,
+        film: open,
+        returned,
+    }
+}
+
+/// Pixels of a full tile.
+const TILE_PIXELS: u32 = crate::frame::TILE_SIZE * crate::frame::TILE_SIZE;
+
+/// Moves every tile whose credit is all back from memory to the film; returns how many.
+fn commit_finished(
+    open: &mut OpenTiles,
+    returned: &[AtomicU64],
+    film: &Film,
+) -> Result<u32, RenderError> {
+    let mut committed = 0;
+    for (tile, r) in (0u32..).zip(returned) {
+        if r.load(Ordering::Relaxed) == TILE_CREDIT && !open.is_committed(tile) {
+            open.commit(tile, film)?;
+            committed += 1;
+        }
+    }
+    Ok(committed)
 }
 
 /// Camera rays for the flat (pixel, sample) indices in `range`, each with its share of its

@@ -6,7 +6,8 @@
 //! indices             [u32; 3] per triangle
 //! materials           u32 per triangle
 //! ids                 u64 per triangle           (scene-wide triangle id)
-//! nodes               BvhNode (128 bytes, 4-wide) each
+//! nodes               BvhNode (256 bytes, 8-wide) each
+//! blocks              TriangleBlock (192 bytes: four triangles as structure-of-arrays) each
 //! packed              PackedTriangle (48 bytes) each, in BVH leaf order
 //! ```
 //! Every section starts on a 64-byte boundary. The checksum is xxh3-64 of the whole file with
@@ -22,12 +23,14 @@ use memmap2::Mmap;
 
 use super::{SceneError, temporary_name};
 use crate::bvh::{self, BvhNode};
-use crate::geometry::{Aabb, PackedTriangle};
+use crate::geometry::{Aabb, PackedTriangle, TriangleBlock};
 
 /// First bytes of every domain file.
 pub const MAGIC: [u8; 8] = *b"RFDOMAIN";
-/// Layout version.
-pub const VERSION: u32 = 3;
+/// Layout version. 4: 8-wide nodes and triangle blocks (3 had 4-wide nodes and no blocks).
+pub const VERSION: u32 = 4;
+/// Number of sections after the header.
+const SECTIONS: usize = 7;
 const ALIGN: u64 = 64;
 
 #[repr(C)]
@@ -39,16 +42,16 @@ struct Header {
     vertex_count: u64,
     triangle_count: u64,
     node_count: u64,
+    block_count: u64,
     packed_count: u64,
     bounds: Aabb,
     checksum: u64,
-    /// Offsets of vertices, indices, materials, ids, nodes, packed.
-    offsets: [u64; 6],
-    _reserved: [u8; 8],
+    /// Offsets of vertices, indices, materials, ids, nodes, blocks, packed.
+    offsets: [u64; SECTIONS],
 }
 
 const HEADER_BYTES: usize = std::mem::size_of::<Header>();
-const _: () = assert!(HEADER_BYTES == 136);
+const _: () = assert!(HEADER_BYTES == 144);
 
 /// A triangle handed to the domain writer.
 #[derive(Clone, Copy, Debug)]
@@ -101,24 +104,25 @@ pub fn write_domain(
         .iter()
         .map(|t| PackedTriangle::new(&t.vertices, t.id, t.material))
         .collect();
-    let nodes = bvh::build(&mut packed);
-    if let Err(reason) = bvh::validate(&nodes, packed.len()) {
+    let bvh::Built { nodes, blocks } = bvh::build(&mut packed);
+    if let Err(reason) = bvh::validate(&nodes, &blocks, packed.len()) {
         return Err(SceneError::Domain {
             path: path.into(),
             reason,
         });
     }
 
-    let sections: [&[u8]; 6] = [
+    let sections: [&[u8]; SECTIONS] = [
         bytemuck::cast_slice(&vertices),
         bytemuck::cast_slice(&indices),
         bytemuck::cast_slice(&materials),
         bytemuck::cast_slice(&ids),
         bytemuck::cast_slice(&nodes),
+        bytemuck::cast_slice(&blocks),
         bytemuck::cast_slice(&packed),
     ];
     let mut body = Vec::new();
-    let mut offsets = [0u64; 6];
+    let mut offsets = [0u64; SECTIONS];
     for (k, s) in sections.iter().enumerate() {
         let at = align(HEADER_BYTES as u64 + body.len() as u64);
         body.resize((at - HEADER_BYTES as u64) as usize, 0);
@@ -132,11 +136,11 @@ pub fn write_domain(
         vertex_count: vertices.len() as u64,
         triangle_count: triangles.len() as u64,
         node_count: nodes.len() as u64,
+        block_count: blocks.len() as u64,
         packed_count: packed.len() as u64,
         bounds,
         checksum: 0,
         offsets,
-        _reserved: [0; 8],
     };
     let checksum = file_checksum(bytemuck::bytes_of(&header), &body);
     header.checksum = checksum;
@@ -162,7 +166,7 @@ pub struct DomainData {
     path: PathBuf,
     domain: u32,
     bounds: Aabb,
-    sections: [Range<usize>; 6],
+    sections: [Range<usize>; SECTIONS],
 }
 
 impl std::fmt::Debug for DomainData {
@@ -227,11 +231,15 @@ impl DomainData {
             (header.triangle_count, 8),
             (header.node_count, std::mem::size_of::<BvhNode>() as u64),
             (
+                header.block_count,
+                std::mem::size_of::<TriangleBlock>() as u64,
+            ),
+            (
                 header.packed_count,
                 std::mem::size_of::<PackedTriangle>() as u64,
             ),
         ];
-        let mut sections: [Range<usize>; 6] = Default::default();
+        let mut sections: [Range<usize>; SECTIONS] = Default::default();
         for (k, (count, size)) in sizes.iter().enumerate() {
             let start = header.offsets[k];
             let end = count
@@ -256,7 +264,7 @@ impl DomainData {
             sections,
             map,
         };
-        bvh::validate(data.nodes(), data.packed().len()).map_err(bad)?;
+        bvh::validate(data.nodes(), data.blocks(), data.packed().len()).map_err(bad)?;
         if let Some(t) = data.packed().iter().find(|t| t.material >= materials) {
             return Err(bad(format!(
                 "triangle {} names material {} of {materials}",
@@ -312,9 +320,22 @@ impl DomainData {
         self.section(4)
     }
 
+    /// BVH leaf blocks.
+    pub fn blocks(&self) -> &[TriangleBlock] {
+        self.section(5)
+    }
+
+    /// The BVH, nodes and leaf blocks, for traversal.
+    pub fn bvh(&self) -> bvh::Bvh<'_> {
+        bvh::Bvh {
+            nodes: self.nodes(),
+            blocks: self.blocks(),
+        }
+    }
+
     /// Triangles in BVH leaf order.
     pub fn packed(&self) -> &[PackedTriangle] {
-        self.section(5)
+        self.section(6)
     }
 }
 
@@ -327,6 +348,19 @@ fn file_checksum(header: &[u8], body: &[u8]) -> u64 {
 }
 
 fn parse_header(bytes: &[u8]) -> Result<Header, String> {
+    // Magic and version first: a file of another version may have another header size.
+    if bytes.len() >= 12 {
+        if bytes[..8] != MAGIC {
+            return Err("not a rayfarm domain file (bad magic)".into());
+        }
+        let version = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
+        if version != VERSION {
+            return Err(format!(
+                "domain file format version {version}, this build reads version {VERSION}: \
+                 re-run `rayfarm prepare` for this scene"
+            ));
+        }
+    }
     let Some(raw) = bytes.get(..HEADER_BYTES) else {
         return Err(format!(
             "{} bytes is shorter than the {HEADER_BYTES} byte header (truncated)",
@@ -334,15 +368,6 @@ fn parse_header(bytes: &[u8]) -> Result<Header, String> {
         ));
     };
     let header: Header = bytemuck::pod_read_unaligned(raw);
-    if header.magic != MAGIC {
-        return Err("not a rayfarm domain file (bad magic)".into());
-    }
-    if header.version != VERSION {
-        return Err(format!(
-            "version {} is not the supported {VERSION}",
-            header.version
-        ));
-    }
     Ok(header)
 }
 

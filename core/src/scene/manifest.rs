@@ -54,20 +54,52 @@ pub struct Camera {
 }
 
 impl Camera {
-    /// Rejects a camera that cannot make an image: non-finite vectors, or a field of view
-    /// outside (0, 180) degrees.
+    /// Rejects a camera that cannot make an image: non-finite vectors, an eye on the point it
+    /// looks at, an up direction that is zero or along the view (the image's orientation
+    /// would be arbitrary), or a field of view outside (0, 180) degrees. The one check of
+    /// every entry point: scene files, `render`, and jobs on the coordinator.
     pub fn check(&self) -> Result<(), String> {
-        if !(finite(&self.eye) && finite(&self.look_at) && finite(&self.up)) {
-            return Err("camera vectors must be finite".into());
+        if !(finite(&self.eye) && finite(&self.look_at)) {
+            return Err("camera eye and look-at must be finite".into());
         }
-        if !(self.fov_y_degrees > 0.0 && self.fov_y_degrees < 180.0) {
+        check_up(self.up)?;
+        check_fov(self.fov_y_degrees)?;
+        let view = glam::Vec3::from(self.look_at) - glam::Vec3::from(self.eye);
+        if view.length_squared() == 0.0 {
+            return Err("camera eye and look-at must be distinct".into());
+        }
+        let up = glam::Vec3::from(self.up);
+        // Up within about half a degree of the view direction leaves no sideways direction.
+        if view.normalize().cross(up.normalize()).length() < 1e-2 {
             return Err(format!(
-                "field of view {} is outside (0, 180)",
-                self.fov_y_degrees
+                "camera up {:?} is along the view direction; give an up direction across it",
+                self.up
             ));
         }
         Ok(())
     }
+}
+
+/// Rejects a vertical field of view outside (0, 180) degrees.
+pub fn check_fov(degrees: f32) -> Result<(), String> {
+    if degrees > 0.0 && degrees < 180.0 {
+        Ok(())
+    } else {
+        Err(format!(
+            "field of view {degrees} is outside (0, 180) degrees"
+        ))
+    }
+}
+
+/// Rejects an up direction that is not finite or is zero.
+pub fn check_up(up: [f32; 3]) -> Result<(), String> {
+    if !finite(&up) {
+        return Err("camera up must be finite".into());
+    }
+    if up == [0.0; 3] {
+        return Err("camera up 0,0,0 has no direction".into());
+    }
+    Ok(())
 }
 
 /// A vertical gradient for rays that escape.

@@ -1,0 +1,171 @@
+//! Workers' reports that a peer is unreachable, and which worker to drop for them.
+//!
+//! A report says a link is broken, not which end is at fault: a worker cut off from its peers
+//! (or on a link too slow for its bundles) reports every one of them, and some of them report
+//! it. Acting on the first report would drop a healthy worker on the word of the cut-off one.
+//! So reports wait a short grace period for the others, then the worker at an end of the most
+//! distinct broken links goes, whichever side reported them (on a tie, the one reported first):
+//! the cut-off worker, whose reports go with it. A hung worker is at the end of every link
+//! reported; a single broken link between two healthy workers costs one of them.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::time::{Duration, Instant};
+
+/// One report: `accuser` found `accused` unreachable at `at`, for `reason`.
+#[derive(Clone, Debug)]
+struct Accusation {
+    accuser: u32,
+    accused: u32,
+    at: Instant,
+    reason: String,
+}
+
+/// The reports of the running frame not yet judged, by worker key.
+#[derive(Debug, Default)]
+pub struct Accusations {
+    pending: Vec<Accusation>,
+}
+
+/// The worker to drop, and the first report involving it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Verdict {
+    pub drop: u32,
+    /// Distinct members it has a broken link with.
+    pub links: usize,
+    /// That first report: who reported whom, and why.
+    pub accuser: u32,
+    pub accused: u32,
+    pub reason: String,
+}
+
+impl Accusations {
+    /// Records that `accuser` cannot reach `accused`.
+    pub fn add(&mut self, accuser: u32, accused: u32, at: Instant, reason: &str) {
+        if accuser != accused {
+            self.pending.push(Accusation {
+                accuser,
+                accused,
+                at,
+                reason: reason.to_string(),
+            });
+        }
+    }
+
+    /// Forgets every report by or about `key` (it left the frame).
+    pub fn forget(&mut self, key: u32) {
+        self.pending
+            .retain(|a| a.accuser != key && a.accused != key);
+    }
+
+    /// Once the oldest report is `grace` old, picks the worker to drop among `members` and
+    /// forgets its reports both ways; `None` while reports may still be coming.
+    pub fn judge(
+        &mut self,
+        now: Instant,
+        grace: Duration,
+        members: &BTreeSet<u32>,
+    ) -> Option<Verdict> {
+        self.pending
+            .retain(|a| members.contains(&a.accuser) && members.contains(&a.accused));
+        let oldest = self.pending.first()?;
+        if now.saturating_duration_since(oldest.at) < grace {
+            return None;
+        }
+        // The distinct peers each worker has a broken link with.
+        let mut links: BTreeMap<u32, BTreeSet<u32>> = BTreeMap::new();
+        for a in &self.pending {
+            links.entry(a.accused).or_default().insert(a.accuser);
+            links.entry(a.accuser).or_default().insert(a.accused);
+        }
+        let most = links.values().map(BTreeSet::len).max()?;
+        // Reports are in order of arrival: the first one naming a worker with the most broken
+        // links decides, the accused before the accuser.
+        let (drop, first) = self.pending.iter().find_map(|a| {
+            [a.accused, a.accuser]
+                .into_iter()
+                .find(|k| links[k].len() == most)
+                .map(|k| (k, a.clone()))
+        })?;
+        self.forget(drop);
+        Some(Verdict {
+            drop,
+            links: most,
+            accuser: first.accuser,
+            accused: first.accused,
+            reason: first.reason,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const GRACE: Duration = Duration::from_millis(500);
+
+    fn members(keys: &[u32]) -> BTreeSet<u32> {
+        keys.iter().copied().collect()
+    }
+
+    #[test]
+    fn reports_wait_for_the_grace_period() {
+        let t0 = Instant::now();
+        let mut a = Accusations::default();
+        a.add(1, 2, t0, "silent");
+        assert_eq!(a.judge(t0 + GRACE / 2, GRACE, &members(&[1, 2])), None);
+        let v = a
+            .judge(t0 + GRACE, GRACE, &members(&[1, 2]))
+            .expect("verdict");
+        assert_eq!((v.drop, v.links, v.accuser, v.accused), (2, 1, 1, 2));
+        assert_eq!(a.judge(t0 + GRACE * 2, GRACE, &members(&[1])), None);
+    }
+
+    #[test]
+    fn the_worker_cut_off_from_everyone_goes_though_it_reported_first() {
+        let t0 = Instant::now();
+        let ms = |n| t0 + Duration::from_millis(n);
+        let mut a = Accusations::default();
+        // Worker 1 is cut off from 0 and 2: it reports both, then both report it.
+        a.add(1, 0, ms(0), "no connection");
+        a.add(1, 2, ms(10), "no connection");
+        a.add(2, 1, ms(40), "64 bundles unacknowledged");
+        a.add(0, 1, ms(90), "no connection");
+        let all = members(&[0, 1, 2]);
+        let v = a.judge(ms(600), GRACE, &all).expect("verdict");
+        assert_eq!((v.drop, v.links), (1, 2));
+        assert_eq!((v.accuser, v.accused), (1, 0));
+        // Its own reports went with it.
+        assert_eq!(a.judge(ms(2000), GRACE, &members(&[0, 2])), None);
+    }
+
+    #[test]
+    fn a_worker_that_reports_every_peer_goes_though_none_reported_it() {
+        // Its own link is too slow for its bundles: it finds both peers unresponsive.
+        let t0 = Instant::now();
+        let mut a = Accusations::default();
+        a.add(1, 0, t0, "36 bundles unacknowledged");
+        a.add(1, 2, t0, "57 bundles unacknowledged");
+        let v = a
+            .judge(t0 + GRACE, GRACE, &members(&[0, 1, 2]))
+            .expect("verdict");
+        assert_eq!((v.drop, v.links), (1, 2));
+        assert_eq!(a.judge(t0 + GRACE, GRACE, &members(&[0, 2])), None);
+    }
+
+    #[test]
+    fn a_tie_drops_the_first_reported_and_a_gone_worker_s_reports_are_void() {
+        let t0 = Instant::now();
+        let mut a = Accusations::default();
+        a.add(0, 1, t0, "a");
+        a.add(1, 0, t0 + Duration::from_millis(5), "b");
+        let v = a
+            .judge(t0 + GRACE, GRACE, &members(&[0, 1, 2]))
+            .expect("verdict");
+        assert_eq!((v.drop, v.accuser), (1, 0));
+        a.add(2, 0, t0, "c");
+        // Worker 2 left before the judgement: its report counts for nothing.
+        assert_eq!(a.judge(t0 + GRACE, GRACE, &members(&[0, 1])), None);
+        a.add(3, 3, t0, "itself");
+        assert_eq!(a.judge(t0 + GRACE, GRACE, &members(&[3])), None);
+    }
+}
