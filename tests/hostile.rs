@@ -469,9 +469,9 @@ fn a_node_cannot_register_with_another_workers_address() {
         .unwrap()
         .to_string();
     let (_tx, answer) = rt.block_on(fake_worker(&url, "impostor", &victim));
-    let e = answer
-        .err()
-        .expect("registered with another worker's address");
+    let Err(e) = answer else {
+        panic!("registered with another worker's address");
+    };
     assert_eq!(e.code(), tonic::Code::AlreadyExists, "{e}");
     // Its own address is fine.
     let (_tx, answer) = rt.block_on(fake_worker(&url, "other", "127.0.0.1:9"));
