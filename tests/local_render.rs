@@ -255,7 +255,7 @@ fn bad_scenes_and_frames_get_clear_errors() {
     assert_ne!(hash(&[]), hash(&["--eye", "0.5,0.9,2.0", "--fov", "30"]));
 
     let err = rayfarm_err(&args(sc, s(&tmp.path().join("x.gif"))));
-    assert!(err.contains("unknown image format"), "{err}");
+    assert!(err.contains("must end in .png"), "{err}");
     let err = rayfarm_err(&args(s(&tmp.path().join("nowhere")), out));
     assert!(
         err.contains("nowhere") && err.contains("scene.toml"),
