@@ -336,12 +336,41 @@ fn certs_keeps_existing_credentials_and_refuses_bad_names() {
     let err = rayfarm_tests::rayfarm_err(&["certs", "--out", s(&dir), "--hosts", "localhost"]);
     assert!(err.contains("already holds ca.pem"), "{err}");
     assert!(err.contains("--if-missing"), "{err}");
-    // ... and --if-missing replaces only what is gone.
+    // ... --if-missing never overwrites a key: half a TLS set is refused ...
+    let key = std::fs::read(&f.key).expect("key");
     std::fs::remove_file(&f.cert).expect("remove");
     let args = ["certs", "--out", s(&dir), "--hosts", "localhost"];
-    rayfarm_ok(&[&args[..], &["--with-secrets", "--if-missing"]].concat());
+    let if_missing = [&args[..], &["--with-secrets", "--if-missing"]].concat();
+    let err = rayfarm_tests::rayfarm_err(&if_missing);
+    assert!(err.contains("not the whole set"), "{err}");
+    assert_eq!(
+        std::fs::read(&f.key).expect("key"),
+        key,
+        "the key was overwritten"
+    );
+    // ... a missing set is written anew, keys 0600, and the secret is kept ...
+    std::fs::remove_file(&f.ca).expect("remove");
+    std::fs::remove_file(&f.key).expect("remove");
+    rayfarm_ok(&if_missing);
     assert!(f.cert.exists());
     assert_eq!(std::fs::read(&f.secret).expect("secret"), secret);
+    use std::os::unix::fs::PermissionsExt;
+    for file in [&f.key, &f.secret, &f.tokens] {
+        let mode = std::fs::metadata(file).expect("mode").permissions().mode();
+        assert_eq!(mode & 0o777, 0o600, "{}", file.display());
+    }
+    // ... and a symlink, even a dangling one, is never written through.
+    let elsewhere = root.path().join("elsewhere-key.pem");
+    for file in [&f.ca, &f.cert, &f.key] {
+        std::fs::remove_file(file).expect("remove");
+    }
+    std::os::unix::fs::symlink(&elsewhere, &f.key).expect("symlink");
+    let err = rayfarm_tests::rayfarm_err(&if_missing);
+    assert!(err.contains("symbolic link"), "{err}");
+    assert!(
+        !elsewhere.exists(),
+        "the key was written through the symlink"
+    );
     let err = rayfarm_tests::rayfarm_err(&[
         "certs",
         "--out",

@@ -17,7 +17,7 @@ use tokio::sync::{Semaphore, mpsc};
 use tokio_stream::Stream;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Request, Response, Status};
-use tracing::{info, warn};
+use tracing::warn;
 
 use crate::state::Coordinator;
 
@@ -115,17 +115,14 @@ impl JobService for Api {
         request: Request<proto::SubmitJobRequest>,
     ) -> Result<Response<proto::SubmitJobResponse>, Status> {
         // Set by the token check when user tokens are on: who submitted what, for the log.
-        let user = request.extensions().get::<User>().map(|u| u.0.clone());
+        let user = request.extensions().get::<User>().cloned();
         let spec = request.into_inner().spec;
         if let Some(spec) = &spec {
             check_field("scene", &spec.scene)?;
         }
         let spec = self.coordinator.spec_with_defaults(spec)?;
         let manifest = self.read_scene(&spec.scene).await?;
-        let job_id = self.coordinator.enqueue(spec, &manifest)?;
-        if let Some(user) = user {
-            info!(%job_id, %user, "job submitted");
-        }
+        let job_id = self.coordinator.enqueue(spec, &manifest, user.as_ref())?;
         Ok(Response::new(proto::SubmitJobResponse { job_id }))
     }
 
@@ -170,9 +167,10 @@ impl JobService for Api {
         &self,
         request: Request<proto::CancelJobRequest>,
     ) -> Result<Response<proto::CancelJobResponse>, Status> {
+        let user = request.extensions().get::<User>().cloned();
         let job_id = request.into_inner().job_id;
         check_field("job_id", &job_id)?;
-        let state = self.coordinator.cancel(&job_id)?;
+        let state = self.coordinator.cancel(&job_id, user.as_ref())?;
         Ok(Response::new(proto::CancelJobResponse {
             state: state as i32,
         }))

@@ -80,6 +80,14 @@ struct Args {
     /// every node sees the same paths). Off: a job cannot name files elsewhere on the host.
     #[arg(long, env = "RAYFARM_ALLOW_ABSOLUTE_SCENES")]
     allow_absolute_scenes: bool,
+    /// Most jobs one user (one token; everyone, without tokens) may have queued or running;
+    /// more are refused with RESOURCE_EXHAUSTED.
+    #[arg(long, env = "RAYFARM_MAX_JOBS_PER_USER", default_value_t = 64)]
+    max_jobs_per_user: usize,
+    /// Most pixels x samples per pixel one user may have queued or running (default 2^40,
+    /// over a hundred 4K frames at 1024 spp); more are refused with RESOURCE_EXHAUSTED.
+    #[arg(long, env = "RAYFARM_MAX_PIXEL_SAMPLES_PER_USER", default_value_t = 1 << 40)]
+    max_pixel_samples_per_user: u64,
     /// Scene rendered by jobs that name none.
     #[arg(long, env = "RAYFARM_DEFAULT_SCENE")]
     default_scene: Option<String>,
@@ -149,6 +157,8 @@ async fn run(args: Args) -> anyhow::Result<()> {
         data_dir: args.data_dir,
         scene_root: args.scene_root,
         allow_absolute_scenes: args.allow_absolute_scenes,
+        max_jobs_per_user: args.max_jobs_per_user,
+        max_pixel_samples_per_user: args.max_pixel_samples_per_user,
         default_scene: args.default_scene,
         heartbeat: Duration::from_millis(args.heartbeat_ms.max(10)),
         worker_timeout: Duration::from_millis(args.worker_timeout_ms.max(100)),

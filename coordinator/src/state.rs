@@ -17,6 +17,7 @@ use rayfarm_node::proto::{
     self, JobState, PROTOCOL_VERSION, Schedule, coordinator_message::Body,
     worker_message::Body as FromWorker,
 };
+use rayfarm_node::security::User;
 use tokio::sync::{mpsc, oneshot, watch};
 use tonic::Status;
 use tracing::{error, info, info_span, warn};
@@ -35,6 +36,10 @@ pub struct Config {
     /// Scenes may be absolute paths (else names under `scene_root` only).
     pub allow_absolute_scenes: bool,
     pub default_scene: Option<String>,
+    /// Most jobs one user may have queued or running.
+    pub max_jobs_per_user: usize,
+    /// Most pixels x samples one user may have queued or running.
+    pub max_pixel_samples_per_user: u64,
     /// Heartbeat interval asked of workers.
     pub heartbeat: Duration,
     /// A worker silent this long is dropped.
@@ -64,6 +69,8 @@ pub type WorkerTx = mpsc::UnboundedSender<Result<proto::CoordinatorMessage, Stat
 
 struct Job {
     summary: proto::JobSummary,
+    /// Pixels times samples per pixel: what the job weighs against its owner's quota.
+    cost: u64,
     seq: u64,
     /// Frames started so far (see [`StoredJob::attempts`]).
     attempts: u32,
@@ -190,7 +197,7 @@ impl Coordinator {
     pub fn submit(self: &Arc<Self>, spec: Option<proto::JobSpec>) -> Result<String, Status> {
         let spec = self.spec_with_defaults(spec)?;
         let (_, manifest) = self.open_scene(&spec.scene)?;
-        self.enqueue(spec, &manifest)
+        self.enqueue(spec, &manifest, None)
     }
 
     /// The job's spec with the defaults filled in (schedule, scene), or why it has none.
@@ -213,15 +220,21 @@ impl Coordinator {
         Ok(spec)
     }
 
-    /// Checks `spec` against its scene's `manifest` and queues the job; returns its id.
+    /// Checks `spec` against its scene's `manifest` and the quotas of `user` (the
+    /// authenticated submitter, `None` without user tokens), and queues the job owned by the
+    /// user; returns its id.
     pub fn enqueue(
         self: &Arc<Self>,
         spec: proto::JobSpec,
         manifest: &Manifest,
+        user: Option<&User>,
     ) -> Result<String, Status> {
         let frame = frame_spec(&spec, &manifest.camera).map_err(Status::invalid_argument)?;
         self.admit(&frame)?;
+        let cost = u64::from(frame.width) * u64::from(frame.height) * u64::from(frame.spp);
+        let owner = user.map(|u| u.name.clone()).unwrap_or_default();
         let mut st = self.lock();
+        self.check_quota(&st, &owner, cost)?;
         st.seq += 1;
         let seq = st.seq;
         let id = format!("job-{}-{seq}", unix_ms() / 1000);
@@ -230,10 +243,12 @@ impl Coordinator {
             spec: Some(spec.clone()),
             state: JobState::Queued as i32,
             submitted_unix_ms: unix_ms(),
+            owner: owner.clone(),
             ..Default::default()
         };
         let job = Job {
             summary,
+            cost,
             seq,
             attempts: 0,
             epoch_floor: 0,
@@ -250,7 +265,7 @@ impl Coordinator {
         })?;
         st.jobs.insert(id.clone(), job);
         st.queue.push(id.clone(), spec.priority, seq);
-        info!(job = %id, scene = %spec.scene, width = spec.width, height = spec.height, spp = spec.spp, priority = spec.priority, "job queued");
+        info!(job = %id, user = %owner, scene = %spec.scene, width = spec.width, height = spec.height, spp = spec.spp, priority = spec.priority, "job queued");
         self.try_start(&mut st);
         Ok(id)
     }
@@ -298,14 +313,50 @@ impl Coordinator {
         Ok((dir, manifest))
     }
 
-    /// Cancels a queued or running job; returns its state afterwards.
-    pub fn cancel(self: &Arc<Self>, id: &str) -> Result<JobState, Status> {
-        let mut st = self.lock();
-        let state = st
+    /// Refuses (`RESOURCE_EXHAUSTED`) a job of `cost` that would take `owner` past a quota.
+    fn check_quota(&self, st: &State, owner: &str, cost: u64) -> Result<(), Status> {
+        let (jobs, queued) = st
             .jobs
-            .get(id)
-            .map(|j| j.summary.state())
-            .ok_or_else(|| not_found(id))?;
+            .values()
+            .filter(|j| j.summary.owner == owner && !is_terminal(j.summary.state()))
+            .fold((0usize, 0u64), |(n, c), j| {
+                (n + 1, c.saturating_add(j.cost))
+            });
+        let who = if owner.is_empty() { "anonymous" } else { owner };
+        if jobs >= self.config.max_jobs_per_user {
+            warn!(user = %who, jobs, "job refused: queued-jobs quota");
+            return Err(Status::resource_exhausted(format!(
+                "user {who} has {jobs} jobs queued or running, the most allowed \
+                 (--max-jobs-per-user {})",
+                self.config.max_jobs_per_user
+            )));
+        }
+        let max = self.config.max_pixel_samples_per_user;
+        if queued.saturating_add(cost) > max {
+            warn!(user = %who, queued, cost, "job refused: pixel-samples quota");
+            return Err(Status::resource_exhausted(format!(
+                "user {who} has {queued} pixel-samples queued or running; this job's {cost} \
+                 would pass the quota of {max} (--max-pixel-samples-per-user)"
+            )));
+        }
+        Ok(())
+    }
+
+    /// Cancels a queued or running job for `user` (`None` without user tokens: anyone may);
+    /// returns its state afterwards. Only the job's owner or an admin may cancel it.
+    pub fn cancel(self: &Arc<Self>, id: &str, user: Option<&User>) -> Result<JobState, Status> {
+        let mut st = self.lock();
+        let job = st.jobs.get(id).ok_or_else(|| not_found(id))?;
+        if let Some(user) = user
+            && !user.admin
+            && job.summary.owner != user.name
+        {
+            warn!(job = %id, user = %user.name, owner = %job.summary.owner, "cancel refused: not the owner");
+            return Err(Status::permission_denied(format!(
+                "job {id} belongs to another user: only its owner or an admin may cancel it"
+            )));
+        }
+        let state = job.summary.state();
         if is_terminal(state) {
             return Ok(state);
         }
@@ -318,7 +369,7 @@ impl Coordinator {
             set_state(&mut st, id, JobState::Cancelled, "");
             self.try_start(&mut st);
         }
-        info!(job = %id, "job cancelled");
+        info!(job = %id, user = %user.map_or("", |u| u.name.as_str()), "job cancelled");
         Ok(st
             .jobs
             .get(id)
@@ -422,6 +473,18 @@ impl Coordinator {
                 r.worker_id
             )));
         }
+        // Another worker's address would take its rays: refused like a duplicate id (a worker
+        // that restarted on the same address gets in once its old entry is reaped).
+        if st
+            .workers
+            .values()
+            .any(|w| w.peer_address == r.peer_address)
+        {
+            return Err(Status::already_exists(format!(
+                "a worker at peer address {} is already attached",
+                r.peer_address
+            )));
+        }
         let key = st.next_key;
         st.next_key += 1;
         let registered = Body::Registered(proto::Registered {
@@ -500,11 +563,11 @@ impl Coordinator {
                     (Some(k), Some(frame))
                         if frame.members().any(|m| m == k) && frame.members().any(|m| m == key) =>
                     {
-                        warn!(worker = %reporter, peer = %p.peer_address, reason = %p.reason, "a worker reports a peer unreachable");
+                        warn!(worker = %reporter, peer = %p.peer_address, reason = %rayfarm_node::bounds::shown(&p.reason), "a worker reports a peer unreachable");
                         frame.accusations.add(key, k, Instant::now(), &p.reason);
                     }
                     _ => {
-                        info!(worker = %reporter, peer = %p.peer_address, "unresponsive peer is no member of a running frame: ignored")
+                        info!(worker = %reporter, peer = %rayfarm_node::bounds::shown(&p.peer_address), "unresponsive peer is no member of a running frame: ignored")
                     }
                 }
             }
@@ -893,12 +956,21 @@ fn end_frame(st: &State, frame: &RunningFrame) {
     send(st, out);
 }
 
+/// Pixels times samples per pixel of a spec as given (a field left 0 counts as 1).
+fn spec_cost(spec: &proto::JobSpec) -> u64 {
+    [spec.width, spec.height, spec.spp]
+        .iter()
+        .map(|&v| u64::from(v.max(1)))
+        .product()
+}
+
 fn set_state(st: &mut State, id: &str, state: JobState, error: &str) {
     let Some(job) = st.jobs.get_mut(id) else {
         return;
     };
     job.summary.state = state as i32;
     job.summary.error = error.to_string();
+    info!(job = %id, user = %job.summary.owner, state = state_name(state), "job state");
     if is_terminal(state) {
         job.summary.finished_unix_ms = unix_ms();
     }
@@ -968,6 +1040,7 @@ fn restore(st: &mut State, data_dir: &std::path::Path, stored: StoredJob) {
     let id = summary.job_id.clone();
     let priority = summary.spec.as_ref().map_or(0, |s| s.priority);
     let mut job = Job {
+        cost: summary.spec.as_ref().map_or(0, spec_cost),
         progress: progress_channel(&id, summary.state(), &summary.error, &stored.stats_json),
         summary,
         seq: stored.seq,
@@ -1025,6 +1098,8 @@ mod tests {
             data_dir: root.join("data"),
             scene_root: root.join("scenes"),
             allow_absolute_scenes: false,
+            max_jobs_per_user: 64,
+            max_pixel_samples_per_user: 1 << 40,
             default_scene: None,
             heartbeat: Duration::from_secs(1),
             worker_timeout: Duration::from_secs(10),

@@ -205,7 +205,19 @@ async fn accept_loop(
 /// TLS (if on), then the HTTP/2 preface, which [`Conn`] replays to the server.
 async fn handshake(stream: TcpStream, tls: Option<TlsAcceptor>) -> io::Result<Io> {
     let mut io = match tls {
-        Some(acceptor) => Io::Tls(Box::new(acceptor.accept(stream).await?)),
+        Some(acceptor) => match acceptor.accept(stream).into_fallible().await {
+            Ok(tls) => Io::Tls(Box::new(tls)),
+            Err((e, mut stream)) => {
+                // Read what the client sent before closing: closing with unread data makes
+                // the kernel reset the connection, and a client (a plain-text one, say) may
+                // then die of SIGPIPE on its next write instead of reading the refusal.
+                let mut sink = [0u8; 4096];
+                let drain =
+                    async { while matches!(stream.read(&mut sink).await, Ok(n) if n > 0) {} };
+                let _ = tokio::time::timeout(Duration::from_millis(200), drain).await;
+                return Err(e);
+            }
+        },
         None => Io::Plain(stream),
     };
     let mut preface = [0u8; PREFACE.len()];

@@ -95,6 +95,14 @@ pub enum SecurityError {
         /// 1-based line of the repeat.
         line: usize,
     },
+    /// A role other than `admin` or `user` in the user tokens file.
+    #[error("user tokens file {}: the role on line {line} must be `admin` or `user`", path.display())]
+    BadRole {
+        /// The file.
+        path: PathBuf,
+        /// 1-based line.
+        line: usize,
+    },
     /// An `https://` address was given but no CA to verify the server with.
     #[error("{url} asks for TLS: give the CA that signed its certificate (--tls-ca)")]
     HttpsWithoutCa {
@@ -455,24 +463,26 @@ impl ClusterSecret {
     }
 }
 
-/// The user tokens the job API accepts, each with a name for the logs.
+/// The user tokens the job API accepts, each with its user (name and role).
 #[derive(Clone)]
-pub struct UserTokens(Arc<Vec<(Vec<u8>, String)>>);
+pub struct UserTokens(Arc<Vec<(Vec<u8>, User)>>);
 
 impl fmt::Debug for UserTokens {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        let names: Vec<&str> = self.0.iter().map(|(_, n)| n.as_str()).collect();
+        let names: Vec<&str> = self.0.iter().map(|(_, u)| u.name.as_str()).collect();
         f.debug_tuple("UserTokens").field(&names).finish()
     }
 }
 
 impl UserTokens {
-    /// Reads `path`: one token per line, optionally followed by the user's name; blank lines
-    /// and lines starting with `#` are ignored. A token without a name is called `user-LINE`.
+    /// Reads `path`: one token per line, optionally followed by the user's name and then a
+    /// role (`admin` may cancel anyone's jobs; `user`, the default, only their own); blank
+    /// lines and lines starting with `#` are ignored. A token without a name is called
+    /// `user-LINE`.
     pub fn from_file(path: &Path) -> Result<Self, SecurityError> {
         let bytes = read(path, "user tokens file")?;
         let text = String::from_utf8_lossy(&bytes);
-        let mut tokens: Vec<(Vec<u8>, String)> = Vec::new();
+        let mut tokens: Vec<(Vec<u8>, User)> = Vec::new();
         for (i, line) in text.lines().enumerate() {
             let line = line.trim();
             if line.is_empty() || line.starts_with('#') {
@@ -491,11 +501,22 @@ impl UserTokens {
                     line: i + 1,
                 });
             }
-            let name = match name.trim() {
-                "" => format!("user-{}", i + 1),
-                n => n.to_string(),
+            let mut words = name.split_whitespace();
+            let name = match words.next() {
+                None => format!("user-{}", i + 1),
+                Some(n) => n.to_string(),
             };
-            tokens.push((token.as_bytes().to_vec(), name));
+            let admin = match words.next() {
+                None | Some("user") => false,
+                Some("admin") => true,
+                Some(_) => {
+                    return Err(SecurityError::BadRole {
+                        path: path.to_path_buf(),
+                        line: i + 1,
+                    });
+                }
+            };
+            tokens.push((token.as_bytes().to_vec(), User { name, admin }));
         }
         if tokens.is_empty() {
             return Err(SecurityError::NoTokens {
@@ -522,11 +543,11 @@ impl UserTokens {
 
     /// The name of `presented`'s user. Every token is compared, in constant time, so the
     /// time taken tells nothing about which one nearly matched.
-    fn user(&self, presented: &[u8]) -> Option<&str> {
+    fn user(&self, presented: &[u8]) -> Option<&User> {
         let mut found = None;
-        for (token, name) in self.0.iter() {
+        for (token, user) in self.0.iter() {
             if bool::from(token.as_slice().ct_eq(presented)) {
-                found = Some(name.as_str());
+                found = Some(user);
             }
         }
         found
@@ -534,8 +555,13 @@ impl UserTokens {
 }
 
 /// The user a request was authenticated as (in the request's extensions).
-#[derive(Clone, Debug)]
-pub struct User(pub String);
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct User {
+    /// The name from the tokens file: owner of the jobs the user submits.
+    pub name: String,
+    /// The admin role: may cancel anyone's jobs.
+    pub admin: bool,
+}
 
 /// Server interceptor: refuses requests without the cluster secret (`UNAUTHENTICATED`).
 /// Without a secret configured, every request passes.
@@ -578,8 +604,8 @@ impl Interceptor for RequireToken {
             }
             Some(None) => "the authorization header must be `Bearer TOKEN`",
             Some(Some(token)) => match tokens.user(token.trim_ascii()) {
-                Some(name) => {
-                    let user = User(name.to_string());
+                Some(user) => {
+                    let user = user.clone();
                     request.extensions_mut().insert(user);
                     return Ok(request);
                 }
@@ -699,14 +725,17 @@ mod tests {
 
     #[test]
     fn tokens_name_their_users() {
-        let f = file("# users\nabc123 alice\n\ndef456\n");
+        let f = file("# users\nabc123 alice\n\ndef456\nroot1 bob admin\n");
         let tokens = UserTokens::from_file(f.path()).unwrap();
-        assert_eq!(tokens.len(), 2);
+        assert_eq!(tokens.len(), 3);
         let mut check = RequireToken(Some(tokens));
         let ok = check.call(with(TOKEN_HEADER, "Bearer abc123")).unwrap();
-        assert_eq!(ok.extensions().get::<User>().unwrap().0, "alice");
+        let alice = ok.extensions().get::<User>().unwrap();
+        assert_eq!((alice.name.as_str(), alice.admin), ("alice", false));
         let ok = check.call(with(TOKEN_HEADER, "Bearer def456")).unwrap();
-        assert_eq!(ok.extensions().get::<User>().unwrap().0, "user-4");
+        assert_eq!(ok.extensions().get::<User>().unwrap().name, "user-4");
+        let ok = check.call(with(TOKEN_HEADER, "Bearer root1")).unwrap();
+        assert!(ok.extensions().get::<User>().unwrap().admin);
         for (req, why) in [
             (Request::new(()), "no user token"),
             (with(TOKEN_HEADER, "Bearer nope"), "unknown user token"),
@@ -737,6 +766,11 @@ mod tests {
             Err(SecurityError::DuplicateToken { line: 3, .. })
         ));
         assert!(Credential::bearer(Some("has space")).is_err());
+        let role = file("a x root\n");
+        assert!(matches!(
+            UserTokens::from_file(role.path()),
+            Err(SecurityError::BadRole { line: 1, .. })
+        ));
     }
 
     #[test]

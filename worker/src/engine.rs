@@ -39,6 +39,32 @@ const BATCH_RAYS: usize = 2048;
 /// that will not come, and its bundles are dropped.
 const EARLY_BYTES: usize = 256 << 20;
 
+/// Bundles held for a frame that has not started here within this are dropped: a peer does
+/// not run that far ahead of a StartFrame that is coming.
+const EARLY_TIMEOUT: Duration = Duration::from_secs(30);
+
+/// Bundles that arrived for one job this worker has not started yet.
+struct EarlyBundles {
+    /// When the first arrived (see [`EARLY_TIMEOUT`]).
+    since: Instant,
+    /// Every byte they hold, ids and bookkeeping included (see [`early_cost`]).
+    bytes: usize,
+    bundles: Vec<(String, proto::Tier, Vec<Bytes>)>,
+}
+
+/// What holding one early bundle costs: its batches, its sender and job ids, and the
+/// per-batch and per-bundle bookkeeping.
+fn early_cost(sender: &str, job_id: &str, batches: &[Bytes]) -> usize {
+    let batch_bytes: usize = batches
+        .iter()
+        .map(|b| b.len() + std::mem::size_of::<Bytes>())
+        .sum();
+    batch_bytes
+        + sender.len()
+        + job_id.len()
+        + std::mem::size_of::<(String, proto::Tier, Vec<Bytes>)>()
+}
+
 /// What the engine needs to know about itself.
 #[derive(Clone, Debug)]
 pub struct EngineConfig {
@@ -100,7 +126,9 @@ pub struct Engine {
     cache: Option<(PathBuf, Arc<Mutex<DomainCache>>)>,
     pass_running: bool,
     /// Bundles that arrived for a job this worker has not started yet.
-    early: BTreeMap<String, Vec<(String, proto::Tier, Vec<Bytes>)>>,
+    early: BTreeMap<String, EarlyBundles>,
+    /// Sum of `bytes` over `early`, kept up to date (never recounted per bundle).
+    early_bytes: usize,
     /// Recently ended jobs: their late bundles are dropped.
     ended: Vec<String>,
 }
@@ -129,6 +157,7 @@ impl Engine {
             cache: None,
             pass_running: false,
             early: BTreeMap::new(),
+            early_bytes: 0,
             ended: Vec::new(),
         })
     }
@@ -239,7 +268,8 @@ impl Engine {
                 }
                 info!(tiles = s.primary_tiles.len(), "frame started");
                 self.frame = Some(frame);
-                for (sender, tier, batches) in self.early.remove(&s.job_id).unwrap_or_default() {
+                let early = self.take_early(&s.job_id);
+                for (sender, tier, batches) in early {
                     self.peer_bundle(sender, s.job_id.clone(), tier, batches);
                 }
             }
@@ -415,8 +445,35 @@ impl Engine {
         self.send_due_bundles();
     }
 
+    /// Removes and returns the early bundles of `job_id`.
+    fn take_early(&mut self, job_id: &str) -> Vec<(String, proto::Tier, Vec<Bytes>)> {
+        let Some(early) = self.early.remove(job_id) else {
+            return Vec::new();
+        };
+        self.early_bytes -= early.bytes;
+        early.bundles
+    }
+
+    /// Drops the early bundles of jobs that have not started within [`EARLY_TIMEOUT`].
+    fn expire_early(&mut self) {
+        let expired: Vec<String> = self
+            .early
+            .iter()
+            .filter(|(_, e)| e.since.elapsed() > EARLY_TIMEOUT)
+            .map(|(job, _)| job.clone())
+            .collect();
+        for job in expired {
+            let dropped = self.take_early(&job);
+            warn!(
+                job = %rayfarm_node::bounds::shown(&job),
+                bundles = dropped.len(),
+                "dropping bundles for a frame that did not start here within {EARLY_TIMEOUT:?}"
+            );
+        }
+    }
+
     fn end_frame(&mut self, job_id: &str) {
-        self.early.remove(job_id);
+        self.take_early(job_id);
         self.ended.push(job_id.to_string());
         if self.ended.len() > 16 {
             self.ended.remove(0);
@@ -483,24 +540,32 @@ impl Engine {
             if self.ended.contains(&job_id) {
                 return;
             }
-            let bytes: usize = batches.iter().map(Bytes::len).sum();
-            let held: usize = self
-                .early
-                .values()
-                .flatten()
-                .flat_map(|(_, _, b)| b.iter().map(Bytes::len))
-                .sum();
+            self.expire_early();
+            // A job's first early bundle also pays for its id as the map's key.
+            let key_bytes = if self.early.contains_key(&job_id) {
+                0
+            } else {
+                job_id.len()
+            };
+            let bytes = early_cost(&sender, &job_id, &batches) + key_bytes;
+            let held = self.early_bytes;
             if held + bytes > EARLY_BYTES {
                 error!(
-                    %sender, job = %job_id, bytes, held,
+                    sender = %rayfarm_node::bounds::shown(&sender),
+                    job = %rayfarm_node::bounds::shown(&job_id),
+                    bytes, held,
                     "dropping a bundle for a frame not started here: {EARLY_BYTES} bytes are held already"
                 );
                 return;
             }
-            self.early
-                .entry(job_id)
-                .or_default()
-                .push((sender, tier, batches));
+            let early = self.early.entry(job_id).or_insert_with(|| EarlyBundles {
+                since: Instant::now(),
+                bytes: 0,
+                bundles: Vec::new(),
+            });
+            early.bytes += bytes;
+            self.early_bytes += bytes;
+            early.bundles.push((sender, tier, batches));
             return;
         };
         if tier == proto::Tier::Results {

@@ -67,10 +67,21 @@ pub fn run(a: CertsArgs) -> anyhow::Result<()> {
     if a.with_secrets {
         wanted.extend([SECRET_FILE, TOKENS_FILE]);
     }
+    // A symlink is never followed (it could point a key anywhere), a dangling one included.
+    if let Some(link) = wanted.iter().find(|f| {
+        path(f)
+            .symlink_metadata()
+            .is_ok_and(|m| m.file_type().is_symlink())
+    }) {
+        bail!(
+            "{} is a symbolic link: refusing to write through it (remove it)",
+            path(link).display()
+        );
+    }
     let existing: Vec<&str> = wanted
         .iter()
         .copied()
-        .filter(|f| path(f).exists())
+        .filter(|f| path(f).symlink_metadata().is_ok())
         .collect();
     if !a.if_missing && !existing.is_empty() {
         bail!(
@@ -83,6 +94,19 @@ pub fn run(a: CertsArgs) -> anyhow::Result<()> {
     let tls_missing = [CA_FILE, CERT_FILE, KEY_FILE]
         .iter()
         .any(|f| !existing.contains(f));
+    let kept_tls: Vec<&str> = [CA_FILE, CERT_FILE, KEY_FILE]
+        .into_iter()
+        .filter(|f| existing.contains(f))
+        .collect();
+    if tls_missing && !kept_tls.is_empty() {
+        // A new set would overwrite what exists, the key included: never with --if-missing.
+        bail!(
+            "{} holds {} but not the whole set ({CA_FILE}, {CERT_FILE}, {KEY_FILE}): restore the \
+             missing files or remove the others",
+            a.out.display(),
+            kept_tls.join(", ")
+        );
+    }
     if tls_missing {
         let (ca, cert, key) = generate(&hosts, a.days)?;
         write(&path(CA_FILE), &ca, 0o644)?;
@@ -102,7 +126,10 @@ pub fn run(a: CertsArgs) -> anyhow::Result<()> {
             println!("wrote {SECRET_FILE}");
         }
         if !existing.contains(&TOKENS_FILE) {
-            let text = format!("# TOKEN [USER], one per line\n{} admin\n", random_hex()?);
+            let text = format!(
+                "# TOKEN [USER [ROLE]], one per line; ROLE admin may cancel anyone's jobs\n{} admin admin\n",
+                random_hex()?
+            );
             write(&path(TOKENS_FILE), &text, 0o600)?;
             println!("wrote {TOKENS_FILE}");
         }
@@ -184,13 +211,15 @@ fn random_hex() -> anyhow::Result<String> {
 }
 
 /// Writes `text` to a new file with `mode` (on Unix), replacing any file there.
+/// Creates `path` with `mode` and writes `text`: never over an existing file (the callers
+/// checked; a file that appeared since is an error) and never through a symlink.
 fn write(path: &Path, text: &str, mode: u32) -> anyhow::Result<()> {
     let mut options = OpenOptions::new();
-    options.write(true).create(true).truncate(true);
+    options.write(true).create_new(true);
     #[cfg(unix)]
     {
         use std::os::unix::fs::OpenOptionsExt;
-        options.mode(mode);
+        options.mode(mode).custom_flags(libc::O_NOFOLLOW);
     }
     #[cfg(not(unix))]
     let _ = mode;
