@@ -15,7 +15,8 @@ use clap::{Parser, Subcommand};
 #[derive(Parser)]
 #[command(version, about, propagate_version = true)]
 struct Cli {
-    /// More log output (-v info, -vv debug); RUST_LOG overrides.
+    /// More log output (-v debug, -vv trace; the servers' flags mean the same); RUST_LOG
+    /// overrides.
     #[arg(short, long, action = clap::ArgAction::Count, global = true)]
     verbose: u8,
     #[command(subcommand)]
@@ -59,15 +60,15 @@ fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
     let default = match cli.verbose {
         0 => "warn",
-        1 => "info",
-        _ => "debug",
+        1 => "debug",
+        _ => "trace",
     };
     rayfarm_node::telemetry::init_logging(default);
     let result = dispatch(cli.command);
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", error_text(&e));
             std::process::ExitCode::FAILURE
         }
     }
@@ -84,6 +85,25 @@ fn restore_sigpipe() {
     unsafe {
         libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
+}
+
+/// An error and its causes on one line, leaving out a cause its parent already quotes
+/// (`io::Error`s and transport errors are often both shown and chained as the source, which
+/// `{:#}` prints twice: "No such file or directory (os error 2): No such file or directory
+/// (os error 2)").
+fn error_text(e: &anyhow::Error) -> String {
+    let mut text = String::new();
+    for cause in e.chain() {
+        let part = cause.to_string();
+        if text.contains(&part) {
+            continue;
+        }
+        if !text.is_empty() {
+            text.push_str(": ");
+        }
+        text.push_str(&part);
+    }
+    text
 }
 
 /// Runs one subcommand.
@@ -110,6 +130,15 @@ mod tests {
 
     /// Clap checks flag names, env twins and relations only when asked; a clash among the
     /// flattened option groups would otherwise surface as a panic in a user's hands.
+    #[test]
+    fn an_error_quotes_each_cause_once() {
+        let io = std::io::Error::from(std::io::ErrorKind::NotFound);
+        let e = anyhow::Error::new(io).context("missing.ply: entity not found");
+        assert_eq!(super::error_text(&e), "missing.ply: entity not found");
+        let e = anyhow::anyhow!("refused").context("connecting");
+        assert_eq!(super::error_text(&e), "connecting: refused");
+    }
+
     #[test]
     fn every_command_line_is_well_formed() {
         super::Cli::command().debug_assert();
