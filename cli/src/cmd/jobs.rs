@@ -150,6 +150,7 @@ fn job_json(j: &proto::JobSummary) -> serde_json::Value {
         "max_depth": spec.max_depth,
         "schedule": schedule_name(spec.schedule()),
         "priority": spec.priority,
+        "cold_cache": spec.cold_cache,
         "camera": camera,
         "submitted_unix_ms": j.submitted_unix_ms,
         "started_unix_ms": j.started_unix_ms,
