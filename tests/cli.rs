@@ -103,6 +103,18 @@ fn cluster_commands_say_what_happens_and_what_to_do() {
         stderr_of(&piped)
     );
     assert_eq!(String::from_utf8_lossy(&piped.stdout).trim(), "[");
+    // The same with a reader that is gone before the first line: deterministic EPIPE.
+    let mut early = Command::new(bin("rayfarm"))
+        .args(["jobs", "--json"])
+        .env("RAYFARM_COORDINATOR", &url)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("start jobs");
+    drop(early.stdout.take());
+    let out = early.wait_with_output().expect("jobs output");
+    assert!(out.status.success(), "{}: {}", out.status, stderr_of(&out));
+    assert!(stderr_of(&out).is_empty(), "{}", stderr_of(&out));
 
     // An output that cannot be written is refused before anything is queued.
     let before = jobs(&cluster).len();

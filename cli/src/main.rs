@@ -56,7 +56,7 @@ enum Command {
 }
 
 fn main() -> std::process::ExitCode {
-    restore_sigpipe();
+    end_quietly_on_a_closed_stdout();
     let cli = Cli::parse();
     let default = match cli.verbose {
         0 => "warn",
@@ -74,17 +74,22 @@ fn main() -> std::process::ExitCode {
     }
 }
 
-/// Rust ignores SIGPIPE, which turns `rayfarm jobs --json | head -1` into a panic ("failed
-/// printing to stdout: Broken pipe") once the reader has gone. A command-line tool should
-/// instead end quietly, as `cat` does: restore the default action. The servers keep Rust's
-/// default (they write to sockets, whose errors they handle).
-fn restore_sigpipe() {
-    #[cfg(unix)]
-    // SAFETY: signal(2) with SIG_DFL installs no handler code; it runs before any thread
-    // starts.
-    unsafe {
-        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
-    }
+/// A reader that went away (`rayfarm jobs --json | head -1`) makes `println!` panic with
+/// "failed printing to stdout: Broken pipe". For a command-line tool that is the normal end
+/// of its output: leave quietly with success, as `cat` does. (Restoring SIGPIPE's default
+/// action instead would also kill the process on a peer's broken TLS connection, which
+/// tokio writes with `writev`.)
+fn end_quietly_on_a_closed_stdout() {
+    let default = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
+        let text = info
+            .payload_as_str()
+            .map_or_else(|| info.to_string(), str::to_string);
+        if text.starts_with("failed printing to stdout") && text.contains("Broken pipe") {
+            std::process::exit(0);
+        }
+        default(info);
+    }));
 }
 
 /// An error and its causes on one line, leaving out a cause its parent already quotes
