@@ -10,7 +10,7 @@ use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 
-use rayfarm_tests::{START_TIMEOUT, bin, prepare_nbody, s};
+use rayfarm_tests::{START_TIMEOUT, bin, prepare_nbody};
 
 /// How one documented command is run here.
 enum Plan {
@@ -54,9 +54,12 @@ const SMALL: &[(&str, &str)] = &[
 const COMPOSE: &str =
     "needs Docker and the compose cluster; tests/compose.rs runs it where Docker exists";
 
+/// A documented command's beginning and how commands that begin so are run.
+type Entry = (&'static str, fn() -> Plan);
+
 /// Every documented command, by how it begins.
 fn plan(command: &str) -> Option<Plan> {
-    const TABLE: &[(&str, fn() -> Plan)] = &[
+    const TABLE: &[Entry] = &[
         (
             "cargo build --release --bins && target/release/rayfarm demo",
             || {
