@@ -63,7 +63,11 @@ pub fn run(a: RenderArgs) -> anyhow::Result<()> {
         super::fetch::check_writable(p)?;
     }
     if !a.scene.is_dir() {
-        bail!("{}: no such scene directory", a.scene.display());
+        bail!(
+            "{}: no such scene directory (a prepared scene is a directory holding \
+             {MANIFEST_FILE}; make one with `rayfarm prepare`)",
+            a.scene.display()
+        );
     }
     if !a.scene.join(MANIFEST_FILE).exists() {
         bail!(
