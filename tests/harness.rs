@@ -889,6 +889,40 @@ pub fn submit_wait(cluster: &Cluster, frame: &[&str], tag: &str) -> PathBuf {
     json
 }
 
+/// Starts `rayfarm args` with `env`, and a channel of its stderr lines.
+pub fn spawn_rayfarm(args: &[&str], env: &[(&str, &str)]) -> (Child, mpsc::Receiver<String>) {
+    let mut child = Command::new(bin("rayfarm"))
+        .args(args)
+        .envs(env.iter().copied())
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start rayfarm");
+    let stderr = child.stderr.take().expect("piped stderr");
+    let (tx, rx) = mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            let _ = tx.send(line);
+        }
+    });
+    (child, rx)
+}
+
+/// Waits for a stderr line containing `what`; panics with what was seen.
+pub fn wait_line(lines: &mpsc::Receiver<String>, what: &str) {
+    let deadline = std::time::Instant::now() + START_TIMEOUT;
+    let mut seen = Vec::new();
+    while let Some(left) = deadline.checked_duration_since(std::time::Instant::now()) {
+        match lines.recv_timeout(left) {
+            Ok(line) if line.contains(what) => return,
+            Ok(line) => seen.push(line),
+            Err(_) => break,
+        }
+    }
+    panic!("no line with {what:?}; stderr so far:\n{}", seen.join("\n"));
+}
+
 /// Sends `signal` (as `kill` takes it, e.g. "-TERM") to process `pid`.
 pub fn signal_pid(pid: u32, signal: &str) {
     let pid = pid.to_string();

@@ -5,15 +5,13 @@
 //! take their local cluster down with them on SIGTERM and SIGHUP (and, on Linux, even on
 //! SIGKILL), and bench leaves no temporary directory behind.
 
-use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
-use std::sync::mpsc;
+use std::process::Child;
 use std::time::Duration;
 
 use rayfarm_tests::{
-    Cluster, START_TIMEOUT, WorkerOpts, bin, job, jobs, local_hash, prepare_nbody, s, signal_pid,
-    wait_until,
+    Cluster, START_TIMEOUT, WorkerOpts, job, jobs, local_hash, prepare_nbody, s, signal_pid,
+    spawn_rayfarm, wait_line, wait_until,
 };
 
 /// A frame of a few seconds on two workers, so a signal lands mid-frame.
@@ -80,40 +78,6 @@ fn processes_mentioning(marker: &Path, except: u32) -> Vec<String> {
         }
     }
     found
-}
-
-/// Starts `rayfarm args` with `env`, and a channel of its stderr lines.
-fn spawn_rayfarm(args: &[&str], env: &[(&str, &str)]) -> (Child, mpsc::Receiver<String>) {
-    let mut child = Command::new(bin("rayfarm"))
-        .args(args)
-        .envs(env.iter().copied())
-        .stdin(Stdio::null())
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("start rayfarm");
-    let stderr = child.stderr.take().expect("piped stderr");
-    let (tx, rx) = mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            let _ = tx.send(line);
-        }
-    });
-    (child, rx)
-}
-
-/// Waits for a stderr line containing `what`; panics with what was seen.
-fn wait_line(lines: &mpsc::Receiver<String>, what: &str) {
-    let deadline = std::time::Instant::now() + START_TIMEOUT;
-    let mut seen = Vec::new();
-    while let Some(left) = deadline.checked_duration_since(std::time::Instant::now()) {
-        match lines.recv_timeout(left) {
-            Ok(line) if line.contains(what) => return,
-            Ok(line) => seen.push(line),
-            Err(_) => break,
-        }
-    }
-    panic!("no line with {what:?}; stderr so far:\n{}", seen.join("\n"));
 }
 
 /// Waits up to `timeout` for `child` to exit; its status.

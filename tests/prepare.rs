@@ -78,7 +78,7 @@ fn generator_peak_memory_stays_under_max_memory_for_a_scene_four_times_larger() 
     let peak: u64 = stdout
         .lines()
         .find_map(|l| l.strip_prefix("peak RSS: "))
-        .and_then(|v| v.trim_end_matches(" bytes").parse().ok())
+        .and_then(|v| v.split_once('(')?.1.strip_suffix(" bytes)")?.parse().ok())
         .unwrap_or_else(|| panic!("no peak RSS line in {stdout}"));
     let total: u64 = std::fs::read_dir(&out)
         .unwrap()

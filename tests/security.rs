@@ -279,6 +279,25 @@ fn mutual_tls_refuses_clients_without_a_certificate() {
         "status without a client certificate",
     );
     assert!(err.contains("is unreachable"), "{err}");
+    // `rayfarm health` presents a certificate too, so probes work against mutual TLS.
+    let addr = cluster.coordinator_url().to_string();
+    let tls = ["--tls-ca", ca, "--tls-domain", "localhost"];
+    let mut with_cert = vec!["health", &addr];
+    with_cert.extend_from_slice(&tls);
+    with_cert.extend(["--tls-cert", s(&f.cert), "--tls-key", s(&f.key)]);
+    let out = cluster.rayfarm_as(&[], &with_cert);
+    assert!(
+        out.status.success(),
+        "{}{}{with_cert:?}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let mut without = vec!["health", &addr];
+    without.extend_from_slice(&tls);
+    fails(
+        cluster.rayfarm_as(&[], &without),
+        "health without a client certificate",
+    );
 }
 
 #[test]

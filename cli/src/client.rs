@@ -71,12 +71,8 @@ pub struct CoordinatorArgs {
 pub struct ClientAuthArgs {
     #[command(flatten)]
     pub tls: ConnectTlsArgs,
-    /// PEM certificate to present when the coordinator requires client certificates.
-    #[arg(long, env = "RAYFARM_TLS_CERT", requires = "tls_key")]
-    pub tls_cert: Option<PathBuf>,
-    /// PEM private key of --tls-cert.
-    #[arg(long, env = "RAYFARM_TLS_KEY", requires = "tls_cert")]
-    pub tls_key: Option<PathBuf>,
+    #[command(flatten)]
+    pub cert: ClientCertArgs,
     /// User token for the job API (prefer RAYFARM_TOKEN or --token-file: a flag's value
     /// shows in process lists).
     #[arg(
@@ -91,18 +87,36 @@ pub struct ClientAuthArgs {
     pub token_file: Option<PathBuf>,
 }
 
-impl ClientAuthArgs {
-    /// TLS and the user token these options ask for.
-    pub fn security(&self) -> anyhow::Result<ClientSecurity> {
-        let identity = match (&self.tls_cert, &self.tls_key) {
+/// The certificate a client presents to a server that requires one (mutual TLS).
+#[derive(Args, Clone, Debug)]
+pub struct ClientCertArgs {
+    /// PEM certificate to present when the server requires client certificates.
+    #[arg(long, env = "RAYFARM_TLS_CERT", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// PEM private key of --tls-cert.
+    #[arg(long, env = "RAYFARM_TLS_KEY", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+}
+
+impl ClientCertArgs {
+    /// The certificate and key, read, if given.
+    pub fn identity(&self) -> anyhow::Result<Option<Identity>> {
+        match (&self.tls_cert, &self.tls_key) {
             (Some(cert), Some(key)) => {
                 let read = |p: &PathBuf| {
                     std::fs::read(p).with_context(|| format!("reading {}", p.display()))
                 };
-                Some(Identity::from_pem(read(cert)?, read(key)?))
+                Ok(Some(Identity::from_pem(read(cert)?, read(key)?)))
             }
-            _ => None,
-        };
+            _ => Ok(None),
+        }
+    }
+}
+
+impl ClientAuthArgs {
+    /// TLS and the user token these options ask for.
+    pub fn security(&self) -> anyhow::Result<ClientSecurity> {
+        let identity = self.cert.identity()?;
         let token = match &self.token_file {
             Some(path) => Some(first_token(path)?),
             None => self.token.clone(),
@@ -303,7 +317,16 @@ pub fn rpc_error(url: &str, status: &tonic::Status) -> anyhow::Error {
         }
         .into();
     }
-    anyhow!("{}: {message}", code_name(status.code()))
+    // A worker's port (or another gRPC server) answers the job API with UNIMPLEMENTED.
+    let hint = if status.code() == tonic::Code::Unimplemented {
+        format!(
+            " (is {url} a rayfarm coordinator? a worker's port serves only its peers and health \
+             checks)"
+        )
+    } else {
+        String::new()
+    };
+    anyhow!("{}: {message}{hint}", code_name(status.code()))
 }
 
 /// The protobuf name of a status code, as gRPC documents and other tools print it.

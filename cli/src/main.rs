@@ -15,7 +15,8 @@ use clap::{Parser, Subcommand};
 #[derive(Parser)]
 #[command(version, about, propagate_version = true)]
 struct Cli {
-    /// More log output (-v info, -vv debug); RUST_LOG overrides.
+    /// More log output (-v debug, -vv trace; the servers' flags mean the same); RUST_LOG
+    /// overrides.
     #[arg(short, long, action = clap::ArgAction::Count, global = true)]
     verbose: u8,
     #[command(subcommand)]
@@ -55,35 +56,59 @@ enum Command {
 }
 
 fn main() -> std::process::ExitCode {
-    restore_sigpipe();
+    end_quietly_on_a_closed_stdout();
     let cli = Cli::parse();
     let default = match cli.verbose {
         0 => "warn",
-        1 => "info",
-        _ => "debug",
+        1 => "debug",
+        _ => "trace",
     };
     rayfarm_node::telemetry::init_logging(default);
     let result = dispatch(cli.command);
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", error_text(&e));
             std::process::ExitCode::FAILURE
         }
     }
 }
 
-/// Rust ignores SIGPIPE, which turns `rayfarm jobs --json | head -1` into a panic ("failed
-/// printing to stdout: Broken pipe") once the reader has gone. A command-line tool should
-/// instead end quietly, as `cat` does: restore the default action. The servers keep Rust's
-/// default (they write to sockets, whose errors they handle).
-fn restore_sigpipe() {
-    #[cfg(unix)]
-    // SAFETY: signal(2) with SIG_DFL installs no handler code; it runs before any thread
-    // starts.
-    unsafe {
-        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+/// A reader that went away (`rayfarm jobs --json | head -1`) makes `println!` panic with
+/// "failed printing to stdout: Broken pipe". For a command-line tool that is the normal end
+/// of its output: leave quietly with success, as `cat` does. (Restoring SIGPIPE's default
+/// action instead would also kill the process on a peer's broken TLS connection, which
+/// tokio writes with `writev`.)
+fn end_quietly_on_a_closed_stdout() {
+    let default = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
+        let text = info
+            .payload_as_str()
+            .map_or_else(|| info.to_string(), str::to_string);
+        if text.starts_with("failed printing to stdout") && text.contains("Broken pipe") {
+            std::process::exit(0);
+        }
+        default(info);
+    }));
+}
+
+/// An error and its causes on one line, leaving out a cause its parent already quotes
+/// (`io::Error`s and transport errors are often both shown and chained as the source, which
+/// `{:#}` prints twice: "No such file or directory (os error 2): No such file or directory
+/// (os error 2)").
+fn error_text(e: &anyhow::Error) -> String {
+    let mut text = String::new();
+    for cause in e.chain() {
+        let part = cause.to_string();
+        if text.contains(&part) {
+            continue;
+        }
+        if !text.is_empty() {
+            text.push_str(": ");
+        }
+        text.push_str(&part);
     }
+    text
 }
 
 /// Runs one subcommand.
@@ -110,6 +135,15 @@ mod tests {
 
     /// Clap checks flag names, env twins and relations only when asked; a clash among the
     /// flattened option groups would otherwise surface as a panic in a user's hands.
+    #[test]
+    fn an_error_quotes_each_cause_once() {
+        let io = std::io::Error::from(std::io::ErrorKind::NotFound);
+        let e = anyhow::Error::new(io).context("missing.ply: entity not found");
+        assert_eq!(super::error_text(&e), "missing.ply: entity not found");
+        let e = anyhow::anyhow!("refused").context("connecting");
+        assert_eq!(super::error_text(&e), "connecting: refused");
+    }
+
     #[test]
     fn every_command_line_is_well_formed() {
         super::Cli::command().debug_assert();

@@ -75,7 +75,12 @@ pub fn cluster_stats_table(s: &ClusterStats) -> Table {
             ),
         ));
     }
-    rows.push(("peak RSS (largest worker)", human(s.peak_rss_bytes)));
+    // The kernel's high-water mark, kept for a process's whole life: earlier, bigger frames
+    // of the same worker count too.
+    rows.push((
+        "peak RSS (largest worker, since it started)",
+        human(s.peak_rss_bytes),
+    ));
     rows.push(("image hash", s.image_hash.clone()));
     two_columns(rows)
 }
@@ -92,7 +97,7 @@ pub fn worker_stats_table(workers: &[WorkerFrameStats]) -> Table {
         "rays received",
         "busy",
         "idle",
-        "peak RSS",
+        "peak RSS since start",
     ]);
     for w in workers {
         t.add_row(vec![

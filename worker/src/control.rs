@@ -42,8 +42,19 @@ pub async fn run(
     faults: Faults,
 ) -> anyhow::Result<()> {
     let mut failures = 0u32;
+    // Once attached in plain text, the coordinator at this address is known not to serve TLS.
+    let mut attached_once = false;
     loop {
-        match session(&me, &events, &mut outbound, faults, &mut failures).await {
+        let outcome = session(
+            &me,
+            &events,
+            &mut outbound,
+            faults,
+            &mut failures,
+            &mut attached_once,
+        )
+        .await;
+        match outcome {
             Ok(Session::EngineGone) => return Ok(()),
             Ok(Session::Ended) => failures = 0,
             // Retrying cannot fix another protocol or a wrong secret: exit and say why.
@@ -59,7 +70,8 @@ pub async fn run(
                 failures += 1;
                 warn!(coordinator = %me.coordinator, %status, "control stream unavailable");
                 // A TLS coordinator hangs up on plain text with errors that never say TLS.
-                if me.security.tls.is_none() && status.code() != Code::Unavailable {
+                if me.security.tls.is_none() && status.code() != Code::Unavailable && !attached_once
+                {
                     warn!("if the coordinator serves TLS, give --tls-ca");
                 }
             }
@@ -82,6 +94,7 @@ async fn session(
     outbound: &mut mpsc::UnboundedReceiver<proto::WorkerMessage>,
     faults: Faults,
     failures: &mut u32,
+    attached_once: &mut bool,
 ) -> Result<Session, tonic::Status> {
     let unavailable = |e: tonic::transport::Error| tonic::Status::unavailable(e.to_string());
     let channel = me
@@ -118,6 +131,7 @@ async fn session(
                         info!(coordinator = %me.coordinator, "attached");
                         // The next loss (a coordinator restart) backs off from the start again.
                         *failures = 0;
+                        *attached_once = true;
                         let period = Duration::from_millis(u64::from(r.heartbeat_ms.max(10)));
                         heartbeat = tokio::time::interval(period);
                     }

@@ -296,6 +296,16 @@ impl Engine {
             &spec.scene,
             self.config.allow_absolute_scenes,
         )?;
+        if !dir.is_dir() {
+            // Each node names its own mount point of the shared storage.
+            anyhow::bail!(
+                "scene {:?} not found: {} is not a directory (is --scene-root {} where this \
+                 node sees the scenes?)",
+                spec.scene,
+                dir.display(),
+                self.config.scene_root.display()
+            );
+        }
         let manifest = Manifest::load(&dir)?;
         let frame = job::frame_spec(spec, &manifest.camera).map_err(anyhow::Error::msg)?;
         let grid = TileGrid::new(frame.width, frame.height, s.tile_size)

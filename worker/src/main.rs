@@ -110,7 +110,7 @@ struct Args {
     /// required of peers (off without it). A file, so the secret shows in no process list.
     #[arg(long, env = "RAYFARM_CLUSTER_SECRET_FILE")]
     cluster_secret_file: Option<PathBuf>,
-    /// More log output (-v info, -vv debug); RUST_LOG overrides.
+    /// More log output (-v debug, -vv trace); RUST_LOG overrides.
     #[arg(short, long, action = clap::ArgAction::Count)]
     verbose: u8,
 }

@@ -608,7 +608,7 @@ fn chart_title(plan: &Plan, setup: &Setup, runs: &[RunOutcome]) -> String {
         .cache_bytes_per_worker
         .map_or(String::new(), |c| format!(", {} cache each", human(c)));
     format!(
-        "{} ({} domains, {}), {} workers{cache}, {}x{} {} spp",
+        "{} ({} domains, {}), {} workers{cache}, {}x{}, {} spp",
         plan.scene_name,
         plan.domains,
         human(plan.scene_bytes),

@@ -10,7 +10,7 @@ use tonic_health::pb::HealthCheckRequest;
 use tonic_health::pb::health_check_response::ServingStatus;
 use tonic_health::pb::health_client::HealthClient;
 
-use crate::client::runtime;
+use crate::client::{ClientCertArgs, runtime};
 
 /// Options of `rayfarm health`.
 #[derive(Args, Clone, Debug)]
@@ -20,13 +20,16 @@ pub struct HealthArgs {
     /// TLS, for servers started with --tls-cert (the health service needs no credentials).
     #[command(flatten)]
     pub tls: ConnectTlsArgs,
+    /// For servers that require client certificates (--tls-client-ca).
+    #[command(flatten)]
+    pub cert: ClientCertArgs,
     /// Seconds to wait for an answer.
     #[arg(long, default_value_t = 3.0)]
     pub timeout: f64,
 }
 
 pub fn run(a: HealthArgs) -> anyhow::Result<()> {
-    let tls = a.tls.client_config(None)?;
+    let tls = a.tls.client_config(a.cert.identity()?)?;
     let url = rayfarm_node::security::url(&a.addr, tls.is_some());
     let timeout = Duration::try_from_secs_f64(a.timeout).context("--timeout")?;
     let status = runtime()?.block_on(async {

@@ -45,6 +45,20 @@ pub fn now_unix_ms() -> i64 {
         .map_or(0, |d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX))
 }
 
+/// How much of a failed job's error the table shows.
+const ERROR_CHARS: usize = 40;
+
+/// The first `n` characters of `text`, with an ellipsis if there were more.
+fn first_chars(text: &str, n: usize) -> String {
+    let mut chars = text.chars();
+    let head: String = chars.by_ref().take(n).collect();
+    if chars.next().is_some() {
+        format!("{head}...")
+    } else {
+        head
+    }
+}
+
 /// The jobs as a table; times relative to `now_ms`.
 pub fn jobs_table(jobs: &[proto::JobSummary], now_ms: i64) -> Table {
     let mut t = Table::new();
@@ -66,7 +80,8 @@ pub fn jobs_table(jobs: &[proto::JobSummary], now_ms: i64) -> Table {
         let spec = j.spec.clone().unwrap_or_default();
         let mut state = state_name(j.state()).to_string();
         if j.state() == JobState::Failed && !j.error.is_empty() {
-            state = format!("{state}: {}", j.error);
+            // The first words only: the whole error is in `jobs --json` and `watch`.
+            state = format!("{state}: {}", first_chars(&j.error, ERROR_CHARS));
         }
         let scene = if spec.scene.is_empty() {
             "(default)".to_string()
@@ -135,6 +150,7 @@ fn job_json(j: &proto::JobSummary) -> serde_json::Value {
         "max_depth": spec.max_depth,
         "schedule": schedule_name(spec.schedule()),
         "priority": spec.priority,
+        "cold_cache": spec.cold_cache,
         "camera": camera,
         "submitted_unix_ms": j.submitted_unix_ms,
         "started_unix_ms": j.started_unix_ms,

@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
 use rayfarm_core::prepare::generate::{NbodyOptions, prepare_nbody};
+use rayfarm_core::prepare::mesh_scene::MAX_DOMAINS;
 use rayfarm_core::prepare::prepare_mesh;
 use rayfarm_core::prepare::volume_scene::prepare_volume;
 use rayfarm_core::scene::Manifest;
@@ -26,8 +27,9 @@ pub struct PrepareArgs {
     /// Scene directory to create.
     #[arg(long, short)]
     pub out: PathBuf,
-    /// Number of domains to cut the scene into.
-    #[arg(long, default_value_t = 8)]
+    /// Number of domains to cut the scene into, 1 to 65536.
+    #[arg(long, default_value_t = 8,
+          value_parser = clap::value_parser!(u32).range(1..=i64::from(MAX_DOMAINS)))]
     pub domains: u32,
     /// Replace `--out` if it exists.
     #[arg(long)]
@@ -101,6 +103,12 @@ pub fn run(a: PrepareArgs) -> anyhow::Result<()> {
         }
         (None, Some(input), None) => {
             let mesh = rayfarm_core::mesh::read_mesh(input)?;
+            if mesh.triangles.is_empty() {
+                bail!(
+                    "{}: the mesh has no triangles (an empty file, or only points and lines)",
+                    input.display()
+                );
+            }
             prepare_mesh(&mesh, &name_of(&a), &a.out, a.domains, a.force)?
         }
         (None, None, _) => bail!("give an INPUT mesh or volume, or --generate nbody"),
@@ -129,18 +137,17 @@ fn print_summary(out: &std::path::Path, m: &Manifest) {
     let bytes: u64 = m.domains.iter().map(|d| d.bytes).sum();
     let refs: u64 = m.domains.iter().map(|d| d.triangles).sum();
     let largest = m.domains.iter().map(|d| d.bytes).max().unwrap_or(0);
+    let domains = m.domains.len();
     println!(
-        "{}: {} triangles ({} references) in {} domains, {} on disk (largest domain {})",
+        "{}: {} triangles ({} references) in {domains} domain{}, {} on disk (largest domain {})",
         out.display(),
         m.triangles,
         refs,
-        m.domains.len(),
+        if domains == 1 { "" } else { "s" },
         units::human(bytes),
         units::human(largest)
     );
     // The kernel's own high-water mark (what `/usr/bin/time -v` reports), for scripts and tests.
-    println!(
-        "peak RSS: {} bytes",
-        rayfarm_core::render::stats::peak_rss_bytes()
-    );
+    let peak = rayfarm_core::render::stats::peak_rss_bytes();
+    println!("peak RSS: {} ({peak} bytes)", units::human(peak));
 }

@@ -7,6 +7,7 @@ use clap::Args;
 use clap::builder::BoolishValueParser;
 use indicatif::{ProgressBar, ProgressStyle};
 use rayfarm_core::render::local::{FrameSpec, LocalOptions, Progress, render_local};
+use rayfarm_core::scene::MANIFEST_FILE;
 use rayfarm_core::scene::Manifest;
 
 use crate::table::stats_table;
@@ -60,6 +61,21 @@ pub fn run(a: RenderArgs) -> anyhow::Result<()> {
     super::fetch::check_writable(&a.out)?;
     if let Some(p) = &a.stats_json {
         super::fetch::check_writable(p)?;
+    }
+    if !a.scene.is_dir() {
+        bail!(
+            "{}: no such scene directory (a prepared scene is a directory holding \
+             {MANIFEST_FILE}; make one with `rayfarm prepare`)",
+            a.scene.display()
+        );
+    }
+    if !a.scene.join(MANIFEST_FILE).exists() {
+        bail!(
+            "{} holds no {MANIFEST_FILE}, so it is not a prepared scene: make one with `rayfarm \
+             prepare MESH --out {}` (or `--generate nbody`)",
+            a.scene.display(),
+            a.scene.display()
+        );
     }
     let manifest = Manifest::load(&a.scene)?;
     let camera = a

@@ -138,8 +138,29 @@ async fn follow_once(
         .watch(job_id)
         .await
         .with_context(|| format!("watching job {job_id}"))?;
+    // A queued job sends no events: check now and then that it has workers to wait for.
+    let mut check = tokio::time::interval(NO_WORKER_CHECK);
+    let mut queued = false;
+    let mut warned = false;
     loop {
-        let event = match stream.message().await {
+        let message = tokio::select! {
+            m = stream.message() => m,
+            _ = check.tick(), if queued && !warned => {
+                if coord.cluster_status().await.is_ok_and(|s| s.workers.is_empty()) {
+                    bar.suspend(|| {
+                        eprintln!(
+                            "warning: no worker is attached to the coordinator at {}: job \
+                             {job_id} stays queued until one attaches (see `rayfarm status`)",
+                            coord.url()
+                        )
+                    });
+                    bar.set_message("queued: no workers");
+                    warned = true;
+                }
+                continue;
+            }
+        };
+        let event = match message {
             Ok(Some(event)) => event,
             Ok(None) => {
                 bail!("the coordinator ended the watch of job {job_id} before the job ended")
@@ -149,12 +170,16 @@ async fn follow_once(
             }
         };
         *heard = true;
+        queued = event.state() == JobState::Queued;
         show(bar, &event);
         if is_final(event.state()) {
             return Ok(event);
         }
     }
 }
+
+/// How long a queued job is followed before checking that the cluster has workers.
+const NO_WORKER_CHECK: Duration = Duration::from_secs(2);
 
 /// Succeeded is `Ok`; a failed or cancelled job is an error saying so (with the job's own
 /// error message).

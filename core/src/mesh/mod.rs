@@ -66,7 +66,8 @@ pub enum MeshError {
     /// The file name does not end in a supported extension.
     #[error(
         "{path}: unsupported mesh format; supported extensions are .ply, .obj and .stl, \
-         each optionally followed by .gz"
+         each optionally followed by .gz (a raw volume, of any extension, is read with \
+         --dims X,Y,Z, --dtype and --iso)"
     )]
     UnsupportedFormat {
         /// The file name as given.

@@ -133,8 +133,9 @@ fn domains_for_memory(
     n: u32,
     coarse_triangles: u64,
 ) -> Result<u32, PrepareError> {
+    super::mesh_scene::check_domains(o.domains)?;
     let Some(limit) = o.max_memory else {
-        return Ok(o.domains.max(1));
+        return Ok(o.domains);
     };
     if limit <= BASE_BYTES + (16 << 20) {
         return Err(PrepareError::Invalid(format!(
@@ -148,7 +149,14 @@ fn domains_for_memory(
     let per_domain = (limit - BASE_BYTES) / BUILD_BYTES_PER_TRIANGLE;
     // Balancing is approximate; leave room for a domain half again the average.
     let needed = (estimate * 3 / 2).div_ceil(per_domain.max(1));
-    let domains = (needed as u32).max(o.domains.max(1));
+    let domains = u32::try_from(needed).unwrap_or(u32::MAX).max(o.domains);
+    if super::mesh_scene::check_domains(domains).is_err() {
+        return Err(PrepareError::Invalid(format!(
+            "--max-memory {limit} would need {domains} domains, more than the {} a scene may \
+             have: give more memory",
+            super::mesh_scene::MAX_DOMAINS
+        )));
+    }
     if domains > o.domains {
         info!(
             asked = o.domains,

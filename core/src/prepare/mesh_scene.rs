@@ -14,6 +14,16 @@ use crate::scene::{DomainTree, Manifest, Material};
 /// Most domains a scene may have.
 pub const MAX_DOMAINS: u32 = 1 << 16;
 
+/// Refuses a domain count outside 1..=[`MAX_DOMAINS`], the limit README states.
+pub fn check_domains(domains: u32) -> Result<(), PrepareError> {
+    if domains == 0 || domains > MAX_DOMAINS {
+        return Err(PrepareError::Invalid(format!(
+            "--domains {domains} is outside 1..={MAX_DOMAINS}"
+        )));
+    }
+    Ok(())
+}
+
 /// Cuts `mesh` into `domains` domains and writes the scene to `out`.
 pub fn prepare_mesh(
     mesh: &TriangleMesh,
@@ -22,11 +32,7 @@ pub fn prepare_mesh(
     domains: u32,
     force: bool,
 ) -> Result<Manifest, PrepareError> {
-    if domains == 0 || domains > MAX_DOMAINS {
-        return Err(PrepareError::Invalid(format!(
-            "--domains {domains} is outside 1..={MAX_DOMAINS}"
-        )));
-    }
+    check_domains(domains)?;
     let tris: Vec<[[f32; 3]; 3]> = mesh
         .triangles
         .iter()
@@ -42,7 +48,9 @@ pub fn prepare_mesh(
         })
         .collect::<Result<_, _>>()?;
     if tris.is_empty() {
-        return Err(PrepareError::Invalid("the mesh has no triangles".into()));
+        return Err(PrepareError::Invalid(
+            "the mesh has no triangles (an empty file, or only points and lines)".into(),
+        ));
     }
     let mut bounds = Aabb::EMPTY;
     for t in &tris {
