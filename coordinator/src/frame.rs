@@ -299,6 +299,12 @@ impl RunningFrame {
         for m in self.members.values_mut() {
             m.report = None;
         }
+        // The new owners go out before the re-dealt tiles: a worker traces a hand-out as soon
+        // as it arrives, and under the old plan the rays leaving its tiles would be routed to
+        // the lost worker, whose link holds them until it gives up (the frame never ended).
+        if matches!(self.schedule, Schedule::Domain | Schedule::Hybrid) {
+            out.extend(self.owner_plans());
+        }
         let tiles: Vec<u32> = bumped.into_iter().map(|(t, _)| t).collect();
         if self.schedule == Schedule::Hybrid {
             // Whoever runs dry first takes them, as before.
@@ -313,9 +319,6 @@ impl RunningFrame {
                 let share = tiles.iter().copied().skip(i).step_by(n).collect();
                 out.push((k, self.hand_out_message(share)));
             }
-        }
-        if matches!(self.schedule, Schedule::Domain | Schedule::Hybrid) {
-            out.extend(self.owner_plans());
         }
         Some(out)
     }
