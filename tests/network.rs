@@ -211,7 +211,12 @@ fn the_coordinator_cut_off_from_every_worker_past_the_heartbeat_timeout() {
     // The workers' streams come back (or they register afresh) and the job starts over.
     let took = finish_frame(child, &json, &scene, "the coordinator cut off, healed");
     eprintln!("healed: the frame took {took:?} more");
-    assert_eq!(stats_field(&json, "/workers"), 3);
+    // The re-queued job starts with whoever is back first (the others join it or the next
+    // job): the image is the check here, and the next job must have everyone.
+    let workers = stats_field(&json, "/workers")
+        .as_u64()
+        .expect("worker count");
+    assert!((1..=3).contains(&workers), "{workers} workers");
     next_job_with_everyone(&cluster, &scene, 3, "the coordinator's links healed");
 }
 
