@@ -1,5 +1,5 @@
-//! Compiles `proto/` once for the whole workspace, with the pure-Rust `protox` (no `protoc`
-//! needed on the build machine).
+//! Generates the gRPC services of `proto/rayfarm/v1` over the message types of `rayfarm-proto`
+//! (one definition of every message for the whole workspace), with the pure-Rust `protox`.
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let files = [
@@ -11,10 +11,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         println!("cargo:rerun-if-changed={f}");
     }
     let fds = protox::compile(files, ["../proto"])?;
-    // Ray batches and images as `Bytes`: handed on without copying.
     tonic_prost_build::configure()
-        .bytes(".rayfarm.v1.PeerBundle.batches")
-        .bytes(".rayfarm.v1.FetchResultResponse.image")
+        .extern_path(".rayfarm.v1", "::rayfarm_proto")
         .compile_fds(fds)?;
     Ok(())
 }

@@ -1,12 +1,11 @@
-//! Generated gRPC types and services of `proto/rayfarm/v1` (the user API, the worker control
-//! stream, the peer bundle stream).
+//! The gRPC services of `proto/rayfarm/v1` (the user API, the worker control stream, the peer
+//! bundle stream) over the message types of `rayfarm-proto`, which this module re-exports.
 
 #![allow(missing_docs, clippy::all, clippy::pedantic)]
 
-tonic::include_proto!("rayfarm.v1");
+pub use rayfarm_proto::*;
 
-/// Version of the worker and peer protocols; a peer of another version is refused.
-pub const PROTOCOL_VERSION: u32 = 3;
+tonic::include_proto!("rayfarm.v1");
 
 #[cfg(test)]
 mod tests {

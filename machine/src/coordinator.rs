@@ -1,0 +1,1 @@
+//! The coordinator machine: jobs, workers, rounds, the tile ledger, job store records.

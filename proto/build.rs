@@ -1,0 +1,23 @@
+//! Compiles `rayfarm/v1` into message types only (no client or server code), with the pure-Rust
+//! `protox` (no `protoc` needed on the build machine). `rayfarm-node` generates the gRPC
+//! services over these same types.
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let files = [
+        "rayfarm/v1/jobs.proto",
+        "rayfarm/v1/worker.proto",
+        "rayfarm/v1/peer.proto",
+    ];
+    for f in files {
+        println!("cargo:rerun-if-changed={f}");
+    }
+    let fds = protox::compile(files, ["."])?;
+    // Ray batches and images as `Bytes`: handed on without copying.
+    tonic_prost_build::configure()
+        .build_client(false)
+        .build_server(false)
+        .bytes(".rayfarm.v1.PeerBundle.batches")
+        .bytes(".rayfarm.v1.FetchResultResponse.image")
+        .compile_fds(fds)?;
+    Ok(())
+}

@@ -1,0 +1,11 @@
+//! The messages of `proto/rayfarm/v1` (the user API, the worker control stream, the peer bundle
+//! stream) as plain prost types. They carry no gRPC runtime, so the coordinator and worker
+//! machines, and the simulator that drives them, can exchange them without any I/O;
+//! `rayfarm_node::proto` adds the tonic services over the same types.
+
+#![allow(missing_docs, clippy::all, clippy::pedantic)]
+
+include!(concat!(env!("OUT_DIR"), "/rayfarm.v1.rs"));
+
+/// Version of the worker and peer protocols; a peer of another version is refused.
+pub const PROTOCOL_VERSION: u32 = 3;
