@@ -7,4 +7,7 @@
 //! code.
 
 pub mod coordinator;
+pub mod time;
 pub mod worker;
+
+pub use time::Time;
