@@ -132,3 +132,85 @@ fn a_worker_forging_credit_is_dropped_and_the_image_stays_right() {
     let workers = status["workers"].as_array().unwrap();
     assert_eq!(workers.len(), 1, "{status}");
 }
+
+/// Attaches as worker `id` and, once a frame starts, reports `victim` unreachable; answers
+/// nothing else, until its control stream ends.
+async fn accuser(url: String, id: &str, victim: String) {
+    let mut client = proto::worker_control_client::WorkerControlClient::connect(url)
+        .await
+        .unwrap();
+    let (tx, rx) = tokio::sync::mpsc::channel(64);
+    tx.send(proto::WorkerMessage {
+        body: Some(FromWorker::Register(proto::Register {
+            protocol_version: proto::PROTOCOL_VERSION,
+            worker_id: id.into(),
+            peer_address: "127.0.0.1:9".into(),
+            cache_bytes: 1 << 30,
+            threads: 1,
+        })),
+    })
+    .await
+    .unwrap();
+    let stream = tokio_stream::wrappers::ReceiverStream::new(rx);
+    let mut answers = client.attach(stream).await.unwrap().into_inner();
+    loop {
+        match answers.message().await {
+            Ok(Some(m)) => {
+                if let Some(ToWorker::StartFrame(_)) = m.body {
+                    let report = proto::WorkerMessage {
+                        body: Some(FromWorker::PeerUnresponsive(proto::PeerUnresponsive {
+                            peer_address: victim.clone(),
+                            reason: "forged".into(),
+                        })),
+                    };
+                    let _ = tx.send(report).await;
+                }
+            }
+            Ok(None) | Err(_) => return,
+        }
+    }
+}
+
+#[test]
+fn one_peer_reporting_a_worker_the_coordinator_hears_drops_the_accuser() {
+    let root = tempfile::tempdir().unwrap();
+    let scene = prepare_nbody(root.path(), "nb", 2000, 2);
+    let cluster = Cluster::start(root.path(), Some("nb"), &[WorkerOpts::default()]);
+    let victim = cluster.status()["workers"][0]["peer_address"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .unwrap();
+    let accused = rt.spawn(accuser(
+        cluster.coordinator_url().to_string(),
+        "liar",
+        victim,
+    ));
+    cluster.wait_for_workers(2, Duration::from_secs(30));
+    // The liar traces nothing: the frame ends only once it is dropped and its tiles go to the
+    // worker it accused.
+    let stats = submit_wait(&cluster, &FRAME, "accused");
+    assert_eq!(hash_of(&stats), local_hash(&scene, &FRAME));
+    // Dropping it ends its control stream.
+    rt.block_on(async { tokio::time::timeout(Duration::from_secs(30), accused).await })
+        .expect("the liar's stream was not closed")
+        .unwrap();
+    let status = cluster.status();
+    let workers = status["workers"].as_array().unwrap();
+    assert_eq!(workers.len(), 1, "{status}");
+    assert_ne!(workers[0]["worker_id"], "liar", "{status}");
+    // The first worker lost is the liar, and the accused never was.
+    let log = cluster.coordinator_log();
+    let lost: Vec<&str> = log.lines().filter(|l| l.contains("worker lost")).collect();
+    assert!(
+        lost.first().is_some_and(|l| l.contains("worker=liar ")),
+        "{log}"
+    );
+    let honest = workers[0]["worker_id"].as_str().unwrap();
+    let named = format!("worker={honest} ");
+    assert!(!lost.iter().any(|l| l.contains(&named)), "{log}");
+}

@@ -7,6 +7,10 @@
 //! distinct broken links goes, whichever side reported them (on a tie, the one reported first):
 //! the cut-off worker, whose reports go with it. A hung worker is at the end of every link
 //! reported; a single broken link between two healthy workers costs one of them.
+//!
+//! A report is the word of one node, and a node with the cluster credentials may lie. So an
+//! accused worker the coordinator itself still hears from (heartbeats within the grace period)
+//! is dropped only if two distinct peers report it; on one report alone, the accuser goes.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::{Duration, Instant};
@@ -58,12 +62,27 @@ impl Accusations {
     }
 
     /// Once the oldest report is `grace` old, picks the worker to drop among `members` and
-    /// forgets its reports both ways; `None` while reports may still be coming.
+    /// forgets its reports both ways; `None` while reports may still be coming. (As if the
+    /// coordinator heard from nobody: the tests' view of the link rule alone.)
+    #[cfg(test)]
     pub fn judge(
         &mut self,
         now: Instant,
         grace: Duration,
         members: &BTreeSet<u32>,
+    ) -> Option<Verdict> {
+        self.judge_heard(now, grace, members, &BTreeSet::new())
+    }
+
+    /// [`judge`](Self::judge), where `heard` are the members the coordinator has heard from
+    /// within the grace period: one peer's report alone does not drop them (see the module
+    /// docs).
+    pub fn judge_heard(
+        &mut self,
+        now: Instant,
+        grace: Duration,
+        members: &BTreeSet<u32>,
+        heard: &BTreeSet<u32>,
     ) -> Option<Verdict> {
         self.pending
             .retain(|a| members.contains(&a.accuser) && members.contains(&a.accused));
@@ -79,9 +98,16 @@ impl Accusations {
         }
         let most = links.values().map(BTreeSet::len).max()?;
         // Reports are in order of arrival: the first one naming a worker with the most broken
-        // links decides, the accused before the accuser.
+        // links decides, the accused before the accuser, unless the accused is one the
+        // coordinator still hears from and only this accuser reports.
         let (drop, first) = self.pending.iter().find_map(|a| {
-            [a.accused, a.accuser]
+            let uncorroborated = heard.contains(&a.accused) && links[&a.accused].len() < 2;
+            let order = if uncorroborated {
+                [a.accuser, a.accused]
+            } else {
+                [a.accused, a.accuser]
+            };
+            order
                 .into_iter()
                 .find(|k| links[k].len() == most)
                 .map(|k| (k, a.clone()))
@@ -105,6 +131,39 @@ mod tests {
 
     fn members(keys: &[u32]) -> BTreeSet<u32> {
         keys.iter().copied().collect()
+    }
+
+    #[test]
+    fn one_report_about_a_worker_the_coordinator_hears_drops_the_accuser() {
+        let t0 = Instant::now();
+        let mut a = Accusations::default();
+        a.add(1, 2, t0, "silent");
+        let v = a
+            .judge_heard(
+                t0 + GRACE,
+                GRACE,
+                &members(&[1, 2, 3]),
+                &members(&[1, 2, 3]),
+            )
+            .expect("verdict");
+        assert_eq!(v.drop, 1);
+        // Two peers reporting it, or the coordinator not hearing it either, drop the accused.
+        a.add(1, 2, t0, "silent");
+        a.add(3, 2, t0, "silent");
+        let v = a
+            .judge_heard(
+                t0 + GRACE,
+                GRACE,
+                &members(&[1, 2, 3]),
+                &members(&[1, 2, 3]),
+            )
+            .expect("verdict");
+        assert_eq!(v.drop, 2);
+        a.add(1, 3, t0, "silent");
+        let v = a
+            .judge_heard(t0 + GRACE, GRACE, &members(&[1, 3]), &members(&[1]))
+            .expect("verdict");
+        assert_eq!(v.drop, 3);
     }
 
     #[test]

@@ -752,8 +752,21 @@ impl Coordinator {
         let grace = (self.config.heartbeat * 2).max(ACCUSATION_GRACE);
         let mut st = self.lock();
         let frame = st.running.as_mut()?;
-        let members = frame.members().collect();
-        let v = frame.accusations.judge(Instant::now(), grace, &members)?;
+        let members: BTreeSet<u32> = frame.members().collect();
+        // Members the coordinator hears from itself: one peer's word alone does not drop them.
+        let heard = members
+            .iter()
+            .copied()
+            .filter(|k| {
+                st.workers
+                    .get(k)
+                    .is_some_and(|w| w.last_seen.elapsed() < grace)
+            })
+            .collect();
+        let frame = st.running.as_mut()?;
+        let v = frame
+            .accusations
+            .judge_heard(Instant::now(), grace, &members, &heard)?;
         let id_of = |k| st.workers.get(&k).map(|w| w.id.clone()).unwrap_or_default();
         let (dropped, accused, accuser) = (id_of(v.drop), id_of(v.accused), id_of(v.accuser));
         if let Some(frame) = st.running.as_mut() {
