@@ -36,6 +36,20 @@ fn a_worker_without_the_scene_is_left_out_and_the_others_render_the_local_image(
             2,
             "{tag}: two workers took part"
         );
+        let left: Vec<String> =
+            serde_json::from_value(stats_field(&stats, "/left_out")).expect("left_out is a list");
+        assert_eq!(
+            left.len(),
+            1,
+            "{tag}: the statistics name the left-out worker: {left:?}"
+        );
+        assert!(
+            left[0].starts_with(&format!(
+                "worker {}: scene \"nb\" not found",
+                cluster.worker_addr(1)
+            )),
+            "{left:?}"
+        );
     }
     let status = cluster.status();
     let workers = status["workers"].as_array().expect("workers");

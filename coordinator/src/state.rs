@@ -112,6 +112,8 @@ struct WorkerEntry {
 struct Finishing {
     waiting: BTreeSet<u32>,
     reports: Vec<WorkerFrameStats>,
+    /// The workers that declined the frame, with their reasons.
+    left_out: Vec<String>,
     done: Option<oneshot::Sender<()>>,
 }
 
@@ -897,6 +899,11 @@ impl Coordinator {
             Finishing {
                 waiting: frame.members().collect(),
                 reports: Vec::new(),
+                left_out: if st.declines.0 == frame.job_id {
+                    std::mem::take(&mut st.declines.1)
+                } else {
+                    Vec::new()
+                },
                 done: Some(done_tx),
             },
         );
@@ -910,11 +917,11 @@ impl Coordinator {
 
     async fn finish(self: Arc<Self>, frame: RunningFrame, wall: f64) {
         let id = frame.job_id.clone();
-        let reports = {
+        let (reports, left_out) = {
             let mut st = self.lock();
             st.finishing
                 .remove(&id)
-                .map(|f| f.reports)
+                .map(|f| (f.reports, f.left_out))
                 .unwrap_or_default()
         };
         let spec = &frame.frame;
@@ -929,6 +936,7 @@ impl Coordinator {
             domains: frame.domain_count(),
             wall_seconds: wall,
             rounds: frame.round,
+            left_out,
             ..Default::default()
         };
         stats.absorb(reports);
