@@ -558,7 +558,17 @@ impl Coordinator {
                     publish_progress(&st, f);
                 }
             }
-            FromWorker::TileResults(r) => self.tile_results(&mut st, key, r),
+            FromWorker::TileResults(r) => {
+                if let Some(why) = self.tile_results(&mut st, key, r) {
+                    // Its stream is closed and its tiles re-dealt to the others; it sits out
+                    // the frame, so re-registering does not bring it back into this one.
+                    if let Some(w) = st.workers.get(&key) {
+                        let _ = w.tx.send(Err(Status::permission_denied(why.clone())));
+                    }
+                    drop(st);
+                    self.worker_gone(key, &why);
+                }
+            }
             FromWorker::FrameReport(r) => self.frame_report(&mut st, key, r),
             FromWorker::PeerUnresponsive(p) => {
                 let reporter = worker.id.clone();
@@ -583,32 +593,40 @@ impl Coordinator {
         }
     }
 
-    fn tile_results(self: &Arc<Self>, st: &mut State, key: u32, r: proto::TileResults) {
-        let Some(frame) = st.running.as_mut().filter(|f| f.job_id == r.job_id) else {
-            return;
-        };
-        match frame.results(key, r) {
-            Ok(committed) => {
-                if let Err(e) = write_tiles(frame, &committed) {
-                    let msg = format!("{e:#}");
-                    self.fail_running(st, &msg);
-                } else if frame.ledger.is_complete() {
-                    self.complete(st);
-                } else if let Some(f) = st.running.as_ref() {
-                    publish_progress(st, f);
-                }
-            }
-            Err(e) => {
-                let worker = st
-                    .workers
-                    .get(&key)
-                    .map(|w| w.id.clone())
-                    .unwrap_or_default();
-                let msg = format!("worker {worker} sent impossible tile results: {e}");
-                error!("{msg}");
-                self.fail_running(st, &msg);
-            }
+    /// Commits a worker's tile results. Returns why the worker must be dropped if they
+    /// cannot be right (a forged or broken worker): nothing of them is counted, and the
+    /// frame goes on without it, so its image is still the one `render --local` makes.
+    fn tile_results(
+        self: &Arc<Self>,
+        st: &mut State,
+        key: u32,
+        r: proto::TileResults,
+    ) -> Option<String> {
+        let frame = st.running.as_mut().filter(|f| f.job_id == r.job_id)?;
+        let (committed, refused) = frame.results(key, r);
+        if let Err(e) = write_tiles(frame, &committed) {
+            let msg = format!("{e:#}");
+            self.fail_running(st, &msg);
+            return None;
         }
+        if let Some(e) = refused {
+            let worker = st
+                .workers
+                .get(&key)
+                .map(|w| w.id.clone())
+                .unwrap_or_default();
+            error!(worker = %worker, error = %e, "worker sent impossible tile results: dropped, its tiles re-dealt");
+            if let Some(frame) = st.running.as_mut() {
+                frame.sidelined.insert(worker);
+            }
+            return Some(format!("impossible tile results: {e}"));
+        }
+        if frame.ledger.is_complete() {
+            self.complete(st);
+        } else if let Some(f) = st.running.as_ref() {
+            publish_progress(st, f);
+        }
+        None
     }
 
     fn frame_report(self: &Arc<Self>, st: &mut State, key: u32, r: proto::FrameReport) {
