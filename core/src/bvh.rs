@@ -554,8 +554,9 @@ trait Isa {
     /// Entry distances into the node's eight child boxes within `[t0, t1]`, and a bit mask of
     /// the children that are entered.
     fn slab(node: &BvhNode, ray: &Self::Ray, t0: f32, t1: f32) -> ([f32; WIDTH], u32);
-    /// The watertight test of a block's four lanes (infinity for a miss).
-    fn block(block: &TriangleBlock, ray: &Self::Ray) -> [f32; BLOCK];
+    /// The watertight test of a block's four lanes (infinity for a miss), and a bit mask of
+    /// the lanes whose hit lies in `[t0, t1]`.
+    fn block(block: &TriangleBlock, ray: &Self::Ray, t0: f32, t1: f32) -> ([f32; BLOCK], u32);
 }
 
 struct Scalar;
@@ -587,8 +588,8 @@ impl Isa for Scalar {
     }
 
     #[inline(always)]
-    fn block(block: &TriangleBlock, ray: &TraceRay) -> [f32; BLOCK] {
-        block.intersect_scalar(&ray.sheared)
+    fn block(block: &TriangleBlock, ray: &TraceRay, t0: f32, t1: f32) -> ([f32; BLOCK], u32) {
+        block.intersect_scalar(&ray.sheared, t0, t1)
     }
 }
 
@@ -619,14 +620,8 @@ fn prefetch_children(bvh: Bvh, node: &BvhNode, mut mask: u32) {
 #[inline(always)]
 fn leaf_nearest<K: Isa>(blocks: &[TriangleBlock], ray: &K::Ray, t0: f32, best: &mut Hit) {
     for b in blocks {
-        let ts = K::block(b, ray);
-        // Candidates first, without branches: most lanes miss.
-        let mut lanes = 0u32;
-        for (lane, &t) in ts.iter().enumerate() {
-            // A miss is infinity, which must not win against an unbounded t1.
-            let candidate = t >= t0 && t <= best.t && t != f32::INFINITY;
-            lanes |= (candidate as u32) << lane;
-        }
+        // Candidates come as a mask from the test itself: most lanes miss.
+        let (ts, mut lanes) = K::block(b, ray, t0, best.t);
         while lanes != 0 {
             let lane = lanes.trailing_zeros() as usize;
             lanes &= lanes - 1;
@@ -771,14 +766,7 @@ fn nearest<K: Isa>(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32
 /// Whether a leaf's blocks hold a hit in `[t0, t1]`.
 #[inline(always)]
 fn leaf_any<K: Isa>(blocks: &[TriangleBlock], ray: &K::Ray, t0: f32, t1: f32) -> bool {
-    blocks.iter().any(|b| {
-        let ts = K::block(b, ray);
-        let mut hit = false;
-        for t in ts {
-            hit |= t >= t0 && t <= t1 && t != f32::INFINITY;
-        }
-        hit
-    })
+    blocks.iter().any(|b| K::block(b, ray, t0, t1).1 != 0)
 }
 
 /// Shadow-ray traversal: no order and no distances kept; a node's leaf children are tested at
@@ -890,9 +878,9 @@ mod x86 {
         }
 
         #[inline(always)]
-        fn block(block: &TriangleBlock, r: &SseRay) -> [f32; BLOCK] {
+        fn block(block: &TriangleBlock, r: &SseRay, t0: f32, t1: f32) -> ([f32; BLOCK], u32) {
             // SAFETY: SSE2 is part of x86-64.
-            unsafe { block.intersect_sse(&r.tri) }
+            unsafe { block.intersect_sse(&r.tri, t0, t1) }
         }
     }
 
@@ -950,9 +938,9 @@ mod x86 {
         }
 
         #[inline(always)]
-        fn block(block: &TriangleBlock, r: &Avx2Ray) -> [f32; BLOCK] {
+        fn block(block: &TriangleBlock, r: &Avx2Ray, t0: f32, t1: f32) -> ([f32; BLOCK], u32) {
             // SAFETY: SSE2 is part of x86-64.
-            unsafe { block.intersect_sse(&r.tri) }
+            unsafe { block.intersect_sse(&r.tri, t0, t1) }
         }
     }
 
