@@ -602,14 +602,19 @@ fn prefetch_children(bvh: Bvh, node: &BvhNode, mut mask: u32) {
         let slot = mask.trailing_zeros() as usize;
         mask &= mask - 1;
         let (child, meta) = (node.child[slot] as usize, node.meta[slot]);
-        let (base, lines) = if meta == SLOT_INNER {
-            (bvh.nodes.as_ptr().wrapping_add(child).cast::<i8>(), 4)
+        let base = if meta == SLOT_INNER {
+            bvh.nodes.as_ptr().wrapping_add(child).cast::<i8>()
         } else {
-            (bvh.blocks.as_ptr().wrapping_add(child).cast::<i8>(), 3)
+            bvh.blocks.as_ptr().wrapping_add(child).cast::<i8>()
         };
-        for line in 0..lines {
-            // SAFETY: a prefetch never faults; the address is only a hint.
-            unsafe { _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(64 * line)) };
+        // Four lines whatever the child: a node's four, or a block's three and the first of
+        // the leaf's next block; no loop or branch on the kind.
+        // SAFETY: a prefetch never faults; the address is only a hint.
+        unsafe {
+            _mm_prefetch::<_MM_HINT_T0>(base);
+            _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(64));
+            _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(128));
+            _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(192));
         }
     }
     #[cfg(not(target_arch = "x86_64"))]
@@ -717,6 +722,24 @@ fn nearest<K: Isa>(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32
                 // Every entered child's memory is asked for now, so the cache misses of the
                 // siblings overlap with the work on the nearest.
                 prefetch_children(bvh, node, mask | 1 << slot);
+                if mask & (mask - 1) == 0 {
+                    // Two entered children, the commonest case: one comparison orders them.
+                    let slot = mask.trailing_zeros() as usize;
+                    let second = Entry {
+                        child: node.child[slot],
+                        meta: node.meta[slot],
+                        near: near[slot],
+                    };
+                    let (nearer, farther) = if second.near < first.near {
+                        (second, first)
+                    } else {
+                        (first, second)
+                    };
+                    // SAFETY: a validated tree's traversal holds fewer than STACK_ENTRIES.
+                    unsafe { stack.push(farther) };
+                    cur = nearer;
+                    continue;
+                }
                 // Insert the entered children so the stack stays sorted within this node's
                 // run, farthest deepest; the nearest becomes `cur`.
                 let base = stack.len;
