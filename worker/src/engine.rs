@@ -284,6 +284,7 @@ impl Engine {
                         job_id: s.job_id.clone(),
                         stats_json: String::new(),
                         error: format!("worker {}: {e}", self.config.worker_id),
+                        declined: true,
                     },
                 ));
             }
@@ -533,6 +534,7 @@ impl Engine {
                 job_id: job_id.to_string(),
                 stats_json: serde_json::to_string(&stats).unwrap_or_default(),
                 error: String::new(),
+                declined: false,
             },
         ));
     }
@@ -545,6 +547,7 @@ impl Engine {
                     job_id: frame.job_id,
                     stats_json: String::new(),
                     error: format!("worker {}: {error}", self.config.worker_id),
+                    declined: false,
                 },
             ));
         }
