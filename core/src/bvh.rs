@@ -358,13 +358,11 @@ impl TraceRay {
             safe(dir.z).recip(),
         ];
         let o = origin.to_array();
-        // Rows 0..3 are minima, 3..6 maxima: a ray travelling down an axis enters at the maximum.
+        // Rows 0..3 are minima, 3..6 maxima: a ray travelling down an axis enters at the
+        // maximum. A select per axis rather than a branch: rays' signs are unpredictable.
         let rows = |a: usize| {
-            if inv[a] >= 0.0 {
-                (a, a + 3)
-            } else {
-                (a + 3, a)
-            }
+            let down = if inv[a] >= 0.0 { 0 } else { 3 };
+            (a + down, a + 3 - down)
         };
         let r = [rows(0), rows(1), rows(2)];
         TraceRay {
