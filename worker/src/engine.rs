@@ -29,7 +29,7 @@ use crate::frame::{Frame, Mode};
 use crate::pass::{self, FrameView, PassError, PassInput, PassOutput};
 use crate::peers::PeerLinks;
 use crate::queues::DomainQueues;
-use crate::speculation::Speculation;
+use rayfarm_machine::worker::Speculation;
 
 /// Rays per encoded batch sent to a peer (160 KiB).
 const BATCH_RAYS: usize = 2048;
@@ -380,13 +380,14 @@ impl Engine {
             limits,
             s.primary_tiles.clone(),
             queues,
+            self.config.advertise.clone(),
         );
-        frame.round = s.round;
+        frame.plan.round = s.round;
         if mode == Mode::Predictive {
             frame.speculation = Some(Speculation::new(s.worker_key, s.roster.clone()));
         }
         for (&tile, &epoch) in &s.epochs {
-            if let Some(e) = frame.epochs.get_mut(tile as usize) {
+            if let Some(e) = frame.plan.epochs.get_mut(tile as usize) {
                 *e = epoch;
             }
         }
@@ -403,14 +404,13 @@ impl Engine {
             p.round,
             p.work_on.iter().copied(),
             p.holders.into_iter().map(|h| (h.domain, h.workers)),
-            &self.config.advertise,
         );
         if let Some((_, cache)) = &self.cache {
             let mut cache = lock(cache);
             for d in &p.evict {
                 cache.evict(*d);
             }
-            frame.set_resident(cache.resident());
+            frame.plan.set_resident(cache.resident());
             let pinned = frame.decide_demand_loads(self.config.cache_bytes, &cache.domain_bytes());
             cache.pin(pinned);
         }
@@ -432,10 +432,9 @@ impl Engine {
         let Some(frame) = self.frame.as_mut().filter(|f| f.job_id == h.job_id) else {
             return;
         };
-        frame.set_holders(
-            h.holders.into_iter().map(|h| (h.domain, h.workers)),
-            &self.config.advertise,
-        );
+        frame
+            .plan
+            .set_holders(h.holders.into_iter().map(|h| (h.domain, h.workers)));
         let job_id = frame.job_id.clone();
         match frame.take_for_peers() {
             Ok(out) => {
@@ -647,7 +646,7 @@ impl Engine {
         frame.counters.rays.add(&out.counters);
         frame.counters.busy += out.busy;
         if let Some((_, cache)) = &self.cache {
-            frame.set_resident(lock(cache).resident());
+            frame.plan.set_resident(lock(cache).resident());
         }
         if !out.results.is_empty() {
             let msg = proto::TileResults {
@@ -668,7 +667,7 @@ impl Engine {
                     .rays
                     .into_iter()
                     .zip(out.paths)
-                    .filter(|(r, _)| frame.epochs.get(r.tile as usize) == Some(&r.epoch))
+                    .filter(|(r, _)| frame.plan.is_current(r.tile, r.epoch))
                     .unzip();
                 let copies = spec.spread(&born, &paths);
                 // Copies queued here for domains no one traces yet must be reported.
@@ -709,7 +708,7 @@ impl Engine {
         while queued < self.config.wave_rays
             && let Some(tile) = frame.to_issue.pop_front()
         {
-            primaries.push((tile, frame.epochs[tile as usize]));
+            primaries.push((tile, frame.plan.epochs[tile as usize]));
             queued += frame.shared.grid.tile_pixel_count(tile) * frame.shared.spp as usize;
         }
         let trace = match frame.take_work(self.config.pass_rays) {
@@ -763,10 +762,10 @@ impl Engine {
             .unwrap_or_default();
         let report = proto::QueueReport {
             job_id: frame.job_id.clone(),
-            round: frame.round,
+            round: frame.plan.round,
             resident_domains: resident,
             queued_rays: frame.queue_sizes().into_iter().collect(),
-            oldest_generation: match frame.mode {
+            oldest_generation: match frame.plan.mode {
                 Mode::Predictive => frame.oldest_generations().into_iter().collect(),
                 _ => Default::default(),
             },
@@ -777,7 +776,7 @@ impl Engine {
                 .map(u32::from),
         };
         debug!(
-            round = frame.round,
+            round = frame.plan.round,
             queued = frame.queued_total(),
             "round done here"
         );

@@ -8,7 +8,6 @@ mod frame;
 mod pass;
 mod peers;
 mod queues;
-mod speculation;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;

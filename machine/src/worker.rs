@@ -1,1 +1,0 @@
-//! The worker machine: a frame's queues, routing, the bundler, speculation groups, reports.

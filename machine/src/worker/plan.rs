@@ -1,0 +1,296 @@
+//! A worker's view of the round: the schedule it runs under, which domains it traces, which
+//! are mapped here, who holds the others, and every tile's current epoch. From these alone
+//! follows where each ray goes (here, to a peer, or nowhere when its tile restarted), so the
+//! routing rule lives here once, without queues or sockets.
+
+use std::collections::{BTreeMap, BTreeSet};
+
+use rayfarm_core::ray::RayRecord;
+
+/// Where a frame's rays are traced: the job's schedule as the worker sees it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Mode {
+    /// Image-plane (Fig. 3): rays never leave this worker; any domain is loaded on demand.
+    ImagePlane,
+    /// Domain (Fig. 4): this worker traces the domains it owns; rays go to the owners.
+    Domain,
+    /// Dynamic (Figs. 5-6): the planned domains, plus any domain still mapped here; rays go
+    /// to this round's holders.
+    Dynamic,
+    /// Predictive (Park et al.): dynamic rounds, with each new ray queued in every domain
+    /// along it at once (speculation) and the oldest generation traced first.
+    Predictive,
+    /// Hybrid (Reinhard et al.): camera rays and their shadow rays, coherent, are traced by
+    /// the worker whose tile they are, loading what they need (`demand_loads`; off when the
+    /// cache is too small, then they migrate too); incoherent rays migrate to the domains'
+    /// owners. Owned domains' queues go first (data-parallel first).
+    Hybrid { demand_loads: bool },
+}
+
+/// Where a routed ray goes.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Destination {
+    /// Queued here.
+    Local,
+    /// To the worker at this peer address.
+    Peer(String),
+}
+
+/// Rays sorted by `Plan::sort`.
+#[derive(Debug, Default, PartialEq)]
+pub struct Sorted {
+    /// Rays to queue here, by domain.
+    pub local: BTreeMap<u32, Vec<RayRecord>>,
+    /// Rays to send, by peer address.
+    pub peers: BTreeMap<String, Vec<RayRecord>>,
+    /// Rays dropped: of an older epoch than their tile's, or for a domain the scene lacks.
+    pub dropped: u64,
+}
+
+/// See the module documentation.
+#[derive(Clone, Debug)]
+pub struct Plan {
+    pub mode: Mode,
+    /// The round whose plan this is.
+    pub round: u64,
+    /// Current epoch of every tile: rays of older epochs are dropped.
+    pub epochs: Vec<u32>,
+    /// Domains of the scene.
+    domains: u32,
+    /// This worker's peer address: never a destination.
+    me: String,
+    work_on: BTreeSet<u32>,
+    /// Domains mapped here now. Rays for them are traced here even when the plan gave the
+    /// domain to no one or to another worker: any worker may trace any ray of a domain it
+    /// has, and doing so costs neither a load nor a transfer.
+    resident: BTreeSet<u32>,
+    /// Other workers holding each domain this round.
+    holders: BTreeMap<u32, Vec<String>>,
+}
+
+impl Plan {
+    /// The plan before the first round: nothing traced, nothing held, every epoch zero.
+    pub fn new(mode: Mode, tiles: usize, domains: u32, me: String) -> Self {
+        Plan {
+            mode,
+            round: 0,
+            epochs: vec![0; tiles],
+            domains,
+            me,
+            work_on: BTreeSet::new(),
+            resident: BTreeSet::new(),
+            holders: BTreeMap::new(),
+        }
+    }
+
+    /// Domains this worker traces this round.
+    pub fn work_on(&self) -> &BTreeSet<u32> {
+        &self.work_on
+    }
+
+    /// Domains mapped here.
+    pub fn resident(&self) -> &BTreeSet<u32> {
+        &self.resident
+    }
+
+    /// Domains some other worker holds this round.
+    pub fn held_elsewhere(&self) -> impl Iterator<Item = u32> + '_ {
+        self.holders.keys().copied()
+    }
+
+    /// Adopts a round's plan.
+    pub fn set_round(
+        &mut self,
+        round: u64,
+        work_on: impl IntoIterator<Item = u32>,
+        holders: impl IntoIterator<Item = (u32, Vec<String>)>,
+    ) {
+        self.round = round;
+        self.work_on = work_on.into_iter().collect();
+        self.set_holders(holders);
+    }
+
+    /// Adopts new holders of the domains, keeping this worker's own plan; this worker's own
+    /// address is left out.
+    pub fn set_holders(&mut self, holders: impl IntoIterator<Item = (u32, Vec<String>)>) {
+        let me = &self.me;
+        self.holders = holders
+            .into_iter()
+            .map(|(d, mut ws)| {
+                ws.retain(|w| w != me);
+                (d, ws)
+            })
+            .filter(|(_, ws)| !ws.is_empty())
+            .collect();
+    }
+
+    /// Records which domains are mapped here now.
+    pub fn set_resident(&mut self, resident: impl IntoIterator<Item = u32>) {
+        self.resident = resident.into_iter().collect();
+    }
+
+    /// Sends nothing more to `peers` (they are gone); their domains' rays wait here for the
+    /// next plan.
+    pub fn forget_peers(&mut self, peers: &[String]) {
+        for holders in self.holders.values_mut() {
+            holders.retain(|h| !peers.contains(h));
+        }
+        self.holders.retain(|_, hs| !hs.is_empty());
+    }
+
+    /// Raises tiles' epochs (never lowers them).
+    pub fn bump_epochs<'a>(&mut self, bumps: impl IntoIterator<Item = (&'a u32, &'a u32)>) {
+        for (&tile, &epoch) in bumps {
+            if let Some(e) = self.epochs.get_mut(tile as usize) {
+                *e = (*e).max(epoch);
+            }
+        }
+    }
+
+    /// Whether `domain` is planned here or mapped here.
+    pub fn planned_or_resident(&self, domain: u32) -> bool {
+        self.work_on.contains(&domain) || self.resident.contains(&domain)
+    }
+
+    /// Whether this worker may trace the queue of `domain` now.
+    pub fn traces(&self, domain: u32) -> bool {
+        match self.mode {
+            // Every ray queued under hybrid was kept here on purpose (see `keeps`).
+            Mode::ImagePlane | Mode::Hybrid { .. } => true,
+            Mode::Domain => self.work_on.contains(&domain),
+            Mode::Dynamic | Mode::Predictive => self.planned_or_resident(domain),
+        }
+    }
+
+    /// Whether `ray` stays on this worker.
+    fn keeps(&self, ray: &RayRecord) -> bool {
+        match self.mode {
+            Mode::Hybrid { demand_loads } => {
+                self.planned_or_resident(ray.domain) || (demand_loads && ray.depth == 0)
+            }
+            _ => self.traces(ray.domain),
+        }
+    }
+
+    /// Whether a ray belongs to the current epoch of its tile.
+    pub fn is_current(&self, tile: u32, epoch: u32) -> bool {
+        self.epochs.get(tile as usize) == Some(&epoch)
+    }
+
+    /// Where a ray goes this round: here if this worker traces the domain or no one does (it
+    /// waits for a later round), else to one of its holders, chosen by pixel so that a hot
+    /// domain's rays spread evenly over its holders.
+    pub fn destination(&self, ray: &RayRecord) -> Destination {
+        if self.keeps(ray) {
+            return Destination::Local;
+        }
+        match self.holders.get(&ray.domain) {
+            Some(ws) => Destination::Peer(ws[ray.pixel as usize % ws.len()].clone()),
+            None => Destination::Local,
+        }
+    }
+
+    /// Sorts rays by destination, dropping those of an older epoch than their tile's and
+    /// those for a domain the scene lacks.
+    pub fn sort(&self, rays: Vec<RayRecord>) -> Sorted {
+        let mut sorted = Sorted::default();
+        for ray in rays {
+            if !self.is_current(ray.tile, ray.epoch) || ray.domain >= self.domains {
+                sorted.dropped += 1;
+                continue;
+            }
+            match self.destination(&ray) {
+                Destination::Peer(p) => sorted.peers.entry(p).or_default().push(ray),
+                Destination::Local => sorted.local.entry(ray.domain).or_default().push(ray),
+            }
+        }
+        sorted
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ray(tile: u32, epoch: u32, domain: u32, pixel: u32) -> RayRecord {
+        RayRecord {
+            tile,
+            epoch,
+            domain,
+            pixel,
+            ..bytemuck::Zeroable::zeroed()
+        }
+    }
+
+    fn holders(list: &[(u32, &[&str])]) -> Vec<(u32, Vec<String>)> {
+        list.iter()
+            .map(|(d, ws)| (*d, ws.iter().map(|w| w.to_string()).collect()))
+            .collect()
+    }
+
+    #[test]
+    fn a_batch_goes_to_the_holder_the_latest_plan_names() {
+        let mut plan = Plan::new(Mode::Dynamic, 4, 3, "me:1".into());
+        plan.set_round(
+            1,
+            [0],
+            holders(&[(0, &["me:1"]), (1, &["a:1"]), (2, &["b:1"])]),
+        );
+        let rays = vec![ray(0, 0, 0, 0), ray(0, 0, 1, 1), ray(1, 0, 2, 2)];
+        let first = plan.sort(rays.clone());
+        assert_eq!(first.local[&0].len(), 1);
+        assert_eq!(first.peers["a:1"].len(), 1);
+        assert_eq!(first.peers["b:1"].len(), 1);
+        // The next plan moves domain 1 to c and gives domain 2 to no one else.
+        plan.set_holders(holders(&[(1, &["c:1"])]));
+        let second = plan.sort(rays);
+        assert_eq!(second.peers.keys().collect::<Vec<_>>(), ["c:1"]);
+        assert_eq!(second.local[&2].len(), 1, "unheld domains wait here");
+        assert_eq!(second.dropped, 0);
+    }
+
+    #[test]
+    fn a_stale_epochs_rays_are_dropped() {
+        let mut plan = Plan::new(Mode::ImagePlane, 2, 2, "me:1".into());
+        plan.bump_epochs(&BTreeMap::from([(1, 3)]));
+        plan.bump_epochs(&BTreeMap::from([(1, 2)]));
+        assert_eq!(plan.epochs, [0, 3], "epochs never go back");
+        let sorted = plan.sort(vec![ray(1, 2, 0, 0), ray(1, 3, 0, 0), ray(0, 0, 9, 0)]);
+        assert_eq!(
+            sorted.dropped, 2,
+            "an old epoch and a domain past the scene's"
+        );
+        assert_eq!(sorted.local[&0], [ray(1, 3, 0, 0)]);
+    }
+
+    #[test]
+    fn holders_spread_by_pixel_and_lost_peers_are_forgotten() {
+        let mut plan = Plan::new(Mode::Domain, 1, 1, "me:1".into());
+        plan.set_round(2, [], holders(&[(0, &["a:1", "b:1"])]));
+        let to = |p| plan.destination(&ray(0, 0, 0, p));
+        assert_eq!(to(0), Destination::Peer("a:1".into()));
+        assert_eq!(to(1), Destination::Peer("b:1".into()));
+        plan.forget_peers(&["a:1".into()]);
+        assert_eq!(
+            plan.destination(&ray(0, 0, 0, 0)),
+            Destination::Peer("b:1".into())
+        );
+        plan.forget_peers(&["b:1".into()]);
+        assert_eq!(plan.destination(&ray(0, 0, 0, 0)), Destination::Local);
+        assert!(!plan.traces(0), "held here until a plan names this worker");
+    }
+
+    #[test]
+    fn hybrid_keeps_camera_rays_only_while_demand_loads_are_on() {
+        let mut plan = Plan::new(Mode::Hybrid { demand_loads: true }, 1, 2, "me:1".into());
+        plan.set_round(1, [0], holders(&[(1, &["a:1"])]));
+        let camera = ray(0, 0, 1, 0);
+        let bounce = RayRecord { depth: 1, ..camera };
+        assert_eq!(plan.destination(&camera), Destination::Local);
+        assert_eq!(plan.destination(&bounce), Destination::Peer("a:1".into()));
+        plan.mode = Mode::Hybrid {
+            demand_loads: false,
+        };
+        assert_eq!(plan.destination(&camera), Destination::Peer("a:1".into()));
+    }
+}
