@@ -144,6 +144,8 @@ pub struct WorkerOpts {
     pub env: Vec<(String, String)>,
     /// Extra command-line arguments, e.g. TLS files.
     pub args: Vec<String>,
+    /// `--scene-root` (`None`: the cluster's).
+    pub scene_root: Option<PathBuf>,
 }
 
 impl Default for WorkerOpts {
@@ -155,6 +157,7 @@ impl Default for WorkerOpts {
             threads: Some(1),
             env: Vec::new(),
             args: Vec::new(),
+            scene_root: None,
         }
     }
 }
@@ -183,6 +186,12 @@ impl WorkerOpts {
     /// With the command-line option `flag value`.
     pub fn arg(mut self, flag: &str, value: &str) -> Self {
         self.args.extend([flag.to_string(), value.to_string()]);
+        self
+    }
+
+    /// With its own `--scene-root`, e.g. one where the cluster's scenes are missing.
+    pub fn scene_root(mut self, root: &Path) -> Self {
+        self.scene_root = Some(root.to_path_buf());
         self
     }
 
@@ -516,7 +525,7 @@ impl Cluster {
             "--cache-bytes".to_string(),
             opts.cache_bytes.to_string(),
             "--scene-root".to_string(),
-            s(&self.scene_root).to_string(),
+            s(opts.scene_root.as_deref().unwrap_or(&self.scene_root)).to_string(),
         ]);
         if let Some(t) = opts.threads {
             args.extend(["--threads".to_string(), t.to_string()]);

@@ -7,7 +7,8 @@
 # TRIANGLES (generator's target count, default 1000000), SCENE (an existing one-domain scene to
 # use instead; it is not rebuilt),
 # BENCH_CPU (pin the whole run to this CPU with taskset, e.g. 1; default: no pinning),
-# EMBREE_MAX_ISA (cap Embree's ISA: sse4.2, avx2, avx512; default: the widest the CPU has),
+# EMBREE_MAX_ISA (cap Embree's ISA: sse4.2, avx2, avx512, or native for the widest the CPU has;
+# default avx2, the target machine's ISA: a VM may report AVX-512, which the target lacks),
 # RAYFARM_KERNEL (force rayfarm's traversal kernel: scalar, sse, avx2; default: the widest).
 set -euo pipefail
 
@@ -43,9 +44,27 @@ if [[ -z ${SCENE:-} ]]; then
 fi
 
 cargo build --release -p rayfarm-core --example embree_compare
+example=$CARGO_TARGET_DIR/release/examples/embree_compare
+# rayfarm must not use AVX-512 either (the target has none): no function of rayfarm's own code
+# in the benchmark binary may name a 512-bit register. (A dependency may carry a run-time
+# dispatched AVX-512 path outside the traced loop, e.g. crc32fast's for image files; those are
+# listed, not refused.)
+if command -v objdump >/dev/null; then
+    wide=$(objdump -d -C --no-show-raw-insn "$example" |
+        awk '/^[0-9a-f]+ <.*>:$/ { fn = $0 } /%zmm/ { print fn }' | sort -u)
+    if grep -qE '<(rayfarm_|embree_compare)' <<<"$wide"; then
+        echo "rayfarm code in $example uses AVX-512 (zmm registers); the target has none:" >&2
+        grep -E '<(rayfarm_|embree_compare)' <<<"$wide" >&2
+        exit 1
+    fi
+    if [[ -n $wide ]]; then
+        echo "AVX-512 only in dependencies, outside the traced code:" >&2
+        sed 's/^[0-9a-f]* /  /' <<<"$wide" >&2
+    fi
+fi
 pin=()
 if [[ -n ${BENCH_CPU:-} ]]; then
     pin=(taskset -c "$BENCH_CPU")
 fi
 # Run the built example directly (not `cargo run`) so a pinned run pins only the benchmark.
-exec "${pin[@]}" "$CARGO_TARGET_DIR/release/examples/embree_compare" "$scene" --embree "$bin" "$@"
+exec "${pin[@]}" "$example" "$scene" --embree "$bin" "$@"

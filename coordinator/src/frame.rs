@@ -133,13 +133,14 @@ impl RunningFrame {
             },
             _ => options,
         };
+        let spp = frame.spp;
         Ok(RunningFrame {
             job_id,
             schedule,
             spec,
             frame,
             domain_bytes,
-            ledger: FrameLedger::new(grid, TILE_CREDIT),
+            ledger: FrameLedger::new(grid, TILE_CREDIT).with_samples(spp),
             round: 0,
             members: BTreeMap::new(),
             started: Instant::now(),
@@ -639,29 +640,32 @@ impl RunningFrame {
     }
 
     /// Accepts a worker's tile results. Returns the tiles they committed with their sums,
-    /// taken out of the ledger for the film; an error means the worker sent results that
-    /// cannot be right (the job must fail).
+    /// taken out of the ledger for the film, and why the rest was refused if a result
+    /// cannot be right (the worker must be dropped; nothing after it was counted).
     pub fn results(
         &mut self,
         key: u32,
         results: proto::TileResults,
-    ) -> Result<Vec<CommittedTile>, String> {
+    ) -> (Vec<CommittedTile>, Option<String>) {
         if let Some(m) = self.members.get_mut(&key) {
             m.segments = m.segments.max(results.segments_traced);
         }
         let mut committed = Vec::new();
         for r in results.results {
-            let sums = tile_sums::decode(&r.sums).map_err(|e| format!("tile {}: {e}", r.tile))?;
+            let sums = match tile_sums::decode(&r.sums) {
+                Ok(sums) => sums,
+                Err(e) => return (committed, Some(format!("tile {}: {e}", r.tile))),
+            };
             match self.ledger.accept(r.tile, r.epoch, r.credit, &sums) {
                 Ok(Accept::Completed) => {
                     debug!(tile = r.tile, "tile complete");
                     committed.push((r.tile, self.ledger.take_sums(r.tile)));
                 }
                 Ok(Accept::Pending | Accept::Stale) => {}
-                Err(reject) => return Err(reject.to_string()),
+                Err(reject) => return (committed, Some(reject.to_string())),
             }
         }
-        Ok(committed)
+        (committed, None)
     }
 
     /// Progress for watchers: (tiles done, tiles, segments per second, ETA seconds or -1).

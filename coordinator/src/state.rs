@@ -105,11 +105,15 @@ struct WorkerEntry {
     tx: WorkerTx,
     last_seen: Instant,
     last_report: Option<proto::QueueReport>,
+    /// Why it declined its last frame ("job ID: reason"); empty once it reports a frame.
+    left_out: String,
 }
 
 struct Finishing {
     waiting: BTreeSet<u32>,
     reports: Vec<WorkerFrameStats>,
+    /// The workers that declined the frame, with their reasons.
+    left_out: Vec<String>,
     done: Option<oneshot::Sender<()>>,
 }
 
@@ -123,6 +127,8 @@ struct State {
     next_key: u32,
     running: Option<RunningFrame>,
     finishing: BTreeMap<String, Finishing>,
+    /// The job whose frame workers declined, and their reasons (one job's at a time).
+    declines: (String, Vec<String>),
     /// Set by [`Coordinator::shut_down`]: no worker attaches and no frame starts any more.
     stopping: bool,
 }
@@ -162,6 +168,7 @@ impl Coordinator {
             next_key: 0,
             running: None,
             finishing: BTreeMap::new(),
+            declines: (String::new(), Vec::new()),
             stopping: false,
         };
         for stored in loaded.jobs {
@@ -435,6 +442,7 @@ impl Coordinator {
                         .map(|r| r.queued_rays.clone())
                         .unwrap_or_default(),
                     last_seen_ms: w.last_seen.elapsed().as_millis() as u64,
+                    left_out: w.left_out.clone(),
                 })
                 .collect(),
             running_job_id: st
@@ -502,6 +510,7 @@ impl Coordinator {
                 tx,
                 last_seen: Instant::now(),
                 last_report: None,
+                left_out: String::new(),
             },
         );
         info!(worker = %r.worker_id, key, peer = %r.peer_address, cache_bytes = r.cache_bytes, threads = r.threads, "worker attached");
@@ -549,7 +558,17 @@ impl Coordinator {
                     publish_progress(&st, f);
                 }
             }
-            FromWorker::TileResults(r) => self.tile_results(&mut st, key, r),
+            FromWorker::TileResults(r) => {
+                if let Some(why) = self.tile_results(&mut st, key, r) {
+                    // Its stream is closed and its tiles re-dealt to the others; it sits out
+                    // the frame, so re-registering does not bring it back into this one.
+                    if let Some(w) = st.workers.get(&key) {
+                        let _ = w.tx.send(Err(Status::permission_denied(why.clone())));
+                    }
+                    drop(st);
+                    self.worker_gone(key, &why);
+                }
+            }
             FromWorker::FrameReport(r) => self.frame_report(&mut st, key, r),
             FromWorker::PeerUnresponsive(p) => {
                 let reporter = worker.id.clone();
@@ -574,40 +593,55 @@ impl Coordinator {
         }
     }
 
-    fn tile_results(self: &Arc<Self>, st: &mut State, key: u32, r: proto::TileResults) {
-        let Some(frame) = st.running.as_mut().filter(|f| f.job_id == r.job_id) else {
-            return;
-        };
-        match frame.results(key, r) {
-            Ok(committed) => {
-                if let Err(e) = write_tiles(frame, &committed) {
-                    let msg = format!("{e:#}");
-                    self.fail_running(st, &msg);
-                } else if frame.ledger.is_complete() {
-                    self.complete(st);
-                } else if let Some(f) = st.running.as_ref() {
-                    publish_progress(st, f);
-                }
-            }
-            Err(e) => {
-                let worker = st
-                    .workers
-                    .get(&key)
-                    .map(|w| w.id.clone())
-                    .unwrap_or_default();
-                let msg = format!("worker {worker} sent impossible tile results: {e}");
-                error!("{msg}");
-                self.fail_running(st, &msg);
-            }
+    /// Commits a worker's tile results. Returns why the worker must be dropped if they
+    /// cannot be right (a forged or broken worker): nothing of them is counted, and the
+    /// frame goes on without it, so its image is still the one `render --local` makes.
+    fn tile_results(
+        self: &Arc<Self>,
+        st: &mut State,
+        key: u32,
+        r: proto::TileResults,
+    ) -> Option<String> {
+        let frame = st.running.as_mut().filter(|f| f.job_id == r.job_id)?;
+        let (committed, refused) = frame.results(key, r);
+        if let Err(e) = write_tiles(frame, &committed) {
+            let msg = format!("{e:#}");
+            self.fail_running(st, &msg);
+            return None;
         }
+        if let Some(e) = refused {
+            let worker = st
+                .workers
+                .get(&key)
+                .map(|w| w.id.clone())
+                .unwrap_or_default();
+            error!(worker = %worker, error = %e, "worker sent impossible tile results: dropped, its tiles re-dealt");
+            if let Some(frame) = st.running.as_mut() {
+                frame.sidelined.insert(worker);
+            }
+            return Some(format!("impossible tile results: {e}"));
+        }
+        if frame.ledger.is_complete() {
+            self.complete(st);
+        } else if let Some(f) = st.running.as_ref() {
+            publish_progress(st, f);
+        }
+        None
     }
 
     fn frame_report(self: &Arc<Self>, st: &mut State, key: u32, r: proto::FrameReport) {
         if !r.error.is_empty() {
-            if st.running.as_ref().is_some_and(|f| f.job_id == r.job_id) {
-                self.fail_running(st, &r.error);
+            if st.running.as_ref().is_none_or(|f| f.job_id != r.job_id) {
+                return;
             }
+            if r.declined {
+                return self.declined(st, key, &r.job_id, &r.error);
+            }
+            self.fail_running(st, &r.error);
             return;
+        }
+        if let Some(w) = st.workers.get_mut(&key) {
+            w.left_out.clear();
         }
         let Some(fin) = st.finishing.get_mut(&r.job_id) else {
             return;
@@ -622,6 +656,30 @@ impl Coordinator {
         {
             let _ = done.send(());
         }
+    }
+
+    /// A worker cannot take part in the running frame (`reason` names it and why): it is left
+    /// out of this frame as if lost, but stays registered for the next jobs. The job fails
+    /// only when no member is left, with every member's reason.
+    fn declined(self: &Arc<Self>, st: &mut State, key: u32, job_id: &str, reason: &str) {
+        warn!(job = %job_id, reason, "worker left out of the frame");
+        if let Some(w) = st.workers.get_mut(&key) {
+            w.left_out = format!("job {job_id}: {reason}");
+        }
+        if st.declines.0 != job_id {
+            st.declines = (job_id.to_string(), Vec::new());
+        }
+        st.declines.1.push(reason.to_string());
+        let all = st.declines.1.join("; ");
+        let Some(out) = st.running.as_mut().and_then(|f| f.lose(key)) else {
+            return;
+        };
+        if out.is_empty() {
+            let msg = format!("no worker can take part in the frame: {all}");
+            self.fail_running(st, &msg);
+            return;
+        }
+        send(st, out);
     }
 
     /// Forgets a worker whose stream ended or who stopped sending heartbeats.
@@ -859,6 +917,11 @@ impl Coordinator {
             Finishing {
                 waiting: frame.members().collect(),
                 reports: Vec::new(),
+                left_out: if st.declines.0 == frame.job_id {
+                    std::mem::take(&mut st.declines.1)
+                } else {
+                    Vec::new()
+                },
                 done: Some(done_tx),
             },
         );
@@ -872,11 +935,11 @@ impl Coordinator {
 
     async fn finish(self: Arc<Self>, frame: RunningFrame, wall: f64) {
         let id = frame.job_id.clone();
-        let reports = {
+        let (reports, left_out) = {
             let mut st = self.lock();
             st.finishing
                 .remove(&id)
-                .map(|f| f.reports)
+                .map(|f| (f.reports, f.left_out))
                 .unwrap_or_default()
         };
         let spec = &frame.frame;
@@ -891,6 +954,7 @@ impl Coordinator {
             domains: frame.domain_count(),
             wall_seconds: wall,
             rounds: frame.round,
+            left_out,
             ..Default::default()
         };
         stats.absorb(reports);

@@ -472,6 +472,13 @@ fn main() -> Result<()> {
         .collect();
     let report = run_embree(&opts, dir.path(), &named_files)?;
 
+    // Which ISA each side may use, so a table made from this output can say so.
+    println!(
+        "rayfarm kernel {}, Embree {} capped at {}",
+        Traverser::new().kernel().name(),
+        report["embree"].as_str().unwrap_or("?"),
+        report["max_isa"].as_str().unwrap_or("?")
+    );
     println!(
         "{:<11} {:>9} {:>12} {:>12} {:>12} {:>10} {:>10}",
         "rays", "count", "rayfarm", "embree med", "embree high", "rf/embree", "agree"
@@ -547,6 +554,7 @@ fn main() -> Result<()> {
         "image": [opts.size, opts.size],
         "reps": opts.reps,
         "embree": report["embree"],
+        "embree_max_isa": report["max_isa"],
         "embree_build_seconds": build_seconds,
         "load_average": load_average(),
         "sets": summary,

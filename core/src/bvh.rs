@@ -554,8 +554,9 @@ trait Isa {
     /// Entry distances into the node's eight child boxes within `[t0, t1]`, and a bit mask of
     /// the children that are entered.
     fn slab(node: &BvhNode, ray: &Self::Ray, t0: f32, t1: f32) -> ([f32; WIDTH], u32);
-    /// The watertight test of a block's four lanes (infinity for a miss).
-    fn block(block: &TriangleBlock, ray: &Self::Ray) -> [f32; BLOCK];
+    /// The watertight test of a block's four lanes (infinity for a miss), and a bit mask of
+    /// the lanes whose hit lies in `[t0, t1]`.
+    fn block(block: &TriangleBlock, ray: &Self::Ray, t0: f32, t1: f32) -> ([f32; BLOCK], u32);
 }
 
 struct Scalar;
@@ -587,8 +588,8 @@ impl Isa for Scalar {
     }
 
     #[inline(always)]
-    fn block(block: &TriangleBlock, ray: &TraceRay) -> [f32; BLOCK] {
-        block.intersect_scalar(&ray.sheared)
+    fn block(block: &TriangleBlock, ray: &TraceRay, t0: f32, t1: f32) -> ([f32; BLOCK], u32) {
+        block.intersect_scalar(&ray.sheared, t0, t1)
     }
 }
 
@@ -601,14 +602,19 @@ fn prefetch_children(bvh: Bvh, node: &BvhNode, mut mask: u32) {
         let slot = mask.trailing_zeros() as usize;
         mask &= mask - 1;
         let (child, meta) = (node.child[slot] as usize, node.meta[slot]);
-        let (base, lines) = if meta == SLOT_INNER {
-            (bvh.nodes.as_ptr().wrapping_add(child).cast::<i8>(), 4)
+        let base = if meta == SLOT_INNER {
+            bvh.nodes.as_ptr().wrapping_add(child).cast::<i8>()
         } else {
-            (bvh.blocks.as_ptr().wrapping_add(child).cast::<i8>(), 3)
+            bvh.blocks.as_ptr().wrapping_add(child).cast::<i8>()
         };
-        for line in 0..lines {
-            // SAFETY: a prefetch never faults; the address is only a hint.
-            unsafe { _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(64 * line)) };
+        // Four lines whatever the child: a node's four, or a block's three and the first of
+        // the leaf's next block; no loop or branch on the kind.
+        // SAFETY: a prefetch never faults; the address is only a hint.
+        unsafe {
+            _mm_prefetch::<_MM_HINT_T0>(base);
+            _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(64));
+            _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(128));
+            _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(192));
         }
     }
     #[cfg(not(target_arch = "x86_64"))]
@@ -619,14 +625,8 @@ fn prefetch_children(bvh: Bvh, node: &BvhNode, mut mask: u32) {
 #[inline(always)]
 fn leaf_nearest<K: Isa>(blocks: &[TriangleBlock], ray: &K::Ray, t0: f32, best: &mut Hit) {
     for b in blocks {
-        let ts = K::block(b, ray);
-        // Candidates first, without branches: most lanes miss.
-        let mut lanes = 0u32;
-        for (lane, &t) in ts.iter().enumerate() {
-            // A miss is infinity, which must not win against an unbounded t1.
-            let candidate = t >= t0 && t <= best.t && t != f32::INFINITY;
-            lanes |= (candidate as u32) << lane;
-        }
+        // Candidates come as a mask from the test itself: most lanes miss.
+        let (ts, mut lanes) = K::block(b, ray, t0, best.t);
         while lanes != 0 {
             let lane = lanes.trailing_zeros() as usize;
             lanes &= lanes - 1;
@@ -722,6 +722,24 @@ fn nearest<K: Isa>(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32
                 // Every entered child's memory is asked for now, so the cache misses of the
                 // siblings overlap with the work on the nearest.
                 prefetch_children(bvh, node, mask | 1 << slot);
+                if mask & (mask - 1) == 0 {
+                    // Two entered children, the commonest case: one comparison orders them.
+                    let slot = mask.trailing_zeros() as usize;
+                    let second = Entry {
+                        child: node.child[slot],
+                        meta: node.meta[slot],
+                        near: near[slot],
+                    };
+                    let (nearer, farther) = if second.near < first.near {
+                        (second, first)
+                    } else {
+                        (first, second)
+                    };
+                    // SAFETY: a validated tree's traversal holds fewer than STACK_ENTRIES.
+                    unsafe { stack.push(farther) };
+                    cur = nearer;
+                    continue;
+                }
                 // Insert the entered children so the stack stays sorted within this node's
                 // run, farthest deepest; the nearest becomes `cur`.
                 let base = stack.len;
@@ -771,14 +789,7 @@ fn nearest<K: Isa>(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32
 /// Whether a leaf's blocks hold a hit in `[t0, t1]`.
 #[inline(always)]
 fn leaf_any<K: Isa>(blocks: &[TriangleBlock], ray: &K::Ray, t0: f32, t1: f32) -> bool {
-    blocks.iter().any(|b| {
-        let ts = K::block(b, ray);
-        let mut hit = false;
-        for t in ts {
-            hit |= t >= t0 && t <= t1 && t != f32::INFINITY;
-        }
-        hit
-    })
+    blocks.iter().any(|b| K::block(b, ray, t0, t1).1 != 0)
 }
 
 /// Shadow-ray traversal: no order and no distances kept; a node's leaf children are tested at
@@ -890,9 +901,9 @@ mod x86 {
         }
 
         #[inline(always)]
-        fn block(block: &TriangleBlock, r: &SseRay) -> [f32; BLOCK] {
+        fn block(block: &TriangleBlock, r: &SseRay, t0: f32, t1: f32) -> ([f32; BLOCK], u32) {
             // SAFETY: SSE2 is part of x86-64.
-            unsafe { block.intersect_sse(&r.tri) }
+            unsafe { block.intersect_sse(&r.tri, t0, t1) }
         }
     }
 
@@ -950,9 +961,9 @@ mod x86 {
         }
 
         #[inline(always)]
-        fn block(block: &TriangleBlock, r: &Avx2Ray) -> [f32; BLOCK] {
+        fn block(block: &TriangleBlock, r: &Avx2Ray, t0: f32, t1: f32) -> ([f32; BLOCK], u32) {
             // SAFETY: SSE2 is part of x86-64.
-            unsafe { block.intersect_sse(&r.tri) }
+            unsafe { block.intersect_sse(&r.tri, t0, t1) }
         }
     }
 

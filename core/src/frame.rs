@@ -331,6 +331,18 @@ pub enum Reject {
         /// The tile's total credit.
         tile_credit: u64,
     },
+    /// More credit than the pixels the result names can hold: credit without the sums it
+    /// stands for (see [`FrameLedger::with_samples`]).
+    Uncovered {
+        /// The tile named.
+        tile: u32,
+        /// Credit the result carried.
+        credit: u64,
+        /// Distinct pixels the result named.
+        pixels: usize,
+        /// Most credit those pixels' rays hold together.
+        bound: u64,
+    },
     /// A pixel outside the tile.
     ForeignPixel {
         /// The tile named.
@@ -363,6 +375,16 @@ impl fmt::Display for Reject {
                 "result for tile {tile} returns {credit} credit with {returned} of \
                  {tile_credit} already back: more than was issued"
             ),
+            Self::Uncovered {
+                tile,
+                credit,
+                pixels,
+                bound,
+            } => write!(
+                f,
+                "result for tile {tile} returns {credit} credit but names {pixels} pixels, \
+                 whose rays hold at most {bound}: credit without the sums it stands for"
+            ),
             Self::ForeignPixel { tile, pixel } => {
                 write!(f, "result for tile {tile} adds to pixel {pixel} outside it")
             }
@@ -394,6 +416,8 @@ pub struct FrameLedger {
     tile_credit: u64,
     tiles: Vec<TileState>,
     done: u32,
+    /// Samples per pixel, when results must name the pixels their credit came from.
+    spp: Option<u32>,
 }
 
 impl FrameLedger {
@@ -408,7 +432,43 @@ impl FrameLedger {
             tile_credit,
             tiles: vec![TileState::default(); grid.count() as usize],
             done: 0,
+            spp: None,
         }
+    }
+
+    /// Also refuses results whose credit is more than the rays of the pixels they name can
+    /// hold ([`Reject::Uncovered`]), for frames of `spp` samples per pixel whose primary rays
+    /// got [`primary_credit`] in pixel-major order (index `local pixel * spp + sample`).
+    ///
+    /// Why this is sound: every retiring ray names its pixel in its result (with zero sums if
+    /// it added no light), and credit moves only with rays, which keep their pixel across
+    /// splits and peer transfers. So the credit of any result is at most the credit its
+    /// pixels' primary rays started with. A result of a whole tile's credit and no pixels,
+    /// the forgery that would end a tile with nothing rendered, is refused.
+    pub fn with_samples(mut self, spp: u32) -> Self {
+        self.spp = Some(spp);
+        self
+    }
+
+    /// Most credit the rays of `pixels` distinct pixels at the start of `tile` can hold, or
+    /// `None` when no bound applies.
+    fn pixel_bound(&self, tile: u32, locals: &[usize]) -> Option<(usize, u64)> {
+        let spp = u64::from(self.spp?);
+        let rays = self.grid.tile_pixel_count(tile) as u64 * spp;
+        if rays == 0 || spp == 0 {
+            return None;
+        }
+        let mut distinct = locals.to_vec();
+        distinct.sort_unstable();
+        distinct.dedup();
+        let base = self.tile_credit / rays;
+        // Index 0 (the first sample of local pixel 0) also takes the remainder.
+        let first = distinct.first() == Some(&0);
+        let bound = (distinct.len() as u64)
+            .saturating_mul(spp)
+            .saturating_mul(base)
+            .saturating_add(if first { self.tile_credit % rays } else { 0 });
+        Some((distinct.len(), bound))
     }
 
     /// The grid the ledger tracks.
@@ -442,6 +502,16 @@ impl FrameLedger {
         }
         let returned = self.check(tile, epoch, credit, state)?;
         let locals = self.local_indices(tile, sums)?;
+        if let Some((pixels, bound)) = self.pixel_bound(tile, &locals)
+            && credit > bound
+        {
+            return Err(Reject::Uncovered {
+                tile,
+                credit,
+                pixels,
+                bound,
+            });
+        }
         Ok(self.commit(tile, returned, &locals, sums))
     }
 
@@ -841,6 +911,31 @@ mod tests {
         }
     }
 
+    #[test]
+    fn credit_beyond_what_the_named_pixels_hold_is_refused() {
+        // 2x1 pixels in one tile, 2 samples: 4 primary rays of 10 credit each (41 in all,
+        // the first ray takes the remainder 1).
+        let g = TileGrid::new(2, 1, 2).unwrap();
+        let mut l = FrameLedger::new(g, 41).with_samples(2);
+        let forged = l.accept(0, 0, 41, &[]);
+        assert_eq!(
+            forged,
+            Err(Reject::Uncovered {
+                tile: 0,
+                credit: 41,
+                pixels: 0,
+                bound: 0
+            })
+        );
+        // Pixel 1 holds 2 x 10; pixel 0 holds 21 with the remainder.
+        assert!(matches!(
+            l.accept(0, 0, 21, &[(1, [0; 3])]),
+            Err(Reject::Uncovered { bound: 20, .. })
+        ));
+        assert_eq!(l.accept(0, 0, 20, &[(1, [0; 3])]), Ok(Accept::Pending));
+        assert_eq!(l.accept(0, 0, 21, &[(0, [5; 3])]), Ok(Accept::Completed));
+    }
+
     /// A retired ray's message to the coordinator.
     #[derive(Clone, Debug)]
     struct Msg {
@@ -863,8 +958,10 @@ mod tests {
         let reports = children == 0 || rng.below(2) == 0;
         let mut shares = split_credit(ray.credit, children + usize::from(reports)).unwrap();
         if reports {
+            // A ray that adds no light still names its pixel (as workers do), so the
+            // ledger's pixel bound holds.
             let sums = if rng.below(4) == 0 {
-                vec![]
+                vec![(pixel, [0; 3])]
             } else {
                 vec![(pixel, light)]
             };
@@ -948,7 +1045,7 @@ mod tests {
     fn clean_run(g: TileGrid, spp: u32, seed: u64, order: &mut Rng) -> Vec<[i64; 3]> {
         let mut msgs = trace_frame(&g, spp, seed);
         order.shuffle(&mut msgs);
-        let mut l = FrameLedger::new(g, TILE_CREDIT);
+        let mut l = FrameLedger::new(g, TILE_CREDIT).with_samples(spp);
         let mut pending = current_counts(&l, &msgs);
         deliver(&mut l, &msgs, &mut pending);
         assert!(l.is_complete());
@@ -970,7 +1067,7 @@ mod tests {
             // Epoch 0 is cut short by a fault after a random prefix.
             let mut first = trace_frame(&g, spp, seed);
             order.shuffle(&mut first);
-            let mut l = FrameLedger::new(g, TILE_CREDIT);
+            let mut l = FrameLedger::new(g, TILE_CREDIT).with_samples(spp);
             let mut pending = current_counts(&l, &first);
             let cut = first.len() * cut_permille as usize / 1000;
             deliver(&mut l, &first[..cut], &mut pending);

@@ -220,6 +220,13 @@ pub fn nearer(t: f32, id: u64, best_t: f32, best_id: u64) -> bool {
     t < best_t || (t == best_t && id < best_id)
 }
 
+/// Whether a triangle test's distance is a hit within `[t0, t1]`: a miss is infinity, which
+/// must not count against an unbounded `t1`.
+#[inline(always)]
+pub fn within_interval(t: f32, t0: f32, t1: f32) -> bool {
+    t >= t0 && t <= t1 && t != f32::INFINITY
+}
+
 /// Triangles tested together: one SSE register's worth.
 pub const BLOCK: usize = 4;
 
@@ -284,21 +291,29 @@ impl TriangleBlock {
     }
 
     /// The watertight test of every lane, one at a time: the reference the SIMD test equals.
+    /// Returns the distances (infinity for a miss) and a bit per lane whose hit lies in
+    /// `[t0, t1]`.
     #[inline(always)]
-    pub fn intersect_scalar(&self, r: &ShearedRay) -> [f32; BLOCK] {
-        std::array::from_fn(|lane| self.lane(lane).intersect_t(r))
+    pub fn intersect_scalar(&self, r: &ShearedRay, t0: f32, t1: f32) -> ([f32; BLOCK], u32) {
+        let ts: [f32; BLOCK] = std::array::from_fn(|lane| self.lane(lane).intersect_t(r));
+        let mut lanes = 0;
+        for (lane, &t) in ts.iter().enumerate() {
+            lanes |= (within_interval(t, t0, t1) as u32) << lane;
+        }
+        (ts, lanes)
     }
 
     /// The watertight test of all four lanes with SSE: the same operations in the same order as
     /// [`PackedTriangle::intersect_t`] (no fused multiply-add), so every lane's distance has
     /// the same bits as the scalar test. Lanes with an exactly zero edge function, which the
-    /// scalar test decides in double precision, are handed to it.
+    /// scalar test decides in double precision, are handed to it. The mask is as
+    /// [`TriangleBlock::intersect_scalar`]'s.
     ///
     /// # Safety
     /// The CPU must support SSE2 (every x86-64 CPU does).
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
-    pub unsafe fn intersect_sse(&self, r: &ShearedSse) -> [f32; BLOCK] {
+    pub unsafe fn intersect_sse(&self, r: &ShearedSse, t0: f32, t1: f32) -> ([f32; BLOCK], u32) {
         use std::arch::x86_64::*;
         let [kx, ky, kz] = r.ray.axes;
         // SAFETY: SSE2 is part of x86-64; the loads read this block's aligned arrays.
@@ -339,7 +354,7 @@ impl TriangleBlock {
             let mut redo = _mm_movemask_ps(edge_zero) as u32;
             // Most blocks a ray reaches miss on every lane: stop before the distance.
             if _mm_movemask_ps(outside) == 0xf && redo == 0 {
-                return [f32::INFINITY; BLOCK];
+                return ([f32::INFINITY; BLOCK], 0);
             }
             let det = _mm_add_ps(_mm_add_ps(u, v), w);
             let t_scaled = _mm_add_ps(
@@ -358,12 +373,24 @@ impl TriangleBlock {
             let t = _mm_or_ps(_mm_and_ps(miss, r.inf), _mm_andnot_ps(miss, t));
             let mut out = [0.0f32; BLOCK];
             _mm_storeu_ps(out.as_mut_ptr(), t);
+            // The lanes within the interval, in the same register (a miss is infinity, which
+            // must not count against an unbounded t1).
+            let within = _mm_and_ps(
+                _mm_and_ps(
+                    _mm_cmpge_ps(t, _mm_set1_ps(t0)),
+                    _mm_cmple_ps(t, _mm_set1_ps(t1)),
+                ),
+                _mm_cmpneq_ps(t, r.inf),
+            );
+            let mut lanes = _mm_movemask_ps(within) as u32;
             while redo != 0 {
                 let lane = redo.trailing_zeros() as usize;
                 redo &= redo - 1;
-                out[lane] = self.lane(lane).intersect_t(&r.ray);
+                let t = self.lane(lane).intersect_t(&r.ray);
+                out[lane] = t;
+                lanes = (lanes & !(1 << lane)) | (within_interval(t, t0, t1) as u32) << lane;
             }
-            out
+            (out, lanes)
         }
     }
 }

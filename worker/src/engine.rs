@@ -112,6 +112,9 @@ pub enum Event {
     },
 }
 
+/// What identifies a scene to the cache: its directory and its manifest.
+type SceneKey = (PathBuf, Manifest);
+
 /// The engine. See the module documentation.
 pub struct Engine {
     config: EngineConfig,
@@ -122,8 +125,9 @@ pub struct Engine {
     bundler: Bundler<String>,
     clock: Instant,
     frame: Option<Frame>,
-    /// The scene directory the cache serves, and the cache.
-    cache: Option<(PathBuf, Arc<Mutex<DomainCache>>)>,
+    /// The scene the cache serves (its directory and its manifest, which names every domain
+    /// file's checksum, so a scene re-prepared in place is a new scene), and the cache.
+    cache: Option<(SceneKey, Arc<Mutex<DomainCache>>)>,
     pass_running: bool,
     /// Bundles that arrived for a job this worker has not started yet.
     early: BTreeMap<String, EarlyBundles>,
@@ -280,6 +284,7 @@ impl Engine {
                         job_id: s.job_id.clone(),
                         stats_json: String::new(),
                         error: format!("worker {}: {e}", self.config.worker_id),
+                        declined: true,
                     },
                 ));
             }
@@ -326,10 +331,17 @@ impl Engine {
             materials: manifest.materials.len() as u32,
             max_records: 1 << 20,
         };
-        if self.cache.as_ref().is_none_or(|(d, _)| *d != dir) {
-            let cache = DomainCache::new(&dir, &manifest, self.config.cache_bytes)
+        // Keyed by the manifest too: the domains mapped for an older version of the scene in
+        // this directory are never traced for the new one (their files were replaced by a
+        // rename, so the old mappings stay intact for passes still holding them).
+        let scene_key = (dir, manifest.clone());
+        if self.cache.as_ref().is_none_or(|(key, _)| *key != scene_key) {
+            if self.cache.is_some() {
+                info!(scene = %spec.scene, "scene changed on disk: opening it afresh");
+            }
+            let cache = DomainCache::new(&scene_key.0, &manifest, self.config.cache_bytes)
                 .with_storage(self.config.storage);
-            self.cache = Some((dir, Arc::new(Mutex::new(cache))));
+            self.cache = Some((scene_key, Arc::new(Mutex::new(cache))));
         } else if let Some((_, cache)) = &self.cache {
             let mut cache = lock(cache);
             cache.pin([]);
@@ -522,6 +534,7 @@ impl Engine {
                 job_id: job_id.to_string(),
                 stats_json: serde_json::to_string(&stats).unwrap_or_default(),
                 error: String::new(),
+                declined: false,
             },
         ));
     }
@@ -534,6 +547,7 @@ impl Engine {
                     job_id: frame.job_id,
                     stats_json: String::new(),
                     error: format!("worker {}: {error}", self.config.worker_id),
+                    declined: false,
                 },
             ));
         }

@@ -102,10 +102,10 @@ impl RaySink for Sink {
         let sum = self.tiles.entry((ray.tile, ray.epoch)).or_default();
         sum.credit += ray.credit;
         // Fixed point per contribution, exactly as the local film does, so sums agree.
+        // The pixel is named even when it adds no light: the coordinator refuses credit
+        // beyond what the named pixels' rays can hold (`FrameLedger::with_samples`).
         let fixed = rgb.map(to_fixed);
-        if fixed != [0; 3] {
-            add_fixed(sum.pixels.entry(ray.pixel).or_default(), &fixed);
-        }
+        add_fixed(sum.pixels.entry(ray.pixel).or_default(), &fixed);
     }
 }
 

@@ -49,6 +49,9 @@ pub fn run(a: StatusArgs) -> anyhow::Result<()> {
         println!("no workers registered");
     } else {
         println!("{}", workers_table(&status.workers));
+        for w in status.workers.iter().filter(|w| !w.left_out.is_empty()) {
+            println!("worker {} left out of {}", w.worker_id, w.left_out);
+        }
     }
     if status.running_job_id.is_empty() {
         println!("no job running");
@@ -184,6 +187,7 @@ pub fn status_json(s: &proto::GetClusterStatusResponse) -> serde_json::Value {
                 "resident_domains": w.resident_domains,
                 "queued_rays": queued,
                 "last_seen_ms": w.last_seen_ms,
+                "left_out": w.left_out,
             })
         })
         .collect();

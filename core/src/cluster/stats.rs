@@ -96,6 +96,9 @@ pub struct ClusterStats {
     pub max_depth: u32,
     /// Workers that took part.
     pub workers: usize,
+    /// Workers left out of the frame, each with its reason ("worker W: why").
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub left_out: Vec<String>,
     /// Tracing threads over all workers.
     pub threads: usize,
     /// Domains in the scene.

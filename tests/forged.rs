@@ -1,0 +1,134 @@
+//! A node with the cluster credentials (none configured here: loopback) that answers every
+//! tile it is dealt with a whole tile's credit and no pixel sums. Without the ledger's pixel
+//! bound that would end the frame at once with black tiles; it must be refused, the forger
+//! dropped, and the image be the one `render --local` makes.
+
+use std::time::Duration;
+
+use rayfarm_core::frame::TILE_CREDIT;
+use rayfarm_node::proto;
+use rayfarm_node::proto::coordinator_message::Body as ToWorker;
+use rayfarm_node::proto::worker_message::Body as FromWorker;
+use rayfarm_tests::{Cluster, WorkerOpts, hash_of, local_hash, prepare_nbody, submit_wait};
+
+const FRAME: [&str; 8] = [
+    "--width", "96", "--height", "64", "--spp", "2", "--depth", "2",
+];
+
+/// What the forger was told and did.
+#[derive(Debug, Default)]
+struct Forgery {
+    /// Tiles it answered with forged results.
+    forged: usize,
+    /// How its control stream ended.
+    ended: Option<tonic::Status>,
+}
+
+/// Attaches as worker `id` and answers every tile dealt to it (at frame start or handed out
+/// later) with `TileResult(credit = TILE_CREDIT, no sums)`, until the coordinator closes
+/// the stream.
+async fn forger(url: String, id: &str) -> Forgery {
+    let mut client = proto::worker_control_client::WorkerControlClient::connect(url)
+        .await
+        .unwrap();
+    let (tx, rx) = tokio::sync::mpsc::channel(64);
+    tx.send(proto::WorkerMessage {
+        body: Some(FromWorker::Register(proto::Register {
+            protocol_version: proto::PROTOCOL_VERSION,
+            worker_id: id.into(),
+            peer_address: "127.0.0.1:9".into(),
+            cache_bytes: 1 << 30,
+            threads: 1,
+        })),
+    })
+    .await
+    .unwrap();
+    let stream = tokio_stream::wrappers::ReceiverStream::new(rx);
+    let mut answers = client.attach(stream).await.unwrap().into_inner();
+    let mut out = Forgery::default();
+    let mut epochs = std::collections::HashMap::new();
+    loop {
+        let msg = match answers.message().await {
+            Ok(Some(m)) => m,
+            Ok(None) => break,
+            Err(e) => {
+                out.ended = Some(e);
+                break;
+            }
+        };
+        let (job_id, tiles) = match msg.body {
+            Some(ToWorker::StartFrame(f)) => {
+                epochs = f.epochs.clone();
+                (f.job_id, f.primary_tiles)
+            }
+            Some(ToWorker::HandOutTiles(h)) => (h.job_id, h.tiles),
+            Some(ToWorker::EpochBump(b)) => {
+                epochs.extend(b.epochs);
+                continue;
+            }
+            _ => continue,
+        };
+        if tiles.is_empty() {
+            continue;
+        }
+        out.forged += tiles.len();
+        let results = tiles
+            .iter()
+            .map(|&tile| proto::TileResult {
+                tile,
+                epoch: epochs.get(&tile).copied().unwrap_or(0),
+                credit: TILE_CREDIT,
+                sums: Vec::new(),
+            })
+            .collect();
+        let forged = proto::WorkerMessage {
+            body: Some(FromWorker::TileResults(proto::TileResults {
+                job_id,
+                results,
+                segments_traced: 0,
+            })),
+        };
+        if tx.send(forged).await.is_err() {
+            break;
+        }
+    }
+    out
+}
+
+#[test]
+fn a_worker_forging_credit_is_dropped_and_the_image_stays_right() {
+    let root = tempfile::tempdir().unwrap();
+    let scene = prepare_nbody(root.path(), "nb", 2000, 2);
+    let cluster = Cluster::start(root.path(), Some("nb"), &[WorkerOpts::default()]);
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .unwrap();
+    let forgery = rt.spawn(forger(cluster.coordinator_url().to_string(), "forger"));
+    cluster.wait_for_workers(2, Duration::from_secs(30));
+
+    let stats = submit_wait(&cluster, &FRAME, "forged");
+    let forgery = rt
+        .block_on(async { tokio::time::timeout(Duration::from_secs(30), forgery).await })
+        .expect("the forger's stream was not closed")
+        .unwrap();
+    // It was dealt tiles and forged them: the frame did not end on them.
+    assert!(forgery.forged > 0, "the forger was dealt no tiles");
+    assert_eq!(hash_of(&stats), local_hash(&scene, &FRAME));
+    let ended = forgery.ended.expect("closed with a status");
+    assert_eq!(ended.code(), tonic::Code::PermissionDenied, "{ended}");
+    assert!(
+        ended.message().contains("credit without the sums"),
+        "{ended}"
+    );
+    let log = cluster.coordinator_log();
+    assert!(
+        log.contains("worker sent impossible tile results") && log.contains("forger"),
+        "{log}"
+    );
+    // The honest worker stays; the forger is gone.
+    let status = cluster.status();
+    let workers = status["workers"].as_array().unwrap();
+    assert_eq!(workers.len(), 1, "{status}");
+}
