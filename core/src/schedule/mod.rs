@@ -8,14 +8,18 @@
 //! Coherence and Bandwidth Utilization" (EGPGV 2012):
 //! - [`static_plans`]: the image-plane and domain decompositions (Figs. 3-4);
 //! - [`dynamic`]: the ray-weighted schedule, `ScheduleNextRound` (Figs. 5-6);
-//! - [`speculative`]: the queue order for speculatively placed rays (Park et al.).
+//! - [`speculative`]: the queue order for speculatively placed rays (Park et al.);
+//! - [`rounds`]: when members are planned (barrier or asynchronous rounds) and from what;
+//! - [`tiles`]: dealing tiles to workers, in fixed shares or on demand.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::fmt;
 
 pub mod dynamic;
+pub mod rounds;
 pub mod speculative;
 pub mod static_plans;
+pub mod tiles;
 
 /// Identifies one spatial domain (a brick of scene data loaded as a unit).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]

@@ -7,6 +7,13 @@
 //! through it. Among the queues holding that generation a domain already in memory goes
 //! first (it costs no load), then the fullest; ties go to the lowest domain id.
 
+/// The oldest of `generations`: the one the rule puts first, on a worker (which queue to
+/// trace, `next_queue`) and on the coordinator (which queues a round plans for,
+/// `rounds::Cluster::state`).
+pub fn oldest_generation<G: Ord>(generations: impl IntoIterator<Item = G>) -> Option<G> {
+    generations.into_iter().min()
+}
+
 /// One domain's queue as the policy sees it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct QueueView {
@@ -23,7 +30,7 @@ pub struct QueueView {
 /// The domain to trace next, or `None` when no rays are queued.
 pub fn next_queue(queues: impl IntoIterator<Item = QueueView>) -> Option<u32> {
     let queues: Vec<QueueView> = queues.into_iter().filter(|q| q.rays > 0).collect();
-    let oldest = queues.iter().map(|q| q.oldest).min()?;
+    let oldest = oldest_generation(queues.iter().map(|q| q.oldest))?;
     queues
         .iter()
         .filter(|q| q.oldest == oldest)
