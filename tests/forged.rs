@@ -24,10 +24,15 @@ struct Forgery {
     ended: Option<tonic::Status>,
 }
 
-/// Attaches as worker `id` and answers every tile dealt to it (at frame start or handed out
-/// later) with `TileResult(credit = TILE_CREDIT, no sums)`, until the coordinator closes
-/// the stream.
-async fn forger(url: String, id: &str) -> Forgery {
+/// Registers as worker `id` on the coordinator's control service and attaches: the sender of
+/// its messages and the stream of the coordinator's.
+async fn attach(
+    url: String,
+    id: &str,
+) -> (
+    tokio::sync::mpsc::Sender<proto::WorkerMessage>,
+    tonic::Streaming<proto::CoordinatorMessage>,
+) {
     let mut client = proto::worker_control_client::WorkerControlClient::connect(url)
         .await
         .unwrap();
@@ -44,7 +49,14 @@ async fn forger(url: String, id: &str) -> Forgery {
     .await
     .unwrap();
     let stream = tokio_stream::wrappers::ReceiverStream::new(rx);
-    let mut answers = client.attach(stream).await.unwrap().into_inner();
+    (tx, client.attach(stream).await.unwrap().into_inner())
+}
+
+/// Attaches as worker `id` and answers every tile dealt to it (at frame start or handed out
+/// later) with `TileResult(credit = TILE_CREDIT, no sums)`, until the coordinator closes
+/// the stream.
+async fn forger(url: String, id: &str) -> Forgery {
+    let (tx, mut answers) = attach(url, id).await;
     let mut out = Forgery::default();
     let mut epochs = std::collections::HashMap::new();
     loop {
@@ -136,23 +148,7 @@ fn a_worker_forging_credit_is_dropped_and_the_image_stays_right() {
 /// Attaches as worker `id` and, once a frame starts, reports `victim` unreachable; answers
 /// nothing else, until its control stream ends.
 async fn accuser(url: String, id: &str, victim: String) {
-    let mut client = proto::worker_control_client::WorkerControlClient::connect(url)
-        .await
-        .unwrap();
-    let (tx, rx) = tokio::sync::mpsc::channel(64);
-    tx.send(proto::WorkerMessage {
-        body: Some(FromWorker::Register(proto::Register {
-            protocol_version: proto::PROTOCOL_VERSION,
-            worker_id: id.into(),
-            peer_address: "127.0.0.1:9".into(),
-            cache_bytes: 1 << 30,
-            threads: 1,
-        })),
-    })
-    .await
-    .unwrap();
-    let stream = tokio_stream::wrappers::ReceiverStream::new(rx);
-    let mut answers = client.attach(stream).await.unwrap().into_inner();
+    let (tx, mut answers) = attach(url, id).await;
     loop {
         match answers.message().await {
             Ok(Some(m)) => {
