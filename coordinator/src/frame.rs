@@ -96,6 +96,8 @@ pub struct RunningFrame {
     /// peers cannot reach would be dropped, rejoin, get work and be dropped again, each time
     /// restarting every unfinished tile, for as long as its links are cut.
     pub sidelined: std::collections::BTreeSet<String>,
+    /// Why each worker that declined this frame could not take part (they are left out of it).
+    pub declined: Vec<String>,
     /// Members' reports of members they cannot reach, waiting to be judged.
     pub accusations: Accusations,
     /// Where committed tiles go: the coordinator's state writes them (this module does no
@@ -150,6 +152,7 @@ impl RunningFrame {
             pending_tiles: Default::default(),
             batch: 1,
             sidelined: Default::default(),
+            declined: Vec::new(),
             accusations: Accusations::default(),
             film: None,
         })

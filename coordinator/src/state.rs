@@ -112,8 +112,6 @@ struct WorkerEntry {
 struct Finishing {
     waiting: BTreeSet<u32>,
     reports: Vec<WorkerFrameStats>,
-    /// The workers that declined the frame, with their reasons.
-    left_out: Vec<String>,
     done: Option<oneshot::Sender<()>>,
 }
 
@@ -127,8 +125,6 @@ struct State {
     next_key: u32,
     running: Option<RunningFrame>,
     finishing: BTreeMap<String, Finishing>,
-    /// The job whose frame workers declined, and their reasons (one job's at a time).
-    declines: (String, Vec<String>),
     /// Set by [`Coordinator::shut_down`]: no worker attaches and no frame starts any more.
     stopping: bool,
 }
@@ -168,7 +164,6 @@ impl Coordinator {
             next_key: 0,
             running: None,
             finishing: BTreeMap::new(),
-            declines: (String::new(), Vec::new()),
             stopping: false,
         };
         for stored in loaded.jobs {
@@ -666,16 +661,18 @@ impl Coordinator {
         if let Some(w) = st.workers.get_mut(&key) {
             w.left_out = format!("job {job_id}: {reason}");
         }
-        if st.declines.0 != job_id {
-            st.declines = (job_id.to_string(), Vec::new());
-        }
-        st.declines.1.push(reason.to_string());
-        let all = st.declines.1.join("; ");
-        let Some(out) = st.running.as_mut().and_then(|f| f.lose(key)) else {
+        let Some(frame) = st.running.as_mut() else {
+            return;
+        };
+        frame.declined.push(reason.to_string());
+        let Some(out) = frame.lose(key) else {
             return;
         };
         if out.is_empty() {
-            let msg = format!("no worker can take part in the frame: {all}");
+            let msg = format!(
+                "no worker can take part in the frame: {}",
+                frame.declined.join("; ")
+            );
             self.fail_running(st, &msg);
             return;
         }
@@ -791,8 +788,7 @@ impl Coordinator {
     fn judge_accusations(&self) -> Option<(u32, String)> {
         let grace = (self.config.heartbeat * 2).max(ACCUSATION_GRACE);
         let mut st = self.lock();
-        let frame = st.running.as_mut()?;
-        let members: BTreeSet<u32> = frame.members().collect();
+        let members: BTreeSet<u32> = st.running.as_ref()?.members().collect();
         // Members the coordinator hears from itself: one peer's word alone does not drop them.
         let heard = members
             .iter()
@@ -930,11 +926,6 @@ impl Coordinator {
             Finishing {
                 waiting: frame.members().collect(),
                 reports: Vec::new(),
-                left_out: if st.declines.0 == frame.job_id {
-                    std::mem::take(&mut st.declines.1)
-                } else {
-                    Vec::new()
-                },
                 done: Some(done_tx),
             },
         );
@@ -948,11 +939,11 @@ impl Coordinator {
 
     async fn finish(self: Arc<Self>, frame: RunningFrame, wall: f64) {
         let id = frame.job_id.clone();
-        let (reports, left_out) = {
+        let reports = {
             let mut st = self.lock();
             st.finishing
                 .remove(&id)
-                .map(|f| (f.reports, f.left_out))
+                .map(|f| f.reports)
                 .unwrap_or_default()
         };
         let spec = &frame.frame;
@@ -967,7 +958,7 @@ impl Coordinator {
             domains: frame.domain_count(),
             wall_seconds: wall,
             rounds: frame.round,
-            left_out,
+            left_out: frame.declined.clone(),
             ..Default::default()
         };
         stats.absorb(reports);
@@ -1194,9 +1185,16 @@ mod tests {
         start_epochs_of(c, "w").1
     }
 
-    /// [`start_epochs`] of a worker called `id`; also returns its key.
-    fn start_epochs_of(c: &Arc<Coordinator>, id: &str) -> (u32, BTreeMap<u32, u32>) {
-        let (tx, mut rx) = mpsc::unbounded_channel();
+    /// Registers a worker called `id` whose control stream is a channel: its key and the
+    /// channel's receiving end.
+    fn attach(
+        c: &Arc<Coordinator>,
+        id: &str,
+    ) -> (
+        u32,
+        mpsc::UnboundedReceiver<Result<proto::CoordinatorMessage, Status>>,
+    ) {
+        let (tx, rx) = mpsc::unbounded_channel();
         let register = proto::Register {
             protocol_version: PROTOCOL_VERSION,
             worker_id: id.into(),
@@ -1204,7 +1202,12 @@ mod tests {
             cache_bytes: 1 << 30,
             threads: 1,
         };
-        let key = c.register(&register, tx).expect("registered");
+        (c.register(&register, tx).expect("registered"), rx)
+    }
+
+    /// [`start_epochs`] of a worker called `id`; also returns its key.
+    fn start_epochs_of(c: &Arc<Coordinator>, id: &str) -> (u32, BTreeMap<u32, u32>) {
+        let (key, mut rx) = attach(c, id);
         while let Ok(msg) = rx.try_recv() {
             if let Some(Body::StartFrame(s)) = msg.expect("no error").body {
                 // Its channel stays open while the test runs, as a live worker's would.
@@ -1220,22 +1223,11 @@ mod tests {
         let root = tempfile::tempdir().unwrap();
         let spec = small_job(root.path());
         let c = Coordinator::open(config(root.path())).unwrap();
-        let attach = |id: &str| {
-            let (tx, rx) = mpsc::unbounded_channel();
-            let register = proto::Register {
-                protocol_version: PROTOCOL_VERSION,
-                worker_id: id.into(),
-                peer_address: format!("{id}:1"),
-                cache_bytes: 1 << 30,
-                threads: 1,
-            };
-            (c.register(&register, tx).expect("registered"), rx)
-        };
-        let _stays = attach("stays");
+        let _stays = attach(&c, "stays");
         let id = c.submit(Some(spec)).unwrap();
         for lost in 1..=3 {
             assert_eq!(c.list()[0].state(), JobState::Running, "loss {lost}");
-            let (key, _rx) = attach("flaky");
+            let (key, _rx) = attach(&c, "flaky");
             c.worker_gone(key, "stream closed");
         }
         let job = c.list().into_iter().find(|j| j.job_id == id).unwrap();
