@@ -259,3 +259,33 @@ fn local_commands_check_their_limits_and_name_what_to_fix() {
     assert_eq!(stats_field(&json, "/width"), 40);
     assert_eq!(stats_field(&json, "/height"), 30);
 }
+
+#[test]
+fn bench_api_loads_a_local_cluster_and_reports_every_call() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let csv = dir.path().join("api.csv");
+    let out = rayfarm_ok(&[
+        "bench-api",
+        "--dir",
+        s(dir.path()),
+        "--clients",
+        "6",
+        "--rounds",
+        "2",
+        "--fill",
+        "100",
+        "--csv",
+        s(&csv),
+    ]);
+    let table = String::from_utf8_lossy(&out.stdout);
+    let csv = std::fs::read_to_string(&csv).expect("the CSV");
+    for call in ["SubmitJob", "WatchJob", "ListJobs", "FetchResultStream"] {
+        assert!(table.contains(call), "{table}");
+        // Six clients, two jobs each: twelve calls of every kind.
+        let row = csv
+            .lines()
+            .find(|l| l.starts_with(call))
+            .unwrap_or_else(|| panic!("no {call} row in {csv}"));
+        assert_eq!(row.split(',').nth(1), Some("12"), "{row}");
+    }
+}

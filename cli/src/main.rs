@@ -48,6 +48,9 @@ enum Command {
     /// Render one scene with every schedule side by side (cold caches, repeats interleaved)
     /// on a local cluster and compare time, domain loads and traffic against the bound.
     Bench(cmd::bench::BenchArgs),
+    /// Load the job API of a local cluster with many clients at once (submit, watch, list,
+    /// fetch) over a store of finished jobs, and report each call's latency.
+    BenchApi(cmd::bench_api::BenchApiArgs),
     /// Check that a coordinator or worker is up (the gRPC health service).
     Health(cmd::health::HealthArgs),
     /// Write a private CA, a node certificate for the given hosts and (optionally) a random
@@ -124,6 +127,7 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
         Command::Fetch(a) => cmd::fetch::run(a),
         Command::Cancel(a) => cmd::cancel::run(a),
         Command::Bench(a) => cmd::bench::run(a),
+        Command::BenchApi(a) => cmd::bench_api::run(a),
         Command::Health(a) => cmd::health::run(a),
         Command::Certs(a) => cmd::certs::run(a),
     }

@@ -116,9 +116,19 @@ impl Api {
     /// Reads `scene`'s manifest on a blocking thread, within [`SCENE_READ_TIMEOUT`], so slow
     /// or hung storage never stalls the async runtime (heartbeats, other calls).
     async fn read_scene(&self, scene: &str) -> Result<Manifest, Status> {
-        let permit = self.scene_reads.clone().try_acquire_owned().map_err(|_| {
+        // A burst of submits waits its turn (waiting holds no thread); only reads stuck on
+        // storage for as long as a read may take make the next ones give up.
+        let permit = tokio::time::timeout(
+            SCENE_READ_TIMEOUT,
+            self.scene_reads.clone().acquire_owned(),
+        )
+        .await
+        .ok()
+        .and_then(Result::ok)
+        .ok_or_else(|| {
             Status::resource_exhausted(format!(
-                "{MAX_SCENE_READS} scene reads are in progress; try again"
+                "{MAX_SCENE_READS} scene reads have been in progress for {SCENE_READ_TIMEOUT:?}; \
+                 try again"
             ))
         })?;
         let coordinator = self.coordinator.clone();
