@@ -3,19 +3,18 @@
 //! holds the others).
 
 use std::collections::{BTreeMap, VecDeque};
-use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
+use rayfarm_core::frame::TileGrid;
 use rayfarm_core::ray::RayRecord;
 use rayfarm_core::render::KernelCounters;
-use rayfarm_core::render::cache::CacheCounters;
 use rayfarm_core::schedule::speculative::{GenerationCounts, QueueView, next_queue};
 use rayfarm_core::wire::BatchLimits;
 
-use crate::pass::FrameView;
-use crate::queues::{DomainQueues, QueueError};
-pub use rayfarm_machine::worker::Mode;
-use rayfarm_machine::worker::{Plan, Speculation};
+use super::plan::{Mode, Plan};
+use super::queues::{DomainQueues, QueueError, RaySpill};
+use super::speculation::Speculation;
+use crate::Time;
 
 /// Counters of one frame on this worker.
 #[derive(Default)]
@@ -28,15 +27,19 @@ pub struct FrameCounters {
 }
 
 /// The frame being rendered.
-pub struct Frame {
+pub struct Frame<S> {
     pub job_id: String,
-    pub shared: Arc<FrameView>,
+    pub grid: TileGrid,
+    /// Samples per pixel.
+    pub spp: u32,
     pub limits: BatchLimits,
+    /// Bytes of every domain file, by domain id.
+    pub domain_bytes: Vec<u64>,
     /// Tiles whose camera rays this worker issues, in order, not yet issued.
     pub to_issue: VecDeque<u32>,
     /// The schedule, this round's plan, the tiles' epochs: where each ray goes.
     pub plan: Plan,
-    queues: DomainQueues,
+    queues: DomainQueues<S>,
     /// Rays queued per domain and generation (an upper bound after a fault dropped rays).
     generations: GenerationCounts,
     /// Under the predictive schedule, the rays born here waiting for their copies' verdicts.
@@ -44,27 +47,47 @@ pub struct Frame {
     /// Whether the coordinator has this worker's current state (no report is due).
     pub reported: bool,
     pub counters: FrameCounters,
-    /// The domain cache's counters when the frame started.
-    pub cache_at_start: CacheCounters,
-    pub started: Instant,
+    pub started: Time,
 }
 
-impl Frame {
-    /// A frame under `mode`; `me` is this worker's peer address (never a destination).
-    pub fn new(
-        mode: Mode,
-        job_id: String,
-        shared: Arc<FrameView>,
-        limits: BatchLimits,
-        to_issue: Vec<u32>,
-        queues: DomainQueues,
-        me: String,
-    ) -> Self {
-        let tiles = shared.grid.count() as usize;
+/// What a frame is made of, as opened from its StartFrame and the scene.
+pub struct FrameParts<S> {
+    pub mode: Mode,
+    pub job_id: String,
+    pub grid: TileGrid,
+    pub spp: u32,
+    pub limits: BatchLimits,
+    pub domain_bytes: Vec<u64>,
+    /// Tiles whose camera rays this worker issues, in order.
+    pub to_issue: Vec<u32>,
+    pub queues: DomainQueues<S>,
+    /// This worker's peer address (never a destination).
+    pub me: String,
+    pub started: Time,
+}
+
+impl<S: RaySpill> Frame<S> {
+    /// A frame of `parts`, before its first plan.
+    pub fn new(parts: FrameParts<S>) -> Self {
+        let FrameParts {
+            mode,
+            job_id,
+            grid,
+            spp,
+            limits,
+            domain_bytes,
+            to_issue,
+            queues,
+            me,
+            started,
+        } = parts;
+        let tiles = grid.count() as usize;
         Frame {
             job_id,
-            shared,
+            grid,
+            spp,
             limits,
+            domain_bytes,
             to_issue: to_issue.into(),
             plan: Plan::new(mode, tiles, queues.domains(), me),
             generations: GenerationCounts::new(queues.domains() as usize),
@@ -72,8 +95,7 @@ impl Frame {
             queues,
             reported: false,
             counters: FrameCounters::default(),
-            cache_at_start: CacheCounters::default(),
-            started: Instant::now(),
+            started,
         }
     }
 
@@ -82,10 +104,11 @@ impl Frame {
     /// (data-parallel) data out. Otherwise they migrate like the rest.
     /// Returns the domains to pin in the cache (the owned ones when demand loads may use
     /// the rest).
-    pub fn decide_demand_loads(&mut self, cache_bytes: u64, domain_bytes: &[u64]) -> Vec<u32> {
-        let size = |d: u32| domain_bytes.get(d as usize).copied().unwrap_or(0);
+    pub fn decide_demand_loads(&mut self, cache_bytes: u64) -> Vec<u32> {
+        let sizes = &self.domain_bytes;
+        let size = |d: u32| sizes.get(d as usize).copied().unwrap_or(0);
         let owned: u64 = self.plan.work_on().iter().map(|&d| size(d)).sum();
-        let largest = domain_bytes.iter().copied().max().unwrap_or(0);
+        let largest = sizes.iter().copied().max().unwrap_or(0);
         let Mode::Hybrid { demand_loads } = &mut self.plan.mode else {
             return Vec::new();
         };
@@ -200,7 +223,7 @@ impl Frame {
             .collect()
     }
 
-    /// Rays spilled to disk so far in this frame.
+    /// Rays spilled so far in this frame.
     pub fn spilled(&self) -> u64 {
         self.queues.spilled_total
     }
