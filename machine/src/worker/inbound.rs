@@ -76,8 +76,6 @@ impl<S: RaySpill> Worker<S> {
                 Err(e) => return self.fail_frame(e.to_string()),
             }
         }
-        // New rays here change what the coordinator should know at the round's end.
-        frame.reported = false;
         for (peer, rays) in forward {
             self.send_rays(peer, &rays);
         }
@@ -88,17 +86,17 @@ impl<S: RaySpill> Worker<S> {
         let Some(frame) = self.frame.as_mut() else {
             return;
         };
-        let Some(spec) = frame.speculation.as_mut() else {
+        if frame.speculation().is_none() {
             warn!(%sender, "dropping verdicts: this frame places no rays speculatively");
             return;
-        };
+        }
         for batch in batches {
             match wire::decode_verdicts(&batch, &frame.limits) {
-                Ok(verdicts) => spec.settle(&verdicts),
+                Ok(verdicts) => {
+                    frame.settle(&verdicts);
+                }
                 Err(e) => error!(%sender, error = %e, "dropping a malformed verdict batch"),
             }
         }
-        // Concluding them makes new work, which the coordinator should hear of.
-        frame.reported = false;
     }
 }

@@ -3,7 +3,6 @@
 //! speculation groups), the bundler and the bundles held for frames not started yet; the
 //! shell owns the sockets, the domain cache, the tracing pool and the clock.
 
-use std::collections::BTreeMap;
 use std::time::Duration;
 
 use bytes::Bytes;
@@ -19,7 +18,6 @@ use super::events::{Action, Event, OpenedScene, PassOutput, PassWork};
 use super::frame::{Frame, FrameParts};
 use super::plan::Mode;
 use super::queues::RaySpill;
-use super::speculation::Speculation;
 use crate::Time;
 
 /// Rays per encoded batch sent to a peer (160 KiB).
@@ -183,10 +181,7 @@ impl<S: RaySpill> Worker<S> {
             Some(FromCoordinator::Roster(r)) => self.roster(r),
             Some(FromCoordinator::HandOutTiles(h)) => {
                 if let Some(f) = self.frame.as_mut().filter(|f| f.job_id == h.job_id) {
-                    let tiles = f.grid.count();
-                    f.to_issue
-                        .extend(h.tiles.into_iter().filter(|&t| t < tiles));
-                    f.reported = false;
+                    f.hand_out(h.tiles);
                 }
             }
             None => warn!("empty message from the coordinator"),
@@ -241,7 +236,7 @@ impl<S: RaySpill> Worker<S> {
             },
             Err(_) => return Err(format!("unknown schedule {}", spec.schedule)),
         };
-        let mut frame = Frame::new(FrameParts {
+        Ok(Frame::new(FrameParts {
             mode,
             job_id: s.job_id.clone(),
             grid: scene.grid,
@@ -252,18 +247,11 @@ impl<S: RaySpill> Worker<S> {
             queues: scene.queues,
             me: self.config.advertise.clone(),
             started: self.now,
-        });
-        frame.plan.round = s.round;
-        frame.plan.set_resident(scene.resident);
-        if mode == Mode::Predictive {
-            frame.speculation = Some(Speculation::new(s.worker_key, s.roster.clone()));
-        }
-        for (&tile, &epoch) in &s.epochs {
-            if let Some(e) = frame.plan.epochs.get_mut(tile as usize) {
-                *e = epoch;
-            }
-        }
-        Ok(frame)
+            round: s.round,
+            epochs: s.epochs.clone(),
+            resident: scene.resident,
+            speculation: (mode == Mode::Predictive).then(|| (s.worker_key, s.roster.clone())),
+        }))
     }
 
     fn round_plan(&mut self, p: proto::RoundPlan) {
@@ -278,13 +266,13 @@ impl<S: RaySpill> Worker<S> {
             p.holders.into_iter().map(|h| (h.domain, h.workers)),
         );
         let resident: Vec<u32> = frame
-            .plan
+            .plan()
             .resident()
             .iter()
             .copied()
             .filter(|d| !p.evict.contains(d))
             .collect();
-        frame.plan.set_resident(resident);
+        frame.set_resident(resident);
         let pinned = frame.decide_demand_loads(self.config.cache_bytes);
         debug!(work_on = ?p.work_on, evict = ?p.evict, "round plan");
         self.actions.push(Action::Evict(p.evict));
@@ -297,9 +285,7 @@ impl<S: RaySpill> Worker<S> {
         let Some(frame) = self.frame.as_mut().filter(|f| f.job_id == h.job_id) else {
             return;
         };
-        frame
-            .plan
-            .set_holders(h.holders.into_iter().map(|h| (h.domain, h.workers)));
+        frame.set_holders(h.holders.into_iter().map(|h| (h.domain, h.workers)));
         self.send_to_holders();
     }
 
@@ -310,10 +296,6 @@ impl<S: RaySpill> Worker<S> {
         };
         match frame.take_for_peers() {
             Ok(out) => {
-                // The coordinator counted these rays here: it must hear they left.
-                if !out.is_empty() {
-                    frame.reported = false;
-                }
                 for (peer, rays) in out {
                     self.send_rays(peer, &rays);
                 }
@@ -328,10 +310,7 @@ impl<S: RaySpill> Worker<S> {
         let Some(frame) = self.frame.as_mut().filter(|f| f.job_id == r.job_id) else {
             return;
         };
-        let Some(spec) = frame.speculation.as_mut() else {
-            return;
-        };
-        for (peer, verdicts) in spec.set_roster(r.members) {
+        for (peer, verdicts) in frame.set_roster(r.members) {
             self.send_verdicts(peer, &verdicts);
         }
         self.send_due_bundles();
@@ -356,7 +335,7 @@ impl<S: RaySpill> Worker<S> {
             bytes_sent: c.bytes_sent,
             rays_received: c.rays_received,
             rays_spilled: frame.spilled(),
-            verdicts_refused: frame.speculation.as_ref().map_or(0, |s| s.refused),
+            verdicts_refused: frame.speculation().map_or(0, |s| s.refused),
             tiers: tier_traffic(self.bundler.stats()),
             busy_seconds,
             frame_seconds,
@@ -390,7 +369,7 @@ impl<S: RaySpill> Worker<S> {
         };
         frame.counters.rays.add(&out.counters);
         frame.counters.busy += out.busy;
-        frame.plan.set_resident(resident);
+        frame.set_resident(resident);
         if !out.results.is_empty() {
             let msg = proto::TileResults {
                 job_id: frame.job_id.clone(),
@@ -402,22 +381,7 @@ impl<S: RaySpill> Worker<S> {
         let Some(frame) = self.frame.as_mut() else {
             return;
         };
-        let (rays, verdicts) = match frame.speculation.as_mut() {
-            Some(spec) => {
-                // Rays born of a tile restarted while the pass ran would wait forever.
-                let (born, paths): (Vec<RayRecord>, Vec<Vec<u32>>) = out
-                    .rays
-                    .into_iter()
-                    .zip(out.paths)
-                    .filter(|(r, _)| frame.plan.is_current(r.tile, r.epoch))
-                    .unzip();
-                let copies = spec.spread(&born, &paths);
-                // Copies queued here for domains no one traces yet must be reported.
-                frame.reported = false;
-                (copies, spec.address(out.verdicts))
-            }
-            None => (out.rays, BTreeMap::new()),
-        };
+        let (rays, verdicts) = frame.born(out.rays, out.paths, out.verdicts);
         for (peer, verdicts) in verdicts {
             self.send_verdicts(peer, &verdicts);
         }
@@ -443,24 +407,12 @@ impl<S: RaySpill> Worker<S> {
         let Some(frame) = self.frame.as_mut() else {
             return;
         };
-        let mut primaries = Vec::new();
-        // Rays born here and waiting for verdicts count too: they bound the groups' memory.
-        let waiting = frame.speculation.as_ref().map_or(0, |s| s.waiting());
-        let mut queued = frame.queued_total() + waiting;
-        while queued < self.config.wave_rays
-            && let Some(tile) = frame.to_issue.pop_front()
-        {
-            primaries.push((tile, frame.plan.epochs[tile as usize]));
-            queued += frame.grid.tile_pixel_count(tile) * frame.spp as usize;
-        }
+        let primaries = frame.next_primaries(self.config.wave_rays);
         let trace = match frame.take_work(self.config.pass_rays) {
             Ok(t) => t,
             Err(e) => return self.fail_frame(e.to_string()),
         };
-        let speculative = frame
-            .speculation
-            .as_mut()
-            .map(|s| std::mem::take(&mut s.to_conclude));
+        let speculative = frame.take_to_conclude();
         let concluding = speculative.as_ref().is_some_and(|c| !c.is_empty());
         if primaries.is_empty() && trace.is_none() && !concluding {
             self.report_idle();
@@ -484,27 +436,11 @@ impl<S: RaySpill> Worker<S> {
         let Some(frame) = self.frame.as_mut() else {
             return;
         };
-        if frame.reported {
+        let Some(report) = frame.take_report() else {
             return;
-        }
-        frame.reported = true;
-        let report = proto::QueueReport {
-            job_id: frame.job_id.clone(),
-            round: frame.plan.round,
-            resident_domains: frame.plan.resident().iter().copied().collect(),
-            queued_rays: frame.queue_sizes().into_iter().collect(),
-            oldest_generation: match frame.plan.mode {
-                Mode::Predictive => frame.oldest_generations().into_iter().collect(),
-                _ => Default::default(),
-            },
-            oldest_waiting: frame
-                .speculation
-                .as_ref()
-                .and_then(|s| s.oldest_waiting())
-                .map(u32::from),
         };
         debug!(
-            round = frame.plan.round,
+            round = report.round,
             queued = frame.queued_total(),
             "round done here"
         );

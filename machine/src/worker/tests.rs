@@ -325,3 +325,32 @@ fn bundles_of_an_ended_frame_are_dropped_not_held() {
     assert_eq!(w.early_bytes(), 0);
     assert!(w.frame().is_none());
 }
+
+#[test]
+fn rays_leaving_for_a_new_holder_make_a_report_due_and_an_empty_move_does_not() {
+    let mut w = worker();
+    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    w.handle(Time(1), plan(1, &[0], &[]));
+    // Domain 2 has no holder: its rays wait here, and the coordinator hears of them.
+    let actions = w.handle(Time(2), bundle(JOB, &[ray(0, 0, 2, 1)]));
+    assert_eq!(
+        queue_reports(&actions)[0].queued_rays,
+        HashMap::from([(2, 1)])
+    );
+    let holders = |w: &str| {
+        control(FromCoordinator::Holders(proto::Holders {
+            job_id: JOB.into(),
+            holders: holders_of(&[(2, w)]),
+        }))
+    };
+    let actions = w.handle(Time(3), holders("b:1"));
+    assert_eq!(rays_sent(&actions)["b:1"].len(), 1);
+    let reports = queue_reports(&actions);
+    assert_eq!(reports.len(), 1, "the coordinator counted that ray here");
+    assert!(reports[0].queued_rays.is_empty());
+    let actions = w.handle(Time(4), holders("c:1"));
+    assert!(
+        queue_reports(&actions).is_empty(),
+        "nothing moved: {actions:?}"
+    );
+}
