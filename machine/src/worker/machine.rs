@@ -119,9 +119,8 @@ impl<S: RaySpill> Worker<S> {
             Event::PeerBundle {
                 sender,
                 job_id,
-                tier,
-                batches,
-            } => self.peer_bundle(sender, job_id, tier, batches),
+                payload,
+            } => self.peer_bundle(sender, job_id, payload),
             Event::PeerUnresponsive { peer, reason } => {
                 self.actions.push(Action::DropPeers(vec![peer.clone()]));
                 self.send(proto::worker_message::Body::PeerUnresponsive(
@@ -201,8 +200,8 @@ impl<S: RaySpill> Worker<S> {
             Ok(frame) => {
                 info!(tiles = s.primary_tiles.len(), "frame started");
                 self.frame = Some(frame);
-                for (sender, tier, batches) in self.early.take(&s.job_id) {
-                    self.peer_bundle(sender, s.job_id.clone(), tier, batches);
+                for (sender, payload) in self.early.take(&s.job_id) {
+                    self.peer_bundle(sender, s.job_id.clone(), payload);
                 }
             }
             Err(e) => {

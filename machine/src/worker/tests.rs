@@ -5,7 +5,6 @@
 use std::collections::{BTreeMap, HashMap};
 use std::time::Duration;
 
-use bytes::Bytes;
 use rayfarm_core::bundler::Tier;
 use rayfarm_core::frame::TileGrid;
 use rayfarm_core::ray::RayRecord;
@@ -103,8 +102,7 @@ fn bundle(job: &str, rays: &[RayRecord]) -> Event<MemorySpill> {
     Event::PeerBundle {
         sender: "peer:1".into(),
         job_id: job.into(),
-        tier: proto::Tier::Migrated,
-        batches: vec![Bytes::from(wire::encode_batch(rays))],
+        payload: Payload::Rays(vec![rays.to_vec()]),
     }
 }
 
@@ -353,4 +351,20 @@ fn rays_leaving_for_a_new_holder_make_a_report_due_and_an_empty_move_does_not() 
         queue_reports(&actions).is_empty(),
         "nothing moved: {actions:?}"
     );
+}
+
+#[test]
+fn a_batch_outside_the_frame_is_dropped_and_the_rest_of_its_bundle_routed() {
+    let mut w = worker();
+    w.handle(Time(0), opened(JOB, Schedule::ImagePlane, &[]));
+    let good = ray(0, 0, 1, 3);
+    let outside = ray(0, 0, DOMAINS as u32, 3);
+    let event = Event::PeerBundle {
+        sender: "peer:1".into(),
+        job_id: JOB.into(),
+        payload: Payload::Rays(vec![vec![good, outside], vec![good]]),
+    };
+    let work = w.handle(Time(1), event);
+    assert_eq!(pass_started(&work).unwrap().trace, Some((1, vec![good])));
+    assert_eq!(w.frame().unwrap().counters.rays_received, 1);
 }
