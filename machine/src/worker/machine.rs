@@ -264,6 +264,9 @@ impl<S: RaySpill> Worker<S> {
             p.work_on.iter().copied(),
             p.holders.into_iter().map(|h| (h.domain, h.workers)),
         );
+        // The cache as the machine knows it: mapped at the last pass's end, less what this plan
+        // evicts (the cache changes only in passes and by these actions). A pass running now
+        // may map one more; its PassFinished says so.
         let resident: Vec<u32> = frame
             .plan()
             .resident()
