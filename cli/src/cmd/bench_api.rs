@@ -21,8 +21,8 @@ use crate::local_cluster::{ClusterConfig, JobInFlight, with_local_cluster};
 /// Options of `rayfarm bench-api`.
 #[derive(Args, Clone, Debug)]
 pub struct BenchApiArgs {
-    /// Where the scene and the coordinator's data go [default: a temporary directory,
-    /// removed after].
+    /// Where the scene and the coordinator's data go, kept for the next run (whose store then
+    /// needs no filling) [default: a temporary directory, removed after].
     #[arg(long)]
     pub dir: Option<PathBuf>,
     /// Clients calling the API at once, each on its own connection.
@@ -102,15 +102,23 @@ pub fn run(a: BenchApiArgs) -> anyhow::Result<()> {
         prepare_nbody(&scene, &options).context("preparing the benchmark's scene")?;
     }
     let mut config = ClusterConfig::for_scene(&scene, &dir.join("data"), 1, 64 << 20, 1)?;
-    // Every client is the same anonymous user: the per-user quota must not be what is measured.
-    config.coordinator_extra = vec!["--max-jobs-per-user".into(), "100000".into()];
+    // Every client is the same anonymous user on the same address: neither the per-user quota
+    // nor the per-address connection cap may be what is measured.
+    config.coordinator_extra = vec![
+        "--max-jobs-per-user".into(),
+        "100000".into(),
+        "--max-connections-per-peer".into(),
+        (a.clients + FILL_IN_FLIGHT + 16).to_string().into(),
+    ];
     let in_flight = JobInFlight::default();
     let samples = runtime()?.block_on(with_local_cluster(&config, &in_flight, async |url| {
+        // A store kept in --dir from an earlier run needs only the jobs it lacks.
+        let stored = Coordinator::connect(&url).await?.jobs(None).await?.len();
         let start = Instant::now();
-        fill(&url, a.fill, a.size).await?;
+        fill(&url, a.fill.saturating_sub(stored), a.size).await?;
         eprintln!(
-            "{} finished jobs in the store after {:.1} s",
-            a.fill,
+            "{} finished jobs in the store ({stored} from before) after {:.1} s",
+            a.fill.max(stored),
             start.elapsed().as_secs_f64()
         );
         let start = Instant::now();

@@ -1,0 +1,189 @@
+//! Writes the seed corpora of the fuzz targets into `fuzz/corpus/<target>/`: a few valid
+//! inputs of each kind (real ray and verdict batches, a real scene's manifest and domain
+//! files, meshes in every format, job requests, worker messages, peer bundles), from which
+//! libFuzzer's mutations start. `cargo run --release -p rayfarm-fuzz --example seeds`.
+
+use std::path::{Path, PathBuf};
+
+use prost::Message;
+use rayfarm_core::cluster::tile_sums;
+use rayfarm_core::mesh::{
+    TriangleMesh, write_obj, write_ply_ascii, write_ply_binary, write_stl_ascii, write_stl_binary,
+};
+use rayfarm_core::prepare::generate::{NbodyOptions, prepare_nbody};
+use rayfarm_core::ray::RayRecord;
+use rayfarm_core::wire::{self, VerdictRecord};
+use rayfarm_proto as proto;
+
+fn corpus(target: &str) -> PathBuf {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../corpus")
+        .join(target);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+fn seed(target: &str, name: &str, bytes: &[u8]) {
+    std::fs::write(corpus(target).join(name), bytes).unwrap();
+}
+
+fn ray(i: u32) -> RayRecord {
+    RayRecord {
+        origin: [i as f32, 0.5, -2.0],
+        t_min: 0.0,
+        dir: [0.0, 0.0, 1.0],
+        t_max: f32::INFINITY,
+        throughput: [1.0, 0.5, 0.25],
+        pixel: i * 7,
+        sample: i,
+        depth: (i % 3) as u16,
+        kind: (i % 2) as u8,
+        domain: i % 8,
+        tile: i / 4,
+        epoch: 1,
+        credit: 1 << 20,
+        ..bytemuck::Zeroable::zeroed()
+    }
+}
+
+fn verdict(i: u32) -> VerdictRecord {
+    let mut v: VerdictRecord = bytemuck::Zeroable::zeroed();
+    v.group = i;
+    v.tile = i / 4;
+    v.epoch = 1;
+    v.pixel = i * 3;
+    v.sample = i;
+    v.kind = [
+        VerdictRecord::CLEAR,
+        VerdictRecord::BLOCKED,
+        VerdictRecord::HIT,
+    ][i as usize % 3];
+    if v.kind == VerdictRecord::HIT {
+        v.order = 2;
+        v.t = 1.5;
+        v.normal = [0.0, 1.0, 0.0];
+        v.material = 1;
+    }
+    v
+}
+
+fn main() {
+    let rays: Vec<RayRecord> = (0..5).map(ray).collect();
+    seed("ray_batch", "five", &wire::encode_batch(&rays));
+    seed("ray_batch", "empty", &wire::encode_batch(&[]));
+    let verdicts: Vec<VerdictRecord> = (0..6).map(verdict).collect();
+    seed("verdict_batch", "six", &wire::encode_verdicts(&verdicts));
+
+    // A real scene: its manifest and its domain files.
+    let scene = tempdir();
+    let options = NbodyOptions {
+        name: "seed".into(),
+        triangles: 1000,
+        seed: 1,
+        domains: 2,
+        max_memory: None,
+        force: true,
+    };
+    let manifest = prepare_nbody(&scene, &options).unwrap();
+    seed(
+        "manifest",
+        "nbody",
+        &std::fs::read(scene.join("scene.toml")).unwrap(),
+    );
+    for d in &manifest.domains {
+        let bytes = std::fs::read(scene.join(&d.file)).unwrap();
+        seed("domain_file", &d.file, &bytes);
+    }
+
+    let mesh = TriangleMesh {
+        positions: vec![
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [0.0, 0.0, 1.0],
+        ],
+        triangles: vec![[0, 1, 2], [0, 2, 3], [0, 3, 1]],
+    };
+    let mut formats: Vec<(&str, u8, Vec<u8>)> = Vec::new();
+    let mut b = Vec::new();
+    write_ply_ascii(&mesh, &mut b).unwrap();
+    formats.push(("ply_ascii", 0, b));
+    let mut b = Vec::new();
+    write_ply_binary(&mesh, &mut b).unwrap();
+    formats.push(("ply_binary", 0, b));
+    let mut b = Vec::new();
+    write_obj(&mesh, &mut b).unwrap();
+    formats.push(("obj", 1, b));
+    let mut b = Vec::new();
+    write_stl_ascii(&mesh, &mut b).unwrap();
+    formats.push(("stl_ascii", 2, b));
+    let mut b = Vec::new();
+    write_stl_binary(&mesh, &mut b).unwrap();
+    formats.push(("stl_binary", 2, b));
+    for (name, pick, bytes) in formats {
+        let mut input = vec![pick];
+        input.extend_from_slice(&bytes);
+        seed("mesh", name, &input);
+    }
+
+    let spec = proto::JobSpec {
+        scene: "seed".into(),
+        width: 64,
+        height: 48,
+        spp: 2,
+        max_depth: 3,
+        camera: Some(proto::Camera {
+            eye: vec![0.0, 0.0, 5.0],
+            look_at: vec![0.0; 3],
+            up: vec![0.0, 1.0, 0.0],
+            fov_y_degrees: 30.0,
+        }),
+        ..Default::default()
+    };
+    let req = proto::SubmitJobRequest { spec: Some(spec) };
+    seed("job_request", "small", &req.encode_to_vec());
+
+    let sums = tile_sums::encode([(0, [1, 2, 3]), (1, [0, 0, 0]), (5, [1 << 40, 7, -1])]);
+    let results = proto::TileResults {
+        job_id: "job-1".into(),
+        results: vec![proto::TileResult {
+            tile: 0,
+            epoch: 1,
+            credit: 3 << 20,
+            sums,
+        }],
+        segments_traced: 12,
+    };
+    let msg = proto::WorkerMessage {
+        body: Some(proto::worker_message::Body::TileResults(results)),
+    };
+    seed("worker_message", "tile_results", &msg.encode_to_vec());
+
+    for (name, tier, batch) in [
+        ("rays", proto::Tier::Migrated, wire::encode_batch(&rays)),
+        (
+            "verdicts",
+            proto::Tier::Results,
+            wire::encode_verdicts(&verdicts),
+        ),
+    ] {
+        let bundle = proto::PeerBundle {
+            protocol_version: proto::PROTOCOL_VERSION,
+            sender: "127.0.0.1:7001".into(),
+            job_id: "job-1".into(),
+            tier: tier as i32,
+            sequence: 4,
+            batches: vec![batch.into()],
+        };
+        seed("peer_bundle", name, &bundle.encode_to_vec());
+    }
+    std::fs::remove_dir_all(&scene).unwrap();
+    println!("seed corpora written under fuzz/corpus/");
+}
+
+/// A fresh directory for the scene (no tempfile dependency for one directory).
+fn tempdir() -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("rayfarm-fuzz-seeds-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    dir
+}

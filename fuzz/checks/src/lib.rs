@@ -1,0 +1,185 @@
+//! What rayfarm's fuzz targets check, one function per target: each takes any bytes, feeds
+//! them to the code that reads them from another process or from disk, and panics if a
+//! property fails. libFuzzer runs them under coverage guidance (`fuzz/fuzz_targets`, with
+//! `cargo fuzz`); `tests/corpus.rs` replays every committed corpus input through them on
+//! every CI run, so what fuzzing found stays found.
+//!
+//! The properties, beyond "no panic, no crash": an accepted ray or verdict batch re-encodes
+//! to the bytes it came from; an accepted domain file can be traced by every kernel this CPU
+//! runs, and they agree to the bit; an accepted mesh has only finite vertices and in-range
+//! indices; a refusal always says why.
+
+use glam::Vec3;
+use prost::Message;
+use rayfarm_core::bvh::{Kernel, TraceRay, Traverser};
+use rayfarm_core::mesh::parse_mesh;
+use rayfarm_core::scene::domain_file::parse_domain_bytes;
+use rayfarm_core::scene::{Camera, Manifest};
+use rayfarm_core::wire::{self, BatchLimits};
+use rayfarm_proto as proto;
+
+/// What a frame of the fuzzed batches allows: small, so records out of range are common.
+const LIMITS: BatchLimits = BatchLimits {
+    domains: 8,
+    pixels: 10_000,
+    max_depth: 6,
+    materials: 4,
+    max_records: 4096,
+};
+
+/// The camera of the scene a fuzzed job names.
+const SCENE_CAMERA: Camera = Camera {
+    eye: [0.0, 0.0, 5.0],
+    look_at: [0.0; 3],
+    up: [0.0, 1.0, 0.0],
+    fov_y_degrees: 40.0,
+};
+
+/// Materials a fuzzed domain file may name.
+const MATERIALS: u32 = 4;
+
+/// Ray batches from peers (`core::wire`): accepted ones re-encode to the same bytes.
+pub fn ray_batch(data: &[u8]) {
+    match wire::decode_batch(data, &LIMITS) {
+        Ok(rays) => assert_eq!(wire::encode_batch(&rays), data, "an accepted batch changed"),
+        Err(e) => assert!(!e.to_string().is_empty()),
+    }
+}
+
+/// Verdict batches from peers: accepted ones re-encode to the same bytes.
+pub fn verdict_batch(data: &[u8]) {
+    match wire::decode_verdicts(data, &LIMITS) {
+        Ok(verdicts) => assert_eq!(
+            wire::encode_verdicts(&verdicts),
+            data,
+            "an accepted verdict batch changed"
+        ),
+        Err(e) => assert!(!e.to_string().is_empty()),
+    }
+}
+
+/// `scene.toml` as text: parsed or refused with a reason; an accepted manifest checks its
+/// own domains' boxes (the tree is built from them) without panicking.
+pub fn manifest(data: &[u8]) {
+    let Ok(text) = std::str::from_utf8(data) else {
+        return;
+    };
+    match Manifest::parse(text) {
+        Ok(m) => {
+            let _ = m.domain_tree();
+        }
+        Err(e) => assert!(!e.is_empty()),
+    }
+}
+
+/// Mesh files in every format rayfarm reads (the first byte picks the format, the rest is
+/// the file): accepted meshes have finite vertices and indices in range.
+pub fn mesh(data: &[u8]) {
+    let Some((&pick, bytes)) = data.split_first() else {
+        return;
+    };
+    let name = ["in.ply", "in.obj", "in.stl"][usize::from(pick % 3)];
+    match parse_mesh(name, bytes) {
+        Ok(mesh) => {
+            assert!(mesh.positions.iter().flatten().all(|c| c.is_finite()));
+            let n = mesh.positions.len();
+            assert!(mesh.triangles.iter().flatten().all(|&i| (i as usize) < n));
+        }
+        Err(e) => assert!(!e.to_string().is_empty()),
+    }
+}
+
+/// Domain files: the checksum is fixed up first (an attacker who writes a scene can make it
+/// match), so the structural checks behind it are reached. An accepted file is traced with
+/// every kernel this CPU supports, from its corners toward its centre and back: no crash, and
+/// every kernel finds the same hits to the bit.
+pub fn domain_file(data: &[u8]) {
+    let mut bytes = data.to_vec();
+    rayfarm_core::scene::domain_file::seal(&mut bytes);
+    let Ok(domain) = parse_domain_bytes(&bytes, MATERIALS) else {
+        return;
+    };
+    let b = domain.bounds();
+    let (lo, hi) = (Vec3::from(b.min), Vec3::from(b.max));
+    if !(lo.is_finite() && hi.is_finite()) {
+        return;
+    }
+    let centre = (lo + hi) * 0.5;
+    let corners = (0..8).map(|i| {
+        Vec3::new(
+            if i & 1 == 0 { lo.x } else { hi.x },
+            if i & 2 == 0 { lo.y } else { hi.y },
+            if i & 4 == 0 { lo.z } else { hi.z },
+        )
+    });
+    let rays: Vec<TraceRay> = corners
+        .flat_map(|c| {
+            [
+                TraceRay::new(c, centre - c),
+                TraceRay::new(centre, c - centre),
+            ]
+        })
+        .collect();
+    let kernels: Vec<Kernel> = Kernel::ALL.into_iter().filter(|k| k.supported()).collect();
+    let trace = |k: Kernel| {
+        let mut t = Traverser::with_kernel(k).expect("supported");
+        rays.iter()
+            .map(|r| {
+                let hit = t.nearest_hit(domain.bvh(), r, 0.0, f32::INFINITY);
+                let blocked = t.any_hit(domain.bvh(), r, 0.0, f32::INFINITY);
+                (hit.map(|h| (h.t.to_bits(), h.id)), blocked)
+            })
+            .collect::<Vec<_>>()
+    };
+    let first = trace(kernels[0]);
+    for &k in &kernels[1..] {
+        assert_eq!(trace(k), first, "{k:?} and {:?} disagree", kernels[0]);
+    }
+}
+
+/// What the job API accepts: a SubmitJobRequest's spec is checked as the coordinator checks
+/// it, and a refusal says why.
+pub fn job_request(data: &[u8]) {
+    let Ok(req) = proto::SubmitJobRequest::decode(data) else {
+        return;
+    };
+    let Some(spec) = req.spec else {
+        return;
+    };
+    if rayfarm_node::bounds::check_field("scene", &spec.scene).is_err() {
+        return;
+    }
+    match rayfarm_node::job::frame_spec(&spec, &SCENE_CAMERA) {
+        Ok(frame) => assert!(frame.width > 0 && frame.height > 0 && frame.spp > 0),
+        Err(e) => assert!(!e.is_empty()),
+    }
+}
+
+/// What a worker sends the coordinator: tile results' sums decode or are refused.
+pub fn worker_message(data: &[u8]) {
+    let Ok(msg) = proto::WorkerMessage::decode(data) else {
+        return;
+    };
+    if let Some(proto::worker_message::Body::TileResults(r)) = msg.body {
+        for result in r.results {
+            if let Err(e) = rayfarm_core::cluster::tile_sums::decode(&result.sums) {
+                assert!(!e.to_string().is_empty());
+            }
+        }
+    }
+}
+
+/// What a peer sends: every batch of a bundle decodes as its tier says, or is refused.
+pub fn peer_bundle(data: &[u8]) {
+    let Ok(bundle) = proto::PeerBundle::decode(data) else {
+        return;
+    };
+    let verdicts = bundle.tier() == proto::Tier::Results;
+    for batch in &bundle.batches {
+        if verdicts {
+            verdict_batch(batch);
+        } else {
+            ray_batch(batch);
+        }
+    }
+}
