@@ -22,10 +22,12 @@ use tokio::sync::{mpsc, oneshot, watch};
 use tonic::Status;
 use tracing::{error, info, info_span, warn};
 
+use rayfarm_machine::coordinator::{Member, Outgoing, Rounds, RunningFrame};
+
 use crate::admission::{Needs, free_disk};
-use crate::frame::{CommittedTile, Member, Outgoing, Rounds, RunningFrame};
 use crate::queue::JobQueue;
 use crate::results;
+use crate::running::{Running, now};
 use crate::store::{Store, StoreError, StoredJob};
 
 /// How the coordinator is set up.
@@ -60,7 +62,7 @@ pub struct Config {
 pub const SHUTTING_DOWN: &str = "the coordinator is shutting down";
 
 /// Least time a worker's report of an unreachable peer waits for the other side's reports
-/// (see [`crate::accusations`]): both sides notice a broken link within about this long of
+/// (see [`rayfarm_machine::coordinator::accusations`]): both sides notice a broken link within about this long of
 /// each other when their deadlines are alike.
 const ACCUSATION_GRACE: Duration = Duration::from_secs(2);
 
@@ -123,7 +125,7 @@ struct State {
     seq: u64,
     workers: BTreeMap<u32, WorkerEntry>,
     next_key: u32,
-    running: Option<RunningFrame>,
+    running: Option<Running>,
     finishing: BTreeMap<String, Finishing>,
     /// Set by [`Coordinator::shut_down`]: no worker attaches and no frame starts any more.
     stopping: bool,
@@ -578,7 +580,7 @@ impl Coordinator {
                         if frame.members().any(|m| m == k) && frame.members().any(|m| m == key) =>
                     {
                         warn!(worker = %reporter, peer = %p.peer_address, reason = %rayfarm_node::bounds::shown(&p.reason), "a worker reports a peer unreachable");
-                        frame.accusations.add(key, k, Instant::now(), &p.reason);
+                        frame.accusations.add(key, k, now(), &p.reason);
                     }
                     _ => {
                         info!(worker = %reporter, peer = %rayfarm_node::bounds::shown(&p.peer_address), "unresponsive peer is no member of a running frame: ignored")
@@ -599,7 +601,7 @@ impl Coordinator {
     ) -> Option<String> {
         let frame = st.running.as_mut().filter(|f| f.job_id == r.job_id)?;
         let (committed, refused) = frame.results(key, r);
-        if let Err(e) = write_tiles(frame, &committed) {
+        if let Err(e) = frame.write_tiles(&committed) {
             let msg = format!("{e:#}");
             self.fail_running(st, &msg);
             return None;
@@ -784,7 +786,7 @@ impl Coordinator {
     }
 
     /// The member to drop for its peers' reports, if their grace period is over (see
-    /// [`crate::accusations`]); it sits out the rest of the frame.
+    /// [`rayfarm_machine::coordinator::accusations`]); it sits out the rest of the frame.
     fn judge_accusations(&self) -> Option<(u32, String)> {
         let grace = (self.config.heartbeat * 2).max(ACCUSATION_GRACE);
         let mut st = self.lock();
@@ -802,7 +804,7 @@ impl Coordinator {
         let frame = st.running.as_mut()?;
         let v = frame
             .accusations
-            .judge_heard(Instant::now(), grace, &members, &heard)?;
+            .judge_heard(now(), grace, &members, &heard)?;
         let id_of = |k| st.workers.get(&k).map(|w| w.id.clone()).unwrap_or_default();
         let (dropped, accused, accuser) = (id_of(v.drop), id_of(v.accused), id_of(v.accuser));
         if let Some(frame) = st.running.as_mut() {
@@ -881,13 +883,14 @@ impl Coordinator {
         }
     }
 
-    fn prepare_frame(&self, id: &str, spec: proto::JobSpec) -> Result<RunningFrame, Status> {
+    fn prepare_frame(&self, id: &str, spec: proto::JobSpec) -> Result<Running, Status> {
         // The scene was checked at submission; check again, it may have changed since.
         let (_, manifest) = self.open_scene(&spec.scene)?;
         let frame = frame_spec(&spec, &manifest.camera).map_err(Status::invalid_argument)?;
         let domain_bytes = manifest.domains.iter().map(|d| d.bytes).collect();
         let spp = frame.spp;
-        let mut frame = RunningFrame::new(
+        let frame = RunningFrame::new(
+            now(),
             id.to_string(),
             spec,
             frame,
@@ -899,8 +902,7 @@ impl Coordinator {
         let grid = *frame.ledger.grid();
         let film = results::create_film(&self.config.data_dir, id, grid, spp)
             .map_err(|e| Status::internal(format!("{e:#}")))?;
-        frame.film = Some(film);
-        Ok(frame)
+        Ok(Running { frame, film })
     }
 
     fn fail_running(self: &Arc<Self>, st: &mut State, error: &str) {
@@ -917,7 +919,7 @@ impl Coordinator {
         let Some(frame) = st.running.take() else {
             return;
         };
-        let wall = frame.started.elapsed().as_secs_f64();
+        let wall = now().since(frame.started).as_secs_f64();
         info!(job = %frame.job_id, wall, rounds = frame.round, "frame complete");
         end_frame(st, &frame);
         let (done_tx, done_rx) = oneshot::channel();
@@ -937,7 +939,8 @@ impl Coordinator {
         self.try_start(st);
     }
 
-    async fn finish(self: Arc<Self>, frame: RunningFrame, wall: f64) {
+    async fn finish(self: Arc<Self>, running: Running, wall: f64) {
+        let Running { frame, film } = running;
         let id = frame.job_id.clone();
         let reports = {
             let mut st = self.lock();
@@ -964,9 +967,7 @@ impl Coordinator {
         stats.absorb(reports);
         let data_dir = self.config.data_dir.clone();
         let job = id.clone();
-        let film = frame.film;
         let written = tokio::task::spawn_blocking(move || {
-            let film = film.ok_or_else(|| anyhow::anyhow!("the frame has no film"))?;
             // The film file goes with `film` once both images are written.
             results::write(&data_dir, &job, &film, &mut stats)
         })
@@ -985,17 +986,6 @@ impl Coordinator {
             Err(e) => set_state(&mut st, &id, JobState::Failed, &format!("{e}")),
         }
     }
-}
-
-/// Writes committed tiles to the running frame's film.
-fn write_tiles(frame: &RunningFrame, committed: &[CommittedTile]) -> anyhow::Result<()> {
-    let Some(film) = frame.film.as_ref() else {
-        return Ok(());
-    };
-    for (tile, sums) in committed {
-        film.write_tile(*tile, sums)?;
-    }
-    Ok(())
 }
 
 fn not_found(id: &str) -> Status {
@@ -1067,7 +1057,7 @@ fn publish_progress(st: &State, frame: &RunningFrame) {
     let Some(job) = st.jobs.get(&frame.job_id) else {
         return;
     };
-    let (done, total, rate, eta) = frame.progress();
+    let (done, total, rate, eta) = frame.progress(now());
     job.progress.send_modify(|p| {
         p.tiles_done = done;
         p.tiles_total = total;
