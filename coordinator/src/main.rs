@@ -6,6 +6,7 @@
 mod admission;
 mod api;
 mod control;
+mod journal;
 mod queue;
 mod results;
 mod running;

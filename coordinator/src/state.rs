@@ -1,11 +1,12 @@
 //! The coordinator's state and everything that changes it: jobs and their queue, registered
 //! workers, the running frame and frames being finished. Handlers of both gRPC services call
 //! in here; every method takes the lock briefly and sends on unbounded channels, never
-//! awaiting while holding it.
+//! awaiting while holding it. Job records are handed to the store's writer (`journal`) under
+//! the lock, in order, and written outside it.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::PathBuf;
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex, MutexGuard, Weak};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use rayfarm_core::cluster::scene_ref;
@@ -25,6 +26,7 @@ use tracing::{error, info, info_span, warn};
 use rayfarm_machine::coordinator::{Member, Outgoing, Rounds, RunningFrame};
 
 use crate::admission::{Needs, free_disk};
+use crate::journal::{Journal, Then};
 use crate::queue::JobQueue;
 use crate::results;
 use crate::running::{Running, now};
@@ -118,8 +120,14 @@ struct Finishing {
 }
 
 struct State {
-    /// Where every job change is written through to.
-    store: Store,
+    /// Where every job change is written through to, in order, outside this state's lock.
+    journal: Journal,
+    /// Frame starts so far, and the latest whose record is on disk: until it is, messages to
+    /// workers wait in `held` (in order), so no worker hears of a frame before its start is
+    /// stored (a frame that kills the coordinator counts against the job's attempts).
+    starts: u64,
+    stored_starts: u64,
+    held: Vec<(u64, Outgoing)>,
     jobs: BTreeMap<String, Job>,
     /// Every job's id by its sequence number, so a page of the list is a range, not a sort.
     by_seq: BTreeMap<u64, String>,
@@ -184,8 +192,15 @@ impl Coordinator {
     pub fn open(config: Config) -> Result<Arc<Self>, StoreError> {
         let store = Store::open(&config.data_dir)?;
         let loaded = store.load()?;
+        let journal = Journal::start(store).map_err(|e| StoreError::Writer {
+            path: config.data_dir.clone(),
+            reason: e.to_string(),
+        })?;
         let mut st = State {
-            store,
+            journal,
+            starts: 0,
+            stored_starts: 0,
+            held: Vec::new(),
             jobs: BTreeMap::new(),
             by_seq: BTreeMap::new(),
             queue: JobQueue::default(),
@@ -200,7 +215,7 @@ impl Coordinator {
             restore(&mut st, &config.data_dir, stored);
         }
         info!(
-            store = %st.store.path().display(),
+            store = %st.journal.path().display(),
             jobs = st.jobs.len(),
             queued = st.jobs.values().filter(|j| j.summary.state() == JobState::Queued).count(),
             "job store opened"
@@ -289,16 +304,40 @@ impl Coordinator {
             image_hash: String::new(),
             stats_json: String::new(),
         };
-        // A job the client was told about must survive a restart: on disk before the reply.
-        st.store.put(&job.stored()).map_err(|e| {
-            let e = e.with_causes();
-            error!(job = %id, error = %e, "job not recorded");
-            Status::internal(format!("the job could not be recorded: {e}"))
-        })?;
+        // A job the client was told about must survive a restart: on disk before the reply,
+        // and queued only then. It counts against the quota meanwhile.
+        let (done, written) = std::sync::mpsc::channel();
+        st.journal.put_then(
+            job.stored(),
+            Box::new(move |r| {
+                let _ = done.send(r);
+            }),
+        );
         st.add_job(id.clone(), job);
-        st.queue.push(id.clone(), spec.priority, seq);
-        info!(job = %id, user = %owner, scene = %spec.scene, width = spec.width, height = spec.height, spp = spec.spp, priority = spec.priority, "job queued");
-        self.try_start(&mut st);
+        drop(st);
+        let written = written
+            .recv()
+            .unwrap_or_else(|_| Err("the job store's writer is gone".into()));
+        let mut st = self.lock();
+        if let Err(e) = written {
+            error!(job = %id, error = %e, "job not recorded");
+            if let Some(job) = st.jobs.remove(&id) {
+                st.by_seq.remove(&job.seq);
+            }
+            return Err(Status::internal(format!(
+                "the job could not be recorded: {e}"
+            )));
+        }
+        // Cancelled meanwhile: not queued.
+        if st
+            .jobs
+            .get(&id)
+            .is_some_and(|j| j.summary.state() == JobState::Queued)
+        {
+            st.queue.push(id.clone(), spec.priority, seq);
+            info!(job = %id, user = %owner, scene = %spec.scene, width = spec.width, height = spec.height, spp = spec.spp, priority = spec.priority, "job queued");
+            self.try_start(&mut st);
+        }
         Ok(id)
     }
 
@@ -396,7 +435,7 @@ impl Coordinator {
             set_state(&mut st, id, JobState::Cancelled, "");
         } else if st.running.as_ref().is_some_and(|f| f.job_id == id) {
             if let Some(frame) = st.running.take() {
-                end_frame(&st, &frame);
+                end_frame(&mut st, &frame);
             }
             set_state(&mut st, id, JobState::Cancelled, "");
             self.try_start(&mut st);
@@ -552,7 +591,7 @@ impl Coordinator {
             }
             let out = frame.join(key, member);
             info!(job = %frame.job_id, round = frame.round, "worker joins the running frame");
-            send(&st, out);
+            send(&mut st, out);
         } else {
             self.try_start(&mut st);
         }
@@ -583,7 +622,7 @@ impl Coordinator {
                     Some(f) if f.job_id == r.job_id => f.report(key, r),
                     _ => Vec::new(),
                 };
-                send(&st, out);
+                send(&mut st, out);
                 if let Some(f) = st.running.as_ref() {
                     publish_progress(&st, f);
                 }
@@ -774,7 +813,7 @@ impl Coordinator {
             return;
         }
         info!(worker = %worker.id, "re-issuing the unfinished tiles on the remaining workers");
-        send(&st, out);
+        send(&mut st, out);
     }
 
     /// Stops for good (SIGTERM or Ctrl-C): tells every worker the coordinator is going away
@@ -792,7 +831,10 @@ impl Coordinator {
         if let Some(frame) = st.running.take() {
             info!(job = %frame.job_id, "job interrupted: it starts over when a coordinator opens this data directory again");
         }
-        st.store.close();
+        let closed = st.journal.close();
+        drop(st);
+        // Outside the lock: the writer may be releasing held messages, which takes it.
+        let _ = closed.recv();
     }
 
     /// Drops workers that have been silent longer than the timeout.
@@ -903,7 +945,11 @@ impl Coordinator {
                     }
                     // The start is on disk before any worker hears of it: a frame that kills
                     // the coordinator counts against the job's attempts all the same.
-                    set_state(st, &id, JobState::Running, "");
+                    st.starts += 1;
+                    let start = st.starts;
+                    let this = Arc::downgrade(self);
+                    let stored = Box::new(move |_| release_held(&this, start));
+                    set_state_then(st, &id, JobState::Running, "", Some(stored));
                     send(st, out);
                     publish_progress(st, &frame);
                     st.running = Some(frame);
@@ -1025,7 +1071,28 @@ fn not_found(id: &str) -> Status {
     Status::not_found(format!("no job {id}"))
 }
 
-fn send(st: &State, out: Vec<Outgoing>) {
+fn send(st: &mut State, out: Vec<Outgoing>) {
+    if st.stored_starts < st.starts {
+        let start = st.starts;
+        st.held.extend(out.into_iter().map(|o| (start, o)));
+        return;
+    }
+    deliver(st, out);
+}
+
+/// Frame start `start` is on disk: the messages held for it (and earlier starts) go out.
+fn release_held(coordinator: &Weak<Coordinator>, start: u64) {
+    let Some(c) = coordinator.upgrade() else {
+        return;
+    };
+    let mut st = c.lock();
+    st.stored_starts = st.stored_starts.max(start);
+    let ready = st.held.iter().take_while(|(s, _)| *s <= start).count();
+    let out: Vec<Outgoing> = st.held.drain(..ready).map(|(_, o)| o).collect();
+    deliver(&st, out);
+}
+
+fn deliver(st: &State, out: Vec<Outgoing>) {
     for (key, msg) in out {
         if let Some(w) = st.workers.get(&key) {
             // A closed channel means the worker is going; worker_gone will handle it.
@@ -1034,7 +1101,7 @@ fn send(st: &State, out: Vec<Outgoing>) {
     }
 }
 
-fn end_frame(st: &State, frame: &RunningFrame) {
+fn end_frame(st: &mut State, frame: &RunningFrame) {
     let out = frame
         .members()
         .map(|k| {
@@ -1056,6 +1123,11 @@ fn spec_cost(spec: &proto::JobSpec) -> u64 {
 }
 
 fn set_state(st: &mut State, id: &str, state: JobState, error: &str) {
+    set_state_then(st, id, state, error, None);
+}
+
+/// [`set_state`], calling `then` once the change is on disk.
+fn set_state_then(st: &mut State, id: &str, state: JobState, error: &str, then: Option<Then>) {
     let Some(job) = st.jobs.get_mut(id) else {
         return;
     };
@@ -1069,11 +1141,12 @@ fn set_state(st: &mut State, id: &str, state: JobState, error: &str) {
         error!(job = %id, error, "job failed");
     }
     let stats_json = job.stats_json.clone();
-    // Written through under the lock, so the store sees the changes in the order they
-    // happened. Once per state change; a failed write is logged and the job goes on (the
-    // change is lost only if the coordinator restarts before the next write of this job).
-    if let Err(e) = st.store.put(&job.stored()) {
-        error!(job = %id, error = %e.with_causes(), "job state not saved");
+    // Handed over under the lock, so the store sees the changes in the order they happened.
+    // Once per state change; a failed write is logged and the job goes on (the change is
+    // lost only if the coordinator restarts before the next write of this job).
+    match then {
+        Some(then) => st.journal.put_then(job.stored(), then),
+        None => st.journal.put(job.stored()),
     }
     job.progress.send_modify(|p| {
         p.state = state as i32;
@@ -1171,9 +1244,7 @@ fn restore(st: &mut State, data_dir: &std::path::Path, stored: StoredJob) {
             job.summary.finished_unix_ms = unix_ms();
         }
         job.progress = progress_channel(&id, state, &job.summary.error, &job.stats_json);
-        if let Err(e) = st.store.put(&job.stored()) {
-            error!(job = %id, error = %e.with_causes(), "job state not saved");
-        }
+        st.journal.put(job.stored());
     }
     st.add_job(id, job);
 }
@@ -1231,7 +1302,14 @@ mod tests {
     /// [`start_epochs`] of a worker called `id`; also returns its key.
     fn start_epochs_of(c: &Arc<Coordinator>, id: &str) -> (u32, BTreeMap<u32, u32>) {
         let (key, mut rx) = attach(c, id);
-        while let Ok(msg) = rx.try_recv() {
+        // The start goes out once its record is on disk, from the store's writer thread.
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_time()
+            .build()
+            .expect("runtime");
+        let wait = Duration::from_secs(10);
+        while let Ok(Some(msg)) = rt.block_on(async { tokio::time::timeout(wait, rx.recv()).await })
+        {
             if let Some(Body::StartFrame(s)) = msg.expect("no error").body {
                 // Its channel stays open while the test runs, as a live worker's would.
                 std::mem::forget(rx);
