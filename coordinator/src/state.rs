@@ -2,7 +2,8 @@
 //! workers, the running frame and frames being finished. Handlers of both gRPC services call
 //! in here; every method takes the lock briefly and sends on unbounded channels, never
 //! awaiting while holding it. Job records are handed to the store's writer (`journal`) under
-//! the lock, in order, and written outside it.
+//! the lock, in order, and written outside it; a frame's scene is read and its film file
+//! created outside it too, before the frame starts.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::PathBuf;
@@ -128,6 +129,8 @@ struct State {
     starts: u64,
     stored_starts: u64,
     held: Vec<(u64, Outgoing)>,
+    /// The job whose frame is being prepared off the lock (`try_start`, `begin`).
+    preparing: Option<String>,
     jobs: BTreeMap<String, Job>,
     /// Every job's id by its sequence number, so a page of the list is a range, not a sort.
     by_seq: BTreeMap<u64, String>,
@@ -201,6 +204,7 @@ impl Coordinator {
             starts: 0,
             stored_starts: 0,
             held: Vec::new(),
+            preparing: None,
             jobs: BTreeMap::new(),
             by_seq: BTreeMap::new(),
             queue: JobQueue::default(),
@@ -431,7 +435,8 @@ impl Coordinator {
         if is_terminal(state) {
             return Ok(state);
         }
-        if st.queue.remove(id) {
+        if st.queue.remove(id) || st.preparing.as_deref() == Some(id) {
+            // A frame being prepared is dropped when it is ready (`begin`).
             set_state(&mut st, id, JobState::Cancelled, "");
         } else if st.running.as_ref().is_some_and(|f| f.job_id == id) {
             if let Some(frame) = st.running.take() {
@@ -897,7 +902,11 @@ impl Coordinator {
 
     /// Starts the next queued job if the cluster is free and has workers.
     fn try_start(self: &Arc<Self>, st: &mut State) {
-        while !st.stopping && st.running.is_none() && !st.workers.is_empty() {
+        while !st.stopping
+            && st.running.is_none()
+            && st.preparing.is_none()
+            && !st.workers.is_empty()
+        {
             let Some(id) = st.queue.pop() else {
                 return;
             };
@@ -917,47 +926,86 @@ impl Coordinator {
                 set_state(st, &id, JobState::Failed, &reason);
                 continue;
             }
-            match self.prepare_frame(&id, spec) {
-                Ok(mut frame) => {
-                    // A job started before (by a coordinator since restarted, or before its
-                    // workers were all lost) starts every tile at a new epoch, so rays and
-                    // results of the abandoned run still in flight are dropped as stale.
-                    let tiles: Vec<u32> = (0..frame.ledger.grid().count()).collect();
-                    let floor = st.jobs.get(&id).map_or(0, |j| j.epoch_floor);
-                    for _ in 0..attempts.max(floor) {
-                        frame.ledger.bump(&tiles);
-                    }
-                    let members: Vec<(u32, Member)> = st
-                        .workers
-                        .iter()
-                        .map(|(&k, w)| (k, Member::new(w.peer_address.clone(), w.cache_bytes)))
-                        .collect();
-                    let out = frame.start(members);
-                    info!(
-                        workers = out.len(),
-                        tiles = frame.ledger.grid().count(),
-                        attempt = attempts + 1,
-                        "frame started"
-                    );
-                    if let Some(job) = st.jobs.get_mut(&id) {
-                        job.summary.started_unix_ms = unix_ms();
-                        job.attempts = attempts.saturating_add(1);
-                    }
-                    // The start is on disk before any worker hears of it: a frame that kills
-                    // the coordinator counts against the job's attempts all the same.
-                    st.starts += 1;
-                    let start = st.starts;
-                    let this = Arc::downgrade(self);
-                    let stored = Box::new(move |_| release_held(&this, start));
-                    set_state_then(st, &id, JobState::Running, "", Some(stored));
-                    send(st, out);
-                    publish_progress(st, &frame);
-                    st.running = Some(frame);
+            // The scene's manifest is read and the film file created off the lock; no other
+            // frame starts meanwhile.
+            st.preparing = Some(id.clone());
+            let (this, job) = (self.clone(), id.clone());
+            let prepare = move || {
+                let prepared = this.prepare_frame(&job, spec);
+                let mut st = this.lock();
+                this.begin(&mut st, &job, prepared);
+            };
+            if let Err(e) = std::thread::Builder::new()
+                .name("prepare-frame".into())
+                .spawn(prepare)
+            {
+                st.preparing = None;
+                let reason = format!("no thread to prepare its frame: {e}");
+                set_state(st, &id, JobState::Failed, &reason);
+                continue;
+            }
+            return;
+        }
+    }
+
+    /// Starts the frame `prepare_frame` made for job `id`, unless the job was cancelled, the
+    /// coordinator is stopping, or every worker left meanwhile (then it is queued again).
+    fn begin(self: &Arc<Self>, st: &mut State, id: &str, prepared: Result<Running, Status>) {
+        st.preparing = None;
+        let Some(job) = st.jobs.get(id) else {
+            return self.try_start(st);
+        };
+        let (attempts, floor) = (job.attempts, job.epoch_floor);
+        if job.summary.state() != JobState::Queued || st.stopping {
+            return self.try_start(st);
+        }
+        if st.workers.is_empty() {
+            let priority = job.summary.spec.as_ref().map_or(0, |s| s.priority);
+            let seq = job.seq;
+            st.queue.push(id.to_string(), priority, seq);
+            return;
+        }
+        let _span = info_span!("start_job", job = %id).entered();
+        match prepared {
+            Ok(mut frame) => {
+                // A job started before (by a coordinator since restarted, or before its
+                // workers were all lost) starts every tile at a new epoch, so rays and
+                // results of the abandoned run still in flight are dropped as stale.
+                let tiles: Vec<u32> = (0..frame.ledger.grid().count()).collect();
+                for _ in 0..attempts.max(floor) {
+                    frame.ledger.bump(&tiles);
                 }
-                Err(status) => {
-                    error!(error = %status.message(), "job cannot start");
-                    set_state(st, &id, JobState::Failed, status.message());
+                let members: Vec<(u32, Member)> = st
+                    .workers
+                    .iter()
+                    .map(|(&k, w)| (k, Member::new(w.peer_address.clone(), w.cache_bytes)))
+                    .collect();
+                let out = frame.start(members);
+                info!(
+                    workers = out.len(),
+                    tiles = frame.ledger.grid().count(),
+                    attempt = attempts + 1,
+                    "frame started"
+                );
+                if let Some(job) = st.jobs.get_mut(id) {
+                    job.summary.started_unix_ms = unix_ms();
+                    job.attempts = attempts.saturating_add(1);
                 }
+                // The start is on disk before any worker hears of it: a frame that kills
+                // the coordinator counts against the job's attempts all the same.
+                st.starts += 1;
+                let start = st.starts;
+                let this = Arc::downgrade(self);
+                let stored = Box::new(move |_| release_held(&this, start));
+                set_state_then(st, id, JobState::Running, "", Some(stored));
+                send(st, out);
+                publish_progress(st, &frame);
+                st.running = Some(frame);
+            }
+            Err(status) => {
+                error!(error = %status.message(), "job cannot start");
+                set_state(st, id, JobState::Failed, status.message());
+                self.try_start(st);
             }
         }
     }
@@ -1299,10 +1347,28 @@ mod tests {
         (c.register(&register, tx).expect("registered"), rx)
     }
 
+    /// Lets go of the job database as a crashed process does (its lock dies with it): the
+    /// threads that prepare frames and release their messages may hold the coordinator a
+    /// moment longer than the test, so dropping it alone would not free the file at once.
+    /// The running job stays recorded as running, as after a crash.
+    fn let_go(c: Arc<Coordinator>) {
+        c.shut_down();
+    }
+
     /// [`start_epochs`] of a worker called `id`; also returns its key.
     fn start_epochs_of(c: &Arc<Coordinator>, id: &str) -> (u32, BTreeMap<u32, u32>) {
         let (key, mut rx) = attach(c, id);
-        // The start goes out once its record is on disk, from the store's writer thread.
+        let s = next_start(&mut rx);
+        // Its channel stays open while the test runs, as a live worker's would.
+        std::mem::forget(rx);
+        (key, s.epochs.into_iter().collect())
+    }
+
+    /// The next StartFrame on a worker's channel. A frame starts once its scene is read off
+    /// the lock, and goes out once its start is on disk, from other threads: wait for it.
+    fn next_start(
+        rx: &mut mpsc::UnboundedReceiver<Result<proto::CoordinatorMessage, Status>>,
+    ) -> proto::StartFrame {
         let rt = tokio::runtime::Builder::new_current_thread()
             .enable_time()
             .build()
@@ -1311,9 +1377,7 @@ mod tests {
         while let Ok(Some(msg)) = rt.block_on(async { tokio::time::timeout(wait, rx.recv()).await })
         {
             if let Some(Body::StartFrame(s)) = msg.expect("no error").body {
-                // Its channel stays open while the test runs, as a live worker's would.
-                std::mem::forget(rx);
-                return (key, s.epochs.into_iter().collect());
+                return s;
             }
         }
         panic!("no StartFrame sent");
@@ -1324,8 +1388,9 @@ mod tests {
         let root = tempfile::tempdir().unwrap();
         let spec = small_job(root.path());
         let c = Coordinator::open(config(root.path())).unwrap();
-        let _stays = attach(&c, "stays");
+        let (_, mut stays) = attach(&c, "stays");
         let id = c.submit(Some(spec)).unwrap();
+        next_start(&mut stays);
         for lost in 1..=3 {
             assert_eq!(
                 c.list(JobPage::newest(100)).0[0].state(),
@@ -1405,7 +1470,7 @@ mod tests {
             "a first frame starts at epoch 0"
         );
         assert_eq!(c.list(JobPage::newest(100)).0[0].state(), JobState::Running);
-        drop(c);
+        let_go(c);
         for epoch in 1..=2 {
             // As after a crash: the running job is queued again, and its next frame's tiles
             // are all at an epoch the dead run never used.
@@ -1417,6 +1482,7 @@ mod tests {
             assert!(tiles >= 2, "{epochs:?}");
             assert!(epochs.values().all(|&e| e == epoch), "{epochs:?}");
             assert_eq!(c.list(JobPage::newest(100)).0[0].job_id, id);
+            let_go(c);
         }
         // Sequence numbers go on where they stopped.
         let c = Coordinator::open(config(root.path())).unwrap();
