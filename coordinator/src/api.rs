@@ -204,7 +204,13 @@ impl JobService for Api {
         }
         let spec = self.coordinator.spec_with_defaults(spec)?;
         let manifest = self.read_scene(&spec.scene).await?;
-        let job_id = self.coordinator.enqueue(spec, &manifest, user.as_ref())?;
+        // It waits for the job's record to be on disk: off the async runtime.
+        let coordinator = self.coordinator.clone();
+        let job_id = tokio::task::spawn_blocking(move || {
+            coordinator.enqueue(spec, &manifest, user.as_ref())
+        })
+        .await
+        .map_err(|e| Status::internal(format!("the job could not be queued: {e}")))??;
         Ok(Response::new(proto::SubmitJobResponse { job_id }))
     }
 

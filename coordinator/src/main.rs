@@ -3,13 +3,13 @@
 //! tile results until every tile's credit is back. Jobs are kept in a database in the data
 //! directory, so a restarted coordinator carries on with them (`store`).
 
-mod accusations;
 mod admission;
 mod api;
 mod control;
-mod frame;
+mod journal;
 mod queue;
 mod results;
+mod running;
 mod state;
 mod store;
 
@@ -30,8 +30,8 @@ use rayfarm_node::security::{
 use tonic::service::interceptor::InterceptedService;
 use tracing::{info, warn};
 
-use crate::frame::Rounds;
 use crate::state::{Config, Coordinator};
+use rayfarm_machine::coordinator::Rounds;
 
 /// Largest gRPC message accepted or sent on the worker link (tile results of a big pass) and
 /// sent by the job API (fetched images).
@@ -50,6 +50,13 @@ enum Replicate {
     None,
     Idle,
     FreeSlots,
+}
+
+/// `--rounds`: how the dynamic schedule's rounds advance (`Rounds`, named for the command line).
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum RoundsArg {
+    Barrier,
+    Async,
 }
 
 /// rayfarm-coordinator: the job queue and scheduler of a rayfarm cluster.
@@ -105,8 +112,8 @@ struct Args {
     replicate: Replicate,
     /// How the dynamic schedule's rounds advance: `async` plans a worker as soon as it runs
     /// dry; `barrier` (Fig. 5 as written) waits until every worker has reported.
-    #[arg(long, env = "RAYFARM_ROUNDS", value_enum, default_value_t = Rounds::Async)]
-    rounds: Rounds,
+    #[arg(long, env = "RAYFARM_ROUNDS", value_enum, default_value_t = RoundsArg::Async)]
+    rounds: RoundsArg,
     /// Largest film file, set of images, or worker memory for one tile's camera rays a job's
     /// frame may need; a job past it (or past the data directory's free disk) is refused at
     /// submit with RESOURCE_EXHAUSTED. A 16384x16384 frame's film is 6 GiB.
@@ -167,7 +174,10 @@ async fn run(args: Args) -> anyhow::Result<()> {
             replicate_onto_idle: matches!(args.replicate, Replicate::Idle),
             fill_free_slots: matches!(args.replicate, Replicate::FreeSlots),
         },
-        rounds: args.rounds,
+        rounds: match args.rounds {
+            RoundsArg::Barrier => Rounds::Barrier,
+            RoundsArg::Async => Rounds::Async,
+        },
         max_frame_bytes: args.max_frame_bytes,
         max_attempts: args.max_attempts,
     };

@@ -1,11 +1,13 @@
 //! The coordinator's state and everything that changes it: jobs and their queue, registered
 //! workers, the running frame and frames being finished. Handlers of both gRPC services call
 //! in here; every method takes the lock briefly and sends on unbounded channels, never
-//! awaiting while holding it.
+//! awaiting while holding it. Job records are handed to the store's writer (`journal`) under
+//! the lock, in order, and written outside it; a frame's scene is read and its film file
+//! created outside it too, before the frame starts.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::PathBuf;
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex, MutexGuard, Weak};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use rayfarm_core::cluster::scene_ref;
@@ -22,10 +24,13 @@ use tokio::sync::{mpsc, oneshot, watch};
 use tonic::Status;
 use tracing::{error, info, info_span, warn};
 
+use rayfarm_machine::coordinator::{Member, Outgoing, Rounds, RunningFrame};
+
 use crate::admission::{Needs, free_disk};
-use crate::frame::{CommittedTile, Member, Outgoing, Rounds, RunningFrame};
+use crate::journal::{Journal, Then};
 use crate::queue::JobQueue;
 use crate::results;
+use crate::running::{Running, now};
 use crate::store::{Store, StoreError, StoredJob};
 
 /// How the coordinator is set up.
@@ -60,7 +65,7 @@ pub struct Config {
 pub const SHUTTING_DOWN: &str = "the coordinator is shutting down";
 
 /// Least time a worker's report of an unreachable peer waits for the other side's reports
-/// (see [`crate::accusations`]): both sides notice a broken link within about this long of
+/// (see [`rayfarm_machine::coordinator::accusations`]): both sides notice a broken link within about this long of
 /// each other when their deadlines are alike.
 const ACCUSATION_GRACE: Duration = Duration::from_secs(2);
 
@@ -116,8 +121,16 @@ struct Finishing {
 }
 
 struct State {
-    /// Where every job change is written through to.
-    store: Store,
+    /// Where every job change is written through to, in order, outside this state's lock.
+    journal: Journal,
+    /// Frame starts so far, and the latest whose record is on disk: until it is, messages to
+    /// workers wait in `held` (in order), so no worker hears of a frame before its start is
+    /// stored (a frame that kills the coordinator counts against the job's attempts).
+    starts: u64,
+    stored_starts: u64,
+    held: Vec<(u64, Outgoing)>,
+    /// The job whose frame is being prepared off the lock (`try_start`, `begin`).
+    preparing: Option<String>,
     jobs: BTreeMap<String, Job>,
     /// Every job's id by its sequence number, so a page of the list is a range, not a sort.
     by_seq: BTreeMap<u64, String>,
@@ -125,7 +138,7 @@ struct State {
     seq: u64,
     workers: BTreeMap<u32, WorkerEntry>,
     next_key: u32,
-    running: Option<RunningFrame>,
+    running: Option<Running>,
     finishing: BTreeMap<String, Finishing>,
     /// Set by [`Coordinator::shut_down`]: no worker attaches and no frame starts any more.
     stopping: bool,
@@ -182,8 +195,16 @@ impl Coordinator {
     pub fn open(config: Config) -> Result<Arc<Self>, StoreError> {
         let store = Store::open(&config.data_dir)?;
         let loaded = store.load()?;
+        let journal = Journal::start(store).map_err(|e| StoreError::Writer {
+            path: config.data_dir.clone(),
+            reason: e.to_string(),
+        })?;
         let mut st = State {
-            store,
+            journal,
+            starts: 0,
+            stored_starts: 0,
+            held: Vec::new(),
+            preparing: None,
             jobs: BTreeMap::new(),
             by_seq: BTreeMap::new(),
             queue: JobQueue::default(),
@@ -198,7 +219,7 @@ impl Coordinator {
             restore(&mut st, &config.data_dir, stored);
         }
         info!(
-            store = %st.store.path().display(),
+            store = %st.journal.path().display(),
             jobs = st.jobs.len(),
             queued = st.jobs.values().filter(|j| j.summary.state() == JobState::Queued).count(),
             "job store opened"
@@ -287,16 +308,40 @@ impl Coordinator {
             image_hash: String::new(),
             stats_json: String::new(),
         };
-        // A job the client was told about must survive a restart: on disk before the reply.
-        st.store.put(&job.stored()).map_err(|e| {
-            let e = e.with_causes();
-            error!(job = %id, error = %e, "job not recorded");
-            Status::internal(format!("the job could not be recorded: {e}"))
-        })?;
+        // A job the client was told about must survive a restart: on disk before the reply,
+        // and queued only then. It counts against the quota meanwhile.
+        let (done, written) = std::sync::mpsc::channel();
+        st.journal.put_then(
+            job.stored(),
+            Box::new(move |r| {
+                let _ = done.send(r);
+            }),
+        );
         st.add_job(id.clone(), job);
-        st.queue.push(id.clone(), spec.priority, seq);
-        info!(job = %id, user = %owner, scene = %spec.scene, width = spec.width, height = spec.height, spp = spec.spp, priority = spec.priority, "job queued");
-        self.try_start(&mut st);
+        drop(st);
+        let written = written
+            .recv()
+            .unwrap_or_else(|_| Err("the job store's writer is gone".into()));
+        let mut st = self.lock();
+        if let Err(e) = written {
+            error!(job = %id, error = %e, "job not recorded");
+            if let Some(job) = st.jobs.remove(&id) {
+                st.by_seq.remove(&job.seq);
+            }
+            return Err(Status::internal(format!(
+                "the job could not be recorded: {e}"
+            )));
+        }
+        // Cancelled meanwhile: not queued.
+        if st
+            .jobs
+            .get(&id)
+            .is_some_and(|j| j.summary.state() == JobState::Queued)
+        {
+            st.queue.push(id.clone(), spec.priority, seq);
+            info!(job = %id, user = %owner, scene = %spec.scene, width = spec.width, height = spec.height, spp = spec.spp, priority = spec.priority, "job queued");
+            self.try_start(&mut st);
+        }
         Ok(id)
     }
 
@@ -390,11 +435,12 @@ impl Coordinator {
         if is_terminal(state) {
             return Ok(state);
         }
-        if st.queue.remove(id) {
+        if st.queue.remove(id) || st.preparing.as_deref() == Some(id) {
+            // A frame being prepared is dropped when it is ready (`begin`).
             set_state(&mut st, id, JobState::Cancelled, "");
         } else if st.running.as_ref().is_some_and(|f| f.job_id == id) {
             if let Some(frame) = st.running.take() {
-                end_frame(&st, &frame);
+                end_frame(&mut st, &frame);
             }
             set_state(&mut st, id, JobState::Cancelled, "");
             self.try_start(&mut st);
@@ -550,7 +596,7 @@ impl Coordinator {
             }
             let out = frame.join(key, member);
             info!(job = %frame.job_id, round = frame.round, "worker joins the running frame");
-            send(&st, out);
+            send(&mut st, out);
         } else {
             self.try_start(&mut st);
         }
@@ -581,7 +627,7 @@ impl Coordinator {
                     Some(f) if f.job_id == r.job_id => f.report(key, r),
                     _ => Vec::new(),
                 };
-                send(&st, out);
+                send(&mut st, out);
                 if let Some(f) = st.running.as_ref() {
                     publish_progress(&st, f);
                 }
@@ -611,7 +657,7 @@ impl Coordinator {
                         if frame.members().any(|m| m == k) && frame.members().any(|m| m == key) =>
                     {
                         warn!(worker = %reporter, peer = %p.peer_address, reason = %rayfarm_node::bounds::shown(&p.reason), "a worker reports a peer unreachable");
-                        frame.accusations.add(key, k, Instant::now(), &p.reason);
+                        frame.accusations.add(key, k, now(), &p.reason);
                     }
                     _ => {
                         info!(worker = %reporter, peer = %rayfarm_node::bounds::shown(&p.peer_address), "unresponsive peer is no member of a running frame: ignored")
@@ -632,7 +678,7 @@ impl Coordinator {
     ) -> Option<String> {
         let frame = st.running.as_mut().filter(|f| f.job_id == r.job_id)?;
         let (committed, refused) = frame.results(key, r);
-        if let Err(e) = write_tiles(frame, &committed) {
+        if let Err(e) = frame.write_tiles(&committed) {
             let msg = format!("{e:#}");
             self.fail_running(st, &msg);
             return None;
@@ -772,7 +818,7 @@ impl Coordinator {
             return;
         }
         info!(worker = %worker.id, "re-issuing the unfinished tiles on the remaining workers");
-        send(&st, out);
+        send(&mut st, out);
     }
 
     /// Stops for good (SIGTERM or Ctrl-C): tells every worker the coordinator is going away
@@ -790,7 +836,10 @@ impl Coordinator {
         if let Some(frame) = st.running.take() {
             info!(job = %frame.job_id, "job interrupted: it starts over when a coordinator opens this data directory again");
         }
-        st.store.close();
+        let closed = st.journal.close();
+        drop(st);
+        // Outside the lock: the writer may be releasing held messages, which takes it.
+        let _ = closed.recv();
     }
 
     /// Drops workers that have been silent longer than the timeout.
@@ -817,7 +866,7 @@ impl Coordinator {
     }
 
     /// The member to drop for its peers' reports, if their grace period is over (see
-    /// [`crate::accusations`]); it sits out the rest of the frame.
+    /// [`rayfarm_machine::coordinator::accusations`]); it sits out the rest of the frame.
     fn judge_accusations(&self) -> Option<(u32, String)> {
         let grace = (self.config.heartbeat * 2).max(ACCUSATION_GRACE);
         let mut st = self.lock();
@@ -835,7 +884,7 @@ impl Coordinator {
         let frame = st.running.as_mut()?;
         let v = frame
             .accusations
-            .judge_heard(Instant::now(), grace, &members, &heard)?;
+            .judge_heard(now(), grace, &members, &heard)?;
         let id_of = |k| st.workers.get(&k).map(|w| w.id.clone()).unwrap_or_default();
         let (dropped, accused, accuser) = (id_of(v.drop), id_of(v.accused), id_of(v.accuser));
         if let Some(frame) = st.running.as_mut() {
@@ -853,7 +902,11 @@ impl Coordinator {
 
     /// Starts the next queued job if the cluster is free and has workers.
     fn try_start(self: &Arc<Self>, st: &mut State) {
-        while !st.stopping && st.running.is_none() && !st.workers.is_empty() {
+        while !st.stopping
+            && st.running.is_none()
+            && st.preparing.is_none()
+            && !st.workers.is_empty()
+        {
             let Some(id) = st.queue.pop() else {
                 return;
             };
@@ -873,54 +926,98 @@ impl Coordinator {
                 set_state(st, &id, JobState::Failed, &reason);
                 continue;
             }
-            match self.prepare_frame(&id, spec) {
-                Ok(mut frame) => {
-                    // A job started before (by a coordinator since restarted, or before its
-                    // workers were all lost) starts every tile at a new epoch, so rays and
-                    // results of the abandoned run still in flight are dropped as stale.
-                    let tiles: Vec<u32> = (0..frame.ledger.grid().count()).collect();
-                    let floor = st.jobs.get(&id).map_or(0, |j| j.epoch_floor);
-                    for _ in 0..attempts.max(floor) {
-                        frame.ledger.bump(&tiles);
-                    }
-                    let members: Vec<(u32, Member)> = st
-                        .workers
-                        .iter()
-                        .map(|(&k, w)| (k, Member::new(w.peer_address.clone(), w.cache_bytes)))
-                        .collect();
-                    let out = frame.start(members);
-                    info!(
-                        workers = out.len(),
-                        tiles = frame.ledger.grid().count(),
-                        attempt = attempts + 1,
-                        "frame started"
-                    );
-                    if let Some(job) = st.jobs.get_mut(&id) {
-                        job.summary.started_unix_ms = unix_ms();
-                        job.attempts = attempts.saturating_add(1);
-                    }
-                    // The start is on disk before any worker hears of it: a frame that kills
-                    // the coordinator counts against the job's attempts all the same.
-                    set_state(st, &id, JobState::Running, "");
-                    send(st, out);
-                    publish_progress(st, &frame);
-                    st.running = Some(frame);
+            // The scene's manifest is read and the film file created off the lock; no other
+            // frame starts meanwhile.
+            st.preparing = Some(id.clone());
+            let (this, job) = (self.clone(), id.clone());
+            let prepare = move || {
+                let prepared = this.prepare_frame(&job, spec);
+                let mut st = this.lock();
+                this.begin(&mut st, &job, prepared);
+            };
+            if let Err(e) = std::thread::Builder::new()
+                .name("prepare-frame".into())
+                .spawn(prepare)
+            {
+                st.preparing = None;
+                let reason = format!("no thread to prepare its frame: {e}");
+                set_state(st, &id, JobState::Failed, &reason);
+                continue;
+            }
+            return;
+        }
+    }
+
+    /// Starts the frame `prepare_frame` made for job `id`, unless the job was cancelled, the
+    /// coordinator is stopping, or every worker left meanwhile (then it is queued again).
+    fn begin(self: &Arc<Self>, st: &mut State, id: &str, prepared: Result<Running, Status>) {
+        st.preparing = None;
+        let Some(job) = st.jobs.get(id) else {
+            return self.try_start(st);
+        };
+        let (attempts, floor) = (job.attempts, job.epoch_floor);
+        if job.summary.state() != JobState::Queued || st.stopping {
+            return self.try_start(st);
+        }
+        if st.workers.is_empty() {
+            let priority = job.summary.spec.as_ref().map_or(0, |s| s.priority);
+            let seq = job.seq;
+            st.queue.push(id.to_string(), priority, seq);
+            return;
+        }
+        let _span = info_span!("start_job", job = %id).entered();
+        match prepared {
+            Ok(mut frame) => {
+                // A job started before (by a coordinator since restarted, or before its
+                // workers were all lost) starts every tile at a new epoch, so rays and
+                // results of the abandoned run still in flight are dropped as stale.
+                let tiles: Vec<u32> = (0..frame.ledger.grid().count()).collect();
+                for _ in 0..attempts.max(floor) {
+                    frame.ledger.bump(&tiles);
                 }
-                Err(status) => {
-                    error!(error = %status.message(), "job cannot start");
-                    set_state(st, &id, JobState::Failed, status.message());
+                let members: Vec<(u32, Member)> = st
+                    .workers
+                    .iter()
+                    .map(|(&k, w)| (k, Member::new(w.peer_address.clone(), w.cache_bytes)))
+                    .collect();
+                let out = frame.start(members);
+                info!(
+                    workers = out.len(),
+                    tiles = frame.ledger.grid().count(),
+                    attempt = attempts + 1,
+                    "frame started"
+                );
+                if let Some(job) = st.jobs.get_mut(id) {
+                    job.summary.started_unix_ms = unix_ms();
+                    job.attempts = attempts.saturating_add(1);
                 }
+                // The start is on disk before any worker hears of it: a frame that kills
+                // the coordinator counts against the job's attempts all the same.
+                st.starts += 1;
+                let start = st.starts;
+                let this = Arc::downgrade(self);
+                let stored = Box::new(move |_| release_held(&this, start));
+                set_state_then(st, id, JobState::Running, "", Some(stored));
+                send(st, out);
+                publish_progress(st, &frame);
+                st.running = Some(frame);
+            }
+            Err(status) => {
+                error!(error = %status.message(), "job cannot start");
+                set_state(st, id, JobState::Failed, status.message());
+                self.try_start(st);
             }
         }
     }
 
-    fn prepare_frame(&self, id: &str, spec: proto::JobSpec) -> Result<RunningFrame, Status> {
+    fn prepare_frame(&self, id: &str, spec: proto::JobSpec) -> Result<Running, Status> {
         // The scene was checked at submission; check again, it may have changed since.
         let (_, manifest) = self.open_scene(&spec.scene)?;
         let frame = frame_spec(&spec, &manifest.camera).map_err(Status::invalid_argument)?;
         let domain_bytes = manifest.domains.iter().map(|d| d.bytes).collect();
         let spp = frame.spp;
-        let mut frame = RunningFrame::new(
+        let frame = RunningFrame::new(
+            now(),
             id.to_string(),
             spec,
             frame,
@@ -932,8 +1029,7 @@ impl Coordinator {
         let grid = *frame.ledger.grid();
         let film = results::create_film(&self.config.data_dir, id, grid, spp)
             .map_err(|e| Status::internal(format!("{e:#}")))?;
-        frame.film = Some(film);
-        Ok(frame)
+        Ok(Running { frame, film })
     }
 
     fn fail_running(self: &Arc<Self>, st: &mut State, error: &str) {
@@ -950,7 +1046,7 @@ impl Coordinator {
         let Some(frame) = st.running.take() else {
             return;
         };
-        let wall = frame.started.elapsed().as_secs_f64();
+        let wall = now().since(frame.started).as_secs_f64();
         info!(job = %frame.job_id, wall, rounds = frame.round, "frame complete");
         end_frame(st, &frame);
         let (done_tx, done_rx) = oneshot::channel();
@@ -970,7 +1066,8 @@ impl Coordinator {
         self.try_start(st);
     }
 
-    async fn finish(self: Arc<Self>, frame: RunningFrame, wall: f64) {
+    async fn finish(self: Arc<Self>, running: Running, wall: f64) {
+        let Running { frame, film } = running;
         let id = frame.job_id.clone();
         let reports = {
             let mut st = self.lock();
@@ -997,9 +1094,7 @@ impl Coordinator {
         stats.absorb(reports);
         let data_dir = self.config.data_dir.clone();
         let job = id.clone();
-        let film = frame.film;
         let written = tokio::task::spawn_blocking(move || {
-            let film = film.ok_or_else(|| anyhow::anyhow!("the frame has no film"))?;
             // The film file goes with `film` once both images are written.
             results::write(&data_dir, &job, &film, &mut stats)
         })
@@ -1020,22 +1115,32 @@ impl Coordinator {
     }
 }
 
-/// Writes committed tiles to the running frame's film.
-fn write_tiles(frame: &RunningFrame, committed: &[CommittedTile]) -> anyhow::Result<()> {
-    let Some(film) = frame.film.as_ref() else {
-        return Ok(());
-    };
-    for (tile, sums) in committed {
-        film.write_tile(*tile, sums)?;
-    }
-    Ok(())
-}
-
 fn not_found(id: &str) -> Status {
     Status::not_found(format!("no job {id}"))
 }
 
-fn send(st: &State, out: Vec<Outgoing>) {
+fn send(st: &mut State, out: Vec<Outgoing>) {
+    if st.stored_starts < st.starts {
+        let start = st.starts;
+        st.held.extend(out.into_iter().map(|o| (start, o)));
+        return;
+    }
+    deliver(st, out);
+}
+
+/// Frame start `start` is on disk: the messages held for it (and earlier starts) go out.
+fn release_held(coordinator: &Weak<Coordinator>, start: u64) {
+    let Some(c) = coordinator.upgrade() else {
+        return;
+    };
+    let mut st = c.lock();
+    st.stored_starts = st.stored_starts.max(start);
+    let ready = st.held.iter().take_while(|(s, _)| *s <= start).count();
+    let out: Vec<Outgoing> = st.held.drain(..ready).map(|(_, o)| o).collect();
+    deliver(&st, out);
+}
+
+fn deliver(st: &State, out: Vec<Outgoing>) {
     for (key, msg) in out {
         if let Some(w) = st.workers.get(&key) {
             // A closed channel means the worker is going; worker_gone will handle it.
@@ -1044,7 +1149,7 @@ fn send(st: &State, out: Vec<Outgoing>) {
     }
 }
 
-fn end_frame(st: &State, frame: &RunningFrame) {
+fn end_frame(st: &mut State, frame: &RunningFrame) {
     let out = frame
         .members()
         .map(|k| {
@@ -1066,6 +1171,11 @@ fn spec_cost(spec: &proto::JobSpec) -> u64 {
 }
 
 fn set_state(st: &mut State, id: &str, state: JobState, error: &str) {
+    set_state_then(st, id, state, error, None);
+}
+
+/// [`set_state`], calling `then` once the change is on disk.
+fn set_state_then(st: &mut State, id: &str, state: JobState, error: &str, then: Option<Then>) {
     let Some(job) = st.jobs.get_mut(id) else {
         return;
     };
@@ -1079,11 +1189,12 @@ fn set_state(st: &mut State, id: &str, state: JobState, error: &str) {
         error!(job = %id, error, "job failed");
     }
     let stats_json = job.stats_json.clone();
-    // Written through under the lock, so the store sees the changes in the order they
-    // happened. Once per state change; a failed write is logged and the job goes on (the
-    // change is lost only if the coordinator restarts before the next write of this job).
-    if let Err(e) = st.store.put(&job.stored()) {
-        error!(job = %id, error = %e.with_causes(), "job state not saved");
+    // Handed over under the lock, so the store sees the changes in the order they happened.
+    // Once per state change; a failed write is logged and the job goes on (the change is
+    // lost only if the coordinator restarts before the next write of this job).
+    match then {
+        Some(then) => st.journal.put_then(job.stored(), then),
+        None => st.journal.put(job.stored()),
     }
     job.progress.send_modify(|p| {
         p.state = state as i32;
@@ -1100,7 +1211,7 @@ fn publish_progress(st: &State, frame: &RunningFrame) {
     let Some(job) = st.jobs.get(&frame.job_id) else {
         return;
     };
-    let (done, total, rate, eta) = frame.progress();
+    let (done, total, rate, eta) = frame.progress(now());
     job.progress.send_modify(|p| {
         p.tiles_done = done;
         p.tiles_total = total;
@@ -1181,9 +1292,7 @@ fn restore(st: &mut State, data_dir: &std::path::Path, stored: StoredJob) {
             job.summary.finished_unix_ms = unix_ms();
         }
         job.progress = progress_channel(&id, state, &job.summary.error, &job.stats_json);
-        if let Err(e) = st.store.put(&job.stored()) {
-            error!(job = %id, error = %e.with_causes(), "job state not saved");
-        }
+        st.journal.put(job.stored());
     }
     st.add_job(id, job);
 }
@@ -1238,14 +1347,37 @@ mod tests {
         (c.register(&register, tx).expect("registered"), rx)
     }
 
+    /// Lets go of the job database as a crashed process does (its lock dies with it): the
+    /// threads that prepare frames and release their messages may hold the coordinator a
+    /// moment longer than the test, so dropping it alone would not free the file at once.
+    /// The running job stays recorded as running, as after a crash.
+    fn let_go(c: Arc<Coordinator>) {
+        c.shut_down();
+    }
+
     /// [`start_epochs`] of a worker called `id`; also returns its key.
     fn start_epochs_of(c: &Arc<Coordinator>, id: &str) -> (u32, BTreeMap<u32, u32>) {
         let (key, mut rx) = attach(c, id);
-        while let Ok(msg) = rx.try_recv() {
+        let s = next_start(&mut rx);
+        // Its channel stays open while the test runs, as a live worker's would.
+        std::mem::forget(rx);
+        (key, s.epochs.into_iter().collect())
+    }
+
+    /// The next StartFrame on a worker's channel. A frame starts once its scene is read off
+    /// the lock, and goes out once its start is on disk, from other threads: wait for it.
+    fn next_start(
+        rx: &mut mpsc::UnboundedReceiver<Result<proto::CoordinatorMessage, Status>>,
+    ) -> proto::StartFrame {
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_time()
+            .build()
+            .expect("runtime");
+        let wait = Duration::from_secs(10);
+        while let Ok(Some(msg)) = rt.block_on(async { tokio::time::timeout(wait, rx.recv()).await })
+        {
             if let Some(Body::StartFrame(s)) = msg.expect("no error").body {
-                // Its channel stays open while the test runs, as a live worker's would.
-                std::mem::forget(rx);
-                return (key, s.epochs.into_iter().collect());
+                return s;
             }
         }
         panic!("no StartFrame sent");
@@ -1256,8 +1388,9 @@ mod tests {
         let root = tempfile::tempdir().unwrap();
         let spec = small_job(root.path());
         let c = Coordinator::open(config(root.path())).unwrap();
-        let _stays = attach(&c, "stays");
+        let (_, mut stays) = attach(&c, "stays");
         let id = c.submit(Some(spec)).unwrap();
+        next_start(&mut stays);
         for lost in 1..=3 {
             assert_eq!(
                 c.list(JobPage::newest(100)).0[0].state(),
@@ -1337,7 +1470,7 @@ mod tests {
             "a first frame starts at epoch 0"
         );
         assert_eq!(c.list(JobPage::newest(100)).0[0].state(), JobState::Running);
-        drop(c);
+        let_go(c);
         for epoch in 1..=2 {
             // As after a crash: the running job is queued again, and its next frame's tiles
             // are all at an epoch the dead run never used.
@@ -1349,6 +1482,7 @@ mod tests {
             assert!(tiles >= 2, "{epochs:?}");
             assert!(epochs.values().all(|&e| e == epoch), "{epochs:?}");
             assert_eq!(c.list(JobPage::newest(100)).0[0].job_id, id);
+            let_go(c);
         }
         // Sequence numbers go on where they stopped.
         let c = Coordinator::open(config(root.path())).unwrap();

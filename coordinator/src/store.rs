@@ -88,6 +88,9 @@ pub enum StoreError {
         what: &'static str,
         source: Box<redb::Error>,
     },
+    /// The thread that writes the store could not be started.
+    #[error("job database {path}: no writer thread: {reason}")]
+    Writer { path: PathBuf, reason: String },
     /// Closed by a coordinator that is stopping.
     #[error("job database {path} is closed: the coordinator is shutting down")]
     Closed { path: PathBuf },

@@ -1,30 +1,31 @@
 //! The frame the cluster is rendering: who takes part, their last queue reports, the rounds
-//! of the dynamic schedule, and the tile ledger that says when the frame is complete. It
-//! returns the messages to send instead of sending them, so the coordinator's locking and
-//! I/O stay outside.
+//! of the dynamic schedule, and the tile ledger that says when the frame is complete. Each
+//! event (the frame starts, a worker joins, reports, sends results or is lost) is a method
+//! that returns the messages to send instead of sending them, and the tiles it commits instead
+//! of writing them, so the coordinator's locking and I/O stay in its shell.
 
-use crate::accusations::Accusations;
 use std::collections::{BTreeMap, BTreeSet};
-use std::time::Instant;
+
+use super::accusations::Accusations;
+use crate::Time;
 
 use rayfarm_core::cluster::tile_sums;
 use rayfarm_core::frame::TILE_SIZE;
 use rayfarm_core::frame::{Accept, FrameLedger, TILE_CREDIT, TileGrid};
-use rayfarm_core::render::Film;
 use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::schedule::DomainId;
 use rayfarm_core::schedule::dynamic::{Options, WorkerPlan};
 use rayfarm_core::schedule::rounds;
 use rayfarm_core::schedule::static_plans::{domain_owner, image_plane_share};
 use rayfarm_core::schedule::tiles::{HandOuts, strided_share};
-use rayfarm_node::proto::{self, Schedule, coordinator_message::Body};
+use rayfarm_proto::{self as proto, Schedule, coordinator_message::Body};
 use tracing::{debug, info};
 
 /// A message for one worker, by the coordinator's worker key.
 pub type Outgoing = (u32, proto::CoordinatorMessage);
 
 /// How the dynamic schedule's rounds advance.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Rounds {
     /// Fig. 5 as written: a round is planned when every worker has reported, so each round
     /// waits for its slowest worker.
@@ -92,7 +93,8 @@ pub struct RunningFrame {
     pub ledger: FrameLedger,
     pub round: u64,
     members: BTreeMap<u32, Member>,
-    pub started: Instant,
+    /// When it started, for its wall time and rate.
+    pub started: Time,
     /// Domain loads the plans asked for.
     pub planned_loads: u64,
     options: Options,
@@ -108,9 +110,6 @@ pub struct RunningFrame {
     pub declined: Vec<String>,
     /// Members' reports of members they cannot reach, waiting to be judged.
     pub accusations: Accusations,
-    /// Where committed tiles go: the coordinator's state writes them (this module does no
-    /// I/O); `None` in unit tests.
-    pub film: Option<Film>,
 }
 
 fn msg(body: Body) -> proto::CoordinatorMessage {
@@ -118,8 +117,9 @@ fn msg(body: Body) -> proto::CoordinatorMessage {
 }
 
 impl RunningFrame {
-    /// A frame of `spec` over a scene with domains of `domain_bytes` each.
+    /// A frame of `spec` over a scene with domains of `domain_bytes` each, starting `now`.
     pub fn new(
+        now: Time,
         job_id: String,
         spec: proto::JobSpec,
         frame: FrameSpec,
@@ -153,7 +153,7 @@ impl RunningFrame {
             ledger: FrameLedger::new(grid, TILE_CREDIT).with_samples(spp),
             round: 0,
             members: BTreeMap::new(),
-            started: Instant::now(),
+            started: now,
             planned_loads: 0,
             options,
             rounds,
@@ -161,7 +161,6 @@ impl RunningFrame {
             sidelined: Default::default(),
             declined: Vec::new(),
             accusations: Accusations::default(),
-            film: None,
         })
     }
 
@@ -484,11 +483,12 @@ impl RunningFrame {
         (committed, None)
     }
 
-    /// Progress for watchers: (tiles done, tiles, segments per second, ETA seconds or -1).
-    pub fn progress(&self) -> (u32, u32, f64, f64) {
+    /// Progress for watchers `now`: (tiles done, tiles, segments per second, ETA seconds or
+    /// -1).
+    pub fn progress(&self, now: Time) -> (u32, u32, f64, f64) {
         let done = self.ledger.tiles_done();
         let total = self.ledger.grid().count();
-        let elapsed = self.started.elapsed().as_secs_f64();
+        let elapsed = now.since(self.started).as_secs_f64();
         let segments: u64 = self.members.values().map(|m| m.segments).sum();
         let eta = if done == 0 {
             -1.0
@@ -500,83 +500,5 @@ impl RunningFrame {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn frame_of(schedule: Schedule) -> RunningFrame {
-        let spec = proto::JobSpec {
-            width: 64,
-            height: 64,
-            spp: 1,
-            max_depth: 3,
-            schedule: schedule as i32,
-            ..Default::default()
-        };
-        let frame = FrameSpec {
-            width: 64,
-            height: 64,
-            spp: 1,
-            max_depth: 3,
-            camera: None,
-        };
-        let options = Options {
-            replicate_onto_idle: false,
-            fill_free_slots: true,
-        };
-        RunningFrame::new(
-            "j".into(),
-            spec,
-            frame,
-            vec![100; 4],
-            options,
-            Rounds::Async,
-        )
-        .expect("frame")
-    }
-
-    fn report(round: u64, resident: &[u32], queued: &[(u32, u64, u32)]) -> proto::QueueReport {
-        proto::QueueReport {
-            job_id: "j".into(),
-            round,
-            resident_domains: resident.to_vec(),
-            queued_rays: queued.iter().map(|&(d, n, _)| (d, n)).collect(),
-            oldest_generation: queued.iter().map(|&(d, _, g)| (d, g)).collect(),
-            oldest_waiting: None,
-        }
-    }
-
-    fn planned_domains(out: &[Outgoing], key: u32) -> Vec<u32> {
-        out.iter()
-            .filter(|(k, _)| *k == key)
-            .filter_map(|(_, m)| match &m.body {
-                Some(Body::RoundPlan(p)) => Some(p.work_on.clone()),
-                _ => None,
-            })
-            .flatten()
-            .collect()
-    }
-
-    #[test]
-    fn predictive_never_copies_domains_into_free_slots() {
-        assert!(!frame_of(Schedule::Predictive).options.fill_free_slots);
-    }
-
-    #[test]
-    fn only_the_predictive_schedule_plans_the_oldest_generation_first() {
-        let planned = |schedule| {
-            let mut f = frame_of(schedule);
-            let member = || Member::new("w".into(), 200);
-            f.start(vec![(0, member()), (1, member())]);
-            f.report(1, report(0, &[], &[]));
-            // Domain 2 has more rays, but domain 3 holds the older generation.
-            let out = f.report(0, report(0, &[], &[(2, 900, 2), (3, 5, 1)]));
-            let mut planned = [planned_domains(&out, 0), planned_domains(&out, 1)].concat();
-            // Dynamic may copy a domain into a free slot too.
-            planned.sort();
-            planned.dedup();
-            planned
-        };
-        assert_eq!(planned(Schedule::Predictive), [3]);
-        assert_eq!(planned(Schedule::Dynamic), [2, 3]);
-    }
-}
+#[path = "frame_tests.rs"]
+mod tests;

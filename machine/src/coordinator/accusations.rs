@@ -13,14 +13,16 @@
 //! is dropped only if two distinct peers report it; on one report alone, the accuser goes.
 
 use std::collections::{BTreeMap, BTreeSet};
-use std::time::{Duration, Instant};
+use std::time::Duration;
+
+use crate::Time;
 
 /// One report: `accuser` found `accused` unreachable at `at`, for `reason`.
 #[derive(Clone, Debug)]
 struct Accusation {
     accuser: u32,
     accused: u32,
-    at: Instant,
+    at: Time,
     reason: String,
 }
 
@@ -44,7 +46,7 @@ pub struct Verdict {
 
 impl Accusations {
     /// Records that `accuser` cannot reach `accused`.
-    pub fn add(&mut self, accuser: u32, accused: u32, at: Instant, reason: &str) {
+    pub fn add(&mut self, accuser: u32, accused: u32, at: Time, reason: &str) {
         if accuser != accused {
             self.pending.push(Accusation {
                 accuser,
@@ -67,7 +69,7 @@ impl Accusations {
     #[cfg(test)]
     pub fn judge(
         &mut self,
-        now: Instant,
+        now: Time,
         grace: Duration,
         members: &BTreeSet<u32>,
     ) -> Option<Verdict> {
@@ -79,7 +81,7 @@ impl Accusations {
     /// docs).
     pub fn judge_heard(
         &mut self,
-        now: Instant,
+        now: Time,
         grace: Duration,
         members: &BTreeSet<u32>,
         heard: &BTreeSet<u32>,
@@ -87,7 +89,7 @@ impl Accusations {
         self.pending
             .retain(|a| members.contains(&a.accuser) && members.contains(&a.accused));
         let oldest = self.pending.first()?;
-        if now.saturating_duration_since(oldest.at) < grace {
+        if now.since(oldest.at) < grace {
             return None;
         }
         // The distinct peers each worker has a broken link with.
@@ -133,31 +135,24 @@ mod tests {
         keys.iter().copied().collect()
     }
 
+    /// The verdict among members 1 to 3, all of whom the coordinator hears from.
+    fn heard_by_all(a: &mut Accusations, t0: Time) -> Verdict {
+        let all = members(&[1, 2, 3]);
+        a.judge_heard(t0 + GRACE, GRACE, &all, &all)
+            .expect("verdict")
+    }
+
     #[test]
     fn one_report_about_a_worker_the_coordinator_hears_drops_the_accuser() {
-        let t0 = Instant::now();
+        let t0 = Time(1_000_000_000);
         let mut a = Accusations::default();
         a.add(1, 2, t0, "silent");
-        let v = a
-            .judge_heard(
-                t0 + GRACE,
-                GRACE,
-                &members(&[1, 2, 3]),
-                &members(&[1, 2, 3]),
-            )
-            .expect("verdict");
+        let v = heard_by_all(&mut a, t0);
         assert_eq!(v.drop, 1);
         // Two peers reporting it, or the coordinator not hearing it either, drop the accused.
         a.add(1, 2, t0, "silent");
         a.add(3, 2, t0, "silent");
-        let v = a
-            .judge_heard(
-                t0 + GRACE,
-                GRACE,
-                &members(&[1, 2, 3]),
-                &members(&[1, 2, 3]),
-            )
-            .expect("verdict");
+        let v = heard_by_all(&mut a, t0);
         assert_eq!(v.drop, 2);
         a.add(1, 3, t0, "silent");
         let v = a
@@ -168,7 +163,7 @@ mod tests {
 
     #[test]
     fn reports_wait_for_the_grace_period() {
-        let t0 = Instant::now();
+        let t0 = Time(1_000_000_000);
         let mut a = Accusations::default();
         a.add(1, 2, t0, "silent");
         assert_eq!(a.judge(t0 + GRACE / 2, GRACE, &members(&[1, 2])), None);
@@ -181,7 +176,7 @@ mod tests {
 
     #[test]
     fn the_worker_cut_off_from_everyone_goes_though_it_reported_first() {
-        let t0 = Instant::now();
+        let t0 = Time(1_000_000_000);
         let ms = |n| t0 + Duration::from_millis(n);
         let mut a = Accusations::default();
         // Worker 1 is cut off from 0 and 2: it reports both, then both report it.
@@ -200,7 +195,7 @@ mod tests {
     #[test]
     fn a_worker_that_reports_every_peer_goes_though_none_reported_it() {
         // Its own link is too slow for its bundles: it finds both peers unresponsive.
-        let t0 = Instant::now();
+        let t0 = Time(1_000_000_000);
         let mut a = Accusations::default();
         a.add(1, 0, t0, "36 bundles unacknowledged");
         a.add(1, 2, t0, "57 bundles unacknowledged");
@@ -213,7 +208,7 @@ mod tests {
 
     #[test]
     fn a_tie_drops_the_first_reported_and_a_gone_worker_s_reports_are_void() {
-        let t0 = Instant::now();
+        let t0 = Time(1_000_000_000);
         let mut a = Accusations::default();
         a.add(0, 1, t0, "a");
         a.add(1, 0, t0 + Duration::from_millis(5), "b");

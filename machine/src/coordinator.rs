@@ -1,1 +1,0 @@
-//! The coordinator machine: jobs, workers, rounds, the tile ledger, job store records.

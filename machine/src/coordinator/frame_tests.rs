@@ -1,0 +1,246 @@
+//! The running frame driven by plain events: no process, socket or clock.
+
+use super::*;
+use rayfarm_core::cluster::tile_sums;
+
+/// A 64x64 frame of four 32-pixel tiles over four domains of 100 bytes.
+fn frame_of(schedule: Schedule, rounds: Rounds) -> RunningFrame {
+    let spec = proto::JobSpec {
+        width: 64,
+        height: 64,
+        spp: 1,
+        max_depth: 3,
+        schedule: schedule as i32,
+        ..Default::default()
+    };
+    let frame = FrameSpec {
+        width: 64,
+        height: 64,
+        spp: 1,
+        max_depth: 3,
+        camera: None,
+    };
+    let options = Options {
+        replicate_onto_idle: false,
+        fill_free_slots: true,
+    };
+    RunningFrame::new(
+        Time(0),
+        "j".into(),
+        spec,
+        frame,
+        vec![100; 4],
+        options,
+        rounds,
+    )
+    .expect("frame")
+}
+
+/// A frame started on `n` members with room for two domains each, keys 0..n, addresses w0..
+fn started(schedule: Schedule, rounds: Rounds, n: u32) -> (RunningFrame, Vec<Outgoing>) {
+    let mut f = frame_of(schedule, rounds);
+    let out = f.start(
+        (0..n)
+            .map(|k| (k, Member::new(format!("w{k}"), 200)))
+            .collect(),
+    );
+    (f, out)
+}
+
+fn report(round: u64, resident: &[u32], queued: &[(u32, u64, u32)]) -> proto::QueueReport {
+    proto::QueueReport {
+        job_id: "j".into(),
+        round,
+        resident_domains: resident.to_vec(),
+        queued_rays: queued.iter().map(|&(d, n, _)| (d, n)).collect(),
+        oldest_generation: queued.iter().map(|&(d, _, g)| (d, g)).collect(),
+        oldest_waiting: None,
+    }
+}
+
+/// The messages to `key`.
+fn to(out: &[Outgoing], key: u32) -> Vec<&Body> {
+    out.iter()
+        .filter(|(k, _)| *k == key)
+        .filter_map(|(_, m)| m.body.as_ref())
+        .collect()
+}
+
+fn planned_domains(out: &[Outgoing], key: u32) -> Vec<u32> {
+    to(out, key)
+        .into_iter()
+        .filter_map(|b| match b {
+            Body::RoundPlan(p) => Some(p.work_on.clone()),
+            _ => None,
+        })
+        .flatten()
+        .collect()
+}
+
+/// A result for all of `tile`'s pixels at `epoch`, returning `credit`.
+fn whole_tile(f: &RunningFrame, tile: u32, epoch: u32, credit: u64) -> proto::TileResult {
+    let sums = tile_sums::encode(f.ledger.grid().pixels(tile).map(|p| (p, [1, 2, 3])));
+    proto::TileResult {
+        tile,
+        epoch,
+        credit,
+        sums,
+    }
+}
+
+fn results(results: Vec<proto::TileResult>) -> proto::TileResults {
+    proto::TileResults {
+        job_id: "j".into(),
+        results,
+        segments_traced: 10,
+    }
+}
+
+#[test]
+fn predictive_never_copies_domains_into_free_slots() {
+    assert!(
+        !frame_of(Schedule::Predictive, Rounds::Async)
+            .options
+            .fill_free_slots
+    );
+}
+
+#[test]
+fn a_dry_worker_is_planned_at_once_under_asynchronous_rounds() {
+    let (mut f, start) = started(Schedule::Dynamic, Rounds::Async, 2);
+    // Each gets a strided share of the four tiles and its peers' addresses.
+    for (key, tiles) in [(0, [0, 2]), (1, [1, 3])] {
+        match to(&start, key)[..] {
+            [Body::StartFrame(s)] => {
+                assert_eq!(s.primary_tiles, tiles);
+                assert_eq!(s.roster.len(), 2);
+            }
+            ref other => panic!("{other:?}"),
+        }
+    }
+    // Worker 0 runs dry with rays for domain 1; worker 1 has not reported and is not waited for.
+    let out = f.report(0, report(0, &[], &[(1, 50, 0)]));
+    assert!(planned_domains(&out, 0).contains(&1), "{out:?}");
+    assert_eq!(f.round, 1);
+    // Worker 1 keeps working and learns who holds domain 1.
+    match to(&out, 1)[..] {
+        [Body::Holders(h)] => {
+            let one = h.holders.iter().find(|h| h.domain == 1).expect("domain 1");
+            assert_eq!(one.workers, ["w0"]);
+        }
+        ref other => panic!("{other:?}"),
+    }
+    // A report of the round before its plan is no news: worker 0 is busy now.
+    assert!(f.report(0, report(0, &[1], &[(1, 50, 0)])).is_empty());
+}
+
+#[test]
+fn barrier_rounds_wait_for_every_report() {
+    let (mut f, _) = started(Schedule::Dynamic, Rounds::Barrier, 2);
+    assert!(f.report(0, report(0, &[], &[(1, 50, 0)])).is_empty());
+    assert_eq!(f.round, 0);
+    let out = f.report(1, report(0, &[], &[(2, 70, 0)]));
+    assert_eq!(f.round, 1);
+    let mut planned = [planned_domains(&out, 0), planned_domains(&out, 1)].concat();
+    planned.sort();
+    planned.dedup();
+    assert_eq!(planned, [1, 2], "{out:?}");
+    // Every member gets round 1's plan, with the same holders.
+    for key in [0, 1] {
+        match to(&out, key)[..] {
+            [Body::RoundPlan(p)] => assert_eq!((p.round, p.holders.len()), (1, 2)),
+            ref other => panic!("{other:?}"),
+        }
+    }
+    // Both domains, and a copy of each in the other worker's free slots.
+    assert_eq!(f.planned_loads, 4);
+}
+
+#[test]
+fn only_the_predictive_schedule_plans_the_oldest_generation_first() {
+    let planned = |schedule| {
+        let (mut f, _) = started(schedule, Rounds::Async, 2);
+        f.report(1, report(0, &[], &[]));
+        // Domain 2 has more rays, but domain 3 holds the older generation.
+        let out = f.report(0, report(0, &[], &[(2, 900, 2), (3, 5, 1)]));
+        let mut planned = [planned_domains(&out, 0), planned_domains(&out, 1)].concat();
+        // Dynamic may copy a domain into a free slot too.
+        planned.sort();
+        planned.dedup();
+        planned
+    };
+    assert_eq!(planned(Schedule::Predictive), [3]);
+    assert_eq!(planned(Schedule::Dynamic), [2, 3]);
+}
+
+#[test]
+fn a_lost_worker_s_unfinished_tiles_get_new_epochs_and_go_to_the_survivors() {
+    let (mut f, _) = started(Schedule::Dynamic, Rounds::Async, 3);
+    // Tile 1 is done before the loss; the other three are not.
+    let done = whole_tile(&f, 1, 0, TILE_CREDIT);
+    let (committed, refused) = f.results(1, results(vec![done]));
+    assert_eq!((committed.len(), refused), (1, None));
+    f.report(0, report(0, &[], &[(1, 50, 0)]));
+    let out = f.lose(2).expect("a member");
+    assert_eq!(f.members().collect::<Vec<_>>(), [0, 1]);
+    let mut dealt = Vec::new();
+    for key in [0, 1] {
+        let bodies = to(&out, key);
+        match bodies[0] {
+            Body::EpochBump(b) => {
+                let bumped: BTreeMap<u32, u32> = b.epochs.clone().into_iter().collect();
+                assert_eq!(bumped, BTreeMap::from([(0, 1), (2, 1), (3, 1)]));
+                assert_eq!(b.lost_peers, ["w2"]);
+            }
+            ref other => panic!("{other:?}"),
+        }
+        match bodies[1..] {
+            [Body::HandOutTiles(h)] => dealt.extend(h.tiles.iter().copied()),
+            ref other => panic!("{other:?}"),
+        }
+    }
+    dealt.sort();
+    assert_eq!(dealt, [0, 2, 3]);
+    // Results of the old epoch count for nothing; the lost worker's are not taken either.
+    let (committed, refused) = f.results(0, results(vec![whole_tile(&f, 0, 0, TILE_CREDIT)]));
+    assert_eq!((committed.len(), refused), (0, None));
+    assert!(!f.ledger.is_complete());
+    // The reports from before the bump counted rays the workers dropped: they plan nothing.
+    assert!(f.report(1, report(1, &[], &[])).is_empty());
+    // A worker that took no part is no loss.
+    assert!(f.lose(7).is_none());
+}
+
+#[test]
+fn a_result_with_more_credit_than_outstanding_is_refused() {
+    let (mut f, _) = started(Schedule::Dynamic, Rounds::Async, 1);
+    let three_quarters = TILE_CREDIT / 4 * 3;
+    let (committed, refused) = f.results(0, results(vec![whole_tile(&f, 0, 0, three_quarters)]));
+    assert_eq!((committed.len(), refused), (0, None));
+    // The second three quarters would be more than the quarter still out: refused, with the
+    // tile left as it was, and nothing after it in the batch counted.
+    let batch = vec![
+        whole_tile(&f, 0, 0, three_quarters),
+        whole_tile(&f, 2, 0, TILE_CREDIT),
+    ];
+    let (committed, refused) = f.results(0, results(batch));
+    assert!(committed.is_empty());
+    assert!(refused.expect("refused").contains("tile 0"));
+    assert_eq!(f.ledger.tiles_done(), 0);
+    // The quarter still out completes it.
+    let rest = whole_tile(&f, 0, 0, TILE_CREDIT - three_quarters);
+    let (committed, refused) = f.results(0, results(vec![rest]));
+    assert_eq!(committed.len(), 1);
+    assert_eq!(refused, None);
+    assert_eq!(committed[0].1.len(), 32 * 32);
+}
+
+#[test]
+fn progress_counts_time_from_the_start_event() {
+    let (mut f, _) = started(Schedule::Dynamic, Rounds::Async, 1);
+    f.results(0, results(vec![whole_tile(&f, 0, 0, TILE_CREDIT)]));
+    let (done, total, rate, eta) = f.progress(Time(2_000_000_000));
+    assert_eq!((done, total), (1, 4));
+    assert_eq!(rate, 5.0);
+    assert_eq!(eta, 6.0);
+}
