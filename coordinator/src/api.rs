@@ -1,6 +1,7 @@
 //! `JobService`: the user API, a thin layer over [`Coordinator`].
 
 use std::collections::HashMap;
+use std::net::IpAddr;
 use std::path::{Path, PathBuf};
 use std::pin::Pin;
 use std::sync::{Arc, Mutex};
@@ -14,8 +15,8 @@ use rayfarm_node::proto::{self, JobState};
 use rayfarm_node::security::User;
 use tokio::io::{AsyncReadExt, AsyncSeekExt};
 use tokio::sync::{Semaphore, mpsc};
-use tokio_stream::Stream;
 use tokio_stream::wrappers::ReceiverStream;
+use tokio_stream::{Stream, StreamExt};
 use tonic::{Request, Response, Status};
 use tracing::{info, warn};
 
@@ -29,12 +30,78 @@ pub struct Api {
     /// Size and checksum of result files already streamed, by path (results never change
     /// once written; the size and modification time guard against a file replaced by hand).
     checksums: Mutex<HashMap<PathBuf, (SystemTime, u64, String)>>,
+    /// Result fetches in progress (unary or streamed), in all and by client address: with the
+    /// per-fetch bound below, what every fetch together may hold in memory, however slowly the
+    /// clients read, and one client's stalled fetches never take every slot.
+    fetches: Arc<FetchSlots>,
+}
+
+/// Counts of fetches in progress.
+#[derive(Default)]
+struct FetchSlots {
+    by_client: Mutex<HashMap<Option<IpAddr>, usize>>,
+}
+
+/// A fetch's place among [`FetchSlots`], given back when dropped.
+struct FetchSlot {
+    slots: Arc<FetchSlots>,
+    client: Option<IpAddr>,
+}
+
+impl FetchSlots {
+    fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<Option<IpAddr>, usize>> {
+        self.by_client.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// A slot for a fetch from `client`, if both caps leave room.
+    fn take(self: &Arc<Self>, client: Option<IpAddr>) -> Result<FetchSlot, Status> {
+        let mut counts = self.lock();
+        let total: usize = counts.values().sum();
+        let mine = counts.get(&client).copied().unwrap_or(0);
+        if mine >= MAX_FETCHES_PER_CLIENT {
+            return Err(Status::resource_exhausted(format!(
+                "{mine} result fetches from this address are in progress; try again"
+            )));
+        }
+        if total >= MAX_FETCHES {
+            return Err(Status::resource_exhausted(format!(
+                "{total} result fetches are in progress; try again"
+            )));
+        }
+        *counts.entry(client).or_default() += 1;
+        Ok(FetchSlot {
+            slots: self.clone(),
+            client,
+        })
+    }
+}
+
+impl Drop for FetchSlot {
+    fn drop(&mut self) {
+        let mut counts = self.slots.lock();
+        if let Some(n) = counts.get_mut(&self.client) {
+            *n -= 1;
+            if *n == 0 {
+                counts.remove(&self.client);
+            }
+        }
+    }
 }
 
 /// A scene manifest not read within this fails its submission (`DEADLINE_EXCEEDED`).
 const SCENE_READ_TIMEOUT: Duration = Duration::from_secs(10);
 /// Most scene manifests read at once.
 const MAX_SCENE_READS: usize = 8;
+/// Most result fetches served at once, in all and to one client address; more are refused
+/// with `RESOURCE_EXHAUSTED`.
+const MAX_FETCHES: usize = 16;
+const MAX_FETCHES_PER_CLIENT: usize = 4;
+/// The largest result `FetchResult` returns in one message; larger ones are streamed
+/// (`FetchResultStream`, which `rayfarm fetch` uses), so a unary fetch holds at most this.
+const MAX_UNARY_RESULT: u64 = 8 << 20;
+/// A streamed fetch whose client has not taken the next chunk within this is ended: the
+/// client resumes from its offset, and a reader that never reads frees its slot.
+const FETCH_STALL_TIMEOUT: Duration = Duration::from_secs(30);
 
 impl Api {
     pub fn new(coordinator: Arc<Coordinator>) -> Self {
@@ -42,6 +109,7 @@ impl Api {
             coordinator,
             scene_reads: Arc::new(Semaphore::new(MAX_SCENE_READS)),
             checksums: Mutex::default(),
+            fetches: Arc::default(),
         }
     }
 
@@ -101,9 +169,10 @@ impl Api {
     }
 }
 
-/// Chunk size of a streamed fetch when the client names none, and the largest it may ask.
+/// Chunk size of a streamed fetch when the client names none, and the largest it may ask
+/// (a fetch holds a few chunks at most, so this sets what each one may hold).
 const DEFAULT_CHUNK: u32 = 1 << 20;
-const MAX_CHUNK: u32 = 4 << 20;
+const MAX_CHUNK: u32 = 1 << 20;
 
 type WatchStream = Pin<Box<dyn Stream<Item = Result<proto::WatchJobResponse, Status>> + Send>>;
 type ChunkStream = Pin<Box<dyn Stream<Item = Result<proto::FetchResultChunk, Status>> + Send>>;
@@ -180,16 +249,36 @@ impl JobService for Api {
         &self,
         request: Request<proto::FetchResultRequest>,
     ) -> Result<Response<proto::FetchResultResponse>, Status> {
+        let client = request.remote_addr().map(|a| a.ip());
         let r = request.into_inner();
         check_field("job_id", &r.job_id)?;
         let (path, stats_json, image_hash) = self.coordinator.result(&r.job_id, r.format())?;
-        let image = tokio::fs::read(&path).await.map_err(|e| {
+        let _slot = self.fetches.take(client)?;
+        let unreadable = |e: std::io::Error| {
             Status::data_loss(format!(
                 "result of {} unreadable: {}: {e}",
                 r.job_id,
                 path.display()
             ))
-        })?;
+        };
+        let len = tokio::fs::metadata(&path).await.map_err(unreadable)?.len();
+        if len > MAX_UNARY_RESULT {
+            return Err(Status::failed_precondition(format!(
+                "the result of {} is {len} bytes, more than the {MAX_UNARY_RESULT} bytes \
+                 FetchResult returns at once; fetch it with FetchResultStream (`rayfarm fetch` \
+                 does)",
+                r.job_id
+            )));
+        }
+        // Read at most the size just checked, should the file have grown since.
+        let mut image = Vec::with_capacity(len as usize);
+        tokio::fs::File::open(&path)
+            .await
+            .map_err(unreadable)?
+            .take(MAX_UNARY_RESULT)
+            .read_to_end(&mut image)
+            .await
+            .map_err(unreadable)?;
         Ok(Response::new(proto::FetchResultResponse {
             image: image.into(),
             stats_json,
@@ -203,9 +292,11 @@ impl JobService for Api {
         &self,
         request: Request<proto::FetchResultStreamRequest>,
     ) -> Result<Response<ChunkStream>, Status> {
+        let client = request.remote_addr().map(|a| a.ip());
         let r = request.into_inner();
         check_field("job_id", &r.job_id)?;
         let (path, stats_json, image_hash) = self.coordinator.result(&r.job_id, r.format())?;
+        let slot = self.fetches.take(client)?;
         let unreadable = |e: std::io::Error| {
             Status::data_loss(format!(
                 "result of {} unreadable: {}: {e}",
@@ -234,8 +325,9 @@ impl JobService for Api {
             stats_json,
             image_hash,
         });
-        // A few chunks in flight at most: a slow client slows the reads, memory stays bounded.
-        let (tx, out) = mpsc::channel(4);
+        // One chunk waiting at most: a slow client slows the reads, memory stays bounded (a
+        // fetch holds the chunk queued, the one being encoded and what HTTP/2 buffers).
+        let (tx, out) = mpsc::channel(1);
         let job_id = r.job_id.clone();
         let mut offset = r.offset;
         tokio::spawn(async move {
@@ -252,8 +344,14 @@ impl JobService for Api {
                     offset,
                     data,
                 };
-                if tx.send(Ok(msg)).await.is_err() {
-                    return;
+                match tokio::time::timeout(FETCH_STALL_TIMEOUT, tx.send(Ok(msg))).await {
+                    Ok(Ok(())) => {}
+                    // The client went away.
+                    Ok(Err(_)) => return,
+                    Err(_) => {
+                        warn!(job = %job_id, offset, "a result fetch stalled; ending it");
+                        return;
+                    }
                 }
                 offset += len;
                 if offset >= total {
@@ -262,7 +360,14 @@ impl JobService for Api {
             }
         });
         info!(job = %r.job_id, offset = r.offset, total, "streaming a result");
-        Ok(Response::new(Box::pin(ReceiverStream::new(out))))
+        // The slot goes with the response stream, not the reading task: it is free again only
+        // when the server drops the stream (sent, reset or its connection closed), so what
+        // unread chunks hold stays within MAX_FETCHES of them.
+        let stream = ReceiverStream::new(out).map(move |chunk| {
+            let _held = &slot;
+            chunk
+        });
+        Ok(Response::new(Box::pin(stream)))
     }
 
     async fn get_cluster_status(
