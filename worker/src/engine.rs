@@ -28,7 +28,7 @@ use tracing::{debug, error, info, info_span, warn};
 use crate::frame::{Frame, Mode};
 use crate::pass::{self, FrameView, PassError, PassInput, PassOutput};
 use crate::peers::PeerLinks;
-use crate::queues::DomainQueues;
+use crate::queues::{DomainQueues, QueueError};
 use rayfarm_machine::worker::Speculation;
 
 /// Rays per encoded batch sent to a peer (160 KiB).
@@ -207,7 +207,7 @@ impl Engine {
                         None => Ok(()),
                     };
                     if let Err(e) = bumped {
-                        self.fail_frame(e.to_string());
+                        self.queue_failed(e);
                     }
                 }
                 Some(FromCoordinator::EndFrame(e)) => self.end_frame(&e.job_id),
@@ -249,7 +249,7 @@ impl Engine {
                 if self.frame.as_ref().is_some_and(|f| f.job_id == job_id) {
                     match result {
                         Ok(out) => self.pass_done(out),
-                        Err(e) => self.fail_frame(format!("{e}")),
+                        Err(e) => self.pass_failed(&e),
                     }
                 }
             }
@@ -278,12 +278,12 @@ impl Engine {
                 }
             }
             Err(e) => {
-                error!(error = %e, "cannot take part in the frame");
+                error!(error = %format_args!("{e:#}"), "cannot take part in the frame");
                 self.send(proto::worker_message::Body::FrameReport(
                     proto::FrameReport {
                         job_id: s.job_id.clone(),
                         stats_json: String::new(),
-                        error: format!("worker {}: {e}", self.config.worker_id),
+                        error: format!("worker {}: {e:#}", self.config.worker_id),
                         declined: true,
                     },
                 ));
@@ -423,7 +423,7 @@ impl Engine {
                 }
                 self.send_due_bundles();
             }
-            Err(e) => self.fail_frame(e.to_string()),
+            Err(e) => self.queue_failed(e),
         }
     }
 
@@ -447,7 +447,7 @@ impl Engine {
                 }
                 self.send_due_bundles();
             }
-            Err(e) => self.fail_frame(e.to_string()),
+            Err(e) => self.queue_failed(e),
         }
     }
 
@@ -538,15 +538,55 @@ impl Engine {
         ));
     }
 
-    fn fail_frame(&mut self, error: String) {
+    /// Leaves the running frame for a reason of this worker's own (the coordinator deals its
+    /// tiles to the others), rather than failing the job.
+    fn decline_frame(&mut self, error: String) {
+        self.end_with_error(error, true);
+    }
+
+    /// A domain this worker cannot load (missing, damaged) leaves it out of the frame; if it
+    /// is the same for every worker, the job fails with all their reasons. But a scene whose
+    /// manifest changed on disk since the frame opened it was re-prepared in place: its new
+    /// domain files do not match the manifest the frame traces by, and tracing on would mix
+    /// the two versions, so the frame fails for everyone, naming the scene.
+    fn pass_failed(&mut self, e: &PassError) {
+        let replaced = self.cache.as_ref().and_then(|((dir, manifest), _)| {
+            (Manifest::load(dir).ok().as_ref() != Some(manifest)).then(|| dir.clone())
+        });
+        match replaced {
+            Some(dir) => self.end_with_error(
+                format!(
+                    "scene {} was replaced on disk while its frame ran (re-prepared in \
+                     place?): {e}; submit the job again to render the new version",
+                    dir.display()
+                ),
+                false,
+            ),
+            None => self.decline_frame(e.to_string()),
+        }
+    }
+
+    /// A full or failing spill directory is this worker's problem: it leaves the frame. Rays
+    /// beyond every budget fail the frame (more workers would help, not fewer).
+    fn queue_failed(&mut self, e: QueueError) {
+        match e {
+            QueueError::Io(_) => self.decline_frame(format!(
+                "spill directory {}: {e}",
+                self.config.spill_dir.display()
+            )),
+            QueueError::Full { .. } => self.end_with_error(e.to_string(), false),
+        }
+    }
+
+    fn end_with_error(&mut self, error: String, declined: bool) {
         if let Some(frame) = self.frame.take() {
-            error!(job = %frame.job_id, %error, "frame failed on this worker");
+            error!(job = %frame.job_id, %error, declined, "frame ended with an error on this worker");
             self.send(proto::worker_message::Body::FrameReport(
                 proto::FrameReport {
                     job_id: frame.job_id,
                     stats_json: String::new(),
                     error: format!("worker {}: {error}", self.config.worker_id),
-                    declined: false,
+                    declined,
                 },
             ));
         }
@@ -610,7 +650,7 @@ impl Engine {
                         forward.entry(peer).or_default().append(&mut rays);
                     }
                 }
-                Err(e) => return self.fail_frame(e.to_string()),
+                Err(e) => return self.queue_failed(e),
             }
         }
         // New rays here change what the coordinator should know at the round's end.
@@ -684,7 +724,7 @@ impl Engine {
         };
         let out_rays = match frame.route(rays) {
             Ok(r) => r,
-            Err(e) => return self.fail_frame(e.to_string()),
+            Err(e) => return self.queue_failed(e),
         };
         for (peer, rays) in out_rays {
             self.send_rays(&job_id, peer, &rays);
@@ -713,7 +753,7 @@ impl Engine {
         }
         let trace = match frame.take_work(self.config.pass_rays) {
             Ok(t) => t,
-            Err(e) => return self.fail_frame(e.to_string()),
+            Err(e) => return self.queue_failed(e),
         };
         let speculative = frame
             .speculation

@@ -26,6 +26,18 @@ pub enum QueueError {
     Io(#[from] std::io::Error),
 }
 
+/// Bytes written to a new spill directory before a frame starts.
+const PROBE_BYTES: usize = 64 << 10;
+
+/// Writes and removes a small file in `dir`, so that a full or read-only spill directory is
+/// found before the frame starts (the worker then declines it) rather than halfway through.
+fn probe(dir: &Path) -> std::io::Result<()> {
+    let path = dir.join("probe");
+    let written = File::create(&path).and_then(|mut f| f.write_all(&[0; PROBE_BYTES]));
+    let removed = std::fs::remove_file(&path);
+    written.and(removed)
+}
+
 /// Rays of one domain that did not fit in memory, in a file read from the front.
 #[derive(Default)]
 struct Spill {
@@ -59,6 +71,12 @@ impl DomainQueues {
         spill_root: &Path,
     ) -> std::io::Result<Self> {
         std::fs::create_dir_all(spill_root)?;
+        let dir = tempfile::Builder::new()
+            .prefix("rayfarm-spill-")
+            .tempdir_in(spill_root)?;
+        if spill_cap > 0 {
+            probe(dir.path())?;
+        }
         Ok(DomainQueues {
             mem: vec![Vec::new(); domains],
             spills: (0..domains).map(|_| Spill::default()).collect(),
@@ -66,9 +84,7 @@ impl DomainQueues {
             mem_cap_rays: (mem_cap / RAY_BYTES).max(1),
             spill_rays: 0,
             spill_cap_rays: spill_cap / RAY_BYTES,
-            dir: tempfile::Builder::new()
-                .prefix("rayfarm-spill-")
-                .tempdir_in(spill_root)?,
+            dir,
             spilled_total: 0,
         })
     }
