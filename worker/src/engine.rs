@@ -261,6 +261,9 @@ impl Engine {
         if let Some(old) = self.frame.take() {
             warn!(job = %old.job_id, "a new frame replaces an unfinished one");
         }
+        // The job may run again (a restarted coordinator, a worker taken back): its bundles
+        // count from now on.
+        self.ended.retain(|j| *j != s.job_id);
         // Bundles of an older frame are worthless now, and the counters start afresh.
         if let Ok(fresh) = Bundler::new(self.config.bundler) {
             self.bundler = fresh;
@@ -279,6 +282,7 @@ impl Engine {
             }
             Err(e) => {
                 error!(error = %format_args!("{e:#}"), "cannot take part in the frame");
+                self.mark_ended(&s.job_id);
                 self.send(proto::worker_message::Body::FrameReport(
                     proto::FrameReport {
                         job_id: s.job_id.clone(),
@@ -494,11 +498,7 @@ impl Engine {
     }
 
     fn end_frame(&mut self, job_id: &str) {
-        self.take_early(job_id);
-        self.ended.push(job_id.to_string());
-        if self.ended.len() > 16 {
-            self.ended.remove(0);
-        }
+        self.mark_ended(job_id);
         let Some(frame) = self.frame.take_if(|f| f.job_id == job_id) else {
             return;
         };
@@ -578,8 +578,19 @@ impl Engine {
         }
     }
 
+    /// Drops the bundles parked for `job_id` and those that arrive late for it.
+    fn mark_ended(&mut self, job_id: &str) {
+        self.take_early(job_id);
+        self.ended.push(job_id.to_string());
+        if self.ended.len() > 16 {
+            self.ended.remove(0);
+        }
+    }
+
     fn end_with_error(&mut self, error: String, declined: bool) {
         if let Some(frame) = self.frame.take() {
+            // Peers go on sending rays until they hear this worker left: none is kept.
+            self.mark_ended(&frame.job_id);
             error!(job = %frame.job_id, %error, declined, "frame ended with an error on this worker");
             self.send(proto::worker_message::Body::FrameReport(
                 proto::FrameReport {
