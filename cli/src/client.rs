@@ -240,10 +240,25 @@ impl Coordinator {
         Ok(resp.map_err(|s| self.rpc_error(&s))?.into_inner())
     }
 
-    /// The jobs, newest first.
-    pub async fn jobs(&mut self) -> anyhow::Result<Vec<proto::JobSummary>> {
-        let resp = self.client.list_jobs(proto::ListJobsRequest {}).await;
-        Ok(resp.map_err(|s| self.rpc_error(&s))?.into_inner().jobs)
+    /// The newest `limit` jobs (every job with `None`), newest first, a page at a time.
+    pub async fn jobs(&mut self, limit: Option<usize>) -> anyhow::Result<Vec<proto::JobSummary>> {
+        let mut jobs = Vec::new();
+        let mut page_token = String::new();
+        loop {
+            let wanted = limit.map_or(usize::MAX, |l| l - jobs.len());
+            let req = proto::ListJobsRequest {
+                page_size: wanted.min(1000) as u32,
+                page_token,
+            };
+            let resp = self.client.list_jobs(req).await;
+            let page = resp.map_err(|s| self.rpc_error(&s))?.into_inner();
+            jobs.extend(page.jobs);
+            if page.next_page_token.is_empty() || limit.is_some_and(|l| jobs.len() >= l) {
+                jobs.truncate(limit.unwrap_or(usize::MAX));
+                return Ok(jobs);
+            }
+            page_token = page.next_page_token;
+        }
     }
 
     /// Cancels a job; returns its state after the request.

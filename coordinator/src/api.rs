@@ -20,7 +20,7 @@ use tokio_stream::{Stream, StreamExt};
 use tonic::{Request, Response, Status};
 use tracing::{info, warn};
 
-use crate::state::Coordinator;
+use crate::state::{Coordinator, JobPage};
 
 /// The user API served by the coordinator.
 pub struct Api {
@@ -169,6 +169,9 @@ impl Api {
     }
 }
 
+/// Jobs in a page of ListJobs when the client names no size, and the most it may ask.
+const DEFAULT_PAGE: usize = 100;
+const MAX_PAGE: usize = 1000;
 /// Chunk size of a streamed fetch when the client names none, and the largest it may ask
 /// (a fetch holds a few chunks at most, so this sets what each one may hold).
 const DEFAULT_CHUNK: u32 = 1 << 20;
@@ -225,10 +228,27 @@ impl JobService for Api {
 
     async fn list_jobs(
         &self,
-        _request: Request<proto::ListJobsRequest>,
+        request: Request<proto::ListJobsRequest>,
     ) -> Result<Response<proto::ListJobsResponse>, Status> {
+        let r = request.into_inner();
+        check_field("page_token", &r.page_token)?;
+        let size = match r.page_size {
+            0 => DEFAULT_PAGE,
+            n => (n as usize).min(MAX_PAGE),
+        };
+        let page = match r.page_token.as_str() {
+            "" => JobPage::newest(size),
+            token => JobPage {
+                size,
+                from_seq: token.parse().map_err(|_| {
+                    Status::invalid_argument("page_token is not one a ListJobs response gave")
+                })?,
+            },
+        };
+        let (jobs, next) = self.coordinator.list(page);
         Ok(Response::new(proto::ListJobsResponse {
-            jobs: self.coordinator.list(),
+            jobs,
+            next_page_token: next.map(|seq| seq.to_string()).unwrap_or_default(),
         }))
     }
 

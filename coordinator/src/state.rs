@@ -119,6 +119,8 @@ struct State {
     /// Where every job change is written through to.
     store: Store,
     jobs: BTreeMap<String, Job>,
+    /// Every job's id by its sequence number, so a page of the list is a range, not a sort.
+    by_seq: BTreeMap<u64, String>,
     queue: JobQueue,
     seq: u64,
     workers: BTreeMap<u32, WorkerEntry>,
@@ -127,6 +129,31 @@ struct State {
     finishing: BTreeMap<String, Finishing>,
     /// Set by [`Coordinator::shut_down`]: no worker attaches and no frame starts any more.
     stopping: bool,
+}
+
+/// A page of the job list: at most `size` jobs, newest first, from sequence number `from_seq`
+/// down.
+#[derive(Clone, Copy, Debug)]
+pub struct JobPage {
+    pub size: usize,
+    pub from_seq: u64,
+}
+
+impl JobPage {
+    /// The newest `size` jobs.
+    pub fn newest(size: usize) -> Self {
+        JobPage {
+            size,
+            from_seq: u64::MAX,
+        }
+    }
+}
+
+impl State {
+    fn add_job(&mut self, id: String, job: Job) {
+        self.by_seq.insert(job.seq, id.clone());
+        self.jobs.insert(id, job);
+    }
 }
 
 /// See the module documentation.
@@ -158,6 +185,7 @@ impl Coordinator {
         let mut st = State {
             store,
             jobs: BTreeMap::new(),
+            by_seq: BTreeMap::new(),
             queue: JobQueue::default(),
             seq: loaded.seq,
             workers: BTreeMap::new(),
@@ -265,7 +293,7 @@ impl Coordinator {
             error!(job = %id, error = %e, "job not recorded");
             Status::internal(format!("the job could not be recorded: {e}"))
         })?;
-        st.jobs.insert(id.clone(), job);
+        st.add_job(id.clone(), job);
         st.queue.push(id.clone(), spec.priority, seq);
         info!(job = %id, user = %owner, scene = %spec.scene, width = spec.width, height = spec.height, spp = spec.spp, priority = spec.priority, "job queued");
         self.try_start(&mut st);
@@ -379,11 +407,16 @@ impl Coordinator {
     }
 
     /// Jobs, newest first.
-    pub fn list(&self) -> Vec<proto::JobSummary> {
+    pub fn list(&self, page: JobPage) -> (Vec<proto::JobSummary>, Option<u64>) {
         let st = self.lock();
-        let mut jobs: Vec<&Job> = st.jobs.values().collect();
-        jobs.sort_by_key(|j| std::cmp::Reverse(j.seq));
-        jobs.into_iter().map(|j| j.summary.clone()).collect()
+        let mut ids = st.by_seq.range(..=page.from_seq).rev();
+        let jobs = ids
+            .by_ref()
+            .take(page.size)
+            .filter_map(|(_, id)| st.jobs.get(id))
+            .map(|j| j.summary.clone())
+            .collect();
+        (jobs, ids.next().map(|(&seq, _)| seq))
     }
 
     /// A receiver of a job's progress events.
@@ -1152,7 +1185,7 @@ fn restore(st: &mut State, data_dir: &std::path::Path, stored: StoredJob) {
             error!(job = %id, error = %e.with_causes(), "job state not saved");
         }
     }
-    st.jobs.insert(id, job);
+    st.add_job(id, job);
 }
 
 #[cfg(test)]
@@ -1226,11 +1259,20 @@ mod tests {
         let _stays = attach(&c, "stays");
         let id = c.submit(Some(spec)).unwrap();
         for lost in 1..=3 {
-            assert_eq!(c.list()[0].state(), JobState::Running, "loss {lost}");
+            assert_eq!(
+                c.list(JobPage::newest(100)).0[0].state(),
+                JobState::Running,
+                "loss {lost}"
+            );
             let (key, _rx) = attach(&c, "flaky");
             c.worker_gone(key, "stream closed");
         }
-        let job = c.list().into_iter().find(|j| j.job_id == id).unwrap();
+        let job = c
+            .list(JobPage::newest(100))
+            .0
+            .into_iter()
+            .find(|j| j.job_id == id)
+            .unwrap();
         assert_eq!(job.state(), JobState::Failed);
         assert!(
             job.error.contains("worker flaky was lost 3 times")
@@ -1275,7 +1317,7 @@ mod tests {
         // Losing a bumps every tile to epoch 1; losing b too re-queues the job.
         c.worker_gone(a, "test");
         c.worker_gone(b, "test");
-        assert_eq!(c.list()[0].state(), JobState::Queued);
+        assert_eq!(c.list(JobPage::newest(100)).0[0].state(), JobState::Queued);
         // Worker b, dropped but still running, may send epoch-1 rays: the new frame is above.
         let (_, again) = start_epochs_of(&c, "c");
         assert!(
@@ -1294,23 +1336,57 @@ mod tests {
             start_epochs(&c).is_empty(),
             "a first frame starts at epoch 0"
         );
-        assert_eq!(c.list()[0].state(), JobState::Running);
+        assert_eq!(c.list(JobPage::newest(100)).0[0].state(), JobState::Running);
         drop(c);
         for epoch in 1..=2 {
             // As after a crash: the running job is queued again, and its next frame's tiles
             // are all at an epoch the dead run never used.
             let c = Coordinator::open(config(root.path())).unwrap();
-            let jobs = c.list();
+            let jobs = c.list(JobPage::newest(100)).0;
             assert_eq!((jobs.len(), jobs[0].state()), (1, JobState::Queued));
             let epochs = start_epochs(&c);
             let tiles = epochs.len();
             assert!(tiles >= 2, "{epochs:?}");
             assert!(epochs.values().all(|&e| e == epoch), "{epochs:?}");
-            assert_eq!(c.list()[0].job_id, id);
+            assert_eq!(c.list(JobPage::newest(100)).0[0].job_id, id);
         }
         // Sequence numbers go on where they stopped.
         let c = Coordinator::open(config(root.path())).unwrap();
         let next = c.submit(Some(spec)).unwrap();
         assert!(next.ends_with("-2"), "{next}");
+    }
+
+    #[test]
+    fn the_job_list_comes_in_pages_that_new_jobs_do_not_shift() {
+        let root = tempfile::tempdir().unwrap();
+        let spec = small_job(root.path());
+        let c = Coordinator::open(config(root.path())).unwrap();
+        let ids: Vec<String> = (0..5)
+            .map(|_| c.submit(Some(spec.clone())).unwrap())
+            .collect();
+        let names = |jobs: &[proto::JobSummary]| -> Vec<String> {
+            jobs.iter().map(|j| j.job_id.clone()).collect()
+        };
+        let (first, next) = c.list(JobPage::newest(2));
+        assert_eq!(names(&first), [ids[4].clone(), ids[3].clone()]);
+        // A job submitted between two pages is newer than both: the next page goes on.
+        let newest = c.submit(Some(spec)).unwrap();
+        let (second, next) = c.list(JobPage {
+            size: 2,
+            from_seq: next.expect("more pages"),
+        });
+        assert_eq!(names(&second), [ids[2].clone(), ids[1].clone()]);
+        let (last, next) = c.list(JobPage {
+            size: 2,
+            from_seq: next.expect("more pages"),
+        });
+        assert_eq!((names(&last), next), (vec![ids[0].clone()], None));
+        assert_eq!(c.list(JobPage::newest(1)).0[0].job_id, newest);
+        // The order survives a restart.
+        drop(c);
+        let c = Coordinator::open(config(root.path())).unwrap();
+        let all = c.list(JobPage::newest(10)).0;
+        assert_eq!(all.len(), 6);
+        assert_eq!(all[5].job_id, ids[0]);
     }
 }

@@ -18,6 +18,7 @@ use tracing::{error, info, warn};
 
 use crate::engine::Event;
 use crate::peers::MAX_MESSAGE_BYTES;
+use rayfarm_machine::worker as machine;
 use rayfarm_node::fault::Faults;
 
 /// Who this worker is, as told to the coordinator.
@@ -76,7 +77,7 @@ pub async fn run(
                 }
             }
         }
-        let _ = events.send(Event::Disconnected);
+        let _ = events.send(Event::Machine(Box::new(machine::Event::Disconnected)));
         tokio::time::sleep(backoff(failures, &me.worker_id)).await;
     }
 }

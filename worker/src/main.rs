@@ -4,7 +4,6 @@
 
 mod control;
 mod engine;
-mod frame;
 mod pass;
 mod peers;
 mod queues;

@@ -4,7 +4,7 @@
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use rayfarm_core::bvh::Traverser;
 use rayfarm_core::camera::PinholeCamera;
@@ -14,11 +14,11 @@ use rayfarm_core::ray::RayRecord;
 use rayfarm_core::render::cache::DomainCache;
 use rayfarm_core::render::film::to_fixed;
 use rayfarm_core::render::primary::primary_ray;
-use rayfarm_core::render::speculation::Outcome;
 use rayfarm_core::render::{KernelCounters, RaySink, SceneView};
 use rayfarm_core::scene::DomainData;
 use rayfarm_core::scene::SceneError;
 use rayfarm_core::wire::VerdictRecord;
+use rayfarm_machine::worker::{PassOutput, PassWork};
 use rayfarm_node::proto;
 use rayon::prelude::*;
 use tracing::{debug, info_span};
@@ -34,33 +34,11 @@ pub struct FrameView {
     pub spp: u32,
 }
 
-/// Work for one pass.
+/// Work for one pass: what the machine asked for, with the frame and the cache to do it.
 pub struct PassInput {
     pub frame: Arc<FrameView>,
-    /// Tiles whose camera rays to issue, with the epoch they are issued in.
-    pub primaries: Vec<(u32, u32)>,
-    /// A domain and the rays queued for it.
-    pub trace: Option<(u32, Vec<RayRecord>)>,
-    /// Predictive schedule: the queued rays are speculative copies, and these rays, whose
-    /// verdicts are all in, are concluded.
-    pub speculative: Option<Vec<(RayRecord, Outcome)>>,
+    pub work: PassWork,
     pub cache: Arc<Mutex<DomainCache>>,
-}
-
-/// What a pass produced.
-pub struct PassOutput {
-    /// Rays that continue, each with the domain it continues in; speculative, the rays born
-    /// (camera rays and the children of concluded rays), each with its first domain.
-    pub rays: Vec<RayRecord>,
-    /// Speculative: the domains along each born ray, in the order of `rays`.
-    pub paths: Vec<Vec<u32>>,
-    /// Speculative: each traced copy's verdict, with the worker it goes to.
-    pub verdicts: Vec<(u32, VerdictRecord)>,
-    /// Credit and pixel sums of the rays that retired, one entry per (tile, epoch).
-    pub results: Vec<proto::TileResult>,
-    pub counters: KernelCounters,
-    /// Wall time of the pass, including a domain load.
-    pub busy: Duration,
 }
 
 /// Why a pass failed: the domain could not be loaded.
@@ -126,11 +104,12 @@ impl Sink {
 pub fn run(input: PassInput) -> Result<PassOutput, PassError> {
     let start = Instant::now();
     let frame = &input.frame;
+    let work = &input.work;
     let mut counters = KernelCounters::default();
     let mut sink = Sink::default();
-    if !input.primaries.is_empty() {
-        let _span = info_span!("issue_primaries", tiles = input.primaries.len()).entered();
-        sink = input
+    if !work.primaries.is_empty() {
+        let _span = info_span!("issue_primaries", tiles = work.primaries.len()).entered();
+        sink = work
             .primaries
             .par_iter()
             .map(|&(tile, epoch)| {
@@ -146,13 +125,13 @@ pub fn run(input: PassInput) -> Result<PassOutput, PassError> {
                 s
             })
             .reduce(Sink::default, Sink::merge);
-        counters.primary_rays = input
+        counters.primary_rays = work
             .primaries
             .iter()
             .map(|&(t, _)| frame.grid.tile_pixel_count(t) as u64 * frame.spp as u64)
             .sum();
     }
-    if let Some(conclude) = &input.speculative {
+    if let Some(conclude) = &work.speculative {
         let (concluded, c) = in_chunks(conclude, |chunk, s, c| {
             for (ray, outcome) in chunk {
                 frame.view.conclude(ray, outcome, s, c);
@@ -162,7 +141,7 @@ pub fn run(input: PassInput) -> Result<PassOutput, PassError> {
         counters.add(&c);
     }
     let mut verdicts = Vec::new();
-    if let (Some((domain, rays)), Some(_)) = (&input.trace, &input.speculative) {
+    if let (Some((domain, rays)), Some(_)) = (&work.trace, &work.speculative) {
         let data = load(&input.cache, *domain)?;
         let _span = info_span!("trace_copies", domain, rays = rays.len()).entered();
         debug!("tracing a queue");
@@ -191,7 +170,7 @@ pub fn run(input: PassInput) -> Result<PassOutput, PassError> {
         verdicts = v;
         counters.add(&c);
         debug!("queue traced");
-    } else if let Some((domain, rays)) = &input.trace {
+    } else if let Some((domain, rays)) = &work.trace {
         let data = load(&input.cache, *domain)?;
         let _span = info_span!("trace_queue", domain, rays = rays.len()).entered();
         debug!("tracing a queue");
@@ -214,7 +193,7 @@ pub fn run(input: PassInput) -> Result<PassOutput, PassError> {
             }
         })
         .collect();
-    let paths = match input.speculative {
+    let paths = match &work.speculative {
         Some(_) => sink
             .out
             .par_iter()

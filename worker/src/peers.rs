@@ -19,6 +19,7 @@ use tonic::{Request, Response, Status, Streaming};
 use tracing::{debug, error, warn};
 
 use crate::engine::Event;
+use rayfarm_machine::worker as machine;
 use rayfarm_node::fault::Faults;
 
 /// Largest gRPC message accepted or sent between workers.
@@ -151,7 +152,8 @@ fn open_link(
             Ok(()) => {}
             Err(LinkError::Unresponsive(reason)) => {
                 error!(%peer, %reason, "peer unresponsive: reporting it to the coordinator");
-                let _ = events.send(Event::PeerUnresponsive { peer, reason });
+                let lost = machine::Event::PeerUnresponsive { peer, reason };
+                let _ = events.send(Event::Machine(Box::new(lost)));
             }
             Err(LinkError::Other(e)) => warn!(%peer, error = %e, "peer link ended"),
         }
@@ -303,13 +305,13 @@ impl PeerService for PeerServer {
                     break;
                 }
                 let sequence = bundle.sequence;
-                let event = Event::PeerBundle {
+                let event = Event::Machine(Box::new(machine::Event::PeerBundle {
                     sender: bundle.sender,
                     job_id: bundle.job_id,
                     // Checked above.
                     tier: proto::Tier::try_from(bundle.tier).unwrap_or(proto::Tier::Migrated),
                     batches: bundle.batches,
-                };
+                }));
                 if events.send(event).is_err() {
                     break;
                 }

@@ -20,12 +20,15 @@ pub struct JobsArgs {
     /// Print the jobs as JSON (one array) instead of a table.
     #[arg(long)]
     pub json: bool,
+    /// Show the newest N jobs; 0 shows every job.
+    #[arg(long, default_value_t = 100)]
+    pub limit: usize,
 }
 
 pub fn run(a: JobsArgs) -> anyhow::Result<()> {
     let jobs = runtime()?.block_on(async {
         let mut coord = a.coordinator.connect().await?;
-        coord.jobs().await
+        coord.jobs((a.limit > 0).then_some(a.limit)).await
     })?;
     if a.json {
         let list: Vec<serde_json::Value> = jobs.iter().map(job_json).collect();

@@ -56,10 +56,25 @@ impl Member {
     }
 }
 
-/// The members of a frame by key, and the scene's domain sizes.
-pub struct Cluster<'a> {
+// A coordinator keeps more about a member than the rounds need (its address, its figures): it
+// holds a `Member` inside its own type and lends it out through these.
+impl AsRef<Member> for Member {
+    fn as_ref(&self) -> &Member {
+        self
+    }
+}
+
+impl AsMut<Member> for Member {
+    fn as_mut(&mut self) -> &mut Member {
+        self
+    }
+}
+
+/// The members of a frame by key (anything that holds a [`Member`]), and the scene's domain
+/// sizes.
+pub struct Cluster<'a, M = Member> {
     /// Members by the coordinator's key.
-    pub members: &'a BTreeMap<u32, Member>,
+    pub members: &'a BTreeMap<u32, M>,
     /// Bytes of each domain.
     pub domain_bytes: &'a [u64],
     /// Whether the oldest-generation rule applies (the predictive schedule).
@@ -68,16 +83,15 @@ pub struct Cluster<'a> {
     pub options: Options,
 }
 
-impl Cluster<'_> {
+impl<M: AsRef<Member>> Cluster<'_, M> {
     /// Barrier rounds: the plan of round `round + 1` once every member has reported round
     /// `round`, with the number of domains wanted; `None` while someone is still working or
     /// when no ray is queued anywhere (rays or results are on the wire: a member reports
     /// again when they land).
     pub fn barrier_round(&self, round: u64) -> Option<(RoundPlan, usize)> {
         let all_in = self
-            .members
-            .values()
-            .all(|m| m.report.as_ref().is_some_and(|r| r.round >= round));
+            .each_member()
+            .all(|(_, m)| m.report.as_ref().is_some_and(|r| r.round >= round));
         if !all_in {
             return None;
         }
@@ -102,10 +116,9 @@ impl Cluster<'_> {
     /// wire; its next report plans it again).
     pub fn dry_plans(&self) -> Vec<WorkerPlan> {
         let dry: BTreeSet<u32> = self
-            .members
-            .iter()
+            .each_member()
             .filter(|(_, m)| m.is_dry())
-            .map(|(&k, _)| k)
+            .map(|(k, _)| k)
             .collect();
         if dry.is_empty() {
             return Vec::new();
@@ -135,7 +148,7 @@ impl Cluster<'_> {
                 .filter(|p| dry.contains(&p.worker.0))
                 .filter(|p| {
                     let work: BTreeSet<u32> = p.work().map(|d| d.0).collect();
-                    !p.evict.is_empty() || work != self.members[&p.worker.0].plan
+                    !p.evict.is_empty() || work != self.members[&p.worker.0].as_ref().plan
                 })
                 .cloned()
                 .collect();
@@ -154,7 +167,7 @@ impl Cluster<'_> {
     /// domain for them rather than evicting it and loading it again a generation later).
     pub fn state(&self, busy: &BTreeSet<u32>, oldest_first: bool) -> Option<ClusterState> {
         let domains = self.domain_bytes.len() as u32;
-        let reports = || self.members.values().filter_map(|m| m.report.as_ref());
+        let reports = || self.each_member().filter_map(|(_, m)| m.report.as_ref());
         let oldest = oldest_first
             .then(|| {
                 oldest_generation(reports().flat_map(|r| {
@@ -166,9 +179,8 @@ impl Cluster<'_> {
             })
             .flatten();
         let in_memory: BTreeSet<u32> = self
-            .members
-            .values()
-            .flat_map(|m| {
+            .each_member()
+            .flat_map(|(_, m)| {
                 let resident = m.report.iter().flat_map(|r| r.resident.iter());
                 resident.chain(m.plan.iter()).copied()
             })
@@ -179,7 +191,7 @@ impl Cluster<'_> {
         let largest = self.domain_bytes.iter().copied().max().unwrap_or(1).max(1);
         let mut queued: BTreeMap<DomainId, u64> = BTreeMap::new();
         let mut workers = Vec::new();
-        for (&key, m) in self.members {
+        for (key, m) in self.each_member() {
             let Some(report) = m.report.as_ref() else {
                 continue;
             };
@@ -212,15 +224,24 @@ impl Cluster<'_> {
         }
         ClusterState::new(workers, queued).ok()
     }
+
+    /// Each member by key, as the rounds see it.
+    fn each_member(&self) -> impl Iterator<Item = (u32, &Member)> {
+        self.members.iter().map(|(&k, m)| (k, m.as_ref()))
+    }
 }
 
 /// Asynchronous rounds: `plans` become round `round`'s; returns the domain loads they ask for.
 /// The queued counts move to the new holders (see `move_queued_to_holders`).
-pub fn adopt_plans(members: &mut BTreeMap<u32, Member>, plans: &[WorkerPlan], round: u64) -> u64 {
+pub fn adopt_plans<M: AsMut<Member>>(
+    members: &mut BTreeMap<u32, M>,
+    plans: &[WorkerPlan],
+    round: u64,
+) -> u64 {
     let mut loads = 0;
     for p in plans {
         loads += p.load.len() as u64;
-        if let Some(m) = members.get_mut(&p.worker.0) {
+        if let Some(m) = members.get_mut(&p.worker.0).map(AsMut::as_mut) {
             m.plan = p.work().map(|d| d.0).collect();
             m.planned_round = round;
         }
@@ -234,15 +255,16 @@ pub fn adopt_plans(members: &mut BTreeMap<u32, Member>, plans: &[WorkerPlan], ro
 /// figures do not keep a dry holder waiting on rays it has already traced. A dry holder
 /// reports again when the rays reach it; counted there now, they would stay after it traced
 /// them and mislead every later plan.
-pub fn move_queued_to_holders(members: &mut BTreeMap<u32, Member>) {
+pub fn move_queued_to_holders<M: AsMut<Member>>(members: &mut BTreeMap<u32, M>) {
     let holder_of: BTreeMap<u32, u32> = members
-        .iter()
+        .iter_mut()
+        .map(|(&k, m)| (k, &*m.as_mut()))
         .filter(|(_, m)| !m.is_dry())
-        .flat_map(|(&k, m)| m.plan.iter().map(move |&d| (d, k)))
+        .flat_map(|(k, m)| m.plan.iter().map(move |&d| (d, k)))
         .collect();
     // Per new holder: domain -> (rays, oldest generation among them).
     let mut moved: BTreeMap<u32, BTreeMap<u32, (u64, Option<u32>)>> = BTreeMap::new();
-    for m in members.values_mut() {
+    for m in members.values_mut().map(AsMut::as_mut) {
         let Some(report) = m.report.as_mut() else {
             continue;
         };
@@ -267,7 +289,8 @@ pub fn move_queued_to_holders(members: &mut BTreeMap<u32, Member>) {
         }
     }
     for (key, queues) in moved {
-        if let Some(report) = members.get_mut(&key).and_then(|m| m.report.as_mut()) {
+        let member = members.get_mut(&key).map(AsMut::as_mut);
+        if let Some(report) = member.and_then(|m| m.report.as_mut()) {
             for (d, (n, generation)) in queues {
                 *report.queued.entry(d).or_default() += n;
                 if let Some(g) = generation {
@@ -280,10 +303,10 @@ pub fn move_queued_to_holders(members: &mut BTreeMap<u32, Member>) {
 }
 
 /// Every domain someone's current plan includes, with the keys of its holders.
-pub fn current_holders(members: &BTreeMap<u32, Member>) -> BTreeMap<u32, Vec<u32>> {
+pub fn current_holders<M: AsRef<Member>>(members: &BTreeMap<u32, M>) -> BTreeMap<u32, Vec<u32>> {
     let mut by_domain: BTreeMap<u32, Vec<u32>> = BTreeMap::new();
     for (&k, m) in members {
-        for &d in &m.plan {
+        for &d in &m.as_ref().plan {
             by_domain.entry(d).or_default().push(k);
         }
     }

@@ -211,16 +211,7 @@ impl Plan {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn ray(tile: u32, epoch: u32, domain: u32, pixel: u32) -> RayRecord {
-        RayRecord {
-            tile,
-            epoch,
-            domain,
-            pixel,
-            ..bytemuck::Zeroable::zeroed()
-        }
-    }
+    use crate::worker::tests::ray;
 
     fn holders(list: &[(u32, &[&str])]) -> Vec<(u32, Vec<String>)> {
         list.iter()

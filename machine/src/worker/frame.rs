@@ -1,0 +1,411 @@
+//! A worker's state for the frame it is working on: one ray queue per domain, the tiles whose
+//! camera rays it still has to issue, and this round's plan (which domains it traces, and who
+//! holds the others).
+//!
+//! Whether the coordinator must hear this worker's queues again is the frame's own state
+//! ([`Report`]): every method that changes what a report would say, or what the coordinator
+//! counted here, makes one due, and only [`Frame::take_report`] sends it, so no handler can
+//! forget either.
+
+use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::time::Duration;
+
+use rayfarm_core::frame::TileGrid;
+use rayfarm_core::ray::RayRecord;
+use rayfarm_core::render::KernelCounters;
+use rayfarm_core::render::speculation::Outcome;
+use rayfarm_core::schedule::speculative::{GenerationCounts, QueueView, next_queue};
+use rayfarm_core::wire::{BatchLimits, VerdictRecord};
+use rayfarm_proto as proto;
+
+use super::plan::{Mode, Plan};
+use super::queues::{DomainQueues, QueueError, RaySpill};
+use super::speculation::Speculation;
+use crate::Time;
+
+/// Counters of one frame on this worker.
+#[derive(Default)]
+pub struct FrameCounters {
+    pub rays: KernelCounters,
+    pub rays_sent: u64,
+    pub bytes_sent: u64,
+    pub rays_received: u64,
+    pub busy: Duration,
+}
+
+/// The frame being rendered.
+pub struct Frame<S> {
+    pub job_id: String,
+    pub grid: TileGrid,
+    /// Samples per pixel.
+    pub spp: u32,
+    pub limits: BatchLimits,
+    /// Bytes of every domain file, by domain id.
+    pub domain_bytes: Vec<u64>,
+    /// Tiles whose camera rays this worker issues, in order, not yet issued.
+    to_issue: VecDeque<u32>,
+    /// The schedule, this round's plan, the tiles' epochs: where each ray goes.
+    plan: Plan,
+    queues: DomainQueues<S>,
+    /// Rays queued per domain and generation (an upper bound after a fault dropped rays).
+    generations: GenerationCounts,
+    /// Under the predictive schedule, the rays born here waiting for their copies' verdicts.
+    speculation: Option<Speculation>,
+    report: Report,
+    pub counters: FrameCounters,
+    pub started: Time,
+}
+
+/// Whether the coordinator has this worker's current state.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Report {
+    /// Something changed since the last report (or none was sent yet).
+    Due,
+    /// The last report is current.
+    Sent,
+}
+
+/// What a frame is made of, as opened from its StartFrame and the scene.
+pub struct FrameParts<S> {
+    pub mode: Mode,
+    pub job_id: String,
+    pub grid: TileGrid,
+    pub spp: u32,
+    pub limits: BatchLimits,
+    pub domain_bytes: Vec<u64>,
+    /// Tiles whose camera rays this worker issues, in order.
+    pub to_issue: Vec<u32>,
+    pub queues: DomainQueues<S>,
+    /// This worker's peer address (never a destination).
+    pub me: String,
+    pub started: Time,
+    /// The round in progress (a worker joining mid-frame reports for it at once).
+    pub round: u64,
+    /// Tiles whose epoch is not 0, with their epochs.
+    pub epochs: HashMap<u32, u32>,
+    /// Domains mapped here now.
+    pub resident: Vec<u32>,
+    /// Predictive schedule: this worker's key and the roster of the frame's workers.
+    pub speculation: Option<(u32, HashMap<u32, String>)>,
+}
+
+impl<S: RaySpill> Frame<S> {
+    /// A frame of `parts`, before its first plan.
+    pub fn new(parts: FrameParts<S>) -> Self {
+        let FrameParts {
+            mode,
+            job_id,
+            grid,
+            spp,
+            limits,
+            domain_bytes,
+            to_issue,
+            queues,
+            me,
+            started,
+            round,
+            epochs,
+            resident,
+            speculation,
+        } = parts;
+        let tiles = grid.count() as usize;
+        let mut plan = Plan::new(mode, tiles, queues.domains(), me);
+        plan.round = round;
+        plan.set_resident(resident);
+        for (tile, epoch) in epochs {
+            if let Some(e) = plan.epochs.get_mut(tile as usize) {
+                *e = epoch;
+            }
+        }
+        Frame {
+            job_id,
+            grid,
+            spp,
+            limits,
+            domain_bytes,
+            to_issue: to_issue.into(),
+            plan,
+            generations: GenerationCounts::new(queues.domains() as usize),
+            speculation: speculation.map(|(me, roster)| Speculation::new(me, roster)),
+            queues,
+            report: Report::Due,
+            counters: FrameCounters::default(),
+            started,
+        }
+    }
+
+    /// Under hybrid, whether demand-driven rays may load domains: only while the cache has
+    /// room for every owned domain plus the largest other, so that they never push owned
+    /// (data-parallel) data out. Otherwise they migrate like the rest.
+    /// Returns the domains to pin in the cache (the owned ones when demand loads may use
+    /// the rest).
+    pub fn decide_demand_loads(&mut self, cache_bytes: u64) -> Vec<u32> {
+        let sizes = &self.domain_bytes;
+        let size = |d: u32| sizes.get(d as usize).copied().unwrap_or(0);
+        let owned: u64 = self.plan.work_on().iter().map(|&d| size(d)).sum();
+        let largest = sizes.iter().copied().max().unwrap_or(0);
+        let Mode::Hybrid { demand_loads } = &mut self.plan.mode else {
+            return Vec::new();
+        };
+        *demand_loads = cache_bytes >= owned + largest;
+        if *demand_loads {
+            self.plan.work_on().iter().copied().collect()
+        } else {
+            Vec::new()
+        }
+    }
+
+    /// Adopts a round's plan.
+    pub fn set_plan(
+        &mut self,
+        round: u64,
+        work_on: impl IntoIterator<Item = u32>,
+        holders: impl IntoIterator<Item = (u32, Vec<String>)>,
+    ) {
+        self.plan.set_round(round, work_on, holders);
+        self.report = Report::Due;
+    }
+
+    /// The schedule, this round's plan, the tiles' epochs.
+    pub fn plan(&self) -> &Plan {
+        &self.plan
+    }
+
+    /// Adopts new holders of the domains (another worker's plan changed); the rays that
+    /// leave for them are [`Frame::take_for_peers`]'s.
+    pub fn set_holders(&mut self, holders: impl IntoIterator<Item = (u32, Vec<String>)>) {
+        self.plan.set_holders(holders);
+    }
+
+    /// Records which domains are mapped here now.
+    pub fn set_resident(&mut self, resident: impl IntoIterator<Item = u32>) {
+        self.plan.set_resident(resident);
+    }
+
+    /// More tiles whose camera rays to issue here (those outside the frame are ignored).
+    pub fn hand_out(&mut self, tiles: impl IntoIterator<Item = u32>) {
+        let count = self.grid.count();
+        self.to_issue
+            .extend(tiles.into_iter().filter(|&t| t < count));
+        self.report = Report::Due;
+    }
+
+    /// Tiles whose camera rays the next pass issues, with their epochs: while fewer than
+    /// `wave_rays` rays are queued here (rays waiting for verdicts count too: they bound the
+    /// groups' memory).
+    pub fn next_primaries(&mut self, wave_rays: usize) -> Vec<(u32, u32)> {
+        let mut primaries = Vec::new();
+        let waiting = self.speculation.as_ref().map_or(0, |s| s.waiting());
+        let mut queued = self.queued_total() + waiting;
+        while queued < wave_rays
+            && let Some(tile) = self.to_issue.pop_front()
+        {
+            primaries.push((tile, self.plan.epochs[tile as usize]));
+            queued += self.grid.tile_pixel_count(tile) * self.spp as usize;
+        }
+        primaries
+    }
+
+    /// The speculation groups, under the predictive schedule.
+    pub fn speculation(&self) -> Option<&Speculation> {
+        self.speculation.as_ref()
+    }
+
+    /// Predictive: the rays whose verdicts are all in, for the next pass to conclude.
+    pub fn take_to_conclude(&mut self) -> Option<Vec<(RayRecord, Outcome)>> {
+        let spec = self.speculation.as_mut()?;
+        Some(std::mem::take(&mut spec.to_conclude))
+    }
+
+    /// Predictive: adopts a new roster; returns the held verdicts that now have an address.
+    pub fn set_roster(
+        &mut self,
+        roster: HashMap<u32, String>,
+    ) -> Vec<(String, Vec<VerdictRecord>)> {
+        self.speculation
+            .as_mut()
+            .map(|s| s.set_roster(roster))
+            .unwrap_or_default()
+    }
+
+    /// Predictive: settles verdicts from a peer for rays born here (concluding them makes new
+    /// work). Returns false if this frame places no rays speculatively.
+    pub fn settle(&mut self, verdicts: &[VerdictRecord]) -> bool {
+        let Some(spec) = self.speculation.as_mut() else {
+            return false;
+        };
+        spec.settle(verdicts);
+        self.report = Report::Due;
+        true
+    }
+
+    /// What a pass's rays become: as they are, or, speculating, the copies of the rays born
+    /// of a current tile (the rest would wait forever), with the pass's verdicts addressed.
+    pub fn born(
+        &mut self,
+        rays: Vec<RayRecord>,
+        paths: Vec<Vec<u32>>,
+        verdicts: Vec<(u32, VerdictRecord)>,
+    ) -> (Vec<RayRecord>, BTreeMap<String, Vec<VerdictRecord>>) {
+        let Some(spec) = self.speculation.as_mut() else {
+            return (rays, BTreeMap::new());
+        };
+        let plan = &self.plan;
+        let (born, paths): (Vec<RayRecord>, Vec<Vec<u32>>) = rays
+            .into_iter()
+            .zip(paths)
+            .filter(|(r, _)| plan.is_current(r.tile, r.epoch))
+            .unzip();
+        let copies = spec.spread(&born, &paths);
+        // Copies queued here for domains no one traces yet must be reported.
+        self.report = Report::Due;
+        (copies, spec.address(verdicts))
+    }
+
+    /// This worker's queues for the coordinator, if it has not heard them since they changed.
+    pub fn take_report(&mut self) -> Option<proto::QueueReport> {
+        if self.report == Report::Sent {
+            return None;
+        }
+        self.report = Report::Sent;
+        Some(proto::QueueReport {
+            job_id: self.job_id.clone(),
+            round: self.plan.round,
+            resident_domains: self.plan.resident().iter().copied().collect(),
+            queued_rays: self.queue_sizes().into_iter().collect(),
+            oldest_generation: match self.plan.mode {
+                Mode::Predictive => self.oldest_generations().into_iter().collect(),
+                _ => Default::default(),
+            },
+            oldest_waiting: self
+                .speculation
+                .as_ref()
+                .and_then(|s| s.oldest_waiting())
+                .map(u32::from),
+        })
+    }
+
+    /// Queues each ray of the current epoch here or returns it, grouped by the peer it goes
+    /// to; rays of an older epoch are dropped.
+    pub fn route(
+        &mut self,
+        rays: Vec<RayRecord>,
+    ) -> Result<BTreeMap<String, Vec<RayRecord>>, QueueError> {
+        // New rays here change what the coordinator should know at the round's end.
+        if !rays.is_empty() {
+            self.report = Report::Due;
+        }
+        let sorted = self.plan.sort(rays);
+        for (d, rays) in sorted.local {
+            self.queues.push(d, &rays)?;
+            for r in &rays {
+                self.generations.add(d, r.generation());
+            }
+        }
+        Ok(sorted.peers)
+    }
+
+    /// Takes every queued ray that now has a holder elsewhere, grouped by peer.
+    pub fn take_for_peers(&mut self) -> Result<BTreeMap<String, Vec<RayRecord>>, QueueError> {
+        let domains: Vec<u32> = self
+            .plan
+            .held_elsewhere()
+            .filter(|&d| !self.plan.planned_or_resident(d) && d < self.queues.domains())
+            .collect();
+        let mut queued = Vec::new();
+        for d in domains {
+            let len = self.queues.len(d) as usize;
+            queued.extend(self.queues.take(d, len)?);
+            self.generations.clear(d);
+        }
+        // The coordinator counted these rays here: it must hear they left. Those this worker
+        // still keeps go back to its queues.
+        self.route(queued)
+    }
+
+    /// Takes up to `max` rays of the queue to trace next among those this worker traces now:
+    /// the fullest (ties: the lower domain id), or under the predictive schedule
+    /// `speculative::next_queue`.
+    pub fn take_work(&mut self, max: usize) -> Result<Option<(u32, Vec<RayRecord>)>, QueueError> {
+        // Hybrid traces its own domains' (data-parallel) queues before demand-driven work.
+        let first = |d: u32| {
+            matches!(self.plan.mode, Mode::Hybrid { .. }) && self.plan.work_on().contains(&d)
+        };
+        let queues = (0..self.queues.domains())
+            .filter(|&d| self.plan.traces(d))
+            .map(|d| (d, self.queues.len(d)))
+            .filter(|&(_, len)| len > 0);
+        let next = if self.plan.mode == Mode::Predictive {
+            next_queue(queues.map(|(domain, rays)| QueueView {
+                domain,
+                rays,
+                oldest: self.generations.oldest(domain).unwrap_or(0),
+                resident: self.plan.resident().contains(&domain),
+            }))
+        } else {
+            queues
+                .max_by_key(|&(d, len)| (first(d), len, std::cmp::Reverse(d)))
+                .map(|(d, _)| d)
+        };
+        let Some(d) = next else {
+            return Ok(None);
+        };
+        let rays = self.queues.take(d, max)?;
+        if self.queues.len(d) == 0 {
+            self.generations.clear(d);
+        } else {
+            for r in &rays {
+                self.generations.remove(d, r.generation());
+            }
+        }
+        Ok(Some((d, rays)))
+    }
+
+    /// The oldest generation queued per non-empty queue.
+    pub fn oldest_generations(&self) -> BTreeMap<u32, u32> {
+        (0..self.queues.domains())
+            .filter(|&d| self.queues.len(d) > 0)
+            .filter_map(|d| Some((d, u32::from(self.generations.oldest(d)?))))
+            .collect()
+    }
+
+    /// Rays queued here, over all domains.
+    pub fn queued_total(&self) -> usize {
+        self.queues.total() as usize
+    }
+
+    /// Rays queued per domain, non-empty queues only.
+    pub fn queue_sizes(&self) -> BTreeMap<u32, u64> {
+        (0..self.queues.domains())
+            .map(|d| (d, self.queues.len(d)))
+            .filter(|&(_, n)| n > 0)
+            .collect()
+    }
+
+    /// Rays spilled so far in this frame.
+    pub fn spilled(&self) -> u64 {
+        self.queues.spilled_total
+    }
+
+    /// Sends nothing more to `peers` (they are gone); their domains' rays wait here for the
+    /// next plan.
+    pub fn forget_peers(&mut self, peers: &[String]) {
+        if let Some(s) = self.speculation.as_mut() {
+            s.retain_current(&self.plan.epochs, peers);
+        }
+        self.plan.forget_peers(peers);
+    }
+
+    /// Drops queued rays of the given tiles older than their new epochs. Their camera rays
+    /// are not issued here any more: the coordinator deals them again.
+    pub fn bump_epochs(&mut self, bumps: &BTreeMap<u32, u32>) -> Result<(), QueueError> {
+        self.plan.bump_epochs(bumps);
+        self.to_issue.retain(|t| !bumps.contains_key(t));
+        self.report = Report::Due;
+        if let Some(s) = self.speculation.as_mut() {
+            s.retain_current(&self.plan.epochs, &[]);
+        }
+        let plan = &self.plan;
+        self.queues.retain(|r| plan.is_current(r.tile, r.epoch))
+    }
+}

@@ -1,0 +1,102 @@
+//! What the worker machine does with a peer's bundle: hold it for a frame not started yet
+//! (see `early`), or decode it against the frame and route its rays, or settle its verdicts.
+
+use std::collections::BTreeMap;
+
+use bytes::Bytes;
+use rayfarm_core::ray::RayRecord;
+use rayfarm_core::wire;
+use rayfarm_proto as proto;
+use tracing::{error, warn};
+
+use super::machine::Worker;
+use super::queues::RaySpill;
+
+impl<S: RaySpill> Worker<S> {
+    /// Holds a bundle for a frame not started here yet, within the cap.
+    fn hold_early(
+        &mut self,
+        sender: String,
+        job_id: String,
+        tier: proto::Tier,
+        batches: Vec<Bytes>,
+    ) {
+        for (job, bundles) in self.early.expire(self.now) {
+            warn!(
+                %job, bundles,
+                "dropping bundles for a frame that did not start here within {:?}",
+                self.config.early_timeout
+            );
+        }
+        // Sender and job ids were bounded by the shell (`MAX_FIELD_BYTES`) before they came.
+        if let Err(refused) =
+            self.early
+                .hold(job_id.clone(), (sender.clone(), tier, batches), self.now)
+        {
+            error!(
+                %sender, job = %job_id, bytes = refused.bytes, held = refused.held,
+                "dropping a bundle for a frame not started here: {} bytes are held already",
+                self.config.early_bytes
+            );
+        }
+    }
+
+    pub(super) fn peer_bundle(
+        &mut self,
+        sender: String,
+        job_id: String,
+        tier: proto::Tier,
+        batches: Vec<Bytes>,
+    ) {
+        let Some(frame) = self.frame.as_mut().filter(|f| f.job_id == job_id) else {
+            if !self.ended.contains(&job_id) {
+                self.hold_early(sender, job_id, tier, batches);
+            }
+            return;
+        };
+        if tier == proto::Tier::Results {
+            return self.peer_verdicts(&sender, batches);
+        }
+        let mut forward: BTreeMap<String, Vec<RayRecord>> = BTreeMap::new();
+        for batch in batches {
+            let rays = match wire::decode_batch(&batch, &frame.limits) {
+                Ok(rays) => rays,
+                Err(e) => {
+                    error!(%sender, error = %e, "dropping a malformed ray batch from a peer");
+                    continue;
+                }
+            };
+            frame.counters.rays_received += rays.len() as u64;
+            match frame.route(rays) {
+                Ok(out) => {
+                    for (peer, mut rays) in out {
+                        forward.entry(peer).or_default().append(&mut rays);
+                    }
+                }
+                Err(e) => return self.queue_failed(e),
+            }
+        }
+        for (peer, rays) in forward {
+            self.send_rays(peer, &rays);
+        }
+    }
+
+    /// Verdicts from a peer for rays born here.
+    fn peer_verdicts(&mut self, sender: &str, batches: Vec<Bytes>) {
+        let Some(frame) = self.frame.as_mut() else {
+            return;
+        };
+        if frame.speculation().is_none() {
+            warn!(%sender, "dropping verdicts: this frame places no rays speculatively");
+            return;
+        }
+        for batch in batches {
+            match wire::decode_verdicts(&batch, &frame.limits) {
+                Ok(verdicts) => {
+                    frame.settle(&verdicts);
+                }
+                Err(e) => error!(%sender, error = %e, "dropping a malformed verdict batch"),
+            }
+        }
+    }
+}

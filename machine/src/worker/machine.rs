@@ -1,0 +1,555 @@
+//! The worker as a state machine: [`Worker::handle`] takes an [`Event`] with the time it
+//! happened and returns the [`Action`]s it calls for. It owns the frame (queues, plan,
+//! speculation groups), the bundler and the bundles held for frames not started yet; the
+//! shell owns the sockets, the domain cache, the tracing pool and the clock.
+
+use std::time::Duration;
+
+use bytes::Bytes;
+use rayfarm_core::bundler::{Bundle, Bundler, BundlerConfig, ConfigError, PushErrorKind, Tier};
+use rayfarm_core::cluster::stats::{WorkerFrameStats, tier_traffic};
+use rayfarm_core::ray::RayRecord;
+use rayfarm_core::wire::{self, VerdictRecord};
+use rayfarm_proto::{self as proto, Schedule, coordinator_message::Body as FromCoordinator};
+use tracing::{debug, error, info, info_span, warn};
+
+use super::early::EarlyBundles;
+use super::events::{Action, Event, OpenedScene, PassFailed, PassOutput, PassWork};
+use super::frame::{Frame, FrameParts};
+use super::plan::Mode;
+use super::queues::{QueueError, RaySpill};
+use crate::Time;
+
+/// Rays per encoded batch sent to a peer (160 KiB).
+const BATCH_RAYS: usize = 2048;
+
+/// Recently ended jobs remembered, so that their late bundles are dropped, not held.
+const ENDED_KEPT: usize = 16;
+
+/// What the worker machine needs to know about itself.
+#[derive(Clone, Debug)]
+pub struct WorkerConfig {
+    pub worker_id: String,
+    /// Address peers reach this worker at.
+    pub advertise: String,
+    /// The domain cache's budget (hybrid: whether demand loads fit).
+    pub cache_bytes: u64,
+    /// Camera rays are issued while fewer than this many rays are queued here.
+    pub wave_rays: usize,
+    /// Most rays traced in one pass.
+    pub pass_rays: usize,
+    pub bundler: BundlerConfig,
+    /// Most bytes of bundles held for frames not started here yet.
+    pub early_bytes: usize,
+    /// Bundles held for a frame that has not started here within this are dropped.
+    pub early_timeout: Duration,
+}
+
+impl WorkerConfig {
+    /// The defaults of the worker binary for what it has no flag for.
+    pub fn new(worker_id: String, advertise: String, cache_bytes: u64) -> Self {
+        WorkerConfig {
+            worker_id,
+            advertise,
+            cache_bytes,
+            wave_rays: 1 << 20,
+            pass_rays: 1 << 18,
+            bundler: BundlerConfig::default(),
+            early_bytes: 256 << 20,
+            early_timeout: Duration::from_secs(30),
+        }
+    }
+}
+
+/// See the module documentation.
+pub struct Worker<S> {
+    pub(super) config: WorkerConfig,
+    pub(super) bundler: Bundler<String>,
+    pub(super) frame: Option<Frame<S>>,
+    pub(super) pass_running: bool,
+    pub(super) early: EarlyBundles,
+    /// Recently ended jobs: their late bundles are dropped.
+    pub(super) ended: Vec<String>,
+    /// The time of the event being handled.
+    pub(super) now: Time,
+    pub(super) actions: Vec<Action>,
+}
+
+impl<S: RaySpill> Worker<S> {
+    pub fn new(config: WorkerConfig) -> Result<Self, ConfigError> {
+        Ok(Worker {
+            bundler: Bundler::new(config.bundler)?,
+            early: EarlyBundles::new(config.early_bytes, config.early_timeout),
+            config,
+            frame: None,
+            pass_running: false,
+            ended: Vec::new(),
+            now: Time::default(),
+            actions: Vec::new(),
+        })
+    }
+
+    /// The frame running here, if any.
+    pub fn frame(&self) -> Option<&Frame<S>> {
+        self.frame.as_ref()
+    }
+
+    /// Bytes of bundles held for frames not started yet.
+    pub fn early_bytes(&self) -> usize {
+        self.early.bytes()
+    }
+
+    /// When to send [`Event::Tick`] if nothing else happens first (a bundle falls due).
+    pub fn next_timeout(&self) -> Option<Time> {
+        self.bundler.next_deadline().map(Time::from_duration)
+    }
+
+    /// Reacts to `event`, which happened at `now`; then starts the next pass or reports the
+    /// round's end here. Returns what the shell must do, in order.
+    pub fn handle(&mut self, now: Time, event: Event<S>) -> Vec<Action> {
+        self.now = self.now.max(now);
+        match event {
+            Event::Control(msg) => self.control(msg),
+            Event::FrameOpened { start, opened } => self.start_frame(start, opened),
+            Event::Disconnected => {
+                if let Some(f) = self.frame.take() {
+                    warn!(job = %f.job_id, "lost the coordinator: dropping the frame");
+                }
+            }
+            Event::PeerBundle {
+                sender,
+                job_id,
+                tier,
+                batches,
+            } => self.peer_bundle(sender, job_id, tier, batches),
+            Event::PeerUnresponsive { peer, reason } => {
+                self.actions.push(Action::DropPeers(vec![peer.clone()]));
+                self.send(proto::worker_message::Body::PeerUnresponsive(
+                    proto::PeerUnresponsive {
+                        peer_address: peer,
+                        reason,
+                    },
+                ));
+            }
+            Event::PassFinished {
+                job_id,
+                result,
+                resident,
+            } => {
+                self.pass_running = false;
+                // A pass of a frame that has ended since is of no use.
+                if self.frame.as_ref().is_some_and(|f| f.job_id == job_id) {
+                    match result {
+                        Ok(out) => self.pass_done(out, resident),
+                        Err(PassFailed::Load(e)) => self.decline_frame(e),
+                        Err(PassFailed::SceneReplaced(e)) => self.fail_frame(e),
+                    }
+                }
+            }
+            Event::Tick => self.send_due_bundles(),
+        }
+        self.pump();
+        std::mem::take(&mut self.actions)
+    }
+
+    fn control(&mut self, msg: proto::CoordinatorMessage) {
+        match msg.body {
+            Some(FromCoordinator::Registered(r)) => {
+                info!(
+                    heartbeat_ms = r.heartbeat_ms,
+                    "registered with the coordinator"
+                );
+            }
+            Some(FromCoordinator::StartFrame(s)) => {
+                // The shell opens the scene first and sends Event::FrameOpened.
+                error!(job = %s.job_id, "StartFrame reached the machine unopened: ignored");
+            }
+            Some(FromCoordinator::RoundPlan(p)) => self.round_plan(p),
+            Some(FromCoordinator::EpochBump(b)) => {
+                let Some(f) = self.frame.as_mut().filter(|f| f.job_id == b.job_id) else {
+                    return;
+                };
+                warn!(tiles = b.epochs.len(), lost = ?b.lost_peers, "epochs bumped");
+                f.forget_peers(&b.lost_peers);
+                let bumped = f.bump_epochs(&b.epochs.into_iter().collect());
+                self.actions.push(Action::DropPeers(b.lost_peers));
+                if let Err(e) = bumped {
+                    self.queue_failed(e);
+                }
+            }
+            Some(FromCoordinator::EndFrame(e)) => self.end_frame(&e.job_id),
+            Some(FromCoordinator::Holders(h)) => self.holders(h),
+            Some(FromCoordinator::Roster(r)) => self.roster(r),
+            Some(FromCoordinator::HandOutTiles(h)) => {
+                if let Some(f) = self.frame.as_mut().filter(|f| f.job_id == h.job_id) {
+                    f.hand_out(h.tiles);
+                }
+            }
+            None => warn!("empty message from the coordinator"),
+        }
+    }
+
+    fn start_frame(&mut self, s: proto::StartFrame, opened: Result<OpenedScene<S>, String>) {
+        let _span = info_span!("start_frame", job = %s.job_id).entered();
+        if let Some(old) = self.frame.take() {
+            warn!(job = %old.job_id, "a new frame replaces an unfinished one");
+        }
+        // The job may run again (a restarted coordinator, a worker taken back): its bundles
+        // count from now on.
+        self.ended.retain(|j| *j != s.job_id);
+        // Bundles of an older frame are worthless now, and the counters start afresh.
+        if let Ok(fresh) = Bundler::new(self.config.bundler) {
+            self.bundler = fresh;
+        }
+        match opened.and_then(|scene| self.open_frame(&s, scene)) {
+            Ok(frame) => {
+                info!(tiles = s.primary_tiles.len(), "frame started");
+                self.frame = Some(frame);
+                for (sender, tier, batches) in self.early.take(&s.job_id) {
+                    self.peer_bundle(sender, s.job_id.clone(), tier, batches);
+                }
+            }
+            Err(e) => {
+                error!(error = %e, "cannot take part in the frame");
+                self.mark_ended(&s.job_id);
+                self.send(proto::worker_message::Body::FrameReport(
+                    proto::FrameReport {
+                        job_id: s.job_id.clone(),
+                        stats_json: String::new(),
+                        error: format!("worker {}: {e}", self.config.worker_id),
+                        declined: true,
+                    },
+                ));
+            }
+        }
+    }
+
+    fn open_frame(&self, s: &proto::StartFrame, scene: OpenedScene<S>) -> Result<Frame<S>, String> {
+        let spec = s.spec.as_ref().ok_or("StartFrame without a job spec")?;
+        let tiles = scene.grid.count();
+        if s.primary_tiles.iter().any(|&t| t >= tiles) {
+            return Err(format!("primary tiles outside the frame's {tiles} tiles"));
+        }
+        let mode = match Schedule::try_from(spec.schedule) {
+            Ok(Schedule::ImagePlane) => Mode::ImagePlane,
+            Ok(Schedule::Domain) => Mode::Domain,
+            Ok(Schedule::Dynamic | Schedule::Unspecified) => Mode::Dynamic,
+            Ok(Schedule::Predictive) => Mode::Predictive,
+            // Decided again with each plan, once the owned domains are known.
+            Ok(Schedule::Hybrid) => Mode::Hybrid {
+                demand_loads: false,
+            },
+            Err(_) => return Err(format!("unknown schedule {}", spec.schedule)),
+        };
+        Ok(Frame::new(FrameParts {
+            mode,
+            job_id: s.job_id.clone(),
+            grid: scene.grid,
+            spp: scene.spp,
+            limits: scene.limits,
+            domain_bytes: scene.domain_bytes,
+            to_issue: s.primary_tiles.clone(),
+            queues: scene.queues,
+            me: self.config.advertise.clone(),
+            started: self.now,
+            round: s.round,
+            epochs: s.epochs.clone(),
+            resident: scene.resident,
+            speculation: (mode == Mode::Predictive).then(|| (s.worker_key, s.roster.clone())),
+        }))
+    }
+
+    fn round_plan(&mut self, p: proto::RoundPlan) {
+        let Some(frame) = self.frame.as_mut().filter(|f| f.job_id == p.job_id) else {
+            debug!(job = %p.job_id, "plan for a frame not running here");
+            return;
+        };
+        let _span = info_span!("round", round = p.round).entered();
+        frame.set_plan(
+            p.round,
+            p.work_on.iter().copied(),
+            p.holders.into_iter().map(|h| (h.domain, h.workers)),
+        );
+        let resident: Vec<u32> = frame
+            .plan()
+            .resident()
+            .iter()
+            .copied()
+            .filter(|d| !p.evict.contains(d))
+            .collect();
+        frame.set_resident(resident);
+        let pinned = frame.decide_demand_loads(self.config.cache_bytes);
+        debug!(work_on = ?p.work_on, evict = ?p.evict, "round plan");
+        self.actions.push(Action::Evict(p.evict));
+        self.actions.push(Action::Pin(pinned));
+        self.send_to_holders();
+    }
+
+    /// Another worker's plan changed: rays waiting here for its domains go to it now.
+    fn holders(&mut self, h: proto::Holders) {
+        let Some(frame) = self.frame.as_mut().filter(|f| f.job_id == h.job_id) else {
+            return;
+        };
+        frame.set_holders(h.holders.into_iter().map(|h| (h.domain, h.workers)));
+        self.send_to_holders();
+    }
+
+    /// Sends every queued ray that now has a holder elsewhere.
+    fn send_to_holders(&mut self) {
+        let Some(frame) = self.frame.as_mut() else {
+            return;
+        };
+        match frame.take_for_peers() {
+            Ok(out) => {
+                for (peer, rays) in out {
+                    self.send_rays(peer, &rays);
+                }
+                self.send_due_bundles();
+            }
+            Err(e) => self.queue_failed(e),
+        }
+    }
+
+    /// A worker joined the frame: verdicts held for it can go.
+    fn roster(&mut self, r: proto::Roster) {
+        let Some(frame) = self.frame.as_mut().filter(|f| f.job_id == r.job_id) else {
+            return;
+        };
+        for (peer, verdicts) in frame.set_roster(r.members) {
+            self.send_verdicts(peer, &verdicts);
+        }
+        self.send_due_bundles();
+    }
+
+    /// Drops the bundles held for `job_id` and those that arrive late for it.
+    fn mark_ended(&mut self, job_id: &str) {
+        self.early.take(job_id);
+        self.ended.push(job_id.to_string());
+        if self.ended.len() > ENDED_KEPT {
+            self.ended.remove(0);
+        }
+    }
+
+    fn end_frame(&mut self, job_id: &str) {
+        self.mark_ended(job_id);
+        let Some(frame) = self.frame.take_if(|f| f.job_id == job_id) else {
+            return;
+        };
+        let c = &frame.counters;
+        let frame_seconds = self.now.since(frame.started).as_secs_f64();
+        let busy_seconds = c.busy.as_secs_f64();
+        let stats = WorkerFrameStats {
+            worker_id: self.config.worker_id.clone(),
+            rays: c.rays,
+            rays_sent: c.rays_sent,
+            bytes_sent: c.bytes_sent,
+            rays_received: c.rays_received,
+            rays_spilled: frame.spilled(),
+            verdicts_refused: frame.speculation().map_or(0, |s| s.refused),
+            tiers: tier_traffic(self.bundler.stats()),
+            busy_seconds,
+            frame_seconds,
+            idle_fraction: (1.0 - busy_seconds / frame_seconds.max(1e-9)).clamp(0.0, 1.0),
+            ..WorkerFrameStats::default()
+        };
+        info!(job = %job_id, segments = c.rays.segments(), busy_seconds, "frame ended");
+        self.actions.push(Action::FrameEnded {
+            job_id: job_id.to_string(),
+            stats,
+        });
+    }
+
+    /// Fails the running frame for everyone.
+    fn fail_frame(&mut self, error: String) {
+        self.end_with_error(error, false);
+    }
+
+    /// Leaves the running frame for a reason of this worker's own: the coordinator deals its
+    /// tiles to the others.
+    fn decline_frame(&mut self, error: String) {
+        self.end_with_error(error, true);
+    }
+
+    /// A full or failing spill store is this worker's problem: it leaves the frame. Rays past
+    /// every budget fail the frame (more workers would help, not fewer).
+    pub(super) fn queue_failed(&mut self, e: QueueError) {
+        match e {
+            QueueError::Spill(_) => self.decline_frame(e.to_string()),
+            QueueError::Full { .. } => self.fail_frame(e.to_string()),
+        }
+    }
+
+    fn end_with_error(&mut self, error: String, declined: bool) {
+        if let Some(frame) = self.frame.take() {
+            error!(job = %frame.job_id, %error, declined, "frame ended with an error on this worker");
+            // Peers go on sending rays until they hear this worker left: none is kept.
+            self.mark_ended(&frame.job_id);
+            self.send(proto::worker_message::Body::FrameReport(
+                proto::FrameReport {
+                    job_id: frame.job_id,
+                    stats_json: String::new(),
+                    error: format!("worker {}: {error}", self.config.worker_id),
+                    declined,
+                },
+            ));
+        }
+    }
+
+    fn pass_done(&mut self, out: PassOutput, resident: Vec<u32>) {
+        let Some(frame) = self.frame.as_mut() else {
+            return;
+        };
+        frame.counters.rays.add(&out.counters);
+        frame.counters.busy += out.busy;
+        frame.set_resident(resident);
+        if !out.results.is_empty() {
+            let msg = proto::TileResults {
+                job_id: frame.job_id.clone(),
+                results: out.results,
+                segments_traced: frame.counters.rays.segments(),
+            };
+            self.send(proto::worker_message::Body::TileResults(msg));
+        }
+        let Some(frame) = self.frame.as_mut() else {
+            return;
+        };
+        let (rays, verdicts) = frame.born(out.rays, out.paths, out.verdicts);
+        for (peer, verdicts) in verdicts {
+            self.send_verdicts(peer, &verdicts);
+        }
+        let Some(frame) = self.frame.as_mut() else {
+            return;
+        };
+        let out_rays = match frame.route(rays) {
+            Ok(r) => r,
+            Err(e) => return self.queue_failed(e),
+        };
+        for (peer, rays) in out_rays {
+            self.send_rays(peer, &rays);
+        }
+        self.send_due_bundles();
+    }
+
+    /// Starts the next pass, or, with nothing to do, sends everything pending and tells the
+    /// coordinator this worker's queues (the end of its round).
+    fn pump(&mut self) {
+        if self.pass_running {
+            return;
+        }
+        let Some(frame) = self.frame.as_mut() else {
+            return;
+        };
+        let primaries = frame.next_primaries(self.config.wave_rays);
+        let trace = match frame.take_work(self.config.pass_rays) {
+            Ok(t) => t,
+            Err(e) => return self.queue_failed(e),
+        };
+        let speculative = frame.take_to_conclude();
+        let concluding = speculative.as_ref().is_some_and(|c| !c.is_empty());
+        if primaries.is_empty() && trace.is_none() && !concluding {
+            self.report_idle();
+            return;
+        }
+        self.pass_running = true;
+        let job_id = frame.job_id.clone();
+        self.actions.push(Action::StartPass {
+            job_id,
+            work: PassWork {
+                primaries,
+                trace,
+                speculative,
+            },
+        });
+    }
+
+    fn report_idle(&mut self) {
+        let bundles = self.bundler.flush_all(self.bundler_now());
+        self.send_bundles(bundles);
+        let Some(frame) = self.frame.as_mut() else {
+            return;
+        };
+        let Some(report) = frame.take_report() else {
+            return;
+        };
+        debug!(
+            round = report.round,
+            queued = frame.queued_total(),
+            "round done here"
+        );
+        self.send(proto::worker_message::Body::QueueReport(report));
+    }
+
+    fn send(&mut self, body: proto::worker_message::Body) {
+        self.actions.push(Action::ToCoordinator(body));
+    }
+
+    /// The bundler's clock: the machine's time as a duration since its origin.
+    fn bundler_now(&self) -> Duration {
+        self.now.since(Time::default())
+    }
+
+    /// Queues rays for a peer in the bundler's migrated-ray tier.
+    pub(super) fn send_rays(&mut self, peer: String, rays: &[RayRecord]) {
+        if let Some(frame) = self.frame.as_mut() {
+            frame.counters.rays_sent += rays.len() as u64;
+        }
+        for chunk in rays.chunks(BATCH_RAYS) {
+            self.push_bundled(
+                &peer,
+                Tier::Migrated,
+                Bytes::from(wire::encode_batch(chunk)),
+            );
+        }
+    }
+
+    /// Queues verdicts for a peer in the bundler's results tier (they free its memory).
+    fn send_verdicts(&mut self, peer: String, verdicts: &[VerdictRecord]) {
+        for chunk in verdicts.chunks(BATCH_RAYS) {
+            let msg = Bytes::from(wire::encode_verdicts(chunk));
+            self.push_bundled(&peer, Tier::Results, msg);
+        }
+    }
+
+    fn push_bundled(&mut self, peer: &String, tier: Tier, mut msg: Bytes) {
+        if let Some(frame) = self.frame.as_mut() {
+            frame.counters.bytes_sent += msg.len() as u64;
+        }
+        loop {
+            match self
+                .bundler
+                .push(peer.clone(), tier, msg, self.bundler_now())
+            {
+                Ok(()) => break,
+                Err(e) if matches!(e.kind, PushErrorKind::PeerFull { .. }) => {
+                    // The peer's bulk queue is full: send what it holds, then retry.
+                    let bundles = self.bundler.flush_peer(peer);
+                    self.send_bundles(bundles);
+                    msg = e.into_message();
+                }
+                Err(e) => {
+                    error!(%peer, error = %e, "batch refused by the bundler");
+                    break;
+                }
+            }
+        }
+    }
+
+    fn send_due_bundles(&mut self) {
+        let bundles = self.bundler.poll(self.bundler_now());
+        self.send_bundles(bundles);
+    }
+
+    fn send_bundles(&mut self, bundles: Vec<Bundle<String>>) {
+        let Some(job_id) = self.frame.as_ref().map(|f| &f.job_id) else {
+            return;
+        };
+        for b in bundles {
+            self.actions.push(Action::ToPeer {
+                peer: b.peer,
+                job_id: job_id.clone(),
+                tier: b.tier,
+                batches: b.messages,
+            });
+        }
+    }
+}

@@ -1,0 +1,243 @@
+//! One ray queue per domain with a memory cap: past the cap, rays spill to a [`RaySpill`]
+//! store and come back when their domain is traced, so nothing is dropped and memory stays
+//! bounded. Past the spill cap the frame cannot proceed within its budgets, and says so.
+//!
+//! The store is a trait so that the machine touches no file: the worker binary spills to
+//! local files, tests and the simulator to memory ([`MemorySpill`]).
+
+use std::collections::VecDeque;
+use std::fmt;
+
+use rayfarm_core::ray::RayRecord;
+
+/// Bytes of one queued ray.
+pub const RAY_BYTES: u64 = std::mem::size_of::<RayRecord>() as u64;
+
+/// Where rays that do not fit in memory wait, per domain, first in first out.
+pub trait RaySpill {
+    /// Appends `rays` to the back of `domain`'s spilled rays.
+    fn append(&mut self, domain: u32, rays: &[RayRecord]) -> Result<(), String>;
+    /// Takes the `n` rays at the front of `domain`'s spilled rays (the queue never asks for
+    /// more than it appended and has not taken back).
+    fn take_front(&mut self, domain: u32, n: usize) -> Result<Vec<RayRecord>, String>;
+}
+
+/// A [`RaySpill`] in memory: for tests and the simulator, where only the accounting matters.
+#[derive(Default)]
+pub struct MemorySpill {
+    domains: Vec<VecDeque<RayRecord>>,
+}
+
+impl RaySpill for MemorySpill {
+    fn append(&mut self, domain: u32, rays: &[RayRecord]) -> Result<(), String> {
+        let d = domain as usize;
+        if self.domains.len() <= d {
+            self.domains.resize_with(d + 1, VecDeque::new);
+        }
+        self.domains[d].extend(rays);
+        Ok(())
+    }
+
+    fn take_front(&mut self, domain: u32, n: usize) -> Result<Vec<RayRecord>, String> {
+        let q = self
+            .domains
+            .get_mut(domain as usize)
+            .filter(|q| q.len() >= n)
+            .ok_or_else(|| format!("domain {domain}: fewer than {n} rays spilled"))?;
+        Ok(q.drain(..n).collect())
+    }
+}
+
+/// Why rays could not be queued.
+#[derive(Debug, Clone, PartialEq)]
+pub enum QueueError {
+    /// Memory and spill caps are both full.
+    Full { mem_cap: u64, spill_cap: u64 },
+    /// The spill store failed.
+    Spill(String),
+}
+
+impl fmt::Display for QueueError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            QueueError::Full { mem_cap, spill_cap } => write!(
+                f,
+                "queued rays exceed the worker's budgets: {mem_cap} bytes in memory and \
+                 {spill_cap} bytes spilled to disk (raise --queue-bytes or --spill-bytes, or \
+                 give the frame more workers)"
+            ),
+            QueueError::Spill(e) => write!(f, "spilling rays to disk: {e}"),
+        }
+    }
+}
+
+impl std::error::Error for QueueError {}
+
+/// See the module documentation.
+pub struct DomainQueues<S> {
+    mem: Vec<Vec<RayRecord>>,
+    /// Rays of each domain in the spill store.
+    spilled: Vec<u64>,
+    spill: S,
+    mem_rays: u64,
+    mem_cap_rays: u64,
+    spill_rays: u64,
+    spill_cap_rays: u64,
+    /// Rays ever spilled, for the statistics.
+    pub spilled_total: u64,
+}
+
+impl<S: RaySpill> DomainQueues<S> {
+    /// Queues for `domains` domains holding at most `mem_cap` bytes of rays in memory and
+    /// `spill_cap` bytes in `spill`.
+    pub fn new(domains: usize, mem_cap: u64, spill_cap: u64, spill: S) -> Self {
+        DomainQueues {
+            mem: vec![Vec::new(); domains],
+            spilled: vec![0; domains],
+            spill,
+            mem_rays: 0,
+            mem_cap_rays: (mem_cap / RAY_BYTES).max(1),
+            spill_rays: 0,
+            spill_cap_rays: spill_cap / RAY_BYTES,
+            spilled_total: 0,
+        }
+    }
+
+    /// Queues `rays`, each for its `domain` (which must be below the domain count).
+    pub fn push(&mut self, domain: u32, rays: &[RayRecord]) -> Result<(), QueueError> {
+        let d = domain as usize;
+        let room = self.mem_cap_rays.saturating_sub(self.mem_rays) as usize;
+        // Rays already spilled for this domain keep their place in line.
+        let in_memory = if self.spilled[d] > 0 {
+            0
+        } else {
+            room.min(rays.len())
+        };
+        self.mem[d].extend_from_slice(&rays[..in_memory]);
+        self.mem_rays += in_memory as u64;
+        let rest = &rays[in_memory..];
+        if rest.is_empty() {
+            return Ok(());
+        }
+        let n = rest.len() as u64;
+        if self.spill_rays + n > self.spill_cap_rays {
+            return Err(QueueError::Full {
+                mem_cap: self.mem_cap_rays * RAY_BYTES,
+                spill_cap: self.spill_cap_rays * RAY_BYTES,
+            });
+        }
+        self.spill.append(domain, rest).map_err(QueueError::Spill)?;
+        self.spilled[d] += n;
+        self.spill_rays += n;
+        self.spilled_total += n;
+        Ok(())
+    }
+
+    /// Takes up to `max` rays of `domain`: from memory first, then back from the spill store.
+    pub fn take(&mut self, domain: u32, max: usize) -> Result<Vec<RayRecord>, QueueError> {
+        let d = domain as usize;
+        let q = &mut self.mem[d];
+        let mut out = if q.len() > max {
+            q.split_off(q.len() - max)
+        } else {
+            std::mem::take(q)
+        };
+        self.mem_rays -= out.len() as u64;
+        let n = ((max - out.len()) as u64).min(self.spilled[d]);
+        if n > 0 {
+            let back = self
+                .spill
+                .take_front(domain, n as usize)
+                .map_err(QueueError::Spill)?;
+            self.spilled[d] -= n;
+            self.spill_rays -= n;
+            out.extend(back);
+        }
+        Ok(out)
+    }
+
+    /// Rays queued for `domain`, in memory and spilled.
+    pub fn len(&self, domain: u32) -> u64 {
+        let d = domain as usize;
+        self.mem[d].len() as u64 + self.spilled[d]
+    }
+
+    /// Number of domains.
+    pub fn domains(&self) -> u32 {
+        self.mem.len() as u32
+    }
+
+    /// Rays queued over all domains.
+    pub fn total(&self) -> u64 {
+        self.mem_rays + self.spill_rays
+    }
+
+    /// Keeps only the rays `keep` accepts (in memory and spilled).
+    pub fn retain(&mut self, keep: impl Fn(&RayRecord) -> bool) -> Result<(), QueueError> {
+        for d in 0..self.domains() {
+            let len = self.len(d) as usize;
+            let rays = self.take(d, len)?;
+            let kept: Vec<RayRecord> = rays.into_iter().filter(|r| keep(r)).collect();
+            self.push(d, &kept)?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ray(pixel: u32) -> RayRecord {
+        RayRecord {
+            pixel,
+            ..bytemuck::Zeroable::zeroed()
+        }
+    }
+
+    fn queues(domains: usize, mem_rays: u64, spill_rays: u64) -> DomainQueues<MemorySpill> {
+        let spill = MemorySpill::default();
+        DomainQueues::new(domains, mem_rays * RAY_BYTES, spill_rays * RAY_BYTES, spill)
+    }
+
+    #[test]
+    fn rays_past_the_memory_cap_spill_and_all_come_back() {
+        let mut q = queues(2, 4, 100);
+        let rays: Vec<RayRecord> = (0..10).map(ray).collect();
+        q.push(0, &rays).unwrap();
+        q.push(1, &rays[..3]).unwrap();
+        assert_eq!((q.len(0), q.len(1), q.total()), (10, 3, 13));
+        assert_eq!(q.spilled_total, 9, "only 4 fit in memory");
+        let mut back: Vec<u32> = Vec::new();
+        while q.len(0) > 0 {
+            back.extend(q.take(0, 3).unwrap().iter().map(|r| r.pixel));
+        }
+        back.sort_unstable();
+        assert_eq!(back, (0..10).collect::<Vec<_>>());
+        assert_eq!(q.take(1, 10).unwrap().len(), 3);
+        assert_eq!(q.total(), 0);
+    }
+
+    #[test]
+    fn past_both_caps_the_error_names_the_budgets() {
+        let mut q = queues(1, 2, 3);
+        let rays: Vec<RayRecord> = (0..5).map(ray).collect();
+        q.push(0, &rays).unwrap();
+        let err = q.push(0, &rays[..1]).unwrap_err().to_string();
+        let memory = format!("{} bytes in memory", 2 * RAY_BYTES);
+        assert!(
+            err.contains("--queue-bytes") && err.contains(&memory),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn retain_filters_spilled_rays_too() {
+        let mut q = queues(1, 2, 100);
+        q.push(0, &(0..8).map(ray).collect::<Vec<_>>()).unwrap();
+        q.retain(|r| r.pixel % 2 == 0).unwrap();
+        let mut left: Vec<u32> = q.take(0, 100).unwrap().iter().map(|r| r.pixel).collect();
+        left.sort_unstable();
+        assert_eq!(left, [0, 2, 4, 6]);
+    }
+}

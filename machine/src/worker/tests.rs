@@ -1,0 +1,394 @@
+//! The worker machine driven as a plain value: events in, actions checked; no process, socket,
+//! file or clock. Passes are not run: a test answers a StartPass with the PassFinished it
+//! wants the machine to react to.
+
+use std::collections::{BTreeMap, HashMap};
+use std::time::Duration;
+
+use bytes::Bytes;
+use rayfarm_core::bundler::Tier;
+use rayfarm_core::frame::TileGrid;
+use rayfarm_core::ray::RayRecord;
+use rayfarm_core::wire::{self, BatchLimits, VerdictRecord};
+use rayfarm_proto::{self as proto, Schedule, coordinator_message::Body as FromCoordinator};
+
+use super::*;
+use crate::Time;
+
+const JOB: &str = "job-1";
+const DOMAINS: usize = 3;
+
+fn worker() -> Worker<MemorySpill> {
+    Worker::new(WorkerConfig::new("w1".into(), "me:1".into(), 1 << 30)).unwrap()
+}
+
+/// A StartFrame of an 8x8 frame in 4x4 tiles (tiles 0..4).
+fn start(job: &str, schedule: Schedule, tiles: &[u32]) -> proto::StartFrame {
+    proto::StartFrame {
+        job_id: job.into(),
+        spec: Some(proto::JobSpec {
+            schedule: schedule as i32,
+            ..Default::default()
+        }),
+        tile_size: 4,
+        primary_tiles: tiles.to_vec(),
+        roster: HashMap::from([(0, "me:1".to_string())]),
+        ..Default::default()
+    }
+}
+
+fn scene() -> OpenedScene<MemorySpill> {
+    let limits = BatchLimits {
+        domains: DOMAINS as u32,
+        pixels: 64,
+        max_depth: 8,
+        materials: 1,
+        max_records: 1 << 20,
+    };
+    OpenedScene {
+        grid: TileGrid::new(8, 8, 4).unwrap(),
+        spp: 1,
+        limits,
+        domain_bytes: vec![1000; DOMAINS],
+        resident: Vec::new(),
+        queues: DomainQueues::new(DOMAINS, 1 << 20, 1 << 20, MemorySpill::default()),
+    }
+}
+
+fn opened(job: &str, schedule: Schedule, tiles: &[u32]) -> Event<MemorySpill> {
+    Event::FrameOpened {
+        start: start(job, schedule, tiles),
+        opened: Ok(scene()),
+    }
+}
+
+fn control(body: FromCoordinator) -> Event<MemorySpill> {
+    Event::Control(proto::CoordinatorMessage { body: Some(body) })
+}
+
+fn plan(round: u64, work_on: &[u32], holders: &[(u32, &str)]) -> Event<MemorySpill> {
+    control(FromCoordinator::RoundPlan(proto::RoundPlan {
+        job_id: JOB.into(),
+        round,
+        work_on: work_on.to_vec(),
+        holders: holders_of(holders),
+        ..Default::default()
+    }))
+}
+
+fn holders_of(holders: &[(u32, &str)]) -> Vec<proto::DomainHolders> {
+    holders
+        .iter()
+        .map(|&(domain, w)| proto::DomainHolders {
+            domain,
+            workers: vec![w.to_string()],
+        })
+        .collect()
+}
+
+/// A ray a batch may carry, of `tile` and `epoch`, queued for `domain`.
+pub(super) fn ray(tile: u32, epoch: u32, domain: u32, pixel: u32) -> RayRecord {
+    RayRecord {
+        tile,
+        epoch,
+        domain,
+        pixel,
+        dir: [0.0, 0.0, 1.0],
+        t_max: 1.0,
+        ..bytemuck::Zeroable::zeroed()
+    }
+}
+
+fn bundle(job: &str, rays: &[RayRecord]) -> Event<MemorySpill> {
+    Event::PeerBundle {
+        sender: "peer:1".into(),
+        job_id: job.into(),
+        tier: proto::Tier::Migrated,
+        batches: vec![Bytes::from(wire::encode_batch(rays))],
+    }
+}
+
+fn finished(out: PassOutput) -> Event<MemorySpill> {
+    Event::PassFinished {
+        job_id: JOB.into(),
+        result: Ok(out),
+        resident: Vec::new(),
+    }
+}
+
+/// Rays sent to each peer by `actions`.
+fn rays_sent(actions: &[Action]) -> BTreeMap<String, Vec<RayRecord>> {
+    let mut out: BTreeMap<String, Vec<RayRecord>> = BTreeMap::new();
+    for a in actions {
+        if let Action::ToPeer {
+            peer,
+            tier: Tier::Migrated,
+            batches,
+            ..
+        } = a
+        {
+            for b in batches {
+                let rays = wire::decode_batch(b, &BatchLimits::any_frame(1 << 20)).unwrap();
+                out.entry(peer.clone()).or_default().extend(rays);
+            }
+        }
+    }
+    out
+}
+
+fn queue_reports(actions: &[Action]) -> Vec<&proto::QueueReport> {
+    actions
+        .iter()
+        .filter_map(|a| match a {
+            Action::ToCoordinator(proto::worker_message::Body::QueueReport(r)) => Some(r),
+            _ => None,
+        })
+        .collect()
+}
+
+fn pass_started(actions: &[Action]) -> Option<&PassWork> {
+    actions.iter().find_map(|a| match a {
+        Action::StartPass { work, .. } => Some(work),
+        _ => None,
+    })
+}
+
+#[test]
+fn a_batch_goes_to_the_holder_the_latest_plan_names() {
+    let mut w = worker();
+    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    w.handle(Time(1), plan(1, &[0], &[(1, "b:1"), (2, "c:1")]));
+    let rays = [ray(0, 0, 1, 5), ray(0, 0, 2, 6)];
+    let sent = rays_sent(&w.handle(Time(2), bundle(JOB, &rays)));
+    assert_eq!(sent["b:1"], [rays[0]]);
+    assert_eq!(sent["c:1"], [rays[1]]);
+    // Another worker's plan changed: domain 1 is d's now.
+    w.handle(
+        Time(3),
+        control(FromCoordinator::Holders(proto::Holders {
+            job_id: JOB.into(),
+            holders: holders_of(&[(1, "d:1")]),
+        })),
+    );
+    let sent = rays_sent(&w.handle(Time(4), bundle(JOB, &rays)));
+    assert_eq!(sent.keys().collect::<Vec<_>>(), ["d:1"]);
+    assert_eq!(
+        w.frame().unwrap().queue_sizes(),
+        BTreeMap::from([(2, 1)]),
+        "a domain no one holds waits here"
+    );
+    assert_eq!(w.frame().unwrap().counters.rays_received, 4);
+}
+
+#[test]
+fn a_stale_epochs_rays_are_dropped() {
+    let mut w = worker();
+    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    w.handle(Time(1), plan(1, &[0], &[]));
+    let bump = control(FromCoordinator::EpochBump(proto::EpochBump {
+        job_id: JOB.into(),
+        epochs: HashMap::from([(1, 2)]),
+        lost_peers: vec!["gone:1".into()],
+    }));
+    let actions = w.handle(Time(2), bump);
+    assert!(
+        actions
+            .iter()
+            .any(|a| matches!(a, Action::DropPeers(p) if p == &["gone:1".to_string()])),
+        "{actions:?}"
+    );
+    let stale = ray(1, 1, 0, 20);
+    let current = ray(1, 2, 0, 21);
+    assert!(pass_started(&w.handle(Time(3), bundle(JOB, &[stale]))).is_none());
+    let actions = w.handle(Time(4), bundle(JOB, &[stale, current]));
+    let work = pass_started(&actions).expect("the current ray is traced");
+    assert_eq!(work.trace, Some((0, vec![current])));
+}
+
+#[test]
+fn a_pass_that_empties_the_planned_queues_is_reported_once() {
+    let mut w = worker();
+    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    let actions = w.handle(Time(1), plan(1, &[0], &[]));
+    assert_eq!(
+        queue_reports(&actions).len(),
+        1,
+        "nothing queued: the round ends"
+    );
+    let actions = w.handle(Time(2), bundle(JOB, &[ray(0, 0, 0, 1)]));
+    assert!(pass_started(&actions).is_some());
+    assert!(queue_reports(&actions).is_empty(), "busy: no report");
+    let actions = w.handle(Time(3), finished(PassOutput::default()));
+    let reports = queue_reports(&actions);
+    assert_eq!(reports.len(), 1, "{actions:?}");
+    assert_eq!((reports[0].round, reports[0].queued_rays.len()), (1, 0));
+    assert!(queue_reports(&w.handle(Time(4), Event::Tick)).is_empty());
+    assert!(queue_reports(&w.handle(Time(5), Event::Tick)).is_empty());
+}
+
+#[test]
+fn a_roster_change_addresses_the_verdicts_held_for_a_newcomer() {
+    let mut w = worker();
+    let actions = w.handle(Time(0), opened(JOB, Schedule::Predictive, &[0]));
+    assert!(pass_started(&actions).is_some(), "camera rays of tile 0");
+    let verdict = VerdictRecord {
+        tile: 0,
+        pixel: 3,
+        ..bytemuck::Zeroable::zeroed()
+    };
+    let out = PassOutput {
+        verdicts: vec![(7, verdict)],
+        ..PassOutput::default()
+    };
+    let actions = w.handle(Time(1), finished(out));
+    assert!(
+        !actions.iter().any(|a| matches!(a, Action::ToPeer { .. })),
+        "worker 7 is not known yet: {actions:?}"
+    );
+    let roster = control(FromCoordinator::Roster(proto::Roster {
+        job_id: JOB.into(),
+        members: HashMap::from([(0, "me:1".into()), (7, "new:1".into())]),
+    }));
+    let actions = w.handle(Time(2), roster);
+    let sent: Vec<VerdictRecord> = actions
+        .iter()
+        .filter_map(|a| match a {
+            Action::ToPeer {
+                peer,
+                tier: Tier::Results,
+                batches,
+                ..
+            } if peer == "new:1" => Some(batches),
+            _ => None,
+        })
+        .flatten()
+        .flat_map(|b| wire::decode_verdicts(b, &BatchLimits::any_frame(16)).unwrap())
+        .collect();
+    assert_eq!(sent, [verdict]);
+}
+
+#[test]
+fn early_bundles_are_held_within_their_cap_and_timeout_then_replayed() {
+    let config = WorkerConfig {
+        early_bytes: 600,
+        early_timeout: Duration::from_secs(30),
+        ..WorkerConfig::new("w1".into(), "me:1".into(), 1 << 30)
+    };
+    let mut w: Worker<MemorySpill> = Worker::new(config).unwrap();
+    let first = ray(0, 0, 0, 1);
+    w.handle(Time(0), bundle(JOB, &[first]));
+    let held = w.early_bytes();
+    assert!(held > 0);
+    // Ten rays' batch passes the cap: dropped, the first kept.
+    let many: Vec<RayRecord> = (0..10).map(|p| ray(0, 0, 0, p)).collect();
+    w.handle(Time(1), bundle(JOB, &many));
+    assert_eq!(w.early_bytes(), held);
+    // Another job's bundle, past the first job's timeout: the first job's are dropped.
+    let late = Time(0) + Duration::from_secs(31);
+    w.handle(late, bundle("job-2", &[first]));
+    assert_eq!(
+        w.early_bytes(),
+        held,
+        "job-1's expired, job-2's one is held"
+    );
+    // job-2 starts: its bundle is replayed into the frame and traced.
+    let mut frame = start("job-2", Schedule::ImagePlane, &[]);
+    frame.job_id = "job-2".into();
+    let actions = w.handle(
+        late,
+        Event::FrameOpened {
+            start: frame,
+            opened: Ok(scene()),
+        },
+    );
+    assert_eq!(
+        pass_started(&actions).unwrap().trace,
+        Some((0, vec![first]))
+    );
+    assert_eq!(w.early_bytes(), 0);
+}
+
+#[test]
+fn bundles_of_an_ended_frame_are_dropped_not_held() {
+    let mut w = worker();
+    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    let end = control(FromCoordinator::EndFrame(proto::EndFrame {
+        job_id: JOB.into(),
+    }));
+    let actions = w.handle(Time(1), end);
+    assert!(
+        actions
+            .iter()
+            .any(|a| matches!(a, Action::FrameEnded { job_id, .. } if job_id == JOB))
+    );
+    w.handle(Time(2), bundle(JOB, &[ray(0, 0, 0, 1)]));
+    assert_eq!(w.early_bytes(), 0);
+    assert!(w.frame().is_none());
+}
+
+#[test]
+fn rays_leaving_for_a_new_holder_make_a_report_due_and_an_empty_move_does_not() {
+    let mut w = worker();
+    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    w.handle(Time(1), plan(1, &[0], &[]));
+    // Domain 2 has no holder: its rays wait here, and the coordinator hears of them.
+    let actions = w.handle(Time(2), bundle(JOB, &[ray(0, 0, 2, 1)]));
+    assert_eq!(
+        queue_reports(&actions)[0].queued_rays,
+        HashMap::from([(2, 1)])
+    );
+    let holders = |w: &str| {
+        control(FromCoordinator::Holders(proto::Holders {
+            job_id: JOB.into(),
+            holders: holders_of(&[(2, w)]),
+        }))
+    };
+    let actions = w.handle(Time(3), holders("b:1"));
+    assert_eq!(rays_sent(&actions)["b:1"].len(), 1);
+    let reports = queue_reports(&actions);
+    assert_eq!(reports.len(), 1, "the coordinator counted that ray here");
+    assert!(reports[0].queued_rays.is_empty());
+    let actions = w.handle(Time(4), holders("c:1"));
+    assert!(
+        queue_reports(&actions).is_empty(),
+        "nothing moved: {actions:?}"
+    );
+}
+
+/// The FrameReport among `actions`, if any.
+fn frame_report(actions: &[Action]) -> Option<&proto::FrameReport> {
+    actions.iter().find_map(|a| match a {
+        Action::ToCoordinator(proto::worker_message::Body::FrameReport(r)) => Some(r),
+        _ => None,
+    })
+}
+
+#[test]
+fn a_domain_it_cannot_load_is_a_decline_a_replaced_scene_fails_the_frame() {
+    for (failure, declined) in [
+        (
+            PassFailed::Load("domain-00001.rfd: bad domain file".into()),
+            true,
+        ),
+        (
+            PassFailed::SceneReplaced("scene s was replaced".into()),
+            false,
+        ),
+    ] {
+        let mut w = worker();
+        w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[0]));
+        let failed = Event::PassFinished {
+            job_id: JOB.into(),
+            result: Err(failure.clone()),
+            resident: Vec::new(),
+        };
+        let actions = w.handle(Time(1), failed);
+        let report = frame_report(&actions).expect("a frame report");
+        assert_eq!(report.declined, declined, "{failure:?}");
+        assert!(report.error.starts_with("worker "), "{}", report.error);
+        assert!(w.frame().is_none(), "the frame is left");
+        // Its peers' late rays are dropped, not held for a frame that may start.
+        w.handle(Time(2), bundle(JOB, &[ray(0, 0, 0, 1)]));
+        assert_eq!(w.early_bytes(), 0);
+    }
+}
