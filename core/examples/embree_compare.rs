@@ -30,9 +30,9 @@ use std::process::{Command, Stdio};
 
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
-use rayfarm_core::bvh::{Bvh, Hit, TraceRay, Traverser};
+use rayfarm_core::bvh::{Bvh, BvhNode, Hit, SLOT_EMPTY, SLOT_INNER, TraceRay, Traverser};
 use rayfarm_core::camera::PinholeCamera;
-use rayfarm_core::geometry::PackedTriangle;
+use rayfarm_core::geometry::{PackedTriangle, TriangleBlock};
 use rayfarm_core::sampling::{Purpose, uniform};
 use rayfarm_core::scene::{DomainData, DomainTree, Manifest};
 use serde_json::{Value, json};
@@ -172,6 +172,53 @@ fn counted_pass(bvh: Bvh, rays: &[BenchRay]) -> usize {
             traverser.nearest_hit(bvh, &ray, r.t_min, r.t_max).is_some()
         })
         .count()
+}
+
+/// A tree's surface-area cost (the expected work of a ray through it: node visits plus block
+/// tests, each weighted by its box's area relative to the root's, both costed 1 as Embree's
+/// builder does) and how full its nodes and blocks are, to compare build settings.
+fn tree_stats(nodes: &[BvhNode], blocks: &[TriangleBlock], triangles: usize) -> String {
+    let area = |lo: [f32; 3], hi: [f32; 3]| {
+        let e = [0, 1, 2].map(|a| (hi[a] - lo[a]).max(0.0) as f64);
+        e[0] * e[1] + e[1] * e[2] + e[2] * e[0]
+    };
+    let slot_box = |n: &BvhNode, s: usize| {
+        (
+            [0, 1, 2].map(|a| n.bounds[a][s]),
+            [3, 4, 5].map(|a| n.bounds[a][s]),
+        )
+    };
+    let (mut inner, mut leaf, mut slots) = (0.0f64, 0.0f64, 0usize);
+    let (mut root_lo, mut root_hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+    for (i, n) in nodes.iter().enumerate() {
+        for s in 0..8 {
+            let (lo, hi) = slot_box(n, s);
+            let a = area(lo, hi);
+            match n.meta[s] {
+                SLOT_EMPTY => continue,
+                SLOT_INNER => inner += a,
+                count => leaf += a * count as f64,
+            }
+            slots += 1;
+            if i == 0 {
+                for k in 0..3 {
+                    root_lo[k] = root_lo[k].min(lo[k]);
+                    root_hi[k] = root_hi[k].max(hi[k]);
+                }
+            }
+        }
+    }
+    // The root node is visited by every ray that enters the root box: its own cost is one.
+    let root = area(root_lo, root_hi).max(f64::MIN_POSITIVE);
+    format!(
+        "SAH cost {:.1} (node visits {:.1} + block tests {:.1}), {:.2} children per node, \
+         {:.2} triangles per block",
+        1.0 + (inner + leaf) / root,
+        1.0 + inner / root,
+        leaf / root,
+        slots as f64 / nodes.len().max(1) as f64,
+        triangles as f64 / blocks.len().max(1) as f64
+    )
 }
 
 /// The ray limited to the interval the render kernel traces it over in the (only) domain, as
@@ -404,10 +451,11 @@ fn main() -> Result<()> {
         let t = std::time::Instant::now();
         let b = rayfarm_core::bvh::build(&mut p);
         eprintln!(
-            "rebuilt the BVH in {:.2} s: {} nodes, {} blocks",
+            "rebuilt the BVH in {:.2} s: {} nodes, {} blocks; {}",
             t.elapsed().as_secs_f64(),
             b.nodes.len(),
-            b.blocks.len()
+            b.blocks.len(),
+            tree_stats(&b.nodes, &b.blocks, p.len())
         );
         (p, b)
     });

@@ -225,9 +225,6 @@ fn check_verdict(v: &VerdictRecord, l: &BatchLimits) -> Result<(), &'static str>
     if v._pad != [0; 3] {
         return Err("padding is not zero");
     }
-    if v.pixel >= l.pixels {
-        return Err("pixel out of range");
-    }
     match v.kind {
         VerdictRecord::CLEAR | VerdictRecord::BLOCKED => {
             if v.order != 0 || v.t != 0.0 || v.normal != [0.0; 3] || v.material != 0 {
@@ -239,13 +236,10 @@ fn check_verdict(v: &VerdictRecord, l: &BatchLimits) -> Result<(), &'static str>
             if !(finite && v.t >= 0.0) {
                 return Err("non-finite or negative hit");
             }
-            if v.material >= l.materials {
-                return Err("material out of range");
-            }
         }
         _ => return Err("unknown verdict kind"),
     }
-    Ok(())
+    check_verdict_range(v, l)
 }
 
 fn check_record(r: &RayRecord, l: &BatchLimits) -> Result<(), &'static str> {
@@ -265,6 +259,11 @@ fn check_record(r: &RayRecord, l: &BatchLimits) -> Result<(), &'static str> {
     if !(r.t_min >= 0.0 && r.t_min.is_finite() && r.t_max >= r.t_min) {
         return Err("bad interval");
     }
+    check_ray_range(r, l)
+}
+
+/// The frame-dependent part of a ray record's check.
+fn check_ray_range(r: &RayRecord, l: &BatchLimits) -> Result<(), &'static str> {
     if r.domain >= l.domains {
         return Err("domain out of range");
     }
@@ -273,6 +272,39 @@ fn check_record(r: &RayRecord, l: &BatchLimits) -> Result<(), &'static str> {
     }
     if r.depth > l.max_depth {
         return Err("depth above the frame's maximum");
+    }
+    Ok(())
+}
+
+/// Checks rays decoded under [`BatchLimits::any_frame`] against a frame's ranges (domain,
+/// pixel, depth): the rest of each record was checked when it was decoded, so a batch is
+/// read once and checked once.
+pub fn check_ray_ranges(rays: &[RayRecord], limits: &BatchLimits) -> Result<(), WireError> {
+    for (index, r) in rays.iter().enumerate() {
+        check_ray_range(r, limits).map_err(|reason| WireError::Record { index, reason })?;
+    }
+    Ok(())
+}
+
+/// Checks verdicts decoded under [`BatchLimits::any_frame`] against a frame's ranges (pixel,
+/// a hit's material), as [`check_ray_ranges`] does for rays.
+pub fn check_verdict_ranges(
+    verdicts: &[VerdictRecord],
+    limits: &BatchLimits,
+) -> Result<(), WireError> {
+    for (index, v) in verdicts.iter().enumerate() {
+        check_verdict_range(v, limits).map_err(|reason| WireError::Record { index, reason })?;
+    }
+    Ok(())
+}
+
+/// The frame-dependent part of a verdict's check.
+fn check_verdict_range(v: &VerdictRecord, l: &BatchLimits) -> Result<(), &'static str> {
+    if v.pixel >= l.pixels {
+        return Err("pixel out of range");
+    }
+    if v.kind == VerdictRecord::HIT && v.material >= l.materials {
+        return Err("material out of range");
     }
     Ok(())
 }
@@ -385,6 +417,34 @@ mod tests {
             decode_batch(&encode_verdicts(&vs), &LIMITS),
             Err(WireError::Magic)
         );
+    }
+
+    #[test]
+    fn records_decoded_for_any_frame_then_range_checked_pass_as_a_frame_decode_does() {
+        let any = BatchLimits::any_frame(1 << 16);
+        let edits: [fn(&mut RayRecord); 4] = [
+            |r| r.domain = 8,
+            |r| r.pixel = 1000,
+            |r| r.depth = 5,
+            |_| {},
+        ];
+        for edit in edits {
+            let mut rays: Vec<RayRecord> = (0..10).map(ray).collect();
+            edit(&mut rays[4]);
+            let bytes = encode_batch(&rays);
+            let once =
+                decode_batch(&bytes, &any).and_then(|r| check_ray_ranges(&r, &LIMITS).map(|()| r));
+            assert_eq!(once, decode_batch(&bytes, &LIMITS));
+        }
+        let edits: [fn(&mut VerdictRecord); 3] = [|v| v.pixel = 1000, |v| v.material = 4, |_| {}];
+        for edit in edits {
+            let mut vs: Vec<VerdictRecord> = (0..10).map(verdict).collect();
+            edit(&mut vs[5]);
+            let bytes = encode_verdicts(&vs);
+            let once = decode_verdicts(&bytes, &any)
+                .and_then(|v| check_verdict_ranges(&v, &LIMITS).map(|()| v));
+            assert_eq!(once, decode_verdicts(&bytes, &LIMITS));
+        }
     }
 
     proptest! {

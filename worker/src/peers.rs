@@ -251,7 +251,8 @@ async fn run_link(
     }
 }
 
-/// The `PeerService` of this worker: decodes nothing itself, hands bundles to the engine.
+/// The `PeerService` of this worker: decodes each bundle once (`decode_bundle`) and hands it
+/// to the engine.
 pub struct PeerServer {
     events: mpsc::UnboundedSender<Event>,
 }
@@ -288,29 +289,30 @@ impl PeerService for PeerServer {
                         break;
                     }
                 };
-                if let Err(status) = check_bundle(&bundle) {
+                let payload = match decode_bundle(&bundle) {
+                    Ok(payload) => payload,
                     // The whole bundle is refused, so the engine never sees half of one; the
                     // stream ends because a peer that sends one bad bundle cannot be trusted
                     // with the next.
-                    error!(
-                        %remote,
-                        sender = %rayfarm_node::bounds::shown(&bundle.sender),
-                        job = %rayfarm_node::bounds::shown(&bundle.job_id),
-                        sequence = bundle.sequence,
-                        code = ?status.code(),
-                        error = %status.message(),
-                        "refusing a bundle from a peer"
-                    );
-                    let _ = acks.send(Err(status));
-                    break;
-                }
+                    Err(status) => {
+                        error!(
+                            %remote,
+                            sender = %rayfarm_node::bounds::shown(&bundle.sender),
+                            job = %rayfarm_node::bounds::shown(&bundle.job_id),
+                            sequence = bundle.sequence,
+                            code = ?status.code(),
+                            error = %status.message(),
+                            "refusing a bundle from a peer"
+                        );
+                        let _ = acks.send(Err(status));
+                        break;
+                    }
+                };
                 let sequence = bundle.sequence;
                 let event = Event::Machine(Box::new(machine::Event::PeerBundle {
                     sender: bundle.sender,
                     job_id: bundle.job_id,
-                    // Checked above.
-                    tier: proto::Tier::try_from(bundle.tier).unwrap_or(proto::Tier::Migrated),
-                    batches: bundle.batches,
+                    payload,
                 }));
                 if events.send(event).is_err() {
                     break;
@@ -327,10 +329,11 @@ impl PeerService for PeerServer {
     }
 }
 
-/// Checks what can be checked before the bundle's frame is known: the protocol version, the
-/// tier, and each batch's structure and frame-independent record fields. The engine checks the
-/// rest (domain, pixel and depth ranges) against the frame.
-fn check_bundle(bundle: &proto::PeerBundle) -> Result<(), Status> {
+/// Decodes a bundle as far as it can be before its frame is known: the protocol version, the
+/// tier, and each batch's structure and frame-independent record fields. The machine checks
+/// the decoded records' frame ranges (domain, pixel, depth) against its frame; nothing is
+/// decoded twice.
+fn decode_bundle(bundle: &proto::PeerBundle) -> Result<machine::Payload, Status> {
     rayfarm_node::bounds::check_field("sender", &bundle.sender)?;
     rayfarm_node::bounds::check_field("job_id", &bundle.job_id)?;
     if bundle.protocol_version != PROTOCOL_VERSION {
@@ -346,23 +349,29 @@ fn check_bundle(bundle: &proto::PeerBundle) -> Result<(), Status> {
         )));
     };
     let limits = BatchLimits::any_frame(MAX_BATCH_RECORDS);
-    // The results tier carries verdicts (predictive schedule), every other tier rays.
-    let check = match tier {
-        proto::Tier::Results => wire::check_verdicts,
-        _ => wire::check_batch,
-    };
-    for (i, batch) in bundle.batches.iter().enumerate() {
-        if let Err(e) = check(batch, &limits) {
-            let msg = format!("bundle {} batch {i}: {e}", bundle.sequence);
-            return Err(match e {
-                WireError::Magic | WireError::Reserved | WireError::Record { .. } => {
-                    Status::invalid_argument(msg)
-                }
-                WireError::Version(_) => Status::failed_precondition(msg),
-                WireError::Length(_) | WireError::Count { .. } => Status::data_loss(msg),
-                WireError::TooMany { .. } => Status::resource_exhausted(msg),
-            });
+    let refused = |i: usize, e: WireError| {
+        let msg = format!("bundle {} batch {i}: {e}", bundle.sequence);
+        match e {
+            WireError::Magic | WireError::Reserved | WireError::Record { .. } => {
+                Status::invalid_argument(msg)
+            }
+            WireError::Version(_) => Status::failed_precondition(msg),
+            WireError::Length(_) | WireError::Count { .. } => Status::data_loss(msg),
+            WireError::TooMany { .. } => Status::resource_exhausted(msg),
         }
-    }
-    Ok(())
+    };
+    let batches = bundle.batches.iter().enumerate();
+    // The results tier carries verdicts (predictive schedule), every other tier rays.
+    Ok(match tier {
+        proto::Tier::Results => machine::Payload::Verdicts(
+            batches
+                .map(|(i, b)| wire::decode_verdicts(b, &limits).map_err(|e| refused(i, e)))
+                .collect::<Result<_, _>>()?,
+        ),
+        _ => machine::Payload::Rays(
+            batches
+                .map(|(i, b)| wire::decode_batch(b, &limits).map_err(|e| refused(i, e)))
+                .collect::<Result<_, _>>()?,
+        ),
+    })
 }

@@ -6,13 +6,11 @@
 use std::collections::BTreeMap;
 use std::time::Duration;
 
-use bytes::Bytes;
-use rayfarm_proto as proto;
-
+use super::events::Payload;
 use crate::Time;
 
-/// One held bundle: its sender, tier and batches.
-pub type HeldBundle = (String, proto::Tier, Vec<Bytes>);
+/// One held bundle: its sender and contents.
+pub type HeldBundle = (String, Payload);
 
 /// Bundles that arrived for one job.
 struct Held {
@@ -41,14 +39,10 @@ pub struct Refused {
     pub held: usize,
 }
 
-/// What holding one bundle costs: its batches, its sender and job ids, and the per-batch and
+/// What holding one bundle costs: its records, its sender and job ids, and the per-batch and
 /// per-bundle bookkeeping.
-fn cost(sender: &str, job_id: &str, batches: &[Bytes]) -> usize {
-    let batch_bytes: usize = batches
-        .iter()
-        .map(|b| b.len() + std::mem::size_of::<Bytes>())
-        .sum();
-    batch_bytes + sender.len() + job_id.len() + std::mem::size_of::<HeldBundle>()
+fn cost(sender: &str, job_id: &str, payload: &Payload) -> usize {
+    payload.bytes() + sender.len() + job_id.len() + std::mem::size_of::<HeldBundle>()
 }
 
 impl EarlyBundles {
@@ -75,7 +69,7 @@ impl EarlyBundles {
         } else {
             job_id.len()
         };
-        let bytes = cost(&bundle.0, &job_id, &bundle.2) + key_bytes;
+        let bytes = cost(&bundle.0, &job_id, &bundle.1) + key_bytes;
         if self.bytes + bytes > self.cap_bytes {
             return Err(Refused {
                 bytes,

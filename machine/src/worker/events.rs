@@ -27,12 +27,11 @@ pub enum Event<S> {
     },
     /// The control stream ended; frame state is dropped (the coordinator forgets this worker).
     Disconnected,
-    /// A bundle from a peer, not yet decoded: ray batches, or in the results tier verdicts.
+    /// A bundle from a peer.
     PeerBundle {
         sender: String,
         job_id: String,
-        tier: proto::Tier,
-        batches: Vec<Bytes>,
+        payload: Payload,
     },
     /// A peer stopped acknowledging bundles.
     PeerUnresponsive { peer: String, reason: String },
@@ -56,6 +55,32 @@ pub enum PassFailed {
     /// its new domain files do not match the frame's manifest and tracing on would mix the
     /// two versions, so the frame fails for everyone.
     SceneReplaced(String),
+}
+
+/// A peer bundle's batches, decoded once by the shell for any frame
+/// (`wire::BatchLimits::any_frame`); the machine checks them against its frame's ranges only.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Payload {
+    /// Ray batches (every tier but results).
+    Rays(Vec<Vec<RayRecord>>),
+    /// Verdict batches (the results tier, predictive schedule).
+    Verdicts(Vec<Vec<VerdictRecord>>),
+}
+
+impl Payload {
+    /// Bytes held: the records and each batch's bookkeeping.
+    pub fn bytes(&self) -> usize {
+        fn held<T>(batches: &[Vec<T>]) -> usize {
+            batches
+                .iter()
+                .map(|b| std::mem::size_of_val(b.as_slice()) + std::mem::size_of::<Vec<T>>())
+                .sum()
+        }
+        match self {
+            Payload::Rays(b) => held(b),
+            Payload::Verdicts(b) => held(b),
+        }
+    }
 }
 
 /// What the shell read from the scene for a StartFrame.

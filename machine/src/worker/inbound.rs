@@ -1,26 +1,20 @@
 //! What the worker machine does with a peer's bundle: hold it for a frame not started yet
-//! (see `early`), or decode it against the frame and route its rays, or settle its verdicts.
+//! (see `early`), or check it against the frame's ranges and route its rays or settle its
+//! verdicts. The shell decoded it once already (see [`Payload`]); nothing is decoded here.
 
 use std::collections::BTreeMap;
 
-use bytes::Bytes;
 use rayfarm_core::ray::RayRecord;
-use rayfarm_core::wire;
-use rayfarm_proto as proto;
+use rayfarm_core::wire::{self, VerdictRecord};
 use tracing::{error, warn};
 
+use super::events::Payload;
 use super::machine::Worker;
 use super::queues::RaySpill;
 
 impl<S: RaySpill> Worker<S> {
     /// Holds a bundle for a frame not started here yet, within the cap.
-    fn hold_early(
-        &mut self,
-        sender: String,
-        job_id: String,
-        tier: proto::Tier,
-        batches: Vec<Bytes>,
-    ) {
+    fn hold_early(&mut self, sender: String, job_id: String, payload: Payload) {
         for (job, bundles) in self.early.expire(self.now) {
             warn!(
                 %job, bundles,
@@ -29,10 +23,10 @@ impl<S: RaySpill> Worker<S> {
             );
         }
         // Sender and job ids were bounded by the shell (`MAX_FIELD_BYTES`) before they came.
-        if let Err(refused) =
-            self.early
-                .hold(job_id.clone(), (sender.clone(), tier, batches), self.now)
-        {
+        let held = self
+            .early
+            .hold(job_id.clone(), (sender.clone(), payload), self.now);
+        if let Err(refused) = held {
             error!(
                 %sender, job = %job_id, bytes = refused.bytes, held = refused.held,
                 "dropping a bundle for a frame not started here: {} bytes are held already",
@@ -41,31 +35,23 @@ impl<S: RaySpill> Worker<S> {
         }
     }
 
-    pub(super) fn peer_bundle(
-        &mut self,
-        sender: String,
-        job_id: String,
-        tier: proto::Tier,
-        batches: Vec<Bytes>,
-    ) {
+    pub(super) fn peer_bundle(&mut self, sender: String, job_id: String, payload: Payload) {
         let Some(frame) = self.frame.as_mut().filter(|f| f.job_id == job_id) else {
             if !self.ended.contains(&job_id) {
-                self.hold_early(sender, job_id, tier, batches);
+                self.hold_early(sender, job_id, payload);
             }
             return;
         };
-        if tier == proto::Tier::Results {
-            return self.peer_verdicts(&sender, batches);
-        }
+        let batches = match payload {
+            Payload::Verdicts(batches) => return self.peer_verdicts(&sender, batches),
+            Payload::Rays(batches) => batches,
+        };
         let mut forward: BTreeMap<String, Vec<RayRecord>> = BTreeMap::new();
-        for batch in batches {
-            let rays = match wire::decode_batch(&batch, &frame.limits) {
-                Ok(rays) => rays,
-                Err(e) => {
-                    error!(%sender, error = %e, "dropping a malformed ray batch from a peer");
-                    continue;
-                }
-            };
+        for rays in batches {
+            if let Err(e) = wire::check_ray_ranges(&rays, &frame.limits) {
+                error!(%sender, error = %e, "dropping a ray batch outside the frame from a peer");
+                continue;
+            }
             frame.counters.rays_received += rays.len() as u64;
             match frame.route(rays) {
                 Ok(out) => {
@@ -82,7 +68,7 @@ impl<S: RaySpill> Worker<S> {
     }
 
     /// Verdicts from a peer for rays born here.
-    fn peer_verdicts(&mut self, sender: &str, batches: Vec<Bytes>) {
+    fn peer_verdicts(&mut self, sender: &str, batches: Vec<Vec<VerdictRecord>>) {
         let Some(frame) = self.frame.as_mut() else {
             return;
         };
@@ -90,12 +76,12 @@ impl<S: RaySpill> Worker<S> {
             warn!(%sender, "dropping verdicts: this frame places no rays speculatively");
             return;
         }
-        for batch in batches {
-            match wire::decode_verdicts(&batch, &frame.limits) {
-                Ok(verdicts) => {
+        for verdicts in batches {
+            match wire::check_verdict_ranges(&verdicts, &frame.limits) {
+                Ok(()) => {
                     frame.settle(&verdicts);
                 }
-                Err(e) => error!(%sender, error = %e, "dropping a malformed verdict batch"),
+                Err(e) => error!(%sender, error = %e, "dropping a verdict batch outside the frame"),
             }
         }
     }

@@ -119,9 +119,8 @@ impl<S: RaySpill> Worker<S> {
             Event::PeerBundle {
                 sender,
                 job_id,
-                tier,
-                batches,
-            } => self.peer_bundle(sender, job_id, tier, batches),
+                payload,
+            } => self.peer_bundle(sender, job_id, payload),
             Event::PeerUnresponsive { peer, reason } => {
                 self.actions.push(Action::DropPeers(vec![peer.clone()]));
                 self.send(proto::worker_message::Body::PeerUnresponsive(
@@ -205,8 +204,8 @@ impl<S: RaySpill> Worker<S> {
             Ok(frame) => {
                 info!(tiles = s.primary_tiles.len(), "frame started");
                 self.frame = Some(frame);
-                for (sender, tier, batches) in self.early.take(&s.job_id) {
-                    self.peer_bundle(sender, s.job_id.clone(), tier, batches);
+                for (sender, payload) in self.early.take(&s.job_id) {
+                    self.peer_bundle(sender, s.job_id.clone(), payload);
                 }
             }
             Err(e) => {
@@ -270,6 +269,9 @@ impl<S: RaySpill> Worker<S> {
             p.work_on.iter().copied(),
             p.holders.into_iter().map(|h| (h.domain, h.workers)),
         );
+        // The cache as the machine knows it: mapped at the last pass's end, less what this plan
+        // evicts (the cache changes only in passes and by these actions). A pass running now
+        // may map one more; its PassFinished says so.
         let resident: Vec<u32> = frame
             .plan()
             .resident()

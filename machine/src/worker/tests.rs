@@ -5,7 +5,6 @@
 use std::collections::{BTreeMap, HashMap};
 use std::time::Duration;
 
-use bytes::Bytes;
 use rayfarm_core::bundler::Tier;
 use rayfarm_core::frame::TileGrid;
 use rayfarm_core::ray::RayRecord;
@@ -103,8 +102,7 @@ fn bundle(job: &str, rays: &[RayRecord]) -> Event<MemorySpill> {
     Event::PeerBundle {
         sender: "peer:1".into(),
         job_id: job.into(),
-        tier: proto::Tier::Migrated,
-        batches: vec![Bytes::from(wire::encode_batch(rays))],
+        payload: Payload::Rays(vec![rays.to_vec()]),
     }
 }
 
@@ -355,14 +353,6 @@ fn rays_leaving_for_a_new_holder_make_a_report_due_and_an_empty_move_does_not() 
     );
 }
 
-/// The FrameReport among `actions`, if any.
-fn frame_report(actions: &[Action]) -> Option<&proto::FrameReport> {
-    actions.iter().find_map(|a| match a {
-        Action::ToCoordinator(proto::worker_message::Body::FrameReport(r)) => Some(r),
-        _ => None,
-    })
-}
-
 #[test]
 fn a_domain_it_cannot_load_is_a_decline_a_replaced_scene_fails_the_frame() {
     for (failure, declined) in [
@@ -383,12 +373,135 @@ fn a_domain_it_cannot_load_is_a_decline_a_replaced_scene_fails_the_frame() {
             resident: Vec::new(),
         };
         let actions = w.handle(Time(1), failed);
-        let report = frame_report(&actions).expect("a frame report");
+        let reports = frame_reports(&actions);
+        let report = reports.first().expect("a frame report");
         assert_eq!(report.declined, declined, "{failure:?}");
         assert!(report.error.starts_with("worker "), "{}", report.error);
         assert!(w.frame().is_none(), "the frame is left");
         // Its peers' late rays are dropped, not held for a frame that may start.
         w.handle(Time(2), bundle(JOB, &[ray(0, 0, 0, 1)]));
         assert_eq!(w.early_bytes(), 0);
+    }
+}
+
+#[test]
+fn a_batch_outside_the_frame_is_dropped_and_the_rest_of_its_bundle_routed() {
+    let mut w = worker();
+    w.handle(Time(0), opened(JOB, Schedule::ImagePlane, &[]));
+    let good = ray(0, 0, 1, 3);
+    let outside = ray(0, 0, DOMAINS as u32, 3);
+    let event = Event::PeerBundle {
+        sender: "peer:1".into(),
+        job_id: JOB.into(),
+        payload: Payload::Rays(vec![vec![good, outside], vec![good]]),
+    };
+    let work = w.handle(Time(1), event);
+    assert_eq!(pass_started(&work).unwrap().trace, Some((1, vec![good])));
+    assert_eq!(w.frame().unwrap().counters.rays_received, 1);
+}
+
+fn frame_reports(actions: &[Action]) -> Vec<&proto::FrameReport> {
+    actions
+        .iter()
+        .filter_map(|a| match a {
+            Action::ToCoordinator(proto::worker_message::Body::FrameReport(r)) => Some(r),
+            _ => None,
+        })
+        .collect()
+}
+
+#[test]
+fn a_frame_the_shell_could_not_open_is_declined_with_the_reason() {
+    let mut w = worker();
+    let actions = w.handle(
+        Time(0),
+        Event::FrameOpened {
+            start: start(JOB, Schedule::Dynamic, &[0]),
+            opened: Err("scene \"x\" not found".into()),
+        },
+    );
+    let reports = frame_reports(&actions);
+    assert_eq!(reports.len(), 1);
+    assert!(reports[0].declined);
+    assert_eq!(reports[0].error, "worker w1: scene \"x\" not found");
+    assert!(w.frame().is_none() && pass_started(&actions).is_none());
+    // Primary tiles outside the frame are the machine's own reason to decline.
+    let actions = w.handle(Time(1), opened(JOB, Schedule::Dynamic, &[4]));
+    let reports = frame_reports(&actions);
+    assert!(reports[0].declined && reports[0].error.contains("outside the frame's 4 tiles"));
+}
+
+#[test]
+fn queues_past_both_caps_fail_the_frame_once_with_the_budgets() {
+    let mut w = worker();
+    let mut scene = scene();
+    scene.queues = DomainQueues::new(DOMAINS, 2 * queues::RAY_BYTES, 0, MemorySpill::default());
+    w.handle(
+        Time(0),
+        Event::FrameOpened {
+            start: start(JOB, Schedule::Dynamic, &[]),
+            opened: Ok(scene),
+        },
+    );
+    // Domain 2 is traced by no one: its three rays wait here, one more than fit.
+    let rays: Vec<RayRecord> = (0..3).map(|p| ray(0, 0, 2, p)).collect();
+    let actions = w.handle(Time(1), bundle(JOB, &rays));
+    let reports = frame_reports(&actions);
+    assert_eq!(reports.len(), 1, "{actions:?}");
+    assert!(!reports[0].declined && reports[0].error.contains("--queue-bytes"));
+    assert!(w.frame().is_none());
+    assert!(frame_reports(&w.handle(Time(2), bundle(JOB, &rays))).is_empty());
+}
+
+#[test]
+fn a_silent_peer_is_dropped_and_reported_and_a_stale_pass_is_ignored() {
+    let mut w = worker();
+    w.handle(Time(0), opened(JOB, Schedule::ImagePlane, &[0]));
+    let lost = Event::PeerUnresponsive {
+        peer: "b:1".into(),
+        reason: "3 bundles unacknowledged".into(),
+    };
+    let actions = w.handle(Time(1), lost);
+    assert!(matches!(&actions[0], Action::DropPeers(p) if p == &["b:1".to_string()]));
+    assert!(actions.iter().any(|a| matches!(
+        a,
+        Action::ToCoordinator(proto::worker_message::Body::PeerUnresponsive(p))
+            if p.peer_address == "b:1"
+    )));
+    // The frame's camera-ray pass is running; the frame ends and another starts before it
+    // finishes: its result belongs to no frame now.
+    let end = control(FromCoordinator::EndFrame(proto::EndFrame {
+        job_id: JOB.into(),
+    }));
+    w.handle(Time(2), end);
+    w.handle(Time(3), opened("job-2", Schedule::ImagePlane, &[]));
+    let out = PassOutput {
+        rays: vec![ray(0, 0, 0, 1)],
+        ..PassOutput::default()
+    };
+    let actions = w.handle(Time(4), finished(out));
+    assert!(pass_started(&actions).is_none(), "{actions:?}");
+    assert_eq!(w.frame().unwrap().queued_total(), 0);
+}
+
+#[test]
+fn hybrid_pins_its_own_domains_only_while_demand_loads_fit_the_cache() {
+    for (cache_bytes, pinned) in [(2000, vec![0]), (1999, vec![])] {
+        let config = WorkerConfig::new("w1".into(), "me:1".into(), cache_bytes);
+        let mut w: Worker<MemorySpill> = Worker::new(config).unwrap();
+        w.handle(Time(0), opened(JOB, Schedule::Hybrid, &[]));
+        let actions = w.handle(Time(1), plan(1, &[0], &[(1, "b:1")]));
+        let pins: Vec<&Vec<u32>> = actions
+            .iter()
+            .filter_map(|a| match a {
+                Action::Pin(d) => Some(d),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(pins, [&pinned], "cache of {cache_bytes} bytes");
+        // Camera rays stay here with demand loads on, else migrate to the owner.
+        let camera = ray(0, 0, 1, 2);
+        let sent = rays_sent(&w.handle(Time(2), bundle(JOB, &[camera])));
+        assert_eq!(sent.contains_key("b:1"), pinned.is_empty());
     }
 }
