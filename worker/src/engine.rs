@@ -20,7 +20,8 @@ use rayfarm_core::scene::Manifest;
 use rayfarm_core::wire::BatchLimits;
 use rayfarm_machine::Time;
 use rayfarm_machine::worker::{
-    self as machine, Action, DomainQueues, OpenedScene, PassOutput, Worker, WorkerConfig,
+    self as machine, Action, DomainQueues, OpenedScene, PassFailed, PassOutput, Worker,
+    WorkerConfig,
 };
 use rayfarm_node::job;
 use rayfarm_node::proto::{self, coordinator_message::Body as FromCoordinator};
@@ -158,7 +159,8 @@ impl Engine {
         match event {
             Event::Control(msg) => match msg.body {
                 Some(FromCoordinator::StartFrame(start)) => {
-                    let opened = self.open_frame(&start).map_err(|e| e.to_string());
+                    // Every cause, e.g. "spill directory D: No space left on device".
+                    let opened = self.open_frame(&start).map_err(|e| format!("{e:#}"));
                     machine::Event::FrameOpened { start, opened }
                 }
                 body => machine::Event::Control(proto::CoordinatorMessage { body }),
@@ -166,7 +168,7 @@ impl Engine {
             Event::Machine(event) => *event,
             Event::PassDone { job_id, result } => machine::Event::PassFinished {
                 job_id,
-                result,
+                result: result.map_err(|e| self.pass_failed(e)),
                 resident: self.with_cache(|c| c.resident()).unwrap_or_default(),
             },
         }
@@ -243,6 +245,22 @@ impl Engine {
             // The engine may be gone at shutdown; nothing is left to do then.
             let _ = events.send(Event::PassDone { job_id, result });
         });
+    }
+
+    /// Why a pass failed: this worker could not load a domain, unless the scene's manifest on
+    /// disk is no longer the one the frame opened (the scene was re-prepared in place).
+    fn pass_failed(&self, e: String) -> PassFailed {
+        let replaced = self.cache.as_ref().and_then(|((dir, manifest), _)| {
+            (Manifest::load(dir).ok().as_ref() != Some(manifest)).then_some(dir)
+        });
+        match replaced {
+            Some(dir) => PassFailed::SceneReplaced(format!(
+                "scene {} was replaced on disk while its frame ran (re-prepared in place?): \
+                 {e}; submit the job again to render the new version",
+                dir.display()
+            )),
+            None => PassFailed::Load(e),
+        }
     }
 
     fn with_cache<T>(&self, f: impl FnOnce(&mut DomainCache) -> T) -> Option<T> {

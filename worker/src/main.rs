@@ -90,7 +90,8 @@ struct Args {
     /// Most bytes of rays spilled to disk; past it the frame fails with a clear error.
     #[arg(long, env = "RAYFARM_SPILL_BYTES", default_value = "8GiB", value_parser = parse_bytes)]
     spill_bytes: u64,
-    /// Directory for spilled rays (default: the system's temporary directory).
+    /// Directory for spilled rays (default: the system's temporary directory). While it is
+    /// unwritable or full, this worker declines frames (the others render them).
     #[arg(long, env = "RAYFARM_SPILL_DIR")]
     spill_dir: Option<PathBuf>,
     /// EMULATION for benchmarks: charge every domain load as if storage delivered this many

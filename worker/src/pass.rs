@@ -189,7 +189,7 @@ pub fn run(input: PassInput) -> Result<PassOutput, PassError> {
                 tile,
                 epoch,
                 credit: sum.credit,
-                sums: tile_sums::encode(pixels),
+                sums: tile_sums::encode(&pixels),
             }
         })
         .collect();

@@ -9,6 +9,17 @@ use bytemuck::Zeroable;
 use rayfarm_core::ray::RayRecord;
 use rayfarm_machine::worker::queues::{RAY_BYTES, RaySpill};
 
+/// Bytes written to a new spill directory before a frame starts.
+const PROBE_BYTES: usize = 64 << 10;
+
+/// Writes and removes a small file in `dir`.
+fn probe(dir: &Path) -> std::io::Result<()> {
+    let path = dir.join("probe");
+    let written = File::create(&path).and_then(|mut f| f.write_all(&[0; PROBE_BYTES]));
+    let removed = std::fs::remove_file(&path);
+    written.and(removed)
+}
+
 /// Rays of one domain in a file read from the front.
 struct Spill {
     file: File,
@@ -26,14 +37,18 @@ pub struct FileSpill {
 }
 
 impl FileSpill {
-    /// A spill store in a fresh directory under `root`.
+    /// A spill store in a fresh directory under `root`, written to once so that a full or
+    /// read-only directory is found before the frame starts (the worker then declines the
+    /// frame) rather than halfway through it.
     pub fn new(root: &Path) -> std::io::Result<Self> {
         std::fs::create_dir_all(root)?;
+        let dir = tempfile::Builder::new()
+            .prefix("rayfarm-spill-")
+            .tempdir_in(root)?;
+        probe(dir.path())?;
         Ok(FileSpill {
             spills: Vec::new(),
-            dir: tempfile::Builder::new()
-                .prefix("rayfarm-spill-")
-                .tempdir_in(root)?,
+            dir,
         })
     }
 
@@ -87,13 +102,21 @@ impl FileSpill {
     }
 }
 
+impl FileSpill {
+    /// The error named by the directory the worker was given (`--spill-dir`).
+    fn named(&self, e: std::io::Error) -> String {
+        let root = self.dir.path().parent().unwrap_or(self.dir.path());
+        format!("spill directory {}: {e}", root.display())
+    }
+}
+
 impl RaySpill for FileSpill {
     fn append(&mut self, domain: u32, rays: &[RayRecord]) -> Result<(), String> {
-        self.append_io(domain, rays).map_err(|e| e.to_string())
+        self.append_io(domain, rays).map_err(|e| self.named(e))
     }
 
     fn take_front(&mut self, domain: u32, n: usize) -> Result<Vec<RayRecord>, String> {
-        self.take_io(domain, n).map_err(|e| e.to_string())
+        self.take_io(domain, n).map_err(|e| self.named(e))
     }
 }
 

@@ -143,7 +143,7 @@ fn main() {
     let req = proto::SubmitJobRequest { spec: Some(spec) };
     seed("job_request", "small", &req.encode_to_vec());
 
-    let sums = tile_sums::encode([(0, [1, 2, 3]), (1, [0, 0, 0]), (5, [1 << 40, 7, -1])]);
+    let sums = tile_sums::encode(&[(0, [1, 2, 3]), (1, [0, 0, 0]), (5, [1 << 40, 7, -1])]);
     let results = proto::TileResults {
         job_id: "job-1".into(),
         results: vec![proto::TileResult {

@@ -12,6 +12,7 @@
 use glam::Vec3;
 use prost::Message;
 use rayfarm_core::bvh::{Kernel, TraceRay, Traverser};
+use rayfarm_core::cluster::tile_sums;
 use rayfarm_core::mesh::parse_mesh;
 use rayfarm_core::scene::domain_file::parse_domain_bytes;
 use rayfarm_core::scene::{Camera, Manifest};
@@ -34,6 +35,9 @@ const SCENE_CAMERA: Camera = Camera {
     up: [0.0, 1.0, 0.0],
     fov_y_degrees: 40.0,
 };
+
+/// Pixels of a fuzzed tile result's tile.
+const TILE_PIXELS: usize = 64 * 64;
 
 /// Materials a fuzzed domain file may name.
 const MATERIALS: u32 = 4;
@@ -155,15 +159,25 @@ pub fn job_request(data: &[u8]) {
     }
 }
 
-/// What a worker sends the coordinator: tile results' sums decode or are refused.
+/// What a worker sends the coordinator: tile results' sums decode (in pixel order, within
+/// the tile, and round-trip) or are refused.
 pub fn worker_message(data: &[u8]) {
     let Ok(msg) = proto::WorkerMessage::decode(data) else {
         return;
     };
     if let Some(proto::worker_message::Body::TileResults(r)) = msg.body {
         for result in r.results {
-            if let Err(e) = rayfarm_core::cluster::tile_sums::decode(&result.sums) {
-                assert!(!e.to_string().is_empty());
+            match tile_sums::decode(&result.sums, TILE_PIXELS) {
+                Ok(sums) => {
+                    assert!(sums.len() <= TILE_PIXELS);
+                    assert!(
+                        sums.windows(2).all(|w| w[0].0 < w[1].0),
+                        "pixels out of order"
+                    );
+                    let again = tile_sums::decode(&tile_sums::encode(&sums), TILE_PIXELS);
+                    assert_eq!(again.as_ref(), Ok(&sums), "accepted sums do not round-trip");
+                }
+                Err(e) => assert!(!e.to_string().is_empty()),
             }
         }
     }

@@ -467,7 +467,8 @@ impl RunningFrame {
         }
         let mut committed = Vec::new();
         for r in results.results {
-            let sums = match tile_sums::decode(&r.sums) {
+            let pixels = self.ledger.grid().tile_pixel_count(r.tile);
+            let sums = match tile_sums::decode(&r.sums, pixels) {
                 Ok(sums) => sums,
                 Err(e) => return (committed, Some(format!("tile {}: {e}", r.tile))),
             };

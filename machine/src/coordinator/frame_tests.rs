@@ -79,7 +79,13 @@ fn planned_domains(out: &[Outgoing], key: u32) -> Vec<u32> {
 
 /// A result for all of `tile`'s pixels at `epoch`, returning `credit`.
 fn whole_tile(f: &RunningFrame, tile: u32, epoch: u32, credit: u64) -> proto::TileResult {
-    let sums = tile_sums::encode(f.ledger.grid().pixels(tile).map(|p| (p, [1, 2, 3])));
+    let pixels: Vec<(u32, [i64; 3])> = f
+        .ledger
+        .grid()
+        .pixels(tile)
+        .map(|p| (p, [1, 2, 3]))
+        .collect();
+    let sums = tile_sums::encode(&pixels);
     proto::TileResult {
         tile,
         epoch,

@@ -38,11 +38,23 @@ pub enum Event<S> {
     /// A pass of the frame of `job_id` finished; `resident` are the domains mapped now.
     PassFinished {
         job_id: String,
-        result: Result<PassOutput, String>,
+        result: Result<PassOutput, PassFailed>,
         resident: Vec<u32>,
     },
     /// Nothing happened but time passed (the deadline of [`super::Worker::next_timeout`]).
     Tick,
+}
+
+/// Why a pass produced nothing.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum PassFailed {
+    /// This worker could not load a domain (missing, damaged): it leaves the frame (declines);
+    /// if it is the same for every worker, the job fails with all their reasons.
+    Load(String),
+    /// The scene's manifest changed on disk since the frame opened it (re-prepared in place):
+    /// its new domain files do not match the frame's manifest and tracing on would mix the
+    /// two versions, so the frame fails for everyone.
+    SceneReplaced(String),
 }
 
 /// A peer bundle's batches, decoded once by the shell for any frame

@@ -59,7 +59,7 @@ impl<S: RaySpill> Worker<S> {
                         forward.entry(peer).or_default().append(&mut rays);
                     }
                 }
-                Err(e) => return self.fail_frame(e.to_string()),
+                Err(e) => return self.queue_failed(e),
             }
         }
         for (peer, rays) in forward {

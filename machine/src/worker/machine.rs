@@ -14,10 +14,10 @@ use rayfarm_proto::{self as proto, Schedule, coordinator_message::Body as FromCo
 use tracing::{debug, error, info, info_span, warn};
 
 use super::early::EarlyBundles;
-use super::events::{Action, Event, OpenedScene, PassOutput, PassWork};
+use super::events::{Action, Event, OpenedScene, PassFailed, PassOutput, PassWork};
 use super::frame::{Frame, FrameParts};
 use super::plan::Mode;
-use super::queues::RaySpill;
+use super::queues::{QueueError, RaySpill};
 use crate::Time;
 
 /// Rays per encoded batch sent to a peer (160 KiB).
@@ -140,7 +140,8 @@ impl<S: RaySpill> Worker<S> {
                 if self.frame.as_ref().is_some_and(|f| f.job_id == job_id) {
                     match result {
                         Ok(out) => self.pass_done(out, resident),
-                        Err(e) => self.fail_frame(e),
+                        Err(PassFailed::Load(e)) => self.decline_frame(e),
+                        Err(PassFailed::SceneReplaced(e)) => self.fail_frame(e),
                     }
                 }
             }
@@ -172,7 +173,7 @@ impl<S: RaySpill> Worker<S> {
                 let bumped = f.bump_epochs(&b.epochs.into_iter().collect());
                 self.actions.push(Action::DropPeers(b.lost_peers));
                 if let Err(e) = bumped {
-                    self.fail_frame(e.to_string());
+                    self.queue_failed(e);
                 }
             }
             Some(FromCoordinator::EndFrame(e)) => self.end_frame(&e.job_id),
@@ -192,6 +193,9 @@ impl<S: RaySpill> Worker<S> {
         if let Some(old) = self.frame.take() {
             warn!(job = %old.job_id, "a new frame replaces an unfinished one");
         }
+        // The job may run again (a restarted coordinator, a worker taken back): its bundles
+        // count from now on.
+        self.ended.retain(|j| *j != s.job_id);
         // Bundles of an older frame are worthless now, and the counters start afresh.
         if let Ok(fresh) = Bundler::new(self.config.bundler) {
             self.bundler = fresh;
@@ -206,6 +210,7 @@ impl<S: RaySpill> Worker<S> {
             }
             Err(e) => {
                 error!(error = %e, "cannot take part in the frame");
+                self.mark_ended(&s.job_id);
                 self.send(proto::worker_message::Body::FrameReport(
                     proto::FrameReport {
                         job_id: s.job_id.clone(),
@@ -303,7 +308,7 @@ impl<S: RaySpill> Worker<S> {
                 }
                 self.send_due_bundles();
             }
-            Err(e) => self.fail_frame(e.to_string()),
+            Err(e) => self.queue_failed(e),
         }
     }
 
@@ -318,12 +323,17 @@ impl<S: RaySpill> Worker<S> {
         self.send_due_bundles();
     }
 
-    fn end_frame(&mut self, job_id: &str) {
+    /// Drops the bundles held for `job_id` and those that arrive late for it.
+    fn mark_ended(&mut self, job_id: &str) {
         self.early.take(job_id);
         self.ended.push(job_id.to_string());
         if self.ended.len() > ENDED_KEPT {
             self.ended.remove(0);
         }
+    }
+
+    fn end_frame(&mut self, job_id: &str) {
+        self.mark_ended(job_id);
         let Some(frame) = self.frame.take_if(|f| f.job_id == job_id) else {
             return;
         };
@@ -351,15 +361,37 @@ impl<S: RaySpill> Worker<S> {
         });
     }
 
-    pub(super) fn fail_frame(&mut self, error: String) {
+    /// Fails the running frame for everyone.
+    fn fail_frame(&mut self, error: String) {
+        self.end_with_error(error, false);
+    }
+
+    /// Leaves the running frame for a reason of this worker's own: the coordinator deals its
+    /// tiles to the others.
+    fn decline_frame(&mut self, error: String) {
+        self.end_with_error(error, true);
+    }
+
+    /// A full or failing spill store is this worker's problem: it leaves the frame. Rays past
+    /// every budget fail the frame (more workers would help, not fewer).
+    pub(super) fn queue_failed(&mut self, e: QueueError) {
+        match e {
+            QueueError::Spill(_) => self.decline_frame(e.to_string()),
+            QueueError::Full { .. } => self.fail_frame(e.to_string()),
+        }
+    }
+
+    fn end_with_error(&mut self, error: String, declined: bool) {
         if let Some(frame) = self.frame.take() {
-            error!(job = %frame.job_id, %error, "frame failed on this worker");
+            error!(job = %frame.job_id, %error, declined, "frame ended with an error on this worker");
+            // Peers go on sending rays until they hear this worker left: none is kept.
+            self.mark_ended(&frame.job_id);
             self.send(proto::worker_message::Body::FrameReport(
                 proto::FrameReport {
                     job_id: frame.job_id,
                     stats_json: String::new(),
                     error: format!("worker {}: {error}", self.config.worker_id),
-                    declined: false,
+                    declined,
                 },
             ));
         }
@@ -392,7 +424,7 @@ impl<S: RaySpill> Worker<S> {
         };
         let out_rays = match frame.route(rays) {
             Ok(r) => r,
-            Err(e) => return self.fail_frame(e.to_string()),
+            Err(e) => return self.queue_failed(e),
         };
         for (peer, rays) in out_rays {
             self.send_rays(peer, &rays);
@@ -412,7 +444,7 @@ impl<S: RaySpill> Worker<S> {
         let primaries = frame.next_primaries(self.config.wave_rays);
         let trace = match frame.take_work(self.config.pass_rays) {
             Ok(t) => t,
-            Err(e) => return self.fail_frame(e.to_string()),
+            Err(e) => return self.queue_failed(e),
         };
         let speculative = frame.take_to_conclude();
         let concluding = speculative.as_ref().is_some_and(|c| !c.is_empty());

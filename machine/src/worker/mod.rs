@@ -17,7 +17,7 @@ pub mod plan;
 pub mod queues;
 pub mod speculation;
 
-pub use events::{Action, Event, OpenedScene, PassOutput, PassWork, Payload};
+pub use events::{Action, Event, OpenedScene, PassFailed, PassOutput, PassWork, Payload};
 pub use machine::{Worker, WorkerConfig};
 pub use plan::{Destination, Mode, Plan, Sorted};
 pub use queues::{DomainQueues, MemorySpill, QueueError, RaySpill};

@@ -354,6 +354,37 @@ fn rays_leaving_for_a_new_holder_make_a_report_due_and_an_empty_move_does_not() 
 }
 
 #[test]
+fn a_domain_it_cannot_load_is_a_decline_a_replaced_scene_fails_the_frame() {
+    for (failure, declined) in [
+        (
+            PassFailed::Load("domain-00001.rfd: bad domain file".into()),
+            true,
+        ),
+        (
+            PassFailed::SceneReplaced("scene s was replaced".into()),
+            false,
+        ),
+    ] {
+        let mut w = worker();
+        w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[0]));
+        let failed = Event::PassFinished {
+            job_id: JOB.into(),
+            result: Err(failure.clone()),
+            resident: Vec::new(),
+        };
+        let actions = w.handle(Time(1), failed);
+        let reports = frame_reports(&actions);
+        let report = reports.first().expect("a frame report");
+        assert_eq!(report.declined, declined, "{failure:?}");
+        assert!(report.error.starts_with("worker "), "{}", report.error);
+        assert!(w.frame().is_none(), "the frame is left");
+        // Its peers' late rays are dropped, not held for a frame that may start.
+        w.handle(Time(2), bundle(JOB, &[ray(0, 0, 0, 1)]));
+        assert_eq!(w.early_bytes(), 0);
+    }
+}
+
+#[test]
 fn a_batch_outside_the_frame_is_dropped_and_the_rest_of_its_bundle_routed() {
     let mut w = worker();
     w.handle(Time(0), opened(JOB, Schedule::ImagePlane, &[]));
