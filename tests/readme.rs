@@ -117,6 +117,7 @@ fn plan(command: &str) -> Option<Plan> {
         ("rayfarm cancel JOB", || Plan::Synopsis),
         ("rayfarm health HOST:PORT", || Plan::Synopsis),
         ("rayfarm bench --scene DIR", || Plan::Synopsis),
+        ("rayfarm bench-api [", || Plan::Synopsis),
         ("rayfarm bench --scene scenes/", || Plan::Run(&[])),
         ("rayfarm certs", || Plan::Run(&[])),
         ("deploy/build-image.sh", || Plan::Skip(COMPOSE)),
