@@ -99,8 +99,9 @@ const MAX_FETCHES_PER_CLIENT: usize = 4;
 /// The largest result `FetchResult` returns in one message; larger ones are streamed
 /// (`FetchResultStream`, which `rayfarm fetch` uses), so a unary fetch holds at most this.
 const MAX_UNARY_RESULT: u64 = 8 << 20;
-/// A streamed fetch whose client has not taken the next chunk within this is ended: the
-/// client resumes from its offset, and a reader that never reads frees its slot.
+/// A streamed fetch whose client has not taken the next chunk within this stops reading the
+/// file: the client resumes from its offset. Its slot stays taken until the server drops the
+/// stream (a client that never reads holds it until its connection closes).
 const FETCH_STALL_TIMEOUT: Duration = Duration::from_secs(30);
 
 impl Api {
@@ -177,6 +178,14 @@ impl Api {
     ) -> std::sync::MutexGuard<'_, HashMap<PathBuf, (SystemTime, u64, String)>> {
         self.checksums.lock().unwrap_or_else(|p| p.into_inner())
     }
+}
+
+/// A result file that could not be read, named with its job.
+fn unreadable(job_id: &str, path: &Path, e: std::io::Error) -> Status {
+    Status::data_loss(format!(
+        "result of {job_id} unreadable: {}: {e}",
+        path.display()
+    ))
 }
 
 /// Jobs in a page of ListJobs when the client names no size, and the most it may ask.
@@ -290,13 +299,7 @@ impl JobService for Api {
         check_field("job_id", &r.job_id)?;
         let (path, stats_json, image_hash) = self.coordinator.result(&r.job_id, r.format())?;
         let _slot = self.fetches.take(client)?;
-        let unreadable = |e: std::io::Error| {
-            Status::data_loss(format!(
-                "result of {} unreadable: {}: {e}",
-                r.job_id,
-                path.display()
-            ))
-        };
+        let unreadable = |e| unreadable(&r.job_id, &path, e);
         let len = tokio::fs::metadata(&path).await.map_err(unreadable)?.len();
         if len > MAX_UNARY_RESULT {
             return Err(Status::failed_precondition(format!(
@@ -306,7 +309,7 @@ impl JobService for Api {
                 r.job_id
             )));
         }
-        // Read at most the size just checked, should the file have grown since.
+        // Read at most the cap, should the file have grown since it was measured.
         let mut image = Vec::with_capacity(len as usize);
         tokio::fs::File::open(&path)
             .await
@@ -333,13 +336,7 @@ impl JobService for Api {
         check_field("job_id", &r.job_id)?;
         let (path, stats_json, image_hash) = self.coordinator.result(&r.job_id, r.format())?;
         let slot = self.fetches.take(client)?;
-        let unreadable = |e: std::io::Error| {
-            Status::data_loss(format!(
-                "result of {} unreadable: {}: {e}",
-                r.job_id,
-                path.display()
-            ))
-        };
+        let unreadable = |e| unreadable(&r.job_id, &path, e);
         let (total, checksum) = self.checksum(&path).await.map_err(unreadable)?;
         if r.offset > total {
             return Err(Status::out_of_range(format!(
