@@ -370,17 +370,19 @@ fn certs_keeps_existing_credentials_and_refuses_bad_names() {
     // ... a missing set is written anew, keys 0600, and the secret is kept ...
     std::fs::remove_file(&f.ca).expect("remove");
     std::fs::remove_file(&f.key).expect("remove");
+    let ca_key = dir.join("ca-key.pem");
+    std::fs::remove_file(&ca_key).expect("remove");
     rayfarm_ok(&if_missing);
     assert!(f.cert.exists());
     assert_eq!(std::fs::read(&f.secret).expect("secret"), secret);
     use std::os::unix::fs::PermissionsExt;
-    for file in [&f.key, &f.secret, &f.tokens] {
+    for file in [&f.key, &ca_key, &f.secret, &f.tokens] {
         let mode = std::fs::metadata(file).expect("mode").permissions().mode();
         assert_eq!(mode & 0o777, 0o600, "{}", file.display());
     }
     // ... and a symlink, even a dangling one, is never written through.
     let elsewhere = root.path().join("elsewhere-key.pem");
-    for file in [&f.ca, &f.cert, &f.key] {
+    for file in [&f.ca, &ca_key, &f.cert, &f.key] {
         std::fs::remove_file(file).expect("remove");
     }
     std::os::unix::fs::symlink(&elsewhere, &f.key).expect("symlink");

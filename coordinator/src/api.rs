@@ -294,7 +294,7 @@ impl JobService for Api {
         &self,
         request: Request<proto::FetchResultRequest>,
     ) -> Result<Response<proto::FetchResultResponse>, Status> {
-        let client = request.remote_addr().map(|a| a.ip());
+        let client = rayfarm_node::listen::remote_addr(&request).map(|a| a.ip());
         let r = request.into_inner();
         check_field("job_id", &r.job_id)?;
         let (path, stats_json, image_hash) = self.coordinator.result(&r.job_id, r.format())?;
@@ -331,7 +331,7 @@ impl JobService for Api {
         &self,
         request: Request<proto::FetchResultStreamRequest>,
     ) -> Result<Response<ChunkStream>, Status> {
-        let client = request.remote_addr().map(|a| a.ip());
+        let client = rayfarm_node::listen::remote_addr(&request).map(|a| a.ip());
         let r = request.into_inner();
         check_field("job_id", &r.job_id)?;
         let (path, stats_json, image_hash) = self.coordinator.result(&r.job_id, r.format())?;

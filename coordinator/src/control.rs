@@ -40,6 +40,9 @@ impl WorkerControl for Control {
         &self,
         request: Request<Streaming<proto::WorkerMessage>>,
     ) -> Result<Response<OutStream>, Status> {
+        // Under mutual TLS: the names of the worker's certificate, which its id and address
+        // must match.
+        let certified = rayfarm_node::identity::of_request(&request);
         let mut inbound = request.into_inner();
         let first = inbound
             .message()
@@ -51,7 +54,9 @@ impl WorkerControl for Control {
             ));
         };
         let (tx, rx) = mpsc::unbounded_channel();
-        let key = self.coordinator.register(&register, tx)?;
+        let key = self
+            .coordinator
+            .register(&register, certified.as_deref(), tx)?;
         let coordinator = self.coordinator.clone();
         tokio::spawn(async move {
             let why = loop {

@@ -4,6 +4,7 @@
 
 pub mod bounds;
 pub mod fault;
+pub mod identity;
 pub mod job;
 pub mod listen;
 pub mod proto;

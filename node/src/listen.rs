@@ -10,7 +10,7 @@
 
 use std::collections::HashMap;
 use std::io;
-use std::net::IpAddr;
+use std::net::{IpAddr, SocketAddr};
 use std::pin::Pin;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -23,8 +23,10 @@ use tokio::sync::mpsc;
 use tokio_rustls::TlsAcceptor;
 use tokio_rustls::server::TlsStream;
 use tokio_stream::wrappers::ReceiverStream;
-use tonic::transport::server::{Connected, TcpConnectInfo};
+use tonic::transport::server::Connected;
 use tracing::{debug, warn};
+
+use crate::identity::PeerIdentity;
 
 /// What every HTTP/2 client sends first (RFC 9113, section 3.4).
 const PREFACE: &[u8; 24] = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n";
@@ -184,9 +186,12 @@ async fn accept_loop(
         let tls = tls.clone();
         let tx = tx.clone();
         tokio::spawn(async move {
-            let info = stream.connect_info();
             match tokio::time::timeout(deadline, handshake(stream, tls)).await {
                 Ok(Ok(io)) => {
+                    let info = ConnInfo {
+                        remote: Some(peer),
+                        peer: io.peer_identity().map(Arc::new),
+                    };
                     let conn = Conn {
                         io,
                         replayed: 0,
@@ -237,20 +242,49 @@ enum Io {
     Tls(Box<TlsStream<TcpStream>>),
 }
 
+impl Io {
+    /// The names of the client's certificate, when it presented one (mutual TLS: verified
+    /// against the client CA in the handshake).
+    fn peer_identity(&self) -> Option<PeerIdentity> {
+        let Io::Tls(tls) = self else { return None };
+        let certs = tls.get_ref().1.peer_certificates()?;
+        PeerIdentity::from_der(certs.first()?)
+    }
+}
+
+/// What handlers can learn of a connection (in each request's extensions): the client's
+/// address and, under mutual TLS, its certificate's names ([`crate::identity::of_request`]).
+#[derive(Clone, Debug)]
+pub struct ConnInfo {
+    /// The client's address.
+    pub remote: Option<SocketAddr>,
+    /// The names of the client's verified certificate.
+    pub peer: Option<Arc<PeerIdentity>>,
+}
+
+/// The address of the client that sent `request` (tonic's `remote_addr` knows only its own
+/// connection types).
+pub fn remote_addr<T>(request: &tonic::Request<T>) -> Option<SocketAddr> {
+    request
+        .extensions()
+        .get::<ConnInfo>()
+        .and_then(|info| info.remote)
+}
+
 /// An accepted connection past its handshake: it replays the HTTP/2 preface read by the
 /// handshake, then reads on, and holds its slot under the caps until dropped.
 pub struct Conn {
     io: Io,
     /// Bytes of [`PREFACE`] already given back to the reader.
     replayed: usize,
-    info: TcpConnectInfo,
+    info: ConnInfo,
     _slot: Slot,
 }
 
 impl Connected for Conn {
-    type ConnectInfo = TcpConnectInfo;
+    type ConnectInfo = ConnInfo;
 
-    fn connect_info(&self) -> TcpConnectInfo {
+    fn connect_info(&self) -> ConnInfo {
         self.info.clone()
     }
 }

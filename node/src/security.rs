@@ -581,7 +581,7 @@ impl Interceptor for RequireSecret {
             ),
             Some(_) => "wrong cluster secret (check --cluster-secret-file)".to_string(),
         };
-        warn!(client = ?request.remote_addr(), "refused: {refusal}");
+        warn!(client = ?crate::listen::remote_addr(&request), "refused: {refusal}");
         Err(Status::unauthenticated(refusal))
     }
 }
@@ -612,7 +612,7 @@ impl Interceptor for RequireToken {
                 None => "unknown user token",
             },
         };
-        warn!(client = ?request.remote_addr(), "refused: {refusal}");
+        warn!(client = ?crate::listen::remote_addr(&request), "refused: {refusal}");
         Err(Status::unauthenticated(refusal))
     }
 }

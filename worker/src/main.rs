@@ -62,7 +62,8 @@ struct Args {
     /// reported to the coordinator, which drops it as lost.
     #[arg(long, env = "RAYFARM_PEER_ACK_TIMEOUT_MS", default_value_t = 30_000)]
     peer_ack_timeout_ms: u64,
-    /// Worker id shown in status and statistics. Default: the advertised address.
+    /// Worker id shown in status and statistics. Default: the advertised address, or with
+    /// mutual TLS (--tls-client-ca) the name of this node's certificate, which it must equal.
     #[arg(long, env = "RAYFARM_WORKER_ID")]
     worker_id: Option<String>,
     /// Domain cache budget, e.g. 512MiB or 2GB.
@@ -133,6 +134,17 @@ fn parse_duration(s: &str) -> Result<Duration, String> {
     Duration::try_from_secs_f64(seconds).map_err(|e| format!("{s:?}: {e}"))
 }
 
+/// This node's certificate name when mutual TLS is on (`--tls-client-ca` with a certificate):
+/// its id on the cluster.
+fn own_name(args: &Args) -> anyhow::Result<Option<String>> {
+    match (&args.serve_tls.tls_client_ca, &args.serve_tls.tls_cert) {
+        (Some(_), Some(cert)) => rayfarm_node::identity::PeerIdentity::from_pem_file(cert)
+            .map(|id| Some(id.name))
+            .map_err(|e| anyhow::anyhow!("this node's certificate: {e}")),
+        _ => Ok(None),
+    }
+}
+
 fn main() -> std::process::ExitCode {
     let args = Args::parse();
     // Two async threads route and talk; tracing has its own pool.
@@ -155,6 +167,20 @@ async fn run(args: Args) -> anyhow::Result<()> {
     .filter_map(|(missing, what)| missing.then_some(what))
     .collect();
     rayfarm_node::security::check_exposure(args.listen, &missing, args.insecure)?;
+    let worker_id = match own_name(&args)? {
+        // Under mutual TLS the coordinator and peers take this node for the name in its
+        // certificate: an id of its own would only be refused there.
+        Some(name) => match &args.worker_id {
+            Some(id) if *id != name => anyhow::bail!(
+                "--worker-id {id} is not the name of this node's certificate ({name}): with \
+                 mutual TLS (--tls-client-ca) a worker's id is its certificate's name; leave \
+                 --worker-id out or issue a certificate for it (rayfarm certs --node {id})"
+            ),
+            _ => Some(name),
+        },
+        None => args.worker_id.clone(),
+    };
+
     let listener = tokio::net::TcpListener::bind(args.listen)
         .await
         .with_context(|| format!("cannot listen on {}", args.listen))?;
@@ -170,7 +196,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
             bound.to_string()
         }
     });
-    let worker_id = args.worker_id.clone().unwrap_or_else(|| advertise.clone());
+    let worker_id = worker_id.unwrap_or_else(|| advertise.clone());
     let threads = args.threads.unwrap_or_else(|| {
         std::thread::available_parallelism().map_or(1, std::num::NonZeroUsize::get)
     });

@@ -273,9 +273,11 @@ impl PeerService for PeerServer {
         &self,
         request: Request<Streaming<proto::PeerBundle>>,
     ) -> Result<Response<AckStream>, Status> {
-        let remote = request
-            .remote_addr()
+        let remote = rayfarm_node::listen::remote_addr(&request)
             .map_or_else(|| "unknown".to_string(), |a| a.to_string());
+        // Under mutual TLS the sender is who its certificate names: a node holding another
+        // node's cluster credentials still cannot send bundles under that node's id.
+        let certified = rayfarm_node::identity::of_request(&request);
         let mut inbound = request.into_inner();
         let events = self.events.clone();
         let (acks, ack_rx) = mpsc::unbounded_channel();
@@ -289,6 +291,22 @@ impl PeerService for PeerServer {
                         break;
                     }
                 };
+                if let Some(id) = &certified
+                    && bundle.sender != id.name
+                {
+                    error!(
+                        %remote,
+                        sender = %rayfarm_node::bounds::shown(&bundle.sender),
+                        certificate = %id.name,
+                        "refusing a bundle whose sender is not its certificate's name"
+                    );
+                    let _ = acks.send(Err(Status::permission_denied(format!(
+                        "bundle sender {} is not the name of the client certificate ({})",
+                        rayfarm_node::bounds::shown(&bundle.sender),
+                        id.name
+                    ))));
+                    break;
+                }
                 let payload = match decode_bundle(&bundle) {
                     Ok(payload) => payload,
                     // The whole bundle is refused, so the engine never sees half of one; the

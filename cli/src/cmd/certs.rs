@@ -1,4 +1,5 @@
-//! `rayfarm certs`: a private CA and one node certificate for a cluster's TLS (and, on
+//! `rayfarm certs`: a private CA, a shared node certificate and one certificate per node
+//! (`--node ID`, named by the node's id, for mutual TLS) for a cluster's TLS (and, on
 //! request, a random cluster secret and user token), so the compose and Kubernetes examples
 //! turn TLS on without openssl. A real cluster may use certificates from any CA instead.
 
@@ -25,17 +26,42 @@ pub const SECRET_FILE: &str = "cluster-secret";
 /// The user tokens file (`--with-secrets`): one token, for the user `admin`.
 pub const TOKENS_FILE: &str = "user-tokens";
 
+/// The CA's private key: kept (0600) so `--node` can issue node certificates later. Keep it
+/// off the nodes: whoever holds it can mint any node's certificate.
+pub const CA_KEY_FILE: &str = "ca-key.pem";
+
+/// A node certificate's file: `node-ID.pem`.
+pub fn node_cert_file(id: &str) -> String {
+    format!("node-{id}.pem")
+}
+
+/// A node certificate's key: `node-ID-key.pem`.
+pub fn node_key_file(id: &str) -> String {
+    format!("node-{id}-key.pem")
+}
+
 /// Options of `rayfarm certs`.
 #[derive(Args, Clone, Debug)]
 pub struct CertsArgs {
     /// Directory to write into (created if missing).
     #[arg(long)]
     pub out: PathBuf,
-    /// Names and IP addresses the node certificate is valid for, comma-separated (e.g.
-    /// coordinator,rayfarm,localhost,127.0.0.1). Clients check the name they connect to, or
-    /// their --tls-domain, against this list.
-    #[arg(long, value_delimiter = ',', required = true)]
+    /// Names and IP addresses the shared node certificate (`node.pem`, the coordinator's) is
+    /// valid for, comma-separated (e.g. coordinator,rayfarm,localhost,127.0.0.1). Clients
+    /// check the name they connect to, or their --tls-domain, against this list. Needed when
+    /// the CA is made; without it, only the --node certificates are issued, by the CA in --out.
+    #[arg(long, value_delimiter = ',', required_unless_present = "node")]
     pub hosts: Vec<String>,
+    /// Issue a certificate of its own for the node (worker) ID, by the CA in --out or the one
+    /// made now: `node-ID.pem` and `node-ID-key.pem`, with ID as its subject's common name
+    /// (under mutual TLS, the worker id it must register with) and valid for ID (when ID is
+    /// a DNS name) and --node-hosts. Repeatable or comma-separated.
+    #[arg(long, value_delimiter = ',')]
+    pub node: Vec<String>,
+    /// More names and IP addresses every --node certificate is valid for (the hosts its
+    /// node is reached at: its peer address's host must be one of them).
+    #[arg(long, value_delimiter = ',', requires = "node")]
+    pub node_hosts: Vec<String>,
     /// Days the certificates are valid.
     #[arg(long, default_value_t = 3650)]
     pub days: u32,
@@ -48,40 +74,85 @@ pub struct CertsArgs {
     pub if_missing: bool,
 }
 
-pub fn run(a: CertsArgs) -> anyhow::Result<()> {
-    let hosts: Vec<String> = a
-        .hosts
+/// Names as given: trimmed, empty ones dropped, each a DNS name or an IP address.
+fn hosts(flag: &str, given: &[String]) -> anyhow::Result<Vec<String>> {
+    let hosts: Vec<String> = given
         .iter()
         .map(|h| h.trim().to_string())
         .filter(|h| !h.is_empty())
         .collect();
-    if hosts.is_empty() {
-        bail!("--hosts names no host");
-    }
     if let Some(bad) = hosts.iter().find(|h| !valid_host(h)) {
-        bail!("--hosts: {bad:?} is neither a DNS name nor an IP address");
+        bail!("{flag}: {bad:?} is neither a DNS name nor an IP address");
+    }
+    Ok(hosts)
+}
+
+/// A node id that can name files and a certificate: letters, digits, `.`, `_` and `-`, not
+/// starting with `.`, at most 200 bytes.
+fn valid_node_id(id: &str) -> bool {
+    !id.is_empty()
+        && id.len() <= 200
+        && !id.starts_with('.')
+        && id
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || matches!(b, b'.' | b'_' | b'-'))
+}
+
+pub fn run(a: CertsArgs) -> anyhow::Result<()> {
+    let shared_hosts = hosts("--hosts", &a.hosts)?;
+    let node_hosts = hosts("--node-hosts", &a.node_hosts)?;
+    let nodes: Vec<String> = a
+        .node
+        .iter()
+        .map(|n| n.trim().to_string())
+        .filter(|n| !n.is_empty())
+        .collect();
+    if let Some(bad) = nodes.iter().find(|n| !valid_node_id(n)) {
+        bail!(
+            "--node: {bad:?} is not a node id (letters, digits, '.', '_' and '-', at most 200 \
+             bytes)"
+        );
+    }
+    if shared_hosts.is_empty() && nodes.is_empty() {
+        bail!("--hosts names no host");
     }
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let path = |name: &str| a.out.join(name);
-    let mut wanted = vec![CA_FILE, CERT_FILE, KEY_FILE];
+    // With --hosts this run makes (or, --if-missing, keeps) the CA set; without, it only
+    // reads the CA to issue node certificates.
+    let set = [CA_FILE, CA_KEY_FILE, CERT_FILE, KEY_FILE];
+    let mut wanted: Vec<String> = Vec::new();
+    if !shared_hosts.is_empty() {
+        wanted.extend(set.iter().map(|f| f.to_string()));
+    }
     if a.with_secrets {
-        wanted.extend([SECRET_FILE, TOKENS_FILE]);
+        wanted.extend([SECRET_FILE.to_string(), TOKENS_FILE.to_string()]);
+    }
+    for id in &nodes {
+        wanted.extend([node_cert_file(id), node_key_file(id)]);
     }
     // A symlink is never followed (it could point a key anywhere), a dangling one included.
-    if let Some(link) = wanted.iter().find(|f| {
+    let is_link = |f: &str| {
         path(f)
             .symlink_metadata()
             .is_ok_and(|m| m.file_type().is_symlink())
-    }) {
+    };
+    if let Some(link) = wanted
+        .iter()
+        .map(String::as_str)
+        .chain(set)
+        .find(|f| is_link(f))
+    {
         bail!(
             "{} is a symbolic link: refusing to write through it (remove it)",
             path(link).display()
         );
     }
+    let exists = |f: &str| path(f).symlink_metadata().is_ok();
     let existing: Vec<&str> = wanted
         .iter()
-        .copied()
-        .filter(|f| path(f).symlink_metadata().is_ok())
+        .map(String::as_str)
+        .filter(|f| exists(f))
         .collect();
     if !a.if_missing && !existing.is_empty() {
         bail!(
@@ -90,42 +161,75 @@ pub fn run(a: CertsArgs) -> anyhow::Result<()> {
             existing.join(", ")
         );
     }
-    // The three TLS files only work as a set: one missing means a new CA and certificate.
-    let tls_missing = [CA_FILE, CERT_FILE, KEY_FILE]
-        .iter()
-        .any(|f| !existing.contains(f));
-    let kept_tls: Vec<&str> = [CA_FILE, CERT_FILE, KEY_FILE]
-        .into_iter()
-        .filter(|f| existing.contains(f))
-        .collect();
-    if tls_missing && !kept_tls.is_empty() {
-        // A new set would overwrite what exists, the key included: never with --if-missing.
-        bail!(
-            "{} holds {} but not the whole set ({CA_FILE}, {CERT_FILE}, {KEY_FILE}): restore the \
-             missing files or remove the others",
-            a.out.display(),
-            kept_tls.join(", ")
-        );
+    let mut issuer = None;
+    if !shared_hosts.is_empty() {
+        // The CA files only work as a set: one missing means a new CA and certificate.
+        let kept: Vec<&str> = set.into_iter().filter(|f| exists(f)).collect();
+        if kept.len() == set.len() {
+            println!("kept the certificates in {}", a.out.display());
+        } else if !kept.is_empty() {
+            // A new set would overwrite what exists, a key included: never with --if-missing.
+            bail!(
+                "{} holds {} but not the whole set ({}): restore the missing files or remove \
+                 the others",
+                a.out.display(),
+                kept.join(", "),
+                set.join(", ")
+            );
+        } else {
+            let (ca, ca_key, ca_issuer) = new_ca(a.days)?;
+            let (cert, key) = issue(&ca_issuer, "rayfarm node", &shared_hosts, a.days)?;
+            write(&path(CA_FILE), &ca, 0o644)?;
+            write(&path(CA_KEY_FILE), &ca_key, 0o600)?;
+            write(&path(CERT_FILE), &cert, 0o644)?;
+            write(&path(KEY_FILE), &key, 0o600)?;
+            println!(
+                "wrote {CA_FILE}, {CA_KEY_FILE}, {CERT_FILE}, {KEY_FILE} in {} (names: {})",
+                a.out.display(),
+                shared_hosts.join(", ")
+            );
+            issuer = Some(ca_issuer);
+        }
     }
-    if tls_missing {
-        let (ca, cert, key) = generate(&hosts, a.days)?;
-        write(&path(CA_FILE), &ca, 0o644)?;
-        write(&path(CERT_FILE), &cert, 0o644)?;
-        write(&path(KEY_FILE), &key, 0o600)?;
+    for id in &nodes {
+        let (cert_file, key_file) = (node_cert_file(id), node_key_file(id));
+        match (exists(&cert_file), exists(&key_file)) {
+            (true, true) => {
+                println!("kept {cert_file}");
+                continue;
+            }
+            (false, false) => {}
+            _ => bail!(
+                "{} holds one of {cert_file} and {key_file}: restore the other or remove it",
+                a.out.display()
+            ),
+        }
+        if issuer.is_none() {
+            issuer = Some(load_ca(&a.out)?);
+        }
+        let issuer = issuer.as_ref().expect("loaded above");
+        let mut names: Vec<String> = Vec::new();
+        if valid_host(id) {
+            names.push(id.clone());
+        }
+        names.extend(node_hosts.iter().filter(|h| *h != id).cloned());
+        if names.is_empty() {
+            bail!("--node {id}: give the hosts it is reached at (--node-hosts)");
+        }
+        let (cert, key) = issue(issuer, id, &names, a.days)?;
+        write(&path(&cert_file), &cert, 0o644)?;
+        write(&path(&key_file), &key, 0o600)?;
         println!(
-            "wrote {CA_FILE}, {CERT_FILE}, {KEY_FILE} in {} (names: {})",
-            a.out.display(),
-            hosts.join(", ")
+            "wrote {cert_file}, {key_file} (node {id}; names: {})",
+            names.join(", ")
         );
-    } else {
-        println!("kept the certificates in {}", a.out.display());
     }
     if a.with_secrets {
-        if !existing.contains(&SECRET_FILE) {
+        if !exists(SECRET_FILE) {
             write(&path(SECRET_FILE), &format!("{}\n", random_hex()?), 0o600)?;
             println!("wrote {SECRET_FILE}");
         }
-        if !existing.contains(&TOKENS_FILE) {
+        if !exists(TOKENS_FILE) {
             let text = format!(
                 "# TOKEN [USER [ROLE]], one per line; ROLE admin may cancel anyone's jobs\n{} admin admin\n",
                 random_hex()?
@@ -137,14 +241,18 @@ pub fn run(a: CertsArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// A new CA and a node certificate for `hosts` signed by it: (CA PEM, node PEM, key PEM).
-/// The CA's key is dropped: nothing more can be signed, so a leak of the output cannot mint
-/// certificates; new hosts mean running this again.
-fn generate(hosts: &[String], days: u32) -> anyhow::Result<(String, String, String)> {
-    // An hour of slack for clocks slightly behind this one.
-    let not_before = OffsetDateTime::now_utc() - Duration::hours(1);
-    let not_after = OffsetDateTime::now_utc() + Duration::days(i64::from(days.max(1)));
+/// The validity of a certificate made now: from an hour ago (clocks slightly behind this
+/// one) for `days`.
+fn validity(days: u32) -> (OffsetDateTime, OffsetDateTime) {
+    let now = OffsetDateTime::now_utc();
+    (
+        now - Duration::hours(1),
+        now + Duration::days(i64::from(days.max(1))),
+    )
+}
 
+/// A new CA: (certificate PEM, key PEM, the issuer that signs with it).
+fn new_ca(days: u32) -> anyhow::Result<(String, String, Issuer<'static, KeyPair>)> {
     let mut ca = CertificateParams::new(Vec::<String>::new())?;
     ca.distinguished_name = name("rayfarm cluster CA");
     ca.is_ca = IsCa::Ca(BasicConstraints::Constrained(0));
@@ -153,28 +261,54 @@ fn generate(hosts: &[String], days: u32) -> anyhow::Result<(String, String, Stri
         KeyUsagePurpose::CrlSign,
         KeyUsagePurpose::DigitalSignature,
     ];
-    ca.not_before = not_before;
-    ca.not_after = not_after;
+    (ca.not_before, ca.not_after) = validity(days);
     let ca_key = KeyPair::generate().context("generating the CA key")?;
     let ca_cert = ca.self_signed(&ca_key).context("signing the CA")?;
-    let issuer = Issuer::new(ca, ca_key);
+    let key_pem = ca_key.serialize_pem();
+    Ok((ca_cert.pem(), key_pem, Issuer::new(ca, ca_key)))
+}
 
+/// The CA kept in `dir` (`ca.pem` and `ca-key.pem`), to issue node certificates with.
+fn load_ca(dir: &Path) -> anyhow::Result<Issuer<'static, KeyPair>> {
+    let read = |f: &str| {
+        std::fs::read_to_string(dir.join(f)).with_context(|| {
+            format!(
+                "reading {} (node certificates are issued by the CA that `rayfarm certs --hosts` \
+                 made there; a CA made before rayfarm kept {CA_KEY_FILE} cannot issue more: \
+                 make a new one)",
+                dir.join(f).display()
+            )
+        })
+    };
+    let (ca, key) = (read(CA_FILE)?, read(CA_KEY_FILE)?);
+    let key = KeyPair::from_pem(&key)
+        .with_context(|| format!("{} is not a key", dir.join(CA_KEY_FILE).display()))?;
+    Issuer::from_ca_cert_pem(&ca, key)
+        .with_context(|| format!("{} is not a CA certificate", dir.join(CA_FILE).display()))
+}
+
+/// A certificate named `common` (a node's id), valid for `hosts`, signed by `issuer`, for
+/// servers and clients both (nodes present it to each other under mutual TLS): (PEM, key PEM).
+fn issue(
+    issuer: &Issuer<'_, KeyPair>,
+    common: &str,
+    hosts: &[String],
+    days: u32,
+) -> anyhow::Result<(String, String)> {
     let mut node = CertificateParams::new(hosts.to_vec())
-        .context("--hosts: a name is not a valid DNS name or IP address")?;
-    node.distinguished_name = name("rayfarm node");
+        .context("a host is not a valid DNS name or IP address")?;
+    node.distinguished_name = name(common);
     node.key_usages = vec![KeyUsagePurpose::DigitalSignature];
-    // Servers and clients both: workers present it to the coordinator and peers for mTLS.
     node.extended_key_usages = vec![
         ExtendedKeyUsagePurpose::ServerAuth,
         ExtendedKeyUsagePurpose::ClientAuth,
     ];
-    node.not_before = not_before;
-    node.not_after = not_after;
-    let node_key = KeyPair::generate().context("generating the node key")?;
-    let node_cert = node
-        .signed_by(&node_key, &issuer)
-        .context("signing the node certificate")?;
-    Ok((ca_cert.pem(), node_cert.pem(), node_key.serialize_pem()))
+    (node.not_before, node.not_after) = validity(days);
+    let key = KeyPair::generate().context("generating a node key")?;
+    let cert = node
+        .signed_by(&key, issuer)
+        .with_context(|| format!("signing the certificate of {common}"))?;
+    Ok((cert.pem(), key.serialize_pem()))
 }
 
 /// An IP address, or a DNS name (letters, digits and hyphens in dot-separated labels, a
@@ -210,7 +344,6 @@ fn random_hex() -> anyhow::Result<String> {
     Ok(bytes.iter().map(|b| format!("{b:02x}")).collect())
 }
 
-/// Writes `text` to a new file with `mode` (on Unix), replacing any file there.
 /// Creates `path` with `mode` and writes `text`: never over an existing file (the callers
 /// checked; a file that appeared since is an error) and never through a symlink.
 fn write(path: &Path, text: &str, mode: u32) -> anyhow::Result<()> {
@@ -232,7 +365,17 @@ fn write(path: &Path, text: &str, mode: u32) -> anyhow::Result<()> {
 
 #[cfg(test)]
 mod tests {
-    use super::valid_host;
+    use super::{valid_host, valid_node_id};
+
+    #[test]
+    fn node_ids_name_files_safely() {
+        for ok in ["w-a", "worker-1", "rayfarm-worker-0", "n_1.x"] {
+            assert!(valid_node_id(ok), "{ok}");
+        }
+        for bad in ["", ".hidden", "a/b", "../x", "a b", "a:1"] {
+            assert!(!valid_node_id(bad), "{bad}");
+        }
+    }
 
     #[test]
     fn hosts_are_dns_names_or_ip_addresses() {

@@ -43,7 +43,7 @@ fn attach(
         cache_bytes: 1 << 30,
         threads: 1,
     };
-    (c.register(&register, tx).expect("registered"), rx)
+    (c.register(&register, None, tx).expect("registered"), rx)
 }
 
 /// Lets go of the job database as a crashed process does (its lock dies with it): the

@@ -2,6 +2,7 @@
 //! accusations), their loss, and what the cluster status shows of them.
 
 use super::*;
+use rayfarm_node::identity::PeerIdentity;
 
 impl Coordinator {
     /// Workers, their resident domains and queues.
@@ -37,10 +38,27 @@ impl Coordinator {
         }
     }
 
-    /// Registers a worker whose messages go to `tx`; returns its key.
-    pub fn register(self: &Arc<Self>, r: &proto::Register, tx: WorkerTx) -> Result<u32, Status> {
+    /// Registers a worker whose messages go to `tx`; returns its key. `certified`, the names
+    /// of its client certificate under mutual TLS, must name its id and its address's host.
+    pub fn register(
+        self: &Arc<Self>,
+        r: &proto::Register,
+        certified: Option<&PeerIdentity>,
+        tx: WorkerTx,
+    ) -> Result<u32, Status> {
         rayfarm_node::bounds::check_field("worker_id", &r.worker_id)?;
         rayfarm_node::bounds::check_field("peer_address", &r.peer_address)?;
+        if let Some(id) = certified
+            && let Err(refused) = id.check_registration(&r.worker_id, &r.peer_address)
+        {
+            warn!(
+                worker = %rayfarm_node::bounds::shown(&r.worker_id),
+                certificate = %id.name,
+                "registration refused: {}",
+                refused.message()
+            );
+            return Err(refused);
+        }
         if r.protocol_version != PROTOCOL_VERSION {
             return Err(Status::failed_precondition(format!(
                 "worker speaks protocol {}, the coordinator {PROTOCOL_VERSION}",
