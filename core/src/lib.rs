@@ -4,6 +4,7 @@
 //! (`rayfarm-node`), the coordinator, the workers and the CLI are layers over it. See
 //! `docs/ARCHITECTURE.md` for where each concept lives.
 
+pub mod brick;
 pub mod bundler;
 pub mod bvh;
 pub mod camera;
@@ -19,6 +20,7 @@ pub mod render;
 pub mod sampling;
 pub mod scene;
 pub mod schedule;
+pub mod transfer;
 pub mod units;
 pub mod volume;
 pub mod wire;

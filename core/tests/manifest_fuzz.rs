@@ -68,6 +68,7 @@ fn write_scene() -> Scene {
             bytes: summary.bytes,
             triangles: summary.triangles,
             checksum: format!("{:016x}", summary.checksum),
+            values: None,
         });
     }
     let manifest = Manifest {
@@ -122,6 +123,7 @@ fn write_scene() -> Scene {
             KdNode::Leaf { domain: 1 },
         ],
         domains,
+        volume: None,
     };
     manifest.save(dir.path()).unwrap();
     let text = std::fs::read_to_string(dir.path().join("scene.toml")).unwrap();

@@ -117,6 +117,7 @@ pub fn write_scene(
                 bytes: summary.bytes,
                 triangles: summary.triangles,
                 checksum: format!("{:016x}", summary.checksum),
+                values: None,
             });
         }
         let bounds = spec.tree.bounds();
@@ -132,6 +133,7 @@ pub fn write_scene(
             lights: spec.lights,
             kd_nodes: spec.tree.nodes().to_vec(),
             domains,
+            volume: None,
         };
         manifest.save(&staging)?;
         // Re-read what was written: a scene that does not load is not a scene.
@@ -154,7 +156,7 @@ pub fn write_scene(
     }
 }
 
-fn staging_dir(out: &Path) -> PathBuf {
+pub(crate) fn staging_dir(out: &Path) -> PathBuf {
     let mut name = std::ffi::OsString::from(".");
     name.push(out.file_name().unwrap_or_default());
     name.push(format!(".staging-{}", std::process::id()));

@@ -160,13 +160,15 @@ pub fn write_domain(
     })
 }
 
-/// A mapped, checked domain file.
+/// A mapped, checked domain file: a mesh domain, or a volume brick (`crate::brick`), whose
+/// mesh sections are then empty.
 pub struct DomainData {
     map: Mmap,
     path: PathBuf,
     domain: u32,
     bounds: Aabb,
     sections: [Range<usize>; SECTIONS],
+    brick: Option<crate::brick::BrickLayout>,
 }
 
 impl std::fmt::Debug for DomainData {
@@ -206,6 +208,18 @@ impl DomainData {
             path: path.into(),
             reason,
         };
+        if crate::brick::is_brick(&map) {
+            let layout =
+                crate::brick::parse(&map, expected_checksum, verify_checksum).map_err(bad)?;
+            return Ok(DomainData {
+                path: path.into(),
+                domain: layout.header.domain,
+                bounds: Aabb::EMPTY,
+                sections: Default::default(),
+                brick: Some(layout),
+                map,
+            });
+        }
         let header = parse_header(&map).map_err(bad)?;
         if header.checksum != expected_checksum {
             return Err(bad(format!(
@@ -263,6 +277,7 @@ impl DomainData {
             bounds: header.bounds,
             sections,
             map,
+            brick: None,
         };
         bvh::validate(data.nodes(), data.blocks(), data.packed().len()).map_err(bad)?;
         if let Some(t) = data.packed().iter().find(|t| t.material >= materials) {
@@ -278,6 +293,11 @@ impl DomainData {
     fn section<T: Pod>(&self, k: usize) -> &[T] {
         // Offsets were checked in `open`: aligned to 64 within a page-aligned map, sizes exact.
         bytemuck::cast_slice(&self.map[self.sections[k].clone()])
+    }
+
+    /// The volume brick, if this domain is one.
+    pub fn brick(&self) -> Option<crate::brick::Brick<'_>> {
+        self.brick.as_ref().map(|b| b.view(&self.map))
     }
 
     /// The domain id recorded in the file.
@@ -391,6 +411,9 @@ pub fn parse_domain_bytes(bytes: &[u8], materials: u32) -> Result<DomainData, Sc
         .make_read_only()
         .map_err(|e| SceneError::io("<memory>", e))?;
     // The checksum is still verified against the contents; only the manifest is absent.
-    let checksum = parse_header(bytes).map(|h| h.checksum).unwrap_or(0);
+    let checksum = match crate::brick::recorded_checksum(bytes) {
+        Some(c) if crate::brick::is_brick(bytes) => c,
+        _ => parse_header(bytes).map(|h| h.checksum).unwrap_or(0),
+    };
     DomainData::from_map(map, Path::new("<memory>"), checksum, true, materials)
 }

@@ -37,6 +37,58 @@ pub struct Manifest {
     pub kd_nodes: Vec<KdNode>,
     /// One entry per domain, in domain-id order.
     pub domains: Vec<DomainEntry>,
+    /// A volume scene: how its voxels lie in space and how they are rendered; its domains are
+    /// bricks (`crate::brick`). Absent for a scene of triangles.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub volume: Option<VolumeSpec>,
+}
+
+/// A volume scene's voxel grid and its direct volume rendering.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct VolumeSpec {
+    /// Voxels along x, y, z (at least 2 each).
+    pub dims: [u32; 3],
+    /// Position of voxel (0, 0, 0).
+    pub origin: [f32; 3],
+    /// Distance between voxel centres along x, y, z.
+    pub spacing: [f32; 3],
+    /// Distance between samples along a ray.
+    pub step: f32,
+    /// Shade samples by the volume's gradient (a headlight, or the first directional light).
+    pub shading: bool,
+    /// Colour map and opacity curve.
+    pub transfer: crate::transfer::TransferFunction,
+}
+
+impl VolumeSpec {
+    /// Checks the grid, step and transfer function.
+    pub fn check(&self) -> Result<(), String> {
+        if self.dims.iter().any(|&d| d < 2) {
+            return Err(format!(
+                "volume dims {:?}: at least 2 voxels per axis",
+                self.dims
+            ));
+        }
+        if !finite(&self.origin) || !self.spacing.iter().all(|s| s.is_finite() && *s > 0.0) {
+            return Err("volume origin must be finite and spacing finite and positive".into());
+        }
+        let smallest = self.spacing.iter().copied().fold(f32::INFINITY, f32::min);
+        if !(self.step.is_finite() && self.step >= smallest * 1e-3) {
+            return Err(format!(
+                "volume step {} must be finite and at least a thousandth of the spacing",
+                self.step
+            ));
+        }
+        self.transfer
+            .check()
+            .map_err(|e| format!("volume transfer function: {e}"))
+    }
+
+    /// The smallest voxel spacing: the length the transfer function's opacities are for.
+    pub fn voxel_length(&self) -> f32 {
+        self.spacing.iter().copied().fold(f32::INFINITY, f32::min)
+    }
 }
 
 /// A pinhole camera.
@@ -175,6 +227,10 @@ pub struct DomainEntry {
     pub triangles: u64,
     /// xxh3-64 of the file with its checksum field zeroed, as 16 hex digits.
     pub checksum: String,
+    /// A volume brick: the range of its voxels' values (with a cell around it), so that a
+    /// brick the transfer function makes transparent is skipped without loading it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub values: Option<[f32; 2]>,
 }
 
 /// Largest manifest read (far above any real one: 16 domains take about 4 KiB).
@@ -293,6 +349,16 @@ impl Manifest {
                 data.bytes(),
                 entry.bytes
             ))
+        } else if data.brick().is_some() != self.volume.is_some() {
+            Some(match self.volume {
+                Some(_) => "is a mesh domain in a volume scene".to_string(),
+                None => "is a volume brick in a scene of triangles".to_string(),
+            })
+        } else if let (Some(b), Some(v)) = (data.brick(), &self.volume)
+            && (b.header.volume_dims != v.dims
+                || entry.values != Some([b.header.value_min, b.header.value_max]))
+        {
+            Some("brick's volume dims or value range differ from the manifest's".to_string())
         } else if data.indices().len() as u64 != entry.triangles {
             Some(format!(
                 "holds {} triangles, the manifest says {}",
@@ -334,6 +400,15 @@ impl Manifest {
         }
         if self.materials.is_empty() {
             return Err("no materials".into());
+        }
+        if let Some(v) = &self.volume {
+            v.check()?;
+            if let Some(i) = self.domains.iter().position(|d| {
+                !d.values
+                    .is_some_and(|[a, b]| a.is_finite() && b.is_finite() && a <= b)
+            }) {
+                return Err(format!("domain {i}: a brick needs a finite value range"));
+            }
         }
         if self.bounds.is_empty() || !finite(&self.bounds.min) || !finite(&self.bounds.max) {
             return Err("bounds are empty or not finite".into());
