@@ -9,6 +9,7 @@
 
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::time::Duration;
+use tracing::debug;
 
 use rayfarm_core::frame::TileGrid;
 use rayfarm_core::ray::RayRecord;
@@ -394,6 +395,30 @@ impl<S: RaySpill> Frame<S> {
             s.retain_current(&self.plan.epochs, peers);
         }
         self.plan.forget_peers(peers);
+    }
+
+    /// Raises tiles' epochs to those of a peer's rays that are newer than this worker knows.
+    /// The coordinator's bump after a loss reaches workers at different times, and a peer
+    /// that heard it first may already send rays of the new epoch (its hand-outs); dropping
+    /// them as stale would lose their credit for good and the frame would never end. The
+    /// bump itself follows on the control stream and changes nothing more.
+    pub fn adopt_newer_epochs(&mut self, rays: &[RayRecord]) -> Result<(), QueueError> {
+        let mut newer: BTreeMap<u32, u32> = BTreeMap::new();
+        for r in rays {
+            let known = self.plan.epochs.get(r.tile as usize).copied();
+            if known.is_some_and(|e| r.epoch > e) {
+                let e = newer.entry(r.tile).or_insert(r.epoch);
+                *e = (*e).max(r.epoch);
+            }
+        }
+        if newer.is_empty() {
+            return Ok(());
+        }
+        debug!(
+            tiles = newer.len(),
+            "a peer's rays are of newer epochs: taking them before the coordinator's bump"
+        );
+        self.bump_epochs(&newer)
     }
 
     /// Drops queued rays of the given tiles older than their new epochs. Their camera rays

@@ -53,6 +53,9 @@ impl<S: RaySpill> Worker<S> {
                 continue;
             }
             frame.counters.rays_received += rays.len() as u64;
+            if let Err(e) = frame.adopt_newer_epochs(&rays) {
+                return self.queue_failed(e);
+            }
             match frame.route(rays) {
                 Ok(out) => {
                     for (peer, mut rays) in out {

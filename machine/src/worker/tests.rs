@@ -204,6 +204,29 @@ fn a_stale_epochs_rays_are_dropped() {
 }
 
 #[test]
+fn a_peers_rays_of_an_epoch_not_yet_heard_of_here_are_kept() {
+    // A worker was lost; the coordinator's bump reached a peer first, and that peer sends
+    // rays of its re-dealt tiles at the new epoch before the bump arrives here.
+    let mut w = worker();
+    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    w.handle(Time(1), plan(1, &[0], &[]));
+    let early = ray(1, 1, 0, 21);
+    let actions = w.handle(Time(2), bundle(JOB, &[early]));
+    let work = pass_started(&actions).expect("the new epoch's ray is traced, not dropped");
+    assert_eq!(work.trace, Some((0, vec![early])));
+    let bump = control(FromCoordinator::EpochBump(proto::EpochBump {
+        job_id: JOB.into(),
+        epochs: HashMap::from([(1, 1)]),
+        lost_peers: vec!["gone:1".into()],
+    }));
+    w.handle(Time(3), bump);
+    w.handle(Time(4), finished(PassOutput::default()));
+    // The tile's old epoch is stale here now, as everywhere else.
+    let stale = ray(1, 0, 0, 20);
+    assert!(pass_started(&w.handle(Time(5), bundle(JOB, &[stale]))).is_none());
+}
+
+#[test]
 fn a_pass_that_empties_the_planned_queues_is_reported_once() {
     let mut w = worker();
     w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
