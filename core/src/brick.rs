@@ -17,14 +17,13 @@
 //! transparent. Every section starts on a 64-byte boundary; the checksum is xxh3-64 of the file
 //! with its checksum field zero.
 
-use std::io::Write;
 use std::ops::Range;
 use std::path::Path;
 
 use bytemuck::{Pod, Zeroable};
 
 use crate::isosurface::Lattice;
-use crate::scene::{SceneError, temporary_name};
+use crate::scene::{SceneError, check_domain_checksum, domain_checksum, write_domain_file};
 
 /// First bytes of every brick file.
 pub const MAGIC: [u8; 8] = *b"RFBRICK\0";
@@ -219,28 +218,13 @@ pub fn write_brick(
     body.extend_from_slice(bytemuck::cast_slice(&voxels));
     body.resize(ranges_offset as usize - HEADER_BYTES, 0);
     body.extend_from_slice(bytemuck::cast_slice(&ranges));
-    header.checksum = checksum(bytemuck::bytes_of(&header), &body);
-    let tmp = temporary_name(path);
-    let write = || -> std::io::Result<()> {
-        let mut f = std::io::BufWriter::new(std::fs::File::create(&tmp)?);
-        f.write_all(bytemuck::bytes_of(&header))?;
-        f.write_all(&body)?;
-        f.into_inner().map_err(|e| e.into_error())?.sync_all()
-    };
-    write().map_err(|e| SceneError::io(&tmp, e))?;
-    std::fs::rename(&tmp, path).map_err(|e| SceneError::io(path, e))?;
+    header.checksum = domain_checksum(bytemuck::bytes_of(&header), &body);
+    write_domain_file(path, bytemuck::bytes_of(&header), &body)?;
     Ok(BrickSummary {
         bytes: (HEADER_BYTES + body.len()) as u64,
         checksum: header.checksum,
         values,
     })
-}
-
-fn checksum(header: &[u8], body: &[u8]) -> u64 {
-    let mut h = xxhash_rust::xxh3::Xxh3::new();
-    h.update(header);
-    h.update(body);
-    h.digest()
 }
 
 /// Whether `bytes` begin like a brick file.
@@ -262,7 +246,7 @@ pub fn seal(bytes: &mut [u8]) {
     }
     let mut h: BrickHeader = bytemuck::pod_read_unaligned(&bytes[..HEADER_BYTES]);
     h.checksum = 0;
-    h.checksum = checksum(bytemuck::bytes_of(&h), &bytes[HEADER_BYTES..]);
+    h.checksum = domain_checksum(bytemuck::bytes_of(&h), &bytes[HEADER_BYTES..]);
     bytes[..HEADER_BYTES].copy_from_slice(bytemuck::bytes_of(&h));
 }
 
@@ -292,23 +276,15 @@ pub fn parse(
     if h.magic != MAGIC {
         return Err("not a rayfarm brick file (bad magic)".into());
     }
-    if h.checksum != expected_checksum {
-        return Err(format!(
-            "header checksum {:016x} differs from the manifest's {expected_checksum:016x}",
-            h.checksum
-        ));
-    }
-    if verify_checksum {
-        let mut unsealed = h;
-        unsealed.checksum = 0;
-        let actual = checksum(bytemuck::bytes_of(&unsealed), &bytes[HEADER_BYTES..]);
-        if actual != h.checksum {
-            return Err(format!(
-                "contents hash to {actual:016x}, header says {:016x} (corrupt file)",
-                h.checksum
-            ));
-        }
-    }
+    let mut unsealed = h;
+    unsealed.checksum = 0;
+    check_domain_checksum(
+        h.checksum,
+        expected_checksum,
+        verify_checksum,
+        bytemuck::bytes_of(&unsealed),
+        &bytes[HEADER_BYTES..],
+    )?;
     if h._pad != 0 {
         return Err("reserved header bytes are not zero".into());
     }

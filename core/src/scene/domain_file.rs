@@ -14,14 +14,13 @@
 //! the checksum field zeroed, so a flipped bit anywhere, header included, is caught.
 
 use std::collections::HashMap;
-use std::io::Write;
 use std::ops::Range;
 use std::path::{Path, PathBuf};
 
 use bytemuck::{Pod, Zeroable};
 use memmap2::Mmap;
 
-use super::{SceneError, temporary_name};
+use super::{SceneError, check_domain_checksum, domain_checksum, write_domain_file};
 use crate::bvh::{self, BvhNode};
 use crate::geometry::{Aabb, PackedTriangle, TriangleBlock};
 
@@ -142,17 +141,9 @@ pub fn write_domain(
         checksum: 0,
         offsets,
     };
-    let checksum = file_checksum(bytemuck::bytes_of(&header), &body);
+    let checksum = domain_checksum(bytemuck::bytes_of(&header), &body);
     header.checksum = checksum;
-    let tmp = temporary_name(path);
-    let write = || -> std::io::Result<()> {
-        let mut f = std::io::BufWriter::new(std::fs::File::create(&tmp)?);
-        f.write_all(bytemuck::bytes_of(&header))?;
-        f.write_all(&body)?;
-        f.into_inner().map_err(|e| e.into_error())?.sync_all()
-    };
-    write().map_err(|e| SceneError::io(&tmp, e))?;
-    std::fs::rename(&tmp, path).map_err(|e| SceneError::io(path, e))?;
+    write_domain_file(path, bytemuck::bytes_of(&header), &body)?;
     Ok(DomainSummary {
         bytes: (HEADER_BYTES + body.len()) as u64,
         triangles: triangles.len() as u64,
@@ -221,23 +212,16 @@ impl DomainData {
             });
         }
         let header = parse_header(&map).map_err(bad)?;
-        if header.checksum != expected_checksum {
-            return Err(bad(format!(
-                "header checksum {:016x} differs from the manifest's {expected_checksum:016x}",
-                header.checksum
-            )));
-        }
-        if verify_checksum {
-            let mut unsealed = header;
-            unsealed.checksum = 0;
-            let actual = file_checksum(bytemuck::bytes_of(&unsealed), &map[HEADER_BYTES..]);
-            if actual != header.checksum {
-                return Err(bad(format!(
-                    "contents hash to {actual:016x}, header says {:016x} (corrupt file)",
-                    header.checksum
-                )));
-            }
-        }
+        let mut unsealed = header;
+        unsealed.checksum = 0;
+        check_domain_checksum(
+            header.checksum,
+            expected_checksum,
+            verify_checksum,
+            bytemuck::bytes_of(&unsealed),
+            &map[HEADER_BYTES..],
+        )
+        .map_err(bad)?;
         let sizes = [
             (header.vertex_count, 12u64),
             (header.triangle_count, 12),
@@ -357,7 +341,6 @@ impl DomainData {
     }
 }
 
-/// xxh3-64 of the header (with its checksum field zero) followed by the body.
 /// Writes into `bytes` (a domain file's contents) the checksum they should carry, as the
 /// writer would have: tests and fuzzers that change a file use it to reach the checks behind
 /// the checksum, as an attacker who writes the file could. Shorter than a header: unchanged.
@@ -367,15 +350,8 @@ pub fn seal(bytes: &mut [u8]) {
     }
     let mut header: Header = bytemuck::pod_read_unaligned(&bytes[..HEADER_BYTES]);
     header.checksum = 0;
-    header.checksum = file_checksum(bytemuck::bytes_of(&header), &bytes[HEADER_BYTES..]);
+    header.checksum = domain_checksum(bytemuck::bytes_of(&header), &bytes[HEADER_BYTES..]);
     bytes[..HEADER_BYTES].copy_from_slice(bytemuck::bytes_of(&header));
-}
-
-fn file_checksum(header: &[u8], body: &[u8]) -> u64 {
-    let mut h = xxhash_rust::xxh3::Xxh3::new();
-    h.update(header);
-    h.update(body);
-    h.digest()
 }
 
 fn parse_header(bytes: &[u8]) -> Result<Header, String> {

@@ -109,6 +109,60 @@ pub fn write_atomically(path: &std::path::Path, bytes: &[u8]) -> Result<(), Scen
     std::fs::rename(&tmp, path).map_err(|e| SceneError::io(path, e))
 }
 
+/// Writes a domain's file (mesh or brick) as `header` then `body`, synced, through a
+/// temporary name in the same directory, so a reader never sees a half-written file.
+pub(crate) fn write_domain_file(
+    path: &std::path::Path,
+    header: &[u8],
+    body: &[u8],
+) -> Result<(), SceneError> {
+    use std::io::Write;
+    let tmp = temporary_name(path);
+    let write = || -> std::io::Result<()> {
+        let mut f = std::io::BufWriter::new(File::create(&tmp)?);
+        f.write_all(header)?;
+        f.write_all(body)?;
+        f.into_inner().map_err(|e| e.into_error())?.sync_all()
+    };
+    write().map_err(|e| SceneError::io(&tmp, e))?;
+    std::fs::rename(&tmp, path).map_err(|e| SceneError::io(path, e))
+}
+
+/// The checksum a domain's file (mesh or brick) records: xxh3 of its header (with the
+/// checksum field zero) followed by its body.
+pub(crate) fn domain_checksum(header: &[u8], body: &[u8]) -> u64 {
+    let mut h = xxhash_rust::xxh3::Xxh3::new();
+    h.update(header);
+    h.update(body);
+    h.digest()
+}
+
+/// Checks a domain's file (mesh or brick) against its checksums: the one its header
+/// records (`recorded`) must be the manifest's (`expected`), and with `verify` its contents
+/// (`unsealed_header`, the header with the checksum field zero, then `body`) must hash to it.
+pub(crate) fn check_domain_checksum(
+    recorded: u64,
+    expected: u64,
+    verify: bool,
+    unsealed_header: &[u8],
+    body: &[u8],
+) -> Result<(), String> {
+    if recorded != expected {
+        return Err(format!(
+            "header checksum {recorded:016x} differs from the manifest's {expected:016x}"
+        ));
+    }
+    if verify {
+        let actual = domain_checksum(unsealed_header, body);
+        if actual != recorded {
+            return Err(format!(
+                "contents hash to {actual:016x}, header says {recorded:016x} (corrupt file)"
+            ));
+        }
+    }
+    Ok(())
+}
+
 /// The name a file is written under before it is renamed into place.
 pub fn temporary_name(path: &std::path::Path) -> PathBuf {
     let mut name = path.file_name().unwrap_or_default().to_os_string();
