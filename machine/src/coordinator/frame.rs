@@ -500,6 +500,9 @@ impl RunningFrame {
     }
 }
 
+#[path = "lifecycle.rs"]
+pub mod lifecycle;
+
 #[cfg(test)]
 #[path = "frame_tests.rs"]
 mod tests;
