@@ -258,7 +258,7 @@ fn under_a_memory_cap_a_job_past_the_limits_is_refused_at_submit_and_the_next_re
         ),
         (
             &["--width", "64", "--height", "64", "--spp", "1024"][..],
-            "88.0 MiB for the camera rays of one tile in a worker",
+            "104.0 MiB for the camera rays of one tile in a worker",
         ),
     ];
     for (frame, figure) in refused {

@@ -3,7 +3,7 @@
 //! input with errors that name the file; `--spacing` keeps a volume's proportions.
 
 use rayfarm_core::scene::Manifest;
-use rayfarm_tests::{rayfarm_err, rayfarm_ok, s};
+use rayfarm_tests::{file_hash, rayfarm_err, rayfarm_ok, s};
 
 /// A 20x16x12 i16 volume: a ball of "bone" (1000) in "soft tissue" (0).
 fn ball_volume(path: &std::path::Path) {
@@ -221,4 +221,121 @@ fn the_generator_emits_its_density_field_as_a_volume() {
         "--force",
     ]);
     assert!(e.contains("cube"), "{e}");
+}
+
+/// Direct volume rendering: the image is the same bits however the volume is cut into bricks,
+/// whatever the cache budget (bricks paged in and out) and however many threads trace it.
+#[test]
+fn dvr_images_are_identical_at_1_8_and_64_bricks_any_cache_and_threads() {
+    let tmp = tempfile::tempdir().unwrap();
+    let mut hashes = Vec::new();
+    for bricks in ["1", "8", "64"] {
+        let scene = tmp.path().join(format!("nbody-{bricks}"));
+        rayfarm_ok(&[
+            "prepare",
+            "--generate",
+            "nbody",
+            "--volume",
+            "--dims",
+            "48,48,48",
+            "--bricks",
+            bricks,
+            "--out",
+            s(&scene),
+        ]);
+        let bytes: u64 = Manifest::load(&scene)
+            .unwrap()
+            .domains
+            .iter()
+            .map(|d| d.bytes)
+            .sum();
+        let small = (bytes / 6).max(1).to_string();
+        for (cache, threads) in [("4GiB", "1"), (small.as_str(), "2"), ("4GiB", "2")] {
+            let img = tmp
+                .path()
+                .join(format!("{bricks}-{threads}-{}.exr", hashes.len()));
+            let stats = tmp.path().join("stats.json");
+            rayfarm_ok(&[
+                "render",
+                "--local",
+                "--scene",
+                s(&scene),
+                "--width",
+                "96",
+                "--height",
+                "72",
+                "--spp",
+                "2",
+                "--threads",
+                threads,
+                "--cache-bytes",
+                cache,
+                "-o",
+                s(&img),
+                "--stats-json",
+                s(&stats),
+                "--quiet",
+            ]);
+            hashes.push((
+                format!("{bricks} bricks, cache {cache}, {threads} threads"),
+                file_hash(&img),
+            ));
+        }
+    }
+    for (what, h) in &hashes {
+        assert_eq!(h, &hashes[0].1, "{what} differs from {}", hashes[0].0);
+    }
+}
+
+/// On a real cluster of 1, 2 and 4 workers, every schedule that renders volumes gives the
+/// image of `render --local` to the bit; predictive is refused for a volume scene, clearly.
+#[test]
+fn dvr_on_a_cluster_matches_the_local_image_under_every_schedule() {
+    use rayfarm_tests::{Cluster, WorkerOpts, domain_bytes, hash_of, local_hash, submit_wait};
+    let root = tempfile::tempdir().unwrap();
+    let scene = root.path().join("vol");
+    rayfarm_ok(&[
+        "prepare",
+        "--generate",
+        "nbody",
+        "--volume",
+        "--dims",
+        "48,48,48",
+        "--bricks",
+        "8",
+        "--out",
+        s(&scene),
+    ]);
+    let frame = ["--width", "96", "--height", "72", "--spp", "2"];
+    let expected = local_hash(&scene, &frame);
+    let (_, largest) = domain_bytes(&scene);
+    for n in [1, 2, 4] {
+        // Two-brick caches: bricks page in and out.
+        let cluster = Cluster::start(
+            root.path(),
+            Some("vol"),
+            &vec![WorkerOpts::cache(2 * largest); n],
+        );
+        cluster.wait_for_workers(n, rayfarm_tests::START_TIMEOUT);
+        for schedule in ["image-plane", "domain", "dynamic", "hybrid"] {
+            let mut f = frame.to_vec();
+            f.extend(["--schedule", schedule, "--cold-cache"]);
+            let stats = submit_wait(&cluster, &f, &format!("{schedule}-{n}"));
+            assert_eq!(hash_of(&stats), expected, "{schedule} with {n} workers");
+        }
+        let out = cluster.rayfarm(&[
+            "submit",
+            "--schedule",
+            "predictive",
+            "--width",
+            "8",
+            "--height",
+            "8",
+        ]);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !out.status.success() && err.contains("predictive schedule does not render volume"),
+            "{err}"
+        );
+    }
 }

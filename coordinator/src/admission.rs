@@ -106,7 +106,7 @@ mod tests {
             n.images > (3 << 30) + (768 << 20) && n.images < 4 << 30,
             "{n:?}"
         );
-        assert_eq!(n.worker_tile, 1024 * 88);
+        assert_eq!(n.worker_tile, 1024 * 104);
         n.check(16 << 30, Path::new("/d"), 11 << 30).unwrap();
     }
 

@@ -260,8 +260,7 @@ fn check_record(r: &RayRecord, l: &BatchLimits) -> Result<(), &'static str> {
     // Composited premultiplied colour is non-negative and opacity a fraction: a record outside
     // that could only make a pixel no render makes.
     let unit = |x: f32| (0.0..=1.0).contains(&x);
-    if !(finite(&r.volume_rgb) && r.volume_rgb.iter().all(|&c| c >= 0.0) && unit(r.volume_alpha))
-    {
+    if !(finite(&r.volume_rgb) && r.volume_rgb.iter().all(|&c| c >= 0.0) && unit(r.volume_alpha)) {
         return Err("volume colour or opacity out of range");
     }
     if !(r.t_min >= 0.0 && r.t_min.is_finite() && r.t_max >= r.t_min) {

@@ -316,8 +316,9 @@ impl SceneView {
             }
             ControlFlow::Continue(())
         });
-        // A copy queued for a domain off its path finds nothing there.
-        let Some((t0, t1)) = interval else {
+        // A copy queued for a domain off its path finds nothing there. A brick has no
+        // surfaces: volume scenes are refused speculative placement before any copy is made.
+        let Some((t0, t1)) = interval.filter(|_| data.brick().is_none()) else {
             return Verdict::Clear;
         };
         let tr = TraceRay::new(Vec3::from(ray.origin), Vec3::from(ray.dir));

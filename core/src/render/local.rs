@@ -198,6 +198,13 @@ pub fn render_local(
     on_progress: &mut (dyn FnMut(&Progress) + Send),
 ) -> Result<(Film, RenderStats), RenderError> {
     frame.check().map_err(RenderError::Frame)?;
+    if options.speculate && manifest.volume.is_some() {
+        return Err(RenderError::Frame(
+            "speculative placement does not render volume scenes yet (its copies return \
+             surface verdicts, not composited colour)"
+                .into(),
+        ));
+    }
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(options.threads.max(1))
         .build()
