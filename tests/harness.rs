@@ -1023,7 +1023,7 @@ pub fn proc_status_bytes(pid: u32, field: &str) -> u64 {
 }
 
 /// A plain HTTP/1.1 request to `addr` (host:port): the status code and the body. Panics if
-/// the server does not answer within `START_TIMEOUT`.
+/// the server cannot be reached or does not answer within `START_TIMEOUT`.
 pub fn http_request(
     addr: &str,
     method: &str,
@@ -1031,12 +1031,23 @@ pub fn http_request(
     headers: &[(&str, &str)],
     body: &str,
 ) -> (u16, String) {
+    try_http_request(addr, method, path, headers, body)
+        .unwrap_or_else(|e| panic!("{method} {path} from {addr}: {e}"))
+}
+
+/// [`http_request`], with an error for a server that cannot be reached or answers badly.
+pub fn try_http_request(
+    addr: &str,
+    method: &str,
+    path: &str,
+    headers: &[(&str, &str)],
+    body: &str,
+) -> Result<(u16, String), String> {
     use std::io::{Read, Write};
-    let mut stream =
-        std::net::TcpStream::connect(addr).unwrap_or_else(|e| panic!("connect {addr}: {e}"));
+    let mut stream = std::net::TcpStream::connect(addr).map_err(|e| format!("connect: {e}"))?;
     stream
         .set_read_timeout(Some(START_TIMEOUT))
-        .expect("read timeout");
+        .map_err(|e| e.to_string())?;
     let mut request = format!(
         "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\nContent-Length: {}\r\n",
         body.len()
@@ -1046,19 +1057,23 @@ pub fn http_request(
     }
     request.push_str("\r\n");
     request.push_str(body);
-    stream.write_all(request.as_bytes()).expect("send request");
+    stream
+        .write_all(request.as_bytes())
+        .map_err(|e| format!("send: {e}"))?;
     let mut answer = Vec::new();
-    stream.read_to_end(&mut answer).expect("read response");
+    stream
+        .read_to_end(&mut answer)
+        .map_err(|e| format!("read: {e}"))?;
     let answer = String::from_utf8_lossy(&answer).into_owned();
     let (head, body) = answer
         .split_once("\r\n\r\n")
-        .unwrap_or_else(|| panic!("no header end in {answer:?}"));
+        .ok_or_else(|| format!("no header end in {answer:?}"))?;
     let status = head
         .split(' ')
         .nth(1)
         .and_then(|c| c.parse().ok())
-        .unwrap_or_else(|| panic!("no status in {head:?}"));
-    (status, body.to_string())
+        .ok_or_else(|| format!("no status in {head:?}"))?;
+    Ok((status, body.to_string()))
 }
 
 /// `GET path` from `addr`; panics unless the answer is 200.
