@@ -228,6 +228,8 @@ struct Proc {
     child: Child,
     log: PathBuf,
     addr: String,
+    /// Its HTTP address, when it printed `http on ADDR` before `listening on`.
+    http: Option<String>,
     /// The test host it runs on (`None`: this machine's loopback).
     host: Option<Host>,
     /// Killed by the test (its log is still shown).
@@ -293,11 +295,12 @@ impl Proc {
             .unwrap_or_else(|e| panic!("start {}: {e}", program.display()));
         let stdout = child.stdout.take().expect("piped stdout");
         match listening_address(stdout).recv_timeout(START_TIMEOUT) {
-            Ok(Ok(addr)) => Proc {
+            Ok(Ok((addr, http))) => Proc {
                 name: name.to_string(),
                 child,
                 log: log.to_path_buf(),
                 addr,
+                http,
                 host: host.cloned(),
                 killed: false,
             },
@@ -328,17 +331,24 @@ impl Proc {
     }
 }
 
-/// Reads a child's stdout on a thread: sends the address of its `listening on ADDR` line (or
-/// why there is none), then drains the rest so the child never blocks on a full pipe.
-fn listening_address(stdout: ChildStdout) -> mpsc::Receiver<Result<String, String>> {
+/// What a started server printed: its address and, with `--http`, its HTTP address.
+type Listening = Result<(String, Option<String>), String>;
+
+/// Reads a child's stdout on a thread: sends the address of its `listening on ADDR` line,
+/// with that of an `http on ADDR` line before it (or why there is none), then drains the rest
+/// so the child never blocks on a full pipe.
+fn listening_address(stdout: ChildStdout) -> mpsc::Receiver<Listening> {
     let (tx, rx) = mpsc::channel();
     std::thread::spawn(move || {
         let mut sent = false;
+        let mut http = None;
         for line in BufReader::new(stdout).lines() {
             match line {
                 Ok(line) if !sent => {
-                    if let Some(addr) = line.trim().strip_prefix("listening on ") {
-                        let _ = tx.send(Ok(addr.trim().to_string()));
+                    if let Some(addr) = line.trim().strip_prefix("http on ") {
+                        http = Some(addr.trim().to_string());
+                    } else if let Some(addr) = line.trim().strip_prefix("listening on ") {
+                        let _ = tx.send(Ok((addr.trim().to_string(), http.take())));
                         sent = true;
                     }
                 }
@@ -506,6 +516,16 @@ impl Cluster {
     /// The running coordinator's process id.
     pub fn coordinator_pid(&self) -> u32 {
         self.coordinator.child.id()
+    }
+
+    /// The coordinator's HTTP address (host:port), when it was started with `--http`.
+    pub fn coordinator_http(&self) -> Option<&str> {
+        self.coordinator.http.as_deref()
+    }
+
+    /// Worker `i`'s HTTP address (host:port), when it was started with `--http`.
+    pub fn worker_http(&self, i: usize) -> Option<&str> {
+        self.workers[i].http.as_deref()
     }
 
     /// The coordinator's URL, `http://127.0.0.1:PORT` (`https://` with TLS).
@@ -1000,4 +1020,65 @@ pub fn proc_status_bytes(pid: u32, field: &str) -> u64 {
         .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
         .unwrap_or_else(|| panic!("no {field} in {status}"));
     kib * 1024
+}
+
+/// A plain HTTP/1.1 request to `addr` (host:port): the status code and the body. Panics if
+/// the server cannot be reached or does not answer within `START_TIMEOUT`.
+pub fn http_request(
+    addr: &str,
+    method: &str,
+    path: &str,
+    headers: &[(&str, &str)],
+    body: &str,
+) -> (u16, String) {
+    try_http_request(addr, method, path, headers, body)
+        .unwrap_or_else(|e| panic!("{method} {path} from {addr}: {e}"))
+}
+
+/// [`http_request`], with an error for a server that cannot be reached or answers badly.
+pub fn try_http_request(
+    addr: &str,
+    method: &str,
+    path: &str,
+    headers: &[(&str, &str)],
+    body: &str,
+) -> Result<(u16, String), String> {
+    use std::io::{Read, Write};
+    let mut stream = std::net::TcpStream::connect(addr).map_err(|e| format!("connect: {e}"))?;
+    stream
+        .set_read_timeout(Some(START_TIMEOUT))
+        .map_err(|e| e.to_string())?;
+    let mut request = format!(
+        "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\nContent-Length: {}\r\n",
+        body.len()
+    );
+    for (k, v) in headers {
+        request.push_str(&format!("{k}: {v}\r\n"));
+    }
+    request.push_str("\r\n");
+    request.push_str(body);
+    stream
+        .write_all(request.as_bytes())
+        .map_err(|e| format!("send: {e}"))?;
+    let mut answer = Vec::new();
+    stream
+        .read_to_end(&mut answer)
+        .map_err(|e| format!("read: {e}"))?;
+    let answer = String::from_utf8_lossy(&answer).into_owned();
+    let (head, body) = answer
+        .split_once("\r\n\r\n")
+        .ok_or_else(|| format!("no header end in {answer:?}"))?;
+    let status = head
+        .split(' ')
+        .nth(1)
+        .and_then(|c| c.parse().ok())
+        .ok_or_else(|| format!("no status in {head:?}"))?;
+    Ok((status, body.to_string()))
+}
+
+/// `GET path` from `addr`; panics unless the answer is 200.
+pub fn http_get(addr: &str, path: &str) -> String {
+    let (status, body) = http_request(addr, "GET", path, &[], "");
+    assert_eq!(status, 200, "GET {path} from {addr}: {body}");
+    body
 }

@@ -21,6 +21,7 @@ use anyhow::Context;
 use clap::Parser;
 use rayfarm_core::schedule::dynamic::Options;
 use rayfarm_node::fault::Faults;
+use rayfarm_node::http::HttpArgs;
 use rayfarm_node::listen::ConnectionArgs;
 use rayfarm_node::proto::job_service_server::JobServiceServer;
 use rayfarm_node::proto::worker_control_server::WorkerControlServer;
@@ -74,6 +75,8 @@ struct Args {
     insecure: bool,
     #[command(flatten)]
     connections: ConnectionArgs,
+    #[command(flatten)]
+    http: HttpArgs,
     /// Where jobs and results are kept: the job database `rayfarm.redb` (queued, running and
     /// finished jobs survive a restart; a damaged file stops the coordinator, never replaced)
     /// and `jobs/<id>/` with each finished job's images and statistics. One coordinator per
@@ -157,6 +160,10 @@ async fn run(args: Args) -> anyhow::Result<()> {
     .filter_map(|(missing, what)| missing.then_some(what))
     .collect();
     rayfarm_node::security::check_exposure(args.listen, &missing, args.insecure)?;
+    if let Some(http) = args.http.http {
+        rayfarm_node::security::check_exposure(http, &missing, args.insecure)?;
+    }
+    let http_tls = args.tls.http_server_config()?;
     std::fs::create_dir_all(&args.data_dir)
         .with_context(|| format!("creating data directory {}", args.data_dir.display()))?;
     let listen = args.listen;
@@ -183,6 +190,24 @@ async fn run(args: Args) -> anyhow::Result<()> {
     };
     // The jobs are loaded before listening: nobody sees a coordinator without them.
     let coordinator = Coordinator::open(config.clone())?;
+    // Bound before the `listening on` line, so whoever waits for that line has both.
+    let http = match args.http.http {
+        Some(addr) => {
+            let c = coordinator.clone();
+            let router = rayfarm_node::http::metrics_route(move || {
+                c.refresh_metrics();
+                rayfarm_node::metrics::coordinator().encode()
+            });
+            Some(rayfarm_node::http::bind(addr, http_tls, &args.connections, router).await?)
+        }
+        None => None,
+    };
+    let http = async move {
+        match http {
+            Some(serve) => serve.await,
+            None => std::future::pending().await,
+        }
+    };
     let listener = tokio::net::TcpListener::bind(listen)
         .await
         .with_context(|| format!("cannot listen on {listen}"))?;
@@ -236,6 +261,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     // Health stays outside the interceptors: probes carry no credentials.
     let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
     let server = rayfarm_node::security::server_builder()
+        .layer(rayfarm_node::metrics::rpc_error_layer())
         .add_service(health_service)
         .add_service(api)
         .add_service(control)
@@ -246,6 +272,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     tokio::select! {
         r = &mut server => r.context("server failed")?,
         () = reaper => {}
+        () = http => {}
         () = rayfarm_node::telemetry::shutdown_signal() => {
             // Workers hold their control streams open for as long as they live, so waiting
             // for connections to close would wait for ever: tell the workers first (they

@@ -125,6 +125,15 @@ pub fn encode_batch(rays: &[RayRecord]) -> Vec<u8> {
     encode(MAGIC, rays)
 }
 
+/// The rays a batch this process encoded carries (0 for a verdict batch or anything else):
+/// a count for the metrics, from the length alone, with no check.
+pub fn ray_count(bytes: &[u8]) -> u64 {
+    if bytes.len() < HEADER_BYTES || bytes[..4] != MAGIC {
+        return 0;
+    }
+    ((bytes.len() - HEADER_BYTES) / RECORD_BYTES) as u64
+}
+
 /// Decodes and checks a batch.
 pub fn decode_batch(bytes: &[u8], limits: &BatchLimits) -> Result<Vec<RayRecord>, WireError> {
     check_batch(bytes, limits)?;

@@ -4,9 +4,11 @@
 
 pub mod bounds;
 pub mod fault;
+pub mod http;
 pub mod identity;
 pub mod job;
 pub mod listen;
+pub mod metrics;
 pub mod proto;
 pub mod result_file;
 pub mod security;

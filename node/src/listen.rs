@@ -138,6 +138,24 @@ pub fn incoming(
     tls: Option<TlsAcceptor>,
     limits: &ConnectionArgs,
 ) -> ReceiverStream<Result<Conn, io::Error>> {
+    incoming_of(listener, tls, limits, true)
+}
+
+/// [`incoming`] for HTTP/1.1 ([`crate::http`]): the same caps and TLS deadline, no preface.
+pub fn incoming_http1(
+    listener: TcpListener,
+    tls: Option<TlsAcceptor>,
+    limits: &ConnectionArgs,
+) -> ReceiverStream<Result<Conn, io::Error>> {
+    incoming_of(listener, tls, limits, false)
+}
+
+fn incoming_of(
+    listener: TcpListener,
+    tls: Option<TlsAcceptor>,
+    limits: &ConnectionArgs,
+    h2: bool,
+) -> ReceiverStream<Result<Conn, io::Error>> {
     let slots = Arc::new(Slots {
         max_total: limits.effective_max_connections(),
         max_per_peer: limits.max_connections_per_peer.max(1),
@@ -146,7 +164,7 @@ pub fn incoming(
     });
     let deadline = Duration::from_millis(limits.handshake_timeout_ms.max(1));
     let (tx, rx) = mpsc::channel(16);
-    tokio::spawn(accept_loop(listener, tls, slots, deadline, tx));
+    tokio::spawn(accept_loop(listener, tls, slots, deadline, h2, tx));
     ReceiverStream::new(rx)
 }
 
@@ -155,6 +173,7 @@ async fn accept_loop(
     tls: Option<TlsAcceptor>,
     slots: Arc<Slots>,
     deadline: Duration,
+    h2: bool,
     tx: mpsc::Sender<Result<Conn, io::Error>>,
 ) {
     loop {
@@ -186,7 +205,7 @@ async fn accept_loop(
         let tls = tls.clone();
         let tx = tx.clone();
         tokio::spawn(async move {
-            match tokio::time::timeout(deadline, handshake(stream, tls)).await {
+            match tokio::time::timeout(deadline, handshake(stream, tls, h2)).await {
                 Ok(Ok(io)) => {
                     let info = ConnInfo {
                         remote: Some(peer),
@@ -194,7 +213,8 @@ async fn accept_loop(
                     };
                     let conn = Conn {
                         io,
-                        replayed: 0,
+                        // Without a preface read there is nothing to replay.
+                        replayed: if h2 { 0 } else { PREFACE.len() },
                         info,
                         _slot: slot,
                     };
@@ -207,8 +227,8 @@ async fn accept_loop(
     }
 }
 
-/// TLS (if on), then the HTTP/2 preface, which [`Conn`] replays to the server.
-async fn handshake(stream: TcpStream, tls: Option<TlsAcceptor>) -> io::Result<Io> {
+/// TLS (if on), then (with `h2`) the HTTP/2 preface, which [`Conn`] replays to the server.
+async fn handshake(stream: TcpStream, tls: Option<TlsAcceptor>, h2: bool) -> io::Result<Io> {
     let mut io = match tls {
         Some(acceptor) => match acceptor.accept(stream).into_fallible().await {
             Ok(tls) => Io::Tls(Box::new(tls)),
@@ -225,6 +245,9 @@ async fn handshake(stream: TcpStream, tls: Option<TlsAcceptor>) -> io::Result<Io
         },
         None => Io::Plain(stream),
     };
+    if !h2 {
+        return Ok(io);
+    }
     let mut preface = [0u8; PREFACE.len()];
     io.read_exact(&mut preface).await?;
     if &preface != PREFACE {

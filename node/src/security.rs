@@ -141,6 +141,16 @@ impl ServeTlsArgs {
     /// The server TLS configuration, or `None` when no certificate is given (plain text).
     /// The handshake itself is done by [`crate::listen`], under its deadline.
     pub fn server_config(&self) -> Result<Option<TlsAcceptor>, SecurityError> {
+        // gRPC is HTTP/2 only.
+        self.server_config_for(b"h2")
+    }
+
+    /// [`ServeTlsArgs::server_config`] for the HTTP/1.1 listener ([`crate::http`]).
+    pub fn http_server_config(&self) -> Result<Option<TlsAcceptor>, SecurityError> {
+        self.server_config_for(b"http/1.1")
+    }
+
+    fn server_config_for(&self, alpn: &[u8]) -> Result<Option<TlsAcceptor>, SecurityError> {
         let (Some(cert), Some(key)) = (&self.tls_cert, &self.tls_key) else {
             return Ok(None);
         };
@@ -172,8 +182,7 @@ impl ServeTlsArgs {
         let mut config = builder.with_single_cert(chain, key_der).map_err(|e| {
             SecurityError::Tls(format!("{} and {}: {e}", cert.display(), key.display()))
         })?;
-        // gRPC is HTTP/2 only.
-        config.alpn_protocols = vec![b"h2".to_vec()];
+        config.alpn_protocols = vec![alpn.to_vec()];
         Ok(Some(TlsAcceptor::from(Arc::new(config))))
     }
 

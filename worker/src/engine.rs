@@ -19,8 +19,8 @@ use rayfarm_machine::worker::{
     self as machine, Action, DomainQueues, OpenedScene, PassFailed, PassOutput, Worker,
     WorkerConfig,
 };
-use rayfarm_node::job;
 use rayfarm_node::proto::{self, coordinator_message::Body as FromCoordinator};
+use rayfarm_node::{job, metrics};
 use tokio::sync::mpsc;
 use tracing::info;
 
@@ -93,6 +93,8 @@ pub struct Engine {
     /// The scene the cache serves (its directory and its manifest, which names every domain
     /// file's checksum, so a scene re-prepared in place is a new scene), and the cache.
     cache: Option<(SceneKey, Arc<Mutex<DomainCache>>)>,
+    /// The cache's counters when last added to the metrics.
+    cache_counted: CacheCounters,
 }
 
 impl Engine {
@@ -126,6 +128,7 @@ impl Engine {
             clock: Instant::now(),
             frame: None,
             cache: None,
+            cache_counted: CacheCounters::default(),
         })
     }
 
@@ -147,6 +150,10 @@ impl Engine {
             for action in self.machine.handle(now, event) {
                 self.execute(action);
             }
+            let (queued, spilled) = self.machine.frame().map_or((0, 0), |f| f.queue_bytes());
+            let m = metrics::worker();
+            m.queue_bytes.set(queued as i64);
+            m.spill_bytes.set(spilled as i64);
         }
     }
 
@@ -162,12 +169,28 @@ impl Engine {
                 }
                 body => machine::Event::Control(proto::CoordinatorMessage { body }),
             },
-            Event::Machine(event) => *event,
-            Event::PassDone { job_id, result } => machine::Event::PassFinished {
-                job_id,
-                result: result.map_err(|e| self.pass_failed(e)),
-                resident: self.with_cache(|c| c.resident()).unwrap_or_default(),
-            },
+            Event::Machine(event) => {
+                if let machine::Event::PeerBundle {
+                    payload: machine::Payload::Rays(batches),
+                    ..
+                } = event.as_ref()
+                {
+                    let rays: usize = batches.iter().map(Vec::len).sum();
+                    metrics::worker().rays_received.inc_by(rays as u64);
+                }
+                *event
+            }
+            Event::PassDone { job_id, result } => {
+                if let Ok(output) = &result {
+                    count_pass(output);
+                }
+                self.count_cache();
+                machine::Event::PassFinished {
+                    job_id,
+                    result: result.map_err(|e| self.pass_failed(e)),
+                    resident: self.with_cache(|c| c.resident()).unwrap_or_default(),
+                }
+            }
         }
     }
 
@@ -184,8 +207,19 @@ impl Engine {
                 job_id,
                 tier,
                 batches,
-            } => self.peers.send(&peer, &job_id, tier, batches),
-            Action::DropPeers(peers) => self.peers.drop_peers(&peers),
+            } => {
+                let m = &metrics::worker().tiers[tier as usize];
+                m.bundles.inc();
+                for b in &batches {
+                    m.bytes.inc_by(b.len() as u64);
+                    m.rays.inc_by(rayfarm_core::wire::ray_count(b));
+                }
+                self.peers.send(&peer, &job_id, tier, batches)
+            }
+            Action::DropPeers(peers) => {
+                metrics::worker().peers_lost.inc_by(peers.len() as u64);
+                self.peers.drop_peers(&peers)
+            }
             Action::StartPass { job_id, work } => self.start_pass(job_id, work),
             Action::Evict(domains) => {
                 self.with_cache(|c| domains.iter().for_each(|&d| c.evict(d)));
@@ -194,6 +228,7 @@ impl Engine {
                 self.with_cache(|c| c.pin(domains));
             }
             Action::FrameEnded { job_id, mut stats } => {
+                self.count_cache();
                 let start = self
                     .frame
                     .take_if(|f| f.job_id == job_id)
@@ -260,6 +295,21 @@ impl Engine {
         }
     }
 
+    /// Adds what the cache did since the last call to the metrics (after each pass and at
+    /// a frame's end: loads and evictions happen in passes and on the machine's orders).
+    fn count_cache(&mut self) {
+        let Some(now) = self.with_cache(|c| c.counters()) else {
+            return;
+        };
+        let d = since(&self.cache_counted, &now);
+        let m = metrics::worker();
+        m.domain_loads.inc_by(d.loads);
+        m.domain_load_bytes.inc_by(d.bytes_loaded);
+        m.domain_evictions.inc_by(d.evictions);
+        m.domain_load_seconds.inc_by(d.load_nanos as f64 / 1e9);
+        self.cache_counted = now;
+    }
+
     fn with_cache<T>(&self, f: impl FnOnce(&mut DomainCache) -> T) -> Option<T> {
         self.cache.as_ref().map(|(_, c)| f(&mut lock(c)))
     }
@@ -297,6 +347,9 @@ impl Engine {
             if self.cache.is_some() {
                 info!(scene = %spec.scene, "scene changed on disk: opening it afresh");
             }
+            // What the old cache did since the last count is counted before it goes.
+            self.count_cache();
+            self.cache_counted = CacheCounters::default();
             let cache = DomainCache::new(&scene_key.0, &manifest, self.config.cache_bytes)
                 .with_storage(self.config.storage);
             self.cache = Some((scene_key, Arc::new(Mutex::new(cache))));
@@ -332,6 +385,23 @@ impl Engine {
             resident,
             queues,
         })
+    }
+}
+
+/// Adds a finished pass's rays and time to the metrics.
+fn count_pass(output: &PassOutput) {
+    let (m, c) = (metrics::worker(), &output.counters);
+    m.passes.inc();
+    m.busy_seconds.inc_by(output.busy.as_secs_f64());
+    m.radiance_segments.inc_by(c.radiance_segments);
+    m.shadow_segments.inc_by(c.shadow_segments);
+    for (counter, n) in m.rays_created.iter().zip([
+        c.primary_rays,
+        c.shadow_rays,
+        c.bounce_rays,
+        c.reflection_rays,
+    ]) {
+        counter.inc_by(n);
     }
 }
 

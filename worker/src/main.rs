@@ -28,7 +28,9 @@ use tracing::{info, warn};
 use crate::engine::{Engine, EngineConfig};
 use crate::peers::{LinkLimits, MAX_MESSAGE_BYTES, PeerLinks, PeerServer};
 use rayfarm_node::fault::Faults;
+use rayfarm_node::http::HttpArgs;
 use rayfarm_node::listen::ConnectionArgs;
+use rayfarm_node::metrics;
 
 /// rayfarm-worker: traces rays for a rayfarm coordinator.
 #[derive(Parser, Debug)]
@@ -51,6 +53,8 @@ struct Args {
     insecure: bool,
     #[command(flatten)]
     connections: ConnectionArgs,
+    #[command(flatten)]
+    http: HttpArgs,
     /// Address peers reach this worker at (host:port). Default: the listen address, or this
     /// host's name with the listen port when listening on all interfaces.
     #[arg(long, env = "RAYFARM_ADVERTISE")]
@@ -167,6 +171,10 @@ async fn run(args: Args) -> anyhow::Result<()> {
     .filter_map(|(missing, what)| missing.then_some(what))
     .collect();
     rayfarm_node::security::check_exposure(args.listen, &missing, args.insecure)?;
+    if let Some(http) = args.http.http {
+        rayfarm_node::security::check_exposure(http, &missing, args.insecure)?;
+    }
+    let http_tls = args.serve_tls.http_server_config()?;
     let worker_id = match own_name(&args)? {
         // Under mutual TLS the coordinator and peers take this node for the name in its
         // certificate: an id of its own would only be refused there.
@@ -200,6 +208,20 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let threads = args.threads.unwrap_or_else(|| {
         std::thread::available_parallelism().map_or(1, std::num::NonZeroUsize::get)
     });
+    // Bound before the `listening on` line, so whoever waits for that line has both.
+    let http = match args.http.http {
+        Some(addr) => {
+            let router = rayfarm_node::http::metrics_route(|| metrics::worker().encode());
+            Some(rayfarm_node::http::bind(addr, http_tls, &args.connections, router).await?)
+        }
+        None => None,
+    };
+    let http = async move {
+        match http {
+            Some(serve) => serve.await,
+            None => std::future::pending().await,
+        }
+    };
     // The one line scripts and tests wait for; logs go to stderr.
     println!("listening on {bound}");
     info!(%bound, %advertise, %worker_id, threads, cache_bytes = args.cache_bytes, "worker up");
@@ -271,6 +293,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let incoming = rayfarm_node::listen::incoming(listener, serve_tls, &args.connections);
     // Health stays outside the interceptor: probes carry no credentials.
     let server = rayfarm_node::security::server_builder()
+        .layer(rayfarm_node::metrics::rpc_error_layer())
         .add_service(health_service)
         .add_service(peer_service)
         .serve_with_incoming(incoming);
@@ -291,6 +314,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         r = server => r.context("peer server failed"),
         r = control => r,
         () = engine.run(events_rx) => Ok(()),
+        () = http => Ok(()),
         _ = rayfarm_node::telemetry::shutdown_signal() => {
             info!("shutting down");
             Ok(())

@@ -86,7 +86,11 @@ impl Coordinator {
                     .iter()
                     .map(|(&k, w)| (k, Member::new(w.peer_address.clone(), w.cache_bytes)))
                     .collect();
+                let planning = Instant::now();
                 let out = frame.start(members);
+                let m = rayfarm_node::metrics::coordinator();
+                m.rounds.inc_by(frame.round);
+                m.planning_seconds.observe(planning.elapsed().as_secs_f64());
                 info!(
                     workers = out.len(),
                     tiles = frame.ledger.grid().count(),
@@ -140,6 +144,7 @@ impl Coordinator {
 
     pub(super) fn fail_running(self: &Arc<Self>, st: &mut State, error: &str) {
         if let Some(frame) = st.running.take() {
+            rayfarm_node::metrics::coordinator().frames_failed.inc();
             end_frame(st, &frame);
             set_state(st, &frame.job_id, JobState::Failed, error);
         }
@@ -154,6 +159,7 @@ impl Coordinator {
         };
         let wall = now().since(frame.started).as_secs_f64();
         info!(job = %frame.job_id, wall, rounds = frame.round, "frame complete");
+        rayfarm_node::metrics::coordinator().frames_committed.inc();
         end_frame(st, &frame);
         let (done_tx, done_rx) = oneshot::channel();
         st.finishing.insert(

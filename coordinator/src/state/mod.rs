@@ -232,6 +232,30 @@ impl Coordinator {
         }))
     }
 
+    /// Sets the gauges that are read off the state (jobs by state, workers), for a scrape.
+    pub fn refresh_metrics(&self) {
+        let mut by_state = [0i64; 5];
+        let workers = {
+            let st = self.lock();
+            for job in st.jobs.values() {
+                let i = match job.summary.state() {
+                    JobState::Queued | JobState::Unspecified => 0,
+                    JobState::Running => 1,
+                    JobState::Succeeded => 2,
+                    JobState::Failed => 3,
+                    JobState::Cancelled => 4,
+                };
+                by_state[i] += 1;
+            }
+            st.workers.len()
+        };
+        let m = rayfarm_node::metrics::coordinator();
+        for (gauge, n) in m.jobs.iter().zip(by_state) {
+            gauge.set(n);
+        }
+        m.workers.set(workers as i64);
+    }
+
     pub fn config(&self) -> &Config {
         &self.config
     }

@@ -3,6 +3,7 @@
 
 use super::*;
 use rayfarm_node::identity::PeerIdentity;
+use rayfarm_node::metrics;
 
 impl Coordinator {
     /// Workers, their resident domains and queues.
@@ -148,7 +149,12 @@ impl Coordinator {
             FromWorker::QueueReport(r) => {
                 worker.last_report = Some(r.clone());
                 let out = match st.running.as_mut() {
-                    Some(f) if f.job_id == r.job_id => f.report(key, r),
+                    Some(f) if f.job_id == r.job_id => {
+                        let (round, planning) = (f.round, Instant::now());
+                        let out = f.report(key, r);
+                        count_rounds(f, round, planning);
+                        out
+                    }
                     _ => Vec::new(),
                 };
                 send(&mut st, out);
@@ -202,6 +208,9 @@ impl Coordinator {
     ) -> Option<String> {
         let frame = st.running.as_mut().filter(|f| f.job_id == r.job_id)?;
         let (committed, refused) = frame.results(key, r);
+        metrics::coordinator()
+            .tiles_committed
+            .inc_by(committed.len() as u64);
         if let Err(e) = frame.write_tiles(&committed) {
             let msg = format!("{e:#}");
             self.fail_running(st, &msg);
@@ -268,7 +277,10 @@ impl Coordinator {
             return;
         };
         frame.declined.push(reason.to_string());
-        let Some(out) = frame.lose(key) else {
+        let (round, planning) = (frame.round, Instant::now());
+        let lost = frame.lose(key);
+        count_rounds(frame, round, planning);
+        let Some(out) = lost else {
             return;
         };
         if out.is_empty() {
@@ -289,6 +301,7 @@ impl Coordinator {
             return;
         };
         warn!(worker = %worker.id, why, "worker lost");
+        metrics::coordinator().workers_lost.inc();
         for fin in st.finishing.values_mut() {
             fin.waiting.remove(&key);
             if fin.waiting.is_empty()
@@ -297,7 +310,13 @@ impl Coordinator {
                 let _ = done.send(());
             }
         }
-        let Some(out) = st.running.as_mut().and_then(|f| f.lose(key)) else {
+        let lost = st.running.as_mut().and_then(|f| {
+            let (round, planning) = (f.round, Instant::now());
+            let lost = f.lose(key);
+            count_rounds(f, round, planning);
+            lost
+        });
+        let Some(out) = lost else {
             return;
         };
         let max = self.config.max_attempts;
@@ -393,5 +412,15 @@ impl Coordinator {
             v.links, v.reason
         );
         Some((v.drop, why))
+    }
+}
+
+/// Counts the rounds `frame` planned since it was at `round`, and the time since `planning`
+/// as the time planning took (when it planned).
+fn count_rounds(frame: &RunningFrame, round: u64, planning: Instant) {
+    if frame.round > round {
+        let m = metrics::coordinator();
+        m.rounds.inc_by(frame.round - round);
+        m.planning_seconds.observe(planning.elapsed().as_secs_f64());
     }
 }

@@ -383,6 +383,11 @@ impl<S: RaySpill> Frame<S> {
             .collect()
     }
 
+    /// Bytes of rays queued in memory and spilled to disk now.
+    pub fn queue_bytes(&self) -> (u64, u64) {
+        self.queues.bytes()
+    }
+
     /// Rays spilled so far in this frame.
     pub fn spilled(&self) -> u64 {
         self.queues.spilled_total

@@ -103,6 +103,11 @@ impl<S: RaySpill> DomainQueues<S> {
         }
     }
 
+    /// Bytes of rays queued in memory and in the spill store now.
+    pub fn bytes(&self) -> (u64, u64) {
+        (self.mem_rays * RAY_BYTES, self.spill_rays * RAY_BYTES)
+    }
+
     /// Queues `rays`, each for its `domain` (which must be below the domain count).
     pub fn push(&mut self, domain: u32, rays: &[RayRecord]) -> Result<(), QueueError> {
         let d = domain as usize;
