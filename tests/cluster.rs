@@ -556,7 +556,8 @@ fn a_worker_killed_while_loading_tracing_or_sending_costs_time_not_the_image() {
     let (_, largest) = domain_bytes(&scene);
     let frame = MANY_ROUNDS;
     let expected = local_hash(&scene, &frame);
-    let verbose = "info,rayfarm_core::render::cache=debug,rayfarm_worker=debug";
+    let verbose =
+        "info,rayfarm_core::render::cache=debug,rayfarm_worker=debug,rayfarm_machine::pass=debug";
     // Each kill point: how the victim runs so that it lingers there, and the log lines that
     // say it is there now (the first seen more often than the second).
     let points: [(&str, WorkerOpts, [&str; 2]); 3] = [

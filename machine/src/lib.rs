@@ -7,6 +7,7 @@
 //! code.
 
 pub mod coordinator;
+pub mod pass;
 pub mod time;
 pub mod worker;
 

@@ -10,14 +10,10 @@ use std::time::Instant;
 
 use anyhow::Context;
 use rayfarm_core::bundler::BundlerConfig;
-use rayfarm_core::camera::PinholeCamera;
 use rayfarm_core::cluster::scene_ref;
-use rayfarm_core::frame::TileGrid;
-use rayfarm_core::render::SceneView;
 use rayfarm_core::render::cache::{CacheCounters, DomainCache, StorageModel};
 use rayfarm_core::render::stats::peak_rss_bytes;
 use rayfarm_core::scene::Manifest;
-use rayfarm_core::wire::BatchLimits;
 use rayfarm_machine::Time;
 use rayfarm_machine::worker::{
     self as machine, Action, DomainQueues, OpenedScene, PassFailed, PassOutput, Worker,
@@ -28,9 +24,10 @@ use rayfarm_node::proto::{self, coordinator_message::Body as FromCoordinator};
 use tokio::sync::mpsc;
 use tracing::info;
 
-use crate::pass::{self, FrameView, PassInput};
+use crate::pass;
 use crate::peers::PeerLinks;
 use crate::queues::FileSpill;
+use rayfarm_machine::pass::{FrameView, PassInput};
 
 /// What the engine needs to know about itself.
 #[derive(Clone, Debug)]
@@ -289,21 +286,9 @@ impl Engine {
         }
         let manifest = Manifest::load(&dir)?;
         let frame = job::frame_spec(spec, &manifest.camera).map_err(anyhow::Error::msg)?;
-        let grid = TileGrid::new(frame.width, frame.height, s.tile_size)
-            .ok_or_else(|| anyhow::anyhow!("bad tile size {}", s.tile_size))?;
-        let camera = PinholeCamera::new(
-            frame.camera.as_ref().unwrap_or(&manifest.camera),
-            frame.width,
-            frame.height,
-        );
-        let view = SceneView::new(&manifest, frame.max_depth as u16);
-        let limits = BatchLimits {
-            domains: manifest.domains.len() as u32,
-            pixels: frame.width * frame.height,
-            max_depth: frame.max_depth as u16,
-            materials: manifest.materials.len() as u32,
-            max_records: 1 << 20,
-        };
+        let (view, limits) =
+            FrameView::open(&manifest, &frame, s.tile_size).map_err(anyhow::Error::msg)?;
+        let grid = view.grid;
         // Keyed by the manifest too: the domains mapped for an older version of the scene in
         // this directory are never traced for the new one (their files were replaced by a
         // rename, so the old mappings stay intact for passes still holding them).
@@ -336,12 +321,7 @@ impl Engine {
             .unwrap_or_default();
         self.frame = Some(OpenFrame {
             job_id: s.job_id.clone(),
-            view: Arc::new(FrameView {
-                view,
-                camera,
-                grid,
-                spp: frame.spp,
-            }),
+            view: Arc::new(view),
             cache_at_start,
         });
         Ok(OpenedScene {

@@ -80,10 +80,7 @@ impl Coordinator {
                 // A job started before (by a coordinator since restarted, or before its
                 // workers were all lost) starts every tile at a new epoch, so rays and
                 // results of the abandoned run still in flight are dropped as stale.
-                let tiles: Vec<u32> = (0..frame.ledger.grid().count()).collect();
-                for _ in 0..attempts.max(floor) {
-                    frame.ledger.bump(&tiles);
-                }
+                frame.restart_epochs(attempts.max(floor));
                 let members: Vec<(u32, Member)> = st
                     .workers
                     .iter()
@@ -198,6 +195,7 @@ impl Coordinator {
             wall_seconds: wall,
             rounds: frame.round,
             left_out: frame.declined.clone(),
+            refused_results: frame.refused_results,
             ..Default::default()
         };
         stats.absorb(reports);
@@ -255,16 +253,7 @@ pub(super) fn deliver(st: &State, out: Vec<Outgoing>) {
 }
 
 pub(super) fn end_frame(st: &mut State, frame: &RunningFrame) {
-    let out = frame
-        .members()
-        .map(|k| {
-            let body = Body::EndFrame(proto::EndFrame {
-                job_id: frame.job_id.clone(),
-            });
-            (k, proto::CoordinatorMessage { body: Some(body) })
-        })
-        .collect();
-    send(st, out);
+    send(st, frame.end_messages());
 }
 
 pub(super) fn publish_progress(st: &State, frame: &RunningFrame) {

@@ -24,7 +24,7 @@ use tokio::sync::{mpsc, oneshot, watch};
 use tonic::Status;
 use tracing::{error, info, info_span, warn};
 
-use rayfarm_machine::coordinator::{Member, Outgoing, Rounds, RunningFrame};
+use rayfarm_machine::coordinator::{Member, Outgoing, Rounds, RunningFrame, accusation_grace};
 
 use crate::admission::{Needs, free_disk};
 use crate::journal::{Journal, Then};
@@ -70,11 +70,6 @@ pub struct Config {
 
 /// What workers and clients are told once the coordinator is stopping.
 pub const SHUTTING_DOWN: &str = "the coordinator is shutting down";
-
-/// Least time a worker's report of an unreachable peer waits for the other side's reports
-/// (see [`rayfarm_machine::coordinator::accusations`]): both sides notice a broken link within about this long of
-/// each other when their deadlines are alike.
-const ACCUSATION_GRACE: Duration = Duration::from_secs(2);
 
 /// Where a worker's messages go.
 pub type WorkerTx = mpsc::UnboundedSender<Result<proto::CoordinatorMessage, Status>>;

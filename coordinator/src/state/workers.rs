@@ -115,11 +115,10 @@ impl Coordinator {
         info!(worker = %r.worker_id, key, peer = %r.peer_address, cache_bytes = r.cache_bytes, threads = r.threads, "worker attached");
         let member = Member::new(r.peer_address.clone(), r.cache_bytes);
         if let Some(frame) = st.running.as_mut() {
-            if frame.sidelined.contains(&r.worker_id) {
+            let Some(out) = frame.admit(key, &r.worker_id, member) else {
                 info!(job = %frame.job_id, worker = %r.worker_id, "worker sits out the running frame: a peer could not reach it");
                 return Ok(key);
-            }
-            let out = frame.join(key, member);
+            };
             info!(job = %frame.job_id, round = frame.round, "worker joins the running frame");
             send(&mut st, out);
         } else {
@@ -216,7 +215,7 @@ impl Coordinator {
                 .unwrap_or_default();
             error!(worker = %worker, error = %e, "worker sent impossible tile results: dropped, its tiles re-dealt");
             if let Some(frame) = st.running.as_mut() {
-                frame.sidelined.insert(worker);
+                frame.refuse(worker);
             }
             return Some(format!("impossible tile results: {e}"));
         }
@@ -328,10 +327,8 @@ impl Coordinator {
             // starts over when workers come back.
             if let Some(frame) = st.running.take() {
                 warn!(job = %frame.job_id, "every worker of the frame is gone: job re-queued");
-                let grid = frame.ledger.grid().count();
-                let used = (0..grid).filter_map(|t| frame.ledger.epoch(t)).max();
                 if let Some(job) = st.jobs.get_mut(&frame.job_id) {
-                    job.epoch_floor = used.unwrap_or(0).saturating_add(1);
+                    job.epoch_floor = frame.epoch_floor();
                 }
                 let seq = st.jobs.get(&frame.job_id).map_or(0, |j| j.seq);
                 st.queue
@@ -372,28 +369,24 @@ impl Coordinator {
     /// The member to drop for its peers' reports, if their grace period is over (see
     /// [`rayfarm_machine::coordinator::accusations`]); it sits out the rest of the frame.
     pub(super) fn judge_accusations(&self) -> Option<(u32, String)> {
-        let grace = (self.config.heartbeat * 2).max(ACCUSATION_GRACE);
+        let grace = accusation_grace(self.config.heartbeat);
         let mut st = self.lock();
-        let members: BTreeSet<u32> = st.running.as_ref()?.members().collect();
         // Members the coordinator hears from itself: one peer's word alone does not drop them.
-        let heard = members
-            .iter()
-            .copied()
+        let heard: BTreeSet<u32> = st
+            .running
+            .as_ref()?
+            .members()
             .filter(|k| {
                 st.workers
                     .get(k)
                     .is_some_and(|w| w.last_seen.elapsed() < grace)
             })
             .collect();
-        let frame = st.running.as_mut()?;
-        let v = frame
-            .accusations
-            .judge_heard(now(), grace, &members, &heard)?;
-        let id_of = |k| st.workers.get(&k).map(|w| w.id.clone()).unwrap_or_default();
-        let (dropped, accused, accuser) = (id_of(v.drop), id_of(v.accused), id_of(v.accuser));
-        if let Some(frame) = st.running.as_mut() {
-            frame.sidelined.insert(dropped);
-        }
+        let ids: BTreeMap<u32, String> =
+            st.workers.iter().map(|(&k, w)| (k, w.id.clone())).collect();
+        let id_of = |k| ids.get(&k).cloned().unwrap_or_default();
+        let v = st.running.as_mut()?.judge(now(), grace, &heard, id_of)?;
+        let (accused, accuser) = (id_of(v.accused), id_of(v.accuser));
         let why = format!(
             "broken links to {} peers; first report: {accused} unresponsive to worker \
              {accuser}: {}",
