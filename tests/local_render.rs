@@ -158,16 +158,21 @@ fn a_scene_of_an_older_domain_format_is_refused_with_re_run_prepare() {
         .map(|e| e.unwrap().path())
         .find(|p| p.extension().is_some_and(|e| e == "rfd"))
         .unwrap();
-    // What a file of format 3 starts with: the same magic, version 3.
-    let mut bytes = std::fs::read(&file).unwrap();
-    bytes[8..12].copy_from_slice(&3u32.to_le_bytes());
-    std::fs::write(&file, bytes).unwrap();
-    let out = tmp.path().join("old.png");
-    let err = rayfarm_err(&args(s(&scene), s(&out)));
-    assert!(
-        err.contains("version 3") && err.contains("re-run `rayfarm prepare`"),
-        "{err}"
-    );
+    // What files of formats 3 and 4 start with: the same magic, then their version.
+    let current = std::fs::read(&file).unwrap();
+    for old in [3u32, 4] {
+        let mut bytes = current.clone();
+        bytes[8..12].copy_from_slice(&old.to_le_bytes());
+        std::fs::write(&file, bytes).unwrap();
+        let out = tmp.path().join("old.png");
+        let err = rayfarm_err(&args(s(&scene), s(&out)));
+        assert!(
+            err.contains(&format!("version {old}"))
+                && err.contains("version 5")
+                && err.contains("re-run `rayfarm prepare`"),
+            "{err}"
+        );
+    }
 }
 
 #[test]

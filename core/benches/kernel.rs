@@ -79,14 +79,14 @@ fn primary_rays(m: &Manifest) -> Vec<Segment> {
 
 /// From every primary hit, a cosine-distributed direction about the surface normal.
 fn diffuse_rays(b: &Bench, primary: &[Segment]) -> Vec<Segment> {
-    let (bvh, tris) = (b.data.bvh(), b.data.packed());
+    let bvh = b.data.bvh();
     let mut traverser = Traverser::new();
     primary
         .iter()
         .enumerate()
         .filter_map(|(i, &(o, d, t0, t1))| {
             let hit = traverser.nearest_hit(bvh, &TraceRay::new(o, d), t0, t1)?;
-            let mut n = tris[hit.slot as usize].normal();
+            let mut n = bvh.triangle(&hit).normal();
             if n.dot(d) > 0.0 {
                 n = -n;
             }
@@ -125,7 +125,7 @@ fn shadow_all(b: &Bench, rays: &[Segment], kernel: Kernel) -> usize {
 
 /// From every primary hit, a segment towards a point above the scene's box.
 fn shadow_rays(b: &Bench, primary: &[Segment]) -> Vec<Segment> {
-    let (bvh, tris) = (b.data.bvh(), b.data.packed());
+    let bvh = b.data.bvh();
     let mut traverser = Traverser::new();
     let bounds = b.manifest.bounds;
     let light = Vec3::new(
@@ -137,7 +137,7 @@ fn shadow_rays(b: &Bench, primary: &[Segment]) -> Vec<Segment> {
         .iter()
         .filter_map(|&(o, d, t0, t1)| {
             let hit = traverser.nearest_hit(bvh, &TraceRay::new(o, d), t0, t1)?;
-            let mut n = tris[hit.slot as usize].normal();
+            let mut n = bvh.triangle(&hit).normal();
             if n.dot(d) > 0.0 {
                 n = -n;
             }
@@ -209,7 +209,7 @@ fn kernel(c: &mut Criterion) {
 
 fn build_and_load(c: &mut Criterion) {
     let b = scene();
-    let tris: Vec<PackedTriangle> = b.data.packed().to_vec();
+    let tris: Vec<PackedTriangle> = b.data.bvh().triangles().collect();
     let mut g = c.benchmark_group("domain_1m");
     g.sample_size(10);
     g.throughput(Throughput::Elements(tris.len() as u64));
@@ -230,18 +230,12 @@ fn build_and_load(c: &mut Criterion) {
         });
     }
     g.bench_with_input(
-        BenchmarkId::new("load", "read_mesh_and_rebuild"),
+        BenchmarkId::new("load", "read_triangles_and_rebuild"),
         &(),
         |bch, _| {
             bch.iter(|| {
                 let d = open(&b.dir, &b.manifest, false);
-                let (v, mats, ids) = (d.vertices(), d.materials(), d.ids());
-                let mut t: Vec<PackedTriangle> = d
-                    .indices()
-                    .iter()
-                    .zip(mats.iter().zip(ids))
-                    .map(|(ix, (&m, &id))| PackedTriangle::new(&ix.map(|k| v[k as usize]), id, m))
-                    .collect();
+                let mut t: Vec<PackedTriangle> = d.bvh().triangles().collect();
                 black_box(bvh::build(&mut t).nodes.len())
             })
         },

@@ -52,7 +52,8 @@ struct BenchRay {
     t_max: f32,
 }
 
-/// One result of the C++ program (its `Hit`): `prim` indexes the domain's mesh triangles.
+/// One result of the C++ program (its `Hit`): `prim` indexes the mesh written for it (the
+/// domain's triangles in `Bvh::triangles` order).
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
 struct EmbreeHit {
@@ -256,7 +257,7 @@ fn diffuse_rays(
     camera: &[BenchRay],
     pixels: &[u32],
     hits: &[Option<Hit>],
-    tris: &[PackedTriangle],
+    bvh: Bvh,
     tree: &DomainTree,
     epsilon: f32,
 ) -> Vec<BenchRay> {
@@ -265,7 +266,7 @@ fn diffuse_rays(
         let Some(hit) = hit else { continue };
         let dir = Vec3::from(ray.dir);
         let p = Vec3::from(ray.origin) + dir * hit.t;
-        let normal = tris[hit.slot as usize].normal();
+        let normal = bvh.triangle(hit).normal();
         // The geometric normal on the side the ray arrived from.
         let n = if normal.dot(dir) > 0.0 {
             -normal
@@ -301,15 +302,20 @@ fn write_file(path: &Path, parts: &[&[u8]]) -> Result<()> {
     Ok(())
 }
 
-fn write_mesh(path: &Path, domain: &DomainData) -> Result<()> {
-    let (v, i) = (domain.vertices(), domain.indices());
+/// Writes the triangles for Embree as a mesh of three vertices each (the domain file keeps no
+/// shared-vertex mesh; Embree copies vertices into its own leaves either way).
+fn write_mesh(path: &Path, tris: &[PackedTriangle]) -> Result<()> {
+    let v: Vec<[f32; 3]> = tris.iter().flat_map(|t| t.vertices()).collect();
+    let i: Vec<[u32; 3]> = (0..tris.len() as u32)
+        .map(|k| [3 * k, 3 * k + 1, 3 * k + 2])
+        .collect();
     let counts = [v.len() as u64, i.len() as u64];
     write_file(
         path,
         &[
             bytemuck::bytes_of(&counts),
-            bytemuck::cast_slice(v),
-            bytemuck::cast_slice(i),
+            bytemuck::cast_slice(&v),
+            bytemuck::cast_slice(&i),
         ],
     )
 }
@@ -447,7 +453,7 @@ fn main() -> Result<()> {
 
     // `--rebuild`: this build's BVH settings on the scene's triangles, without preparing again.
     let rebuilt = opts.rebuild.then(|| {
-        let mut p = domain.packed().to_vec();
+        let mut p: Vec<PackedTriangle> = domain.bvh().triangles().collect();
         let t = std::time::Instant::now();
         let b = rayfarm_core::bvh::build(&mut p);
         eprintln!(
@@ -459,16 +465,16 @@ fn main() -> Result<()> {
         );
         (p, b)
     });
-    let (bvh, tris) = match &rebuilt {
-        Some((p, b)) => (Bvh::new(&b.nodes, &b.blocks, p.len())?, p.as_slice()),
-        None => (domain.bvh(), domain.packed()),
+    let bvh = match &rebuilt {
+        Some((_, b)) => Bvh::new(&b.nodes, &b.blocks)?,
+        None => domain.bvh(),
     };
     // A first untimed pass over the camera rays finds the hits the diffuse rays start from.
     let tree = manifest.domain_tree();
     let (camera, pixels) = camera_rays(&manifest, &tree, opts.size);
     let mut hits = Vec::new();
     trace_rayfarm(bvh, &camera, &mut hits);
-    let diffuse = diffuse_rays(&camera, &pixels, &hits, tris, &tree, manifest.ray_epsilon);
+    let diffuse = diffuse_rays(&camera, &pixels, &hits, bvh, &tree, manifest.ray_epsilon);
     let sets: [(&str, &[BenchRay]); 2] = [("coherent", &camera), ("incoherent", &diffuse)];
     if let Some(name) = &opts.count {
         let (_, rays) = sets
@@ -487,7 +493,9 @@ fn main() -> Result<()> {
     let dir = tempfile::Builder::new()
         .prefix("embree-compare")
         .tempdir()?;
-    write_mesh(&dir.path().join("mesh.bin"), &domain)?;
+    let mesh: Vec<PackedTriangle> = bvh.triangles().collect();
+    let mesh_ids: Vec<u64> = mesh.iter().map(PackedTriangle::id).collect();
+    write_mesh(&dir.path().join("mesh.bin"), &mesh)?;
     let ray_files: Vec<PathBuf> = sets
         .iter()
         .map(|(name, rays)| {
@@ -498,7 +506,7 @@ fn main() -> Result<()> {
 
     eprintln!(
         "{} triangles; {} of {} camera rays enter the domain, {} diffuse rays; {} repetitions each",
-        domain.packed().len(),
+        mesh.len(),
         camera.len(),
         opts.size * opts.size,
         diffuse.len(),
@@ -539,7 +547,7 @@ fn main() -> Result<()> {
         if theirs.len() != n {
             return Err(format!("embree_trace wrote {} hits for {n} rays", theirs.len()).into());
         }
-        let agreement = compare(hits, &theirs, domain.ids());
+        let agreement = compare(hits, &theirs, &mesh_ids);
         let medium = embree_timing(&report, "medium", name).ok_or("no medium-quality timing")?;
         let high = embree_timing(&report, "high", name);
         let (rf, em) = (timing.median_mrays(n), medium.median_mrays(n));
@@ -596,7 +604,7 @@ fn main() -> Result<()> {
     let summary = json!({
         "bench": "embree_compare",
         "scene": opts.scene.display().to_string(),
-        "triangles": domain.packed().len(),
+        "triangles": mesh.len(),
         "bvh_nodes": domain.nodes().len(),
         "rayfarm_kernel": Traverser::new().kernel().name(),
         "image": [opts.size, opts.size],

@@ -63,8 +63,8 @@ pub struct Built {
     pub blocks: Vec<TriangleBlock>,
 }
 
-/// Builds the BVH over `triangles` and reorders them into leaf order, so blocks index the
-/// packed array in runs.
+/// Builds the BVH over `triangles` and reorders them into leaf order (blocks hold them in
+/// runs of that order).
 pub fn build(triangles: &mut Vec<PackedTriangle>) -> Built {
     if triangles.is_empty() {
         return Built {
@@ -259,24 +259,9 @@ fn set_slot(node: &mut BvhNode, slot: usize, b: &Aabb, child: u32, meta: u32) {
 /// The deepest tree accepted, so a corrupt file cannot make traversal stacks huge.
 pub const MAX_DEPTH: usize = 96;
 
-/// Checks that `nodes` form one tree over `blocks` no deeper than [`MAX_DEPTH`], and that every
-/// block names triangles of the `triangle_count` packed ones, so traversal can index without
-/// bounds failures; returns the depth.
-pub fn validate(
-    nodes: &[BvhNode],
-    blocks: &[TriangleBlock],
-    triangle_count: usize,
-) -> Result<usize, String> {
-    if let Some((i, b)) = blocks
-        .iter()
-        .enumerate()
-        .find(|(_, b)| b.slot.iter().any(|&s| s as usize >= triangle_count))
-    {
-        return Err(format!(
-            "BVH block {i} names triangle {} of {triangle_count}",
-            b.slot.iter().max().unwrap_or(&0)
-        ));
-    }
+/// Checks that `nodes` form one tree over `blocks` no deeper than [`MAX_DEPTH`], so traversal
+/// can index without bounds failures; returns the depth.
+pub fn validate(nodes: &[BvhNode], blocks: &[TriangleBlock]) -> Result<usize, String> {
     if nodes.is_empty() {
         return if blocks.is_empty() {
             Ok(0)
@@ -337,14 +322,9 @@ pub struct Bvh<'a> {
 }
 
 impl<'a> Bvh<'a> {
-    /// The tree of `nodes` and `blocks` over `triangle_count` packed triangles, if [`validate`]
-    /// accepts it.
-    pub fn new(
-        nodes: &'a [BvhNode],
-        blocks: &'a [TriangleBlock],
-        triangle_count: usize,
-    ) -> Result<Self, String> {
-        validate(nodes, blocks, triangle_count)?;
+    /// The tree of `nodes` and `blocks`, if [`validate`] accepts it.
+    pub fn new(nodes: &'a [BvhNode], blocks: &'a [TriangleBlock]) -> Result<Self, String> {
+        validate(nodes, blocks)?;
         Ok(Bvh { nodes, blocks })
     }
 
@@ -361,6 +341,25 @@ impl<'a> Bvh<'a> {
     /// Leaf blocks.
     pub fn blocks(&self) -> &'a [TriangleBlock] {
         self.blocks
+    }
+
+    /// The triangle `hit` names (a hit of this tree), read back from its block for shading.
+    ///
+    /// # Panics
+    /// If `hit` names a block this tree does not have (a hit of another tree).
+    #[inline]
+    pub fn triangle(&self, hit: &Hit) -> PackedTriangle {
+        self.blocks[hit.block as usize].lane(hit.lane as usize)
+    }
+
+    /// Every triangle of the tree once, in leaf order (a block's repeated padding lanes are
+    /// left out): for tools and rebuilds, which need the mesh the blocks hold.
+    pub fn triangles(&self) -> impl Iterator<Item = PackedTriangle> + 'a {
+        self.blocks.iter().flat_map(|b| {
+            (0..BLOCK)
+                .filter(move |&lane| !b.is_repeat(lane))
+                .map(move |lane| b.lane(lane))
+        })
     }
 
     /// Node `i`.
@@ -434,13 +433,15 @@ impl TraceRay {
     }
 }
 
-/// The nearest hit of a ray in a BVH.
+/// The nearest hit of a ray in a BVH: where, and which triangle ([`Bvh::triangle`] reads it).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Hit {
     /// Distance along the ray direction.
     pub t: f32,
-    /// Position of the triangle in the domain's packed array.
-    pub slot: u32,
+    /// The leaf block holding the triangle.
+    pub block: u32,
+    /// The triangle's lane in that block.
+    pub lane: u32,
     /// Scene-wide triangle id.
     pub id: u64,
 }
@@ -678,10 +679,17 @@ fn prefetch_children(bvh: Bvh, node: &BvhNode, mut mask: u32) {
     let _ = (bvh, node, mask);
 }
 
-/// Tests a leaf's blocks, keeping the nearest hit (ties to the lower id).
+/// Tests a leaf's blocks (`first` is the index of the first), keeping the nearest hit (ties
+/// to the lower id).
 #[inline(always)]
-fn leaf_nearest<K: Isa>(blocks: &[TriangleBlock], ray: &K::Ray, t0: f32, best: &mut Hit) {
-    for b in blocks {
+fn leaf_nearest<K: Isa>(
+    blocks: &[TriangleBlock],
+    first: u32,
+    ray: &K::Ray,
+    t0: f32,
+    best: &mut Hit,
+) {
+    for (k, b) in (first..).zip(blocks) {
         // Candidates come as a mask from the test itself: most lanes miss.
         let (ts, mut lanes) = K::block(b, ray, t0, best.t);
         while lanes != 0 {
@@ -691,7 +699,8 @@ fn leaf_nearest<K: Isa>(blocks: &[TriangleBlock], ray: &K::Ray, t0: f32, best: &
             if nearer(t, id, best.t, best.id) {
                 *best = Hit {
                     t,
-                    slot: b.slot[lane],
+                    block: k,
+                    lane: lane as u32,
                     id,
                 };
             }
@@ -750,7 +759,8 @@ fn nearest<K: Isa>(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32
     let r = K::prepare(ray);
     let mut best = Hit {
         t: t1,
-        slot: u32::MAX,
+        block: u32::MAX,
+        lane: 0,
         id: u64::MAX,
     };
     stack.len = 0;
@@ -828,11 +838,11 @@ fn nearest<K: Isa>(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32
         } else {
             // SAFETY: a leaf child's range of a validated tree.
             let blocks = unsafe { bvh.leaf(cur.child, cur.meta) };
-            leaf_nearest::<K>(blocks, &r, t0, &mut best);
+            leaf_nearest::<K>(blocks, cur.child, &r, t0, &mut best);
         }
         loop {
             match stack.pop() {
-                None => return (best.slot != u32::MAX).then_some(best),
+                None => return (best.block != u32::MAX).then_some(best),
                 Some(e) if e.near > best.t => continue,
                 Some(e) => {
                     cur = e;

@@ -77,10 +77,12 @@ impl Aabb {
     }
 }
 
-/// A triangle stored ready for intersection: its three vertices exactly as the mesh gives
-/// them (so neighbours share edge bits and the watertight test leaves no cracks), its
-/// scene-wide id and material. Every domain that references a triangle stores the same bits,
-/// so every domain computes the same hit distance for the same ray.
+/// One triangle as a record: its three vertices exactly as the mesh gives them (so neighbours
+/// share edge bits and the watertight test leaves no cracks), its scene-wide id and material.
+/// The input of the BVH build, and what a hit's lane of a [`TriangleBlock`] reads back as for
+/// shading ([`crate::bvh::Bvh::triangle`]); domain files store triangles only in blocks. Every
+/// domain that references a triangle stores the same bits, so every domain computes the same
+/// hit distance for the same ray.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
 pub struct PackedTriangle {
@@ -231,10 +233,11 @@ pub fn within_interval(t: f32, t0: f32, t1: f32) -> bool {
 pub const BLOCK: usize = 4;
 
 /// Four triangles as structure-of-arrays, so one watertight test covers all four: `v[vertex]
-/// [axis][lane]`, then per lane the scene-wide id (for the tie-break without touching the packed
-/// array) and the triangle's position in the packed array. A leaf whose triangle count is not a
-/// multiple of four repeats its last triangle: a duplicate has the same distance and id, so it
-/// never changes a nearest hit or an any-hit answer, and no lane needs masking.
+/// [axis][lane]`, then per lane the scene-wide id (for the tie-break) and the material (for
+/// shading). The only stored copy of a domain's triangles: a hit names its block and lane. A
+/// leaf whose triangle count is not a multiple of four repeats its last triangle: a duplicate
+/// has the same distance and id, so it never changes a nearest hit or an any-hit answer, and
+/// no lane needs masking; [`TriangleBlock::is_repeat`] tells such a lane.
 #[repr(C, align(64))]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
 pub struct TriangleBlock {
@@ -244,8 +247,8 @@ pub struct TriangleBlock {
     pub id_lo: [u32; BLOCK],
     /// High halves of the scene-wide ids.
     pub id_hi: [u32; BLOCK],
-    /// Position of each lane's triangle in the domain's packed array.
-    pub slot: [u32; BLOCK],
+    /// Each lane's index into the scene's material table.
+    pub material: [u32; BLOCK],
 }
 
 const _: () = assert!(std::mem::size_of::<TriangleBlock>() == 192);
@@ -265,9 +268,17 @@ impl TriangleBlock {
             }
             b.id_lo[lane] = t.id_lo;
             b.id_hi[lane] = t.id_hi;
-            b.slot[lane] = s as u32;
+            b.material[lane] = t.material;
         }
         b
+    }
+
+    /// Whether `lane` repeats the lane before it (the padding of a block of fewer than four
+    /// triangles) rather than holding a triangle of its own. Ids are unique within a scene,
+    /// so an equal id is a repeat.
+    #[inline]
+    pub fn is_repeat(&self, lane: usize) -> bool {
+        lane > 0 && self.id(lane) == self.id(lane - 1)
     }
 
     /// Scene-wide id of a lane's triangle.
@@ -276,7 +287,7 @@ impl TriangleBlock {
         ((self.id_hi[lane] as u64) << 32) | self.id_lo[lane] as u64
     }
 
-    /// One lane as a packed triangle (the material is not kept here).
+    /// One lane's triangle, bit for bit as it was built from.
     #[inline(always)]
     pub fn lane(&self, lane: usize) -> PackedTriangle {
         let p = |i: usize| [0, 1, 2].map(|a| self.v[i][a][lane]);
@@ -284,7 +295,7 @@ impl TriangleBlock {
             v0: p(0),
             id_lo: self.id_lo[lane],
             v1: p(1),
-            material: 0,
+            material: self.material[lane],
             v2: p(2),
             id_hi: self.id_hi[lane],
         }

@@ -4,7 +4,8 @@
 use proptest::prelude::*;
 use rayfarm_core::scene::domain_file::{SourceTriangle, parse_domain_bytes, write_domain};
 
-const HEADER: usize = 136;
+/// Bytes of the format-5 header.
+const HEADER: usize = 88;
 
 fn valid_file() -> Vec<u8> {
     static FILE: std::sync::OnceLock<Vec<u8>> = std::sync::OnceLock::new();
@@ -14,16 +15,7 @@ fn valid_file() -> Vec<u8> {
 fn write_valid_file() -> Vec<u8> {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("d.rfd");
-    let tris: Vec<SourceTriangle> = (0..200)
-        .map(|i| {
-            let x = i as f32 * 0.01;
-            SourceTriangle {
-                vertices: [[x, 0.0, 0.0], [x + 0.02, 0.1, 0.0], [x, 0.0, 0.1 + x]],
-                id: i,
-                material: (i % 2) as u32,
-            }
-        })
-        .collect();
+    let tris = source_triangles();
     let b = rayfarm_core::geometry::Aabb {
         min: [0.0; 3],
         max: [3.0; 3],
@@ -32,17 +24,40 @@ fn write_valid_file() -> Vec<u8> {
     std::fs::read(&path).unwrap()
 }
 
-/// Recomputes the checksum, which sits after magic(8) version(4) domain(4) counts(40) bounds(24).
+/// Recomputes the checksum, which sits after magic(8) version(4) domain(4) counts(24) bounds(24).
 fn reseal(bytes: &mut [u8]) {
-    bytes[80..88].fill(0);
+    bytes[64..72].fill(0);
     let sum = xxhash_rust::xxh3::xxh3_64(bytes);
-    bytes[80..88].copy_from_slice(&sum.to_le_bytes());
+    bytes[64..72].copy_from_slice(&sum.to_le_bytes());
+}
+
+fn source_triangles() -> Vec<SourceTriangle> {
+    (0..200)
+        .map(|i| {
+            let x = i as f32 * 0.01;
+            SourceTriangle {
+                vertices: [[x, 0.0, 0.0], [x + 0.02, 0.1, 0.0], [x, 0.0, 0.1 + x]],
+                id: i,
+                material: (i % 2) as u32,
+            }
+        })
+        .collect()
 }
 
 #[test]
 fn a_valid_file_reads_back() {
     let d = parse_domain_bytes(&valid_file(), 2).unwrap();
-    assert_eq!(d.packed().len(), 200);
+    assert_eq!(d.triangle_count(), 200);
+    // The blocks are the only copy: every triangle reads back from them, bit for bit.
+    let mut back: Vec<_> = d.bvh().triangles().collect();
+    back.sort_by_key(|t| t.id());
+    assert_eq!(back.len(), 200);
+    for (t, want) in back.iter().zip(source_triangles()) {
+        assert_eq!(
+            (t.vertices(), t.id(), t.material),
+            (want.vertices, want.id, want.material)
+        );
+    }
     assert!(
         parse_domain_bytes(&valid_file(), 1).is_err(),
         "material 1 is out of range for 1 material"
@@ -50,7 +65,7 @@ fn a_valid_file_reads_back() {
     // Resealing after an edit the structure allows must be accepted, or the fuzzing below
     // would only ever exercise the checksum.
     let mut f = valid_file();
-    f[60] ^= 1; // a bit of the bounds
+    f[44] ^= 1; // a bit of the bounds
     assert!(parse_domain_bytes(&f, 2).is_err());
     reseal(&mut f);
     assert!(parse_domain_bytes(&f, 2).is_ok());
@@ -59,15 +74,17 @@ fn a_valid_file_reads_back() {
 #[test]
 fn a_file_of_an_older_format_is_refused_with_its_version_and_what_to_do() {
     let mut f = valid_file();
-    f[8..12].copy_from_slice(&3u32.to_le_bytes());
-    reseal(&mut f);
-    let e = parse_domain_bytes(&f, 2).unwrap_err().to_string();
-    assert!(
-        e.contains("version 3")
-            && e.contains("version 4")
-            && e.contains("re-run `rayfarm prepare`"),
-        "{e}"
-    );
+    for old in [3u32, 4] {
+        f[8..12].copy_from_slice(&old.to_le_bytes());
+        reseal(&mut f);
+        let e = parse_domain_bytes(&f, 2).unwrap_err().to_string();
+        assert!(
+            e.contains(&format!("version {old}"))
+                && e.contains("version 5")
+                && e.contains("re-run `rayfarm prepare`"),
+            "{e}"
+        );
+    }
 }
 
 proptest! {

@@ -87,7 +87,7 @@ fn every_kernel_finds_the_brute_force_nearest_hit_through_vertices_and_edges() {
         .collect();
     let mut packed = original.clone();
     let built = bvh::build(&mut packed);
-    let tree = Bvh::new(&built.nodes, &built.blocks, packed.len()).unwrap();
+    let tree = Bvh::new(&built.nodes, &built.blocks).unwrap();
     let origins = [
         Vec3::ZERO,
         Vec3::new(0.1, -0.05, 0.02),

@@ -206,7 +206,6 @@ impl SceneView {
             return;
         }
         let bvh = data.bvh();
-        let tris = data.packed();
         let mut traverser = Traverser::new();
         let mut children = Vec::with_capacity(self.lights.len() + 1);
         for ray in rays {
@@ -231,7 +230,7 @@ impl SceneView {
                 RayKind::Radiance => {
                     counters.radiance_segments += 1;
                     if let Some(hit) = traverser.nearest_hit(bvh, &tr, t0, t1) {
-                        let tri = &tris[hit.slot as usize];
+                        let tri = bvh.triangle(&hit);
                         children.clear();
                         let surface = (tri.normal(), tri.material);
                         self.shade(ray, origin + dir * hit.t, surface, &mut children, counters);
@@ -322,7 +321,7 @@ impl SceneView {
             return Verdict::Clear;
         };
         let tr = TraceRay::new(Vec3::from(ray.origin), Vec3::from(ray.dir));
-        let (bvh, tris) = (data.bvh(), data.packed());
+        let bvh = data.bvh();
         match ray.kind() {
             RayKind::Shadow => {
                 counters.shadow_segments += 1;
@@ -336,7 +335,7 @@ impl SceneView {
                 counters.radiance_segments += 1;
                 match traverser.nearest_hit(bvh, &tr, t0, t1) {
                     Some(hit) => {
-                        let tri = &tris[hit.slot as usize];
+                        let tri = bvh.triangle(&hit);
                         Verdict::Hit(SurfaceHit {
                             order,
                             t: hit.t,

@@ -1,19 +1,17 @@
 //! The domain file: one little-endian blob laid out so that loading is `mmap` plus a cast.
 //!
 //! ```text
-//! header (128 bytes)  magic, version, domain id, counts, bounds, checksum, section offsets
-//! vertices            [f32; 3] per vertex        (the domain's mesh, for tools and rebuilds)
-//! indices             [u32; 3] per triangle
-//! materials           u32 per triangle
-//! ids                 u64 per triangle           (scene-wide triangle id)
+//! header (88 bytes)   magic, version, domain id, counts, bounds, checksum, section offsets
 //! nodes               BvhNode (256 bytes, 8-wide) each
-//! blocks              TriangleBlock (192 bytes: four triangles as structure-of-arrays) each
-//! packed              PackedTriangle (48 bytes) each, in BVH leaf order
+//! blocks              TriangleBlock (192 bytes: four triangles as structure-of-arrays, with
+//!                     their scene-wide ids and materials) each, in BVH leaf order
 //! ```
-//! Every section starts on a 64-byte boundary. The checksum is xxh3-64 of the whole file with
-//! the checksum field zeroed, so a flipped bit anywhere, header included, is caught.
+//! The blocks are the only copy of the domain's triangles: traversal tests them, a hit names
+//! a block and lane, shading reads that lane back (`Bvh::triangle`), and tools that need the
+//! mesh list it from them (`Bvh::triangles`). Every section starts on a 64-byte boundary. The
+//! checksum is xxh3-64 of the whole file with the checksum field zeroed, so a flipped bit
+//! anywhere, header included, is caught.
 
-use std::collections::HashMap;
 use std::ops::Range;
 use std::path::{Path, PathBuf};
 
@@ -22,14 +20,15 @@ use memmap2::Mmap;
 
 use super::{SceneError, check_domain_checksum, domain_checksum, write_domain_file};
 use crate::bvh::{self, BvhNode};
-use crate::geometry::{Aabb, PackedTriangle, TriangleBlock};
+use crate::geometry::{Aabb, BLOCK, PackedTriangle, TriangleBlock};
 
 /// First bytes of every domain file.
 pub const MAGIC: [u8; 8] = *b"RFDOMAIN";
-/// Layout version. 4: 8-wide nodes and triangle blocks (3 had 4-wide nodes and no blocks).
-pub const VERSION: u32 = 4;
+/// Layout version. 5: the blocks are the only copy of the triangles (4 also stored the mesh
+/// and a packed array of every triangle; 3 had 4-wide nodes and no blocks).
+pub const VERSION: u32 = 5;
 /// Number of sections after the header.
-const SECTIONS: usize = 7;
+const SECTIONS: usize = 2;
 const ALIGN: u64 = 64;
 
 #[repr(C)]
@@ -38,19 +37,18 @@ struct Header {
     magic: [u8; 8],
     version: u32,
     domain: u32,
-    vertex_count: u64,
+    /// Distinct triangles in the blocks (padding lanes not counted).
     triangle_count: u64,
     node_count: u64,
     block_count: u64,
-    packed_count: u64,
     bounds: Aabb,
     checksum: u64,
-    /// Offsets of vertices, indices, materials, ids, nodes, blocks, packed.
+    /// Offsets of nodes, blocks.
     offsets: [u64; SECTIONS],
 }
 
 const HEADER_BYTES: usize = std::mem::size_of::<Header>();
-const _: () = assert!(HEADER_BYTES == 144);
+const _: () = assert!(HEADER_BYTES == 88);
 
 /// A triangle handed to the domain writer.
 #[derive(Clone, Copy, Debug)]
@@ -85,41 +83,32 @@ pub fn write_domain(
     bounds: Aabb,
     triangles: &[SourceTriangle],
 ) -> Result<DomainSummary, SceneError> {
-    let mut vertices: Vec<[f32; 3]> = Vec::new();
-    let mut index_of: HashMap<[u32; 3], u32> = HashMap::new();
-    let mut indices = Vec::with_capacity(triangles.len());
-    for t in triangles {
-        indices.push(t.vertices.map(|v| {
-            *index_of.entry(v.map(f32::to_bits)).or_insert_with(|| {
-                vertices.push(v);
-                vertices.len() as u32 - 1
-            })
-        }));
-    }
-    drop(index_of);
-    let materials: Vec<u32> = triangles.iter().map(|t| t.material).collect();
-    let ids: Vec<u64> = triangles.iter().map(|t| t.id).collect();
     let mut packed: Vec<PackedTriangle> = triangles
         .iter()
         .map(|t| PackedTriangle::new(&t.vertices, t.id, t.material))
         .collect();
     let bvh::Built { nodes, blocks } = bvh::build(&mut packed);
-    if let Err(reason) = bvh::validate(&nodes, &blocks, packed.len()) {
+    drop(packed);
+    let checked = bvh::validate(&nodes, &blocks).and_then(|_| {
+        let held = distinct_triangles(&blocks);
+        if held == triangles.len() as u64 {
+            Ok(())
+        } else {
+            // Two triangles with one id: a lane would read as padding and be lost to tools.
+            Err(format!(
+                "{} triangles were given but the blocks hold {held} distinct ids",
+                triangles.len()
+            ))
+        }
+    });
+    if let Err(reason) = checked {
         return Err(SceneError::Domain {
             path: path.into(),
             reason,
         });
     }
 
-    let sections: [&[u8]; SECTIONS] = [
-        bytemuck::cast_slice(&vertices),
-        bytemuck::cast_slice(&indices),
-        bytemuck::cast_slice(&materials),
-        bytemuck::cast_slice(&ids),
-        bytemuck::cast_slice(&nodes),
-        bytemuck::cast_slice(&blocks),
-        bytemuck::cast_slice(&packed),
-    ];
+    let sections: [&[u8]; SECTIONS] = [bytemuck::cast_slice(&nodes), bytemuck::cast_slice(&blocks)];
     let mut body = Vec::new();
     let mut offsets = [0u64; SECTIONS];
     for (k, s) in sections.iter().enumerate() {
@@ -132,11 +121,9 @@ pub fn write_domain(
         magic: MAGIC,
         version: VERSION,
         domain,
-        vertex_count: vertices.len() as u64,
         triangle_count: triangles.len() as u64,
         node_count: nodes.len() as u64,
         block_count: blocks.len() as u64,
-        packed_count: packed.len() as u64,
         bounds,
         checksum: 0,
         offsets,
@@ -158,6 +145,7 @@ pub struct DomainData {
     path: PathBuf,
     domain: u32,
     bounds: Aabb,
+    triangles: u64,
     sections: [Range<usize>; SECTIONS],
     brick: Option<crate::brick::BrickLayout>,
 }
@@ -206,35 +194,18 @@ impl DomainData {
                 path: path.into(),
                 domain: layout.header.domain,
                 bounds: Aabb::EMPTY,
+                triangles: 0,
                 sections: Default::default(),
                 brick: Some(layout),
                 map,
             });
         }
         let header = parse_header(&map).map_err(bad)?;
-        let mut unsealed = header;
-        unsealed.checksum = 0;
-        check_domain_checksum(
-            header.checksum,
-            expected_checksum,
-            verify_checksum,
-            bytemuck::bytes_of(&unsealed),
-            &map[HEADER_BYTES..],
-        )
-        .map_err(bad)?;
         let sizes = [
-            (header.vertex_count, 12u64),
-            (header.triangle_count, 12),
-            (header.triangle_count, 4),
-            (header.triangle_count, 8),
             (header.node_count, std::mem::size_of::<BvhNode>() as u64),
             (
                 header.block_count,
                 std::mem::size_of::<TriangleBlock>() as u64,
-            ),
-            (
-                header.packed_count,
-                std::mem::size_of::<PackedTriangle>() as u64,
             ),
         ];
         let mut sections: [Range<usize>; SECTIONS] = Default::default();
@@ -246,7 +217,7 @@ impl DomainData {
                 .filter(|&e| e <= map.len() as u64 && start >= HEADER_BYTES as u64)
                 .ok_or_else(|| {
                     bad(format!(
-                        "section {k} lies outside the {} byte file",
+                        "section {k} lies outside the {} byte file (truncated or corrupt)",
                         map.len()
                     ))
                 })?;
@@ -255,20 +226,41 @@ impl DomainData {
             }
             sections[k] = start as usize..end as usize;
         }
+        // The checksum after the layout: a file cut short is reported as truncated.
+        let mut unsealed = header;
+        unsealed.checksum = 0;
+        check_domain_checksum(
+            header.checksum,
+            expected_checksum,
+            verify_checksum,
+            bytemuck::bytes_of(&unsealed),
+            &map[HEADER_BYTES..],
+        )
+        .map_err(bad)?;
         let data = DomainData {
             path: path.into(),
             domain: header.domain,
             bounds: header.bounds,
+            triangles: header.triangle_count,
             sections,
             map,
             brick: None,
         };
-        bvh::validate(data.nodes(), data.blocks(), data.packed().len()).map_err(bad)?;
-        if let Some(t) = data.packed().iter().find(|t| t.material >= materials) {
+        bvh::validate(data.nodes(), data.blocks()).map_err(bad)?;
+        for b in data.blocks() {
+            if let Some(lane) = (0..BLOCK).find(|&l| b.material[l] >= materials) {
+                return Err(bad(format!(
+                    "triangle {} names material {} of {materials}",
+                    b.id(lane),
+                    b.material[lane]
+                )));
+            }
+        }
+        let held = distinct_triangles(data.blocks());
+        if held != header.triangle_count {
             return Err(bad(format!(
-                "triangle {} names material {} of {materials}",
-                t.id(),
-                t.material
+                "the header counts {} triangles, the blocks hold {held}",
+                header.triangle_count
             )));
         }
         Ok(data)
@@ -299,46 +291,34 @@ impl DomainData {
         self.map.len() as u64
     }
 
-    /// Mesh vertices.
-    pub fn vertices(&self) -> &[[f32; 3]] {
-        self.section(0)
-    }
-
-    /// Mesh triangles as vertex indices.
-    pub fn indices(&self) -> &[[u32; 3]] {
-        self.section(1)
-    }
-
-    /// Material per mesh triangle.
-    pub fn materials(&self) -> &[u32] {
-        self.section(2)
-    }
-
-    /// Scene-wide id per mesh triangle.
-    pub fn ids(&self) -> &[u64] {
-        self.section(3)
+    /// Triangles the domain holds (distinct ones; a brick holds none).
+    pub fn triangle_count(&self) -> u64 {
+        self.triangles
     }
 
     /// BVH nodes.
     pub fn nodes(&self) -> &[BvhNode] {
-        self.section(4)
+        self.section(0)
     }
 
-    /// BVH leaf blocks.
+    /// BVH leaf blocks: the domain's triangles.
     pub fn blocks(&self) -> &[TriangleBlock] {
-        self.section(5)
+        self.section(1)
     }
 
-    /// The BVH, nodes and leaf blocks, for traversal.
+    /// The BVH, nodes and leaf blocks, for traversal and for reading triangles back.
     pub fn bvh(&self) -> bvh::Bvh<'_> {
         // Checked by `bvh::validate` when the file was opened.
         bvh::Bvh::trusted(self.nodes(), self.blocks())
     }
+}
 
-    /// Triangles in BVH leaf order.
-    pub fn packed(&self) -> &[PackedTriangle] {
-        self.section(6)
-    }
+/// Triangles the blocks hold: every lane that is not a repeat of the lane before it.
+fn distinct_triangles(blocks: &[TriangleBlock]) -> u64 {
+    blocks
+        .iter()
+        .map(|b| (0..BLOCK).filter(|&l| !b.is_repeat(l)).count() as u64)
+        .sum()
 }
 
 /// Writes into `bytes` (a domain file's contents) the checksum they should carry, as the

@@ -359,10 +359,10 @@ impl Manifest {
                 || entry.values != Some([b.header.value_min, b.header.value_max]))
         {
             Some("brick's volume dims or value range differ from the manifest's".to_string())
-        } else if data.indices().len() as u64 != entry.triangles {
+        } else if data.triangle_count() != entry.triangles {
             Some(format!(
                 "holds {} triangles, the manifest says {}",
-                data.indices().len(),
+                data.triangle_count(),
                 entry.triangles
             ))
         } else {

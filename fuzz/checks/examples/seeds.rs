@@ -7,11 +7,13 @@ use std::path::{Path, PathBuf};
 
 use prost::Message;
 use rayfarm_core::cluster::tile_sums;
+use rayfarm_core::geometry::Aabb;
 use rayfarm_core::mesh::{
     TriangleMesh, write_obj, write_ply_ascii, write_ply_binary, write_stl_ascii, write_stl_binary,
 };
 use rayfarm_core::prepare::generate::{NbodyOptions, prepare_nbody};
 use rayfarm_core::ray::RayRecord;
+use rayfarm_core::scene::domain_file::{SourceTriangle, write_domain};
 use rayfarm_core::wire::{self, VerdictRecord};
 use rayfarm_proto as proto;
 
@@ -93,6 +95,29 @@ fn main() {
     for d in &manifest.domains {
         let bytes = std::fs::read(scene.join(&d.file)).unwrap();
         seed("domain_file", &d.file, &bytes);
+    }
+    // Small domains whose every field a mutation reaches quickly: one block with padding
+    // lanes, one node of seven one-block leaves, and no triangles at all. (The committed
+    // corpus also holds hand-made lies of `seven_triangles`: counts, offsets, children,
+    // leaf sizes, a material; and one file of format 4, refused by its version.)
+    for (name, count) in [("one_triangle", 1u64), ("seven_triangles", 7), ("empty", 0)] {
+        let tris: Vec<SourceTriangle> = (0..count)
+            .map(|i| {
+                let x = i as f32;
+                SourceTriangle {
+                    vertices: [[x, 0.0, 0.0], [x + 1.0, 0.0, 0.0], [x, 1.0, 0.5]],
+                    id: 10 + i,
+                    material: (i % 2) as u32,
+                }
+            })
+            .collect();
+        let path = scene.join(format!("{name}.rfd"));
+        let bounds = Aabb {
+            min: [-1.0; 3],
+            max: [8.0; 3],
+        };
+        write_domain(&path, 0, bounds, &tris).unwrap();
+        seed("domain_file", name, &std::fs::read(&path).unwrap());
     }
 
     let mesh = TriangleMesh {
