@@ -5,6 +5,7 @@
 pub mod bounds;
 pub mod fault;
 pub mod identity;
+pub mod idle;
 pub mod job;
 pub mod listen;
 pub mod proto;
