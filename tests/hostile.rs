@@ -797,3 +797,72 @@ fn readers_that_never_read_hold_bounded_memory_and_other_clients_still_fetch() {
         },
     );
 }
+
+/// Replaces `dir/scene.toml` with a FIFO nobody writes to; returns where the real one went.
+fn manifest_to_fifo(dir: &std::path::Path) -> std::path::PathBuf {
+    let manifest = dir.join("scene.toml");
+    let kept = dir.join("scene.toml.kept");
+    std::fs::rename(&manifest, &kept).unwrap();
+    let fifo = std::ffi::CString::new(s(&manifest)).unwrap();
+    // SAFETY: mkfifo reads the path it is given.
+    assert_eq!(unsafe { libc::mkfifo(fifo.as_ptr(), 0o644) }, 0);
+    kept
+}
+
+#[test]
+fn a_manifest_that_becomes_a_fifo_after_submit_fails_clearly_and_freezes_nothing() {
+    let frame = ["--width", "64", "--height", "48", "--spp", "2"];
+    let root = tempfile::tempdir().unwrap();
+    let scene = prepare_nbody(root.path(), "nb", 2000, 2);
+    let expected = local_hash(&scene, &frame);
+    // No worker yet: the job waits in the queue while its manifest becomes a FIFO.
+    let mut cluster = Cluster::start(root.path(), Some("nb"), &[]);
+    let err = cluster.dir().join("fifo.stderr");
+    let mut client = Command::new(bin("rayfarm"))
+        .args(["submit", "--wait", "--quiet"])
+        .args(frame)
+        .env("RAYFARM_COORDINATOR", cluster.coordinator_url())
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&err).unwrap())
+        .spawn()
+        .unwrap();
+    wait_until("the job to be queued", Duration::from_secs(30), || {
+        String::from_utf8_lossy(&cluster.rayfarm_ok(&["jobs"]).stdout).contains("nb")
+    });
+    let kept = manifest_to_fifo(&scene);
+    // The coordinator re-reads the manifest when the frame starts: refused, not read.
+    cluster.add_worker(&WorkerOpts::default());
+    assert!(
+        !wait_child(&mut client, "submit --wait", Duration::from_secs(60)),
+        "a job whose manifest is a FIFO succeeded"
+    );
+    let err = std::fs::read_to_string(&err).unwrap();
+    assert!(err.contains("scene.toml: not a regular file"), "{err}");
+    // Nothing froze: the coordinator serves, its worker still heartbeats.
+    cluster.wait_for_workers(1, Duration::from_secs(10));
+    std::fs::remove_file(scene.join("scene.toml")).unwrap();
+    std::fs::rename(&kept, scene.join("scene.toml")).unwrap();
+
+    // A worker whose own view of the scene has a FIFO for a manifest declines the frame,
+    // and the other renders it.
+    let other = tempfile::tempdir().unwrap();
+    let copy = other.path().join("nb");
+    std::fs::create_dir(&copy).unwrap();
+    for entry in std::fs::read_dir(&scene).unwrap() {
+        let path = entry.unwrap().path();
+        std::fs::copy(&path, copy.join(path.file_name().unwrap())).unwrap();
+    }
+    manifest_to_fifo(&copy);
+    cluster.add_worker(&WorkerOpts::default().scene_root(other.path()));
+    cluster.wait_for_workers(2, Duration::from_secs(30));
+    let stats = submit_wait(&cluster, &frame, "fifo-worker");
+    assert_eq!(hash_of(&stats), expected);
+    let left_out = stats_field(&stats, "/left_out").to_string();
+    assert!(
+        left_out.contains("scene.toml: not a regular file"),
+        "{left_out}"
+    );
+    // It is still there, heartbeating, and the coordinator still serves.
+    cluster.wait_for_workers(2, Duration::from_secs(10));
+    cluster.rayfarm_ok(&["jobs"]);
+}
