@@ -195,6 +195,87 @@ fn silent_connections_do_not_starve_a_legitimate_client_under_a_low_descriptor_l
     }
 }
 
+/// A hostile HTTP/2 client from [`HOSTILE_IP`]: sends the preface and SETTINGS, then opens
+/// no stream but answers what a live client answers (SETTINGS and PING acknowledgements), so
+/// keepalives never close it. Returns how long the connection lasted, or `None` if it was
+/// still open after `limit`.
+async fn idle_h2(addr: &str, limit: Duration) -> Option<Duration> {
+    let mut conn = hostile_connect(addr).await.unwrap();
+    let start = Instant::now();
+    let mut hello = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n".to_vec();
+    frame(&mut hello, 0x4, 0, 0, &[]);
+    conn.write_all(&hello).await.ok()?;
+    let answer = async {
+        let mut header = [0u8; 9];
+        loop {
+            if conn.read_exact(&mut header).await.is_err() {
+                return start.elapsed();
+            }
+            let len = u32::from_be_bytes([0, header[0], header[1], header[2]]) as usize;
+            let mut payload = vec![0u8; len];
+            if conn.read_exact(&mut payload).await.is_err() {
+                return start.elapsed();
+            }
+            let mut reply = Vec::new();
+            match (header[3], header[4] & 1) {
+                (0x4, 0) => frame(&mut reply, 0x4, 1, 0, &[]), // SETTINGS -> ACK
+                (0x6, 0) => frame(&mut reply, 0x6, 1, 0, &payload), // PING -> ACK
+                _ => {}
+            }
+            if !reply.is_empty() && conn.write_all(&reply).await.is_err() {
+                return start.elapsed();
+            }
+        }
+    };
+    tokio::time::timeout(limit, answer).await.ok()
+}
+
+#[test]
+fn idle_http2_connections_are_closed_and_streams_and_clients_go_on() {
+    let rt = runtime();
+    let root = tempfile::tempdir().unwrap();
+    let scene = prepare_nbody(root.path(), "nb", 2000, 2);
+    // Long-lived streams (the worker's control stream) outlast the idle timeout many times.
+    let opts = ClusterOpts {
+        coordinator_args: vec!["--idle-timeout-ms".into(), "1500".into()],
+        coordinator_descriptor_limit: Some(256),
+        ..ClusterOpts::default()
+    };
+    let cluster = Cluster::start_with(root.path(), Some("nb"), &opts, &[WorkerOpts::default()]);
+    // As many idle connections as one peer may hold, each past its handshake and answering
+    // pings: without an idle timeout they would be held for as long as they like.
+    let addr = cluster.coordinator_addr().to_string();
+    let idle: Vec<_> = (0..64)
+        .map(|_| {
+            let addr = addr.clone();
+            rt.spawn(async move { idle_h2(&addr, Duration::from_secs(20)).await })
+        })
+        .collect();
+    // Meanwhile a client at another address is served.
+    for _ in 0..3 {
+        cluster.rayfarm_ok(&["jobs"]);
+    }
+    let lasted: Vec<Duration> = idle
+        .into_iter()
+        .map(|h| {
+            rt.block_on(h)
+                .unwrap()
+                .expect("an idle connection was still open after 20 s")
+        })
+        .collect();
+    let (shortest, longest) = (lasted.iter().min().unwrap(), lasted.iter().max().unwrap());
+    // Closed by the idle timeout, not at once.
+    assert!(*shortest >= Duration::from_millis(1400), "{shortest:?}");
+    eprintln!("64 idle HTTP/2 connections closed after {shortest:?} to {longest:?} (idle 1.5 s)");
+    // The worker's control stream outlived them: it renders the frame, and the image is
+    // the one `render --local` makes.
+    let frame = ["--width", "64", "--height", "48", "--spp", "2"];
+    let stats = submit_wait(&cluster, &frame, "after-idle");
+    assert_eq!(hash_of(&stats), local_hash(&scene, &frame));
+    let status = cluster.status();
+    assert_eq!(status["workers"].as_array().unwrap().len(), 1, "{status}");
+}
+
 /// The HPACK encoding of one header as a literal with a literal name (RFC 7541, 6.2.2).
 fn hpack_literal(out: &mut Vec<u8>, name: &str, value: &str) {
     assert!(name.len() < 127 && value.len() < 127);
@@ -715,4 +796,73 @@ fn readers_that_never_read_hold_bounded_memory_and_other_clients_still_fetch() {
                 > streamed
         },
     );
+}
+
+/// Replaces `dir/scene.toml` with a FIFO nobody writes to; returns where the real one went.
+fn manifest_to_fifo(dir: &std::path::Path) -> std::path::PathBuf {
+    let manifest = dir.join("scene.toml");
+    let kept = dir.join("scene.toml.kept");
+    std::fs::rename(&manifest, &kept).unwrap();
+    let fifo = std::ffi::CString::new(s(&manifest)).unwrap();
+    // SAFETY: mkfifo reads the path it is given.
+    assert_eq!(unsafe { libc::mkfifo(fifo.as_ptr(), 0o644) }, 0);
+    kept
+}
+
+#[test]
+fn a_manifest_that_becomes_a_fifo_after_submit_fails_clearly_and_freezes_nothing() {
+    let frame = ["--width", "64", "--height", "48", "--spp", "2"];
+    let root = tempfile::tempdir().unwrap();
+    let scene = prepare_nbody(root.path(), "nb", 2000, 2);
+    let expected = local_hash(&scene, &frame);
+    // No worker yet: the job waits in the queue while its manifest becomes a FIFO.
+    let mut cluster = Cluster::start(root.path(), Some("nb"), &[]);
+    let err = cluster.dir().join("fifo.stderr");
+    let mut client = Command::new(bin("rayfarm"))
+        .args(["submit", "--wait", "--quiet"])
+        .args(frame)
+        .env("RAYFARM_COORDINATOR", cluster.coordinator_url())
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&err).unwrap())
+        .spawn()
+        .unwrap();
+    wait_until("the job to be queued", Duration::from_secs(30), || {
+        String::from_utf8_lossy(&cluster.rayfarm_ok(&["jobs"]).stdout).contains("nb")
+    });
+    let kept = manifest_to_fifo(&scene);
+    // The coordinator re-reads the manifest when the frame starts: refused, not read.
+    cluster.add_worker(&WorkerOpts::default());
+    assert!(
+        !wait_child(&mut client, "submit --wait", Duration::from_secs(60)),
+        "a job whose manifest is a FIFO succeeded"
+    );
+    let err = std::fs::read_to_string(&err).unwrap();
+    assert!(err.contains("scene.toml: not a regular file"), "{err}");
+    // Nothing froze: the coordinator serves, its worker still heartbeats.
+    cluster.wait_for_workers(1, Duration::from_secs(10));
+    std::fs::remove_file(scene.join("scene.toml")).unwrap();
+    std::fs::rename(&kept, scene.join("scene.toml")).unwrap();
+
+    // A worker whose own view of the scene has a FIFO for a manifest declines the frame,
+    // and the other renders it.
+    let other = tempfile::tempdir().unwrap();
+    let copy = other.path().join("nb");
+    std::fs::create_dir(&copy).unwrap();
+    for entry in std::fs::read_dir(&scene).unwrap() {
+        let path = entry.unwrap().path();
+        std::fs::copy(&path, copy.join(path.file_name().unwrap())).unwrap();
+    }
+    manifest_to_fifo(&copy);
+    cluster.add_worker(&WorkerOpts::default().scene_root(other.path()));
+    cluster.wait_for_workers(2, Duration::from_secs(30));
+    let stats = submit_wait(&cluster, &frame, "fifo-worker");
+    assert_eq!(hash_of(&stats), expected);
+    let left_out = stats_field(&stats, "/left_out").to_string();
+    assert!(
+        left_out.contains("scene.toml: not a regular file"),
+        "{left_out}"
+    );
+    // It is still there, heartbeating, and the coordinator still serves.
+    cluster.wait_for_workers(2, Duration::from_secs(10));
+    cluster.rayfarm_ok(&["jobs"]);
 }

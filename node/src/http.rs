@@ -82,7 +82,11 @@ pub async fn bind(
                 let service = tower::service_fn(move |mut request: http::Request<_>| {
                     request.extensions_mut().insert(info.clone());
                     let answer = router.clone().oneshot(request);
+                    // Open until answered, so the idle timeout (`crate::idle`) never ends a
+                    // connection with a request on it.
+                    let open = info.activity.as_ref().map(crate::idle::Activity::begin);
                     async move {
+                        let _open = open;
                         match tokio::time::timeout(REQUEST_TIMEOUT, answer).await {
                             Ok(response) => response,
                             Err(_) => Ok(http::StatusCode::SERVICE_UNAVAILABLE.into_response()),

@@ -6,6 +6,7 @@ pub mod bounds;
 pub mod fault;
 pub mod http;
 pub mod identity;
+pub mod idle;
 pub mod job;
 pub mod listen;
 pub mod metrics;

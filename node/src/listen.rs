@@ -1,6 +1,7 @@
 //! Connection handling of every rayfarm server: TCP connections are accepted under caps (in
 //! total and per peer address), must complete TLS (when on) and send the HTTP/2 preface
-//! within a deadline, and only then are handed to tonic.
+//! within a deadline, and only then are handed to tonic. A connection that then carries no
+//! request for [`ConnectionArgs::idle_timeout_ms`] is closed ([`crate::idle`]).
 //!
 //! Without this, a peer that opens connections and says nothing holds a descriptor each for
 //! as long as it likes, and a few hundred of them starve the process of descriptors (the
@@ -9,6 +10,7 @@
 //! client at another address keeps being served.
 
 use std::collections::HashMap;
+use std::future::Future;
 use std::io;
 use std::net::{IpAddr, SocketAddr};
 use std::pin::Pin;
@@ -27,6 +29,7 @@ use tonic::transport::server::Connected;
 use tracing::{debug, warn};
 
 use crate::identity::PeerIdentity;
+use crate::idle::Activity;
 
 /// What every HTTP/2 client sends first (RFC 9113, section 3.4).
 const PREFACE: &[u8; 24] = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n";
@@ -49,6 +52,10 @@ pub struct ConnectionArgs {
     /// milliseconds is closed.
     #[arg(long, env = "RAYFARM_HANDSHAKE_TIMEOUT_MS", default_value_t = 10_000)]
     pub handshake_timeout_ms: u64,
+    /// A connection past its handshake that carries no request (no stream open) for this
+    /// many milliseconds is closed; clients reconnect on their next call.
+    #[arg(long, env = "RAYFARM_IDLE_TIMEOUT_MS", default_value_t = 60_000)]
+    pub idle_timeout_ms: u64,
 }
 
 impl Default for ConnectionArgs {
@@ -57,6 +64,7 @@ impl Default for ConnectionArgs {
             max_connections: 1024,
             max_connections_per_peer: 64,
             handshake_timeout_ms: 10_000,
+            idle_timeout_ms: 60_000,
         }
     }
 }
@@ -163,8 +171,9 @@ fn incoming_of(
         refused: AtomicU64::new(0),
     });
     let deadline = Duration::from_millis(limits.handshake_timeout_ms.max(1));
+    let idle = Duration::from_millis(limits.idle_timeout_ms.max(1));
     let (tx, rx) = mpsc::channel(16);
-    tokio::spawn(accept_loop(listener, tls, slots, deadline, h2, tx));
+    tokio::spawn(accept_loop(listener, tls, slots, deadline, h2, idle, tx));
     ReceiverStream::new(rx)
 }
 
@@ -174,6 +183,7 @@ async fn accept_loop(
     slots: Arc<Slots>,
     deadline: Duration,
     h2: bool,
+    idle: Duration,
     tx: mpsc::Sender<Result<Conn, io::Error>>,
 ) {
     loop {
@@ -207,15 +217,21 @@ async fn accept_loop(
         tokio::spawn(async move {
             match tokio::time::timeout(deadline, handshake(stream, tls, h2)).await {
                 Ok(Ok(io)) => {
+                    let activity = Activity::new();
                     let info = ConnInfo {
                         remote: Some(peer),
                         peer: io.peer_identity().map(Arc::new),
+                        activity: Some(activity.clone()),
                     };
                     let conn = Conn {
                         io,
                         // Without a preface read there is nothing to replay.
                         replayed: if h2 { 0 } else { PREFACE.len() },
                         info,
+                        activity,
+                        idle,
+                        idle_check: Box::pin(tokio::time::sleep(idle)),
+                        peer,
                         _slot: slot,
                     };
                     let _ = tx.send(Ok(conn)).await;
@@ -283,6 +299,8 @@ pub struct ConnInfo {
     pub remote: Option<SocketAddr>,
     /// The names of the client's verified certificate.
     pub peer: Option<Arc<PeerIdentity>>,
+    /// The requests open on the connection ([`crate::idle`]).
+    pub activity: Option<Arc<Activity>>,
 }
 
 /// The address of the client that sent `request` (tonic's `remote_addr` knows only its own
@@ -295,13 +313,36 @@ pub fn remote_addr<T>(request: &tonic::Request<T>) -> Option<SocketAddr> {
 }
 
 /// An accepted connection past its handshake: it replays the HTTP/2 preface read by the
-/// handshake, then reads on, and holds its slot under the caps until dropped.
+/// handshake, then reads on, and holds its slot under the caps until dropped. Once it has
+/// carried no request for its idle timeout, its reads end (the server then closes it).
 pub struct Conn {
     io: Io,
     /// Bytes of [`PREFACE`] already given back to the reader.
     replayed: usize,
     info: ConnInfo,
+    activity: Arc<Activity>,
+    idle: Duration,
+    /// When to look again whether the connection has been idle too long.
+    idle_check: Pin<Box<tokio::time::Sleep>>,
+    peer: SocketAddr,
     _slot: Slot,
+}
+
+impl Conn {
+    /// Whether the connection has carried no request for its idle timeout; otherwise arms
+    /// the check for the earliest time it could have (waking `cx` then).
+    fn idle_past_timeout(&mut self, cx: &mut Context<'_>) -> bool {
+        while self.idle_check.as_mut().poll(cx).is_ready() {
+            let wait = match self.activity.idle_for() {
+                Some(idle) if idle >= self.idle => return true,
+                Some(idle) => self.idle - idle,
+                None => self.idle,
+            };
+            let at = tokio::time::Instant::now() + wait;
+            self.idle_check.as_mut().reset(at);
+        }
+        false
+    }
 }
 
 impl Connected for Conn {
@@ -384,7 +425,14 @@ impl AsyncRead for Conn {
             this.replayed += n;
             return Poll::Ready(Ok(()));
         }
-        Pin::new(&mut this.io).poll_read(cx, buf)
+        match Pin::new(&mut this.io).poll_read(cx, buf) {
+            Poll::Pending if this.idle_past_timeout(cx) => {
+                debug!(peer = %this.peer, idle = ?this.idle, "connection closed: idle");
+                // End of stream: the server closes the connection.
+                Poll::Ready(Ok(()))
+            }
+            other => other,
+        }
     }
 }
 

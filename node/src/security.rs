@@ -22,7 +22,10 @@ use tonic::metadata::{Ascii, MetadataValue};
 use tonic::service::Interceptor;
 use tonic::transport::{Certificate, ClientTlsConfig, Endpoint, Identity};
 use tonic::{Request, Status};
+use tower::layer::util::{Identity as NoLayer, Stack};
 use tracing::warn;
+
+use crate::idle::ActivityLayer;
 
 /// The metadata header carrying the cluster secret.
 pub const SECRET_HEADER: &str = "x-rayfarm-secret";
@@ -287,9 +290,10 @@ pub const MAX_HEADER_LIST_BYTES: u32 = 16 << 10;
 pub const REQUEST_TIMEOUT: Duration = Duration::from_secs(60);
 
 /// A server builder whose connections ping their clients (see [`KEEPALIVE_INTERVAL`]) and
-/// are bounded in streams, header size and request time. Connections themselves are capped
-/// and handshaken by [`crate::listen::incoming`].
-pub fn server_builder() -> tonic::transport::Server {
+/// are bounded in streams, header size and request time, with each request counted on its
+/// connection for the idle timeout ([`crate::idle`]). Connections themselves are capped,
+/// handshaken and closed when idle by [`crate::listen::incoming`].
+pub fn server_builder() -> tonic::transport::Server<Stack<ActivityLayer, NoLayer>> {
     tonic::transport::Server::builder()
         .http2_keepalive_interval(Some(KEEPALIVE_INTERVAL))
         .http2_keepalive_timeout(Some(KEEPALIVE_TIMEOUT))
@@ -297,6 +301,7 @@ pub fn server_builder() -> tonic::transport::Server {
         .http2_max_header_list_size(MAX_HEADER_LIST_BYTES)
         .http2_max_pending_accept_reset_streams(Some(32))
         .timeout(REQUEST_TIMEOUT)
+        .layer(ActivityLayer)
 }
 
 /// Why a server refuses to listen where it was asked to.

@@ -69,6 +69,9 @@ pub enum Event {
     Machine(Box<machine::Event<FileSpill>>),
 }
 
+/// How long opening a frame waits for its scene's manifest.
+const SCENE_READ_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(10);
+
 /// What identifies a scene to the cache: its directory and its manifest.
 type SceneKey = (PathBuf, Manifest);
 
@@ -141,7 +144,7 @@ impl Engine {
                 .map(|t| self.clock + t.since(Time(0)));
             let event = tokio::select! {
                 event = events.recv() => match event {
-                    Some(event) => self.translate(event),
+                    Some(event) => self.translate(event).await,
                     None => break,
                 },
                 _ = sleep_until(deadline), if deadline.is_some() => machine::Event::Tick,
@@ -159,12 +162,16 @@ impl Engine {
 
     /// The machine's event for `event`: a StartFrame is opened first, a pass's result comes
     /// with the domains mapped now.
-    fn translate(&mut self, event: Event) -> machine::Event<FileSpill> {
+    async fn translate(&mut self, event: Event) -> machine::Event<FileSpill> {
         match event {
             Event::Control(msg) => match msg.body {
                 Some(FromCoordinator::StartFrame(start)) => {
                     // Every cause, e.g. "spill directory D: No space left on device".
-                    let opened = self.open_frame(&start).map_err(|e| format!("{e:#}"));
+                    let opened = match self.read_scene(&start).await {
+                        Ok(scene) => self.open_frame(&start, scene),
+                        Err(e) => Err(e),
+                    };
+                    let opened = opened.map_err(|e| format!("{e:#}"));
                     machine::Event::FrameOpened { start, opened }
                 }
                 body => machine::Event::Control(proto::CoordinatorMessage { body }),
@@ -314,27 +321,56 @@ impl Engine {
         self.cache.as_ref().map(|(_, c)| f(&mut lock(c)))
     }
 
-    fn open_frame(&mut self, s: &proto::StartFrame) -> anyhow::Result<OpenedScene<FileSpill>> {
+    /// The directory and manifest of a StartFrame's scene, read on a blocking thread within
+    /// [`SCENE_READ_TIMEOUT`]: storage that hangs (a FIFO that became the manifest, a dead
+    /// mount) declines the frame with a clear error instead of stalling this engine and the
+    /// runtime's threads. The stuck thread is left to its read.
+    async fn read_scene(&self, s: &proto::StartFrame) -> anyhow::Result<(PathBuf, Manifest)> {
         let spec = s
             .spec
             .as_ref()
             .ok_or_else(|| anyhow::anyhow!("StartFrame without a job spec"))?;
-        let dir = scene_ref::resolve(
-            &self.config.scene_root,
-            &spec.scene,
+        let (root, allow_absolute) = (
+            self.config.scene_root.clone(),
             self.config.allow_absolute_scenes,
-        )?;
-        if !dir.is_dir() {
-            // Each node names its own mount point of the shared storage.
-            anyhow::bail!(
-                "scene {:?} not found: {} is not a directory (is --scene-root {} where this \
-                 node sees the scenes?)",
-                spec.scene,
-                dir.display(),
-                self.config.scene_root.display()
-            );
+        );
+        let scene = spec.scene.clone();
+        let read = tokio::task::spawn_blocking(move || {
+            let dir = scene_ref::resolve(&root, &scene, allow_absolute)?;
+            if !dir.is_dir() {
+                // Each node names its own mount point of the shared storage.
+                anyhow::bail!(
+                    "scene {scene:?} not found: {} is not a directory (is --scene-root {} \
+                     where this node sees the scenes?)",
+                    dir.display(),
+                    root.display()
+                );
+            }
+            let manifest = Manifest::load(&dir)?;
+            Ok((dir, manifest))
+        });
+        match tokio::time::timeout(SCENE_READ_TIMEOUT, read).await {
+            Ok(Ok(result)) => result,
+            Ok(Err(e)) => Err(anyhow::anyhow!(
+                "reading scene {:?} failed: {e}",
+                spec.scene
+            )),
+            Err(_) => Err(anyhow::anyhow!(
+                "scene {:?}: its manifest could not be read within {SCENE_READ_TIMEOUT:?}",
+                spec.scene
+            )),
         }
-        let manifest = Manifest::load(&dir)?;
+    }
+
+    fn open_frame(
+        &mut self,
+        s: &proto::StartFrame,
+        (dir, manifest): (PathBuf, Manifest),
+    ) -> anyhow::Result<OpenedScene<FileSpill>> {
+        let spec = s
+            .spec
+            .as_ref()
+            .ok_or_else(|| anyhow::anyhow!("StartFrame without a job spec"))?;
         let frame = job::frame_spec(spec, &manifest.camera).map_err(anyhow::Error::msg)?;
         let (view, limits) =
             FrameView::open(&manifest, &frame, s.tile_size).map_err(anyhow::Error::msg)?;

@@ -3,6 +3,9 @@
 
 use super::*;
 
+/// How long a frame's start waits for its scene's manifest.
+const FRAME_SCENE_READ_TIMEOUT: Duration = Duration::from_secs(10);
+
 impl Coordinator {
     /// Starts the next queued job if the cluster is free and has workers.
     pub(super) fn try_start(self: &Arc<Self>, st: &mut State) {
@@ -120,9 +123,38 @@ impl Coordinator {
         }
     }
 
-    pub(super) fn prepare_frame(&self, id: &str, spec: proto::JobSpec) -> Result<Running, Status> {
+    /// `scene`'s manifest, read on a thread of its own and waited for at most `limit`: a
+    /// read stuck on storage fails the job with a clear error instead of holding the queue
+    /// (no other frame starts while one is prepared). The stuck thread is left to its read.
+    fn read_scene_within(
+        self: &Arc<Self>,
+        scene: &str,
+        limit: Duration,
+    ) -> Result<Manifest, Status> {
+        let (tx, rx) = std::sync::mpsc::channel();
+        let (this, name) = (self.clone(), scene.to_string());
+        std::thread::Builder::new()
+            .name("read-scene".into())
+            .spawn(move || {
+                let _ = tx.send(this.open_scene(&name).map(|(_, manifest)| manifest));
+            })
+            .map_err(|e| Status::unavailable(format!("no thread to read the scene: {e}")))?;
+        rx.recv_timeout(limit).unwrap_or_else(|_| {
+            warn!(scene, "scene read at frame start timed out");
+            Err(Status::deadline_exceeded(format!(
+                "scene {scene:?}: its manifest could not be read within {limit:?} at the \
+                 frame's start"
+            )))
+        })
+    }
+
+    pub(super) fn prepare_frame(
+        self: &Arc<Self>,
+        id: &str,
+        spec: proto::JobSpec,
+    ) -> Result<Running, Status> {
         // The scene was checked at submission; check again, it may have changed since.
-        let (_, manifest) = self.open_scene(&spec.scene)?;
+        let manifest = self.read_scene_within(&spec.scene, FRAME_SCENE_READ_TIMEOUT)?;
         let frame = frame_spec(&spec, &manifest.camera).map_err(Status::invalid_argument)?;
         let domain_bytes = manifest.domains.iter().map(|d| d.bytes).collect();
         let spp = frame.spp;

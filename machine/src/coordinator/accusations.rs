@@ -162,6 +162,28 @@ mod tests {
     }
 
     #[test]
+    fn a_liar_cannot_get_a_healthy_worker_dropped_alone() {
+        // Worker 1 holds the cluster credentials and reports the healthy worker 2, which the
+        // coordinator hears from; worker 2 then finds 1 unreachable too (it runs no peer
+        // service). That is one broken link between them, reported both ways, by one peer:
+        // the liar goes.
+        let t0 = Time(1_000_000_000);
+        let mut a = Accusations::default();
+        a.add(1, 2, t0, "forged");
+        a.add(2, 1, t0 + Duration::from_millis(30), "no connection");
+        let v = heard_by_all(&mut a, t0);
+        assert_eq!((v.drop, v.accuser, v.accused), (1, 1, 2));
+        // Reporting every healthy worker makes it the end of the most broken links.
+        a.add(1, 2, t0, "forged");
+        a.add(1, 3, t0, "forged");
+        assert_eq!(heard_by_all(&mut a, t0).drop, 1);
+        // Only a second peer's word, or the coordinator's own silence, drops the accused.
+        a.add(1, 2, t0, "forged");
+        a.add(3, 2, t0, "forged too");
+        assert_eq!(heard_by_all(&mut a, t0).drop, 2);
+    }
+
+    #[test]
     fn reports_wait_for_the_grace_period() {
         let t0 = Time(1_000_000_000);
         let mut a = Accusations::default();
