@@ -19,7 +19,7 @@ use crate::net::NodeId;
 /// What the coordinator does to a worker's node.
 pub enum ToNode {
     /// A message on its control stream.
-    Send(NodeId, proto::CoordinatorMessage),
+    Send(NodeId, Box<proto::CoordinatorMessage>),
     /// Its control stream is closed (it was dropped).
     Close(NodeId),
 }
@@ -127,7 +127,7 @@ impl SimCoordinator {
 
     fn out(&self, out: Vec<Outgoing>) -> Vec<ToNode> {
         out.into_iter()
-            .filter_map(|(k, m)| Some(ToNode::Send(self.workers.get(&k)?.node, m)))
+            .filter_map(|(k, m)| Some(ToNode::Send(self.workers.get(&k)?.node, Box::new(m))))
             .collect()
     }
 
@@ -141,9 +141,9 @@ impl SimCoordinator {
         });
         let mut out = vec![ToNode::Send(
             node,
-            proto::CoordinatorMessage {
+            Box::new(proto::CoordinatorMessage {
                 body: Some(registered),
-            },
+            }),
         )];
         let member = Member::new(r.peer_address.clone(), r.cache_bytes);
         self.workers.insert(

@@ -268,7 +268,6 @@ impl World<'_> {
             peer_address: w.address.clone(),
             cache_bytes: w.cache_bytes,
             threads: self.config.cost.threads,
-            ..Default::default()
         };
         self.send(node, COORDINATOR, Msg::Register(r));
     }
@@ -388,7 +387,7 @@ impl World<'_> {
             }
             Ev::CoordTick => {
                 let out = self.coord.tick(self.now);
-                self.from_coordinator(out);
+                self.carry_out(out);
                 self.heap
                     .push(self.now + self.config.heartbeat / 4, Ev::CoordTick);
             }
@@ -435,13 +434,13 @@ impl World<'_> {
             self.checks.commit(tile, at);
         }
         self.checks.commits_seen = self.coord.commits.len();
-        self.from_coordinator(out);
+        self.carry_out(out);
     }
 
-    fn from_coordinator(&mut self, out: Vec<ToNode>) {
+    fn carry_out(&mut self, out: Vec<ToNode>) {
         for o in out {
             match o {
-                ToNode::Send(node, m) => self.send(COORDINATOR, node, Msg::Control(m)),
+                ToNode::Send(node, m) => self.send(COORDINATOR, node, Msg::Control(*m)),
                 ToNode::Close(node) => self.send(COORDINATOR, node, Msg::Closed),
             }
         }
