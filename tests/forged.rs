@@ -1,15 +1,20 @@
 //! A node with the cluster credentials (none configured here: loopback) that answers every
 //! tile it is dealt with a whole tile's credit and no pixel sums. Without the ledger's pixel
 //! bound that would end the frame at once with black tiles; it must be refused, the forger
-//! dropped, and the image be the one `render --local` makes.
+//! dropped, and the image be the one `render --local` makes. Also a node that sends a
+//! plausible result for a tile it was never given a ray of (which, taken, would spend credit
+//! the honest worker's results then overflow), and one that accuses a healthy worker.
 
 use std::time::Duration;
 
-use rayfarm_core::frame::TILE_CREDIT;
+use rayfarm_core::cluster::tile_sums;
+use rayfarm_core::frame::{TILE_CREDIT, TILE_SIZE, TileGrid};
 use rayfarm_node::proto;
 use rayfarm_node::proto::coordinator_message::Body as ToWorker;
 use rayfarm_node::proto::worker_message::Body as FromWorker;
-use rayfarm_tests::{Cluster, WorkerOpts, hash_of, local_hash, prepare_nbody, submit_wait};
+use rayfarm_tests::{
+    Cluster, WorkerOpts, hash_of, local_hash, prepare_nbody, stats_field, submit_wait,
+};
 
 const FRAME: [&str; 8] = [
     "--width", "96", "--height", "64", "--spp", "2", "--depth", "2",
@@ -143,6 +148,84 @@ fn a_worker_forging_credit_is_dropped_and_the_image_stays_right() {
     let status = cluster.status();
     let workers = status["workers"].as_array().unwrap();
     assert_eq!(workers.len(), 1, "{status}");
+}
+
+/// Attaches as worker `id` and, when a frame starts, sends one plausible result (one unit of
+/// credit and one pixel's sum) for the first tile of the `width` x `height` frame that was
+/// not dealt to it; traces nothing. Returns how its control stream ended.
+async fn poacher(url: String, id: &str, width: u32, height: u32) -> Option<tonic::Status> {
+    let (tx, mut answers) = attach(url, id).await;
+    let grid = TileGrid::new(width, height, TILE_SIZE).unwrap();
+    loop {
+        let msg = match answers.message().await {
+            Ok(Some(m)) => m,
+            Ok(None) => return None,
+            Err(e) => return Some(e),
+        };
+        let Some(ToWorker::StartFrame(f)) = msg.body else {
+            continue;
+        };
+        let tile = (0..grid.count())
+            .find(|t| !f.primary_tiles.contains(t))
+            .expect("another worker was dealt a tile");
+        let pixel = grid.pixels(tile).next().unwrap();
+        let result = proto::TileResult {
+            tile,
+            epoch: 0,
+            credit: 1,
+            sums: tile_sums::encode(&[(pixel, [1 << 40, 0, 0])]),
+        };
+        let poached = proto::WorkerMessage {
+            body: Some(FromWorker::TileResults(proto::TileResults {
+                job_id: f.job_id,
+                results: vec![result],
+                segments_traced: 0,
+            })),
+        };
+        if tx.send(poached).await.is_err() {
+            return None;
+        }
+    }
+}
+
+#[test]
+fn a_worker_sending_results_of_a_tile_it_was_never_given_is_dropped() {
+    let root = tempfile::tempdir().unwrap();
+    let scene = prepare_nbody(root.path(), "nb", 2000, 2);
+    let cluster = Cluster::start(root.path(), Some("nb"), &[WorkerOpts::default()]);
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .unwrap();
+    let url = cluster.coordinator_url().to_string();
+    let poacher = rt.spawn(async move { poacher(url, "poacher", 96, 64).await });
+    cluster.wait_for_workers(2, Duration::from_secs(30));
+
+    // Image-plane routes no rays between workers, so only the worker dealt a tile may send
+    // its results.
+    let mut frame = FRAME.to_vec();
+    frame.extend(["--schedule", "image-plane"]);
+    let stats = submit_wait(&cluster, &frame, "poached");
+    assert_eq!(hash_of(&stats), local_hash(&scene, &FRAME));
+    assert_eq!(stats_field(&stats, "/refused_results"), 1);
+    let ended = rt
+        .block_on(async { tokio::time::timeout(Duration::from_secs(30), poacher).await })
+        .expect("the poacher's stream was not closed")
+        .unwrap()
+        .expect("closed with a status");
+    assert_eq!(ended.code(), tonic::Code::PermissionDenied, "{ended}");
+    assert!(ended.message().contains("given no ray"), "{ended}");
+    let log = cluster.coordinator_log();
+    assert!(
+        log.lines()
+            .any(|l| l.contains("worker sent impossible tile results") && l.contains("poacher")),
+        "{log}"
+    );
+    let status = cluster.status();
+    let workers = status["workers"].as_array().unwrap();
+    assert_eq!(workers.len(), 1, "{status}");
+    assert_ne!(workers[0]["worker_id"], "poacher", "{status}");
 }
 
 /// Attaches as worker `id` and, once a frame starts, reports `victim` unreachable; answers

@@ -13,7 +13,7 @@ pub enum RayKind {
     Shadow = 1,
 }
 
-/// One ray in flight. 88 bytes, no padding holes, so batches travel as raw bytes.
+/// One ray in flight. 104 bytes, no padding holes, so batches travel as raw bytes.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
 pub struct RayRecord {
@@ -53,9 +53,15 @@ pub struct RayRecord {
     pub resolver: u32,
     /// Unused; zero.
     pub _pad2: u32,
+    /// Direct volume rendering: the premultiplied colour composited so far along the ray,
+    /// carried from brick to brick (zero for surface rays).
+    pub volume_rgb: [f32; 3],
+    /// Direct volume rendering: the opacity accumulated so far (`1 - transmittance`; zero,
+    /// the default, is a ray that has seen nothing).
+    pub volume_alpha: f32,
 }
 
-const _: () = assert!(std::mem::size_of::<RayRecord>() == 88);
+const _: () = assert!(std::mem::size_of::<RayRecord>() == 104);
 
 impl RayRecord {
     /// How many resolved hits lie between this ray and its camera ray: a radiance ray's depth,

@@ -15,8 +15,9 @@ compile_error!(
 pub const MAGIC: [u8; 4] = *b"RFRB";
 /// First bytes of every verdict batch.
 pub const VERDICT_MAGIC: [u8; 4] = *b"RFVB";
-/// Layout version of both kinds of batch.
-pub const VERSION: u16 = 2;
+/// Layout version of both kinds of batch. 3: rays carry their volume colour and opacity
+/// (104-byte records; 2 had 88).
+pub const VERSION: u16 = 3;
 /// Bytes before the first record.
 pub const HEADER_BYTES: usize = 16;
 const RECORD_BYTES: usize = std::mem::size_of::<RayRecord>();
@@ -255,6 +256,13 @@ fn check_record(r: &RayRecord, l: &BatchLimits) -> Result<(), &'static str> {
     }
     if r.dir == [0.0; 3] {
         return Err("zero direction");
+    }
+    // Composited premultiplied colour is non-negative and opacity a fraction: a record outside
+    // that could only make a pixel no render makes.
+    let unit = |x: f32| (0.0..=1.0).contains(&x);
+    if !(finite(&r.volume_rgb) && r.volume_rgb.iter().all(|&c| c >= 0.0) && unit(r.volume_alpha))
+    {
+        return Err("volume colour or opacity out of range");
     }
     if !(r.t_min >= 0.0 && r.t_min.is_finite() && r.t_max >= r.t_min) {
         return Err("bad interval");

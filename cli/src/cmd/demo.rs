@@ -71,6 +71,11 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
             dims: None,
             dtype: "u8".into(),
             iso: None,
+            spacing: [1.0; 3],
+            volume: false,
+            bricks: None,
+            transfer: "density".into(),
+            step: None,
         })?;
     }
     let manifest = Manifest::load(&scene)?;

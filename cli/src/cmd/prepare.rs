@@ -4,11 +4,13 @@ use std::path::PathBuf;
 
 use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
-use rayfarm_core::prepare::generate::{NbodyOptions, prepare_nbody};
+use rayfarm_core::prepare::brick_scene::MAX_BRICKS;
+use rayfarm_core::prepare::generate::{NbodyOptions, prepare_nbody, prepare_nbody_volume};
 use rayfarm_core::prepare::mesh_scene::MAX_DOMAINS;
 use rayfarm_core::prepare::prepare_mesh;
-use rayfarm_core::prepare::volume_scene::prepare_volume;
+use rayfarm_core::prepare::volume_scene::{prepare_raw_bricks, prepare_volume};
 use rayfarm_core::scene::Manifest;
+use rayfarm_core::transfer::TransferFunction;
 
 use crate::units;
 
@@ -60,8 +62,27 @@ pub struct PrepareArgs {
     #[arg(long, default_value = "u8")]
     pub dtype: String,
     /// Volume: iso value of the surface.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "volume")]
     pub iso: Option<f32>,
+    /// Volume: distance between voxel centres SX,SY,SZ (e.g. a CT's 0.957,0.957,1.5 mm).
+    #[arg(long, value_parser = units::triple::<f32>, default_value = "1,1,1")]
+    pub spacing: [f32; 3],
+    /// Keep the volume for direct volume rendering, cut into bricks, instead of extracting
+    /// an isosurface; with --generate nbody, the generator's density field (--dims N,N,N,
+    /// default 128 per axis).
+    #[arg(long)]
+    pub volume: bool,
+    /// --volume: bricks to cut the volume into (default: --domains).
+    #[arg(long, requires = "volume",
+          value_parser = clap::value_parser!(u32).range(1..=i64::from(MAX_BRICKS)))]
+    pub bricks: Option<u32>,
+    /// --volume: transfer function, a preset (ct-bone, ct-skin, density) or a TOML file of
+    /// [[point]] value, colour, opacity.
+    #[arg(long, requires = "volume", default_value = "density")]
+    pub transfer: String,
+    /// --volume: distance between samples along a ray (default: half the smallest spacing).
+    #[arg(long, requires = "volume")]
+    pub step: Option<f32>,
 }
 
 pub fn run(a: PrepareArgs) -> anyhow::Result<()> {
@@ -72,20 +93,43 @@ pub fn run(a: PrepareArgs) -> anyhow::Result<()> {
         println!("{}: already prepared, left as it is", a.out.display());
         return Ok(());
     }
+    let transfer = || TransferFunction::load(&a.transfer).map_err(anyhow::Error::msg);
+    let bricks = a.bricks.unwrap_or(a.domains);
+    let nbody = |domains| NbodyOptions {
+        name: a.name.clone().unwrap_or_else(|| "nbody".into()),
+        triangles: a.triangles,
+        seed: a.seed,
+        domains,
+        max_memory: a.max_memory,
+        force: a.force,
+    };
     let manifest = match (&a.generate, &a.input, &a.dims) {
-        (Some(Generator::Nbody), None, None) => prepare_nbody(
-            &a.out,
-            &NbodyOptions {
-                name: a.name.clone().unwrap_or_else(|| "nbody".into()),
-                triangles: a.triangles,
-                seed: a.seed,
-                domains: a.domains,
-                max_memory: a.max_memory,
-                force: a.force,
-            },
-        )?,
+        (Some(Generator::Nbody), None, dims) if a.volume => {
+            let n = match dims {
+                None => 128,
+                Some([x, y, z]) if x == y && y == z => *x,
+                Some(d) => bail!("the generated volume is a cube: give --dims N,N,N, not {d:?}"),
+            };
+            prepare_nbody_volume(&a.out, &nbody(bricks), n, transfer()?)?
+        }
+        (Some(Generator::Nbody), None, None) => prepare_nbody(&a.out, &nbody(a.domains))?,
         (Some(_), Some(_), _) | (Some(_), _, Some(_)) => {
-            bail!("--generate makes a scene without an INPUT or --dims")
+            bail!("--generate makes a scene without an INPUT or --dims (but for --volume)")
+        }
+        (None, Some(input), Some(dims)) if a.volume => {
+            let dtype = a.dtype.parse().map_err(anyhow::Error::msg)?;
+            prepare_raw_bricks(
+                input,
+                *dims,
+                dtype,
+                a.spacing,
+                transfer()?,
+                a.step,
+                &name_of(&a),
+                &a.out,
+                bricks,
+                a.force,
+            )?
         }
         (None, Some(input), Some(dims)) => {
             let iso = a.iso.context("a volume needs --iso")?;
@@ -94,12 +138,19 @@ pub fn run(a: PrepareArgs) -> anyhow::Result<()> {
                 input,
                 *dims,
                 dtype,
+                a.spacing,
                 iso,
                 &name_of(&a),
                 &a.out,
                 a.domains,
                 a.force,
             )?
+        }
+        (None, Some(input), None) if a.volume => {
+            bail!(
+                "{}: a raw volume needs --dims X,Y,Z and --dtype",
+                input.display()
+            )
         }
         (None, Some(input), None) => {
             let mesh = rayfarm_core::mesh::read_mesh(input)?;
@@ -134,6 +185,22 @@ fn name_of(a: &PrepareArgs) -> String {
 }
 
 fn print_summary(out: &std::path::Path, m: &Manifest) {
+    if let Some(v) = &m.volume {
+        let bytes: u64 = m.domains.iter().map(|d| d.bytes).sum();
+        println!(
+            "{}: volume {}x{}x{} in {} brick{}, {} on disk",
+            out.display(),
+            v.dims[0],
+            v.dims[1],
+            v.dims[2],
+            m.domains.len(),
+            if m.domains.len() == 1 { "" } else { "s" },
+            units::human(bytes)
+        );
+        let peak = rayfarm_core::render::stats::peak_rss_bytes();
+        println!("peak RSS: {} ({peak} bytes)", units::human(peak));
+        return;
+    }
     let bytes: u64 = m.domains.iter().map(|d| d.bytes).sum();
     let refs: u64 = m.domains.iter().map(|d| d.triangles).sum();
     let largest = m.domains.iter().map(|d| d.bytes).max().unwrap_or(0);

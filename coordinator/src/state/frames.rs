@@ -195,6 +195,7 @@ impl Coordinator {
             wall_seconds: wall,
             rounds: frame.round,
             left_out: frame.declined.clone(),
+            refused_results: frame.refused_results,
             ..Default::default()
         };
         stats.absorb(reports);

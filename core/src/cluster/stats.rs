@@ -77,6 +77,10 @@ pub struct WorkerFrameStats {
     pub peak_rss_bytes: u64,
 }
 
+fn is_zero(n: &u64) -> bool {
+    *n == 0
+}
+
 /// What a frame cost and produced across the cluster.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct ClusterStats {
@@ -99,6 +103,10 @@ pub struct ClusterStats {
     /// Workers left out of the frame, each with its reason ("worker W: why").
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub left_out: Vec<String>,
+    /// Messages of tile results refused as impossible (forged credit, or tiles the sender
+    /// was given no ray of); each dropped its sender.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub refused_results: u64,
     /// Tracing threads over all workers.
     pub threads: usize,
     /// Domains in the scene.

@@ -114,6 +114,54 @@ pub fn prepare_nbody(out: &Path, o: &NbodyOptions) -> Result<Manifest, PrepareEr
     })
 }
 
+/// The generator's density field as a volume of `n`^3 voxels over the unit cube (the paper's
+/// n-body DVR), in units of the isosurface value the mesh scene uses (1 is its surface), cut
+/// into `bricks` for direct volume rendering; voxels are computed brick by brick as written.
+pub fn prepare_nbody_volume(
+    out: &Path,
+    o: &NbodyOptions,
+    n: u32,
+    transfer: crate::transfer::TransferFunction,
+) -> Result<Manifest, PrepareError> {
+    if !(2..=4096).contains(&n) {
+        return Err(PrepareError::Invalid(format!(
+            "the generated volume's --dims {n} is outside 2..=4096 per axis"
+        )));
+    }
+    use crate::isosurface::Lattice;
+    struct Scaled<'a>(SampledField<'a>, f32);
+    impl Lattice for Scaled<'_> {
+        fn value(&self, i: u32, j: u32, k: u32) -> f32 {
+            self.0.value(i, j, k) / self.1
+        }
+    }
+    let field = NbodyField::new(o.seed, PARTICLES);
+    let grid = Grid::unit_cube(n);
+    let iso = field.suggested_iso();
+    let volume = Scaled(
+        SampledField {
+            field: &field,
+            grid,
+        },
+        iso,
+    );
+    super::brick_scene::prepare_bricks(
+        out,
+        &volume,
+        &super::brick_scene::BrickOptions {
+            name: o.name.clone(),
+            source: "the generated volume".into(),
+            dims: [n; 3],
+            origin: grid.origin.into(),
+            spacing: grid.spacing.into(),
+            bricks: o.domains,
+            step: None,
+            transfer,
+            force: o.force,
+        },
+    )
+}
+
 /// Samples the field coarsely: a weighted point at every coarse cell the surface crosses
 /// (for balancing domains), and how many such cells there are (for memory planning).
 fn coarse_surface(field: &NbodyField, iso: f32) -> (Vec<([f32; 3], f64)>, u64) {

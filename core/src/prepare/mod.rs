@@ -2,6 +2,7 @@
 //! A scene is staged in a sibling directory and renamed into place only when complete, so a
 //! failed or interrupted prepare never leaves a half-written scene behind.
 
+pub mod brick_scene;
 pub mod generate;
 pub mod mesh_scene;
 pub mod volume_scene;

@@ -7,6 +7,7 @@ use std::ops::ControlFlow;
 
 use glam::Vec3;
 
+use super::dvr::{March, SampleCounts, VolumeView};
 use super::speculation::{Outcome, SurfaceHit, Verdict};
 use crate::bvh::{TraceRay, Traverser};
 use crate::frame::{split_credit, split_path_credit};
@@ -39,6 +40,12 @@ pub struct KernelCounters {
     pub reflection_rays: u64,
     /// Rays moved on to another domain after finding nothing in theirs.
     pub forwarded: u64,
+    /// Volume samples interpolated and composited.
+    #[serde(default)]
+    pub volume_samples: u64,
+    /// Volume samples skipped in sub-blocks the transfer function makes transparent.
+    #[serde(default)]
+    pub volume_skipped: u64,
 }
 
 impl KernelCounters {
@@ -51,6 +58,8 @@ impl KernelCounters {
         self.bounce_rays += other.bounce_rays;
         self.reflection_rays += other.reflection_rays;
         self.forwarded += other.forwarded;
+        self.volume_samples += other.volume_samples;
+        self.volume_skipped += other.volume_skipped;
     }
 
     /// Ray segments traced, of both kinds.
@@ -63,7 +72,10 @@ impl KernelCounters {
 #[derive(Clone, Debug)]
 pub struct SceneView {
     tree: DomainTree,
+    /// Per domain: whether a ray can meet anything in it (triangles; for a brick, a value the
+    /// transfer function does not make transparent). Rays walk past the others unloaded.
     has_triangles: Vec<bool>,
+    volume: Option<VolumeView>,
     materials: Vec<Material>,
     lights: Vec<Light>,
     sky: Sky,
@@ -74,14 +86,37 @@ pub struct SceneView {
 impl SceneView {
     /// The view of `manifest` for paths of at most `max_depth` bounces.
     pub fn new(manifest: &Manifest, max_depth: u16) -> Self {
+        let volume = manifest.volume.as_ref().map(VolumeView::new);
+        let has_triangles = manifest
+            .domains
+            .iter()
+            .map(|d| match (&volume, d.values) {
+                (Some(v), Some(values)) => !v.transparent(values),
+                _ => d.triangles > 0,
+            })
+            .collect();
         SceneView {
             tree: manifest.domain_tree(),
-            has_triangles: manifest.domains.iter().map(|d| d.triangles > 0).collect(),
+            has_triangles,
+            volume,
             materials: manifest.materials.clone(),
             lights: manifest.lights.clone(),
             sky: manifest.sky,
             epsilon: manifest.ray_epsilon,
             max_depth,
+        }
+    }
+
+    /// Whether this is a volume scene (direct volume rendering, no surfaces).
+    pub fn is_volume(&self) -> bool {
+        self.volume.is_some()
+    }
+
+    /// Turns empty-space skipping inside bricks off or on (to measure what it saves; the
+    /// image is the same either way).
+    pub fn set_volume_skipping(&mut self, on: bool) {
+        if let Some(v) = &mut self.volume {
+            v.skipping = on;
         }
     }
 
@@ -128,7 +163,13 @@ impl SceneView {
             RayKind::Shadow => t,
             RayKind::Radiance => {
                 let up = Vec3::from(ray.dir).y.clamp(0.0, 1.0);
-                t * Vec3::from(self.sky.horizon).lerp(Vec3::from(self.sky.zenith), up)
+                let sky = t * Vec3::from(self.sky.horizon).lerp(Vec3::from(self.sky.zenith), up);
+                if self.volume.is_some() {
+                    // The volume's colour over what shows through it.
+                    Vec3::from(ray.volume_rgb) + sky * (1.0 - ray.volume_alpha)
+                } else {
+                    sky
+                }
             }
         };
         sink.retire(ray, light.into());
@@ -160,6 +201,10 @@ impl SceneView {
         sink: &mut impl RaySink,
         counters: &mut KernelCounters,
     ) {
+        if let (Some(volume), Some(brick)) = (&self.volume, data.brick()) {
+            self.trace_brick(volume, &brick, rays, sink, counters);
+            return;
+        }
         let bvh = data.bvh();
         let tris = data.packed();
         let mut traverser = Traverser::new();
@@ -200,6 +245,41 @@ impl SceneView {
             }
             self.send(*ray, next, sink);
         }
+    }
+
+    /// Marches `rays` through `brick`: each is composited over its interval there, then
+    /// retired if it became opaque, else sent on to the next brick that can show anything
+    /// (or retired over the sky).
+    fn trace_brick(
+        &self,
+        volume: &VolumeView,
+        brick: &crate::brick::Brick,
+        rays: &[RayRecord],
+        sink: &mut impl RaySink,
+        counters: &mut KernelCounters,
+    ) {
+        let skip = volume.transparent_blocks(brick);
+        let mut counts = SampleCounts::default();
+        for ray in rays {
+            let (interval, next) = self.segment(ray, brick.header.domain);
+            let Some((t0, t1)) = interval else {
+                self.route_new(*ray, sink);
+                continue;
+            };
+            counters.radiance_segments += 1;
+            let mut ray = *ray;
+            match volume.march(brick, &skip, &mut ray, t0, t1, &mut counts) {
+                March::Opaque => sink.retire(&ray, ray.volume_rgb),
+                March::Through => {
+                    if next.is_some() {
+                        counters.forwarded += 1;
+                    }
+                    self.send(ray, next, sink);
+                }
+            }
+        }
+        counters.volume_samples += counts.taken;
+        counters.volume_skipped += counts.skipped;
     }
 
     /// Every domain with geometry along `ray`, nearest first: where a speculative ray is

@@ -2,6 +2,7 @@
 //! single-process reference renderer.
 
 pub mod cache;
+pub mod dvr;
 pub mod film;
 pub mod kernel;
 pub mod local;

@@ -7,6 +7,7 @@
 use std::collections::{BTreeMap, BTreeSet};
 
 use super::accusations::Accusations;
+use super::grants::Grants;
 use crate::Time;
 
 use rayfarm_core::cluster::tile_sums;
@@ -110,6 +111,10 @@ pub struct RunningFrame {
     pub declined: Vec<String>,
     /// Members' reports of members they cannot reach, waiting to be judged.
     pub accusations: Accusations,
+    /// Which member may send results of which tile.
+    grants: Grants,
+    /// Tile results refused as impossible (each dropped its sender).
+    pub refused_results: u64,
 }
 
 fn msg(body: Body) -> proto::CoordinatorMessage {
@@ -144,6 +149,7 @@ impl RunningFrame {
             _ => options,
         };
         let spp = frame.spp;
+        let tiles = grid.count();
         Ok(RunningFrame {
             job_id,
             schedule,
@@ -161,6 +167,8 @@ impl RunningFrame {
             sidelined: Default::default(),
             declined: Vec::new(),
             accusations: Accusations::default(),
+            grants: Grants::new(tiles),
+            refused_results: 0,
         })
     }
 
@@ -216,7 +224,10 @@ impl RunningFrame {
         let mut out: Vec<Outgoing> = keys
             .into_iter()
             .zip(tiles)
-            .map(|(key, tiles)| (key, self.start_message(key, tiles)))
+            .map(|(key, tiles)| {
+                self.grants.deal(key, &tiles);
+                (key, self.start_message(key, tiles))
+            })
             .collect();
         if matches!(self.schedule, Schedule::Domain | Schedule::Hybrid) {
             out.extend(self.owner_plans());
@@ -230,6 +241,9 @@ impl RunningFrame {
         let n = keys.len() as u32;
         let owner = |d: u32| keys[domain_owner(DomainId(d), n) as usize];
         let domains = self.domain_bytes.len() as u32;
+        for d in 0..domains {
+            self.grants.name_holder(owner(d));
+        }
         let holders: Vec<proto::DomainHolders> = (0..domains)
             .map(|d| proto::DomainHolders {
                 domain: d,
@@ -291,6 +305,7 @@ impl RunningFrame {
         }
         let unfinished: Vec<u32> = self.ledger.unfinished().collect();
         let bumped = self.ledger.bump(&unfinished);
+        self.grants.withdraw(bumped.iter().map(|&(t, _)| t));
         info!(tiles = bumped.len(), "epochs bumped after losing a worker");
         let bump = proto::EpochBump {
             job_id: self.job_id.clone(),
@@ -318,18 +333,20 @@ impl RunningFrame {
             self.hand_outs.refill(tiles);
             for &k in &keys {
                 let tiles = self.hand_outs.next_batch();
-                out.push((k, self.hand_out_message(tiles)));
+                out.push((k, self.hand_out(k, tiles)));
             }
         } else {
             for (i, &k) in keys.iter().enumerate() {
                 let share = strided_share(&tiles, i, keys.len());
-                out.push((k, self.hand_out_message(share)));
+                out.push((k, self.hand_out(k, share)));
             }
         }
         Some(out)
     }
 
-    fn hand_out_message(&self, tiles: Vec<u32>) -> proto::CoordinatorMessage {
+    /// Deals `tiles`' camera rays to `key`: the message that says so.
+    fn hand_out(&mut self, key: u32, tiles: Vec<u32>) -> proto::CoordinatorMessage {
+        self.grants.deal(key, &tiles);
         msg(Body::HandOutTiles(proto::HandOutTiles {
             job_id: self.job_id.clone(),
             tiles,
@@ -352,7 +369,7 @@ impl RunningFrame {
             // A worker reports when it has run dry: hand it more demand-driven work.
             Schedule::Hybrid if !self.hand_outs.is_empty() => {
                 let tiles = self.hand_outs.next_batch();
-                vec![(key, self.hand_out_message(tiles))]
+                vec![(key, self.hand_out(key, tiles))]
             }
             _ => Vec::new(),
         }
@@ -437,10 +454,17 @@ impl RunningFrame {
     }
 
     /// Holders by member key as the peer addresses the workers route by.
+    /// Every key named is recorded as a holder (`Grants`).
     fn holders(
-        &self,
+        &mut self,
         by_domain: impl IntoIterator<Item = (u32, Vec<u32>)>,
     ) -> Vec<proto::DomainHolders> {
+        let by_domain: Vec<(u32, Vec<u32>)> = by_domain.into_iter().collect();
+        for k in by_domain.iter().flat_map(|(_, keys)| keys) {
+            if self.members.contains_key(k) {
+                self.grants.name_holder(*k);
+            }
+        }
         by_domain
             .into_iter()
             .map(|(domain, keys)| proto::DomainHolders {
@@ -456,8 +480,22 @@ impl RunningFrame {
 
     /// Accepts a worker's tile results. Returns the tiles they committed with their sums,
     /// taken out of the ledger for the film, and why the rest was refused if a result
-    /// cannot be right (the worker must be dropped; nothing after it was counted).
+    /// cannot be right (the worker must be dropped; nothing after it was counted): more
+    /// credit than the tile has outstanding or its pixels can hold, or a tile of which it
+    /// was never given a ray (`Grants`).
     pub fn results(
+        &mut self,
+        key: u32,
+        results: proto::TileResults,
+    ) -> (Vec<CommittedTile>, Option<String>) {
+        let (committed, refused) = self.accept_results(key, results);
+        if refused.is_some() {
+            self.refused_results += 1;
+        }
+        (committed, refused)
+    }
+
+    fn accept_results(
         &mut self,
         key: u32,
         results: proto::TileResults,
@@ -472,6 +510,15 @@ impl RunningFrame {
                 Ok(sums) => sums,
                 Err(e) => return (committed, Some(format!("tile {}: {e}", r.tile))),
             };
+            // An older epoch is ignored by the ledger whoever sends it, a newer one refused.
+            if self.ledger.epoch(r.tile) == Some(r.epoch) && !self.grants.may_send(key, r.tile) {
+                let why = format!(
+                    "result for tile {} at epoch {}, of which this worker was given no ray \
+                     (its camera rays went to another worker, and it holds no domain)",
+                    r.tile, r.epoch
+                );
+                return (committed, Some(why));
+            }
             match self.ledger.accept(r.tile, r.epoch, r.credit, &sums) {
                 Ok(Accept::Completed) => {
                     debug!(tile = r.tile, "tile complete");

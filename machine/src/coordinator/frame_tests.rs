@@ -250,3 +250,58 @@ fn progress_counts_time_from_the_start_event() {
     assert_eq!(rate, 5.0);
     assert_eq!(eta, 6.0);
 }
+
+/// The tiles `key` was dealt at the start.
+fn primary(out: &[Outgoing], key: u32) -> Vec<u32> {
+    match to(out, key)[..] {
+        [Body::StartFrame(s), ..] => s.primary_tiles.clone(),
+        ref other => panic!("{other:?}"),
+    }
+}
+
+#[test]
+fn results_of_a_tile_whose_rays_the_sender_was_never_given_are_refused() {
+    // Image-plane routes no rays: only the worker dealt a tile may send its results.
+    let (mut f, start) = started(Schedule::ImagePlane, Rounds::Async, 2);
+    let (mine, theirs) = (primary(&start, 0), primary(&start, 1));
+    assert!(!mine.is_empty() && !theirs.is_empty());
+    // A plausible half of worker 1's tile from worker 0: refused, nothing counted.
+    let forged = whole_tile(&f, theirs[0], 0, TILE_CREDIT / 2);
+    let (committed, refused) = f.results(0, results(vec![forged]));
+    assert!(committed.is_empty());
+    assert!(refused.expect("refused").contains("given no ray"));
+    assert_eq!(f.refused_results, 1);
+    // The ledger is as it was: worker 1's whole credit still completes its tile, and worker
+    // 0's own tile is taken.
+    let honest = vec![whole_tile(&f, theirs[0], 0, TILE_CREDIT)];
+    assert_eq!(f.results(1, results(honest)).0.len(), 1);
+    let own = vec![whole_tile(&f, mine[0], 0, TILE_CREDIT)];
+    assert_eq!(f.results(0, results(own)).0.len(), 1);
+    // Worker 1 is lost: its unfinished tiles are re-dealt to worker 0 at epoch 1, whose
+    // results of them are now taken.
+    f.lose(1).expect("a member");
+    let redealt = theirs[1];
+    assert_eq!(f.ledger.epoch(redealt), Some(1));
+    let (committed, refused) = f.results(0, results(vec![whole_tile(&f, redealt, 1, TILE_CREDIT)]));
+    assert_eq!((committed.len(), refused), (1, None));
+    assert_eq!(f.refused_results, 1);
+}
+
+#[test]
+fn a_worker_named_a_holder_may_send_results_of_any_tile() {
+    let half = TILE_CREDIT / 2;
+    // Dynamic: before any plan, a worker holds nothing and only its own tiles are its.
+    let (mut f, start) = started(Schedule::Dynamic, Rounds::Async, 2);
+    let theirs = primary(&start, 1)[0];
+    let (_, refused) = f.results(0, results(vec![whole_tile(&f, theirs, 0, half)]));
+    assert!(refused.is_some());
+    // Worker 0 runs dry and is planned domain 1: peers may now send it rays of any tile.
+    assert!(planned_domains(&f.report(0, report(0, &[], &[(1, 50, 0)])), 0).contains(&1));
+    let (_, refused) = f.results(0, results(vec![whole_tile(&f, theirs, 0, half)]));
+    assert_eq!(refused, None);
+    // The domain schedule names every owner a holder from the start.
+    let (mut f, start) = started(Schedule::Domain, Rounds::Async, 2);
+    let theirs = primary(&start, 1)[0];
+    let (_, refused) = f.results(0, results(vec![whole_tile(&f, theirs, 0, half)]));
+    assert_eq!(refused, None);
+}

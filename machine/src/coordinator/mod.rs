@@ -2,12 +2,14 @@
 //!
 //! Landed so far: the running frame (`frame`: its members, their reports, the rounds of the
 //! dynamic schedule, tile dealing, losses and the tile ledger), its life around the rounds
-//! (`frame::lifecycle`: admission, restart epochs, judging accusations, the end) and the judgement of workers'
-//! reports of unreachable peers (`accusations`). The process shell (`rayfarm-coordinator`)
+//! (`frame::lifecycle`: admission, restart epochs, judging accusations, the end), the judgement
+//! of workers' reports of unreachable peers (`accusations`), and which worker may send results
+//! of which tile (`grants`). The process shell (`rayfarm-coordinator`)
 //! holds the frame under its lock, sends what it returns and writes the tiles it commits.
 
 pub mod accusations;
 pub mod frame;
+pub mod grants;
 
 pub use accusations::{Accusations, Verdict};
 pub use frame::lifecycle::{ACCUSATION_GRACE, accusation_grace};
