@@ -74,6 +74,9 @@ fn plan(command: &str) -> Option<Plan> {
         }),
         ("rayfarm prepare", || Plan::Run(&[])),
         ("rayfarm render", || Plan::Run(&[])),
+        ("rayfarm sim", || {
+            Plan::Run(&[("--seeds 0..100000", "--seeds 0..20")])
+        }),
         ("rayfarm-coordinator", || {
             Plan::Serve(&[
                 ("0.0.0.0:50051", "127.0.0.1:0"),

@@ -10,6 +10,7 @@ pub mod health;
 pub mod jobs;
 pub mod prepare;
 pub mod render;
+pub mod sim;
 pub mod status;
 pub mod submit;
 pub mod watch;

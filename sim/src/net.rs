@@ -1,0 +1,180 @@
+//! The simulated network: a message from one node to another arrives after the link's
+//! latency plus its bytes over the link's bandwidth (a link sends one message at a time), in
+//! the order it was sent on that link (per-link FIFO, as over one TCP stream). Faults add to
+//! this: seeded jitter, extra delay on a node's links for a while, and partitions that hold a
+//! link's messages until it heals.
+
+use std::collections::BTreeMap;
+use std::time::Duration;
+
+use rayfarm_machine::Time;
+
+use crate::faults::Rng;
+
+/// A simulated node: 0 is the coordinator, workers count from 1.
+pub type NodeId = usize;
+
+/// The coordinator's node id.
+pub const COORDINATOR: NodeId = 0;
+
+/// What every link is like when nothing is wrong.
+#[derive(Clone, Copy, Debug)]
+pub struct LinkModel {
+    /// One-way latency of a message.
+    pub latency: Duration,
+    /// Bytes per second a link carries.
+    pub bytes_per_second: u64,
+}
+
+impl Default for LinkModel {
+    /// A 10 Gb/s data-centre network: 100 us one way, 1.25 GB/s.
+    fn default() -> Self {
+        LinkModel {
+            latency: Duration::from_micros(100),
+            bytes_per_second: 1_250_000_000,
+        }
+    }
+}
+
+/// A span of virtual time, `[from, until)`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Window {
+    pub from: Time,
+    pub until: Time,
+}
+
+impl Window {
+    /// Whether `t` lies in it.
+    pub fn contains(&self, t: Time) -> bool {
+        self.from <= t && t < self.until
+    }
+}
+
+/// The links between nodes and the faults on them.
+pub struct Network {
+    model: LinkModel,
+    /// When each directed link is free to send its next message.
+    free_at: BTreeMap<(NodeId, NodeId), Time>,
+    /// When the last message on each directed link arrives (later ones never overtake it).
+    last_arrival: BTreeMap<(NodeId, NodeId), Time>,
+    /// Links cut both ways for a while: what is sent meanwhile arrives after the heal.
+    partitions: Vec<(NodeId, NodeId, Window)>,
+    /// Extra delay on every message to or from a node sent in a window.
+    delays: Vec<(NodeId, Window, Duration)>,
+    /// Most extra delay of any message, drawn per message (none in a clean run).
+    jitter: Duration,
+    rng: Rng,
+    /// Messages and bytes sent, for the statistics.
+    pub messages: u64,
+    pub bytes: u64,
+}
+
+impl Network {
+    /// A network of `model` links; `jitter` and `rng` perturb each message's delay.
+    pub fn new(model: LinkModel, jitter: Duration, rng: Rng) -> Self {
+        Network {
+            model,
+            free_at: BTreeMap::new(),
+            last_arrival: BTreeMap::new(),
+            partitions: Vec::new(),
+            delays: Vec::new(),
+            jitter,
+            rng,
+            messages: 0,
+            bytes: 0,
+        }
+    }
+
+    /// Cuts the link between `a` and `b` (both ways) during `window`.
+    pub fn partition(&mut self, a: NodeId, b: NodeId, window: Window) {
+        self.partitions.push((a, b, window));
+    }
+
+    /// Delays every message to or from `node` sent during `window` by `extra`.
+    pub fn delay(&mut self, node: NodeId, window: Window, extra: Duration) {
+        self.delays.push((node, window, extra));
+    }
+
+    /// Whether the link between `a` and `b` is cut at `t`.
+    pub fn is_cut(&self, a: NodeId, b: NodeId, t: Time) -> bool {
+        self.partitions
+            .iter()
+            .any(|&(x, y, w)| ((x, y) == (a, b) || (x, y) == (b, a)) && w.contains(t))
+    }
+
+    /// When a message of `bytes` sent from `from` to `to` at `now` arrives.
+    pub fn arrival(&mut self, now: Time, from: NodeId, to: NodeId, bytes: usize) -> Time {
+        self.messages += 1;
+        self.bytes += bytes as u64;
+        let link = (from, to);
+        let start = now.max(self.free_at.get(&link).copied().unwrap_or_default());
+        let transmit = Duration::from_nanos(
+            (bytes as u128 * 1_000_000_000 / u128::from(self.model.bytes_per_second.max(1))) as u64,
+        );
+        self.free_at.insert(link, start + transmit);
+        let mut at = start + transmit + self.model.latency;
+        if !self.jitter.is_zero() {
+            at = at + Duration::from_nanos(self.rng.below(self.jitter.as_nanos() as u64 + 1));
+        }
+        for &(node, window, extra) in &self.delays {
+            if (node == from || node == to) && window.contains(now) {
+                at = at + extra;
+            }
+        }
+        for &(a, b, window) in &self.partitions {
+            if ((a, b) == link || (b, a) == link) && window.contains(now) {
+                at = at.max(window.until + self.model.latency);
+            }
+        }
+        let at = at.max(self.last_arrival.get(&link).copied().unwrap_or_default());
+        self.last_arrival.insert(link, at);
+        at
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn net() -> Network {
+        Network::new(LinkModel::default(), Duration::ZERO, Rng::new(1))
+    }
+
+    #[test]
+    fn a_message_takes_latency_plus_its_bytes_over_the_bandwidth() {
+        let mut n = net();
+        // 1.25 MB at 1.25 GB/s is 1 ms, plus 100 us.
+        assert_eq!(n.arrival(Time(0), 1, 2, 1_250_000), Time(1_100_000));
+    }
+
+    #[test]
+    fn a_link_keeps_its_order_and_sends_one_message_at_a_time() {
+        let mut n = net();
+        n.delay(
+            1,
+            Window {
+                from: Time(0),
+                until: Time(10),
+            },
+            Duration::from_millis(5),
+        );
+        let first = n.arrival(Time(0), 1, 2, 0);
+        let second = n.arrival(Time(20), 1, 2, 0);
+        assert!(second >= first, "a later message overtook an earlier one");
+        // Another link is not held up.
+        assert_eq!(n.arrival(Time(20), 2, 1, 0), Time(100_020));
+    }
+
+    #[test]
+    fn a_partition_holds_messages_until_it_heals() {
+        let mut n = net();
+        let w = Window {
+            from: Time(0),
+            until: Time(1_000_000),
+        };
+        n.partition(1, 2, w);
+        assert!(n.is_cut(2, 1, Time(5)));
+        assert_eq!(n.arrival(Time(5), 2, 1, 0), Time(1_100_000));
+        assert!(!n.is_cut(1, 2, Time(1_000_000)));
+    }
+}

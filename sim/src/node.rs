@@ -1,0 +1,209 @@
+//! A simulated worker: the real worker machine with what its shell would own (the domain
+//! cache over the real scene, the open frame's view for passes, the peer links' unacknowledged
+//! bundles), and none of its I/O. The world (`world`) delivers its events and carries its
+//! actions over the simulated network.
+
+use std::collections::{BTreeMap, VecDeque};
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+
+use rayfarm_core::render::cache::DomainCache;
+use rayfarm_core::scene::Manifest;
+use rayfarm_machine::Time;
+use rayfarm_machine::pass::{self, FrameView, PassInput};
+use rayfarm_machine::worker::{
+    DomainQueues, MemorySpill, OpenedScene, PassOutput, PassWork, Worker, WorkerConfig,
+};
+use rayfarm_proto as proto;
+
+use crate::cost::CostModel;
+use crate::net::NodeId;
+
+/// The scene every simulated worker reads: one directory, one manifest.
+pub struct Scene {
+    pub dir: PathBuf,
+    pub manifest: Manifest,
+}
+
+/// How big a worker's queues may grow (the caps the invariants check).
+#[derive(Clone, Copy, Debug)]
+pub struct QueueCaps {
+    pub queue_bytes: u64,
+    pub spill_bytes: u64,
+}
+
+/// Bundles a worker sent one peer that the peer has not acknowledged, oldest first.
+#[derive(Default)]
+pub struct PeerLink {
+    pub owed: VecDeque<(u64, Time)>,
+    /// Reported unresponsive since the link was last opened.
+    pub reported: bool,
+}
+
+/// A finished pass: its output and the virtual time it took.
+pub struct PassRun {
+    pub result: Result<PassOutput, String>,
+    pub took: std::time::Duration,
+    /// Domains it had to load, and the part of `took` the loads took.
+    pub loads: u64,
+    pub load_time: std::time::Duration,
+}
+
+/// See the module documentation.
+pub struct SimWorker {
+    pub node: NodeId,
+    pub id: String,
+    pub address: String,
+    pub cache_bytes: u64,
+    /// Most bytes of bundles it may hold for frames not started.
+    pub early_cap: usize,
+    pub machine: Worker<MemorySpill>,
+    /// False once killed: nothing reaches it or comes from it any more.
+    pub alive: bool,
+    /// It takes and acknowledges no peer bundle from this time on.
+    pub stuck_from: Option<Time>,
+    /// Its control stream was closed by the coordinator (it was dropped).
+    pub disconnected: bool,
+    /// The pass running now, if any: when it ends and when its domain loads end.
+    pub pass_until: Option<(Time, Time)>,
+    /// When a Tick is due.
+    pub tick_at: Option<Time>,
+    pub links: BTreeMap<String, PeerLink>,
+    pub next_bundle: u64,
+    scene: Arc<Scene>,
+    cache: Arc<Mutex<DomainCache>>,
+    frame: Option<(String, Arc<FrameView>)>,
+    caps: QueueCaps,
+}
+
+impl SimWorker {
+    /// Worker `id` at `address` on node `node`, with a cache of `cache_bytes` over `scene`.
+    pub fn new(
+        node: NodeId,
+        config: WorkerConfig,
+        scene: Arc<Scene>,
+        caps: QueueCaps,
+    ) -> Result<Self, String> {
+        let cache = DomainCache::new(&scene.dir, &scene.manifest, config.cache_bytes);
+        Ok(SimWorker {
+            node,
+            id: config.worker_id.clone(),
+            address: config.advertise.clone(),
+            cache_bytes: config.cache_bytes,
+            early_cap: config.early_bytes,
+            machine: Worker::new(config).map_err(|e| e.to_string())?,
+            alive: true,
+            stuck_from: None,
+            disconnected: false,
+            pass_until: None,
+            tick_at: None,
+            links: BTreeMap::new(),
+            next_bundle: 0,
+            scene,
+            cache: Arc::new(Mutex::new(cache)),
+            frame: None,
+            caps,
+        })
+    }
+
+    /// Whether it is stuck on its peer port at `t`.
+    pub fn is_stuck(&self, t: Time) -> bool {
+        self.stuck_from.is_some_and(|s| s <= t)
+    }
+
+    /// What the shell reads for a StartFrame: the frame's view over the scene and its empty
+    /// queues (in memory).
+    pub fn open(&mut self, s: &proto::StartFrame) -> Result<OpenedScene<MemorySpill>, String> {
+        let spec = s.spec.as_ref().ok_or("StartFrame without a job spec")?;
+        let manifest = &self.scene.manifest;
+        let frame = rayfarm_node::job::frame_spec(spec, &manifest.camera)?;
+        let (view, limits) = FrameView::open(manifest, &frame, s.tile_size)?;
+        let grid = view.grid;
+        let spp = view.spp;
+        self.frame = Some((s.job_id.clone(), Arc::new(view)));
+        let cache = self.lock();
+        let (domain_bytes, resident) = (cache.domain_bytes(), cache.resident());
+        drop(cache);
+        Ok(OpenedScene {
+            grid,
+            spp,
+            limits,
+            domain_bytes,
+            resident,
+            queues: DomainQueues::new(
+                manifest.domains.len(),
+                self.caps.queue_bytes,
+                self.caps.spill_bytes,
+                MemorySpill::default(),
+            ),
+        })
+    }
+
+    /// Runs a pass of `job_id` now, on the real kernel, and prices it with `cost`.
+    pub fn run_pass(&mut self, job_id: &str, work: PassWork, cost: &CostModel) -> PassRun {
+        let Some((_, frame)) = self.frame.as_ref().filter(|(j, _)| j == job_id) else {
+            return PassRun {
+                result: Err("no scene open for the pass".into()),
+                took: Default::default(),
+                loads: 0,
+                load_time: Default::default(),
+            };
+        };
+        let before = self.lock().counters();
+        let input = PassInput {
+            frame: frame.clone(),
+            work,
+            cache: self.cache.clone(),
+        };
+        let result = pass::run(input).map_err(|e| e.to_string());
+        let after = self.lock().counters();
+        let loads = after.loads - before.loads;
+        let load_time = cost.loads(loads, after.bytes_loaded - before.bytes_loaded);
+        let took = load_time
+            + result
+                .as_ref()
+                .map_or(Default::default(), |o| cost.pass(&o.counters));
+        let result = result.map(|mut o| {
+            o.busy = took;
+            o
+        });
+        PassRun {
+            result,
+            took,
+            loads,
+            load_time,
+        }
+    }
+
+    /// Domains mapped now.
+    pub fn resident(&self) -> Vec<u32> {
+        self.lock().resident()
+    }
+
+    pub fn evict(&self, domains: &[u32]) {
+        let mut c = self.lock();
+        domains.iter().for_each(|&d| c.evict(d));
+    }
+
+    pub fn pin(&self, domains: Vec<u32>) {
+        self.lock().pin(domains);
+    }
+
+    /// The cache's counters since the process started (a simulated worker runs one frame).
+    pub fn cache_counters(&self) -> rayfarm_core::render::cache::CacheCounters {
+        self.lock().counters()
+    }
+
+    /// Bytes of rays its running frame holds queued, and the most it may.
+    pub fn queued_bytes(&self) -> (u64, u64) {
+        let queued = self.machine.frame().map_or(0, |f| f.queued_total() as u64);
+        (
+            queued * rayfarm_machine::worker::queues::RAY_BYTES,
+            self.caps.queue_bytes + self.caps.spill_bytes,
+        )
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, DomainCache> {
+        self.cache.lock().unwrap_or_else(|p| p.into_inner())
+    }
+}
