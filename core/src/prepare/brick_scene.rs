@@ -47,16 +47,19 @@ pub struct BrickOptions {
     pub force: bool,
 }
 
+/// A box of voxel cells: `[start, end)` per axis.
+type VoxelBox = [[u32; 2]; 3];
+
 /// The cell boxes of the bricks, by domain id, and the k-d tree over them (planes in world
 /// coordinates on voxel planes). Splits the longest axis (in cells) of each box into shares of
 /// the brick count, so 8 bricks of a cube are its octants.
-fn cut(o: &BrickOptions, grid: &Grid) -> Result<(Vec<[[u32; 2]; 3]>, Vec<KdNode>), String> {
+fn cut(o: &BrickOptions, grid: &Grid) -> Result<(Vec<VoxelBox>, Vec<KdNode>), String> {
     fn split(
         grid: &Grid,
-        cells: [[u32; 2]; 3],
+        cells: VoxelBox,
         leaves: u32,
         nodes: &mut Vec<KdNode>,
-        boxes: &mut Vec<[[u32; 2]; 3]>,
+        boxes: &mut Vec<VoxelBox>,
     ) -> Result<u32, String> {
         let me = nodes.len() as u32;
         if leaves == 1 {
