@@ -285,9 +285,9 @@ fn errors_name_the_first_thing_wrong() {
     );
     assert_eq!(decode_batch(b"RF", &LIMITS), Err(WireError::Length(2)));
     let mut b = encode_batch(&[]);
-    b[4] = 3;
+    b[4] = 2;
     b.truncate(7);
-    assert_eq!(decode_batch(&b, &LIMITS), Err(WireError::Version(3)));
+    assert_eq!(decode_batch(&b, &LIMITS), Err(WireError::Version(2)));
     let b = encode_batch(&[RayRecord {
         dir: [1.0, 0.0, 0.0],
         ..bytemuck::Zeroable::zeroed()
