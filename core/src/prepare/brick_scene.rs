@@ -11,14 +11,12 @@ use std::path::Path;
 use glam::Vec3;
 use tracing::{info, info_span};
 
-use super::{PrepareError, default_lighting, staging_dir};
+use super::{PrepareError, default_lighting, publish_staged};
 use crate::brick::write_brick;
 use crate::geometry::Aabb;
 use crate::isosurface::{Grid, Lattice};
 use crate::scene::manifest::FORMAT_VERSION;
-use crate::scene::{
-    DomainEntry, DomainTree, KdNode, MANIFEST_FILE, Manifest, Material, SceneError, VolumeSpec,
-};
+use crate::scene::{DomainEntry, DomainTree, KdNode, Manifest, Material, SceneError, VolumeSpec};
 use crate::transfer::TransferFunction;
 
 /// Most bricks a volume is cut into.
@@ -149,12 +147,7 @@ pub fn prepare_bricks(
             .point(o.dims[0] - 1, o.dims[1] - 1, o.dims[2] - 1)
             .into(),
     };
-    let staging = staging_dir(out);
-    if staging.exists() {
-        std::fs::remove_dir_all(&staging).map_err(|e| SceneError::io(&staging, e))?;
-    }
-    std::fs::create_dir_all(&staging).map_err(|e| SceneError::io(&staging, e))?;
-    let result = (|| {
+    publish_staged(out, "volume", |staging| {
         let mut domains = Vec::with_capacity(cells.len());
         for (id, c) in cells.iter().enumerate() {
             let _span = info_span!("write_brick", domain = id).entered();
@@ -203,25 +196,11 @@ pub fn prepare_bricks(
         };
         DomainTree::check(&manifest.kd_nodes, manifest.domains.len())
             .map_err(PrepareError::Invalid)?;
-        manifest.save(&staging)?;
+        manifest.save(staging)?;
         // Re-read what was written: a scene that does not load is not a scene.
-        Manifest::load(&staging)?.check_domains(&staging, true)?;
+        Manifest::load(staging)?.check_domains(staging, true)?;
         Ok(manifest)
-    })();
-    match result {
-        Ok(manifest) => {
-            if out.exists() {
-                std::fs::remove_dir_all(out).map_err(|e| SceneError::io(out, e))?;
-            }
-            std::fs::rename(&staging, out).map_err(|e| SceneError::io(out, e))?;
-            info!(dir = %out.display(), manifest = MANIFEST_FILE, "volume scene ready");
-            Ok(manifest)
-        }
-        Err(e) => {
-            let _ = std::fs::remove_dir_all(&staging);
-            Err(e)
-        }
-    }
+    })
 }
 
 #[cfg(test)]

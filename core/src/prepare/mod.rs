@@ -91,12 +91,7 @@ pub fn write_scene(
     if out.exists() && !force {
         return Err(PrepareError::Exists(out.into()));
     }
-    let staging = staging_dir(out);
-    if staging.exists() {
-        std::fs::remove_dir_all(&staging).map_err(|e| SceneError::io(&staging, e))?;
-    }
-    std::fs::create_dir_all(&staging).map_err(|e| SceneError::io(&staging, e))?;
-    let result = (|| {
+    publish_staged(out, "scene", |staging| {
         let count = spec.tree.nodes().len().div_ceil(2);
         let boxes = spec.tree.domain_boxes(count);
         let mut domains = Vec::with_capacity(count);
@@ -136,18 +131,33 @@ pub fn write_scene(
             domains,
             volume: None,
         };
-        manifest.save(&staging)?;
+        manifest.save(staging)?;
         // Re-read what was written: a scene that does not load is not a scene.
-        Manifest::load(&staging)?;
+        Manifest::load(staging)?;
         Ok(manifest)
-    })();
-    match result {
+    })
+}
+
+/// Writes a scene into a staging directory beside `out` with `write`, then puts it in place of
+/// `out` whole; on an error the staging directory goes and `out` is untouched, so a scene is
+/// never seen half written, whatever its kind (`kind` names it in the log).
+pub(crate) fn publish_staged(
+    out: &Path,
+    kind: &str,
+    write: impl FnOnce(&Path) -> Result<Manifest, PrepareError>,
+) -> Result<Manifest, PrepareError> {
+    let staging = staging_dir(out);
+    if staging.exists() {
+        std::fs::remove_dir_all(&staging).map_err(|e| SceneError::io(&staging, e))?;
+    }
+    std::fs::create_dir_all(&staging).map_err(|e| SceneError::io(&staging, e))?;
+    match write(&staging) {
         Ok(manifest) => {
             if out.exists() {
                 std::fs::remove_dir_all(out).map_err(|e| SceneError::io(out, e))?;
             }
             std::fs::rename(&staging, out).map_err(|e| SceneError::io(out, e))?;
-            info!(dir = %out.display(), manifest = MANIFEST_FILE, "scene ready");
+            info!(dir = %out.display(), manifest = MANIFEST_FILE, kind, "scene ready");
             Ok(manifest)
         }
         Err(e) => {
