@@ -53,8 +53,30 @@ pub struct Frame<S> {
     /// Under the predictive schedule, the rays born here waiting for their copies' verdicts.
     speculation: Option<Speculation>,
     report: Report,
+    /// A peer's rays of epochs newer than this worker knows for their tiles, waiting for the
+    /// coordinator's bump that announces those epochs (see [`Frame::set_aside_newer`]).
+    ahead: Vec<RayRecord>,
     pub counters: FrameCounters,
     pub started: Time,
+}
+
+/// More bytes of rays of unannounced epochs than a worker holds: it leaves the frame, since
+/// dropping them would lose their credit and the frame would never end.
+#[derive(Debug, PartialEq, Eq)]
+pub struct AheadFull {
+    pub held: u64,
+    pub cap: u64,
+}
+
+impl std::fmt::Display for AheadFull {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "peers sent {} bytes of rays of tile epochs the coordinator has not announced here \
+             (at most {} are held until its epoch bump arrives)",
+            self.held, self.cap
+        )
+    }
 }
 
 /// Whether the coordinator has this worker's current state.
@@ -130,6 +152,7 @@ impl<S: RaySpill> Frame<S> {
             speculation: speculation.map(|(me, roster)| Speculation::new(me, roster)),
             queues,
             report: Report::Due,
+            ahead: Vec::new(),
             counters: FrameCounters::default(),
             started,
         }
@@ -402,28 +425,47 @@ impl<S: RaySpill> Frame<S> {
         self.plan.forget_peers(peers);
     }
 
-    /// Raises tiles' epochs to those of a peer's rays that are newer than this worker knows.
-    /// The coordinator's bump after a loss reaches workers at different times, and a peer
-    /// that heard it first may already send rays of the new epoch (its hand-outs); dropping
-    /// them as stale would lose their credit for good and the frame would never end. The
-    /// bump itself follows on the control stream and changes nothing more.
-    pub fn adopt_newer_epochs(&mut self, rays: &[RayRecord]) -> Result<(), QueueError> {
-        let mut newer: BTreeMap<u32, u32> = BTreeMap::new();
-        for r in rays {
-            let known = self.plan.epochs.get(r.tile as usize).copied();
-            if known.is_some_and(|e| r.epoch > e) {
-                let e = newer.entry(r.tile).or_insert(r.epoch);
-                *e = (*e).max(r.epoch);
+    /// Sets aside a peer's rays of epochs newer than this worker knows for their tiles and
+    /// returns the others. The coordinator's bump after a loss reaches workers at different
+    /// times, and a peer that heard it first may already send rays of the new epoch (its
+    /// hand-outs): dropping them as stale would lose their credit for good and the frame would
+    /// never end. Raising the tile's epoch on the peer's word instead would let one forged ray
+    /// drop a tile's real rays here. So they wait for the bump ([`Frame::take_announced`]); the
+    /// coordinator sends it to every worker of the frame. At most `cap` bytes wait.
+    pub fn set_aside_newer(
+        &mut self,
+        rays: Vec<RayRecord>,
+        cap: u64,
+    ) -> Result<Vec<RayRecord>, AheadFull> {
+        let epochs = &self.plan.epochs;
+        let (newer, known): (Vec<RayRecord>, Vec<RayRecord>) = rays
+            .into_iter()
+            .partition(|r| epochs.get(r.tile as usize).is_some_and(|&e| r.epoch > e));
+        if !newer.is_empty() {
+            debug!(
+                rays = newer.len(),
+                "a peer's rays are of epochs not announced here yet: held for the bump"
+            );
+            self.ahead.extend(newer);
+            let held = std::mem::size_of_val(self.ahead.as_slice()) as u64;
+            if held > cap {
+                return Err(AheadFull { held, cap });
             }
         }
-        if newer.is_empty() {
-            return Ok(());
-        }
-        debug!(
-            tiles = newer.len(),
-            "a peer's rays are of newer epochs: taking them before the coordinator's bump"
-        );
-        self.bump_epochs(&newer)
+        Ok(known)
+    }
+
+    /// The set-aside rays whose epochs a bump has now announced, to route; those the tile
+    /// has moved past are dropped, the rest wait on.
+    pub fn take_announced(&mut self) -> Vec<RayRecord> {
+        let epochs = &self.plan.epochs;
+        let current = |r: &RayRecord| epochs.get(r.tile as usize).copied();
+        self.ahead.retain(|r| current(r).is_some_and(|e| r.epoch >= e));
+        let (announced, ahead) = std::mem::take(&mut self.ahead)
+            .into_iter()
+            .partition(|r| current(r) == Some(r.epoch));
+        self.ahead = ahead;
+        announced
     }
 
     /// Drops queued rays of the given tiles older than their new epochs. Their camera rays

@@ -53,9 +53,10 @@ impl<S: RaySpill> Worker<S> {
                 continue;
             }
             frame.counters.rays_received += rays.len() as u64;
-            if let Err(e) = frame.adopt_newer_epochs(&rays) {
-                return self.queue_failed(e);
-            }
+            let rays = match frame.set_aside_newer(rays, self.config.ahead_bytes) {
+                Ok(rays) => rays,
+                Err(full) => return self.decline_frame(full.to_string()),
+            };
             match frame.route(rays) {
                 Ok(out) => {
                     for (peer, mut rays) in out {

@@ -43,6 +43,9 @@ pub struct WorkerConfig {
     pub early_bytes: usize,
     /// Bundles held for a frame that has not started here within this are dropped.
     pub early_timeout: Duration,
+    /// Most bytes of a peer's rays of epochs not announced here yet, waiting for the
+    /// coordinator's bump (`Frame::set_aside_newer`); past it, this worker leaves the frame.
+    pub ahead_bytes: u64,
 }
 
 impl WorkerConfig {
@@ -57,6 +60,7 @@ impl WorkerConfig {
             bundler: BundlerConfig::default(),
             early_bytes: 256 << 20,
             early_timeout: Duration::from_secs(30),
+            ahead_bytes: 64 << 20,
         }
     }
 }
@@ -170,10 +174,20 @@ impl<S: RaySpill> Worker<S> {
                 };
                 warn!(tiles = b.epochs.len(), lost = ?b.lost_peers, "epochs bumped");
                 f.forget_peers(&b.lost_peers);
-                let bumped = f.bump_epochs(&b.epochs.into_iter().collect());
+                let bumped = f
+                    .bump_epochs(&b.epochs.into_iter().collect())
+                    .and_then(|()| {
+                        let announced = f.take_announced();
+                        f.route(announced)
+                    });
                 self.actions.push(Action::DropPeers(b.lost_peers));
-                if let Err(e) = bumped {
-                    self.queue_failed(e);
+                match bumped {
+                    Ok(out) => {
+                        for (peer, rays) in out {
+                            self.send_rays(peer, &rays);
+                        }
+                    }
+                    Err(e) => self.queue_failed(e),
                 }
             }
             Some(FromCoordinator::EndFrame(e)) => self.end_frame(&e.job_id),
@@ -368,7 +382,7 @@ impl<S: RaySpill> Worker<S> {
 
     /// Leaves the running frame for a reason of this worker's own: the coordinator deals its
     /// tiles to the others.
-    fn decline_frame(&mut self, error: String) {
+    pub(super) fn decline_frame(&mut self, error: String) {
         self.end_with_error(error, true);
     }
 

@@ -203,8 +203,16 @@ fn a_stale_epochs_rays_are_dropped() {
     assert_eq!(work.trace, Some((0, vec![current])));
 }
 
+fn bump(tile: u32, epoch: u32, lost: &str) -> Event<MemorySpill> {
+    control(FromCoordinator::EpochBump(proto::EpochBump {
+        job_id: JOB.into(),
+        epochs: HashMap::from([(tile, epoch)]),
+        lost_peers: vec![lost.into()],
+    }))
+}
+
 #[test]
-fn a_peers_rays_of_an_epoch_not_yet_heard_of_here_are_kept() {
+fn a_peers_rays_of_an_epoch_not_yet_heard_of_here_wait_for_the_bump() {
     // A worker was lost; the coordinator's bump reached a peer first, and that peer sends
     // rays of its re-dealt tiles at the new epoch before the bump arrives here.
     let mut w = worker();
@@ -212,18 +220,55 @@ fn a_peers_rays_of_an_epoch_not_yet_heard_of_here_are_kept() {
     w.handle(Time(1), plan(1, &[0], &[]));
     let early = ray(1, 1, 0, 21);
     let actions = w.handle(Time(2), bundle(JOB, &[early]));
-    let work = pass_started(&actions).expect("the new epoch's ray is traced, not dropped");
+    assert!(
+        pass_started(&actions).is_none(),
+        "traced before the coordinator announced its epoch: {actions:?}"
+    );
+    let actions = w.handle(Time(3), bump(1, 1, "gone:1"));
+    let work = pass_started(&actions).expect("the bump lets the held ray through");
     assert_eq!(work.trace, Some((0, vec![early])));
-    let bump = control(FromCoordinator::EpochBump(proto::EpochBump {
-        job_id: JOB.into(),
-        epochs: HashMap::from([(1, 1)]),
-        lost_peers: vec!["gone:1".into()],
-    }));
-    w.handle(Time(3), bump);
     w.handle(Time(4), finished(PassOutput::default()));
     // The tile's old epoch is stale here now, as everywhere else.
     let stale = ray(1, 0, 0, 20);
     assert!(pass_started(&w.handle(Time(5), bundle(JOB, &[stale]))).is_none());
+}
+
+#[test]
+fn a_forged_ray_of_a_future_epoch_drops_no_real_rays() {
+    // A node with the cluster credentials sends one ray of a far epoch for tile 1: the
+    // tile's real rays here stay current and are traced; the forged one waits for a bump
+    // the coordinator never sends, and goes with the frame.
+    let mut w = worker();
+    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    w.handle(Time(1), plan(1, &[0], &[]));
+    let real = ray(1, 0, 0, 20);
+    let forged = ray(1, 9, 0, 22);
+    let actions = w.handle(Time(2), bundle(JOB, &[forged, real]));
+    let work = pass_started(&actions).expect("the real ray is traced");
+    assert_eq!(work.trace, Some((0, vec![real])));
+    // A bump to an epoch below the forged one moves the tile on; the forged ray still waits.
+    w.handle(Time(3), finished(PassOutput::default()));
+    let actions = w.handle(Time(4), bump(1, 1, "gone:1"));
+    assert!(pass_started(&actions).is_none(), "{actions:?}");
+}
+
+#[test]
+fn more_rays_of_unannounced_epochs_than_the_cap_leave_the_frame() {
+    let mut w = Worker::new(WorkerConfig {
+        ahead_bytes: 2 * std::mem::size_of::<RayRecord>() as u64,
+        ..WorkerConfig::new("w1".into(), "me:1".into(), 1 << 30)
+    })
+    .unwrap();
+    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    w.handle(Time(1), plan(1, &[0], &[]));
+    let ahead: Vec<RayRecord> = (0..3).map(|p| ray(1, 4, 0, p)).collect();
+    assert!(frame_reports(&w.handle(Time(2), bundle(JOB, &ahead[..2]))).is_empty());
+    let actions = w.handle(Time(3), bundle(JOB, &ahead[2..]));
+    let reports = frame_reports(&actions);
+    let report = reports.first().expect("a frame report");
+    assert!(report.declined, "{report:?}");
+    assert!(report.error.contains("not announced"), "{}", report.error);
+    assert!(w.frame().is_none());
 }
 
 #[test]
