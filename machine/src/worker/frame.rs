@@ -460,7 +460,8 @@ impl<S: RaySpill> Frame<S> {
     pub fn take_announced(&mut self) -> Vec<RayRecord> {
         let epochs = &self.plan.epochs;
         let current = |r: &RayRecord| epochs.get(r.tile as usize).copied();
-        self.ahead.retain(|r| current(r).is_some_and(|e| r.epoch >= e));
+        self.ahead
+            .retain(|r| current(r).is_some_and(|e| r.epoch >= e));
         let (announced, ahead) = std::mem::take(&mut self.ahead)
             .into_iter()
             .partition(|r| current(r) == Some(r.epoch));
