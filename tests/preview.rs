@@ -56,7 +56,10 @@ fn preview_numbers_only_grow_and_the_last_preview_is_the_result_png() {
             );
             // A sequence number counts committed tiles: never more than the frame has.
             assert!(preview.sequence <= u64::from(event.tiles_total.max(1)));
-            assert_eq!((preview.width, preview.height, preview.scale), (256, 192, 1));
+            assert_eq!(
+                (preview.width, preview.height, preview.scale),
+                (256, 192, 1)
+            );
             sequences.push(preview.sequence);
             let ended = matches!(
                 event.state(),
@@ -78,7 +81,9 @@ fn preview_numbers_only_grow_and_the_last_preview_is_the_result_png() {
         "preview numbers went down: {sequences:?}"
     );
     assert!(
-        sequences.iter().any(|&n| n > 0 && n < u64::from(tiles_total)),
+        sequences
+            .iter()
+            .any(|&n| n > 0 && n < u64::from(tiles_total)),
         "no preview mid-frame: {sequences:?}"
     );
     assert_eq!(last.sequence, u64::from(tiles_total));
@@ -91,7 +96,11 @@ fn preview_numbers_only_grow_and_the_last_preview_is_the_result_png() {
         rayfarm_tests::wait_child(&mut watch, "rayfarm watch", Duration::from_secs(60)),
         "rayfarm watch failed"
     );
-    assert_eq!(std::fs::read(&file).unwrap(), result, "watch --preview file != result");
+    assert_eq!(
+        std::fs::read(&file).unwrap(),
+        result,
+        "watch --preview file != result"
+    );
     // Nothing was left beside it.
     let stray: Vec<_> = std::fs::read_dir(cluster.dir())
         .unwrap()

@@ -205,8 +205,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         }
         None => axum::Router::new(),
     };
-    let http =
-        rayfarm_node::http::serve(args.http.http, http_tls, &args.connections, http).await?;
+    let http = rayfarm_node::http::serve(args.http.http, http_tls, &args.connections, http).await?;
     let listener = tokio::net::TcpListener::bind(listen)
         .await
         .with_context(|| format!("cannot listen on {listen}"))?;

@@ -125,11 +125,10 @@ impl Previews {
                 ));
             }
         };
-        let preview =
-            tokio::task::spawn_blocking(move || film.preview_png(&committed, MAX_SIDE))
-                .await
-                .map_err(|e| Status::internal(format!("encoding the preview failed: {e}")))?
-                .map_err(|e| Status::internal(format!("encoding the preview failed: {e}")))?;
+        let preview = tokio::task::spawn_blocking(move || film.preview_png(&committed, MAX_SIDE))
+            .await
+            .map_err(|e| Status::internal(format!("encoding the preview failed: {e}")))?
+            .map_err(|e| Status::internal(format!("encoding the preview failed: {e}")))?;
         Ok(self.keep(Encoded { sequence, preview }))
     }
 

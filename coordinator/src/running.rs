@@ -40,7 +40,8 @@ impl Running {
         for (tile, sums) in committed {
             self.film.write_tile(*tile, sums)?;
         }
-        self.previews.advance(committed.iter().map(|(tile, _)| *tile));
+        self.previews
+            .advance(committed.iter().map(|(tile, _)| *tile));
         Ok(())
     }
 }

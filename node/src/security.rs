@@ -614,8 +614,10 @@ impl RequireToken {
             return Ok(None);
         };
         match presented.map(|v| v.strip_prefix(b"Bearer ")) {
-            None => Err("no user token: the job API requires `authorization: Bearer TOKEN` \
-                 (rayfarm: --token, --token-file or RAYFARM_TOKEN)"),
+            None => Err(
+                "no user token: the job API requires `authorization: Bearer TOKEN` \
+                 (rayfarm: --token, --token-file or RAYFARM_TOKEN)",
+            ),
             Some(None) => Err("the authorization header must be `Bearer TOKEN`"),
             Some(Some(token)) => match tokens.user(token.trim_ascii()) {
                 Some(user) => Ok(Some(user.clone())),

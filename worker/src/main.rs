@@ -210,7 +210,8 @@ async fn run(args: Args) -> anyhow::Result<()> {
     });
     // Bound before the `listening on` line, so whoever waits for that line has both.
     let router = rayfarm_node::http::metrics_route(|| metrics::worker().encode());
-    let http = rayfarm_node::http::serve(args.http.http, http_tls, &args.connections, router).await?;
+    let http =
+        rayfarm_node::http::serve(args.http.http, http_tls, &args.connections, router).await?;
     // The one line scripts and tests wait for; logs go to stderr.
     println!("listening on {bound}");
     info!(%bound, %advertise, %worker_id, threads, cache_bytes = args.cache_bytes, "worker up");

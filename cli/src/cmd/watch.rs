@@ -62,7 +62,14 @@ pub fn run(a: WatchArgs) -> anyhow::Result<()> {
     let ride_out = a.reconnect.ride_out()?;
     runtime()?.block_on(async {
         let mut coord = a.coordinator.connect().await?;
-        let end = follow(&mut coord, &a.job_id, a.quiet, ride_out, a.preview.as_deref()).await?;
+        let end = follow(
+            &mut coord,
+            &a.job_id,
+            a.quiet,
+            ride_out,
+            a.preview.as_deref(),
+        )
+        .await?;
         println!("job {}: {}", end.job_id, state_name(end.state()));
         if end.state() == JobState::Succeeded && !a.quiet && !end.stats_json.is_empty() {
             let stats = parse_stats(&end.stats_json)?;
@@ -234,9 +241,9 @@ impl PreviewFile {
 /// Replaces `path` with `bytes` whole: written to a file beside it, then renamed over it, so
 /// a reader never sees half an image.
 async fn write_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    let name = path.file_name().ok_or_else(|| {
-        std::io::Error::new(std::io::ErrorKind::InvalidInput, "not a file name")
-    })?;
+    let name = path
+        .file_name()
+        .ok_or_else(|| std::io::Error::new(std::io::ErrorKind::InvalidInput, "not a file name"))?;
     let mut temp_name = std::ffi::OsString::from(".");
     temp_name.push(name);
     temp_name.push(".part");

@@ -55,7 +55,10 @@ pub fn router(coordinator: Arc<Coordinator>, tokens: RequireToken) -> Router {
         history,
     };
     Router::new()
-        .route("/", get(|| async { page("text/html; charset=utf-8", INDEX) }))
+        .route(
+            "/",
+            get(|| async { page("text/html; charset=utf-8", INDEX) }),
+        )
         .route(
             "/dashboard.js",
             get(|| async { page("text/javascript; charset=utf-8", SCRIPT) }),

@@ -670,7 +670,9 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let g = grid(10, 7);
         let film = film_with(dir.path(), g, |_| [1 << 23, 1 << 23, 1 << 23]);
-        let preview = film.preview_png(&vec![true; g.count() as usize], 4).unwrap();
+        let preview = film
+            .preview_png(&vec![true; g.count() as usize], 4)
+            .unwrap();
         // ceil(10 / 4) = 3; 10 / 3 and 7 / 3 rounded up.
         assert_eq!((preview.width, preview.height, preview.factor), (4, 3, 3));
         let mut decoder = png::Decoder::new(std::io::Cursor::new(preview.png))
