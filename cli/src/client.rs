@@ -288,6 +288,15 @@ impl Coordinator {
         Ok(resp.map_err(|s| self.rpc_error(&s))?.into_inner())
     }
 
+    /// The latest preview of a running or recently finished job.
+    pub async fn preview(&mut self, job_id: &str) -> anyhow::Result<proto::FetchPreviewResponse> {
+        let req = proto::FetchPreviewRequest {
+            job_id: job_id.to_string(),
+        };
+        let resp = self.client.fetch_preview(req).await;
+        Ok(resp.map_err(|s| self.rpc_error(&s))?.into_inner())
+    }
+
     /// The workers and the running job.
     pub async fn cluster_status(&mut self) -> anyhow::Result<proto::GetClusterStatusResponse> {
         let resp = self

@@ -26,6 +26,8 @@ use crate::cmd::status::wait_for_workers;
 
 /// What a process prints on stdout, alone on a line, once its gRPC server is bound.
 const LISTENING: &str = "listening on ";
+/// What a server prints before [`LISTENING`] when it serves HTTP (`--http`).
+const HTTP_ON: &str = "http on ";
 
 /// How long a child may take to bind its port (and all workers to register).
 const START_TIMEOUT: Duration = Duration::from_secs(30);
@@ -376,7 +378,13 @@ impl LocalCluster {
             log: log.clone(),
         });
         match listening_address(stdout, Instant::now() + START_TIMEOUT).await {
-            Ok(addr) => Ok(addr),
+            Ok((addr, http)) => {
+                // The demo's coordinator serves the dashboard: say where.
+                if let Some(http) = http {
+                    eprintln!("{name}: dashboard and /metrics at http://{http}/");
+                }
+                Ok(addr)
+            }
             Err(why) => {
                 // A child that closed stdout is usually exiting: give it a moment to say how.
                 let status = match self.procs.last_mut() {
@@ -503,15 +511,23 @@ fn terminate(child: &mut Child) {
 }
 
 /// Reads stdout until the `listening on ADDR` line, then keeps draining it in the background
-/// so a chatty child can never block on a full pipe.
-async fn listening_address(stdout: ChildStdout, deadline: Instant) -> Result<String, String> {
+/// so a chatty child can never block on a full pipe. Returns ADDR and the address of an
+/// `http on ADDR` line printed before it.
+async fn listening_address(
+    stdout: ChildStdout,
+    deadline: Instant,
+) -> Result<(String, Option<String>), String> {
     let mut lines = BufReader::new(stdout).lines();
+    let mut http = None;
     let found = timeout_at(deadline, async {
         loop {
             match lines.next_line().await {
                 Ok(Some(line)) => {
                     if let Some(addr) = line.trim().strip_prefix(LISTENING) {
                         return Ok(addr.trim().to_string());
+                    }
+                    if let Some(addr) = line.trim().strip_prefix(HTTP_ON) {
+                        http = Some(addr.trim().to_string());
                     }
                 }
                 Ok(None) => return Err("exited before it was listening".to_string()),
@@ -526,7 +542,7 @@ async fn listening_address(stdout: ChildStdout, deadline: Instant) -> Result<Str
         ))
     })?;
     tokio::spawn(async move { while let Ok(Some(_)) = lines.next_line().await {} });
-    Ok(found)
+    Ok((found, http))
 }
 
 /// The last `n` lines of a log file (or why it cannot be read).

@@ -403,6 +403,38 @@ impl JobService for Api {
         Ok(Response::new(Box::pin(stream)))
     }
 
+    async fn fetch_preview(
+        &self,
+        request: Request<proto::FetchPreviewRequest>,
+    ) -> Result<Response<proto::FetchPreviewResponse>, Status> {
+        let job_id = request.into_inner().job_id;
+        check_field("job_id", &job_id)?;
+        let latest = self.coordinator.previews(&job_id)?.latest().await?;
+        let p = &latest.preview;
+        Ok(Response::new(proto::FetchPreviewResponse {
+            png: p.png.clone().into(),
+            sequence: latest.sequence,
+            width: p.width,
+            height: p.height,
+            scale: p.factor,
+        }))
+    }
+
+    async fn set_job_priority(
+        &self,
+        request: Request<proto::SetJobPriorityRequest>,
+    ) -> Result<Response<proto::SetJobPriorityResponse>, Status> {
+        let user = request.extensions().get::<User>().cloned();
+        let r = request.into_inner();
+        check_field("job_id", &r.job_id)?;
+        let state = self
+            .coordinator
+            .set_priority(&r.job_id, r.priority, user.as_ref())?;
+        Ok(Response::new(proto::SetJobPriorityResponse {
+            state: state as i32,
+        }))
+    }
+
     async fn get_cluster_status(
         &self,
         _request: Request<proto::GetClusterStatusRequest>,

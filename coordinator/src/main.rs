@@ -6,7 +6,9 @@
 mod admission;
 mod api;
 mod control;
+mod dashboard;
 mod journal;
+mod preview;
 mod queue;
 mod results;
 mod running;
@@ -192,22 +194,18 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let coordinator = Coordinator::open(config.clone())?;
     // Bound before the `listening on` line, so whoever waits for that line has both.
     let http = match args.http.http {
-        Some(addr) => {
+        Some(_) => {
             let c = coordinator.clone();
-            let router = rayfarm_node::http::metrics_route(move || {
+            let metrics = rayfarm_node::http::metrics_route(move || {
                 c.refresh_metrics();
                 rayfarm_node::metrics::coordinator().encode()
             });
-            Some(rayfarm_node::http::bind(addr, http_tls, &args.connections, router).await?)
+            let page = dashboard::router(coordinator.clone(), RequireToken(tokens.clone()));
+            metrics.merge(page)
         }
-        None => None,
+        None => axum::Router::new(),
     };
-    let http = async move {
-        match http {
-            Some(serve) => serve.await,
-            None => std::future::pending().await,
-        }
-    };
+    let http = rayfarm_node::http::serve(args.http.http, http_tls, &args.connections, http).await?;
     let listener = tokio::net::TcpListener::bind(listen)
         .await
         .with_context(|| format!("cannot listen on {listen}"))?;

@@ -1,19 +1,23 @@
 //! The running frame as the shell holds it: the machine's `RunningFrame` (which does no I/O)
-//! with the film file its committed tiles are written to, and the clock the shell reads for
-//! the machine's events.
+//! with the film file its committed tiles are written to and the previews made of it, and
+//! the clock the shell reads for the machine's events.
 
 use std::ops::{Deref, DerefMut};
-use std::sync::OnceLock;
+use std::sync::{Arc, OnceLock};
 use std::time::Instant;
 
 use rayfarm_core::render::Film;
 use rayfarm_machine::Time;
 use rayfarm_machine::coordinator::{CommittedTile, RunningFrame};
 
-/// A frame and its film: they start, run and end together.
+use crate::preview::Previews;
+
+/// A frame and its film: they start, run and end together. Previews hold the film weakly
+/// (its file goes when the frame does) and outlive it with their last image.
 pub struct Running {
     pub frame: RunningFrame,
-    pub film: Film,
+    pub film: Arc<Film>,
+    pub previews: Arc<Previews>,
 }
 
 // The frame is what the state reads and changes; the film only takes its committed tiles.
@@ -31,11 +35,13 @@ impl DerefMut for Running {
 }
 
 impl Running {
-    /// Writes tiles the frame committed to the film.
+    /// Writes tiles the frame committed to the film; the next preview shows them.
     pub fn write_tiles(&self, committed: &[CommittedTile]) -> anyhow::Result<()> {
         for (tile, sums) in committed {
             self.film.write_tile(*tile, sums)?;
         }
+        self.previews
+            .advance(committed.iter().map(|(tile, _)| *tile));
         Ok(())
     }
 }

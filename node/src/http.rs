@@ -54,6 +54,27 @@ pub fn metrics_route(encode: impl Fn() -> String + Clone + Send + Sync + 'static
     )
 }
 
+/// `--http` of a server: binds `addr` when one is given (see [`bind`]) and returns a future
+/// serving `router` there; without an address, a future that never ends, so a server's
+/// `select!` has the same arm either way.
+pub async fn serve(
+    addr: Option<SocketAddr>,
+    tls: Option<TlsAcceptor>,
+    limits: &ConnectionArgs,
+    router: Router,
+) -> anyhow::Result<impl Future<Output = ()> + use<>> {
+    let bound = match addr {
+        Some(addr) => Some(bind(addr, tls, limits, router).await?),
+        None => None,
+    };
+    Ok(async move {
+        match bound {
+            Some(serve) => serve.await,
+            None => std::future::pending().await,
+        }
+    })
+}
+
 /// Binds `addr`, prints `http on ADDR` on stdout, and returns a future serving `router`
 /// there until the process ends.
 pub async fn bind(

@@ -605,29 +605,42 @@ impl Interceptor for RequireSecret {
 #[derive(Clone, Debug)]
 pub struct RequireToken(pub Option<UserTokens>);
 
+impl RequireToken {
+    /// Who the `authorization` header value `presented` authenticates (`None` when user
+    /// tokens are off), or why it is refused: the one check of the job API and of the
+    /// dashboard's HTTP API.
+    pub fn authenticate(&self, presented: Option<&[u8]>) -> Result<Option<User>, &'static str> {
+        let Some(tokens) = &self.0 else {
+            return Ok(None);
+        };
+        match presented.map(|v| v.strip_prefix(b"Bearer ")) {
+            None => Err(
+                "no user token: the job API requires `authorization: Bearer TOKEN` \
+                 (rayfarm: --token, --token-file or RAYFARM_TOKEN)",
+            ),
+            Some(None) => Err("the authorization header must be `Bearer TOKEN`"),
+            Some(Some(token)) => match tokens.user(token.trim_ascii()) {
+                Some(user) => Ok(Some(user.clone())),
+                None => Err("unknown user token"),
+            },
+        }
+    }
+}
+
 impl Interceptor for RequireToken {
     fn call(&mut self, mut request: Request<()>) -> Result<Request<()>, Status> {
-        let Some(tokens) = &self.0 else {
-            return Ok(request);
-        };
-        let value = request.metadata().get(TOKEN_HEADER);
-        let refusal = match value.map(|v| v.as_bytes().strip_prefix(b"Bearer ")) {
-            None => {
-                "no user token: the job API requires `authorization: Bearer TOKEN` \
-                 (rayfarm: --token, --token-file or RAYFARM_TOKEN)"
+        let presented = request.metadata().get(TOKEN_HEADER).map(|v| v.as_bytes());
+        match self.authenticate(presented) {
+            Ok(None) => Ok(request),
+            Ok(Some(user)) => {
+                request.extensions_mut().insert(user);
+                Ok(request)
             }
-            Some(None) => "the authorization header must be `Bearer TOKEN`",
-            Some(Some(token)) => match tokens.user(token.trim_ascii()) {
-                Some(user) => {
-                    let user = user.clone();
-                    request.extensions_mut().insert(user);
-                    return Ok(request);
-                }
-                None => "unknown user token",
-            },
-        };
-        warn!(client = ?crate::listen::remote_addr(&request), "refused: {refusal}");
-        Err(Status::unauthenticated(refusal))
+            Err(refusal) => {
+                warn!(client = ?crate::listen::remote_addr(&request), "refused: {refusal}");
+                Err(Status::unauthenticated(refusal))
+            }
+        }
     }
 }
 

@@ -379,6 +379,7 @@ impl World<'_> {
                 if !w.disconnected {
                     let hb = FromWorker::Heartbeat(proto::Heartbeat {
                         sent_ms: self.now.0 / 1_000_000,
+                        ..Default::default()
                     });
                     self.send(node, COORDINATOR, Msg::ToCoordinator(hb));
                 }

@@ -156,12 +156,25 @@ async fn session(
             },
             _ = heartbeat.tick() => {
                 let sent_ms = started.elapsed().as_millis() as u64;
-                if !send(ToCoordinator::Heartbeat(proto::Heartbeat { sent_ms })) {
+                if !send(ToCoordinator::Heartbeat(heartbeat_now(sent_ms))) {
                     error!("control stream closed");
                     return Ok(Session::Ended);
                 }
             }
         }
+    }
+}
+
+/// A heartbeat with this worker's figures as its metrics hold them (the coordinator shows
+/// them per worker on its dashboard).
+fn heartbeat_now(sent_ms: u64) -> proto::Heartbeat {
+    let m = rayfarm_node::metrics::worker();
+    proto::Heartbeat {
+        sent_ms,
+        domain_loads: m.domain_loads.get(),
+        ray_segments: m.radiance_segments.get() + m.shadow_segments.get(),
+        queue_bytes: m.queue_bytes.get().max(0) as u64,
+        spill_bytes: m.spill_bytes.get().max(0) as u64,
     }
 }
 

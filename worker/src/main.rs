@@ -209,19 +209,9 @@ async fn run(args: Args) -> anyhow::Result<()> {
         std::thread::available_parallelism().map_or(1, std::num::NonZeroUsize::get)
     });
     // Bound before the `listening on` line, so whoever waits for that line has both.
-    let http = match args.http.http {
-        Some(addr) => {
-            let router = rayfarm_node::http::metrics_route(|| metrics::worker().encode());
-            Some(rayfarm_node::http::bind(addr, http_tls, &args.connections, router).await?)
-        }
-        None => None,
-    };
-    let http = async move {
-        match http {
-            Some(serve) => serve.await,
-            None => std::future::pending().await,
-        }
-    };
+    let router = rayfarm_node::http::metrics_route(|| metrics::worker().encode());
+    let http =
+        rayfarm_node::http::serve(args.http.http, http_tls, &args.connections, router).await?;
     // The one line scripts and tests wait for; logs go to stderr.
     println!("listening on {bound}");
     info!(%bound, %advertise, %worker_id, threads, cache_bytes = args.cache_bytes, "worker up");

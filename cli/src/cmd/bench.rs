@@ -470,7 +470,7 @@ async fn run_one(
     };
     in_flight.set(coord, &job_id);
     // The bench's coordinator is its own child: if it dies, the run is over.
-    let end = match follow(coord, &job_id, true, Duration::ZERO).await {
+    let end = match follow(coord, &job_id, true, Duration::ZERO, None).await {
         Ok(end) => end,
         Err(e) => {
             in_flight.cancel_quietly().await;

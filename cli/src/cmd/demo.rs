@@ -110,13 +110,15 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
 fn run_cluster(a: &DemoArgs, scene: &Path, cache_bytes: u64) -> anyhow::Result<()> {
     let workers = a.workers as usize;
     // Finds the binaries before anything starts, so a missing one costs nothing.
-    let config = ClusterConfig::for_scene(
+    let mut config = ClusterConfig::for_scene(
         scene,
         &a.dir.join("cluster"),
         workers,
         cache_bytes,
         threads_per_worker(workers),
     )?;
+    // The dashboard on a port the OS chooses (printed once the coordinator is up).
+    config.coordinator_extra = vec!["--http".into(), "127.0.0.1:0".into()];
     let spec = proto::JobSpec {
         scene: config.default_scene.clone(),
         camera: None,

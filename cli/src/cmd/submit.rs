@@ -158,7 +158,7 @@ pub async fn wait_and_save(
         .clone()
         .unwrap_or_else(|| default_output(job_id));
     let format = image_format(&output)?;
-    let end = follow(coord, job_id, opts.quiet, opts.ride_out).await?;
+    let end = follow(coord, job_id, opts.quiet, opts.ride_out, None).await?;
     ended_ok(&end)?;
     let saved = save_result(
         coord,

@@ -1,7 +1,9 @@
 //! `rayfarm watch ID`, and the progress display every command that waits for a job shares
 //! (`submit --wait`, `demo`): one progress bar fed by the coordinator's WatchJob stream, and one
 //! rule for what a job's end means (succeeded is success; failed or cancelled is an error).
+//! `watch --preview FILE` also keeps FILE the job's latest preview.
 
+use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use anyhow::{Context, anyhow, bail};
@@ -24,6 +26,11 @@ pub struct WatchArgs {
     /// No progress bar and no statistics table; only the final state.
     #[arg(long, env = "RAYFARM_QUIET", value_parser = BoolishValueParser::new())]
     pub quiet: bool,
+    /// Keep this PNG file the job's latest preview while it renders (the tiles committed so
+    /// far; frames over 1024 pixels a side shrunk), replaced whole each time (written beside
+    /// it, then renamed). Once the job succeeds it holds the final image's preview.
+    #[arg(long, value_name = "FILE")]
+    pub preview: Option<PathBuf>,
     #[command(flatten)]
     pub reconnect: ReconnectArgs,
 }
@@ -55,7 +62,14 @@ pub fn run(a: WatchArgs) -> anyhow::Result<()> {
     let ride_out = a.reconnect.ride_out()?;
     runtime()?.block_on(async {
         let mut coord = a.coordinator.connect().await?;
-        let end = follow(&mut coord, &a.job_id, a.quiet, ride_out).await?;
+        let end = follow(
+            &mut coord,
+            &a.job_id,
+            a.quiet,
+            ride_out,
+            a.preview.as_deref(),
+        )
+        .await?;
         println!("job {}: {}", end.job_id, state_name(end.state()));
         if end.state() == JobState::Succeeded && !a.quiet && !end.stats_json.is_empty() {
             let stats = parse_stats(&end.stats_json)?;
@@ -87,12 +101,17 @@ pub async fn follow(
     job_id: &str,
     quiet: bool,
     ride_out: Duration,
+    preview: Option<&Path>,
 ) -> anyhow::Result<proto::WatchJobResponse> {
     let bar = progress_bar(quiet)?;
+    let mut preview = preview.map(|path| PreviewFile {
+        path: path.to_path_buf(),
+        written: None,
+    });
     let mut lost_at: Option<tokio::time::Instant> = None;
     loop {
         let mut heard = false;
-        let lost = match follow_once(coord, job_id, &bar, &mut heard).await {
+        let lost = match follow_once(coord, job_id, &bar, &mut heard, preview.as_mut()).await {
             Ok(end) => {
                 bar.finish_and_clear();
                 return Ok(end);
@@ -133,6 +152,7 @@ async fn follow_once(
     job_id: &str,
     bar: &ProgressBar,
     heard: &mut bool,
+    mut preview: Option<&mut PreviewFile>,
 ) -> anyhow::Result<proto::WatchJobResponse> {
     let mut stream = coord
         .watch(job_id)
@@ -172,10 +192,64 @@ async fn follow_once(
         *heard = true;
         queued = event.state() == JobState::Queued;
         show(bar, &event);
+        if let Some(preview) = preview.as_deref_mut() {
+            preview.update(coord, &event, bar).await?;
+        }
         if is_final(event.state()) {
             return Ok(event);
         }
     }
+}
+
+/// `--preview FILE` and the sequence number of the preview last written to it.
+struct PreviewFile {
+    path: PathBuf,
+    written: Option<u64>,
+}
+
+impl PreviewFile {
+    /// Writes the job's latest preview if `event` says a newer one exists than the file
+    /// holds. A preview the coordinator cannot give is a warning; a file that cannot be
+    /// written, an error.
+    async fn update(
+        &mut self,
+        coord: &mut Coordinator,
+        event: &proto::WatchJobResponse,
+        bar: &ProgressBar,
+    ) -> anyhow::Result<()> {
+        let newer = self.written.is_none_or(|w| event.preview_sequence > w);
+        if !newer || event.state() == JobState::Queued {
+            return Ok(());
+        }
+        let preview = match coord.preview(&event.job_id).await {
+            Ok(p) => p,
+            Err(e) => {
+                bar.suspend(|| eprintln!("warning: no preview of {}: {e:#}", event.job_id));
+                // Not asked again for this event's number.
+                self.written = Some(event.preview_sequence);
+                return Ok(());
+            }
+        };
+        write_atomically(&self.path, &preview.png)
+            .await
+            .with_context(|| format!("writing the preview to {}", self.path.display()))?;
+        self.written = Some(preview.sequence);
+        Ok(())
+    }
+}
+
+/// Replaces `path` with `bytes` whole: written to a file beside it, then renamed over it, so
+/// a reader never sees half an image.
+async fn write_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    let name = path
+        .file_name()
+        .ok_or_else(|| std::io::Error::new(std::io::ErrorKind::InvalidInput, "not a file name"))?;
+    let mut temp_name = std::ffi::OsString::from(".");
+    temp_name.push(name);
+    temp_name.push(".part");
+    let temp = path.with_file_name(temp_name);
+    tokio::fs::write(&temp, bytes).await?;
+    tokio::fs::rename(&temp, path).await
 }
 
 /// How long a queued job is followed before checking that the cluster has workers.

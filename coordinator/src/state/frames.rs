@@ -103,7 +103,12 @@ impl Coordinator {
                 if let Some(job) = st.jobs.get_mut(id) {
                     job.summary.started_unix_ms = unix_ms();
                     job.attempts = attempts.saturating_add(1);
+                    // Numbered on from the job's last frame, so its previews' numbers only grow.
+                    let floor = job.preview.as_ref().map_or(0, |p| p.sequence());
+                    frame.previews = Arc::new(Previews::new(&frame.film, floor));
+                    job.preview = Some(frame.previews.clone());
                 }
+                keep_preview(st, id);
                 // The start is on disk before any worker hears of it: a frame that kills
                 // the coordinator counts against the job's attempts all the same.
                 st.starts += 1;
@@ -171,7 +176,13 @@ impl Coordinator {
         let grid = *frame.ledger.grid();
         let film = results::create_film(&self.config.data_dir, id, grid, spp)
             .map_err(|e| Status::internal(format!("{e:#}")))?;
-        Ok(Running { frame, film })
+        let film = Arc::new(film);
+        let previews = Arc::new(Previews::new(&film, 0));
+        Ok(Running {
+            frame,
+            film,
+            previews,
+        })
     }
 
     pub(super) fn fail_running(self: &Arc<Self>, st: &mut State, error: &str) {
@@ -211,7 +222,11 @@ impl Coordinator {
     }
 
     async fn finish(self: Arc<Self>, running: Running, wall: f64) {
-        let Running { frame, film } = running;
+        let Running {
+            frame,
+            film,
+            previews,
+        } = running;
         let id = frame.job_id.clone();
         let reports = {
             let mut st = self.lock();
@@ -240,8 +255,11 @@ impl Coordinator {
         let data_dir = self.config.data_dir.clone();
         let job = id.clone();
         let written = tokio::task::spawn_blocking(move || {
-            // The film file goes with `film` once both images are written.
-            results::write(&data_dir, &job, &film, &mut stats)
+            // The film file goes with `film` once both images are written; the final
+            // preview is made of it first.
+            let written = results::write(&data_dir, &job, &film, &mut stats);
+            previews.seal();
+            written
         })
         .await;
         let mut st = self.lock();
@@ -294,12 +312,28 @@ pub(super) fn end_frame(st: &mut State, frame: &RunningFrame) {
     send(st, frame.end_messages());
 }
 
+/// Job `id`'s frame has started: its previews are kept, and the oldest frame's beyond
+/// [`KEPT_PREVIEWS`] let go.
+fn keep_preview(st: &mut State, id: &str) {
+    st.previewed.retain(|j| j != id);
+    st.previewed.push_back(id.to_string());
+    while st.previewed.len() > KEPT_PREVIEWS {
+        if let Some(old) = st.previewed.pop_front()
+            && let Some(job) = st.jobs.get_mut(&old)
+        {
+            job.preview = None;
+        }
+    }
+}
+
 pub(super) fn publish_progress(st: &State, frame: &RunningFrame) {
     let Some(job) = st.jobs.get(&frame.job_id) else {
         return;
     };
     let (done, total, rate, eta) = frame.progress(now());
+    let preview_sequence = job.preview.as_ref().map_or(0, |p| p.sequence());
     job.progress.send_modify(|p| {
+        p.preview_sequence = preview_sequence;
         p.tiles_done = done;
         p.tiles_total = total;
         p.round = frame.round;

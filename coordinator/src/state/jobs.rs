@@ -78,6 +78,7 @@ impl Coordinator {
             progress: progress_channel(&id, JobState::Queued, "", ""),
             image_hash: String::new(),
             stats_json: String::new(),
+            preview: None,
         };
         // A job the client was told about must survive a restart: on disk before the reply,
         // and queued only then. It counts against the quota meanwhile.
@@ -196,15 +197,7 @@ impl Coordinator {
     pub fn cancel(self: &Arc<Self>, id: &str, user: Option<&User>) -> Result<JobState, Status> {
         let mut st = self.lock();
         let job = st.jobs.get(id).ok_or_else(|| not_found(id))?;
-        if let Some(user) = user
-            && !user.admin
-            && job.summary.owner != user.name
-        {
-            warn!(job = %id, user = %user.name, owner = %job.summary.owner, "cancel refused: not the owner");
-            return Err(Status::permission_denied(format!(
-                "job {id} belongs to another user: only its owner or an admin may cancel it"
-            )));
-        }
+        check_owner(job, user, "cancel")?;
         let state = job.summary.state();
         if is_terminal(state) {
             return Ok(state);
@@ -224,6 +217,49 @@ impl Coordinator {
             .jobs
             .get(id)
             .map_or(JobState::Cancelled, |j| j.summary.state()))
+    }
+
+    /// Sets the priority of job `id` for `user` (as [`cancel`](Self::cancel) checks it);
+    /// a queued job moves to its new place in the queue. Returns its state.
+    pub fn set_priority(
+        &self,
+        id: &str,
+        priority: i32,
+        user: Option<&User>,
+    ) -> Result<JobState, Status> {
+        let mut st = self.lock();
+        let job = st.jobs.get_mut(id).ok_or_else(|| not_found(id))?;
+        check_owner(job, user, "change the priority of")?;
+        let state = job.summary.state();
+        if state != JobState::Queued {
+            return Err(Status::failed_precondition(format!(
+                "job {id} is {}: only a queued job's priority can change",
+                state_name(state)
+            )));
+        }
+        if let Some(spec) = job.summary.spec.as_mut() {
+            spec.priority = priority;
+        }
+        let (stored, seq) = (job.stored(), job.seq);
+        st.journal.put(stored);
+        if st.queue.remove(id) {
+            st.queue.push(id.to_string(), priority, seq);
+        }
+        info!(job = %id, user = %user.map_or("", |u| u.name.as_str()), priority, "job priority changed");
+        Ok(state)
+    }
+
+    /// The previews of job `id`'s latest frame, while they are kept.
+    pub fn previews(&self, id: &str) -> Result<Arc<Previews>, Status> {
+        let st = self.lock();
+        let job = st.jobs.get(id).ok_or_else(|| not_found(id))?;
+        job.preview.clone().ok_or_else(|| {
+            Status::failed_precondition(format!(
+                "job {id} has no preview: it is {} and previews are kept only for the running \
+                 frame and the last {KEPT_PREVIEWS} frames started by this coordinator",
+                state_name(job.summary.state())
+            ))
+        })
     }
 
     /// Jobs, newest first.
@@ -267,6 +303,21 @@ impl Coordinator {
             job.stats_json.clone(),
             job.image_hash.clone(),
         ))
+    }
+}
+
+/// Refuses (`PERMISSION_DENIED`) `user` doing `action` to `job` unless it is the job's owner
+/// or an admin; without user tokens (`None`) anyone may.
+fn check_owner(job: &Job, user: Option<&User>, action: &str) -> Result<(), Status> {
+    match user {
+        Some(user) if !user.admin && job.summary.owner != user.name => {
+            let id = &job.summary.job_id;
+            warn!(job = %id, user = %user.name, owner = %job.summary.owner, action, "refused: not the owner");
+            Err(Status::permission_denied(format!(
+                "job {id} belongs to another user: only its owner or an admin may {action} it"
+            )))
+        }
+        _ => Ok(()),
     }
 }
 

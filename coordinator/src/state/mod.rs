@@ -5,7 +5,7 @@
 //! the lock, in order, and written outside it; a frame's scene is read and its film file
 //! created outside it too, before the frame starts.
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex, MutexGuard, Weak};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
@@ -28,6 +28,7 @@ use rayfarm_machine::coordinator::{Member, Outgoing, Rounds, RunningFrame, accus
 
 use crate::admission::{Needs, free_disk};
 use crate::journal::{Journal, Then};
+use crate::preview::Previews;
 use crate::queue::JobQueue;
 use crate::results;
 use crate::running::{Running, now};
@@ -91,6 +92,26 @@ struct Job {
     progress: watch::Sender<proto::WatchJobResponse>,
     image_hash: String,
     stats_json: String,
+    /// Previews of its latest frame, kept while it runs and for the last
+    /// [`KEPT_PREVIEWS`] frames started.
+    preview: Option<Arc<Previews>>,
+}
+
+/// Frames whose previews stay in memory once they end (each a PNG of at most 1024 pixels
+/// a side).
+const KEPT_PREVIEWS: usize = 4;
+
+/// Workers lost remembered for the dashboard, newest last.
+const KEPT_LOST_WORKERS: usize = 32;
+
+/// A worker the coordinator dropped, as the dashboard lists it.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct LostWorker {
+    pub worker_id: String,
+    pub peer_address: String,
+    /// When it was dropped, Unix milliseconds.
+    pub lost_unix_ms: i64,
+    pub reason: String,
 }
 
 impl Job {
@@ -112,6 +133,8 @@ struct WorkerEntry {
     tx: WorkerTx,
     last_seen: Instant,
     last_report: Option<proto::QueueReport>,
+    /// Its latest heartbeat: its loads, rays traced and queue bytes.
+    heartbeat: proto::Heartbeat,
     /// Why it declined its last frame ("job ID: reason"); empty once it reports a frame.
     left_out: String,
 }
@@ -144,6 +167,10 @@ struct State {
     finishing: BTreeMap<String, Finishing>,
     /// Set by [`Coordinator::shut_down`]: no worker attaches and no frame starts any more.
     stopping: bool,
+    /// Jobs holding previews, in the order their frames started (at most [`KEPT_PREVIEWS`]).
+    previewed: VecDeque<String>,
+    /// The latest workers dropped (at most [`KEPT_LOST_WORKERS`]).
+    lost: VecDeque<LostWorker>,
 }
 
 /// A page of the job list: at most `size` jobs, newest first, from sequence number `from_seq`
@@ -216,6 +243,8 @@ impl Coordinator {
             running: None,
             finishing: BTreeMap::new(),
             stopping: false,
+            previewed: VecDeque::new(),
+            lost: VecDeque::new(),
         };
         for stored in loaded.jobs {
             restore(&mut st, &config.data_dir, stored);
@@ -310,6 +339,7 @@ fn set_state_then(st: &mut State, id: &str, state: JobState, error: &str, then: 
         error!(job = %id, error, "job failed");
     }
     let stats_json = job.stats_json.clone();
+    let preview_sequence = job.preview.as_ref().map_or(0, |p| p.sequence());
     // Handed over under the lock, so the store sees the changes in the order they happened.
     // Once per state change; a failed write is logged and the job goes on (the change is
     // lost only if the coordinator restarts before the next write of this job).
@@ -321,6 +351,7 @@ fn set_state_then(st: &mut State, id: &str, state: JobState, error: &str, then: 
         p.state = state as i32;
         p.error = error.to_string();
         p.stats_json = stats_json;
+        p.preview_sequence = p.preview_sequence.max(preview_sequence);
         if state == JobState::Succeeded {
             p.tiles_done = p.tiles_total;
             p.eta_seconds = 0.0;
@@ -368,6 +399,7 @@ fn restore(st: &mut State, data_dir: &std::path::Path, stored: StoredJob) {
         workers_lost: BTreeMap::new(),
         image_hash: stored.image_hash,
         stats_json: stored.stats_json,
+        preview: None,
     };
     let mut changed = None;
     match job.summary.state() {

@@ -28,6 +28,10 @@ impl Coordinator {
                         .unwrap_or_default(),
                     last_seen_ms: w.last_seen.elapsed().as_millis() as u64,
                     left_out: w.left_out.clone(),
+                    domain_loads: w.heartbeat.domain_loads,
+                    ray_segments: w.heartbeat.ray_segments,
+                    queue_bytes: w.heartbeat.queue_bytes,
+                    spill_bytes: w.heartbeat.spill_bytes,
                 })
                 .collect(),
             running_job_id: st
@@ -37,6 +41,11 @@ impl Coordinator {
                 .unwrap_or_default(),
             round: st.running.as_ref().map_or(0, |f| f.round),
         }
+    }
+
+    /// The latest workers dropped, oldest first.
+    pub fn lost_workers(&self) -> Vec<LostWorker> {
+        self.lock().lost.iter().cloned().collect()
     }
 
     /// Registers a worker whose messages go to `tx`; returns its key. `certified`, the names
@@ -110,6 +119,7 @@ impl Coordinator {
                 tx,
                 last_seen: Instant::now(),
                 last_report: None,
+                heartbeat: proto::Heartbeat::default(),
                 left_out: String::new(),
             },
         );
@@ -145,7 +155,7 @@ impl Coordinator {
         worker.last_seen = Instant::now();
         match body {
             FromWorker::Register(_) => warn!(key, "worker registered twice; ignored"),
-            FromWorker::Heartbeat(_) => {}
+            FromWorker::Heartbeat(h) => worker.heartbeat = h,
             FromWorker::QueueReport(r) => {
                 worker.last_report = Some(r.clone());
                 let out = match st.running.as_mut() {
@@ -302,6 +312,15 @@ impl Coordinator {
         };
         warn!(worker = %worker.id, why, "worker lost");
         metrics::coordinator().workers_lost.inc();
+        st.lost.push_back(LostWorker {
+            worker_id: worker.id.clone(),
+            peer_address: worker.peer_address.clone(),
+            lost_unix_ms: unix_ms(),
+            reason: why.to_string(),
+        });
+        if st.lost.len() > KEPT_LOST_WORKERS {
+            st.lost.pop_front();
+        }
         for fin in st.finishing.values_mut() {
             fin.waiting.remove(&key);
             if fin.waiting.is_empty()

@@ -292,11 +292,100 @@ impl Film {
         Ok(hasher.digest())
     }
 
+    /// An 8-bit sRGB PNG, in memory, of the tiles `committed` marks (by tile index) as
+    /// written: a running frame's preview. Tiles not committed show a dark checkerboard.
+    /// An image longer than `max_side` pixels on a side is shrunk by the smallest whole
+    /// factor that fits, each preview pixel the mean of the linear values it covers. Not
+    /// shrunk and with every tile committed, the bytes are those [`save`](Self::save)
+    /// writes to a `.png`.
+    pub fn preview_png(&self, committed: &[bool], max_side: u32) -> Result<Preview, ImageError> {
+        let (w, h) = (self.width(), self.height());
+        let factor = w.max(h).div_ceil(max_side.max(1)).max(1);
+        let (pw, ph) = (w.div_ceil(factor), h.div_ceil(factor));
+        let bytes = MemoryPng::default();
+        let shown = Path::new("(preview)");
+        let mut png = PngRows::to_writer(bytes.clone(), shown, pw, ph)?;
+        let (ts, tiles_x) = (self.grid.tile_size(), self.grid.tiles_x());
+        let mut sums = vec![0f64; pw as usize * 3];
+        let mut counts = vec![0u32; pw as usize];
+        let (mut linear, mut out) = (Vec::new(), Vec::new());
+        let mut y = 0u32;
+        self.for_each_row(|row| {
+            self.linear(row, &mut linear);
+            for x in 0..w {
+                let px = (x / factor) as usize;
+                let tile = (y / ts) * tiles_x + x / ts;
+                let sum = &mut sums[px * 3..px * 3 + 3];
+                if committed.get(tile as usize).copied().unwrap_or(false) {
+                    for (s, &v) in sum.iter_mut().zip(&linear[x as usize * 3..]) {
+                        *s += f64::from(v);
+                    }
+                } else {
+                    let light = ((x / factor / 8) + (y / factor / 8)) % 2 == 1;
+                    let v = if light { CHECKER_LIGHT } else { CHECKER_DARK };
+                    sum.iter_mut().for_each(|s| *s += v);
+                }
+                counts[px] += 1;
+            }
+            y += 1;
+            if y % factor == 0 || y == h {
+                out.clear();
+                for (sum, &n) in sums.chunks_exact(3).zip(&counts) {
+                    // Divided by 1 when not shrunk: the film's own values, to the bit.
+                    out.extend(sum.iter().map(|&s| (s / f64::from(n)) as f32));
+                }
+                png.write_row(&out)?;
+                sums.fill(0.0);
+                counts.fill(0);
+            }
+            Ok(())
+        })?;
+        png.finish()?;
+        Ok(Preview {
+            png: bytes.0.take(),
+            width: pw,
+            height: ph,
+            factor,
+        })
+    }
+
     /// Linear radiance of a row of sums, averaged over samples, RGB per pixel.
     fn linear(&self, row: &[[i64; 3]], out: &mut Vec<f32>) {
         let scale = 1.0 / (FIXED_ONE * self.spp.max(1) as f64);
         out.clear();
         out.extend(row.iter().flatten().map(|&c| (c as f64 * scale) as f32));
+    }
+}
+
+/// A preview image made by [`Film::preview_png`].
+#[derive(Clone, Debug)]
+pub struct Preview {
+    /// The PNG file's bytes.
+    pub png: Vec<u8>,
+    /// Its width and height in pixels.
+    pub width: u32,
+    pub height: u32,
+    /// How many film pixels a side of one preview pixel covers (1: full size).
+    pub factor: u32,
+}
+
+/// Linear values of the checkerboard that stands for tiles not committed yet: dark enough
+/// that rendered tiles stand out against it.
+const CHECKER_DARK: f64 = 0.004;
+const CHECKER_LIGHT: f64 = 0.012;
+
+/// A PNG's bytes in memory, shared with the encoder writing them (which owns its writer).
+#[derive(Clone, Default)]
+struct MemoryPng(std::rc::Rc<std::cell::RefCell<Vec<u8>>>);
+
+impl Write for MemoryPng {
+    fn write(&mut self, bytes: &[u8]) -> std::io::Result<usize> {
+        self.0.borrow_mut().extend_from_slice(bytes);
+        Ok(bytes.len())
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
     }
 }
 
@@ -329,17 +418,25 @@ fn write_error(path: &Path, reason: impl ToString) -> ImageError {
     }
 }
 
-/// A PNG written row by row.
-struct PngRows {
+/// A PNG written row by row, to a file or (a preview) to memory.
+struct PngRows<W: Write + 'static> {
     path: PathBuf,
-    stream: png::StreamWriter<'static, BufWriter<File>>,
+    stream: png::StreamWriter<'static, W>,
     bytes: Vec<u8>,
 }
 
-impl PngRows {
+impl PngRows<BufWriter<File>> {
     fn create(path: &Path, width: u32, height: u32) -> Result<Self, ImageError> {
         let file = File::create(path).map_err(|e| write_error(path, e))?;
-        let mut encoder = png::Encoder::new(BufWriter::new(file), width, height);
+        Self::to_writer(BufWriter::new(file), path, width, height)
+    }
+}
+
+impl<W: Write + 'static> PngRows<W> {
+    /// The one encoder setup of every PNG, so a preview of a whole film is the same bytes
+    /// as the saved image.
+    fn to_writer(out: W, path: &Path, width: u32, height: u32) -> Result<Self, ImageError> {
+        let mut encoder = png::Encoder::new(out, width, height);
         encoder.set_color(png::ColorType::Rgb);
         encoder.set_depth(png::BitDepth::Eight);
         // fdeflate: an order of magnitude faster than zlib's levels on large frames.
@@ -549,6 +646,42 @@ mod tests {
             film.write_tile(tile, &s).unwrap();
         }
         film
+    }
+
+    #[test]
+    fn a_full_size_preview_of_a_whole_film_is_the_saved_png() {
+        let dir = tempfile::tempdir().unwrap();
+        let g = grid(10, 7);
+        let film = film_with(dir.path(), g, |p| [p as i64 * 40_000, 1 << 22, 0]);
+        let saved = dir.path().join("image.png");
+        film.save(&saved).unwrap();
+        let all = vec![true; g.count() as usize];
+        let preview = film.preview_png(&all, 1024).unwrap();
+        assert_eq!((preview.width, preview.height, preview.factor), (10, 7, 1));
+        assert_eq!(preview.png, std::fs::read(&saved).unwrap());
+        // A tile not committed is drawn as the checkerboard, not its sums.
+        let mut some = all.clone();
+        some[0] = false;
+        assert_ne!(film.preview_png(&some, 1024).unwrap().png, preview.png);
+    }
+
+    #[test]
+    fn a_preview_longer_than_its_bound_is_shrunk_by_a_whole_factor() {
+        let dir = tempfile::tempdir().unwrap();
+        let g = grid(10, 7);
+        let film = film_with(dir.path(), g, |_| [1 << 23, 1 << 23, 1 << 23]);
+        let preview = film
+            .preview_png(&vec![true; g.count() as usize], 4)
+            .unwrap();
+        // ceil(10 / 4) = 3; 10 / 3 and 7 / 3 rounded up.
+        assert_eq!((preview.width, preview.height, preview.factor), (4, 3, 3));
+        let mut decoder = png::Decoder::new(std::io::Cursor::new(preview.png))
+            .read_info()
+            .unwrap();
+        let mut pixels = vec![0; decoder.output_buffer_size().unwrap()];
+        decoder.next_frame(&mut pixels).unwrap();
+        // Every film pixel is 0.5: so is every mean of them.
+        assert!(pixels.iter().all(|&b| b == srgb_byte(0.5)));
     }
 
     #[test]

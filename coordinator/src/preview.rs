@@ -1,0 +1,178 @@
+//! Previews of a job's frame: a PNG of the film with the tiles committed so far, made on
+//! demand (`FetchPreview`, the dashboard), at most once per state of the film, on a blocking
+//! thread, never under the state lock.
+//!
+//! [`Previews`] is the one source: whatever adds to the film (today a tile committed; later a
+//! progressive subframe) calls [`Previews::advance`], which raises the sequence number, and
+//! the next fetch encodes the film as it is then. The sequence number only grows, across a
+//! frame's restarts too (a restarted frame's previews start where the last one stopped).
+
+use std::sync::{Arc, Mutex, MutexGuard, Weak};
+
+use rayfarm_core::render::Film;
+use rayfarm_core::render::film::Preview;
+use tonic::Status;
+
+/// Longest side of a preview in pixels: larger frames are shrunk by a whole factor, so a
+/// preview of a 16384-pixel frame is 1024 pixels across (a few MiB at most).
+pub const MAX_SIDE: u32 = 1024;
+
+/// An encoded preview and the film state it shows.
+#[derive(Debug)]
+pub struct Encoded {
+    pub sequence: u64,
+    pub preview: Preview,
+}
+
+/// The previews of one job (see the module documentation).
+pub struct Previews {
+    inner: Mutex<Inner>,
+    /// One encode at a time per job: fetches that arrive meanwhile wait and take its result.
+    encoding: tokio::sync::Mutex<()>,
+}
+
+/// See [`Previews::source`].
+enum Source {
+    Ready(Arc<Encoded>),
+    Encode(Arc<Film>, Vec<bool>, u64),
+    Gone,
+}
+
+struct Inner {
+    /// The running frame's film; gone once the frame is dropped (its file goes with it).
+    film: Weak<Film>,
+    /// Tiles written to the film, by index.
+    committed: Vec<bool>,
+    sequence: u64,
+    latest: Option<Arc<Encoded>>,
+}
+
+impl Previews {
+    /// Previews of a frame's `film`, numbered on from `floor` (the sequence number the job's
+    /// previous frame reached, 0 for its first).
+    pub fn new(film: &Arc<Film>, floor: u64) -> Self {
+        Previews {
+            inner: Mutex::new(Inner {
+                film: Arc::downgrade(film),
+                committed: vec![false; film.grid().count() as usize],
+                sequence: floor,
+                latest: None,
+            }),
+            encoding: tokio::sync::Mutex::new(()),
+        }
+    }
+
+    fn lock(&self) -> MutexGuard<'_, Inner> {
+        self.inner.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// `tiles` are written to the film: the next preview shows them.
+    pub fn advance(&self, tiles: impl IntoIterator<Item = u32>) {
+        let mut inner = self.lock();
+        for tile in tiles {
+            if let Some(done) = inner.committed.get_mut(tile as usize)
+                && !std::mem::replace(done, true)
+            {
+                inner.sequence += 1;
+            }
+        }
+    }
+
+    /// The sequence number of the newest preview [`latest`](Self::latest) returns.
+    pub fn sequence(&self) -> u64 {
+        self.lock().sequence
+    }
+
+    /// What the next preview is made of, or the newest one if it is already made (or the
+    /// film is gone, so none newer can be).
+    fn source(&self) -> Source {
+        let inner = self.lock();
+        if let Some(latest) = &inner.latest
+            && latest.sequence == inner.sequence
+        {
+            return Source::Ready(latest.clone());
+        }
+        match (inner.film.upgrade(), &inner.latest) {
+            (Some(film), _) => Source::Encode(film, inner.committed.clone(), inner.sequence),
+            (None, Some(latest)) => Source::Ready(latest.clone()),
+            (None, None) => Source::Gone,
+        }
+    }
+
+    fn keep(&self, encoded: Encoded) -> Arc<Encoded> {
+        let mut inner = self.lock();
+        let encoded = Arc::new(encoded);
+        if inner
+            .latest
+            .as_ref()
+            .is_none_or(|l| l.sequence < encoded.sequence)
+        {
+            inner.latest = Some(encoded.clone());
+        }
+        encoded
+    }
+
+    /// The newest preview, encoded now on a blocking thread if the film changed since the
+    /// last one.
+    pub async fn latest(&self) -> Result<Arc<Encoded>, Status> {
+        let _one = self.encoding.lock().await;
+        let (film, committed, sequence) = match self.source() {
+            Source::Ready(ready) => return Ok(ready),
+            Source::Encode(film, committed, sequence) => (film, committed, sequence),
+            Source::Gone => {
+                return Err(Status::failed_precondition(
+                    "the frame ended before a preview of it was made",
+                ));
+            }
+        };
+        let preview = tokio::task::spawn_blocking(move || film.preview_png(&committed, MAX_SIDE))
+            .await
+            .map_err(|e| Status::internal(format!("encoding the preview failed: {e}")))?
+            .map_err(|e| Status::internal(format!("encoding the preview failed: {e}")))?;
+        Ok(self.keep(Encoded { sequence, preview }))
+    }
+
+    /// The frame is complete and its film about to go: encodes the final preview now, on
+    /// the calling (blocking) thread, so it outlives the film.
+    pub fn seal(&self) {
+        let Source::Encode(film, committed, sequence) = self.source() else {
+            return;
+        };
+        match film.preview_png(&committed, MAX_SIDE) {
+            Ok(preview) => {
+                self.keep(Encoded { sequence, preview });
+            }
+            Err(e) => tracing::warn!(error = %e, "the final preview could not be encoded"),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rayfarm_core::frame::TileGrid;
+
+    #[tokio::test]
+    async fn one_preview_per_film_state_and_the_numbers_only_grow() {
+        let dir = tempfile::tempdir().unwrap();
+        let grid = TileGrid::new(20, 10, 8).unwrap();
+        let film = Arc::new(Film::temporary_in(dir.path(), grid, 1).unwrap());
+        let previews = Previews::new(&film, 5);
+        let first = previews.latest().await.unwrap();
+        assert_eq!(first.sequence, 5);
+        // Nothing new: the same encoding, not a second one.
+        assert!(Arc::ptr_eq(&first, &previews.latest().await.unwrap()));
+        film.write_tile(0, &[[1 << 24; 3]; 64]).unwrap();
+        previews.advance([0, 0]);
+        let second = previews.latest().await.unwrap();
+        assert_eq!(second.sequence, 6);
+        assert_ne!(second.preview.png, first.preview.png);
+        // The film goes: the newest preview stays.
+        previews.advance([1]);
+        previews.seal();
+        drop(film);
+        let last = previews.latest().await.unwrap();
+        assert_eq!(last.sequence, 7);
+        assert!(Arc::ptr_eq(&last, &previews.latest().await.unwrap()));
+    }
+}
