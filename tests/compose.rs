@@ -114,6 +114,7 @@ fn the_compose_cluster_renders_the_local_image_even_when_a_worker_is_killed() {
         env: vec![
             ("RAYFARM_IMAGE", tag.to_string()),
             ("RAYFARM_PORT", "0".to_string()),
+            ("RAYFARM_HTTP_PORT", "0".to_string()),
             ("RAYFARM_TRIANGLES", "60000".to_string()),
             ("RAYFARM_DOMAINS", "8".to_string()),
             // Small caches: workers must send each other rays across the compose network.
@@ -175,6 +176,39 @@ fn the_compose_cluster_renders_the_local_image_even_when_a_worker_is_killed() {
     };
     let (ok, err) = cli(&["status", "--wait-workers", "4", "--timeout", "60"]);
     assert!(ok, "4 workers never registered: {err}");
+    // The dashboard over HTTPS on its published port: no client certificate asked for, even
+    // under mutual TLS; its API wants the user token.
+    let http = project.ok(&["port", "coordinator", "8080"]);
+    let http_port = http.trim().rsplit(':').next().expect("a port").to_string();
+    let curl = |path: &str, token: bool| {
+        let mut c = Command::new("curl");
+        c.args([
+            "-s",
+            "-o",
+            "/dev/null",
+            "-w",
+            "%{http_code}",
+            "--cacert",
+            s(&ca),
+        ])
+        .args(["--resolve", &format!("rayfarm:{http_port}:127.0.0.1")])
+        .arg(format!("https://rayfarm:{http_port}{path}"));
+        if token {
+            let text = std::fs::read_to_string(&tokens).expect("tokens");
+            let token = text
+                .lines()
+                .find(|l| !l.starts_with('#') && !l.trim().is_empty())
+                .and_then(|l| l.split_whitespace().next())
+                .expect("a token")
+                .to_string();
+            c.args(["-H", &format!("Authorization: Bearer {token}")]);
+        }
+        let out = c.output().expect("run curl");
+        String::from_utf8_lossy(&out.stdout).into_owned()
+    };
+    assert_eq!(curl("/", false), "200", "the dashboard page");
+    assert_eq!(curl("/api/jobs", false), "401", "the API without a token");
+    assert_eq!(curl("/api/jobs", true), "200", "the API with the token");
     // Each worker registered under its own certificate's name, at the host it names.
     let status = Command::new(bin("rayfarm"))
         .args(["status", "--json"])

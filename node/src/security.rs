@@ -145,15 +145,22 @@ impl ServeTlsArgs {
     /// The handshake itself is done by [`crate::listen`], under its deadline.
     pub fn server_config(&self) -> Result<Option<TlsAcceptor>, SecurityError> {
         // gRPC is HTTP/2 only.
-        self.server_config_for(b"h2")
+        self.server_config_for(b"h2", self.tls_client_ca.as_deref())
     }
 
-    /// [`ServeTlsArgs::server_config`] for the HTTP/1.1 listener ([`crate::http`]).
+    /// [`ServeTlsArgs::server_config`] for the HTTP/1.1 listener ([`crate::http`]): the same
+    /// certificate, but no client certificate is asked for even under mutual TLS. Browsers
+    /// and Prometheus hold none; `/metrics` is read-only and the dashboard's `/api/` needs a
+    /// user token (`RequireToken::authenticate`).
     pub fn http_server_config(&self) -> Result<Option<TlsAcceptor>, SecurityError> {
-        self.server_config_for(b"http/1.1")
+        self.server_config_for(b"http/1.1", None)
     }
 
-    fn server_config_for(&self, alpn: &[u8]) -> Result<Option<TlsAcceptor>, SecurityError> {
+    fn server_config_for(
+        &self,
+        alpn: &[u8],
+        client_ca: Option<&Path>,
+    ) -> Result<Option<TlsAcceptor>, SecurityError> {
         let (Some(cert), Some(key)) = (&self.tls_cert, &self.tls_key) else {
             return Ok(None);
         };
@@ -166,7 +173,7 @@ impl ServeTlsArgs {
         let builder = rustls::ServerConfig::builder_with_provider(provider.clone())
             .with_safe_default_protocol_versions()
             .map_err(|e| SecurityError::Tls(e.to_string()))?;
-        let builder = match &self.tls_client_ca {
+        let builder = match client_ca {
             None => builder.with_no_client_auth(),
             Some(ca) => {
                 let mut roots = rustls::RootCertStore::empty();
