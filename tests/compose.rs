@@ -1,8 +1,9 @@
 //! The docker-compose cluster of `deploy/`, built from scratch (no registry) and driven from
 //! the host's `rayfarm` CLI: its image equals `render --local`'s; then a worker container is
 //! killed mid-frame and the test reports what the cluster did. Security is on as the compose
-//! file ships it: the host CLI takes the CA and the user token out of the cluster's `secrets`
-//! volume, and without the token it is refused. Skipped, saying so, where no Docker engine or
+//! file ships it (mutual TLS, a certificate of its own for each worker, bound to its id and
+//! peer host): the host CLI takes the CA, a client certificate and the user token out of the
+//! cluster's `secrets` volume, and without the token it is refused. Skipped, saying so, where no Docker engine or
 //! compose tool is present.
 
 use std::path::{Path, PathBuf};
@@ -124,12 +125,17 @@ fn the_compose_cluster_renders_the_local_image_even_when_a_worker_is_killed() {
     project.ok(&["up", "-d"]);
     let port = project.ok(&["port", "coordinator", "50051"]);
     let url = port.trim().to_string();
-    // The CA and the token, copied out of the coordinator's view of the `secrets` volume as
-    // a user would (deploy/README.md). The published address is named by no certificate: the
-    // CLI checks for the cluster's name instead.
+    // The CA, the client certificate and the token, copied out of the coordinator's view of
+    // the `secrets` volume as a user would (deploy/README.md). The published address is named
+    // by no certificate: the CLI checks for the cluster's name instead.
     let dir = tempfile::tempdir().expect("temp dir");
     let coordinator = project.ok(&["ps", "-q", "coordinator"]).trim().to_string();
-    for file in ["ca.pem", "user-tokens"] {
+    for file in [
+        "ca.pem",
+        "node-client.pem",
+        "node-client-key.pem",
+        "user-tokens",
+    ] {
         let copied = Command::new("docker")
             .args(["cp", &format!("{coordinator}:/secrets/{file}")])
             .arg(dir.path().join(file))
@@ -143,10 +149,17 @@ fn the_compose_cluster_renders_the_local_image_even_when_a_worker_is_killed() {
     }
     let ca = dir.path().join("ca.pem");
     let tokens = dir.path().join("user-tokens");
+    let (client_cert, client_key) = (
+        dir.path().join("node-client.pem"),
+        dir.path().join("node-client-key.pem"),
+    );
+    // Mutual TLS: the CLI presents the client certificate too.
     let client_env = [
         ("RAYFARM_COORDINATOR", url.as_str()),
         ("RAYFARM_TLS_CA", s(&ca)),
         ("RAYFARM_TLS_DOMAIN", "rayfarm"),
+        ("RAYFARM_TLS_CERT", s(&client_cert)),
+        ("RAYFARM_TLS_KEY", s(&client_key)),
         ("RAYFARM_TOKEN_FILE", s(&tokens)),
     ];
     let cli = |args: &[&str]| {
@@ -162,9 +175,30 @@ fn the_compose_cluster_renders_the_local_image_even_when_a_worker_is_killed() {
     };
     let (ok, err) = cli(&["status", "--wait-workers", "4", "--timeout", "60"]);
     assert!(ok, "4 workers never registered: {err}");
+    // Each worker registered under its own certificate's name, at the host it names.
+    let status = Command::new(bin("rayfarm"))
+        .args(["status", "--json"])
+        .envs(client_env)
+        .output()
+        .expect("status");
+    let status: serde_json::Value = serde_json::from_slice(&status.stdout).expect("status json");
+    let mut registered: Vec<(String, String)> = status["workers"]
+        .as_array()
+        .expect("workers")
+        .iter()
+        .map(|w| {
+            let field = |k: &str| w[k].as_str().unwrap_or_default().to_string();
+            (field("worker_id"), field("peer_address"))
+        })
+        .collect();
+    registered.sort();
+    let expected: Vec<(String, String)> = (1..=4)
+        .map(|n| (format!("worker-{n}"), format!("worker-{n}:7000")))
+        .collect();
+    assert_eq!(registered, expected);
     let anonymous = Command::new(bin("rayfarm"))
         .arg("jobs")
-        .envs(client_env[..3].iter().copied())
+        .envs(client_env[..5].iter().copied())
         .output()
         .expect("run rayfarm");
     let err = String::from_utf8_lossy(&anonymous.stderr);
@@ -255,13 +289,8 @@ fn the_compose_cluster_renders_the_local_image_even_when_a_worker_is_killed() {
         assert!(Instant::now() < deadline, "the second frame never started");
         std::thread::sleep(Duration::from_millis(50));
     }
-    let victim = project.ok(&["ps", "-q", "worker"]);
-    let victim = victim
-        .lines()
-        .nth(1)
-        .expect("a second worker container")
-        .trim()
-        .to_string();
+    let victim = project.ok(&["ps", "-q", "worker-2"]).trim().to_string();
+    assert!(!victim.is_empty(), "no worker-2 container");
     let killed = Command::new("docker")
         .args(["kill", &victim])
         .output()

@@ -104,6 +104,13 @@ fn kubernetes_manifests_hold_the_promised_objects() {
         env_value(workers, "RAYFARM_COORDINATOR").map(|u| u.starts_with("https://")),
         Some(true)
     );
+    // Mutual TLS: each pod presents the certificate named by the pod (its worker id), and
+    // peers check it by the per-pod name they dial, not one shared name.
+    assert_eq!(
+        env_value(workers, "RAYFARM_TLS_CERT"),
+        Some("/etc/rayfarm/nodes/node-$(POD_NAME).pem")
+    );
+    assert_eq!(env_value(workers, "RAYFARM_TLS_DOMAIN"), None);
     let secrets = |doc: &Yaml| -> Vec<String> {
         doc["spec"]["template"]["spec"]["volumes"]
             .as_vec()
@@ -120,13 +127,18 @@ fn kubernetes_manifests_hold_the_promised_objects() {
             "rayfarm-user-tokens"
         ]
     );
-    assert_eq!(secrets(workers), ["rayfarm-tls", "rayfarm-cluster-secret"]);
+    // Workers hold their own certificates, not the coordinator's key.
+    assert_eq!(
+        secrets(workers),
+        ["rayfarm-nodes", "rayfarm-cluster-secret"]
+    );
     for (doc, vars) in [
         (
             coordinator,
             &[
                 "RAYFARM_TLS_CERT",
                 "RAYFARM_TLS_KEY",
+                "RAYFARM_TLS_CLIENT_CA",
                 "RAYFARM_CLUSTER_SECRET_FILE",
                 "RAYFARM_USER_TOKENS_FILE",
             ][..],
@@ -137,6 +149,7 @@ fn kubernetes_manifests_hold_the_promised_objects() {
                 "RAYFARM_TLS_CERT",
                 "RAYFARM_TLS_KEY",
                 "RAYFARM_TLS_CA",
+                "RAYFARM_TLS_CLIENT_CA",
                 "RAYFARM_CLUSTER_SECRET_FILE",
             ][..],
         ),
@@ -165,11 +178,22 @@ fn env_value<'a>(doc: &'a Yaml, name: &str) -> Option<&'a str> {
         .and_then(|e| e["value"].as_str())
 }
 
+/// `map[key]`, or the value a YAML merge key (`<<: *anchor`) brings in, as compose reads it.
+fn merged<'a>(map: &'a Yaml, key: &str) -> &'a Yaml {
+    match &map[key] {
+        Yaml::BadValue => match &map["<<"] {
+            Yaml::BadValue => &map[key],
+            base => merged(base, key),
+        },
+        found => found,
+    }
+}
+
 #[test]
-fn the_compose_file_has_prepare_coordinator_and_scalable_workers() {
+fn the_compose_file_has_prepare_coordinator_and_workers_with_certificates_of_their_own() {
     let docs = documents(&deploy().join("docker-compose.yml"));
     let services = &docs[0]["services"];
-    for name in ["certs", "prepare", "coordinator", "worker"] {
+    for name in ["certs", "client-cert", "prepare", "coordinator"] {
         assert!(!services[name].is_badvalue(), "service {name}");
     }
     assert!(
@@ -178,21 +202,20 @@ fn the_compose_file_has_prepare_coordinator_and_scalable_workers() {
             .is_some_and(|p| p.ends_with(":50051"))
     );
     assert!(!services["coordinator"]["healthcheck"].is_badvalue());
-    assert!(!services["worker"]["healthcheck"].is_badvalue());
-    assert!(!services["worker"]["deploy"]["replicas"].is_badvalue());
     assert_eq!(
         services["coordinator"]["depends_on"]["prepare"]["condition"].as_str(),
         Some("service_completed_successfully")
     );
-    // Security is on: credentials from the one-shot `certs` service's volume.
+    // Security is on: credentials from the one-shot `certs` services' volumes.
     assert_eq!(
-        services["coordinator"]["depends_on"]["certs"]["condition"].as_str(),
+        services["coordinator"]["depends_on"]["client-cert"]["condition"].as_str(),
         Some("service_completed_successfully")
     );
     let coordinator_env = &services["coordinator"]["environment"];
     for var in [
         "RAYFARM_TLS_CERT",
         "RAYFARM_TLS_KEY",
+        "RAYFARM_TLS_CLIENT_CA",
         "RAYFARM_CLUSTER_SECRET_FILE",
         "RAYFARM_USER_TOKENS_FILE",
     ] {
@@ -203,11 +226,60 @@ fn the_compose_file_has_prepare_coordinator_and_scalable_workers() {
             "coordinator {var}"
         );
     }
-    assert!(
-        services["worker"]["environment"]["RAYFARM_COORDINATOR"]
-            .as_str()
-            .is_some_and(|u| u.starts_with("https://"))
-    );
+    // Every worker the certs service issues a certificate for is a service with its own
+    // volume of credentials, its certificate's name as peer host, mutual TLS and a probe.
+    let command: Vec<&str> = services["certs"]["command"]
+        .as_vec()
+        .expect("certs command")
+        .iter()
+        .filter_map(Yaml::as_str)
+        .collect();
+    let after = |flag: &str| {
+        let at = command.iter().position(|a| *a == flag).expect(flag);
+        command[at + 1]
+    };
+    assert_eq!(after("--node-dir"), "/nodes");
+    let workers: Vec<&str> = after("--node").split(',').collect();
+    assert!(workers.len() >= 2, "{workers:?}");
+    for id in workers {
+        let worker = &services[id];
+        assert!(!worker.is_badvalue(), "service {id}");
+        let volumes: Vec<&str> = worker["volumes"]
+            .as_vec()
+            .expect("volumes")
+            .iter()
+            .filter_map(Yaml::as_str)
+            .collect();
+        assert!(
+            volumes.contains(&format!("node-{id}:/secrets:ro").as_str()),
+            "{id}: {volumes:?}"
+        );
+        let certs_volumes = services["certs"]["volumes"].as_vec().expect("volumes");
+        assert!(
+            certs_volumes
+                .iter()
+                .any(|v| v.as_str() == Some(&format!("node-{id}:/nodes/{id}"))),
+            "certs does not write {id}'s volume"
+        );
+        let env = &worker["environment"];
+        assert_eq!(
+            env["RAYFARM_ADVERTISE"].as_str(),
+            Some(format!("{id}:7000").as_str())
+        );
+        assert!(
+            merged(env, "RAYFARM_COORDINATOR")
+                .as_str()
+                .is_some_and(|u| u.starts_with("https://"))
+        );
+        assert_eq!(
+            merged(env, "RAYFARM_TLS_CLIENT_CA").as_str(),
+            Some("/secrets/ca.pem")
+        );
+        // Peers check each other by their own names, not one shared name.
+        assert!(merged(env, "RAYFARM_TLS_DOMAIN").is_badvalue());
+        assert!(!worker["healthcheck"].is_badvalue(), "{id}");
+        assert!(!merged(worker, "entrypoint").is_badvalue(), "{id}");
+    }
 }
 
 #[test]

@@ -296,3 +296,139 @@ fn per_node_certificates_bind_ids_and_a_mutual_tls_cluster_renders_the_local_ima
     let again = submit_wait(&cluster, &FRAME, "per-node-again");
     assert_eq!(hash_of(&again), expected);
 }
+
+/// The files `rayfarm certs --node-dir` gives one node, and nothing else.
+fn listing(dir: &Path) -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(dir)
+        .expect("node directory")
+        .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    names
+}
+
+#[test]
+fn node_directories_hold_one_nodes_credentials_and_probes_check_the_nodes_own_name() {
+    let root = tempfile::tempdir().expect("temp dir");
+    let (out, nodes) = (root.path().join("certs"), root.path().join("nodes"));
+    rayfarm_ok(&[
+        "certs",
+        "--out",
+        s(&out),
+        "--hosts",
+        "coordinator",
+        "--with-secrets",
+        "--node",
+        "w-x,w-y",
+        "--node-dir",
+        s(&nodes),
+    ]);
+    let files = ["ca.pem", "cluster-secret", "node-key.pem", "node.pem"];
+    for id in ["w-x", "w-y"] {
+        let dir = nodes.join(id);
+        assert_eq!(listing(&dir), files, "{id}'s directory");
+        for shared in ["ca.pem", "cluster-secret"] {
+            assert_eq!(
+                std::fs::read(dir.join(shared)).expect("copy"),
+                std::fs::read(out.join(shared)).expect("original"),
+                "{id}'s {shared}"
+            );
+        }
+        use std::os::unix::fs::PermissionsExt;
+        for secret in ["node-key.pem", "cluster-secret"] {
+            let mode = std::fs::metadata(dir.join(secret))
+                .expect("mode")
+                .permissions()
+                .mode();
+            assert_eq!(mode & 0o777, 0o600, "{id}'s {secret}");
+        }
+    }
+    assert_ne!(
+        std::fs::read(nodes.join("w-x/node-key.pem")).expect("key"),
+        std::fs::read(nodes.join("w-y/node-key.pem")).expect("key"),
+    );
+    assert!(
+        !out.join("node-w-x-key.pem").exists(),
+        "a node key left in --out"
+    );
+    // Run again, the keys stay as they are; a directory that is a symlink is refused.
+    let key = std::fs::read(nodes.join("w-x/node-key.pem")).expect("key");
+    let again = [
+        "certs",
+        "--out",
+        s(&out),
+        "--hosts",
+        "coordinator",
+        "--with-secrets",
+        "--node",
+        "w-x,w-y",
+        "--node-dir",
+        s(&nodes),
+    ];
+    rayfarm_ok(&[&again[..], &["--if-missing"]].concat());
+    assert_eq!(
+        std::fs::read(nodes.join("w-x/node-key.pem")).expect("key"),
+        key
+    );
+    let elsewhere = root.path().join("elsewhere");
+    std::fs::create_dir(&elsewhere).expect("dir");
+    std::os::unix::fs::symlink(&elsewhere, nodes.join("w-z")).expect("symlink");
+    let err = rayfarm_err(&[
+        "certs",
+        "--out",
+        s(&out),
+        "--node",
+        "w-z",
+        "--node-dir",
+        s(&nodes),
+    ]);
+    assert!(err.contains("is a symbolic link"), "{err}");
+    assert_eq!(listing(&elsewhere), Vec::<String>::new());
+
+    // A server whose certificate names only its node (w-x), probed at 127.0.0.1 as a
+    // container probes itself: `--own-name` checks for the name of the probe's own
+    // certificate, which is the server's.
+    let (x, y) = (nodes.join("w-x"), nodes.join("w-y"));
+    let opts = ClusterOpts {
+        coordinator_args: [
+            "--tls-cert",
+            s(&x.join("node.pem")),
+            "--tls-key",
+            s(&x.join("node-key.pem")),
+            "--tls-client-ca",
+            s(&x.join("ca.pem")),
+        ]
+        .iter()
+        .map(|a| a.to_string())
+        .collect(),
+        client_env: vec![
+            ("RAYFARM_TLS_CA".into(), s(&x.join("ca.pem")).into()),
+            ("RAYFARM_TLS_DOMAIN".into(), "w-x".into()),
+            ("RAYFARM_TLS_CERT".into(), s(&x.join("node.pem")).into()),
+            ("RAYFARM_TLS_KEY".into(), s(&x.join("node-key.pem")).into()),
+        ],
+        https: true,
+        ..ClusterOpts::default()
+    };
+    let cluster = Cluster::start_with(root.path(), None, &opts, &[]);
+    let addr = cluster.coordinator_url().to_string();
+    let probe = |node: &Path, own_name: bool| {
+        let (ca, cert, key) = (
+            x.join("ca.pem"),
+            node.join("node.pem"),
+            node.join("node-key.pem"),
+        );
+        let mut args = vec!["health", addr.as_str(), "--tls-ca", s(&ca)];
+        args.extend(["--tls-cert", s(&cert), "--tls-key", s(&key)]);
+        if own_name {
+            args.push("--own-name");
+        }
+        cluster.rayfarm_as(&[], &args).status.success()
+    };
+    assert!(probe(&x, true), "w-x probing itself with --own-name");
+    assert!(
+        !probe(&x, false),
+        "127.0.0.1 is not a name of w-x's certificate"
+    );
+    assert!(!probe(&y, true), "w-y's name is not the server's");
+}

@@ -126,8 +126,12 @@ fn plan(command: &str) -> Option<Plan> {
         ("deploy/build-image.sh", || Plan::Skip(COMPOSE)),
         ("docker ", || Plan::Skip(COMPOSE)),
         ("c=$(docker", || Plan::Skip(COMPOSE)),
+        ("for f in ca.pem node-client.pem", || Plan::Skip(COMPOSE)),
         ("export RAYFARM_TLS_CA", || {
             Plan::Skip("the compose cluster's CA and token (see the docker lines)")
+        }),
+        ("export RAYFARM_TLS_CERT", || {
+            Plan::Skip("the compose cluster's client certificate (see the docker lines)")
         }),
         ("kubectl ", || Plan::Skip("needs a Kubernetes cluster")),
     ];

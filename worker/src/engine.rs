@@ -62,7 +62,7 @@ pub enum Event {
     /// now).
     PassDone {
         job_id: String,
-        result: Result<PassOutput, String>,
+        result: Result<PassOutput, PassFailed>,
     },
     /// Anything else, for the machine as it is: the control stream ended, a peer's bundle, a
     /// peer that stopped acknowledging.
@@ -194,7 +194,7 @@ impl Engine {
                 self.count_cache();
                 machine::Event::PassFinished {
                     job_id,
-                    result: result.map_err(|e| self.pass_failed(e)),
+                    result,
                     resident: self.with_cache(|c| c.resident()).unwrap_or_default(),
                 }
             }
@@ -264,12 +264,12 @@ impl Engine {
 
     fn start_pass(&mut self, job_id: String, work: machine::PassWork) {
         let events = self.events.clone();
-        let (Some(frame), Some((_, cache))) = (
+        let (Some(frame), Some((scene, cache))) = (
             self.frame.as_ref().filter(|f| f.job_id == job_id),
             &self.cache,
         ) else {
             // Never: the machine runs passes only of the frame opened last.
-            let result = Err("no scene open for the pass".to_string());
+            let result = Err(PassFailed::Load("no scene open for the pass".to_string()));
             let _ = events.send(Event::PassDone { job_id, result });
             return;
         };
@@ -279,27 +279,14 @@ impl Engine {
             cache: cache.clone(),
         };
         let pool = self.pool.clone();
+        let scene = scene.clone();
         tokio::task::spawn_blocking(move || {
-            let result = pool.install(|| pass::run(input)).map_err(|e| e.to_string());
+            let result = pool
+                .install(|| pass::run(input))
+                .map_err(|e| pass_failed(&scene, e.to_string()));
             // The engine may be gone at shutdown; nothing is left to do then.
             let _ = events.send(Event::PassDone { job_id, result });
         });
-    }
-
-    /// Why a pass failed: this worker could not load a domain, unless the scene's manifest on
-    /// disk is no longer the one the frame opened (the scene was re-prepared in place).
-    fn pass_failed(&self, e: String) -> PassFailed {
-        let replaced = self.cache.as_ref().and_then(|((dir, manifest), _)| {
-            (Manifest::load(dir).ok().as_ref() != Some(manifest)).then_some(dir)
-        });
-        match replaced {
-            Some(dir) => PassFailed::SceneReplaced(format!(
-                "scene {} was replaced on disk while its frame ran (re-prepared in place?): \
-                 {e}; submit the job again to render the new version",
-                dir.display()
-            )),
-            None => PassFailed::Load(e),
-        }
     }
 
     /// Adds what the cache did since the last call to the metrics (after each pass and at
@@ -421,6 +408,31 @@ impl Engine {
             resident,
             queues,
         })
+    }
+}
+
+/// Why a pass failed: this worker could not load a domain, unless the scene's manifest on
+/// disk is no longer the one the frame opened (the scene was re-prepared in place). Runs on
+/// the pass's blocking thread, never the runtime; the manifest is re-read on a thread of its
+/// own and waited for at most [`SCENE_READ_TIMEOUT`], so storage that hangs (a manifest
+/// replaced by a FIFO, a dead mount) still ends the pass: the frame is declined, not stalled.
+fn pass_failed((dir, manifest): &SceneKey, e: String) -> PassFailed {
+    let (tx, rx) = std::sync::mpsc::channel();
+    let reread = dir.clone();
+    std::thread::spawn(move || {
+        let _ = tx.send(Manifest::load(&reread).ok());
+    });
+    match rx.recv_timeout(SCENE_READ_TIMEOUT) {
+        Ok(now) if now.as_ref() == Some(manifest) => PassFailed::Load(e),
+        Ok(_) => PassFailed::SceneReplaced(format!(
+            "scene {} was replaced on disk while its frame ran (re-prepared in place?): \
+             {e}; submit the job again to render the new version",
+            dir.display()
+        )),
+        Err(_) => PassFailed::Load(format!(
+            "{e}; the scene's manifest {} could not be re-read within {SCENE_READ_TIMEOUT:?}",
+            dir.join(rayfarm_core::scene::MANIFEST_FILE).display()
+        )),
     }
 }
 

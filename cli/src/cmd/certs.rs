@@ -59,7 +59,8 @@ pub struct CertsArgs {
     #[arg(long, value_delimiter = ',')]
     pub node: Vec<String>,
     /// More names and IP addresses every --node certificate is valid for (the hosts its
-    /// node is reached at: its peer address's host must be one of them).
+    /// node is reached at: its peer address's host must be one of them). `{id}` stands for
+    /// the node's id, e.g. `{id}.rayfarm-workers.default.svc` for a StatefulSet's pods.
     #[arg(long, value_delimiter = ',', requires = "node")]
     pub node_hosts: Vec<String>,
     /// Days the certificates are valid.
@@ -72,6 +73,72 @@ pub struct CertsArgs {
     /// run at every start). Without it, existing files are an error.
     #[arg(long)]
     pub if_missing: bool,
+    /// Write each --node's files into a directory of its own, `DIR/ID/`, instead of --out:
+    /// `node.pem`, `node-key.pem`, a copy of `ca.pem` and (with --with-secrets) of
+    /// `cluster-secret`: everything that node needs and no other node's key, so it can be
+    /// given to that node alone (a volume or Secret of its own).
+    #[arg(long, requires = "node")]
+    pub node_dir: Option<PathBuf>,
+    /// Owner (`UID:GID`) of every file and directory written, for a one-shot container that
+    /// runs as root to write into volumes the nodes read as an unprivileged user.
+    #[arg(long, value_parser = parse_owner)]
+    pub owner: Option<(u32, u32)>,
+}
+
+fn parse_owner(s: &str) -> Result<(u32, u32), String> {
+    let (uid, gid) = s
+        .split_once(':')
+        .ok_or_else(|| format!("{s:?}: expected UID:GID, e.g. 10001:10001"))?;
+    let id = |v: &str| {
+        v.parse::<u32>()
+            .map_err(|_| format!("{s:?}: {v:?} is not a number"))
+    };
+    Ok((id(uid)?, id(gid)?))
+}
+
+/// Where one node's certificate and key go: `--out/node-ID.pem` and `--out/node-ID-key.pem`,
+/// or with `--node-dir`, `DIR/ID/node.pem` and `DIR/ID/node-key.pem` beside copies of the
+/// CA certificate and the cluster secret.
+struct NodeFiles {
+    dir: PathBuf,
+    cert: PathBuf,
+    key: PathBuf,
+    /// Copies of the CA certificate and (with --with-secrets) the cluster secret, in a node
+    /// directory only.
+    copies: Vec<(PathBuf, &'static str)>,
+}
+
+impl NodeFiles {
+    fn of(a: &CertsArgs, id: &str) -> NodeFiles {
+        match &a.node_dir {
+            None => NodeFiles {
+                dir: a.out.clone(),
+                cert: a.out.join(node_cert_file(id)),
+                key: a.out.join(node_key_file(id)),
+                copies: Vec::new(),
+            },
+            Some(root) => {
+                let dir = root.join(id);
+                let mut copies = vec![(dir.join(CA_FILE), CA_FILE)];
+                if a.with_secrets {
+                    copies.push((dir.join(SECRET_FILE), SECRET_FILE));
+                }
+                NodeFiles {
+                    cert: dir.join(CERT_FILE),
+                    key: dir.join(KEY_FILE),
+                    copies,
+                    dir,
+                }
+            }
+        }
+    }
+
+    /// Every path this node's files are written to.
+    fn paths(&self) -> impl Iterator<Item = &Path> {
+        [self.cert.as_path(), self.key.as_path()]
+            .into_iter()
+            .chain(self.copies.iter().map(|(p, _)| p.as_path()))
+    }
 }
 
 /// Names as given: trimmed, empty ones dropped, each a DNS name or an IP address.
@@ -100,7 +167,14 @@ fn valid_node_id(id: &str) -> bool {
 
 pub fn run(a: CertsArgs) -> anyhow::Result<()> {
     let shared_hosts = hosts("--hosts", &a.hosts)?;
-    let node_hosts = hosts("--node-hosts", &a.node_hosts)?;
+    // Checked with a stand-in id now, and for each node's own id below.
+    hosts(
+        "--node-hosts",
+        &a.node_hosts
+            .iter()
+            .map(|h| h.replace("{id}", "node"))
+            .collect::<Vec<_>>(),
+    )?;
     let nodes: Vec<String> = a
         .node
         .iter()
@@ -116,43 +190,46 @@ pub fn run(a: CertsArgs) -> anyhow::Result<()> {
     if shared_hosts.is_empty() && nodes.is_empty() {
         bail!("--hosts names no host");
     }
-    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let owner = a.owner;
+    make_dir(&a.out, owner)?;
     let path = |name: &str| a.out.join(name);
+    let node_files: Vec<(&String, NodeFiles)> =
+        nodes.iter().map(|id| (id, NodeFiles::of(&a, id))).collect();
     // With --hosts this run makes (or, --if-missing, keeps) the CA set; without, it only
     // reads the CA to issue node certificates.
     let set = [CA_FILE, CA_KEY_FILE, CERT_FILE, KEY_FILE];
-    let mut wanted: Vec<String> = Vec::new();
+    let mut wanted: Vec<PathBuf> = Vec::new();
     if !shared_hosts.is_empty() {
-        wanted.extend(set.iter().map(|f| f.to_string()));
+        wanted.extend(set.iter().map(|f| path(f)));
     }
     if a.with_secrets {
-        wanted.extend([SECRET_FILE.to_string(), TOKENS_FILE.to_string()]);
+        wanted.extend([path(SECRET_FILE), path(TOKENS_FILE)]);
     }
-    for id in &nodes {
-        wanted.extend([node_cert_file(id), node_key_file(id)]);
+    for (_, files) in &node_files {
+        wanted.push(files.dir.clone());
+        wanted.extend(files.paths().map(Path::to_path_buf));
     }
     // A symlink is never followed (it could point a key anywhere), a dangling one included.
-    let is_link = |f: &str| {
-        path(f)
-            .symlink_metadata()
+    let is_link = |p: &Path| {
+        p.symlink_metadata()
             .is_ok_and(|m| m.file_type().is_symlink())
     };
     if let Some(link) = wanted
         .iter()
-        .map(String::as_str)
-        .chain(set)
-        .find(|f| is_link(f))
+        .cloned()
+        .chain(set.iter().map(|f| path(f)))
+        .find(|p| is_link(p))
     {
         bail!(
             "{} is a symbolic link: refusing to write through it (remove it)",
-            path(link).display()
+            link.display()
         );
     }
-    let exists = |f: &str| path(f).symlink_metadata().is_ok();
-    let existing: Vec<&str> = wanted
+    let exists = |p: &Path| p.symlink_metadata().is_ok();
+    let existing: Vec<String> = wanted
         .iter()
-        .map(String::as_str)
-        .filter(|f| exists(f))
+        .filter(|p| exists(p) && !p.is_dir())
+        .map(|p| p.strip_prefix(&a.out).unwrap_or(p).display().to_string())
         .collect();
     if !a.if_missing && !existing.is_empty() {
         bail!(
@@ -161,10 +238,11 @@ pub fn run(a: CertsArgs) -> anyhow::Result<()> {
             existing.join(", ")
         );
     }
+    let write = |p: &Path, text: &str, mode: u32| write(p, text, mode, owner);
     let mut issuer = None;
     if !shared_hosts.is_empty() {
         // The CA files only work as a set: one missing means a new CA and certificate.
-        let kept: Vec<&str> = set.into_iter().filter(|f| exists(f)).collect();
+        let kept: Vec<&str> = set.into_iter().filter(|f| exists(&path(f))).collect();
         if kept.len() == set.len() {
             println!("kept the certificates in {}", a.out.display());
         } else if !kept.is_empty() {
@@ -191,45 +269,13 @@ pub fn run(a: CertsArgs) -> anyhow::Result<()> {
             issuer = Some(ca_issuer);
         }
     }
-    for id in &nodes {
-        let (cert_file, key_file) = (node_cert_file(id), node_key_file(id));
-        match (exists(&cert_file), exists(&key_file)) {
-            (true, true) => {
-                println!("kept {cert_file}");
-                continue;
-            }
-            (false, false) => {}
-            _ => bail!(
-                "{} holds one of {cert_file} and {key_file}: restore the other or remove it",
-                a.out.display()
-            ),
-        }
-        if issuer.is_none() {
-            issuer = Some(load_ca(&a.out)?);
-        }
-        let issuer = issuer.as_ref().expect("loaded above");
-        let mut names: Vec<String> = Vec::new();
-        if valid_host(id) {
-            names.push(id.clone());
-        }
-        names.extend(node_hosts.iter().filter(|h| *h != id).cloned());
-        if names.is_empty() {
-            bail!("--node {id}: give the hosts it is reached at (--node-hosts)");
-        }
-        let (cert, key) = issue(issuer, id, &names, a.days)?;
-        write(&path(&cert_file), &cert, 0o644)?;
-        write(&path(&key_file), &key, 0o600)?;
-        println!(
-            "wrote {cert_file}, {key_file} (node {id}; names: {})",
-            names.join(", ")
-        );
-    }
+    // The secrets come before the node directories, which may hold copies of them.
     if a.with_secrets {
-        if !exists(SECRET_FILE) {
+        if !exists(&path(SECRET_FILE)) {
             write(&path(SECRET_FILE), &format!("{}\n", random_hex()?), 0o600)?;
             println!("wrote {SECRET_FILE}");
         }
-        if !exists(TOKENS_FILE) {
+        if !exists(&path(TOKENS_FILE)) {
             let text = format!(
                 "# TOKEN [USER [ROLE]], one per line; ROLE admin may cancel anyone's jobs\n{} admin admin\n",
                 random_hex()?
@@ -238,6 +284,74 @@ pub fn run(a: CertsArgs) -> anyhow::Result<()> {
             println!("wrote {TOKENS_FILE}");
         }
     }
+    for (id, files) in &node_files {
+        make_dir(&files.dir, owner)?;
+        for (copy, of) in &files.copies {
+            if !exists(copy) {
+                let text = std::fs::read_to_string(path(of))
+                    .with_context(|| format!("reading {}", path(of).display()))?;
+                let mode = if *of == CA_FILE { 0o644 } else { 0o600 };
+                write(copy, &text, mode)?;
+            }
+        }
+        let shown = |p: &Path| p.display().to_string();
+        match (exists(&files.cert), exists(&files.key)) {
+            (true, true) => {
+                println!("kept {}", shown(&files.cert));
+                continue;
+            }
+            (false, false) => {}
+            _ => bail!(
+                "one of {} and {} exists: restore the other or remove it",
+                shown(&files.cert),
+                shown(&files.key)
+            ),
+        }
+        if issuer.is_none() {
+            issuer = Some(load_ca(&a.out)?);
+        }
+        let issuer = issuer.as_ref().expect("loaded above");
+        let mut names: Vec<String> = Vec::new();
+        if valid_host(id) {
+            names.push((*id).clone());
+        }
+        let own: Vec<String> = a.node_hosts.iter().map(|h| h.replace("{id}", id)).collect();
+        names.extend(
+            hosts("--node-hosts", &own)?
+                .into_iter()
+                .filter(|h| h != *id),
+        );
+        if names.is_empty() {
+            bail!("--node {id}: give the hosts it is reached at (--node-hosts)");
+        }
+        let (cert, key) = issue(issuer, id, &names, a.days)?;
+        write(&files.cert, &cert, 0o644)?;
+        write(&files.key, &key, 0o600)?;
+        println!(
+            "wrote {}, {} (node {id}; names: {})",
+            shown(&files.cert),
+            shown(&files.key),
+            names.join(", ")
+        );
+    }
+    Ok(())
+}
+
+/// Creates `dir` (and its parents) if missing, then gives it to `owner`.
+fn make_dir(dir: &Path, owner: Option<(u32, u32)>) -> anyhow::Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    chown(dir, owner)
+}
+
+/// Gives `path` to `owner` (`--owner`), never through a symlink.
+fn chown(path: &Path, owner: Option<(u32, u32)>) -> anyhow::Result<()> {
+    #[cfg(unix)]
+    if let Some((uid, gid)) = owner {
+        std::os::unix::fs::lchown(path, Some(uid), Some(gid))
+            .with_context(|| format!("giving {} to {uid}:{gid}", path.display()))?;
+    }
+    #[cfg(not(unix))]
+    let _ = (path, owner);
     Ok(())
 }
 
@@ -346,7 +460,7 @@ fn random_hex() -> anyhow::Result<String> {
 
 /// Creates `path` with `mode` and writes `text`: never over an existing file (the callers
 /// checked; a file that appeared since is an error) and never through a symlink.
-fn write(path: &Path, text: &str, mode: u32) -> anyhow::Result<()> {
+fn write(path: &Path, text: &str, mode: u32, owner: Option<(u32, u32)>) -> anyhow::Result<()> {
     let mut options = OpenOptions::new();
     options.write(true).create_new(true);
     #[cfg(unix)]
@@ -360,7 +474,8 @@ fn write(path: &Path, text: &str, mode: u32) -> anyhow::Result<()> {
         .open(path)
         .with_context(|| format!("creating {}", path.display()))?;
     file.write_all(text.as_bytes())
-        .with_context(|| format!("writing {}", path.display()))
+        .with_context(|| format!("writing {}", path.display()))?;
+    chown(path, owner)
 }
 
 #[cfg(test)]

@@ -23,12 +23,24 @@ pub struct HealthArgs {
     /// For servers that require client certificates (--tls-client-ca).
     #[command(flatten)]
     pub cert: ClientCertArgs,
+    /// Expect the server's certificate to carry this node's own name (the common name of
+    /// --tls-cert), not the address's host: the probe a node runs against itself at
+    /// 127.0.0.1, when its certificate names only the node (`rayfarm certs --node`).
+    #[arg(long, requires = "tls_cert", conflicts_with = "tls_domain")]
+    pub own_name: bool,
     /// Seconds to wait for an answer.
     #[arg(long, default_value_t = 3.0)]
     pub timeout: f64,
 }
 
-pub fn run(a: HealthArgs) -> anyhow::Result<()> {
+pub fn run(mut a: HealthArgs) -> anyhow::Result<()> {
+    if a.own_name
+        && let Some(cert) = &a.cert.tls_cert
+    {
+        let own = rayfarm_node::identity::PeerIdentity::from_pem_file(cert)
+            .map_err(|e| anyhow::anyhow!("--own-name: {e}"))?;
+        a.tls.tls_domain = Some(own.name);
+    }
     let tls = a.tls.client_config(a.cert.identity()?)?;
     let url = rayfarm_node::security::url(&a.addr, tls.is_some());
     let timeout = Duration::try_from_secs_f64(a.timeout).context("--timeout")?;
