@@ -412,7 +412,7 @@ impl JobService for Api {
         let latest = self.coordinator.previews(&job_id)?.latest().await?;
         let p = &latest.preview;
         Ok(Response::new(proto::FetchPreviewResponse {
-            png: p.png.clone().into(),
+            png: p.png.clone(),
             sequence: latest.sequence,
             width: p.width,
             height: p.height,

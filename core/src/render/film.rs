@@ -328,7 +328,7 @@ impl Film {
                 counts[px] += 1;
             }
             y += 1;
-            if y % factor == 0 || y == h {
+            if y.is_multiple_of(factor) || y == h {
                 out.clear();
                 for (sum, &n) in sums.chunks_exact(3).zip(&counts) {
                     // Divided by 1 when not shrunk: the film's own values, to the bit.
