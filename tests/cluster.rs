@@ -393,6 +393,11 @@ fn bad_jobs_get_precise_errors_and_the_cluster_renders_the_next() {
     }
     let err = refused(&cluster, &["fetch", "job-that-never-was", "-o", "x.png"]);
     assert!(err.contains("NOT_FOUND"), "{err}");
+    // Nothing was received, so no partial file is left to resume from.
+    assert!(
+        !std::path::Path::new("x.png.part").exists(),
+        "a refused fetch left x.png.part"
+    );
     // The damaged domain fails its job, naming the file, when a worker first loads it.
     let mut args = vec!["submit", "--scene", "broken", "--wait", "--quiet"];
     args.extend_from_slice(&FRAME);

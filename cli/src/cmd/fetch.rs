@@ -131,6 +131,12 @@ pub async fn save_result(
                 coord.reconnect(deadline).await?;
             }
             Err(e) => {
+                // Nothing received (an unknown job, a refusal): leave no empty file behind.
+                if file.metadata().is_ok_and(|m| m.len() == 0) {
+                    drop(file);
+                    let _ = std::fs::remove_file(&part);
+                    return Err(e.context(format!("fetching the result of job {job_id}")));
+                }
                 return Err(e.context(format!(
                     "fetching the result of job {job_id} (the bytes received are kept in {}: \
                      the same command resumes after them)",
