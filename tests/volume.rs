@@ -224,7 +224,9 @@ fn the_generator_emits_its_density_field_as_a_volume() {
 }
 
 /// Direct volume rendering: the image is the same bits however the volume is cut into bricks,
-/// whatever the cache budget (bricks paged in and out) and however many threads trace it.
+/// whatever the cache budget (bricks paged in and out), however many threads trace it, and
+/// traced one brick after another or speculatively (every brick's segments composited by the
+/// ray's group).
 #[test]
 fn dvr_images_are_identical_at_1_8_and_64_bricks_any_cache_and_threads() {
     let tmp = tempfile::tempdir().unwrap();
@@ -250,12 +252,18 @@ fn dvr_images_are_identical_at_1_8_and_64_bricks_any_cache_and_threads() {
             .map(|d| d.bytes)
             .sum();
         let small = (bytes / 6).max(1).to_string();
-        for (cache, threads) in [("4GiB", "1"), (small.as_str(), "2"), ("4GiB", "2")] {
+        for (cache, threads, placement) in [
+            ("4GiB", "1", "chained"),
+            (small.as_str(), "2", "chained"),
+            ("4GiB", "2", "chained"),
+            ("4GiB", "1", "speculative"),
+            (small.as_str(), "2", "speculative"),
+        ] {
             let img = tmp
                 .path()
                 .join(format!("{bricks}-{threads}-{}.exr", hashes.len()));
             let stats = tmp.path().join("stats.json");
-            rayfarm_ok(&[
+            let mut args = vec![
                 "render",
                 "--local",
                 "--scene",
@@ -275,9 +283,13 @@ fn dvr_images_are_identical_at_1_8_and_64_bricks_any_cache_and_threads() {
                 "--stats-json",
                 s(&stats),
                 "--quiet",
-            ]);
+            ];
+            if placement == "speculative" {
+                args.push("--speculate");
+            }
+            rayfarm_ok(&args);
             hashes.push((
-                format!("{bricks} bricks, cache {cache}, {threads} threads"),
+                format!("{bricks} bricks, cache {cache}, {threads} threads, {placement}"),
                 file_hash(&img),
             ));
         }
@@ -287,8 +299,8 @@ fn dvr_images_are_identical_at_1_8_and_64_bricks_any_cache_and_threads() {
     }
 }
 
-/// On a real cluster of 1, 2 and 4 workers, every schedule that renders volumes gives the
-/// image of `render --local` to the bit; predictive is refused for a volume scene, clearly.
+/// On a real cluster of 1, 2 and 4 workers, every schedule gives the image of `render --local`
+/// to the bit, predictive included (speculative copies send their bricks' segments back).
 #[test]
 fn dvr_on_a_cluster_matches_the_local_image_under_every_schedule() {
     use rayfarm_tests::{Cluster, WorkerOpts, domain_bytes, hash_of, local_hash, submit_wait};
@@ -317,25 +329,11 @@ fn dvr_on_a_cluster_matches_the_local_image_under_every_schedule() {
             &vec![WorkerOpts::cache(2 * largest); n],
         );
         cluster.wait_for_workers(n, rayfarm_tests::START_TIMEOUT);
-        for schedule in ["image-plane", "domain", "dynamic", "hybrid"] {
+        for schedule in ["image-plane", "domain", "dynamic", "hybrid", "predictive"] {
             let mut f = frame.to_vec();
             f.extend(["--schedule", schedule, "--cold-cache"]);
             let stats = submit_wait(&cluster, &f, &format!("{schedule}-{n}"));
             assert_eq!(hash_of(&stats), expected, "{schedule} with {n} workers");
         }
-        let out = cluster.rayfarm(&[
-            "submit",
-            "--schedule",
-            "predictive",
-            "--width",
-            "8",
-            "--height",
-            "8",
-        ]);
-        let err = String::from_utf8_lossy(&out.stderr);
-        assert!(
-            !out.status.success() && err.contains("predictive schedule does not render volume"),
-            "{err}"
-        );
     }
 }

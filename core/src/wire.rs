@@ -247,6 +247,21 @@ fn check_verdict(v: &VerdictRecord, l: &BatchLimits) -> Result<(), &'static str>
                 return Err("non-finite or negative hit");
             }
         }
+        VerdictRecord::SEGMENT => {
+            // Premultiplied colour is non-negative and opacity a fraction, as in a ray record.
+            let colour = v.normal.iter().all(|c| c.is_finite() && *c >= 0.0);
+            if !(colour && (0.0..=1.0).contains(&v.t)) || v.material != 0 {
+                return Err("volume segment colour or opacity out of range");
+            }
+        }
+        VerdictRecord::VOLUME_END => {
+            if v.order != 0 || v.t != 0.0 || v.normal != [0.0; 3] {
+                return Err("a closing volume verdict carries segment fields");
+            }
+            if v.material > crate::render::speculation::MAX_SEGMENTS {
+                return Err("a closing volume verdict counts too many segments");
+            }
+        }
         _ => return Err("unknown verdict kind"),
     }
     check_verdict_range(v, l)
@@ -415,7 +430,7 @@ mod tests {
             decode_verdicts(&encode_verdicts(&v), &LIMITS).unwrap_err()
         };
         let reason = |reason| WireError::Record { index: 5, reason };
-        assert_eq!(refused(|v| v.kind = 3), reason("unknown verdict kind"));
+        assert_eq!(refused(|v| v.kind = 5), reason("unknown verdict kind"));
         assert_eq!(refused(|v| v.material = 4), reason("material out of range"));
         assert_eq!(
             refused(|v| v.t = f32::NAN),
@@ -425,6 +440,43 @@ mod tests {
         assert_eq!(
             refused(|v| v.kind = VerdictRecord::CLEAR),
             reason("a verdict without a hit carries hit fields")
+        );
+        // Volume segments: colour non-negative, opacity a fraction; a closing verdict only
+        // counts, and within bounds.
+        let segment = |v: &mut VerdictRecord| {
+            (v.kind, v.order, v.t, v.normal, v.material) =
+                (VerdictRecord::SEGMENT, 7, 0.5, [0.1, 0.2, 0.3], 0);
+        };
+        let mut ok = vs.clone();
+        segment(&mut ok[5]);
+        ok[6] = VerdictRecord {
+            kind: VerdictRecord::VOLUME_END,
+            material: 3,
+            ..verdict(6)
+        };
+        assert_eq!(decode_verdicts(&encode_verdicts(&ok), &LIMITS).unwrap(), ok);
+        assert_eq!(
+            refused(|v| {
+                (v.kind, v.t) = (VerdictRecord::SEGMENT, 1.5);
+                v.material = 0;
+            }),
+            reason("volume segment colour or opacity out of range")
+        );
+        let negative = |v: &mut VerdictRecord| {
+            (v.kind, v.order, v.t, v.normal, v.material) =
+                (VerdictRecord::SEGMENT, 1, 0.5, [0.0, -1.0, 0.0], 0);
+        };
+        assert_eq!(
+            refused(negative),
+            reason("volume segment colour or opacity out of range")
+        );
+        let too_many = |v: &mut VerdictRecord| {
+            (v.kind, v.order, v.t, v.normal) = (VerdictRecord::VOLUME_END, 0, 0.0, [0.0; 3]);
+            v.material = crate::render::speculation::MAX_SEGMENTS + 1;
+        };
+        assert_eq!(
+            refused(too_many),
+            reason("a closing volume verdict counts too many segments")
         );
         // Neither kind of batch passes for the other.
         let rays = encode_batch(&[ray(1)]);

@@ -9,13 +9,13 @@
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
 
-use rayfarm_core::bvh::Traverser;
 use rayfarm_core::camera::PinholeCamera;
 use rayfarm_core::cluster::tile_sums;
 use rayfarm_core::frame::TileGrid;
 use rayfarm_core::ray::RayRecord;
 use rayfarm_core::render::cache::DomainCache;
 use rayfarm_core::render::film::to_fixed;
+use rayfarm_core::render::kernel::CopyScratch;
 use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::render::primary::primary_ray;
 use rayfarm_core::render::{KernelCounters, RaySink, SceneView};
@@ -197,14 +197,20 @@ pub fn run(input: PassInput) -> Result<PassOutput, PassError> {
             .par_chunks(CHUNK)
             .map(|chunk| {
                 let mut c = KernelCounters::default();
-                let mut traverser = Traverser::new();
-                let v = chunk
-                    .iter()
-                    .map(|r| {
-                        let verdict = frame.view.trace_copy(&data, r, &mut traverser, &mut c);
-                        (r.resolver, VerdictRecord::new(r, verdict))
-                    })
-                    .collect();
+                let mut scratch = CopyScratch::new();
+                let mut found = Vec::new();
+                let mut v = Vec::with_capacity(chunk.len());
+                for r in chunk {
+                    found.clear();
+                    frame
+                        .view
+                        .trace_copy(&data, r, &mut scratch, &mut c, &mut found);
+                    v.extend(
+                        found
+                            .iter()
+                            .map(|&f| (r.resolver, VerdictRecord::new(r, f))),
+                    );
+                }
                 (v, c)
             })
             .collect();

@@ -44,14 +44,6 @@ impl Coordinator {
         user: Option<&User>,
     ) -> Result<String, Status> {
         let frame = frame_spec(&spec, &manifest.camera).map_err(Status::invalid_argument)?;
-        // Speculative copies return surface verdicts only; a volume ray's segments would have
-        // to come back as colour and opacity composited in order, which is not built yet.
-        if manifest.volume.is_some() && spec.schedule == Schedule::Predictive as i32 {
-            return Err(Status::invalid_argument(
-                "the predictive schedule does not render volume scenes yet: use image-plane, \
-                 domain, dynamic or hybrid",
-            ));
-        }
         self.admit(&frame)?;
         let cost = u64::from(frame.width) * u64::from(frame.height) * u64::from(frame.spp);
         let owner = user.map(|u| u.name.clone()).unwrap_or_default();

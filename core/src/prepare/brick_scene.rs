@@ -12,7 +12,7 @@ use glam::Vec3;
 use tracing::{info, info_span};
 
 use super::{PrepareError, default_lighting, publish_staged};
-use crate::brick::write_brick;
+use crate::brick::{BLOCK, write_brick};
 use crate::geometry::Aabb;
 use crate::isosurface::{Grid, Lattice};
 use crate::scene::manifest::FORMAT_VERSION;
@@ -49,8 +49,13 @@ pub struct BrickOptions {
 type VoxelBox = [[u32; 2]; 3];
 
 /// The cell boxes of the bricks, by domain id, and the k-d tree over them (planes in world
-/// coordinates on voxel planes). Splits the longest axis (in cells) of each box into shares of
-/// the brick count, so 8 bricks of a cube are its octants.
+/// coordinates on voxel planes). Splits the longest axis (in sub-blocks, then cells) of each
+/// box into shares of the brick count, so 8 bricks of a cube are its octants.
+///
+/// Every plane lies on a multiple of [`BLOCK`] cells: bricks are unions of the volume's global
+/// 8-cell blocks, whose faces cut a ray into the segments it is composited by
+/// (`render::dvr`), so a brick boundary never splits a segment and the brick count changes
+/// no bit of the image, traced one brick after another or speculatively.
 fn cut(o: &BrickOptions, grid: &Grid) -> Result<(Vec<VoxelBox>, Vec<KdNode>), String> {
     fn split(
         grid: &Grid,
@@ -68,13 +73,17 @@ fn cut(o: &BrickOptions, grid: &Grid) -> Result<(Vec<VoxelBox>, Vec<KdNode>), St
             return Ok(me);
         }
         let len = |a: usize| cells[a][1] - cells[a][0];
-        let axis = (0..3).max_by_key(|&a| (len(a), 2 - a)).unwrap_or(0);
+        // A box starts on a block plane (the volume's start, or a cut).
+        let blocks = |a: usize| len(a).div_ceil(BLOCK);
+        let axis = (0..3)
+            .max_by_key(|&a| (blocks(a), len(a), 2 - a))
+            .unwrap_or(0);
         let below_leaves = leaves / 2;
-        if len(axis) < 2 {
-            return Err("more bricks than cells".into());
+        if blocks(axis) < 2 {
+            return Err("more bricks than blocks".into());
         }
-        let share = u64::from(len(axis)) * u64::from(below_leaves) / u64::from(leaves);
-        let cut = cells[axis][0] + (share as u32).clamp(1, len(axis) - 1);
+        let share = u64::from(blocks(axis)) * u64::from(below_leaves) / u64::from(leaves);
+        let cut = cells[axis][0] + (share as u32).clamp(1, blocks(axis) - 1) * BLOCK;
         let position = grid.point(cut, cut, cut)[axis];
         nodes.push(KdNode::Leaf { domain: u32::MAX });
         let (mut lo, mut hi) = (cells, cells);
@@ -95,7 +104,7 @@ fn cut(o: &BrickOptions, grid: &Grid) -> Result<(Vec<VoxelBox>, Vec<KdNode>), St
     let mut boxes = Vec::new();
     split(grid, all, o.bricks, &mut nodes, &mut boxes).map_err(|_| {
         format!(
-            "{}: {} bricks do not fit {:?} voxels",
+            "{}: {} bricks do not fit {:?} voxels (bricks are cut on {BLOCK}-cell blocks)",
             o.source, o.bricks, o.dims
         )
     })?;
@@ -218,7 +227,7 @@ mod tests {
         BrickOptions {
             name: "ramp".into(),
             source: "ramp".into(),
-            dims: [17, 9, 12],
+            dims: [41, 33, 48],
             origin: [0.0; 3],
             spacing: [1.0, 1.0, 2.0],
             bricks,
@@ -240,7 +249,11 @@ mod tests {
                 .iter()
                 .map(|c| c.iter().map(|a| u64::from(a[1] - a[0])).product::<u64>())
                 .sum();
-            assert_eq!(owned, 16 * 8 * 11);
+            assert_eq!(owned, 40 * 32 * 47);
+            assert!(
+                cells.iter().all(|c| c.iter().all(|a| a[0] % BLOCK == 0)),
+                "cut on block planes"
+            );
         }
         assert!(cut(&options(2000), &spec_of(&options(2000)).unwrap().0).is_err());
     }
@@ -251,7 +264,7 @@ mod tests {
         let out = dir.path().join("v");
         let m = prepare_bricks(&out, &Ramp, &options(8)).unwrap();
         assert_eq!(m.domains.len(), 8);
-        assert_eq!(m.bounds.max, [16.0, 8.0, 22.0]);
+        assert_eq!(m.bounds.max, [40.0, 32.0, 94.0]);
         let back = Manifest::load(&out).unwrap();
         back.check_domains(&out, true).unwrap();
         assert_eq!(back.volume.unwrap().step, 0.5);

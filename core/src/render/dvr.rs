@@ -8,14 +8,20 @@
 //! the ray holds its `t` (the domain walk's intervals share end points exactly, so each `k`
 //! falls in exactly one); its value is computed from the global voxel index of its cell,
 //! clamped to the volume, and every brick stores the voxels of its cells plus ghost voxels, so
-//! any brick computes the same bits; the colour and opacity accumulated so far travel in the
-//! ray record, composited in the order of `k`. A skipped sample is one whose cell lies in a
+//! any brick computes the same bits. Samples are composited in segments, the stretches of the
+//! ray between block faces (planes every 8 cells, where bricks are cut), each from nothing;
+//! segments are folded into the colour and opacity the ray record carries, in order along the
+//! ray. A brick boundary is a block face, so it never splits a segment, and a speculative copy
+//! can composite its brick's segments without knowing what lies in front (the ray's group
+//! folds them in the same order, `render::speculation`). A skipped sample is one whose cell lies in a
 //! sub-block whose whole range the transfer function makes transparent: compositing it would
 //! have added exactly nothing.
 
+use std::ops::ControlFlow;
+
 use glam::Vec3;
 
-use crate::brick::Brick;
+use crate::brick::{BLOCK, Brick};
 use crate::ray::RayRecord;
 use crate::scene::VolumeSpec;
 use crate::transfer::TransferTable;
@@ -44,6 +50,93 @@ pub struct VolumeView {
     table: TransferTable,
     /// Whether to skip transparent sub-blocks (off only to measure what skipping saves).
     pub skipping: bool,
+}
+
+/// The composite of one segment of a ray: its samples between two block faces, composited
+/// front to back from nothing.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Segment {
+    /// Index `k` of its first sample that showed anything: its place along the ray.
+    pub first: u32,
+    /// Premultiplied colour.
+    pub rgb: [f32; 3],
+    /// Opacity.
+    pub alpha: f32,
+}
+
+/// Composites `segment` behind what `ray` has gathered so far; returns whether the ray is now
+/// opaque (nothing behind can show). The one fold both the chained and the speculative trace
+/// make, segment by segment in order along the ray.
+pub fn composite(ray: &mut RayRecord, segment: &Segment) -> bool {
+    let w = 1.0 - ray.volume_alpha;
+    ray.volume_rgb = (Vec3::from(ray.volume_rgb) + Vec3::from(segment.rgb) * w).into();
+    ray.volume_alpha += segment.alpha * w;
+    ray.volume_alpha >= OPAQUE
+}
+
+/// The crossings of a ray with the block faces in one brick's box, nearest first: per axis
+/// the planes every [`BLOCK`] cells, at `t = (plane - o) / d` (the k-d walk's formula for the
+/// same planes, so a brick boundary is a crossing to the bit).
+struct BlockFaces {
+    o: Vec3,
+    d: Vec3,
+    origin: Vec3,
+    spacing: Vec3,
+    /// Per axis: the next plane's index (in blocks), the index past the last, and the step.
+    next: [i64; 3],
+    end: [i64; 3],
+    step: [i64; 3],
+}
+
+impl BlockFaces {
+    fn new(view: &VolumeView, brick: &Brick, o: Vec3, d: Vec3) -> Self {
+        let h = brick.header;
+        let mut f = BlockFaces {
+            o,
+            d,
+            origin: view.origin,
+            spacing: view.spacing,
+            next: [0; 3],
+            end: [0; 3],
+            step: [0; 3],
+        };
+        for a in 0..3 {
+            let first = i64::from(h.cells_lo[a].div_ceil(BLOCK));
+            let last = i64::from(h.cells_hi[a] / BLOCK);
+            if d[a] > 0.0 {
+                (f.next[a], f.end[a], f.step[a]) = (first, last + 1, 1);
+            } else if d[a] < 0.0 {
+                (f.next[a], f.end[a], f.step[a]) = (last, first - 1, -1);
+            } else {
+                // Parallel to these planes: never crosses one.
+                (f.next[a], f.end[a], f.step[a]) = (0, 0, 1);
+            }
+        }
+        f
+    }
+
+    /// Where the ray crosses plane `j` (in blocks) of axis `a`.
+    fn crossing(&self, a: usize, j: i64) -> f32 {
+        // `Grid::point`'s formula for voxel plane `j * BLOCK`, as the brick cut used.
+        let plane = self.origin[a] + self.spacing[a] * (j as u32 * BLOCK) as f32;
+        (plane - self.o[a]) / self.d[a]
+    }
+
+    /// The nearest crossing beyond `t`, if any in the brick.
+    fn next_after(&mut self, t: f32) -> Option<f32> {
+        let mut best: Option<f32> = None;
+        for a in 0..3 {
+            while self.next[a] != self.end[a] {
+                let c = self.crossing(a, self.next[a]);
+                if c > t {
+                    best = Some(best.map_or(c, |b| b.min(c)));
+                    break;
+                }
+                self.next[a] += self.step[a];
+            }
+        }
+        best
+    }
 }
 
 /// How far one brick's march got.
@@ -85,66 +178,102 @@ impl VolumeView {
             .collect()
     }
 
-    /// Composites the samples of `ray` with `t` in `[t0, t1)` (its interval in `brick`) into its
-    /// colour and opacity. `skip` is [`VolumeView::transparent_blocks`] of the brick.
+    /// The first sample index `k` with `t_k >= t` (on the grid `t_k = k * step`).
+    fn first_sample_at(&self, t: f32) -> u32 {
+        let dt = self.step;
+        let t_of = |k: u32| k as f32 * dt;
+        // Start near it, then settle exactly by the same formula the march uses.
+        let mut k = (t.max(0.0) / dt) as u32;
+        while k > 0 && t_of(k - 1) >= t {
+            k -= 1;
+        }
+        while k < u32::MAX && t_of(k) < t {
+            k += 1;
+        }
+        k
+    }
+
+    /// Composites the samples of the ray `(origin, dir)` with `t` in `[t0, t1)` (its interval
+    /// in `brick`) segment by segment, each from nothing, and hands every segment that shows
+    /// anything to `emit`, in order along the ray; `emit` breaks to stop the march (the ray
+    /// became opaque). `skip` is [`VolumeView::transparent_blocks`] of the brick.
+    ///
+    /// Segments are the stretches of the ray between its crossings of the volume's block
+    /// faces (planes every [`BLOCK`] cells, where bricks are cut): the same stretches whatever
+    /// the bricking, and never split by a brick boundary, so compositing segment by segment
+    /// into the ray (`composite`) gives the same bits traced one brick after another, in any
+    /// bricking, or speculatively (each brick's segments sent back and folded in order).
+    #[allow(clippy::too_many_arguments)]
     pub fn march(
         &self,
         brick: &Brick,
         skip: &[bool],
-        ray: &mut RayRecord,
+        (origin, dir): (Vec3, Vec3),
         t0: f32,
         t1: f32,
         counts: &mut SampleCounts,
+        mut emit: impl FnMut(Segment) -> ControlFlow<()>,
     ) -> March {
-        let (origin, dir) = (Vec3::from(ray.origin), Vec3::from(ray.dir));
         let dt = self.step;
         let t_of = |k: u32| k as f32 * dt;
-        // The first k with t_k >= t0: start near it, then settle exactly by the same formula.
-        let mut k = (t0.max(0.0) / dt) as u32;
-        while k > 0 && t_of(k - 1) >= t0 {
-            k -= 1;
-        }
-        while t_of(k) < t0 {
-            k += 1;
-        }
-        let mut rgb = Vec3::from(ray.volume_rgb);
-        let mut alpha = ray.volume_alpha;
-        let mut outcome = March::Through;
-        loop {
-            let t = t_of(k);
-            if t >= t1 || k == u32::MAX {
-                break;
+        let mut faces = BlockFaces::new(self, brick, origin, dir);
+        let mut k = self.first_sample_at(t0);
+        let mut lo = t0;
+        while lo < t1 {
+            let hi = faces.next_after(lo).map_or(t1, |t| t.min(t1));
+            let mut rgb = Vec3::ZERO;
+            let mut alpha = 0.0f32;
+            let mut first = None;
+            loop {
+                let t = t_of(k);
+                if t >= hi || k == u32::MAX {
+                    break;
+                }
+                if alpha >= OPAQUE {
+                    // Nothing behind shows through this segment: on to its end.
+                    k = self.first_sample_at(hi).max(k);
+                    break;
+                }
+                let here = k;
+                k += 1;
+                let g = (origin + dir * t - self.origin) * self.inv_spacing;
+                let (cell, frac) = self.locate(g);
+                if let Some(b) = brick.block_of(cell)
+                    && skip[b]
+                {
+                    counts.skipped += 1;
+                    continue;
+                }
+                counts.taken += 1;
+                let value = trilinear(brick, cell, frac);
+                let [r, gr, b, a] = self.table.lookup(value);
+                if a <= 0.0 {
+                    continue;
+                }
+                let mut c = Vec3::new(r, gr, b);
+                if self.shading {
+                    c *= self.headlight(brick, g, dir);
+                }
+                let w = 1.0 - alpha;
+                rgb += c * w;
+                alpha += a * w;
+                first.get_or_insert(here);
             }
-            k += 1;
-            let g = (origin + dir * t - self.origin) * self.inv_spacing;
-            let (cell, frac) = self.locate(g);
-            if let Some(b) = brick.block_of(cell)
-                && skip[b]
+            if let Some(first) = first
+                && (alpha > 0.0 || rgb != Vec3::ZERO)
             {
-                counts.skipped += 1;
-                continue;
+                let segment = Segment {
+                    first,
+                    rgb: rgb.into(),
+                    alpha,
+                };
+                if emit(segment).is_break() {
+                    return March::Opaque;
+                }
             }
-            counts.taken += 1;
-            let value = trilinear(brick, cell, frac);
-            let [r, gr, b, a] = self.table.lookup(value);
-            if a <= 0.0 {
-                continue;
-            }
-            let mut c = Vec3::new(r, gr, b);
-            if self.shading {
-                c *= self.headlight(brick, g, dir);
-            }
-            let w = 1.0 - alpha;
-            rgb += c * w;
-            alpha += a * w;
-            if alpha >= OPAQUE {
-                outcome = March::Opaque;
-                break;
-            }
+            lo = hi;
         }
-        ray.volume_rgb = rgb.into();
-        ray.volume_alpha = alpha;
-        outcome
+        March::Through
     }
 
     /// The cell holding grid position `g` (clamped to the volume) and the position in it.

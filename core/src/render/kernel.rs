@@ -7,7 +7,7 @@ use std::ops::ControlFlow;
 
 use glam::Vec3;
 
-use super::dvr::{March, SampleCounts, VolumeView};
+use super::dvr::{self, March, SampleCounts, VolumeView};
 use super::speculation::{Outcome, SurfaceHit, Verdict};
 use crate::bvh::{TraceRay, Traverser};
 use crate::frame::{split_credit, split_path_credit};
@@ -65,6 +65,21 @@ impl KernelCounters {
     /// Ray segments traced, of both kinds.
     pub fn segments(&self) -> u64 {
         self.radiance_segments + self.shadow_segments
+    }
+}
+
+/// What tracing speculative copies keeps between copies on one thread: the BVH traverser's
+/// stack and the last brick's transparent sub-blocks.
+#[derive(Default)]
+pub struct CopyScratch {
+    traverser: Traverser,
+    skip: Option<(u32, Vec<bool>)>,
+}
+
+impl CopyScratch {
+    /// Nothing kept yet.
+    pub fn new() -> Self {
+        Self::default()
     }
 }
 
@@ -267,7 +282,15 @@ impl SceneView {
             };
             counters.radiance_segments += 1;
             let mut ray = *ray;
-            match volume.march(brick, &skip, &mut ray, t0, t1, &mut counts) {
+            let line = (Vec3::from(ray.origin), Vec3::from(ray.dir));
+            let march = volume.march(brick, &skip, line, t0, t1, &mut counts, |segment| {
+                if dvr::composite(&mut ray, &segment) {
+                    ControlFlow::Break(())
+                } else {
+                    ControlFlow::Continue(())
+                }
+            });
+            match march {
                 March::Opaque => sink.retire(&ray, ray.volume_rgb),
                 March::Through => {
                     if next.is_some() {
@@ -294,15 +317,18 @@ impl SceneView {
         out
     }
 
-    /// Traces one speculative copy of a ray against its domain `data` alone. Nothing moves
-    /// on: what was found is reported back to where the ray was born.
+    /// Traces one speculative copy of a ray against its domain `data` alone and pushes what
+    /// it found to `out`: one verdict for a surface domain; for a brick, its composited
+    /// segments and a closing verdict counting them. Nothing moves on: the verdicts go back
+    /// to where the ray was born.
     pub fn trace_copy(
         &self,
         data: &DomainData,
         ray: &RayRecord,
-        traverser: &mut Traverser,
+        scratch: &mut CopyScratch,
         counters: &mut KernelCounters,
-    ) -> Verdict {
+        out: &mut Vec<Verdict>,
+    ) {
         let mut order = 0u32;
         let mut interval = None;
         self.walk(ray, |d, a, b| {
@@ -315,14 +341,39 @@ impl SceneView {
             }
             ControlFlow::Continue(())
         });
-        // A copy queued for a domain off its path finds nothing there. A brick has no
-        // surfaces: volume scenes are refused speculative placement before any copy is made.
-        let Some((t0, t1)) = interval.filter(|_| data.brick().is_none()) else {
-            return Verdict::Clear;
+        // A copy queued for a domain off its path finds nothing there.
+        let Some((t0, t1)) = interval else {
+            out.push(Verdict::Clear);
+            return;
         };
+        if let Some(brick) = data.brick() {
+            let Some(volume) = &self.volume else {
+                out.push(Verdict::Clear);
+                return;
+            };
+            counters.radiance_segments += 1;
+            let domain = data.domain();
+            if scratch.skip.as_ref().is_none_or(|(d, _)| *d != domain) {
+                scratch.skip = Some((domain, volume.transparent_blocks(&brick)));
+            }
+            let skip = scratch.skip.as_ref().map_or(&[][..], |(_, s)| s.as_slice());
+            let line = (Vec3::from(ray.origin), Vec3::from(ray.dir));
+            let mut counts = SampleCounts::default();
+            let before = out.len();
+            volume.march(&brick, skip, line, t0, t1, &mut counts, |segment| {
+                out.push(Verdict::Segment(segment));
+                ControlFlow::Continue(())
+            });
+            let segments = (out.len() - before) as u32;
+            out.push(Verdict::VolumeEnd(segments));
+            counters.volume_samples += counts.taken;
+            counters.volume_skipped += counts.skipped;
+            return;
+        }
+        let traverser = &mut scratch.traverser;
         let tr = TraceRay::new(Vec3::from(ray.origin), Vec3::from(ray.dir));
         let bvh = data.bvh();
-        match ray.kind() {
+        let verdict = match ray.kind() {
             RayKind::Shadow => {
                 counters.shadow_segments += 1;
                 if traverser.any_hit(bvh, &tr, t0, t1) {
@@ -346,7 +397,8 @@ impl SceneView {
                     None => Verdict::Clear,
                 }
             }
-        }
+        };
+        out.push(verdict);
     }
 
     /// Finishes a speculative ray once all its copies are in: exactly what tracing it one
@@ -359,6 +411,18 @@ impl SceneView {
         sink: &mut impl RaySink,
         counters: &mut KernelCounters,
     ) {
+        if self.volume.is_some() {
+            // The segments of every brick, in order along the ray: the chained trace's fold.
+            let mut ray = *ray;
+            for segment in &outcome.segments {
+                if dvr::composite(&mut ray, segment) {
+                    sink.retire(&ray, ray.volume_rgb);
+                    return;
+                }
+            }
+            self.escape(&ray, sink);
+            return;
+        }
         match (ray.kind(), outcome.nearest) {
             (RayKind::Shadow, _) if outcome.blocked => sink.retire(ray, [0.0; 3]),
             (RayKind::Radiance, Some(hit)) => {

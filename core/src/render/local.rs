@@ -11,11 +11,10 @@ use tracing::{info, info_span};
 
 use super::cache::DomainCache;
 use super::film::{Film, ImageError, OpenTiles};
-use super::kernel::{KernelCounters, RaySink, SceneView};
+use super::kernel::{CopyScratch, KernelCounters, RaySink, SceneView};
 use super::primary::primary_ray;
 use super::speculation::{Groups, Verdict};
 use super::stats::{RenderStats, peak_rss_bytes};
-use crate::bvh::Traverser;
 use crate::camera::PinholeCamera;
 use crate::frame::{TILE_CREDIT, TileGrid};
 use crate::ray::RayRecord;
@@ -198,13 +197,6 @@ pub fn render_local(
     on_progress: &mut (dyn FnMut(&Progress) + Send),
 ) -> Result<(Film, RenderStats), RenderError> {
     frame.check().map_err(RenderError::Frame)?;
-    if options.speculate && manifest.volume.is_some() {
-        return Err(RenderError::Frame(
-            "speculative placement does not render volume scenes yet (its copies return \
-             surface verdicts, not composited colour)"
-                .into(),
-        ));
-    }
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(options.threads.max(1))
         .build()
@@ -422,25 +414,30 @@ fn trace_speculative<'a>(
     new_sink: impl Fn(usize) -> QueueSink<'a> + Sync,
     counters: &mut KernelCounters,
 ) -> Vec<Vec<RayRecord>> {
-    let verdicts: Vec<(Vec<Verdict>, KernelCounters)> = rays
+    // Per chunk: each copy's verdicts (a brick's copy has several), in the order of the rays.
+    let verdicts: Vec<(Vec<(usize, Verdict)>, KernelCounters)> = rays
         .par_chunks(CHUNK)
-        .map(|chunk| {
+        .enumerate()
+        .map(|(n, chunk)| {
             let mut c = KernelCounters::default();
-            let mut traverser = Traverser::new();
-            let v = chunk
-                .iter()
-                .map(|r| view.trace_copy(data, r, &mut traverser, &mut c))
-                .collect();
+            let mut scratch = CopyScratch::new();
+            let mut found = Vec::new();
+            let mut v = Vec::with_capacity(chunk.len());
+            for (i, r) in chunk.iter().enumerate() {
+                found.clear();
+                view.trace_copy(data, r, &mut scratch, &mut c, &mut found);
+                v.extend(found.iter().map(|&f| (n * CHUNK + i, f)));
+            }
             (v, c)
         })
         .collect();
     let mut sink = new_sink(0);
-    for (chunk, (verdicts, c)) in rays.chunks(CHUNK).zip(verdicts) {
+    for (verdicts, c) in verdicts {
         counters.add(&c);
-        for (copy, verdict) in chunk.iter().zip(verdicts) {
+        for (i, verdict) in verdicts {
             // Every copy here was made by `Queues::place` in this frame.
             let settled = groups
-                .settle(&VerdictRecord::new(copy, verdict))
+                .settle(&VerdictRecord::new(&rays[i], verdict))
                 .expect("copy of a waiting ray");
             if let Some((ray, outcome)) = settled {
                 view.conclude(&ray, &outcome, &mut sink, counters);

@@ -8,7 +8,13 @@
 //! domain load. Placed speculatively, a ray generation needs one visit per domain, whatever
 //! the paths' lengths. The price is tracing copies beyond a radiance ray's hit or a shadow
 //! ray's occluder, which the answer then ignores.
+//!
+//! A volume ray's copy returns its brick's composited segments (`render::dvr::Segment`: the
+//! premultiplied colour and opacity of each stretch of the ray between block faces), one
+//! verdict each, then a closing verdict that counts them; the group composites them in order
+//! along the ray, the fold the chained trace makes brick after brick, so the bits agree.
 
+use super::dvr::Segment;
 use crate::ray::RayRecord;
 use crate::schedule::speculative::Generations;
 use crate::wire::VerdictRecord;
@@ -37,7 +43,15 @@ pub enum Verdict {
     Blocked,
     /// A radiance ray's nearest hit in this domain.
     Hit(SurfaceHit),
+    /// One segment a volume ray's copy composited in its brick (not the copy's last verdict).
+    Segment(Segment),
+    /// A volume ray's copy is done: it sent this many [`Verdict::Segment`]s before.
+    VolumeEnd(u32),
 }
+
+/// Most segments one ray may collect from all its copies: a bound on what a peer can make a
+/// group hold (far above a ray's crossings of block faces in any volume a brick can hold).
+pub const MAX_SEGMENTS: u32 = 1 << 16;
 
 impl VerdictRecord {
     /// Kind of a verdict that found nothing.
@@ -46,6 +60,11 @@ impl VerdictRecord {
     pub const BLOCKED: u8 = 1;
     /// Kind of a verdict that found a hit.
     pub const HIT: u8 = 2;
+    /// Kind of a volume segment: `order` its first sample, `normal` its premultiplied colour,
+    /// `t` its opacity.
+    pub const SEGMENT: u8 = 3;
+    /// Kind of a volume copy's closing verdict: `material` counts its segments.
+    pub const VOLUME_END: u8 = 4;
 
     /// `verdict` on `copy`, to go back to the copy's group.
     pub fn new(copy: &RayRecord, verdict: Verdict) -> Self {
@@ -72,6 +91,16 @@ impl VerdictRecord {
                 r.normal = hit.normal;
                 r.material = hit.material;
             }
+            Verdict::Segment(seg) => {
+                r.kind = Self::SEGMENT;
+                r.order = seg.first;
+                r.t = seg.alpha;
+                r.normal = seg.rgb;
+            }
+            Verdict::VolumeEnd(segments) => {
+                r.kind = Self::VOLUME_END;
+                r.material = segments;
+            }
         }
         r
     }
@@ -86,24 +115,33 @@ impl VerdictRecord {
                 normal: self.normal,
                 material: self.material,
             }),
+            Self::SEGMENT => Verdict::Segment(Segment {
+                first: self.order,
+                rgb: self.normal,
+                alpha: self.t,
+            }),
+            Self::VOLUME_END => Verdict::VolumeEnd(self.material),
             _ => Verdict::Clear,
         }
     }
 }
 
 /// All verdicts of a ray combined.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct Outcome {
     /// Some copy found an occluder.
     pub blocked: bool,
     /// The hit of the nearest domain that has one.
     pub nearest: Option<SurfaceHit>,
+    /// A volume ray's segments from all its bricks, in order along the ray once concluded.
+    pub segments: Vec<Segment>,
 }
 
 impl Outcome {
     fn add(&mut self, verdict: Verdict) {
         match verdict {
-            Verdict::Clear => {}
+            Verdict::Clear | Verdict::VolumeEnd(_) => {}
+            Verdict::Segment(seg) => self.segments.push(seg),
             Verdict::Blocked => self.blocked = true,
             Verdict::Hit(hit) => {
                 if self.nearest.is_none_or(|n| hit.order < n.order) {
@@ -117,7 +155,11 @@ impl Outcome {
 /// A ray waiting for its copies' verdicts. It keeps the ray's credit: copies carry none.
 struct Group {
     ray: RayRecord,
+    /// Copies whose last verdict is still to come.
     waiting: u32,
+    /// Segments announced by closing verdicts minus segments received: a copy's segments
+    /// may arrive before or after its closing verdict, so this dips below zero meanwhile.
+    segments_due: i64,
     outcome: Outcome,
 }
 
@@ -130,6 +172,9 @@ pub enum GroupError {
     /// The group's ray is another one: a stale verdict for an id since reused.
     #[error("verdict for group {0} names another ray")]
     Mismatch(u32),
+    /// More segments than the copies announce, or than [`MAX_SEGMENTS`].
+    #[error("verdict for group {0} brings more volume segments than its copies can send")]
+    TooManySegments(u32),
 }
 
 /// The rays born here that wait for their copies; group ids are reused once concluded.
@@ -160,6 +205,7 @@ impl Groups {
         let group = Group {
             ray,
             waiting: domains.len() as u32,
+            segments_due: 0,
             outcome: Outcome::default(),
         };
         self.by_generation.add(ray.generation());
@@ -199,12 +245,41 @@ impl Groups {
         {
             return Err(GroupError::Mismatch(id));
         }
-        group.outcome.add(record.verdict());
-        group.waiting -= 1;
-        if group.waiting > 0 {
+        let verdict = record.verdict();
+        match verdict {
+            Verdict::Segment(_) => {
+                let held = group.outcome.segments.len() as u32;
+                if held >= MAX_SEGMENTS || (group.waiting == 0 && group.segments_due <= 0) {
+                    return Err(GroupError::TooManySegments(id));
+                }
+                group.segments_due -= 1;
+            }
+            Verdict::VolumeEnd(n) => {
+                if n > MAX_SEGMENTS {
+                    return Err(GroupError::TooManySegments(id));
+                }
+                group.segments_due += i64::from(n);
+                group.waiting -= 1;
+            }
+            _ => group.waiting -= 1,
+        }
+        group.outcome.add(verdict);
+        if group.waiting > 0 || group.segments_due != 0 {
+            if group.waiting == 0 && group.segments_due < 0 {
+                // Segments beyond what every copy announced: this group cannot conclude
+                // as a chained trace would; drop it rather than conclude it wrongly.
+                let dropped = slot.take().map(|g| g.ray);
+                self.release(id, &dropped);
+                return Err(GroupError::TooManySegments(id));
+            }
             return Ok(None);
         }
-        let done = slot.take().map(|g| (g.ray, g.outcome));
+        let done = slot.take().map(|g| {
+            let mut outcome = g.outcome;
+            // Each segment's first sample is its own: the order along the ray, no ties.
+            outcome.segments.sort_unstable_by_key(|s| s.first);
+            (g.ray, outcome)
+        });
         self.release(id, &done.as_ref().map(|d| d.0));
         Ok(done)
     }
@@ -323,9 +398,70 @@ mod tests {
     #[test]
     fn verdicts_survive_the_wire_form() {
         let copy = spread(&mut Groups::new(), ray(1), &[1]);
-        for v in [Verdict::Clear, Verdict::Blocked, hit(4, 2.5)] {
+        for v in [
+            Verdict::Clear,
+            Verdict::Blocked,
+            hit(4, 2.5),
+            segment(9, 0.25),
+            Verdict::VolumeEnd(3),
+        ] {
             assert_eq!(VerdictRecord::new(&copy, v).verdict(), v);
         }
+    }
+
+    fn segment(first: u32, alpha: f32) -> Verdict {
+        Verdict::Segment(Segment {
+            first,
+            rgb: [alpha * 0.5; 3],
+            alpha,
+        })
+    }
+
+    #[test]
+    fn volume_segments_conclude_once_all_copies_closed_in_order_along_the_ray() {
+        // Two bricks: the far one's segments (and its closing count) arrive first, the near
+        // one's closing verdict before its segments.
+        let mut groups = Groups::new();
+        let copy = spread(&mut groups, ray(7), &[1, 2]);
+        assert_eq!(settle(&mut groups, &copy, segment(40, 0.2)), None);
+        assert_eq!(settle(&mut groups, &copy, segment(30, 0.1)), None);
+        assert_eq!(settle(&mut groups, &copy, Verdict::VolumeEnd(2)), None);
+        assert_eq!(settle(&mut groups, &copy, Verdict::VolumeEnd(2)), None);
+        assert_eq!(settle(&mut groups, &copy, segment(12, 0.3)), None);
+        let (r, outcome) = settle(&mut groups, &copy, segment(3, 0.4)).unwrap();
+        assert_eq!(r.credit, 7);
+        let firsts: Vec<u32> = outcome.segments.iter().map(|s| s.first).collect();
+        assert_eq!(firsts, [3, 12, 30, 40]);
+        assert_eq!(groups.waiting(), 0);
+
+        // A copy that sends nothing closes with a count of zero; an empty copy off the path
+        // closes with Clear.
+        let copy = spread(&mut groups, ray(1), &[1, 2]);
+        assert_eq!(settle(&mut groups, &copy, Verdict::VolumeEnd(0)), None);
+        let (_, outcome) = settle(&mut groups, &copy, Verdict::Clear).unwrap();
+        assert!(outcome.segments.is_empty());
+    }
+
+    #[test]
+    fn segments_beyond_what_the_copies_announce_are_refused() {
+        let mut groups = Groups::new();
+        let copy = spread(&mut groups, ray(1), &[1]);
+        settle(&mut groups, &copy, segment(1, 0.5));
+        let extra = VerdictRecord::new(&copy, segment(2, 0.5));
+        groups.settle(&extra).unwrap();
+        let end = VerdictRecord::new(&copy, Verdict::VolumeEnd(1));
+        assert_eq!(
+            groups.settle(&end),
+            Err(GroupError::TooManySegments(copy.group)),
+            "two segments, one announced: the group is dropped"
+        );
+        assert_eq!(groups.waiting(), 0);
+        let copy = spread(&mut groups, ray(1), &[1]);
+        let huge = VerdictRecord::new(&copy, Verdict::VolumeEnd(MAX_SEGMENTS + 1));
+        assert_eq!(
+            groups.settle(&huge),
+            Err(GroupError::TooManySegments(copy.group))
+        );
     }
 
     #[test]

@@ -80,6 +80,11 @@ impl Speculation {
                     debug!(error = %e, tile = v.tile, epoch = v.epoch, "verdict refused");
                     self.refused += 1;
                 }
+                Err(e @ GroupError::TooManySegments(_)) => {
+                    // Only a peer that breaks the protocol sends these: its ray is dropped.
+                    warn!(error = %e, tile = v.tile, epoch = v.epoch, "verdict refused");
+                    self.refused += 1;
+                }
             }
         }
     }
