@@ -30,7 +30,7 @@ use std::process::{Command, Stdio};
 
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
-use rayfarm_core::bvh::{Bvh, BvhNode, Hit, SLOT_EMPTY, SLOT_INNER, TraceRay, Traverser};
+use rayfarm_core::bvh::{Bvh, BvhNode, Hit, PACKET, SLOT_EMPTY, SLOT_INNER, TraceRay, Traverser};
 use rayfarm_core::camera::PinholeCamera;
 use rayfarm_core::geometry::{PackedTriangle, TriangleBlock};
 use rayfarm_core::sampling::{Purpose, uniform};
@@ -151,28 +151,52 @@ fn thread_seconds() -> f64 {
 /// One closest-hit pass of rayfarm's kernel over `rays` on this thread, in thread CPU seconds.
 /// Preparing each `TraceRay` is inside the timed loop, as filling each `RTCRayHit` is on the
 /// Embree side.
-fn trace_rayfarm(bvh: Bvh, rays: &[BenchRay], hits: &mut Vec<Option<Hit>>) -> f64 {
+/// Coherent (camera) rays go in packets of eight neighbours as the render kernel traces them,
+/// unless `RAYFARM_PACKETS=0`; incoherent ones one at a time.
+fn trace_rayfarm(bvh: Bvh, rays: &[BenchRay], packets: bool, hits: &mut Vec<Option<Hit>>) -> f64 {
     hits.clear();
-    hits.reserve(rays.len());
+    hits.resize(rays.len(), None);
     let mut traverser = Traverser::new();
     let start = thread_seconds();
-    for r in rays {
-        let ray = TraceRay::new(r.origin.into(), r.dir.into());
-        hits.push(traverser.nearest_hit(bvh, &ray, r.t_min, r.t_max));
-    }
+    trace_all(&mut traverser, bvh, rays, packets, hits);
     thread_seconds() - start
+}
+
+/// Traces `rays` into `hits`, in packets or one at a time.
+#[inline(always)]
+fn trace_all(
+    traverser: &mut Traverser,
+    bvh: Bvh,
+    rays: &[BenchRay],
+    packets: bool,
+    hits: &mut [Option<Hit>],
+) {
+    if !(packets && traverser.packets()) {
+        for (r, hit) in rays.iter().zip(hits) {
+            let ray = TraceRay::new(r.origin.into(), r.dir.into());
+            *hit = traverser.nearest_hit(bvh, &ray, r.t_min, r.t_max);
+        }
+        return;
+    }
+    for (chunk, out) in rays.chunks(PACKET).zip(hits.chunks_mut(PACKET)) {
+        let n = chunk.len();
+        let mut tr = [TraceRay::new(Vec3::ZERO, Vec3::X); PACKET];
+        let (mut t0, mut t1) = ([0.0; PACKET], [0.0; PACKET]);
+        for (i, r) in chunk.iter().enumerate() {
+            tr[i] = TraceRay::new(r.origin.into(), r.dir.into());
+            (t0[i], t1[i]) = (r.t_min, r.t_max);
+        }
+        traverser.nearest_hits(bvh, &tr[..n], &t0[..n], &t1[..n], out);
+    }
 }
 
 /// One untimed pass for instruction counts; returns the number of hits.
 #[inline(never)]
-fn counted_pass(bvh: Bvh, rays: &[BenchRay]) -> usize {
+fn counted_pass(bvh: Bvh, rays: &[BenchRay], packets: bool) -> usize {
     let mut traverser = Traverser::new();
-    rays.iter()
-        .filter(|r| {
-            let ray = TraceRay::new(r.origin.into(), r.dir.into());
-            traverser.nearest_hit(bvh, &ray, r.t_min, r.t_max).is_some()
-        })
-        .count()
+    let mut hits = vec![None; rays.len()];
+    trace_all(&mut traverser, bvh, rays, packets, &mut hits);
+    hits.iter().filter(|h| h.is_some()).count()
 }
 
 /// A tree's surface-area cost (the expected work of a ray through it: node visits plus block
@@ -473,7 +497,7 @@ fn main() -> Result<()> {
     let tree = manifest.domain_tree();
     let (camera, pixels) = camera_rays(&manifest, &tree, opts.size);
     let mut hits = Vec::new();
-    trace_rayfarm(bvh, &camera, &mut hits);
+    trace_rayfarm(bvh, &camera, false, &mut hits);
     let diffuse = diffuse_rays(&camera, &pixels, &hits, bvh, &tree, manifest.ray_epsilon);
     let sets: [(&str, &[BenchRay]); 2] = [("coherent", &camera), ("incoherent", &diffuse)];
     if let Some(name) = &opts.count {
@@ -481,11 +505,13 @@ fn main() -> Result<()> {
             .iter()
             .find(|(n, _)| n == name)
             .ok_or_else(|| format!("--count {name}: expected coherent or incoherent"))?;
-        let found = counted_pass(bvh, rays);
+        let packets = *name == "coherent" && Traverser::new().packets();
+        let found = counted_pass(bvh, rays, packets);
         println!(
-            "{name}: {} rays, {found} hits, kernel {}",
+            "{name}: {} rays, {found} hits, kernel {}, packets {}",
             rays.len(),
-            Traverser::new().kernel().name()
+            Traverser::new().kernel().name(),
+            if packets { "on" } else { "off" }
         );
         return Ok(());
     }
@@ -513,10 +539,11 @@ fn main() -> Result<()> {
         opts.reps
     );
     let mut ours = Vec::new();
-    for (_, rays) in &sets {
+    for (name, rays) in &sets {
         let mut hits = Vec::new();
+        let packets = *name == "coherent";
         let seconds = (0..opts.reps)
-            .map(|_| trace_rayfarm(bvh, rays, &mut hits))
+            .map(|_| trace_rayfarm(bvh, rays, packets, &mut hits))
             .collect();
         ours.push((Timing(seconds), hits));
     }

@@ -20,6 +20,11 @@ use glam::{Vec3, Vec3A};
 
 use crate::geometry::{Aabb, BLOCK, PackedTriangle, ShearedRay, TriangleBlock, nearer};
 
+mod packet;
+
+pub use packet::PACKET;
+use packet::{PacketStack, nearest_packet};
+
 /// Width of a node.
 pub const WIDTH: usize = 8;
 
@@ -531,6 +536,19 @@ impl Kernel {
     }
 }
 
+/// Whether packets are on for this process: `RAYFARM_PACKETS=0` (or `off`) turns them off, to
+/// measure them or rule them out; decided once.
+pub fn packets_selected() -> bool {
+    static ON: OnceLock<bool> = OnceLock::new();
+    *ON.get_or_init(|| match std::env::var("RAYFARM_PACKETS") {
+        Ok(v) if matches!(v.trim(), "0" | "off" | "false" | "no") => {
+            tracing::info!("ray packets off");
+            false
+        }
+        _ => true,
+    })
+}
+
 /// A child to visit: node index or first block, its `meta`, and its entry distance.
 #[derive(Clone, Copy)]
 struct Entry {
@@ -543,7 +561,9 @@ struct Entry {
 /// traversing a coherent ray's whole path.
 pub struct Traverser {
     stack: Stack,
+    packet_stack: PacketStack,
     kernel: Kernel,
+    packets: bool,
 }
 
 impl Default for Traverser {
@@ -562,8 +582,21 @@ impl Traverser {
     pub fn with_kernel(kernel: Kernel) -> Option<Self> {
         kernel.supported().then(|| Traverser {
             stack: Stack::new(),
+            packet_stack: PacketStack::new(),
             kernel,
+            packets: packets_selected(),
         })
+    }
+
+    /// Whether [`Traverser::nearest_hits`] traces packets (the default, unless
+    /// `RAYFARM_PACKETS=0`) or one ray at a time; the hits are the same either way.
+    pub fn packets(&self) -> bool {
+        self.packets
+    }
+
+    /// Turns packets on or off for this traverser.
+    pub fn set_packets(&mut self, on: bool) {
+        self.packets = on;
     }
 
     /// The kernel this traverser runs.
@@ -584,6 +617,47 @@ impl Traverser {
             #[cfg(target_arch = "x86_64")]
             Kernel::Sse => nearest::<x86::Sse>(stack, bvh, ray, t0, t1),
             _ => nearest::<Scalar>(stack, bvh, ray, t0, t1),
+        }
+    }
+
+    /// The nearest hits of neighbouring, coherent rays (a tile's camera rays), each within its
+    /// own `t0[i] <= t <= t1[i]`, into `out`: traced as packets of [`PACKET`] in lock step, or
+    /// one at a time if packets are off. The same hits as [`Traverser::nearest_hit`] per ray.
+    ///
+    /// # Panics
+    /// If the four slices differ in length.
+    pub fn nearest_hits(
+        &mut self,
+        bvh: Bvh,
+        rays: &[TraceRay],
+        t0: &[f32],
+        t1: &[f32],
+        out: &mut [Option<Hit>],
+    ) {
+        let n = rays.len();
+        assert!(
+            t0.len() == n && t1.len() == n && out.len() == n,
+            "every ray needs an interval and a place for its hit"
+        );
+        if !self.packets || bvh.nodes.is_empty() || n < 2 {
+            for i in 0..n {
+                out[i] = self.nearest_hit(bvh, &rays[i], t0[i], t1[i]);
+            }
+            return;
+        }
+        let (stack, single) = (&mut self.packet_stack, &mut self.stack);
+        for start in (0..n).step_by(PACKET) {
+            let at = start..(start + PACKET).min(n);
+            let (r, a, b) = (&rays[at.clone()], &t0[at.clone()], &t1[at.clone()]);
+            let o = &mut out[at];
+            match self.kernel {
+                #[cfg(target_arch = "x86_64")]
+                // SAFETY: a traverser holds only a kernel this CPU supports (`with_kernel`).
+                Kernel::Avx2 => unsafe { x86::nearest_packet_avx2(stack, single, bvh, r, a, b, o) },
+                #[cfg(target_arch = "x86_64")]
+                Kernel::Sse => nearest_packet::<x86::Sse>(stack, single, bvh, r, a, b, o),
+                _ => nearest_packet::<Scalar>(stack, single, bvh, r, a, b, o),
+            }
         }
     }
 
@@ -612,6 +686,24 @@ trait Isa {
     /// Entry distances into the node's eight child boxes within `[t0, t1]`, and a bit mask of
     /// the children that are entered.
     fn slab(node: &BvhNode, ray: &Self::Ray, t0: f32, t1: f32) -> ([f32; WIDTH], u32);
+    /// [`Isa::slab`] for a packet: lowers `nearest` to the entry distance of each entered
+    /// child and returns the entered mask.
+    #[inline(always)]
+    fn slab_nearest(
+        node: &BvhNode,
+        ray: &Self::Ray,
+        t0: f32,
+        t1: f32,
+        nearest: &mut [f32; WIDTH],
+    ) -> u32 {
+        let (near, mask) = Self::slab(node, ray, t0, t1);
+        for (lane, (n, &d)) in nearest.iter_mut().zip(&near).enumerate() {
+            if mask >> lane & 1 != 0 {
+                *n = n.min(d);
+            }
+        }
+        mask
+    }
     /// The watertight test of a block's four lanes (infinity for a miss), and a bit mask of
     /// the lanes whose hit lies in `[t0, t1]`.
     fn block(block: &TriangleBlock, ray: &Self::Ray, t0: f32, t1: f32) -> ([f32; BLOCK], u32);
@@ -763,17 +855,34 @@ fn nearest<K: Isa>(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32
         lane: 0,
         id: u64::MAX,
     };
-    stack.len = 0;
-    let mut cur = Entry {
+    let root = Entry {
         child: 0,
         meta: SLOT_INNER,
         near: t0,
     };
+    descend::<K>(stack, bvh, &r, t0, root, &mut best);
+    (best.block != u32::MAX).then_some(best)
+}
+
+/// The ordered traversal of the subtree at `start` (the whole tree from the root; a packet's
+/// ray that is left alone, from where it was left), improving `best` (ties to the lower id).
+#[inline(always)]
+fn descend<K: Isa>(
+    stack: &mut Stack,
+    bvh: Bvh,
+    r: &K::Ray,
+    t0: f32,
+    start: Entry,
+    best_out: &mut Hit,
+) {
+    let mut best = *best_out;
+    stack.len = 0;
+    let mut cur = start;
     loop {
         if cur.meta == SLOT_INNER {
             // SAFETY: the root or a child index of a validated tree.
             let node = unsafe { bvh.node(cur.child) };
-            let (near, mut mask) = K::slab(node, &r, t0, best.t);
+            let (near, mut mask) = K::slab(node, r, t0, best.t);
             if mask != 0 {
                 let slot = mask.trailing_zeros() as usize;
                 mask &= mask - 1;
@@ -838,11 +947,14 @@ fn nearest<K: Isa>(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32
         } else {
             // SAFETY: a leaf child's range of a validated tree.
             let blocks = unsafe { bvh.leaf(cur.child, cur.meta) };
-            leaf_nearest::<K>(blocks, cur.child, &r, t0, &mut best);
+            leaf_nearest::<K>(blocks, cur.child, r, t0, &mut best);
         }
         loop {
             match stack.pop() {
-                None => return (best.block != u32::MAX).then_some(best),
+                None => {
+                    *best_out = best;
+                    return;
+                }
                 Some(e) if e.near > best.t => continue,
                 Some(e) => {
                     cur = e;
@@ -908,6 +1020,7 @@ mod x86 {
 
     use std::arch::x86_64::*;
 
+    use super::packet::{PacketStack, nearest_packet};
     use super::{Bvh, BvhNode, Hit, Isa, Stack, TraceRay, WIDTH, any, nearest};
     use crate::geometry::{BLOCK, ShearedSse, TriangleBlock};
 
@@ -1028,6 +1141,38 @@ mod x86 {
         }
 
         #[inline(always)]
+        fn slab_nearest(
+            node: &BvhNode,
+            r: &Avx2Ray,
+            t0: f32,
+            t1: f32,
+            nearest: &mut [f32; WIDTH],
+        ) -> u32 {
+            // SAFETY: only reached from the `avx2,fma` functions below; loads read the node's
+            // 64-byte aligned rows and `nearest`'s eight floats.
+            unsafe {
+                let plane = |row: usize, a: usize| {
+                    // SAFETY: rows are below 6 (`TraceRay::new`).
+                    let b = _mm256_load_ps(node.bounds.get_unchecked(row).as_ptr());
+                    _mm256_fmsub_ps(b, r.inv[a], r.origin_inv[a])
+                };
+                let near = _mm256_max_ps(
+                    _mm256_max_ps(plane(r.near_row[0], 0), plane(r.near_row[1], 1)),
+                    _mm256_max_ps(plane(r.near_row[2], 2), _mm256_set1_ps(t0)),
+                );
+                let far = _mm256_min_ps(
+                    _mm256_min_ps(plane(r.far_row[0], 0), plane(r.far_row[1], 1)),
+                    _mm256_min_ps(plane(r.far_row[2], 2), _mm256_set1_ps(t1)),
+                );
+                let entered = _mm256_cmp_ps::<_CMP_LE_OQ>(near, far);
+                let held = _mm256_loadu_ps(nearest.as_ptr());
+                let lower = _mm256_min_ps(held, near);
+                _mm256_storeu_ps(nearest.as_mut_ptr(), _mm256_blendv_ps(held, lower, entered));
+                _mm256_movemask_ps(entered) as u32
+            }
+        }
+
+        #[inline(always)]
         fn block(block: &TriangleBlock, r: &Avx2Ray, t0: f32, t1: f32) -> ([f32; BLOCK], u32) {
             // SAFETY: SSE2 is part of x86-64.
             unsafe { block.intersect_sse(&r.tri, t0, t1) }
@@ -1045,6 +1190,21 @@ mod x86 {
         t1: f32,
     ) -> Option<Hit> {
         nearest::<Avx2>(stack, bvh, ray, t0, t1)
+    }
+
+    /// # Safety
+    /// The CPU must support AVX2 and FMA.
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn nearest_packet_avx2(
+        stack: &mut PacketStack,
+        single: &mut Stack,
+        bvh: Bvh,
+        rays: &[TraceRay],
+        t0: &[f32],
+        t1: &[f32],
+        out: &mut [Option<Hit>],
+    ) {
+        nearest_packet::<Avx2>(stack, single, bvh, rays, t0, t1, out)
     }
 
     /// # Safety

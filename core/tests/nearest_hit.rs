@@ -151,3 +151,52 @@ proptest! {
         })?;
     }
 }
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(32))]
+    /// Packets give single rays' hits to the bit on every kernel: rays from one origin through a
+    /// small cone (coherent, as camera rays) and scattered ones (a packet that diverges at
+    /// once), each with its own interval, in runs that end in a partial packet.
+    #[test]
+    fn packets_find_the_single_ray_nearest_hits(seed in any::<u64>()) {
+        thread_local! {
+            static SCENES: (tempfile::TempDir, Loaded, Vec<Loaded>) = scenes();
+        }
+        SCENES.with(|(_, one, _)| {
+            let mut s = seed | 1;
+            let mut next = move || {
+                s ^= s << 13; s ^= s >> 7; s ^= s << 17;
+                ((s >> 40) as f32) / (1u64 << 24) as f32
+            };
+            let bvh = one.domains[0].bvh();
+            let mut hits = 0;
+            for spread in [0.02f32, 0.3, 2.0] {
+                let o = Vec3::new(next(), next(), next()) * 1.6 - 0.3;
+                let centre = Vec3::new(0.5, 0.5, 0.5) - o;
+                let (mut rays, mut t0, mut t1) = (Vec::new(), Vec::new(), Vec::new());
+                for _ in 0..61 {
+                    let j = Vec3::new(next(), next(), next()) * 2.0 - 1.0;
+                    let d = (centre.normalize_or(Vec3::X) + j * spread).normalize_or(Vec3::Y);
+                    rays.push(TraceRay::new(o, d));
+                    let a = if next() < 0.3 { next() * 0.5 } else { 0.0 };
+                    t0.push(a);
+                    t1.push(if next() < 0.3 { a + next() } else { f32::INFINITY });
+                }
+                for k in kernels() {
+                    let mut single = traverser(k);
+                    let expect: Vec<_> = (0..rays.len())
+                        .map(|i| single.nearest_hit(bvh, &rays[i], t0[i], t1[i]))
+                        .collect();
+                    let mut packed = traverser(k);
+                    packed.set_packets(true);
+                    let mut out = vec![None; rays.len()];
+                    packed.nearest_hits(bvh, &rays, &t0, &t1, &mut out);
+                    prop_assert_eq!(&out, &expect, "{:?}, spread {}", k, spread);
+                    hits += expect.iter().flatten().count();
+                }
+            }
+            prop_assert!(hits > 0);
+            Ok(())
+        })?;
+    }
+}
