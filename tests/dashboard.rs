@@ -70,8 +70,9 @@ impl Browser {
     fn call(&self, method: &str, path: &str, body: &Value) -> Value {
         let body = body.to_string();
         let headers = [("Content-Type", "application/json")];
-        let (status, text) = request(&self.addr, method, path, &headers, &body)
-            .unwrap_or_else(|e| panic!("WebDriver {method} {path}: {e}"));
+        let (status, text) =
+            rayfarm_tests::try_http_request(&self.addr, method, path, &headers, &body)
+                .unwrap_or_else(|e| panic!("WebDriver {method} {path}: {e}"));
         let value: Value = serde_json::from_str(&text)
             .unwrap_or_else(|_| panic!("WebDriver {method} {path}: {status} {text}"));
         if status != 200 {
@@ -121,7 +122,7 @@ impl Browser {
 impl Drop for Browser {
     fn drop(&mut self) {
         if !self.session.is_empty() {
-            let _ = request(
+            let _ = rayfarm_tests::try_http_request(
                 &self.addr,
                 "DELETE",
                 &format!("/session/{}", self.session),
@@ -132,64 +133,6 @@ impl Drop for Browser {
         let _ = self.driver.kill();
         let _ = self.driver.wait();
     }
-}
-
-/// One HTTP/1.1 request; the answer's status and body, read to its Content-Length
-/// (chromedriver keeps connections open whatever the request asks).
-fn request(
-    addr: &str,
-    method: &str,
-    path: &str,
-    headers: &[(&str, &str)],
-    body: &str,
-) -> Result<(u16, String), String> {
-    use std::io::{Read, Write};
-    let mut stream = std::net::TcpStream::connect(addr).map_err(|e| format!("connect: {e}"))?;
-    stream
-        .set_read_timeout(Some(TIMEOUT))
-        .map_err(|e| e.to_string())?;
-    let mut head = format!(
-        "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\nContent-Length: {}\r\n",
-        body.len()
-    );
-    for (k, v) in headers {
-        head.push_str(&format!("{k}: {v}\r\n"));
-    }
-    head.push_str("\r\n");
-    stream
-        .write_all(format!("{head}{body}").as_bytes())
-        .map_err(|e| format!("send: {e}"))?;
-    let mut reader = BufReader::new(stream);
-    let mut status_line = String::new();
-    reader
-        .read_line(&mut status_line)
-        .map_err(|e| format!("read: {e}"))?;
-    let status = status_line
-        .split(' ')
-        .nth(1)
-        .and_then(|c| c.parse().ok())
-        .ok_or_else(|| format!("no status in {status_line:?}"))?;
-    let mut length = 0;
-    loop {
-        let mut line = String::new();
-        reader
-            .read_line(&mut line)
-            .map_err(|e| format!("read: {e}"))?;
-        let line = line.trim_end();
-        if line.is_empty() {
-            break;
-        }
-        if let Some((k, v)) = line.split_once(':')
-            && k.eq_ignore_ascii_case("content-length")
-        {
-            length = v.trim().parse().map_err(|_| format!("bad length {v:?}"))?;
-        }
-    }
-    let mut body = vec![0; length];
-    reader
-        .read_exact(&mut body)
-        .map_err(|e| format!("read body: {e}"))?;
-    Ok((status, String::from_utf8_lossy(&body).into_owned()))
 }
 
 fn which(program: &str) -> Option<String> {

@@ -40,7 +40,8 @@ const SMALL: &[(&str, &str)] = &[
         "--width 32 --height 32 --spp 1",
     ),
     ("--spp 16", "--spp 1"),
-    ("--dims 256,256,128", "--dims 16,16,8"),
+    // 64 bricks need 64 blocks of 8 cells: 8 x 8 x 4 of them.
+    ("--dims 256,256,128", "--dims 64,64,32"),
     ("--workers 4", "--workers 2"),
     ("--repeats 3", "--repeats 1"),
     (
@@ -223,17 +224,17 @@ fn write_sphere_ply(path: &Path) {
     std::fs::write(path, text).expect("write ply");
 }
 
-/// A 16x16x8 u16 volume holding a ball whose surface is at 900.
+/// A 64x64x32 u16 volume holding a ball (squashed in z) whose surface is at 900, 22 voxels out.
 fn write_ball_raw(path: &Path) {
     let mut bytes = Vec::new();
-    for z in 0..8 {
-        for y in 0..16 {
-            for x in 0..16 {
-                let d = ((x as f32 - 7.5).powi(2)
-                    + (y as f32 - 7.5).powi(2)
-                    + ((z as f32 - 3.5) * 2.0).powi(2))
+    for z in 0..32 {
+        for y in 0..64 {
+            for x in 0..64 {
+                let d = ((x as f32 - 31.5).powi(2)
+                    + (y as f32 - 31.5).powi(2)
+                    + ((z as f32 - 15.5) * 2.0).powi(2))
                 .sqrt();
-                let v = (2000.0 - d * 200.0).clamp(0.0, 65535.0) as u16;
+                let v = (5300.0 - d * 200.0).clamp(0.0, 65535.0) as u16;
                 bytes.extend_from_slice(&v.to_le_bytes());
             }
         }
