@@ -1043,7 +1043,7 @@ pub fn try_http_request(
     headers: &[(&str, &str)],
     body: &str,
 ) -> Result<(u16, String), String> {
-    use std::io::{Read, Write};
+    use std::io::Write;
     let mut stream = std::net::TcpStream::connect(addr).map_err(|e| format!("connect: {e}"))?;
     stream
         .set_read_timeout(Some(START_TIMEOUT))
