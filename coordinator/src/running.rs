@@ -1,37 +1,21 @@
-//! The running frame as the shell holds it: the machine's `RunningFrame` (which does no I/O)
-//! with the film file its committed tiles are written to and the previews made of it, and
-//! the clock the shell reads for the machine's events.
+//! A frame's film as the shell holds it (the frame itself is the machine's): the film file
+//! its committed tiles are written to and the previews made of it, from the frame's
+//! preparation to its results; and the clock the shell reads for the machine's events.
 
-use std::ops::{Deref, DerefMut};
 use std::sync::{Arc, OnceLock};
 use std::time::Instant;
 
 use rayfarm_core::render::Film;
 use rayfarm_machine::Time;
-use rayfarm_machine::coordinator::{CommittedTile, RunningFrame};
+use rayfarm_machine::coordinator::CommittedTile;
 
 use crate::preview::Previews;
 
-/// A frame and its film: they start, run and end together. Previews hold the film weakly
-/// (its file goes when the frame does) and outlive it with their last image.
+/// A frame's film and its previews. Previews hold the film weakly (its file goes when the
+/// frame's film does) and outlive it with their last image.
 pub struct Running {
-    pub frame: RunningFrame,
     pub film: Arc<Film>,
     pub previews: Arc<Previews>,
-}
-
-// The frame is what the state reads and changes; the film only takes its committed tiles.
-impl Deref for Running {
-    type Target = RunningFrame;
-    fn deref(&self) -> &RunningFrame {
-        &self.frame
-    }
-}
-
-impl DerefMut for Running {
-    fn deref_mut(&mut self) -> &mut RunningFrame {
-        &mut self.frame
-    }
 }
 
 impl Running {
