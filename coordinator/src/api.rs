@@ -114,6 +114,20 @@ impl Api {
         }
     }
 
+    /// A finished job's image path, statistics and hash ([`Coordinator::result`]), read off
+    /// the runtime: the statistics may come from the store.
+    async fn result(
+        &self,
+        job_id: &str,
+        format: proto::ImageFormat,
+    ) -> Result<(std::path::PathBuf, String, String), Status> {
+        let coordinator = self.coordinator.clone();
+        let id = job_id.to_string();
+        tokio::task::spawn_blocking(move || coordinator.result(&id, format))
+            .await
+            .map_err(|e| Status::internal(format!("reading the result failed: {e}")))?
+    }
+
     /// Reads `scene`'s manifest on a blocking thread, within [`SCENE_READ_TIMEOUT`], so slow
     /// or hung storage never stalls the async runtime (heartbeats, other calls).
     async fn read_scene(&self, scene: &str) -> Result<Manifest, Status> {
@@ -231,7 +245,12 @@ impl JobService for Api {
     ) -> Result<Response<WatchStream>, Status> {
         let job_id = request.into_inner().job_id;
         check_field("job_id", &job_id)?;
-        let mut rx = self.coordinator.watch(&job_id)?;
+        // A job finished long ago is read from the store: off the runtime.
+        let coordinator = self.coordinator.clone();
+        let id = job_id.clone();
+        let mut rx = tokio::task::spawn_blocking(move || coordinator.watch(&id))
+            .await
+            .map_err(|e| Status::internal(format!("watching the job failed: {e}")))??;
         let (tx, out) = mpsc::channel(4);
         tokio::spawn(async move {
             loop {
@@ -297,7 +316,7 @@ impl JobService for Api {
         let client = rayfarm_node::listen::remote_addr(&request).map(|a| a.ip());
         let r = request.into_inner();
         check_field("job_id", &r.job_id)?;
-        let (path, stats_json, image_hash) = self.coordinator.result(&r.job_id, r.format())?;
+        let (path, stats_json, image_hash) = self.result(&r.job_id, r.format()).await?;
         let _slot = self.fetches.take(client)?;
         let unreadable = |e| unreadable(&r.job_id, &path, e);
         let len = tokio::fs::metadata(&path).await.map_err(unreadable)?.len();
@@ -334,7 +353,7 @@ impl JobService for Api {
         let client = rayfarm_node::listen::remote_addr(&request).map(|a| a.ip());
         let r = request.into_inner();
         check_field("job_id", &r.job_id)?;
-        let (path, stats_json, image_hash) = self.coordinator.result(&r.job_id, r.format())?;
+        let (path, stats_json, image_hash) = self.result(&r.job_id, r.format()).await?;
         let slot = self.fetches.take(client)?;
         let unreadable = |e| unreadable(&r.job_id, &path, e);
         let (total, checksum) = self.checksum(&path).await.map_err(unreadable)?;

@@ -65,6 +65,14 @@ impl Journal {
         self.send(Op::Put(Box::new(job), Some(then)));
     }
 
+    /// A handle that reads records from the store (waiting, at most, for the record being
+    /// written): for callers outside the coordinator's state lock.
+    pub fn reader(&self) -> Reader {
+        Reader {
+            store: self.store.clone(),
+        }
+    }
+
     /// Closes the store once every record handed over so far is written; the receiver hears
     /// when it is closed. Later records are not written.
     pub fn close(&self) -> mpsc::Receiver<()> {
@@ -95,6 +103,23 @@ impl Drop for Journal {
             } else {
                 let _ = thread.join();
             }
+        }
+    }
+}
+
+/// Reads the journal's store; see [`Journal::reader`].
+#[derive(Clone)]
+pub struct Reader {
+    store: Arc<Mutex<Option<Store>>>,
+}
+
+impl Reader {
+    /// Job `id`'s stored record; an error says why it could not be read (the store closed,
+    /// or damaged).
+    pub fn get(&self, id: &str) -> Result<Option<StoredJob>, String> {
+        match lock(&self.store).as_ref() {
+            Some(store) => store.get(id).map_err(|e| e.with_causes()),
+            None => Err("the job store is closed".into()),
         }
     }
 }

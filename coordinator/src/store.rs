@@ -19,6 +19,9 @@ use redb::{ReadableDatabase, ReadableTable, TableDefinition};
 /// File name of the database inside the data directory.
 pub const FILE_NAME: &str = "rayfarm.redb";
 
+/// The database's page cache (see [`Store::open`]).
+const CACHE_BYTES: usize = 1 << 20;
+
 /// Job id -> [`StoredJob`] (protobuf).
 const JOBS: TableDefinition<&str, &[u8]> = TableDefinition::new("jobs");
 /// Small facts about the store itself, by name.
@@ -181,8 +184,11 @@ impl Store {
         let path = data_dir.join(FILE_NAME);
         // The whole file is checked on open: a damaged file then fails here with an error
         // instead of misbehaving later. The store is small, so the check is cheap.
+        // The coordinator reads the whole store once, at start, and then only a finished
+        // job's record when its result is fetched: a larger cache would only hold the pages
+        // it wrote, and grow the process by as much.
         let db = redb::Builder::new()
-            .set_cache_size(16 << 20)
+            .set_cache_size(CACHE_BYTES)
             .set_check_integrity_on_open(true)
             .create(&path)
             .map_err(|source| match source {
@@ -288,6 +294,24 @@ impl Store {
             loaded.jobs.push(job);
         }
         Ok(loaded)
+    }
+
+    /// Job `id`'s record, if stored.
+    pub fn get(&self, id: &str) -> Result<Option<StoredJob>, StoreError> {
+        let e = self.err("reading a job");
+        let txn = self.db()?.begin_read().map_err(|x| e(x.into()))?;
+        let table = txn.open_table(JOBS).map_err(|x| e(x.into()))?;
+        let Some(bytes) = table.get(id).map_err(|x| e(x.into()))? else {
+            return Ok(None);
+        };
+        let job = <StoredJob as prost::Message>::decode(bytes.value()).map_err(|source| {
+            StoreError::Record {
+                path: self.path.clone(),
+                id: id.to_string(),
+                source,
+            }
+        })?;
+        Ok(Some(job))
     }
 
     /// Writes `job` (replacing its previous record) and raises the stored sequence number to

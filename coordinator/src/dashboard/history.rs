@@ -77,8 +77,8 @@ impl History {
             0.0
         } else {
             coordinator
-                .watch(&status.running_job_id)
-                .map_or(0.0, |rx| rx.borrow().rays_per_second)
+                .progress(&status.running_job_id)
+                .map_or(0.0, |p| p.rays_per_second)
         };
         let now = Instant::now();
         let mut inner = self.lock();

@@ -155,11 +155,7 @@ async fn jobs(State(ctx): State<Ctx>, headers: HeaderMap) -> Result<Response, Ap
     let rows: Vec<JobRow> = jobs
         .into_iter()
         .map(|j| {
-            let progress = ctx
-                .coordinator
-                .watch(&j.job_id)
-                .map(|rx| rx.borrow().clone())
-                .unwrap_or_default();
+            let progress = ctx.coordinator.progress(&j.job_id).unwrap_or_default();
             let spec = j.spec.clone().unwrap_or_default();
             JobRow {
                 state: state_name(j.state()),

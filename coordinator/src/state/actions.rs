@@ -104,6 +104,7 @@ impl Coordinator {
             return;
         };
         let state = record.state();
+        let id = record.id().to_string();
         let preview_sequence = view.preview.as_ref().map_or(0, |p| p.sequence());
         view.progress.send_modify(|p| {
             p.state = state as i32;
@@ -115,6 +116,15 @@ impl Coordinator {
                 p.eta_seconds = 0.0;
             }
         });
+        if is_finished(state) {
+            st.finished.retain(|j| *j != id);
+            st.finished.push_back(id);
+            while st.finished.len() > KEPT_FINISHED_VIEWS {
+                if let Some(old) = st.finished.pop_front() {
+                    st.views.remove(&old);
+                }
+            }
+        }
     }
 
     /// Reads job `id`'s scene and creates its film on a thread of its own; the machine hears

@@ -194,34 +194,77 @@ impl Coordinator {
         (jobs.into_iter().map(|j| j.summary.clone()).collect(), next)
     }
 
-    /// A receiver of a job's progress events.
-    pub fn watch(&self, id: &str) -> Result<watch::Receiver<proto::WatchJobResponse>, Status> {
-        let st = self.lock();
-        st.views
+    /// A job's latest progress event, while it has a progress channel (queued, running, or
+    /// among the last finished); never reads the store, so the runtime may call it.
+    pub fn progress(&self, id: &str) -> Option<proto::WatchJobResponse> {
+        self.lock()
+            .views
             .get(id)
-            .map(|v| v.progress.subscribe())
-            .ok_or_else(|| not_found(id))
+            .map(|v| v.progress.borrow().clone())
     }
 
-    /// Where a finished job's image is, with its statistics and hash.
+    /// A receiver of a job's progress events. A job finished long ago has no channel any
+    /// more: it gets one holding its final event, statistics read from the store. Call it
+    /// off the async runtime (it may wait for the store).
+    pub fn watch(&self, id: &str) -> Result<watch::Receiver<proto::WatchJobResponse>, Status> {
+        let mut record = {
+            let st = self.lock();
+            if let Some(view) = st.views.get(id) {
+                return Ok(view.progress.subscribe());
+            }
+            st.machine.job(id).cloned().ok_or_else(|| not_found(id))?
+        };
+        record.stats_json = self.stored_stats(id);
+        Ok(progress_channel(&record).subscribe())
+    }
+
+    /// Where a finished job's image is, with its statistics and hash. Call it off the async
+    /// runtime (it may wait for the store).
     pub fn result(
         &self,
         id: &str,
         format: proto::ImageFormat,
     ) -> Result<(PathBuf, String, String), Status> {
-        let st = self.lock();
-        let job = st.machine.job(id).ok_or_else(|| not_found(id))?;
-        if job.state() != JobState::Succeeded {
-            return Err(Status::failed_precondition(format!(
-                "job {id} is {} and has no result",
-                state_name(job.state())
-            )));
-        }
+        let (hash, recent_stats) = {
+            let st = self.lock();
+            let job = st.machine.job(id).ok_or_else(|| not_found(id))?;
+            if job.state() != JobState::Succeeded {
+                return Err(Status::failed_precondition(format!(
+                    "job {id} is {} and has no result",
+                    state_name(job.state())
+                )));
+            }
+            // A job that just finished: its final record may still be on its way to the
+            // store, and its progress channel holds the statistics.
+            let recent = st
+                .views
+                .get(id)
+                .map(|v| v.progress.borrow().stats_json.clone())
+                .filter(|s| !s.is_empty());
+            (job.image_hash.clone(), recent)
+        };
+        let stats_json = recent_stats.unwrap_or_else(|| self.stored_stats(id));
         Ok((
             results::image_path(&self.config.data_dir, id, format),
-            job.stats_json.clone(),
-            job.image_hash.clone(),
+            stats_json,
+            hash,
         ))
+    }
+
+    /// A finished job's statistics from the store (the machine keeps none); empty, and
+    /// logged, if they cannot be read.
+    fn stored_stats(&self, id: &str) -> String {
+        match self.store.get(id) {
+            Ok(Some(stored)) => stored.stats_json,
+            Ok(None) => {
+                warn!(job = %id, "no stored record: its statistics are not known");
+                String::new()
+            }
+            Err(e) => {
+                error!(job = %id, error = %e, "the job's statistics could not be read");
+                String::new()
+            }
+        }
     }
 }
 

@@ -26,7 +26,7 @@ use tonic::Status;
 use tracing::{error, info, warn};
 
 use crate::admission::{Needs, free_disk};
-use crate::journal::Journal;
+use crate::journal::{Journal, Reader};
 use crate::preview::Previews;
 use crate::results;
 use crate::running::{Running, now};
@@ -83,6 +83,12 @@ struct JobView {
 /// a side).
 const KEPT_PREVIEWS: usize = 4;
 
+/// Finished jobs whose progress channel (with their statistics) stays in memory, newest last:
+/// a watcher or fetch right after the end is answered from it while the store's writer may
+/// still be writing the final record. Older ones are answered from the store, so memory does
+/// not grow with the jobs a coordinator has finished.
+const KEPT_FINISHED_VIEWS: usize = 64;
+
 /// A worker the coordinator dropped, as the dashboard lists it.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct LostWorker {
@@ -104,6 +110,9 @@ struct State {
     films: BTreeMap<String, Running>,
     /// Jobs holding previews, in the order their frames started (at most [`KEPT_PREVIEWS`]).
     previewed: VecDeque<String>,
+    /// Finished jobs with a view, in the order they finished (at most
+    /// [`KEPT_FINISHED_VIEWS`]).
+    finished: VecDeque<String>,
 }
 
 /// A page of the job list: at most `size` jobs, newest first, from sequence number `from_seq`
@@ -128,6 +137,8 @@ impl JobPage {
 pub struct Coordinator {
     config: Config,
     state: Mutex<State>,
+    /// Reads finished jobs' records (their statistics) outside the state's lock.
+    store: Reader,
 }
 
 fn unix_ms() -> i64 {
@@ -163,6 +174,7 @@ impl Coordinator {
             path: config.data_dir.clone(),
             reason: e.to_string(),
         })?;
+        let store = journal.reader();
         let mut st = State {
             machine: Machine::new(machine_config(&config), loaded.seq),
             journal,
@@ -170,6 +182,7 @@ impl Coordinator {
             views: BTreeMap::new(),
             films: BTreeMap::new(),
             previewed: VecDeque::new(),
+            finished: VecDeque::new(),
         };
         for stored in loaded.jobs {
             let Some(record) = stored.into_record() else {
@@ -192,7 +205,8 @@ impl Coordinator {
                     st.journal.put(StoredJob::from_record(&record));
                 }
             }
-            if let Some(record) = st.machine.job(&id) {
+            // Finished jobs are answered from the store (see `KEPT_FINISHED_VIEWS`).
+            if let Some(record) = st.machine.job(&id).filter(|r| !is_finished(r.state())) {
                 let view = JobView {
                     progress: progress_channel(record),
                     preview: None,
@@ -202,13 +216,14 @@ impl Coordinator {
         }
         info!(
             store = %st.journal.path().display(),
-            jobs = st.views.len(),
+            jobs = st.machine.jobs().count(),
             queued = st.machine.jobs().filter(|j| j.state() == JobState::Queued).count(),
             "job store opened"
         );
         Ok(Arc::new(Coordinator {
             config,
             state: Mutex::new(st),
+            store,
         }))
     }
 
@@ -270,6 +285,14 @@ impl Coordinator {
 
 fn not_found(id: &str) -> Status {
     Status::not_found(format!("no job {id}"))
+}
+
+/// Whether a job in `state` has ended.
+fn is_finished(state: JobState) -> bool {
+    matches!(
+        state,
+        JobState::Succeeded | JobState::Failed | JobState::Cancelled
+    )
 }
 
 /// A job's progress channel, starting at its record's state.

@@ -72,6 +72,10 @@ impl Coordinator {
             });
         }
         self.seq = self.seq.max(record.seq);
+        if is_terminal(record.state()) {
+            // In the store, not in memory (see `set_state_stored`).
+            record.stats_json = String::new();
+        }
         let job = Job {
             cost: record.summary.spec.as_ref().map_or(0, spec_cost),
             record,
@@ -264,11 +268,14 @@ impl Coordinator {
         if state == JobState::Failed {
             error!(job = %id, error, "job failed");
         }
-        // In the order the changes happened; once per state change.
-        out.push(Action::Persist {
-            record: job.record.clone(),
-            start,
-        });
+        // In the order the changes happened; once per state change. A finished job's
+        // statistics go to the store with this record and are not kept here: memory must not
+        // grow with the jobs a coordinator has finished (the shell reads them from the store).
+        let mut record = job.record.clone();
+        if is_terminal(state) {
+            record.stats_json = std::mem::take(&mut job.record.stats_json);
+        }
+        out.push(Action::Persist { record, start });
     }
 
     pub(super) fn set_state(

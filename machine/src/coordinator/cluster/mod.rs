@@ -67,6 +67,9 @@ pub struct JobRecord {
     /// Frames of this job started so far, across restarts.
     pub attempts: u32,
     pub image_hash: String,
+    /// The finished frame's statistics (JSON). Only the job's final record carries them, to
+    /// the store; the machine keeps none, so [`Coordinator::job`] gives a finished job's
+    /// record without them (memory does not grow with finished jobs).
     pub stats_json: String,
 }
 

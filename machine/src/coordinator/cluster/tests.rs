@@ -395,11 +395,26 @@ fn a_complete_frame_is_written_once_its_workers_reported_or_at_the_report_deadli
         secs(7),
         Input::ResultsWritten {
             job_id: id.clone(),
-            result: Ok(("{}".into(), "abc".into())),
+            result: Ok(("{\"frame\":1}".into(), "abc".into())),
         },
     );
     assert_eq!(h.store[&id].state(), JobState::Succeeded);
     assert_eq!(h.store[&id].image_hash, "abc");
+    // The statistics went to the store; the machine keeps none of a finished job's.
+    assert_eq!(h.store[&id].stats_json, "{\"frame\":1}");
+    let kept = h.c.job(&id).expect("the job is listed");
+    assert_eq!(
+        (kept.image_hash.as_str(), kept.stats_json.as_str()),
+        ("abc", "")
+    );
+    // Nor does a coordinator that restores it from the store.
+    let mut restored = Coordinator::new(config(), 0);
+    assert!(
+        restored
+            .restore(secs(8), h.store[&id].clone(), None)
+            .is_empty()
+    );
+    assert_eq!(restored.job(&id).expect("restored").stats_json, "");
 }
 
 #[test]
