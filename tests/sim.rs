@@ -55,7 +55,11 @@ fn a_thousand_fault_seeds_keep_every_invariant_and_a_seed_repeats_exactly() {
     let mut args = faulty.to_vec();
     args.extend(["--csv", s(&csv)]);
     // Regressions among them: seeds 493 and 685 killed two of three workers before the
-    // third had registered, and the simulated coordinator waited for three forever.
+    // third had registered, and the simulated coordinator waited for three forever; seeds
+    // 92 and 101 killed a worker and then crashed the coordinator, whose successor started
+    // the job at an epoch the dead frame had already used (the epoch floor is stored now);
+    // seeds 693 and 919 crashed the coordinator before the job was submitted and killed two
+    // workers meanwhile (the simulated user waited for three registrations forever).
     let first = sim(&scene, &args);
     assert!(first.contains("1000 runs, 0 failed"), "{first}");
     let rows = std::fs::read_to_string(&csv).unwrap();
@@ -64,8 +68,10 @@ fn a_thousand_fault_seeds_keep_every_invariant_and_a_seed_repeats_exactly() {
         1 + 1 + 1000,
         "header, clean run, seeds"
     );
-    // Kills landed mid-pass (the summary counts them), so the runs exercised what they claim.
+    // Kills landed mid-pass and the coordinator crashed (the summary counts them), so the
+    // runs exercised what they claim.
     assert!(!first.contains(" 0 mid-pass"), "{first}");
+    assert!(!first.contains(" 0 coordinator crashes"), "{first}");
     let again = sim(&scene, &faulty);
     assert_eq!(first, again, "the same seeds gave other figures");
 }
@@ -102,4 +108,20 @@ fn a_broken_invariant_names_its_seed_and_the_command_that_replays_it() {
         again_err.contains("FAILED seed 5 ") && !again_err.contains("seed 6"),
         "{again_err}"
     );
+}
+
+#[test]
+fn predictive_fault_seeds_with_coordinator_crashes_keep_every_invariant() {
+    let root = tempfile::tempdir().unwrap();
+    let scene = prepare_nbody(root.path(), "nb", 5_000, 4);
+    // Regressions among them: seeds 14, 120, 138, 157 and 198 stuck a worker's peer port
+    // and crashed the coordinator; after the restart the stuck worker's peers reported it
+    // one grace period apart and each went as a lone accuser (now the second report drops
+    // the stuck worker), and the workers' reconnect delay was missing from the bound.
+    let out = sim(
+        &scene,
+        &["--schedule", "predictive", "--faults", "--seeds", "0..200"],
+    );
+    assert!(out.contains("200 runs, 0 failed"), "{out}");
+    assert!(!out.contains(" 0 coordinator crashes"), "{out}");
 }

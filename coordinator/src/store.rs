@@ -53,6 +53,10 @@ pub struct StoredJob {
     /// Statistics of the finished frame as JSON.
     #[prost(string, tag = "5")]
     pub stats_json: String,
+    /// One past the highest tile epoch any frame of the job announced (0 in records written
+    /// before it was kept: their attempts stand in).
+    #[prost(uint32, tag = "6")]
+    pub epoch_floor: u32,
 }
 
 impl StoredJob {
@@ -67,6 +71,7 @@ impl StoredJob {
             summary: Some(r.summary.clone()),
             seq: r.seq,
             attempts: r.attempts,
+            epoch_floor: r.epoch_floor,
             image_hash: r.image_hash.clone(),
             stats_json: r.stats_json.clone(),
         }
@@ -82,6 +87,7 @@ impl StoredJob {
             summary,
             seq: self.seq,
             attempts: self.attempts,
+            epoch_floor: self.epoch_floor,
             image_hash: self.image_hash,
             stats_json: self.stats_json,
         })
@@ -361,6 +367,7 @@ mod tests {
             }),
             seq,
             attempts: 0,
+            epoch_floor: 0,
             image_hash: String::new(),
             stats_json: String::new(),
         }

@@ -1,5 +1,5 @@
 //! The invariants a run must keep, checked as it goes and at its end: no tile committed
-//! twice; ray queues and held bundles within their caps; the frame complete within the
+//! twice in one frame; ray queues and held bundles within their caps; the frame complete within the
 //! virtual-time bound (liveness); its image the clean run's; no worker error.
 
 use std::collections::BTreeMap;
@@ -22,7 +22,8 @@ impl std::fmt::Display for Violation {
 /// What the checks have seen of a run.
 #[derive(Default)]
 pub struct Checks {
-    committed: BTreeMap<u32, Time>,
+    /// By (frame, tile): when it was committed.
+    committed: BTreeMap<(u64, u32), Time>,
     /// Commits of the coordinator already checked.
     pub commits_seen: usize,
     violations: Vec<Violation>,
@@ -35,13 +36,15 @@ impl Checks {
         self.violations.push(Violation { invariant, detail });
     }
 
-    /// Tile `tile` was committed at `at`.
-    pub fn commit(&mut self, tile: u32, at: Time) {
-        if let Some(first) = self.committed.insert(tile, at) {
+    /// Tile `tile` of the `frame`-th frame started was committed at `at` (a frame started
+    /// again, after a coordinator crash or the loss of every worker, commits every tile
+    /// again, to a film of its own).
+    pub fn commit(&mut self, frame: u64, tile: u32, at: Time) {
+        if let Some(first) = self.committed.insert((frame, tile), at) {
             self.violation(
                 "commit once",
                 format!(
-                    "tile {tile} committed at {:.3} ms and again at {:.3} ms",
+                    "tile {tile} of frame {frame} committed at {:.3} ms and again at {:.3} ms",
                     first.0 as f64 / 1e6,
                     at.0 as f64 / 1e6
                 ),
@@ -76,10 +79,11 @@ mod tests {
     #[test]
     fn a_tile_committed_twice_and_a_cap_exceeded_are_violations() {
         let mut c = Checks::default();
-        c.commit(3, Time(1));
-        c.commit(4, Time(2));
+        c.commit(1, 3, Time(1));
+        c.commit(1, 4, Time(2));
+        c.commit(2, 3, Time(3));
         assert!(c.violations.is_empty());
-        c.commit(3, Time(5));
+        c.commit(1, 3, Time(5));
         c.caps(10, 20, 0, 1);
         c.caps(30, 20, 0, 1);
         c.caps(40, 20, 0, 1);

@@ -1,347 +1,410 @@
-//! The simulated coordinator: the real frame machine (`RunningFrame` and its lifecycle)
-//! with what the coordinator shell keeps around it for one job: registered workers and when
-//! each was last heard, the film its committed tiles go to, and the workers' frame reports.
-//! It records what the invariants need (every tile committed, and when).
+//! The simulated coordinator process: the real coordinator machine
+//! (`rayfarm_machine::coordinator::Coordinator`, the one the `rayfarm-coordinator` shell
+//! drives) with what a shell keeps around it: which node each worker key is, the films of
+//! its frames, and the job store, a disk whose writes complete in order after a latency. The
+//! process can crash (the machine, its films and the writes not yet on disk are gone, every
+//! worker's stream ends) and restart from the records on disk, as the real one does. It
+//! records what the invariants need: every tile committed, by frame, and when.
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::{BTreeMap, VecDeque};
 use std::time::Duration;
 
-use rayfarm_core::cluster::stats::WorkerFrameStats;
+use rayfarm_core::frame::{TILE_SIZE, TileGrid};
 use rayfarm_core::render::Film;
 use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::schedule::dynamic::Options;
 use rayfarm_machine::Time;
-use rayfarm_machine::coordinator::{Member, Outgoing, Rounds, RunningFrame, accusation_grace};
-use rayfarm_proto::{self as proto, coordinator_message::Body, worker_message::Body as FromWorker};
+use rayfarm_machine::coordinator::Coordinator;
+use rayfarm_machine::coordinator::Rounds;
+use rayfarm_machine::coordinator::cluster::{Action, Config, Input, JobRecord, OpenedFrame, Tally};
+use rayfarm_proto::{self as proto, JobState, worker_message::Body as FromWorker};
 
 use crate::net::NodeId;
 
 /// What the coordinator does to a worker's node.
 pub enum ToNode {
-    /// A message on its control stream.
-    Send(NodeId, Box<proto::CoordinatorMessage>),
-    /// Its control stream is closed (it was dropped).
-    Close(NodeId),
-}
-
-struct Entry {
-    id: String,
-    node: NodeId,
-    address: String,
-    cache_bytes: u64,
-    last_seen: Time,
+    /// A message on its control stream `conn`.
+    Send(NodeId, u64, Box<proto::CoordinatorMessage>),
+    /// Its control stream `conn` is closed (it was dropped, refused, or the coordinator died).
+    Close(NodeId, u64),
 }
 
 /// How the simulated coordinator is set up.
 pub struct CoordConfig {
-    pub job_id: String,
     pub spec: proto::JobSpec,
     pub frame: FrameSpec,
     pub domain_bytes: Vec<u64>,
-    /// The frame starts once this many workers registered.
+    /// The job is submitted once this many workers registered.
     pub workers: usize,
     pub heartbeat: Duration,
     pub worker_timeout: Duration,
+    /// How long one record takes to reach the disk.
+    pub disk_latency: Duration,
+}
+
+/// How long a finished frame waits for its workers' statistics (the coordinator's).
+const REPORT_TIMEOUT: Duration = Duration::from_secs(5);
+
+/// The job store: records on disk, and writes on their way there (lost in a crash).
+#[derive(Default)]
+struct Disk {
+    stored: BTreeMap<String, JobRecord>,
+    /// (when it is on disk, the record, the start it answers).
+    pending: VecDeque<(Time, JobRecord, Option<u64>)>,
+}
+
+/// A process of the coordinator, from its start to its crash.
+struct Process {
+    machine: Coordinator,
+    /// Worker keys of this process: the node, and the stream it registered on.
+    nodes: BTreeMap<u32, (NodeId, u64)>,
+    films: BTreeMap<String, Film>,
 }
 
 /// See the module documentation.
 pub struct SimCoordinator {
     config: CoordConfig,
-    workers: BTreeMap<u32, Entry>,
-    next_key: u32,
-    pub frame: Option<RunningFrame>,
-    /// Registrations so far: the job is submitted once the first `workers` registered.
+    process: Option<Process>,
+    /// Starts of the process so far: a worker's stream belongs to one.
+    pub incarnation: u64,
+    disk: Disk,
+    film_dir: tempfile::TempDir,
+    /// Registrations tried so far (refused ones and ones that found the coordinator dead
+    /// included): the job is submitted at the `workers`-th, or when the coordinator is back.
     registrations: usize,
-    started: bool,
-    film: Film,
-    _film_dir: tempfile::TempDir,
-    /// Every tile committed, in order, with when (a tile twice is a violation).
-    pub commits: Vec<(u32, Time)>,
-    /// When the ledger was complete.
+    pub job_id: Option<String>,
+    /// Frames started so far (a restarted or re-queued job starts another).
+    pub frames: u64,
+    /// Every tile committed, in order: (frame, tile, when). A tile twice in one frame is a
+    /// violation.
+    pub commits: Vec<(u64, u32, Time)>,
+    /// When the latest frame was complete.
     pub completed_at: Option<Time>,
-    /// Members whose frame report is awaited after the end.
-    waiting: BTreeSet<u32>,
-    pub reports: Vec<WorkerFrameStats>,
-    /// What went wrong that no healthy run does (a worker's error, impossible results, every
-    /// worker lost).
+    /// The image of the frame whose results were written.
+    pub image_hash: Option<Result<String, String>>,
+    /// Why the job failed, if it did.
+    pub failed: Option<String>,
+    /// What went wrong that no healthy run does (a worker's error, impossible results).
     pub problems: Vec<String>,
-    /// Rounds planned and the domain loads the plans asked for, at the end.
+    /// Rounds planned over every frame.
     pub rounds: u64,
 }
 
 impl SimCoordinator {
     pub fn new(config: CoordConfig) -> Result<Self, String> {
-        let dir = tempfile::tempdir().map_err(|e| format!("temporary film directory: {e}"))?;
-        let frame = RunningFrame::new(
-            Time(0),
-            config.job_id.clone(),
-            config.spec.clone(),
-            config.frame.clone(),
-            config.domain_bytes.clone(),
+        let film_dir = tempfile::tempdir().map_err(|e| format!("temporary film directory: {e}"))?;
+        let mut c = SimCoordinator {
+            config,
+            process: None,
+            incarnation: 0,
+            disk: Disk::default(),
+            film_dir,
+            registrations: 0,
+            job_id: None,
+            frames: 0,
+            commits: Vec::new(),
+            completed_at: None,
+            image_hash: None,
+            failed: None,
+            problems: Vec::new(),
+            rounds: 0,
+        };
+        c.start(Time(0));
+        Ok(c)
+    }
+
+    fn machine_config(&self) -> Config {
+        Config {
+            heartbeat: self.config.heartbeat,
+            worker_timeout: self.config.worker_timeout,
+            report_timeout: REPORT_TIMEOUT,
             // The coordinator's defaults (`--replicate free-slots --rounds async`).
-            Options {
+            schedule_options: Options {
                 replicate_onto_idle: false,
                 fill_free_slots: true,
             },
-            Rounds::Async,
-        )?;
-        let film = Film::temporary_in(dir.path(), *frame.ledger.grid(), config.frame.spp)
-            .map_err(|e| e.to_string())?;
-        Ok(SimCoordinator {
-            config,
-            workers: BTreeMap::new(),
-            next_key: 0,
-            frame: Some(frame),
-            registrations: 0,
-            started: false,
-            film,
-            _film_dir: dir,
-            commits: Vec::new(),
-            completed_at: None,
-            waiting: BTreeSet::new(),
-            reports: Vec::new(),
-            problems: Vec::new(),
-            rounds: 0,
-        })
+            rounds: Rounds::Async,
+            max_attempts: 3,
+            max_jobs_per_user: 16,
+            max_pixel_samples_per_user: u64::MAX,
+            unix_origin_ms: 0,
+        }
     }
 
-    /// Whether the frame is complete and every member's report is in.
+    /// A process starts (first or again) with the records on disk.
+    fn start(&mut self, now: Time) -> Vec<ToNode> {
+        self.incarnation += 1;
+        let seq = self.disk.stored.values().map(|r| r.seq).max().unwrap_or(0);
+        let mut process = Process {
+            machine: Coordinator::new(self.machine_config(), seq),
+            nodes: BTreeMap::new(),
+            films: BTreeMap::new(),
+        };
+        let mut actions = Vec::new();
+        for record in self.disk.stored.values() {
+            actions.extend(process.machine.restore(now, record.clone(), None));
+        }
+        self.process = Some(process);
+        let mut out = self.carry_out(now, actions);
+        out.extend(self.submit_when_due(now));
+        out
+    }
+
+    /// The process dies: its machine, films and unwritten records go with it; the streams
+    /// of its workers end.
+    pub fn crash(&mut self) -> Vec<(NodeId, u64)> {
+        self.disk.pending.clear();
+        self.process
+            .take()
+            .map(|p| p.nodes.into_values().collect())
+            .unwrap_or_default()
+    }
+
+    /// A new process starts from the records on disk.
+    pub fn restart(&mut self, now: Time) -> Vec<ToNode> {
+        self.start(now)
+    }
+
+    pub fn is_up(&self) -> bool {
+        self.process.is_some()
+    }
+
+    /// Whether the job is over: its results written, or failed.
     pub fn is_done(&self) -> bool {
-        self.completed_at.is_some() && self.waiting.is_empty()
+        self.image_hash.is_some() || self.failed.is_some()
     }
 
-    /// The image hash, once complete.
-    pub fn image_hash(&self) -> Result<String, String> {
-        self.film
-            .hash()
-            .map(|h| format!("{h:016x}"))
-            .map_err(|e| e.to_string())
+    /// When the next record reaches the disk.
+    pub fn next_write(&self) -> Option<Time> {
+        self.disk.pending.front().map(|(t, _, _)| *t)
     }
 
-    fn key_of(&self, node: NodeId) -> Option<u32> {
-        self.workers
-            .iter()
-            .find(|(_, e)| e.node == node)
-            .map(|(&k, _)| k)
-    }
-
-    fn out(&self, out: Vec<Outgoing>) -> Vec<ToNode> {
-        out.into_iter()
-            .filter_map(|(k, m)| Some(ToNode::Send(self.workers.get(&k)?.node, Box::new(m))))
-            .collect()
-    }
-
-    /// A worker registers.
-    pub fn register(&mut self, now: Time, node: NodeId, r: proto::Register) -> Vec<ToNode> {
-        let key = self.next_key;
-        self.next_key += 1;
-        self.registrations += 1;
-        let registered = Body::Registered(proto::Registered {
-            heartbeat_ms: self.config.heartbeat.as_millis() as u32,
-        });
-        let mut out = vec![ToNode::Send(
-            node,
-            Box::new(proto::CoordinatorMessage {
-                body: Some(registered),
-            }),
-        )];
-        let member = Member::new(r.peer_address.clone(), r.cache_bytes);
-        self.workers.insert(
-            key,
-            Entry {
-                id: r.worker_id.clone(),
-                node,
-                address: r.peer_address,
-                cache_bytes: r.cache_bytes,
-                last_seen: now,
-            },
-        );
-        let Some(frame) = self.frame.as_mut() else {
-            return out;
-        };
-        if self.started {
-            if let Some(join) = frame.admit(key, &r.worker_id, member) {
-                out.extend(self.out(join));
-            }
-        } else if self.registrations >= self.config.workers {
-            // Submitted once the first workers registered, it starts on those attached now
-            // (some may have died meanwhile), as the coordinator starts a queued job.
-            let members = self
-                .workers
-                .iter()
-                .map(|(&k, e)| (k, Member::new(e.address.clone(), e.cache_bytes)))
-                .collect();
-            let start = frame.start(members);
-            self.started = true;
-            out.extend(self.out(start));
-        }
-        out
-    }
-
-    /// A message of the worker on `node`.
-    pub fn message(&mut self, now: Time, node: NodeId, body: FromWorker) -> Vec<ToNode> {
-        let Some(key) = self.key_of(node) else {
-            return Vec::new();
-        };
-        if let Some(e) = self.workers.get_mut(&key) {
-            e.last_seen = now;
-        }
-        let Some(frame) = self.frame.as_mut() else {
-            // After the end only frame reports matter.
-            if let FromWorker::FrameReport(r) = body {
-                self.frame_report(key, r);
-            }
-            return Vec::new();
-        };
-        match body {
-            FromWorker::Register(_) | FromWorker::Heartbeat(_) => Vec::new(),
-            FromWorker::QueueReport(r) if r.job_id == frame.job_id => {
-                let out = frame.report(key, r);
-                self.out(out)
-            }
-            FromWorker::QueueReport(_) => Vec::new(),
-            FromWorker::TileResults(r) if r.job_id == frame.job_id => {
-                let (committed, refused) = frame.results(key, r);
-                for (tile, sums) in &committed {
-                    self.commits.push((*tile, now));
-                    if let Err(e) = self.film.write_tile(*tile, sums) {
-                        self.problems.push(format!("film: {e}"));
-                    }
-                }
-                if let Some(why) = refused {
-                    self.problems
-                        .push(format!("impossible tile results from key {key}: {why}"));
-                    let id = self.workers[&key].id.clone();
-                    frame.refuse(id);
-                    let mut out = vec![ToNode::Close(node)];
-                    out.extend(self.lose(key));
-                    return out;
-                }
-                if frame.ledger.is_complete() {
-                    return self.complete(now);
-                }
-                Vec::new()
-            }
-            FromWorker::TileResults(_) => Vec::new(),
-            FromWorker::FrameReport(r) => {
-                if !r.error.is_empty() && r.job_id == frame.job_id {
-                    self.problems.push(r.error.clone());
-                    if r.declined {
-                        frame.declined.push(r.error);
-                        return self.lose(key);
-                    }
-                    // The job fails: the run ends with the problem recorded.
-                    let end = frame.end_messages();
-                    self.frame = None;
-                    return self.out(end);
-                }
-                Vec::new()
-            }
-            FromWorker::PeerUnresponsive(p) => {
-                let silent = self
-                    .workers
-                    .iter()
-                    .find(|(_, e)| e.address == p.peer_address)
-                    .map(|(&k, _)| k);
-                if let Some(k) = silent
-                    && frame.members().any(|m| m == k)
-                    && frame.members().any(|m| m == key)
-                {
-                    frame.accusations.add(key, k, now, &p.reason);
-                }
-                Vec::new()
-            }
-        }
-    }
-
-    fn complete(&mut self, now: Time) -> Vec<ToNode> {
-        let Some(frame) = self.frame.take() else {
-            return Vec::new();
-        };
-        self.completed_at = Some(now);
-        self.rounds = frame.round;
-        self.waiting = frame.members().collect();
-        let end = frame.end_messages();
-        self.out(end)
-    }
-
-    fn frame_report(&mut self, key: u32, r: proto::FrameReport) {
-        if !r.error.is_empty() {
-            self.problems.push(r.error);
-        } else if let Ok(stats) = serde_json::from_str::<WorkerFrameStats>(&r.stats_json) {
-            self.reports.push(stats);
-        }
-        self.waiting.remove(&key);
-    }
-
-    /// The worker on `node` is gone (its stream ended).
-    pub fn gone(&mut self, node: NodeId) -> Vec<ToNode> {
-        match self.key_of(node) {
-            Some(key) => self.lose(key),
-            None => Vec::new(),
-        }
-    }
-
-    fn lose(&mut self, key: u32) -> Vec<ToNode> {
-        self.waiting.remove(&key);
-        let Some(frame) = self.frame.as_mut() else {
-            self.workers.remove(&key);
-            return Vec::new();
-        };
-        let lost = frame.lose(key);
-        let out = match lost {
-            Some(out) if out.is_empty() => {
-                self.problems
-                    .push("every worker of the frame was lost".into());
-                self.frame = None;
-                Vec::new()
-            }
-            Some(out) => self.out(out),
-            None => Vec::new(),
-        };
-        self.workers.remove(&key);
-        out
-    }
-
-    /// The coordinator's periodic work: workers silent too long are dropped, and reports of
-    /// unreachable peers judged.
-    pub fn tick(&mut self, now: Time) -> Vec<ToNode> {
+    /// Records due by `now` reach the disk; the machine hears of the starts among them.
+    pub fn disk_done(&mut self, now: Time) -> Vec<ToNode> {
         let mut out = Vec::new();
-        let silent: Vec<u32> = self
-            .workers
-            .iter()
-            .filter(|(_, e)| now.since(e.last_seen) > self.config.worker_timeout)
-            .map(|(&k, _)| k)
-            .collect();
-        for key in silent {
-            out.push(ToNode::Close(self.workers[&key].node));
-            out.extend(self.lose(key));
-        }
-        let grace = accusation_grace(self.config.heartbeat);
-        loop {
-            let heard: BTreeSet<u32> = self
-                .workers
-                .iter()
-                .filter(|(_, e)| now.since(e.last_seen) < grace)
-                .map(|(&k, _)| k)
-                .collect();
-            let ids: BTreeMap<u32, String> = self
-                .workers
-                .iter()
-                .map(|(&k, e)| (k, e.id.clone()))
-                .collect();
-            let Some(frame) = self.frame.as_mut() else {
+        while self.disk.pending.front().is_some_and(|(t, _, _)| *t <= now) {
+            let Some((_, record, start)) = self.disk.pending.pop_front() else {
                 break;
             };
-            let id_of = |k| ids.get(&k).cloned().unwrap_or_default();
-            let Some(v) = frame.judge(now, grace, &heard, id_of) else {
-                break;
-            };
-            if let Some(e) = self.workers.get(&v.drop) {
-                out.push(ToNode::Close(e.node));
+            self.disk.stored.insert(record.id().to_string(), record);
+            if let Some(start) = start {
+                out.extend(self.feed(now, Input::Stored { barrier: start }));
             }
-            out.extend(self.lose(v.drop));
         }
         out
+    }
+
+    fn feed(&mut self, now: Time, input: Input) -> Vec<ToNode> {
+        let Some(p) = self.process.as_mut() else {
+            return Vec::new();
+        };
+        let actions = p.machine.handle(now, input);
+        self.carry_out(now, actions)
+    }
+
+    /// A worker on `node` registers on its stream `conn`.
+    pub fn register(
+        &mut self,
+        now: Time,
+        node: NodeId,
+        conn: u64,
+        r: proto::Register,
+    ) -> Vec<ToNode> {
+        self.registrations += 1;
+        let Some(p) = self.process.as_mut() else {
+            // Nobody listens: the connection fails.
+            return vec![ToNode::Close(node, conn)];
+        };
+        let (key, actions) = match p.machine.register(now, &r) {
+            Ok(registered) => registered,
+            // The shell ends a refused stream at once; the worker tries again later.
+            Err(_) => return vec![ToNode::Close(node, conn)],
+        };
+        p.nodes.insert(key, (node, conn));
+        let mut out = self.carry_out(now, actions);
+        out.extend(self.submit_when_due(now));
+        out
+    }
+
+    /// The job is submitted once the first workers tried to register (some may have died
+    /// since, or found the coordinator dead), as a user submits to a running cluster, or
+    /// once the coordinator is back if it was down then (the client tries again); it is on
+    /// disk before the reply, as the shell waits for it.
+    fn submit_when_due(&mut self, now: Time) -> Vec<ToNode> {
+        if self.registrations < self.config.workers || self.job_id.is_some() {
+            return Vec::new();
+        }
+        let Some(p) = self.process.as_mut() else {
+            return Vec::new();
+        };
+        let cost = u64::from(self.config.frame.width) * u64::from(self.config.frame.height);
+        let Ok(record) = p.machine.submit(now, self.config.spec.clone(), cost, "") else {
+            self.problems.push("the job was refused".into());
+            return Vec::new();
+        };
+        let id = record.id().to_string();
+        self.disk.stored.insert(id.clone(), record);
+        self.job_id = Some(id.clone());
+        self.feed(
+            now,
+            Input::Recorded {
+                job_id: id,
+                result: Ok(()),
+            },
+        )
+    }
+
+    /// The key of stream `conn` of `node`, if this process registered it (a stream of a dead
+    /// process, or one it closed, is none of its workers).
+    fn key_of(&self, node: NodeId, conn: u64) -> Option<u32> {
+        let p = self.process.as_ref()?;
+        p.nodes
+            .iter()
+            .find(|(_, n)| **n == (node, conn))
+            .map(|(&k, _)| k)
+    }
+
+    /// A message of the worker on `node`, on its stream `conn`.
+    pub fn message(&mut self, now: Time, node: NodeId, conn: u64, body: FromWorker) -> Vec<ToNode> {
+        let Some(key) = self.key_of(node, conn) else {
+            return Vec::new();
+        };
+        if let FromWorker::FrameReport(r) = &body
+            && !r.error.is_empty()
+        {
+            self.problems.push(r.error.clone());
+        }
+        self.feed(now, Input::WorkerMessage { key, body })
+    }
+
+    /// Stream `conn` of the worker on `node` ended.
+    pub fn gone(&mut self, now: Time, node: NodeId, conn: u64) -> Vec<ToNode> {
+        match self.key_of(node, conn) {
+            Some(key) => self.feed(
+                now,
+                Input::WorkerGone {
+                    key,
+                    why: "stream closed".into(),
+                },
+            ),
+            None => Vec::new(),
+        }
+    }
+
+    /// The coordinator's periodic work.
+    pub fn tick(&mut self, now: Time) -> Vec<ToNode> {
+        self.feed(now, Input::Tick)
+    }
+
+    /// Carries out the machine's actions as the shell does, answering the ones the shell
+    /// answers at once (a scene read and results written take no virtual time here).
+    fn carry_out(&mut self, now: Time, actions: Vec<Action>) -> Vec<ToNode> {
+        let mut todo: VecDeque<Action> = actions.into();
+        let mut out = Vec::new();
+        while let Some(action) = todo.pop_front() {
+            let Some(p) = self.process.as_mut() else {
+                break;
+            };
+            let answer = match action {
+                Action::Send((key, m)) => {
+                    if let Some(&(node, conn)) = p.nodes.get(&key) {
+                        out.push(ToNode::Send(node, conn, Box::new(m)));
+                    }
+                    None
+                }
+                Action::Close { key, closing } => {
+                    if let Some((node, conn)) = p.nodes.remove(&key) {
+                        out.push(ToNode::Close(node, conn));
+                    }
+                    if let rayfarm_machine::coordinator::cluster::Closing::Refused(why) = closing {
+                        self.problems
+                            .push(format!("impossible tile results from key {key}: {why}"));
+                    }
+                    None
+                }
+                Action::Persist {
+                    record,
+                    barrier: start,
+                } => {
+                    if record.state() == JobState::Failed {
+                        self.failed = Some(record.summary.error.clone());
+                    }
+                    let last = self.disk.pending.back().map_or(now, |(t, _, _)| *t);
+                    let done = last.max(now) + self.config.disk_latency;
+                    self.disk.pending.push_back((done, record, start));
+                    None
+                }
+                Action::Progress { .. } => None,
+                Action::PrepareFrame { job_id, .. } => {
+                    let opened = self.open(&job_id);
+                    let p = self.process.as_mut().expect("up");
+                    let opened = opened.map(|film| {
+                        p.films.insert(job_id.clone(), film);
+                        OpenedFrame {
+                            frame: self.config.frame.clone(),
+                            domain_bytes: self.config.domain_bytes.clone(),
+                        }
+                    });
+                    Some(Input::FrameOpened { job_id, opened })
+                }
+                Action::FrameStarted { .. } => {
+                    self.frames += 1;
+                    None
+                }
+                Action::WriteTiles { job_id, tiles } => {
+                    let film = p.films.get(&job_id);
+                    let mut failed = None;
+                    for (tile, sums) in &tiles {
+                        self.commits.push((self.frames, *tile, now));
+                        if let Some(Err(e)) = film.map(|f| f.write_tile(*tile, sums)) {
+                            failed = Some(e.to_string());
+                        }
+                    }
+                    failed.map(|error| {
+                        self.problems.push(format!("film: {error}"));
+                        Input::Fail { job_id, error }
+                    })
+                }
+                Action::Discard { job_id } => {
+                    p.films.remove(&job_id);
+                    None
+                }
+                Action::WriteResults { job_id, .. } => {
+                    let hash = p
+                        .films
+                        .remove(&job_id)
+                        .ok_or_else(|| "the frame's film is gone".to_string())
+                        .and_then(|f| f.hash().map_err(|e| e.to_string()))
+                        .map(|h| format!("{h:016x}"));
+                    let result = hash.clone().map(|h| ("{}".to_string(), h));
+                    self.image_hash = Some(hash);
+                    Some(Input::ResultsWritten { job_id, result })
+                }
+                Action::Tally(Tally::FrameCommitted) => {
+                    self.completed_at = Some(now);
+                    None
+                }
+                Action::Tally(Tally::Rounds(n)) => {
+                    self.rounds += n;
+                    None
+                }
+                Action::Tally(_) => None,
+            };
+            if let Some(input) = answer
+                && let Some(p) = self.process.as_mut()
+            {
+                todo.extend(p.machine.handle(now, input));
+            }
+        }
+        out
+    }
+
+    /// A film for job `id`'s next frame.
+    fn open(&self, id: &str) -> Result<Film, String> {
+        let frame = &self.config.frame;
+        let grid = TileGrid::new(frame.width, frame.height, TILE_SIZE)
+            .ok_or_else(|| "the image does not fit the tile grid".to_string())?;
+        Film::temporary_in(self.film_dir.path(), grid, frame.spp)
+            .map_err(|e| format!("job {id}'s film: {e}"))
     }
 }

@@ -37,6 +37,9 @@ impl Rng {
     }
 }
 
+/// Mixed into a seed for the draws of a coordinator crash.
+const CRASH_STREAM: u64 = 0xc0_0d1e;
+
 /// One thing that goes wrong, by worker index (0-based among the first workers).
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum Fault {
@@ -55,6 +58,10 @@ pub enum Fault {
     /// From `at` the worker takes no more peer bundles and acknowledges none (it is stuck on
     /// its peer port but still talks to the coordinator).
     StopAcking { worker: usize, at: Time },
+    /// The coordinator's process dies at `at` (its job records not yet on disk are lost,
+    /// every worker's control stream ends) and a new one starts `down` later from the
+    /// records on disk.
+    CrashCoordinator { at: Time, down: Duration },
 }
 
 /// The faults of one seed, and the seeded jitter on every message.
@@ -162,6 +169,15 @@ impl FaultPlan {
             }
         }
         let jitter = Duration::from_nanos(rng.below(span.as_nanos() as u64 / 20 + 1));
+        // On top of a quarter of the plans, drawn apart so that the faults above are the
+        // same for a seed as before coordinator crashes were simulated.
+        let mut crash = Rng::new(seed ^ CRASH_STREAM);
+        if crash.below(4) == 0 {
+            faults.push(Fault::CrashCoordinator {
+                at: crash.time_within(span),
+                down: Duration::from_nanos(crash.below(span.as_nanos() as u64 + 1)),
+            });
+        }
         FaultPlan {
             seed,
             faults,
@@ -198,6 +214,11 @@ impl FaultPlan {
                 Fault::StopAcking { worker, at } => {
                     format!("w{worker} stops acknowledging at {:.3} ms", ms(*at))
                 }
+                Fault::CrashCoordinator { at, down } => format!(
+                    "coordinator crashes at {:.3} ms, restarts {:.3} ms later",
+                    ms(*at),
+                    down.as_secs_f64() * 1e3
+                ),
             })
             .collect::<Vec<_>>()
             .join(", ")

@@ -1,7 +1,7 @@
 //! `rayfarm sim`: a deterministic discrete-event simulation of a rayfarm cluster in one
 //! process (issue 16). It runs N real worker machines (`rayfarm_machine::worker::Worker`) and
-//! the coordinator's real frame machine (`rayfarm_machine::coordinator::RunningFrame`) on
-//! virtual time; every pass is the real kernel (`rayfarm_machine::pass`) on the real scene, so
+//! the real coordinator machine (`rayfarm_machine::coordinator::Coordinator`, which can crash
+//! and restart from the records on its simulated disk) on virtual time; every pass is the real kernel (`rayfarm_machine::pass`) on the real scene, so
 //! the image is the real image and its hash must equal `rayfarm render --local`'s.
 //!
 //! Why an event loop of our own rather than turmoil or NeXosim: the machines are sans-IO (they
@@ -14,7 +14,7 @@
 //!
 //! Modules: [`events`] (the heap), [`net`] (links: latency, bandwidth, FIFO, partitions),
 //! [`cost`] (virtual time of loads and passes), [`faults`] (a seed's faults), [`node`] (a
-//! simulated worker shell), [`coord`] (the simulated coordinator shell), [`world`] (the
+//! simulated worker shell), [`coord`] (the simulated coordinator process and its disk), [`world`] (the
 //! loop), [`check`] (the invariants after a run).
 
 pub mod check;
@@ -29,4 +29,4 @@ pub mod world;
 pub use check::Violation;
 pub use cost::CostModel;
 pub use faults::{Fault, FaultPlan};
-pub use world::{Outcome, SimConfig, simulate};
+pub use world::{Outcome, RECONNECT, SimConfig, simulate};

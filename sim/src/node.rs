@@ -64,6 +64,8 @@ pub struct SimWorker {
     pub stuck_from: Option<Time>,
     /// Its control stream was closed by the coordinator (it was dropped).
     pub disconnected: bool,
+    /// Its control stream now (each registration opens a new one).
+    pub conn: u64,
     /// The pass running now, if any: when it ends and when its domain loads end.
     pub pass_until: Option<(Time, Time)>,
     /// When a Tick is due.
@@ -95,6 +97,7 @@ impl SimWorker {
             alive: true,
             stuck_from: None,
             disconnected: false,
+            conn: 0,
             pass_until: None,
             tick_at: None,
             links: BTreeMap::new(),

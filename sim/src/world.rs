@@ -27,8 +27,9 @@ use crate::faults::{Fault, FaultPlan, Rng};
 use crate::net::{COORDINATOR, LinkModel, Network, NodeId};
 use crate::node::{PassRun, QueueCaps, Scene, SimWorker};
 
-/// The job id of the simulated frame.
-pub const JOB: &str = "sim-job";
+/// How long a worker whose control stream ended waits before it registers again (the
+/// worker shell backs off from 100 ms to 5 s; one second stands for it here).
+pub const RECONNECT: Duration = Duration::from_secs(1);
 
 /// Most events one run may take (a machine that asks for a timer in the past forever would
 /// otherwise spin at one virtual instant).
@@ -54,6 +55,8 @@ pub struct SimConfig {
     pub caps: QueueCaps,
     /// A peer that acknowledges nothing for this long is reported unresponsive.
     pub ack_deadline: Duration,
+    /// How long one job record takes to reach the coordinator's disk.
+    pub disk_latency: Duration,
     pub heartbeat: Duration,
     pub worker_timeout: Duration,
 }
@@ -85,17 +88,23 @@ pub struct Outcome {
     pub rounds: u64,
     pub events: u64,
     pub kills: Kills,
+    pub coordinator_crashes: u64,
+    /// Frames started (more than one after a coordinator crash or a loss of every worker).
+    pub frames: u64,
     pub violations: Vec<Violation>,
 }
 
+/// What travels between nodes. Control-stream messages name their stream (`conn`): each
+/// registration opens a new one, and what was sent on a stream that has ended (the worker was
+/// dropped, or the coordinator died) is for nobody.
 enum Msg {
-    Register(proto::Register),
-    ToCoordinator(FromWorker),
-    Control(proto::CoordinatorMessage),
-    /// The coordinator closed the worker's control stream.
-    Closed,
+    Register(proto::Register, u64),
+    ToCoordinator(FromWorker, u64),
+    Control(proto::CoordinatorMessage, u64),
+    /// The coordinator closed the worker's control stream (or died, or refused it).
+    Closed(u64),
     /// The worker's process died: its stream ends.
-    StreamEnded,
+    StreamEnded(u64),
     Bundle {
         sender: String,
         job_id: String,
@@ -139,6 +148,13 @@ enum Ev {
     Reregister {
         node: NodeId,
     },
+    /// The coordinator's next job record is on disk.
+    Disk,
+    /// The coordinator's process dies, and a new one starts `down` later.
+    Crash {
+        down: Duration,
+    },
+    Restart,
 }
 
 struct World<'a> {
@@ -152,6 +168,10 @@ struct World<'a> {
     workers: Vec<Option<SimWorker>>,
     checks: Checks,
     outcome: Outcome,
+    /// When an `Ev::Disk` is due.
+    disk_at: Option<Time>,
+    /// Control streams opened so far.
+    conns: u64,
 }
 
 /// Opens the scene a simulation reads (once for many runs).
@@ -190,13 +210,13 @@ pub fn simulate(
     };
     frame.check()?;
     let coord = SimCoordinator::new(CoordConfig {
-        job_id: JOB.into(),
         spec,
         frame,
         domain_bytes: scene.manifest.domains.iter().map(|d| d.bytes).collect(),
         workers: config.workers,
         heartbeat: config.heartbeat,
         worker_timeout: config.worker_timeout,
+        disk_latency: config.disk_latency,
     })?;
     let mut world = World {
         config,
@@ -208,6 +228,8 @@ pub fn simulate(
         workers: vec![None],
         checks: Checks::default(),
         outcome: Outcome::default(),
+        disk_at: None,
+        conns: 0,
     };
     for _ in 0..config.workers {
         world.spawn()?;
@@ -224,16 +246,8 @@ pub fn simulate(
         }
         world.now = t;
         world.event(ev);
-        if world.coord.is_done()
-            || (world.coord.frame.is_none() && world.coord.completed_at.is_none())
-        {
-            ended = true;
-            break;
-        }
-        if let Some(done) = world.coord.completed_at
-            && t.since(done) > Duration::from_secs(5)
-        {
-            // Reports not in within the coordinator's report timeout: it goes on without.
+        world.schedule_disk();
+        if world.coord.is_done() {
             ended = true;
             break;
         }
@@ -261,7 +275,12 @@ impl World<'_> {
     }
 
     fn register(&mut self, node: NodeId) {
-        let Some(w) = self.worker(node) else { return };
+        self.conns += 1;
+        let conn = self.conns;
+        let Some(w) = self.worker_mut(node) else {
+            return;
+        };
+        w.conn = conn;
         let r = proto::Register {
             protocol_version: proto::PROTOCOL_VERSION,
             worker_id: w.id.clone(),
@@ -269,7 +288,17 @@ impl World<'_> {
             cache_bytes: w.cache_bytes,
             threads: self.config.cost.threads,
         };
-        self.send(node, COORDINATOR, Msg::Register(r));
+        self.send(node, COORDINATOR, Msg::Register(r, conn));
+    }
+
+    /// An `Ev::Disk` at the coordinator's next disk write, if it is sooner than the one due.
+    fn schedule_disk(&mut self) {
+        if let Some(t) = self.coord.next_write()
+            && self.disk_at.is_none_or(|d| t < d)
+        {
+            self.disk_at = Some(t);
+            self.heap.push(t, Ev::Disk);
+        }
     }
 
     /// Schedules the plan's faults.
@@ -289,6 +318,7 @@ impl World<'_> {
                         w.stuck_from = Some(at);
                     }
                 }
+                Fault::CrashCoordinator { at, down } => self.heap.push(at, Ev::Crash { down }),
             }
         }
         Ok(())
@@ -310,14 +340,14 @@ impl World<'_> {
 
     fn send(&mut self, from: NodeId, to: NodeId, msg: Msg) {
         let bytes = match &msg {
-            Msg::Register(r) => r.encoded_len(),
-            Msg::ToCoordinator(b) => proto::WorkerMessage {
+            Msg::Register(r, _) => r.encoded_len(),
+            Msg::ToCoordinator(b, _) => proto::WorkerMessage {
                 body: Some(b.clone()),
             }
             .encoded_len(),
-            Msg::Control(m) => m.encoded_len(),
+            Msg::Control(m, _) => m.encoded_len(),
             Msg::Bundle { batches, .. } => batches.iter().map(Bytes::len).sum::<usize>() + 64,
-            Msg::Closed | Msg::StreamEnded | Msg::Ack { .. } => 16,
+            Msg::Closed(_) | Msg::StreamEnded(_) | Msg::Ack { .. } => 16,
         };
         if let Msg::Bundle { .. } = msg {
             self.outcome.peer_bytes += bytes as u64;
@@ -381,7 +411,8 @@ impl World<'_> {
                         sent_ms: self.now.0 / 1_000_000,
                         ..Default::default()
                     });
-                    self.send(node, COORDINATOR, Msg::ToCoordinator(hb));
+                    let conn = w.conn;
+                    self.send(node, COORDINATOR, Msg::ToCoordinator(hb, conn));
                 }
                 self.heap
                     .push(self.now + self.config.heartbeat, Ev::Heartbeat { node });
@@ -403,6 +434,23 @@ impl World<'_> {
                     self.register(node);
                 }
             }
+            Ev::Disk => {
+                self.disk_at = None;
+                let out = self.coord.disk_done(self.now);
+                self.carry_out(out);
+            }
+            Ev::Crash { down } => {
+                self.outcome.coordinator_crashes += 1;
+                // Its operating system closes its sockets: every worker's stream ends.
+                for (node, conn) in self.coord.crash() {
+                    self.send(COORDINATOR, node, Msg::Closed(conn));
+                }
+                self.heap.push(self.now + down, Ev::Restart);
+            }
+            Ev::Restart => {
+                let out = self.coord.restart(self.now);
+                self.carry_out(out);
+            }
         }
     }
 
@@ -413,6 +461,7 @@ impl World<'_> {
         w.alive = false;
         let pass = w.pass_until;
         let in_flight = w.links.values().any(|l| !l.owed.is_empty());
+        let conn = w.conn;
         let k = &mut self.outcome.kills;
         k.total += 1;
         if let Some((_, loaded_at)) = pass {
@@ -421,18 +470,19 @@ impl World<'_> {
         }
         k.bundles_in_flight += u64::from(in_flight);
         // Its operating system closes its sockets: the coordinator sees the stream end.
-        self.send(node, COORDINATOR, Msg::StreamEnded);
+        self.send(node, COORDINATOR, Msg::StreamEnded(conn));
     }
 
     fn at_coordinator(&mut self, from: NodeId, msg: Msg) {
+        let now = self.now;
         let out = match msg {
-            Msg::Register(r) => self.coord.register(self.now, from, r),
-            Msg::ToCoordinator(body) => self.coord.message(self.now, from, body),
-            Msg::StreamEnded => self.coord.gone(from),
+            Msg::Register(r, conn) => self.coord.register(now, from, conn, r),
+            Msg::ToCoordinator(body, conn) => self.coord.message(now, from, conn, body),
+            Msg::StreamEnded(conn) => self.coord.gone(now, from, conn),
             _ => Vec::new(),
         };
-        for &(tile, at) in &self.coord.commits[self.checks.commits_seen..] {
-            self.checks.commit(tile, at);
+        for &(frame, tile, at) in &self.coord.commits[self.checks.commits_seen..] {
+            self.checks.commit(frame, tile, at);
         }
         self.checks.commits_seen = self.coord.commits.len();
         self.carry_out(out);
@@ -441,8 +491,8 @@ impl World<'_> {
     fn carry_out(&mut self, out: Vec<ToNode>) {
         for o in out {
             match o {
-                ToNode::Send(node, m) => self.send(COORDINATOR, node, Msg::Control(*m)),
-                ToNode::Close(node) => self.send(COORDINATOR, node, Msg::Closed),
+                ToNode::Send(node, conn, m) => self.send(COORDINATOR, node, Msg::Control(*m, conn)),
+                ToNode::Close(node, conn) => self.send(COORDINATOR, node, Msg::Closed(conn)),
             }
         }
     }
@@ -451,7 +501,9 @@ impl World<'_> {
         let now = self.now;
         let Some(w) = self.worker_mut(to) else { return };
         match msg {
-            Msg::Control(m) => match m.body {
+            // What was sent on an older stream than the worker's is for nobody.
+            Msg::Control(_, conn) | Msg::Closed(conn) if conn != w.conn => {}
+            Msg::Control(m, _) => match m.body {
                 Some(Body::StartFrame(start)) => {
                     let opened = w.open(&start);
                     self.feed(to, machine::Event::FrameOpened { start, opened });
@@ -461,12 +513,11 @@ impl World<'_> {
                     machine::Event::Control(proto::CoordinatorMessage { body }),
                 ),
             },
-            Msg::Closed => {
+            Msg::Closed(_) => {
                 w.disconnected = true;
                 self.feed(to, machine::Event::Disconnected);
                 // The shell reconnects; a worker sidelined for this frame sits it out.
-                self.heap
-                    .push(now + Duration::from_secs(1), Ev::Reregister { node: to });
+                self.heap.push(now + RECONNECT, Ev::Reregister { node: to });
             }
             Msg::Bundle {
                 sender,
@@ -501,7 +552,7 @@ impl World<'_> {
                     }
                 }
             }
-            Msg::Register(_) | Msg::ToCoordinator(_) | Msg::StreamEnded => {}
+            Msg::Register(..) | Msg::ToCoordinator(..) | Msg::StreamEnded(_) => {}
         }
     }
 
@@ -540,7 +591,8 @@ impl World<'_> {
         match action {
             Action::ToCoordinator(body) => {
                 if !w.disconnected {
-                    self.send(node, COORDINATOR, Msg::ToCoordinator(body));
+                    let conn = w.conn;
+                    self.send(node, COORDINATOR, Msg::ToCoordinator(body, conn));
                 }
             }
             Action::ToPeer {
@@ -603,10 +655,11 @@ impl World<'_> {
                     declined: false,
                 };
                 if !w.disconnected {
+                    let conn = w.conn;
                     self.send(
                         node,
                         COORDINATOR,
-                        Msg::ToCoordinator(FromWorker::FrameReport(report)),
+                        Msg::ToCoordinator(FromWorker::FrameReport(report), conn),
                     );
                 }
             }
@@ -619,12 +672,17 @@ impl World<'_> {
         o.messages = self.net.messages;
         o.rounds = self.coord.rounds;
         o.frame_time = self.coord.completed_at.map(|t| t.since(Time(0)));
+        o.frames = self.coord.frames;
         for p in &self.coord.problems {
             self.checks.violation("worker error", p.clone());
         }
-        if o.frame_time.is_none() {
+        if let Some(e) = &self.coord.failed {
+            self.checks.violation("job failed", e.clone());
+        }
+        let written = self.coord.image_hash.clone();
+        if o.frame_time.is_none() || written.is_none() {
             let why = if ended {
-                "the frame ended without completing".to_string()
+                "the job ended without its image".to_string()
             } else if o.events > MAX_EVENTS {
                 format!("more than {MAX_EVENTS} events without completing")
             } else {
@@ -634,8 +692,8 @@ impl World<'_> {
                 )
             };
             self.checks.violation("liveness", why);
-        } else {
-            match self.coord.image_hash() {
+        } else if let Some(written) = written {
+            match written {
                 Ok(h) => {
                     if let Some(want) = expected_hash
                         && want != h

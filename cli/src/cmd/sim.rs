@@ -13,7 +13,7 @@ use rayfarm_node::job::{parse_schedule, schedule_name};
 use rayfarm_node::proto::Schedule;
 use rayfarm_sim::node::QueueCaps;
 use rayfarm_sim::world::open_scene;
-use rayfarm_sim::{CostModel, FaultPlan, Outcome, SimConfig, simulate};
+use rayfarm_sim::{CostModel, FaultPlan, Outcome, RECONNECT, SimConfig, simulate};
 use rayon::prelude::*;
 
 use crate::units;
@@ -82,6 +82,8 @@ fn parse_seeds(s: &str) -> Result<std::ops::Range<u64>, String> {
 const ACK_DEADLINE: Duration = Duration::from_millis(10);
 const HEARTBEAT: Duration = Duration::from_millis(20);
 const WORKER_TIMEOUT: Duration = Duration::from_millis(200);
+/// A job record's write to the coordinator's store (a redb commit with its fsync).
+const DISK_LATENCY: Duration = Duration::from_millis(2);
 
 impl SimArgs {
     fn config(&self, schedule: Schedule) -> SimConfig {
@@ -108,6 +110,7 @@ impl SimArgs {
             ack_deadline: ACK_DEADLINE,
             heartbeat: HEARTBEAT,
             worker_timeout: WORKER_TIMEOUT,
+            disk_latency: DISK_LATENCY,
         }
     }
 
@@ -135,10 +138,12 @@ impl SimArgs {
     }
 }
 
-/// The liveness bound of a faulty run whose clean run took `clean`: twenty clean frames, and
-/// time for every deadline to expire twice (the accusation grace is 2 s).
+/// The liveness bound of a faulty run whose clean run took `clean`: twenty clean frames, time
+/// for every deadline to expire twice (the accusation grace is 2 s), and for the workers to
+/// register again after a coordinator crash (their reconnect delay; the crashed coordinator
+/// is down less than a clean frame).
 fn bound(clean: Duration) -> Duration {
-    clean * 20 + (ACK_DEADLINE + WORKER_TIMEOUT + Duration::from_secs(2)) * 2
+    clean * 20 + (ACK_DEADLINE + WORKER_TIMEOUT + Duration::from_secs(2)) * 2 + RECONNECT
 }
 
 const CLEAN_BOUND: Duration = Duration::from_secs(3600);
@@ -290,6 +295,10 @@ struct Summary {
     mid_pass: u64,
     mid_load: u64,
     in_flight: u64,
+    /// Coordinator crashes, and frames started again after them or after losing every
+    /// worker.
+    crashes: u64,
+    restarted_frames: u64,
     events: u64,
     /// Slowest faulty frame over the clean one.
     worst: f64,
@@ -303,6 +312,8 @@ impl Summary {
         self.mid_pass += o.kills.mid_pass;
         self.mid_load += o.kills.mid_load;
         self.in_flight += o.kills.bundles_in_flight;
+        self.crashes += o.coordinator_crashes;
+        self.restarted_frames += o.frames.saturating_sub(1);
         self.events += o.events;
         if let Some(t) = o.frame_time {
             self.worst = self
@@ -314,7 +325,8 @@ impl Summary {
     fn print(&self, schedule: Schedule, seeds: &std::ops::Range<u64>) {
         println!(
             "{}: seeds {}..{}: {} runs, {} failed; {} kills ({} mid-pass, {} mid-load, {} with \
-             bundles in flight); {} events; slowest frame {:.2}x the clean one",
+             bundles in flight); {} coordinator crashes, {} frames started again; {} events; \
+             slowest frame {:.2}x the clean one",
             schedule_name(schedule),
             seeds.start,
             seeds.end,
@@ -324,6 +336,8 @@ impl Summary {
             self.mid_pass,
             self.mid_load,
             self.in_flight,
+            self.crashes,
+            self.restarted_frames,
             self.events,
             self.worst
         );

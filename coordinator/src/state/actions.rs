@@ -44,8 +44,8 @@ impl Coordinator {
                     }
                     None
                 }
-                Action::Persist { record, start } => {
-                    self.persist(st, &record, start);
+                Action::Persist { record, barrier } => {
+                    self.persist(st, &record, barrier);
                     None
                 }
                 Action::Progress { job_id, progress } => {
@@ -83,17 +83,17 @@ impl Coordinator {
         }
     }
 
-    /// Hands `record` to the journal and tells the job's watchers its state. With `start`,
-    /// the machine hears once it is stored (the frame's messages wait for it).
-    fn persist(self: &Arc<Self>, st: &mut State, record: &JobRecord, start: Option<u64>) {
+    /// Hands `record` to the journal and tells the job's watchers its state. With a
+    /// `barrier`, the machine hears once it is stored (messages to workers wait for it).
+    fn persist(self: &Arc<Self>, st: &mut State, record: &JobRecord, barrier: Option<u64>) {
         let stored = StoredJob::from_record(record);
-        match start {
-            Some(start) => {
+        match barrier {
+            Some(barrier) => {
                 let this = Arc::downgrade(self);
                 let then = Box::new(move |_| {
                     if let Some(c) = this.upgrade() {
                         let mut st = c.lock();
-                        c.feed(&mut st, Input::Stored { start });
+                        c.feed(&mut st, Input::Stored { barrier });
                     }
                 });
                 st.journal.put_then(stored, then);

@@ -30,6 +30,11 @@ struct Accusation {
 #[derive(Debug, Default)]
 pub struct Accusations {
     pending: Vec<Accusation>,
+    /// Accusers dropped for their lone word, by the worker they accused: a later report of
+    /// that worker by another peer is the second word. (A stuck worker's peers may report it
+    /// one at a time, each alone in its grace period: without this, each of them would go
+    /// in turn and the stuck worker would stay.)
+    dismissed: BTreeMap<u32, BTreeSet<u32>>,
 }
 
 /// The worker to drop, and the first report involving it.
@@ -102,8 +107,11 @@ impl Accusations {
         // Reports are in order of arrival: the first one naming a worker with the most broken
         // links decides, the accused before the accuser, unless the accused is one the
         // coordinator still hears from and only this accuser reports.
-        let (drop, first) = self.pending.iter().find_map(|a| {
-            let uncorroborated = heard.contains(&a.accused) && links[&a.accused].len() < 2;
+        let dismissed = &self.dismissed;
+        let (drop, first, uncorroborated) = self.pending.iter().find_map(|a| {
+            let earlier = dismissed.get(&a.accused).into_iter().flatten();
+            let words: BTreeSet<u32> = links[&a.accused].iter().chain(earlier).copied().collect();
+            let uncorroborated = heard.contains(&a.accused) && words.len() < 2;
             let order = if uncorroborated {
                 [a.accuser, a.accused]
             } else {
@@ -112,8 +120,14 @@ impl Accusations {
             order
                 .into_iter()
                 .find(|k| links[k].len() == most)
-                .map(|k| (k, a.clone()))
+                .map(|k| (k, a.clone(), uncorroborated))
         })?;
+        if uncorroborated && drop == first.accuser {
+            self.dismissed
+                .entry(first.accused)
+                .or_default()
+                .insert(drop);
+        }
         self.forget(drop);
         Some(Verdict {
             drop,
@@ -243,5 +257,36 @@ mod tests {
         assert_eq!(a.judge(t0 + GRACE, GRACE, &members(&[0, 1])), None);
         a.add(3, 3, t0, "itself");
         assert_eq!(a.judge(t0 + GRACE, GRACE, &members(&[3])), None);
+    }
+
+    #[test]
+    fn a_stuck_worker_reported_by_its_peers_one_at_a_time_goes_on_the_second_report() {
+        // The simulator's predictive seeds 14, 120, 329, 998 (a stuck worker, a coordinator
+        // crash): after the restart its peers joined at different times and reported it
+        // one grace period apart, so each was dropped as a lone accuser in turn.
+        let t0 = Time(1_000_000_000);
+        let all = members(&[1, 2, 3]);
+        let mut a = Accusations::default();
+        a.add(1, 2, t0, "silent");
+        assert_eq!(
+            a.judge_heard(t0 + GRACE, GRACE, &all, &all).unwrap().drop,
+            1
+        );
+        let (rest, t1) = (members(&[2, 3]), t0 + GRACE * 3);
+        a.add(3, 2, t1, "silent");
+        let v = a
+            .judge_heard(t1 + GRACE, GRACE, &rest, &rest)
+            .expect("verdict");
+        assert_eq!(
+            v.drop, 2,
+            "worker 1's earlier word and worker 3's drop worker 2"
+        );
+        // One dismissed accuser's word alone still drops nobody else: a fresh accusation of
+        // another worker by a lone peer drops that peer.
+        a.add(3, 4, t1, "silent");
+        let v = a
+            .judge_heard(t1 + GRACE, GRACE, &members(&[3, 4]), &members(&[3, 4]))
+            .expect("verdict");
+        assert_eq!(v.drop, 3);
     }
 }

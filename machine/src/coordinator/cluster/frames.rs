@@ -64,7 +64,7 @@ impl Coordinator {
             out.push(discard);
             return self.try_start(now, out);
         };
-        let (attempts, floor, seq) = (job.record.attempts, job.epoch_floor, job.record.seq);
+        let (attempts, floor, seq) = (job.record.attempts, job.record.epoch_floor, job.record.seq);
         let spec = job.record.summary.spec.clone().unwrap_or_default();
         if job.record.state() != JobState::Queued || self.stopping {
             out.push(discard);
@@ -98,6 +98,7 @@ impl Coordinator {
         // A job started before (by a coordinator since restarted, or before its workers
         // were all lost) starts every tile at a new epoch, so rays and results of the
         // abandoned run still in flight are dropped as stale.
+        // (Records stored before the floor was kept count their attempts instead.)
         frame.restart_epochs(attempts.max(floor));
         let members: Vec<(u32, Member)> = self
             .workers
@@ -117,6 +118,7 @@ impl Coordinator {
         if let Some(job) = self.jobs.get_mut(id) {
             job.record.summary.started_unix_ms = started;
             job.record.attempts = attempts.saturating_add(1);
+            job.record.epoch_floor = frame.epoch_floor();
         }
         out.push(Action::FrameStarted {
             job_id: id.to_string(),
@@ -124,29 +126,50 @@ impl Coordinator {
         });
         // The start is stored before any worker hears of it: a frame that kills the
         // coordinator counts against the job's attempts all the same.
-        self.starts += 1;
-        let start = self.starts;
-        self.set_state_stored(now, id, JobState::Running, "", Some(start), out);
+        self.barriers += 1;
+        let barrier = self.barriers;
+        self.set_state_stored(now, id, JobState::Running, "", Some(barrier), out);
         self.running = Some(frame);
         self.send(messages, out);
         self.publish_progress(now, out);
     }
 
-    /// Messages to workers, held while a frame's start is not yet stored.
+    /// Messages to workers, held while a barrier's record is not yet stored.
     pub(super) fn send(&mut self, messages: Vec<Outgoing>, out: &mut Vec<Action>) {
-        if self.stored_starts < self.starts {
-            let start = self.starts;
-            self.held.extend(messages.into_iter().map(|m| (start, m)));
+        if self.stored_barriers < self.barriers {
+            let barrier = self.barriers;
+            self.held.extend(messages.into_iter().map(|m| (barrier, m)));
             return;
         }
         out.extend(messages.into_iter().map(Action::Send));
     }
 
-    /// Frame start `start` is stored: the messages held for it (and earlier starts) go out
-    /// to the workers still registered.
-    pub(super) fn release_held(&mut self, start: u64, out: &mut Vec<Action>) {
-        self.stored_starts = self.stored_starts.max(start);
-        let ready = self.held.iter().take_while(|(s, _)| *s <= start).count();
+    /// The running frame's messages after a loss bumped its epochs: the job's epoch floor is
+    /// raised past them and stored before any worker hears of them.
+    pub(super) fn send_bumped(&mut self, messages: Vec<Outgoing>, out: &mut Vec<Action>) {
+        let floor = self
+            .running
+            .as_ref()
+            .map(|f| (f.job_id.clone(), f.epoch_floor()));
+        if let Some((id, floor)) = floor
+            && let Some(job) = self.jobs.get_mut(&id)
+            && floor > job.record.epoch_floor
+        {
+            job.record.epoch_floor = floor;
+            self.barriers += 1;
+            out.push(Action::Persist {
+                record: job.record.clone(),
+                barrier: Some(self.barriers),
+            });
+        }
+        self.send(messages, out);
+    }
+
+    /// Barrier `barrier`'s record is stored: the messages held for it (and earlier
+    /// barriers) go out to the workers still registered.
+    pub(super) fn release_held(&mut self, barrier: u64, out: &mut Vec<Action>) {
+        self.stored_barriers = self.stored_barriers.max(barrier);
+        let ready = self.held.iter().take_while(|(b, _)| *b <= barrier).count();
         let workers = &self.workers;
         out.extend(
             self.held
@@ -191,7 +214,7 @@ impl Coordinator {
         warn!(job = %frame.job_id, "every worker of the frame is gone: job re-queued");
         let id = frame.job_id.clone();
         if let Some(job) = self.jobs.get_mut(&id) {
-            job.epoch_floor = frame.epoch_floor();
+            job.record.epoch_floor = job.record.epoch_floor.max(frame.epoch_floor());
             self.queue
                 .push(id.clone(), frame.spec.priority, job.record.seq);
         }

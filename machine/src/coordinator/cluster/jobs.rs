@@ -68,7 +68,7 @@ impl Coordinator {
             }
             out.push(Action::Persist {
                 record: record.clone(),
-                start: None,
+                barrier: None,
             });
         }
         self.seq = self.seq.max(record.seq);
@@ -79,7 +79,6 @@ impl Coordinator {
         let job = Job {
             cost: record.summary.spec.as_ref().map_or(0, spec_cost),
             record,
-            epoch_floor: 0,
             workers_lost: BTreeMap::new(),
         };
         self.add_job(id, job);
@@ -117,13 +116,13 @@ impl Coordinator {
             },
             seq,
             attempts: 0,
+            epoch_floor: 0,
             image_hash: String::new(),
             stats_json: String::new(),
         };
         let job = Job {
             record: record.clone(),
             cost,
-            epoch_floor: 0,
             workers_lost: BTreeMap::new(),
         };
         self.add_job(id, job);
@@ -239,19 +238,19 @@ impl Coordinator {
         info!(job = %id, priority, "job priority changed");
         let persist = Action::Persist {
             record,
-            start: None,
+            barrier: None,
         };
         Ok((state, vec![persist]))
     }
 
-    /// Sets job `id`'s state and records it (`start`: see [`Action::Persist`]).
+    /// Sets job `id`'s state and records it (`barrier`: see [`Action::Persist`]).
     pub(super) fn set_state_stored(
         &mut self,
         now: Time,
         id: &str,
         state: JobState,
         error: &str,
-        start: Option<u64>,
+        barrier: Option<u64>,
         out: &mut Vec<Action>,
     ) {
         let finished = self.unix_ms(now);
@@ -275,7 +274,7 @@ impl Coordinator {
         if is_terminal(state) {
             record.stats_json = std::mem::take(&mut job.record.stats_json);
         }
-        out.push(Action::Persist { record, start });
+        out.push(Action::Persist { record, barrier });
     }
 
     pub(super) fn set_state(

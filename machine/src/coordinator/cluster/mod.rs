@@ -66,6 +66,12 @@ pub struct JobRecord {
     pub seq: u64,
     /// Frames of this job started so far, across restarts.
     pub attempts: u32,
+    /// One past the highest tile epoch any frame of this job announced to workers: the
+    /// epoch its next frame starts at, at least, so that rays and results of an abandoned
+    /// frame still in flight are never taken for the new frame's, whether it was abandoned by
+    /// losing every worker or by the coordinator's death. Stored before workers hear of a
+    /// new epoch (at a frame's start, and when a loss bumps epochs).
+    pub epoch_floor: u32,
     pub image_hash: String,
     /// The finished frame's statistics (JSON). Only the job's final record carries them, to
     /// the store; the machine keeps none, so [`Coordinator::job`] gives a finished job's
@@ -88,11 +94,6 @@ struct Job {
     record: JobRecord,
     /// Pixels times samples per pixel: what the job weighs against its owner's quota.
     cost: u64,
-    /// The epoch every tile of its next frame starts at, at least: one past the highest
-    /// epoch an earlier frame of it used in this process. A frame that lost every worker
-    /// bumped epochs with each loss; a worker dropped from it may still send rays and
-    /// results of those epochs, which the restarted frame must never take for its own.
-    epoch_floor: u32,
     /// Times each worker (by id) was lost during this job's frames, in this process.
     workers_lost: BTreeMap<String, u32>,
 }
@@ -184,8 +185,8 @@ pub enum Input {
         job_id: String,
         opened: Result<OpenedFrame, String>,
     },
-    /// The record persisted with `start: Some(start)` is stored.
-    Stored { start: u64 },
+    /// The record persisted with `barrier: Some(barrier)` is stored.
+    Stored { barrier: u64 },
     /// The first record of a submitted job is stored (or why not: the job is forgotten).
     Recorded {
         job_id: String,
@@ -214,11 +215,12 @@ pub enum Action {
         key: u32,
         closing: Closing,
     },
-    /// Write this job record (after every record before it). With `start`, answer
-    /// [`Input::Stored`] once it is on disk: the frame's messages wait for it.
+    /// Write this job record (after every record before it). With a `barrier`, answer
+    /// [`Input::Stored`] once it is on disk: messages to workers decided after it wait for
+    /// it (a frame's start, or new epochs after a loss, are stored before workers hear).
     Persist {
         record: JobRecord,
-        start: Option<u64>,
+        barrier: Option<u64>,
     },
     /// The running frame's figures changed.
     Progress {
@@ -276,11 +278,12 @@ pub struct Coordinator {
     preparing: Option<String>,
     running: Option<RunningFrame>,
     finishing: BTreeMap<String, Finishing>,
-    /// Frame starts so far, and the latest whose record is stored: until it is, messages to
-    /// workers wait in `held` (in order), so no worker hears of a frame before its start is
-    /// stored (a frame that kills the coordinator counts against the job's attempts).
-    starts: u64,
-    stored_starts: u64,
+    /// Records persisted with a barrier so far, and the latest stored: until it is, messages
+    /// to workers wait in `held` (in order), so no worker hears of a frame or of its new
+    /// epochs before the record is stored (a frame that kills the coordinator counts against
+    /// the job's attempts, and the next frame starts above every epoch announced).
+    barriers: u64,
+    stored_barriers: u64,
     held: Vec<(u64, Outgoing)>,
     /// Set by [`Input::ShutDown`]: no worker attaches and no frame starts any more.
     stopping: bool,
@@ -310,8 +313,8 @@ impl Coordinator {
             preparing: None,
             running: None,
             finishing: BTreeMap::new(),
-            starts: 0,
-            stored_starts: 0,
+            barriers: 0,
+            stored_barriers: 0,
             held: Vec::new(),
             stopping: false,
             lost: VecDeque::new(),
@@ -330,7 +333,7 @@ impl Coordinator {
             Input::WorkerGone { key, why } => self.lose(now, key, &why, Closing::Dropped, &mut out),
             Input::Tick => self.tick(now, &mut out),
             Input::FrameOpened { job_id, opened } => self.begin(now, &job_id, opened, &mut out),
-            Input::Stored { start } => self.release_held(start, &mut out),
+            Input::Stored { barrier } => self.release_held(barrier, &mut out),
             Input::Recorded { job_id, result } => self.recorded(now, &job_id, result, &mut out),
             Input::ResultsWritten { job_id, result } => {
                 self.results_written(now, &job_id, result, &mut out)

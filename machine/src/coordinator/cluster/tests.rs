@@ -84,6 +84,23 @@ impl Harness {
         self.keep(out)
     }
 
+    /// [`handle`](Self::handle), then every record persisted with a barrier stored at once:
+    /// every action, the released messages included.
+    fn handle_stored(&mut self, now: Time, input: Input) -> Vec<Action> {
+        let mut out = self.handle(now, input);
+        let barriers: Vec<u64> = out
+            .iter()
+            .filter_map(|a| match a {
+                Action::Persist { barrier, .. } => *barrier,
+                _ => None,
+            })
+            .collect();
+        for barrier in barriers {
+            out.extend(self.handle(now, Input::Stored { barrier }));
+        }
+        out
+    }
+
     fn register(&mut self, now: Time, id: &str) -> (u32, Vec<Action>) {
         let (key, out) = self.c.register(now, &register(id)).expect("registered");
         (key, self.keep(out))
@@ -119,11 +136,11 @@ impl Harness {
         let start = out
             .iter()
             .find_map(|a| match a {
-                Action::Persist { start, .. } => *start,
+                Action::Persist { barrier, .. } => *barrier,
                 _ => None,
             })
             .expect("the start is persisted");
-        out.extend(self.handle(now, Input::Stored { start }));
+        out.extend(self.handle(now, Input::Stored { barrier: start }));
         out
     }
 }
@@ -238,17 +255,17 @@ fn a_frame_s_messages_wait_until_its_start_is_stored() {
     );
     assert!(starts(&out, a).is_empty(), "sent before stored: {out:?}");
     let start = out.iter().find_map(|a| match a {
-        Action::Persist { record, start } => {
+        Action::Persist { record, barrier } => {
             assert_eq!(record.state(), JobState::Running);
             assert_eq!(record.attempts, 1);
-            *start
+            *barrier
         }
         _ => None,
     });
     let out = h.handle(
         Time(2),
         Input::Stored {
-            start: start.unwrap(),
+            barrier: start.unwrap(),
         },
     );
     assert_eq!(starts(&out, a).len(), 1, "{out:?}");
@@ -275,7 +292,7 @@ fn a_silent_worker_is_dropped_at_the_deadline_tick_and_its_tiles_re_dealt() {
         "not yet"
     );
     beat(&mut h, secs(10));
-    let out = h.handle(secs(10) + Duration::from_millis(1), Input::Tick);
+    let out = h.handle_stored(secs(10) + Duration::from_millis(1), Input::Tick);
     assert_eq!(closed(&out), [(a, &Closing::NoHeartbeat)]);
     // Every unfinished tile moves to a new epoch and all four are dealt to b.
     let bodies = sent(&out, b);
@@ -423,7 +440,7 @@ fn impossible_results_close_the_sender_which_then_sits_the_frame_out() {
     let (a, b) = (keys[0], keys[1]);
     // Tile 1's camera rays went to b, and a holds no domain: a cannot have its credit.
     let forged = whole_tile(&h.c, 1, 0);
-    let out = h.handle(
+    let out = h.handle_stored(
         secs(1),
         Input::WorkerMessage {
             key: a,
@@ -505,4 +522,47 @@ fn quotas_refuse_a_third_job_and_a_cancelled_job_frees_its_place() {
     );
     assert!(h.c.submit(Time(2), spec(), 1, "ann").is_ok());
     assert!(h.c.cancel(Time(2), "job-none").is_none());
+}
+
+#[test]
+fn new_epochs_after_a_loss_are_stored_before_workers_hear_and_a_restart_starts_above_them() {
+    // The simulator's seeds 92 and 101: a worker killed, then the coordinator crashed; the
+    // restarted frame started at epoch 1, the epoch the survivors' stale rays were at, and a
+    // stale ray's credit was counted in the new frame.
+    let (mut h, id, keys, _) = running(&["a", "b"]);
+    let out = h.handle(
+        secs(1),
+        Input::WorkerGone {
+            key: keys[0],
+            why: "killed".into(),
+        },
+    );
+    assert!(sent(&out, keys[1]).is_empty(), "the bump waits: {out:?}");
+    let barrier = out
+        .iter()
+        .find_map(|a| match a {
+            Action::Persist { record, barrier } => {
+                assert_eq!(record.epoch_floor, 2, "one past the bumped epoch 1");
+                *barrier
+            }
+            _ => None,
+        })
+        .expect("the new floor is persisted");
+    let out = h.handle(secs(1), Input::Stored { barrier });
+    assert!(
+        matches!(sent(&out, keys[1])[0], Body::EpochBump(_)),
+        "{out:?}"
+    );
+    // The coordinator dies; its successor starts the job above epoch 1.
+    let mut again = Harness::new();
+    for record in h.store.values() {
+        again.c.restore(secs(2), record.clone(), None);
+    }
+    let (c, _) = again.register(secs(2), "c");
+    let out = again.open(secs(2), &id);
+    let epochs = &starts(&out, c)[0].epochs;
+    assert!(
+        epochs.len() == 4 && epochs.values().all(|&e| e == 2),
+        "{epochs:?}"
+    );
 }

@@ -246,7 +246,7 @@ impl Coordinator {
             );
             return self.fail_running(now, &msg, out);
         }
-        self.send(rest, out);
+        self.send_bumped(rest, out);
     }
 
     /// Forgets worker `key` (its stream is closed with `closing`): the running frame deals
@@ -309,7 +309,7 @@ impl Coordinator {
             return self.requeue_running(now, out);
         }
         info!(worker = %worker.id, "re-issuing the unfinished tiles on the remaining workers");
-        self.send(rest, out);
+        self.send_bumped(rest, out);
     }
 
     /// Drops workers silent longer than the timeout, judges reports of unreachable peers,
