@@ -133,17 +133,23 @@ fn generated_scene_renders_identically_at_1_8_and_64_domains_any_threads_any_cac
 /// domain file format 3 (commit 77f3361) drew it: the 8-wide kernels must not move a pixel.
 const HASH_BEFORE_8_WIDE: &str = "26496b5f9c8ca2cb";
 
+/// Every kernel, with the render kernel's camera-ray packets on and off (`RAYFARM_PACKETS`).
 #[test]
 fn every_traversal_kernel_renders_the_hash_of_the_4_wide_tree() {
     let tmp = tempfile::tempdir().unwrap();
     for domains in [1, 8] {
         let scene = generate(tmp.path(), domains);
         for kernel in Kernel::ALL.into_iter().filter(|k| k.supported()) {
-            for threads in [1, 2] {
-                let tag = format!("{}-{domains}-{threads}", kernel.name());
-                let env = [("RAYFARM_KERNEL", kernel.name())];
-                let r = render_env(&scene, tmp.path(), threads, "1GiB", &tag, &[], &env);
-                assert_eq!(r.hash, HASH_BEFORE_8_WIDE, "{tag}");
+            for packets in ["1", "0"] {
+                for threads in [1, 2] {
+                    let tag = format!("{}-{domains}-{threads}-p{packets}", kernel.name());
+                    let env = [
+                        ("RAYFARM_KERNEL", kernel.name()),
+                        ("RAYFARM_PACKETS", packets),
+                    ];
+                    let r = render_env(&scene, tmp.path(), threads, "1GiB", &tag, &[], &env);
+                    assert_eq!(r.hash, HASH_BEFORE_8_WIDE, "{tag}");
+                }
             }
         }
     }

@@ -37,10 +37,10 @@ pub const PIXEL_BYTES: u64 = 24;
 #[inline]
 pub fn to_fixed(v: f32) -> i64 {
     if v.is_finite() && v > 0.0 {
-        (v as f64)
-            .min(MAX_CONTRIBUTION)
-            .mul_add(FIXED_ONE, 0.5)
-            .floor() as i64
+        // An f32 times 2^24 is exact in f64, so the plain product and sum round once, as a
+        // fused multiply-add would; the sum is positive and bounded, so truncation is the
+        // floor. No libm calls (they were a fifth of every deposit).
+        ((v as f64).min(MAX_CONTRIBUTION) * FIXED_ONE + 0.5) as i64
     } else {
         0
     }
@@ -632,6 +632,52 @@ impl OpenTiles {
 
 #[cfg(test)]
 mod tests {
+
+    /// The deposit's fast conversion is the reference formula (fused multiply-add, then
+    /// floor) to the bit, for every kind of value, rounding ties and the clamp included.
+    #[test]
+    fn to_fixed_equals_the_fused_multiply_add_and_floor() {
+        let reference = |v: f32| {
+            if v.is_finite() && v > 0.0 {
+                (v as f64)
+                    .min(MAX_CONTRIBUTION)
+                    .mul_add(FIXED_ONE, 0.5)
+                    .floor() as i64
+            } else {
+                0
+            }
+        };
+        let mut x = 0x9e37_79b9_7f4a_7c15u64;
+        let mut values = vec![
+            0.0,
+            -0.0,
+            1.0,
+            0.5,
+            1e6,
+            1e6 + 64.0,
+            f32::MAX,
+            f32::MIN_POSITIVE,
+        ];
+        values.extend([
+            f32::INFINITY,
+            f32::NAN,
+            -1.0,
+            1.0 / 16_777_216.0,
+            1.5 / 16_777_216.0,
+        ]);
+        for _ in 0..1_000_000 {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            values.push(f32::from_bits(x as u32));
+            // Small values, where ties at half a fixed-point unit happen.
+            values.push((x >> 40) as f32 / 16_777_216.0 / 2.0);
+        }
+        for v in values {
+            assert_eq!(to_fixed(v), reference(v), "{v:e} ({:#x})", v.to_bits());
+        }
+    }
+
     use super::*;
 
     fn grid(w: u32, h: u32) -> TileGrid {

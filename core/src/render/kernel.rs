@@ -9,7 +9,7 @@ use glam::Vec3;
 
 use super::dvr::{self, March, SampleCounts, VolumeView};
 use super::speculation::{Outcome, SurfaceHit, Verdict};
-use crate::bvh::{TraceRay, Traverser};
+use crate::bvh::{Bvh, Hit, PACKET, TraceRay, Traverser};
 use crate::frame::{split_credit, split_path_credit};
 use crate::ray::{RayKind, RayRecord};
 use crate::sampling::{Purpose, uniform};
@@ -80,6 +80,43 @@ impl CopyScratch {
     /// Nothing kept yet.
     pub fn new() -> Self {
         Self::default()
+    }
+}
+
+/// Camera rays of one queue waiting to be traced together (at most [`PACKET`]): the rays, their
+/// prepared forms, intervals in this domain and the next domain after it.
+struct CameraPacket {
+    len: usize,
+    rays: [RayRecord; PACKET],
+    trace: [TraceRay; PACKET],
+    t0: [f32; PACKET],
+    t1: [f32; PACKET],
+    next: [Option<u32>; PACKET],
+}
+
+impl Default for CameraPacket {
+    fn default() -> Self {
+        let tr = TraceRay::new(Vec3::ZERO, Vec3::Z);
+        CameraPacket {
+            len: 0,
+            rays: [bytemuck::Zeroable::zeroed(); PACKET],
+            trace: [tr; PACKET],
+            t0: [0.0; PACKET],
+            t1: [0.0; PACKET],
+            next: [None; PACKET],
+        }
+    }
+}
+
+impl CameraPacket {
+    fn add(&mut self, ray: &RayRecord, trace: TraceRay, (t0, t1): (f32, f32), next: Option<u32>) {
+        let i = self.len;
+        self.rays[i] = *ray;
+        self.trace[i] = trace;
+        self.t0[i] = t0;
+        self.t1[i] = t1;
+        self.next[i] = next;
+        self.len += 1;
     }
 }
 
@@ -223,10 +260,20 @@ impl SceneView {
         let bvh = data.bvh();
         let mut traverser = Traverser::new();
         let mut children = Vec::with_capacity(self.lights.len() + 1);
+        let mut packet = CameraPacket::default();
+        let packets = traverser.packets();
         for ray in rays {
             let (interval, next) = self.segment(ray, data.domain());
             let Some((t0, t1)) = interval else {
                 // Not on this ray's path (a stale or foreign ray): start it over.
+                self.flush(
+                    bvh,
+                    &mut traverser,
+                    &mut packet,
+                    &mut children,
+                    sink,
+                    counters,
+                );
                 self.route_new(*ray, sink);
                 continue;
             };
@@ -234,7 +281,30 @@ impl SceneView {
             let dir = Vec3::from(ray.dir);
             let tr = TraceRay::new(origin, dir);
             match ray.kind() {
+                RayKind::Radiance if packets && ray.depth == 0 => {
+                    // Camera rays queue in pixel order: neighbours, traced together.
+                    packet.add(ray, tr, (t0, t1), next);
+                    if packet.len == PACKET {
+                        self.flush(
+                            bvh,
+                            &mut traverser,
+                            &mut packet,
+                            &mut children,
+                            sink,
+                            counters,
+                        );
+                    }
+                    continue;
+                }
                 RayKind::Shadow => {
+                    self.flush(
+                        bvh,
+                        &mut traverser,
+                        &mut packet,
+                        &mut children,
+                        sink,
+                        counters,
+                    );
                     counters.shadow_segments += 1;
                     if traverser.any_hit(bvh, &tr, t0, t1) {
                         // Occluded: no light, but the credit still goes home.
@@ -243,21 +313,108 @@ impl SceneView {
                     }
                 }
                 RayKind::Radiance => {
-                    counters.radiance_segments += 1;
-                    if let Some(hit) = traverser.nearest_hit(bvh, &tr, t0, t1) {
-                        let tri = bvh.triangle(&hit);
-                        children.clear();
-                        let surface = (tri.normal(), tri.material);
-                        self.shade(ray, origin + dir * hit.t, surface, &mut children, counters);
-                        self.hand_on_credit(ray, &mut children, sink);
-                        continue;
-                    }
+                    self.flush(
+                        bvh,
+                        &mut traverser,
+                        &mut packet,
+                        &mut children,
+                        sink,
+                        counters,
+                    );
+                    let hit = traverser.nearest_hit(bvh, &tr, t0, t1);
+                    self.radiance_done(bvh, ray, hit, next, &mut children, sink, counters);
+                    continue;
                 }
             }
             if next.is_some() {
                 counters.forwarded += 1;
             }
             self.send(*ray, next, sink);
+        }
+        self.flush(
+            bvh,
+            &mut traverser,
+            &mut packet,
+            &mut children,
+            sink,
+            counters,
+        );
+    }
+
+    /// Traces the camera rays gathered in `packet`, if any (checked here, inlined: most rays
+    /// are not camera rays and must not pay a call for an empty packet).
+    #[inline(always)]
+    fn flush(
+        &self,
+        bvh: Bvh,
+        traverser: &mut Traverser,
+        packet: &mut CameraPacket,
+        children: &mut Vec<RayRecord>,
+        sink: &mut impl RaySink,
+        counters: &mut KernelCounters,
+    ) {
+        if packet.len != 0 {
+            self.trace_packet(bvh, traverser, packet, children, sink, counters);
+        }
+    }
+
+    /// Traces the camera rays gathered in `packet` together and finishes each, in queue order.
+    #[inline(never)]
+    fn trace_packet(
+        &self,
+        bvh: Bvh,
+        traverser: &mut Traverser,
+        packet: &mut CameraPacket,
+        children: &mut Vec<RayRecord>,
+        sink: &mut impl RaySink,
+        counters: &mut KernelCounters,
+    ) {
+        let n = packet.len;
+        packet.len = 0;
+        let mut hits = [None; PACKET];
+        traverser.nearest_hits(
+            bvh,
+            &packet.trace[..n],
+            &packet.t0[..n],
+            &packet.t1[..n],
+            &mut hits[..n],
+        );
+        for (i, hit) in hits[..n].iter().enumerate() {
+            let next = packet.next[i];
+            self.radiance_done(bvh, &packet.rays[i], *hit, next, children, sink, counters);
+        }
+    }
+
+    /// A radiance ray traced through this domain: shaded where it hit, else sent on to `next`
+    /// (or the sky).
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn radiance_done(
+        &self,
+        bvh: Bvh,
+        ray: &RayRecord,
+        hit: Option<Hit>,
+        next: Option<u32>,
+        children: &mut Vec<RayRecord>,
+        sink: &mut impl RaySink,
+        counters: &mut KernelCounters,
+    ) {
+        counters.radiance_segments += 1;
+        match hit {
+            Some(hit) => {
+                let tri = bvh.triangle(&hit);
+                children.clear();
+                let surface = (tri.normal(), tri.material);
+                let p = Vec3::from(ray.origin) + Vec3::from(ray.dir) * hit.t;
+                self.shade(ray, p, surface, children, counters);
+                self.hand_on_credit(ray, children, sink);
+            }
+            None => {
+                if next.is_some() {
+                    counters.forwarded += 1;
+                }
+                self.send(*ray, next, sink);
+            }
         }
     }
 
@@ -450,32 +607,36 @@ impl SceneView {
             .iter()
             .filter(|c| c.kind() == RayKind::Shadow)
             .count();
-        let bounces = children.len() - leaves;
-        let shares: Option<Vec<u64>> = match bounces {
-            0 => split_credit(parent.credit, leaves)
-                .ok()
-                .map(Iterator::collect),
-            _ => split_path_credit(parent.credit, leaves).ok().map(|s| {
-                children
-                    .iter()
-                    .map(|c| {
-                        if c.kind() == RayKind::Shadow {
-                            s.leaf
-                        } else {
-                            s.continuation
-                        }
-                    })
-                    .collect()
-            }),
-        };
-        match shares {
-            Some(shares) if !children.is_empty() => {
-                for (child, credit) in children.iter_mut().zip(shares) {
-                    child.credit = credit;
+        if children.is_empty() {
+            sink.retire(parent, [0.0; 3]);
+            return;
+        }
+        // The shares are computed in place (no vector of them per ray): even shares when every
+        // child is a leaf, else the minimum per leaf and the rest to the bounce.
+        if leaves == children.len() {
+            match split_credit(parent.credit, leaves) {
+                Ok(shares) => {
+                    for (child, credit) in children.iter_mut().zip(shares) {
+                        child.credit = credit;
+                        self.route_new(*child, sink);
+                    }
+                }
+                Err(_) => sink.retire(parent, [0.0; 3]),
+            }
+            return;
+        }
+        match split_path_credit(parent.credit, leaves) {
+            Ok(s) => {
+                for child in children.iter_mut() {
+                    child.credit = if child.kind() == RayKind::Shadow {
+                        s.leaf
+                    } else {
+                        s.continuation
+                    };
                     self.route_new(*child, sink);
                 }
             }
-            _ => sink.retire(parent, [0.0; 3]),
+            Err(_) => sink.retire(parent, [0.0; 3]),
         }
     }
 

@@ -3,6 +3,7 @@
 //! front to back, with intervals that share their end points exactly (no gaps, no overlaps
 //! beyond a point), which is what makes "nearest hit in the first domain that has one" exact.
 
+use std::mem::MaybeUninit;
 use std::ops::ControlFlow;
 
 use glam::Vec3;
@@ -172,6 +173,11 @@ impl DomainTree {
         let Some((t0, t1)) = clip_to_box(&self.bounds, origin, dir, t_min, t_max) else {
             return;
         };
+        // One domain (a scene in one piece): no planes to cross.
+        if let [KdNode::Leaf { domain }] = self.nodes[..] {
+            let _ = visit(domain, t0, t1);
+            return;
+        }
         // Walked for every ray segment: no heap allocation unless the tree is unusually deep.
         let mut stack = WalkStack::default();
         let mut cur = (0u32, t0, t1);
@@ -321,16 +327,18 @@ pub fn clip_to_box(
 }
 
 /// The far sides a walk will come back to: the first 32 in place, any deeper ones on the heap.
+/// The places are left uninitialised: zeroing them cost more than a one-domain walk itself.
 struct WalkStack {
-    inline: [(u32, f32, f32); 32],
+    inline: [MaybeUninit<(u32, f32, f32)>; 32],
     len: usize,
     spill: Vec<(u32, f32, f32)>,
 }
 
 impl Default for WalkStack {
+    #[inline(always)]
     fn default() -> Self {
         WalkStack {
-            inline: [(0, 0.0, 0.0); 32],
+            inline: [const { MaybeUninit::uninit() }; 32],
             len: 0,
             spill: Vec::new(),
         }
@@ -341,7 +349,7 @@ impl WalkStack {
     #[inline(always)]
     fn push(&mut self, e: (u32, f32, f32)) {
         if self.len < self.inline.len() {
-            self.inline[self.len] = e;
+            self.inline[self.len].write(e);
             self.len += 1;
         } else {
             self.spill.push(e);
@@ -355,7 +363,8 @@ impl WalkStack {
             return Some(e);
         }
         self.len = self.len.checked_sub(1)?;
-        Some(self.inline[self.len])
+        // SAFETY: places below `len` were written by `push`.
+        Some(unsafe { self.inline[self.len].assume_init() })
     }
 }
 
