@@ -211,6 +211,11 @@ fn main() {
             proto::Tier::Results,
             wire::encode_verdicts(&verdicts),
         ),
+        (
+            "volume_verdicts",
+            proto::Tier::Results,
+            wire::encode_verdicts(&volume_verdicts()),
+        ),
     ] {
         let bundle = proto::PeerBundle {
             protocol_version: proto::PROTOCOL_VERSION,
