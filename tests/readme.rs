@@ -40,6 +40,9 @@ const SMALL: &[(&str, &str)] = &[
         "--width 32 --height 32 --spp 1",
     ),
     ("--spp 16", "--spp 1"),
+    ("--width 512 --height 512", "--width 32 --height 32"),
+    // The skull CT's dims, for a small int16 ball of the same name.
+    ("--dims 256,256,108", "--dims 64,64,32"),
     // 64 bricks need 64 blocks of 8 cells: 8 x 8 x 4 of them.
     ("--dims 256,256,128", "--dims 64,64,32"),
     ("--workers 4", "--workers 2"),
@@ -135,6 +138,12 @@ fn plan(command: &str) -> Option<Plan> {
             Plan::Skip("the compose cluster's client certificate (see the docker lines)")
         }),
         ("kubectl ", || Plan::Skip("needs a Kubernetes cluster")),
+        ("apt-get download invesalius-examples", || {
+            Plan::Skip("fetches a Debian package; the test writes a small cranium.raw instead")
+        }),
+        ("tar -xOf inv/", || {
+            Plan::Skip("reads the Debian package fetched above")
+        }),
     ];
     TABLE
         .iter()
@@ -224,8 +233,9 @@ fn write_sphere_ply(path: &Path) {
     std::fs::write(path, text).expect("write ply");
 }
 
-/// A 64x64x32 u16 volume holding a ball (squashed in z) whose surface is at 900, 22 voxels out.
-fn write_ball_raw(path: &Path) {
+/// A 64x64x32 volume of u16 (or i16) holding a ball (squashed in z) whose surface is at 900,
+/// 22 voxels out.
+fn write_ball_raw(path: &Path, signed: bool) {
     let mut bytes = Vec::new();
     for z in 0..32 {
         for y in 0..64 {
@@ -234,8 +244,12 @@ fn write_ball_raw(path: &Path) {
                     + (y as f32 - 31.5).powi(2)
                     + ((z as f32 - 15.5) * 2.0).powi(2))
                 .sqrt();
-                let v = (5300.0 - d * 200.0).clamp(0.0, 65535.0) as u16;
-                bytes.extend_from_slice(&v.to_le_bytes());
+                let v = (5300.0 - d * 200.0).clamp(0.0, 65535.0);
+                if signed {
+                    bytes.extend_from_slice(&(v as i16).to_le_bytes());
+                } else {
+                    bytes.extend_from_slice(&(v as u16).to_le_bytes());
+                }
             }
         }
     }
@@ -273,8 +287,10 @@ fn every_readme_command_runs_or_is_skipped_with_its_reason() {
     let dir = tmp.path();
     // What the commands expect to find.
     write_sphere_ply(&dir.join("bunny.ply"));
-    write_ball_raw(&dir.join("ct.raw"));
+    write_ball_raw(&dir.join("ct.raw"), false);
+    write_ball_raw(&dir.join("cranium.raw"), true);
     std::fs::create_dir_all(dir.join("docs/bench")).expect("docs/bench");
+    std::fs::create_dir_all(dir.join("docs/cranium")).expect("docs/cranium");
     let scenes = dir.join("scenes");
     for name in ["b48", "big48"] {
         prepare_nbody(&scenes, name, 20_000, 4);
@@ -385,6 +401,9 @@ fn every_readme_command_runs_or_is_skipped_with_its_reason() {
         "rayfarm-demo/demo.png",
         "rayfarm-secrets/ca.pem",
         "docs/bench/schedules-cache-holds-scene.png",
+        "docs/cranium/dvr-bone.png",
+        "docs/cranium/dvr-skin.png",
+        "docs/cranium/isosurface.png",
     ] {
         assert!(dir.join(f).exists(), "{f} was not written");
     }

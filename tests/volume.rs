@@ -3,7 +3,7 @@
 //! input with errors that name the file; `--spacing` keeps a volume's proportions.
 
 use rayfarm_core::scene::Manifest;
-use rayfarm_tests::{file_hash, rayfarm_err, rayfarm_ok, s};
+use rayfarm_tests::{file_hash, rayfarm_err, rayfarm_ok, s, stats_field};
 
 /// A 20x16x12 i16 volume: a ball of "bone" (1000) in "soft tissue" (0).
 fn ball_volume(path: &std::path::Path) {
@@ -226,87 +226,121 @@ fn the_generator_emits_its_density_field_as_a_volume() {
 /// Direct volume rendering: the image is the same bits however the volume is cut into bricks,
 /// whatever the cache budget (bricks paged in and out), however many threads trace it, and
 /// traced one brick after another or speculatively (every brick's segments composited by the
-/// ray's group).
+/// ray's group); unlit, shaded by the gradient and the scene's lights, and with shadow rays
+/// towards the lights.
 #[test]
 fn dvr_images_are_identical_at_1_8_and_64_bricks_any_cache_and_threads() {
     let tmp = tempfile::tempdir().unwrap();
-    let mut hashes = Vec::new();
-    for bricks in ["1", "8", "64"] {
-        let scene = tmp.path().join(format!("nbody-{bricks}"));
-        rayfarm_ok(&[
-            "prepare",
-            "--generate",
-            "nbody",
-            "--volume",
-            "--dims",
-            "48,48,48",
-            "--bricks",
-            bricks,
-            "--out",
-            s(&scene),
-        ]);
-        let bytes: u64 = Manifest::load(&scene)
-            .unwrap()
-            .domains
-            .iter()
-            .map(|d| d.bytes)
-            .sum();
-        let small = (bytes / 6).max(1).to_string();
-        for (cache, threads, placement) in [
-            ("4GiB", "1", "chained"),
-            (small.as_str(), "2", "chained"),
-            ("4GiB", "2", "chained"),
-            ("4GiB", "1", "speculative"),
-            (small.as_str(), "2", "speculative"),
-        ] {
-            let img = tmp
-                .path()
-                .join(format!("{bricks}-{threads}-{}.exr", hashes.len()));
-            let stats = tmp.path().join("stats.json");
-            let mut args = vec![
-                "render",
-                "--local",
-                "--scene",
+    let mut per_look = Vec::new();
+    for look in ["unlit", "--shading", "--shadows"] {
+        let mut hashes = Vec::new();
+        let mut shadow_rays = Vec::new();
+        for bricks in ["1", "8", "64"] {
+            let scene = tmp.path().join(format!("nbody-{bricks}{look}"));
+            let mut prepare = vec![
+                "prepare",
+                "--generate",
+                "nbody",
+                "--volume",
+                "--dims",
+                "48,48,48",
+                "--bricks",
+                bricks,
+                "--out",
                 s(&scene),
-                "--width",
-                "96",
-                "--height",
-                "72",
-                "--spp",
-                "2",
-                "--threads",
-                threads,
-                "--cache-bytes",
-                cache,
-                "-o",
-                s(&img),
-                "--stats-json",
-                s(&stats),
-                "--quiet",
             ];
-            if placement == "speculative" {
-                args.push("--speculate");
+            if look != "unlit" {
+                prepare.push(look);
             }
-            rayfarm_ok(&args);
-            hashes.push((
-                format!("{bricks} bricks, cache {cache}, {threads} threads, {placement}"),
-                file_hash(&img),
-            ));
+            rayfarm_ok(&prepare);
+            let bytes: u64 = Manifest::load(&scene)
+                .unwrap()
+                .domains
+                .iter()
+                .map(|d| d.bytes)
+                .sum();
+            let small = (bytes / 6).max(1).to_string();
+            for (cache, threads, placement) in [
+                ("4GiB", "1", "chained"),
+                (small.as_str(), "2", "chained"),
+                ("4GiB", "2", "chained"),
+                ("4GiB", "1", "speculative"),
+                (small.as_str(), "2", "speculative"),
+            ] {
+                let img = tmp
+                    .path()
+                    .join(format!("{bricks}-{threads}-{}.exr", hashes.len()));
+                let stats = tmp.path().join("stats.json");
+                let mut args = vec![
+                    "render",
+                    "--local",
+                    "--scene",
+                    s(&scene),
+                    "--width",
+                    "96",
+                    "--height",
+                    "72",
+                    "--spp",
+                    "2",
+                    "--threads",
+                    threads,
+                    "--cache-bytes",
+                    cache,
+                    "-o",
+                    s(&img),
+                    "--stats-json",
+                    s(&stats),
+                    "--quiet",
+                ];
+                if placement == "speculative" {
+                    args.push("--speculate");
+                }
+                rayfarm_ok(&args);
+                hashes.push((
+                    format!(
+                        "{look}: {bricks} bricks, cache {cache}, {threads} threads, {placement}"
+                    ),
+                    file_hash(&img),
+                ));
+                shadow_rays.push(stats_field(&stats, "/rays/shadow_rays").as_u64().unwrap());
+            }
         }
+        for (what, h) in &hashes {
+            assert_eq!(h, &hashes[0].1, "{what} differs from {}", hashes[0].0);
+        }
+        // Shadow rays only with shadows, and as many whatever the bricking and placement.
+        assert!(
+            shadow_rays.iter().all(|&n| n == shadow_rays[0]),
+            "{look}: {shadow_rays:?}"
+        );
+        assert_eq!(shadow_rays[0] > 0, look == "--shadows", "{look}");
+        per_look.push(hashes[0].1.clone());
     }
-    for (what, h) in &hashes {
-        assert_eq!(h, &hashes[0].1, "{what} differs from {}", hashes[0].0);
-    }
+    // Shading and shadows change the image.
+    assert_ne!(per_look[0], per_look[1]);
+    assert_ne!(per_look[1], per_look[2]);
 }
 
 /// On a real cluster of 1, 2 and 4 workers, every schedule gives the image of `render --local`
 /// to the bit, predictive included (speculative copies send their bricks' segments back).
 #[test]
 fn dvr_on_a_cluster_matches_the_local_image_under_every_schedule() {
+    dvr_on_a_cluster(&[]);
+}
+
+/// The same with gradient shading and shadow rays: shadow rays are born where a ray's
+/// segment is folded in (on the worker tracing it, or speculating, at its group) and march
+/// the bricks like any volume ray.
+#[test]
+fn shadowed_dvr_on_a_cluster_matches_the_local_image_under_every_schedule() {
+    dvr_on_a_cluster(&["--shadows"]);
+}
+
+fn dvr_on_a_cluster(look: &[&str]) {
     use rayfarm_tests::{Cluster, WorkerOpts, domain_bytes, hash_of, local_hash, submit_wait};
     let root = tempfile::tempdir().unwrap();
     let scene = root.path().join("vol");
-    rayfarm_ok(&[
+    let mut prepare = vec![
         "prepare",
         "--generate",
         "nbody",
@@ -317,7 +351,9 @@ fn dvr_on_a_cluster_matches_the_local_image_under_every_schedule() {
         "8",
         "--out",
         s(&scene),
-    ]);
+    ];
+    prepare.extend_from_slice(look);
+    rayfarm_ok(&prepare);
     let frame = ["--width", "96", "--height", "72", "--spp", "2"];
     let expected = local_hash(&scene, &frame);
     let (_, largest) = domain_bytes(&scene);

@@ -160,6 +160,11 @@ impl TransferFunction {
         Ok(())
     }
 
+    /// The TOML file format of this transfer function (what [`TransferFunction::parse`] reads).
+    pub fn to_toml(&self) -> Result<String, String> {
+        toml::to_string(self).map_err(|e| e.to_string())
+    }
+
     /// Colour and opacity at `v`, clamped to the end points.
     pub fn eval(&self, v: f32) -> ([f32; 3], f32) {
         let pts = &self.points;

@@ -254,6 +254,16 @@ fn check_verdict(v: &VerdictRecord, l: &BatchLimits) -> Result<(), &'static str>
                 return Err("volume segment colour or opacity out of range");
             }
         }
+        VerdictRecord::LIGHT => {
+            // Reflected light is premultiplied colour; the depth a distance along the ray.
+            let colour = v.normal.iter().all(|c| c.is_finite() && *c >= 0.0);
+            if !(colour && v.t.is_finite() && v.t >= 0.0) {
+                return Err("volume segment light or depth out of range");
+            }
+            if v.material as usize >= crate::render::volume_light::MAX_LIGHTS {
+                return Err("volume segment light index out of range");
+            }
+        }
         VerdictRecord::VOLUME_END => {
             if v.order != 0 || v.t != 0.0 || v.normal != [0.0; 3] {
                 return Err("a closing volume verdict carries segment fields");
@@ -430,7 +440,7 @@ mod tests {
             decode_verdicts(&encode_verdicts(&v), &LIMITS).unwrap_err()
         };
         let reason = |reason| WireError::Record { index: 5, reason };
-        assert_eq!(refused(|v| v.kind = 5), reason("unknown verdict kind"));
+        assert_eq!(refused(|v| v.kind = 6), reason("unknown verdict kind"));
         assert_eq!(refused(|v| v.material = 4), reason("material out of range"));
         assert_eq!(
             refused(|v| v.t = f32::NAN),
@@ -469,6 +479,28 @@ mod tests {
         assert_eq!(
             refused(negative),
             reason("volume segment colour or opacity out of range")
+        );
+        // A segment's light: colour non-negative, depth a distance, one of the lit lights.
+        let light = |v: &mut VerdictRecord| {
+            (v.kind, v.order, v.t, v.normal, v.material) =
+                (VerdictRecord::LIGHT, 7, 3.5, [0.1, 0.2, 0.3], 3);
+        };
+        let mut ok = vs.clone();
+        light(&mut ok[5]);
+        assert_eq!(decode_verdicts(&encode_verdicts(&ok), &LIMITS).unwrap(), ok);
+        assert_eq!(
+            refused(|v| {
+                (v.kind, v.t, v.normal) = (VerdictRecord::LIGHT, -1.0, [0.0; 3]);
+                v.material = 0;
+            }),
+            reason("volume segment light or depth out of range")
+        );
+        assert_eq!(
+            refused(|v| {
+                (v.kind, v.t, v.normal) = (VerdictRecord::LIGHT, 1.0, [0.0; 3]);
+                v.material = 4;
+            }),
+            reason("volume segment light index out of range")
         );
         let too_many = |v: &mut VerdictRecord| {
             (v.kind, v.order, v.t, v.normal) = (VerdictRecord::VOLUME_END, 0, 0.0, [0.0; 3]);

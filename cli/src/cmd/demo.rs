@@ -76,6 +76,8 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
             bricks: None,
             transfer: "density".into(),
             step: None,
+            shading: false,
+            shadows: false,
         })?;
     }
     let manifest = Manifest::load(&scene)?;

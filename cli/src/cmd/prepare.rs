@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
 use rayfarm_core::prepare::brick_scene::MAX_BRICKS;
+use rayfarm_core::prepare::brick_scene::VolumeLook;
 use rayfarm_core::prepare::generate::{NbodyOptions, prepare_nbody, prepare_nbody_volume};
 use rayfarm_core::prepare::mesh_scene::MAX_DOMAINS;
 use rayfarm_core::prepare::prepare_mesh;
@@ -83,6 +84,13 @@ pub struct PrepareArgs {
     /// --volume: distance between samples along a ray (default: half the smallest spacing).
     #[arg(long, requires = "volume")]
     pub step: Option<f32>,
+    /// --volume: shade samples by the volume's gradient and the scene's lights.
+    #[arg(long, requires = "volume")]
+    pub shading: bool,
+    /// --volume: shading with shadows, by shadow rays from each composited stretch of a ray
+    /// towards the lights (implies --shading).
+    #[arg(long, requires = "volume")]
+    pub shadows: bool,
 }
 
 pub fn run(a: PrepareArgs) -> anyhow::Result<()> {
@@ -93,7 +101,14 @@ pub fn run(a: PrepareArgs) -> anyhow::Result<()> {
         println!("{}: already prepared, left as it is", a.out.display());
         return Ok(());
     }
-    let transfer = || TransferFunction::load(&a.transfer).map_err(anyhow::Error::msg);
+    let transfer = || {
+        let transfer = TransferFunction::load(&a.transfer).map_err(anyhow::Error::msg)?;
+        anyhow::Ok(VolumeLook {
+            transfer,
+            shading: a.shading || a.shadows,
+            shadows: a.shadows,
+        })
+    };
     let bricks = a.bricks.unwrap_or(a.domains);
     let nbody = |domains| NbodyOptions {
         name: a.name.clone().unwrap_or_else(|| "nbody".into()),

@@ -39,10 +39,33 @@ pub struct BrickOptions {
     pub bricks: u32,
     /// Distance between samples along a ray (default: half the smallest spacing).
     pub step: Option<f32>,
-    /// Colour map and opacity curve.
-    pub transfer: TransferFunction,
+    /// How the volume is rendered.
+    pub look: VolumeLook,
     /// Replace an existing scene.
     pub force: bool,
+}
+
+/// How a volume scene is rendered: its transfer function and lighting (`render::dvr`,
+/// `render::volume_light`).
+#[derive(Clone, Debug)]
+pub struct VolumeLook {
+    /// Colour map and opacity curve.
+    pub transfer: TransferFunction,
+    /// Shade samples by the volume's gradient and the scene's lights.
+    pub shading: bool,
+    /// With shading: shadow rays towards the lights.
+    pub shadows: bool,
+}
+
+impl VolumeLook {
+    /// `transfer`, unlit.
+    pub fn unlit(transfer: TransferFunction) -> Self {
+        VolumeLook {
+            transfer,
+            shading: false,
+            shadows: false,
+        }
+    }
 }
 
 /// A box of voxel cells: `[start, end)` per axis.
@@ -126,8 +149,9 @@ fn spec_of(o: &BrickOptions) -> Result<(Grid, VolumeSpec), PrepareError> {
         origin: o.origin,
         spacing: o.spacing,
         step: o.step.unwrap_or(smallest * 0.5),
-        shading: false,
-        transfer: o.transfer.clone(),
+        shading: o.look.shading,
+        shadows: o.look.shadows,
+        transfer: o.look.transfer.clone(),
     };
     spec.check()
         .map_err(|e| invalid(format!("{}: {e}", o.source)))?;
@@ -232,7 +256,7 @@ mod tests {
             spacing: [1.0, 1.0, 2.0],
             bricks,
             step: None,
-            transfer: TransferFunction::preset("density").unwrap(),
+            look: VolumeLook::unlit(TransferFunction::preset("density").unwrap()),
             force: false,
         }
     }

@@ -121,7 +121,7 @@ pub fn prepare_nbody_volume(
     out: &Path,
     o: &NbodyOptions,
     n: u32,
-    transfer: crate::transfer::TransferFunction,
+    look: super::brick_scene::VolumeLook,
 ) -> Result<Manifest, PrepareError> {
     if !(2..=4096).contains(&n) {
         return Err(PrepareError::Invalid(format!(
@@ -156,7 +156,7 @@ pub fn prepare_nbody_volume(
             spacing: grid.spacing.into(),
             bricks: o.domains,
             step: None,
-            transfer,
+            look,
             force: o.force,
         },
     )

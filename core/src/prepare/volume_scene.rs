@@ -10,9 +10,8 @@ use super::{PrepareError, prepare_mesh};
 use crate::isosurface::{Grid, march};
 use crate::mesh::TriangleMesh;
 use crate::scene::Manifest;
-use crate::transfer::TransferFunction;
 
-use super::brick_scene::{BrickOptions, prepare_bricks};
+use super::brick_scene::{BrickOptions, VolumeLook, prepare_bricks};
 use crate::volume::{RawVolume, VoxelType};
 
 /// Extracts the isosurface of the volume in `input` (voxels `spacing` apart) and writes it as
@@ -68,7 +67,7 @@ fn check_spacing(input: &Path, spacing: [f32; 3]) -> Result<(), PrepareError> {
 }
 
 /// Cuts the raw volume in `input` (voxels `spacing` apart, voxel 0 at the origin) into
-/// `bricks` bricks for direct volume rendering with `transfer`, writing the scene to `out`.
+/// `bricks` bricks for direct volume rendering looking as `look` says, writing the scene to `out`.
 /// The file is mapped, so only the brick being written is read; a non-finite value is
 /// refused naming the file and the voxel.
 #[allow(clippy::too_many_arguments)]
@@ -77,7 +76,7 @@ pub fn prepare_raw_bricks(
     dims: [u32; 3],
     dtype: VoxelType,
     spacing: [f32; 3],
-    transfer: TransferFunction,
+    look: VolumeLook,
     step: Option<f32>,
     name: &str,
     out: &Path,
@@ -104,7 +103,7 @@ pub fn prepare_raw_bricks(
             spacing,
             bricks,
             step,
-            transfer,
+            look,
             force,
         },
     )

@@ -21,9 +21,10 @@ use std::ops::ControlFlow;
 
 use glam::Vec3;
 
+use super::volume_light::{Lighting, MAX_LIGHTS, RayLights, SHADOW_BIAS_VOXELS};
 use crate::brick::{BLOCK, Brick};
-use crate::ray::RayRecord;
-use crate::scene::VolumeSpec;
+use crate::ray::{RayKind, RayRecord};
+use crate::scene::{Light, VolumeSpec};
 use crate::transfer::TransferTable;
 
 /// Accumulated opacity at which a ray stops: what lies behind adds under 1/256 of the pixel.
@@ -46,7 +47,9 @@ pub struct VolumeView {
     spacing: Vec3,
     last_cell: [u32; 3],
     step: f32,
-    shading: bool,
+    lighting: Lighting,
+    lights: Vec<Light>,
+    voxel: f32,
     table: TransferTable,
     /// Whether to skip transparent sub-blocks (off only to measure what skipping saves).
     pub skipping: bool,
@@ -62,6 +65,30 @@ pub struct Segment {
     pub rgb: [f32; 3],
     /// Opacity.
     pub alpha: f32,
+    /// With shadows: where along the ray its shadow rays leave (the opacity-weighted mean of
+    /// its samples' distances).
+    pub depth: f32,
+    /// With shadows: per light, the premultiplied colour it reflects of that light (sent on
+    /// in a shadow ray, not composited into the ray).
+    pub direct: [[f32; 3]; MAX_LIGHTS],
+}
+
+impl Segment {
+    /// A segment of colour `rgb` and opacity `alpha` from sample `first`, without shadow rays.
+    pub fn plain(first: u32, rgb: [f32; 3], alpha: f32) -> Segment {
+        Segment {
+            first,
+            rgb,
+            alpha,
+            depth: 0.0,
+            direct: [[0.0; 3]; MAX_LIGHTS],
+        }
+    }
+
+    /// The lights this segment sends shadow rays to: those it reflects any light of.
+    pub fn lit_by(&self) -> impl Iterator<Item = usize> + '_ {
+        (0..MAX_LIGHTS).filter(|&i| self.direct[i].iter().any(|&c| c > 0.0))
+    }
 }
 
 /// Composites `segment` behind what `ray` has gathered so far; returns whether the ray is now
@@ -148,19 +175,41 @@ pub enum March {
 }
 
 impl VolumeView {
-    /// The view of a manifest's checked volume section.
-    pub fn new(v: &VolumeSpec) -> Self {
+    /// The view of a manifest's checked volume section, lit by `lights` (the scene's).
+    pub fn new(v: &VolumeSpec, lights: &[Light]) -> Self {
         let spacing = Vec3::from(v.spacing);
+        let lighting = match (v.shading, v.shadows, lights.is_empty()) {
+            (false, _, _) => Lighting::Unlit,
+            (true, _, true) => Lighting::Headlight,
+            (true, false, false) => Lighting::Lights,
+            (true, true, false) => Lighting::Shadowed,
+        };
         VolumeView {
             origin: Vec3::from(v.origin),
             inv_spacing: Vec3::ONE / spacing,
             spacing,
             last_cell: v.dims.map(|d| d - 2),
             step: v.step,
-            shading: v.shading,
+            lighting,
+            lights: lights.to_vec(),
+            voxel: v.voxel_length(),
             table: TransferTable::new(&v.transfer, v.step / v.voxel_length()),
             skipping: true,
         }
+    }
+
+    /// How `ray`'s samples are lit: a shadow ray's not at all (only their opacity counts).
+    pub fn lights_for(&self, ray: &RayRecord) -> RayLights {
+        match ray.kind() {
+            RayKind::Shadow => RayLights::UNLIT,
+            RayKind::Radiance => RayLights::for_ray(self.lighting, &self.lights, ray),
+        }
+    }
+
+    /// Where a shadow ray leaving a segment starts along its way to the light: past the
+    /// material around the segment's depth.
+    pub fn shadow_bias(&self) -> f32 {
+        SHADOW_BIAS_VOXELS * self.voxel
     }
 
     /// Whether a brick whose voxels range over `values` shows nothing (it is then walked past
@@ -209,6 +258,7 @@ impl VolumeView {
         brick: &Brick,
         skip: &[bool],
         (origin, dir): (Vec3, Vec3),
+        lit: &RayLights,
         t0: f32,
         t1: f32,
         counts: &mut SampleCounts,
@@ -224,6 +274,9 @@ impl VolumeView {
             let mut rgb = Vec3::ZERO;
             let mut alpha = 0.0f32;
             let mut first = None;
+            let mut direct = [Vec3::ZERO; MAX_LIGHTS];
+            // Opacity-weighted sums of the samples' distances (the shadow rays' depth).
+            let (mut weighted_t, mut weight) = (0.0f32, 0.0f32);
             loop {
                 let t = t_of(k);
                 if t >= hi || k == u32::MAX {
@@ -250,12 +303,26 @@ impl VolumeView {
                 if a <= 0.0 {
                     continue;
                 }
-                let mut c = Vec3::new(r, gr, b);
-                if self.shading {
-                    c *= self.headlight(brick, g, dir);
-                }
+                let c = Vec3::new(r, gr, b);
                 let w = 1.0 - alpha;
-                rgb += c * w;
+                match lit.lighting {
+                    Lighting::Unlit => rgb += c * w,
+                    Lighting::Headlight | Lighting::Lights => {
+                        let p = origin + dir * t;
+                        let (own, lights) = lit.shade(c, p, self.gradient(brick, g), dir);
+                        rgb += (own + lights.iter().sum::<Vec3>()) * w;
+                    }
+                    Lighting::Shadowed => {
+                        let p = origin + dir * t;
+                        let (own, lights) = lit.shade(c, p, self.gradient(brick, g), dir);
+                        rgb += own * w;
+                        for (d, l) in direct.iter_mut().zip(lights) {
+                            *d += l * w;
+                        }
+                        weighted_t += t * a * w;
+                        weight += a * w;
+                    }
+                }
                 alpha += a * w;
                 first.get_or_insert(here);
             }
@@ -266,6 +333,12 @@ impl VolumeView {
                     first,
                     rgb: rgb.into(),
                     alpha,
+                    depth: if weight > 0.0 {
+                        weighted_t / weight
+                    } else {
+                        0.0
+                    },
+                    direct: direct.map(Into::into),
                 };
                 if emit(segment).is_break() {
                     return March::Opaque;
@@ -290,24 +363,20 @@ impl VolumeView {
         (cell, frac)
     }
 
-    /// Diffuse shading by a light at the eye: the gradient's central difference one voxel
-    /// either side (ghost voxels hold it) against the ray's direction.
-    fn headlight(&self, brick: &Brick, g: Vec3, dir: Vec3) -> f32 {
+    /// The volume's gradient at grid position `g`, in value per world unit: central
+    /// differences one voxel either side (ghost voxels hold them, so every brick computes the
+    /// same bits).
+    fn gradient(&self, brick: &Brick, g: Vec3) -> Vec3 {
         let at = |d: Vec3| {
             let (cell, frac) = self.locate(g + d);
             trilinear(brick, cell, frac)
         };
-        let grad = Vec3::new(
+        Vec3::new(
             at(Vec3::X) - at(-Vec3::X),
             at(Vec3::Y) - at(-Vec3::Y),
             at(Vec3::Z) - at(-Vec3::Z),
-        ) * self.inv_spacing;
-        let len = grad.length();
-        if len > 0.0 && len.is_finite() {
-            0.25 + 0.75 * (grad.dot(dir) / len).abs()
-        } else {
-            1.0
-        }
+        ) * self.inv_spacing
+            * 0.5
     }
 
     /// Voxel spacing, for tools.

@@ -7,8 +7,9 @@ use std::ops::ControlFlow;
 
 use glam::Vec3;
 
-use super::dvr::{self, March, SampleCounts, VolumeView};
-use super::speculation::{Outcome, SurfaceHit, Verdict};
+use super::dvr::{self, March, SampleCounts, Segment, VolumeView};
+use super::speculation::{Outcome, SegmentLight, SurfaceHit, Verdict};
+use super::volume_light::{MAX_LIGHTS, RayLights};
 use crate::bvh::{Bvh, Hit, PACKET, TraceRay, Traverser};
 use crate::frame::{split_credit, split_path_credit};
 use crate::ray::{RayKind, RayRecord};
@@ -138,7 +139,10 @@ pub struct SceneView {
 impl SceneView {
     /// The view of `manifest` for paths of at most `max_depth` bounces.
     pub fn new(manifest: &Manifest, max_depth: u16) -> Self {
-        let volume = manifest.volume.as_ref().map(VolumeView::new);
+        let volume = manifest
+            .volume
+            .as_ref()
+            .map(|v| VolumeView::new(v, &manifest.lights));
         let has_triangles = manifest
             .domains
             .iter()
@@ -212,6 +216,8 @@ impl SceneView {
     fn escape(&self, ray: &RayRecord, sink: &mut impl RaySink) {
         let t = Vec3::from(ray.throughput);
         let light = match ray.kind() {
+            // Through a volume, what its opacity lets pass.
+            RayKind::Shadow if self.volume.is_some() => t * (1.0 - ray.volume_alpha),
             RayKind::Shadow => t,
             RayKind::Radiance => {
                 let up = Vec3::from(ray.dir).y.clamp(0.0, 1.0);
@@ -437,18 +443,22 @@ impl SceneView {
                 self.route_new(*ray, sink);
                 continue;
             };
-            counters.radiance_segments += 1;
+            match ray.kind() {
+                RayKind::Radiance => counters.radiance_segments += 1,
+                RayKind::Shadow => counters.shadow_segments += 1,
+            }
             let mut ray = *ray;
             let line = (Vec3::from(ray.origin), Vec3::from(ray.dir));
-            let march = volume.march(brick, &skip, line, t0, t1, &mut counts, |segment| {
-                if dvr::composite(&mut ray, &segment) {
+            let lit = volume.lights_for(&ray);
+            let march = volume.march(brick, &skip, line, &lit, t0, t1, &mut counts, |segment| {
+                if self.fold_segment(volume, &lit, &mut ray, &segment, sink, counters) {
                     ControlFlow::Break(())
                 } else {
                     ControlFlow::Continue(())
                 }
             });
             match march {
-                March::Opaque => sink.retire(&ray, ray.volume_rgb),
+                March::Opaque => self.retire_opaque(&ray, sink),
                 March::Through => {
                     if next.is_some() {
                         counters.forwarded += 1;
@@ -459,6 +469,70 @@ impl SceneView {
         }
         counters.volume_samples += counts.taken;
         counters.volume_skipped += counts.skipped;
+    }
+
+    /// Folds `segment` into the volume ray `ray` (`dvr::composite`); returns whether the ray
+    /// is now opaque. With shadows, first sends a shadow ray from the segment's depth towards
+    /// each light it reflects, carrying that light times the ray's transparency in front of
+    /// the segment (the one place they are made, chained or speculative: the same bits).
+    /// Each takes the least credit; if the ray's credit cannot be split, it sends none.
+    fn fold_segment(
+        &self,
+        volume: &VolumeView,
+        lit: &RayLights,
+        ray: &mut RayRecord,
+        segment: &Segment,
+        sink: &mut impl RaySink,
+        counters: &mut KernelCounters,
+    ) -> bool {
+        if ray.kind() == RayKind::Radiance && segment.lit_by().next().is_some() {
+            let w = 1.0 - ray.volume_alpha;
+            let origin = Vec3::from(ray.origin) + Vec3::from(ray.dir) * segment.depth;
+            let mut children = [*ray; MAX_LIGHTS];
+            let mut made = 0;
+            for i in segment.lit_by() {
+                let carried = Vec3::from(segment.direct[i]) * w;
+                let Some((dir, t_max)) = lit.shadow_ray(i, origin) else {
+                    continue;
+                };
+                let shows = carried.max_element() > 0.0;
+                if !shows || !origin.is_finite() {
+                    continue;
+                }
+                children[made] = RayRecord {
+                    origin: origin.into(),
+                    t_min: volume.shadow_bias().min(t_max),
+                    dir: dir.into(),
+                    t_max,
+                    throughput: carried.into(),
+                    kind: RayKind::Shadow as u8,
+                    volume_rgb: [0.0; 3],
+                    volume_alpha: 0.0,
+                    ..*ray
+                };
+                made += 1;
+            }
+            if made > 0
+                && let Ok(split) = split_path_credit(ray.credit, made)
+            {
+                ray.credit = split.continuation;
+                for child in &mut children[..made] {
+                    child.credit = split.leaf;
+                    counters.shadow_rays += 1;
+                    self.route_new(*child, sink);
+                }
+            }
+        }
+        dvr::composite(ray, segment)
+    }
+
+    /// A volume ray that became opaque: a radiance ray shows its colour, a shadow ray brings
+    /// no light.
+    fn retire_opaque(&self, ray: &RayRecord, sink: &mut impl RaySink) {
+        match ray.kind() {
+            RayKind::Radiance => sink.retire(ray, ray.volume_rgb),
+            RayKind::Shadow => sink.retire(ray, [0.0; 3]),
+        }
     }
 
     /// Every domain with geometry along `ray`, nearest first: where a speculative ray is
@@ -508,7 +582,10 @@ impl SceneView {
                 out.push(Verdict::Clear);
                 return;
             };
-            counters.radiance_segments += 1;
+            match ray.kind() {
+                RayKind::Radiance => counters.radiance_segments += 1,
+                RayKind::Shadow => counters.shadow_segments += 1,
+            }
             let domain = data.domain();
             if scratch.skip.as_ref().is_none_or(|(d, _)| *d != domain) {
                 scratch.skip = Some((domain, volume.transparent_blocks(&brick)));
@@ -517,8 +594,17 @@ impl SceneView {
             let line = (Vec3::from(ray.origin), Vec3::from(ray.dir));
             let mut counts = SampleCounts::default();
             let before = out.len();
-            volume.march(&brick, skip, line, t0, t1, &mut counts, |segment| {
+            let lit = volume.lights_for(ray);
+            volume.march(&brick, skip, line, &lit, t0, t1, &mut counts, |segment| {
                 out.push(Verdict::Segment(segment));
+                for light in segment.lit_by() {
+                    out.push(Verdict::Light(SegmentLight {
+                        first: segment.first,
+                        light: light as u32,
+                        depth: segment.depth,
+                        rgb: segment.direct[light],
+                    }));
+                }
                 ControlFlow::Continue(())
             });
             let segments = (out.len() - before) as u32;
@@ -568,12 +654,22 @@ impl SceneView {
         sink: &mut impl RaySink,
         counters: &mut KernelCounters,
     ) {
-        if self.volume.is_some() {
-            // The segments of every brick, in order along the ray: the chained trace's fold.
+        if let Some(volume) = &self.volume {
+            // The segments of every brick, in order along the ray, each with the light it
+            // reflects of each light: the chained trace's fold.
             let mut ray = *ray;
+            let lit = volume.lights_for(&ray);
+            let mut lights = outcome.lights.iter().peekable();
             for segment in &outcome.segments {
-                if dvr::composite(&mut ray, segment) {
-                    sink.retire(&ray, ray.volume_rgb);
+                let mut segment = *segment;
+                while let Some(l) = lights.next_if(|l| l.first <= segment.first) {
+                    if l.first == segment.first && (l.light as usize) < MAX_LIGHTS {
+                        segment.direct[l.light as usize] = l.rgb;
+                        segment.depth = l.depth;
+                    }
+                }
+                if self.fold_segment(volume, &lit, &mut ray, &segment, sink, counters) {
+                    self.retire_opaque(&ray, sink);
                     return;
                 }
             }

@@ -9,6 +9,7 @@ pub mod local;
 pub mod primary;
 pub mod speculation;
 pub mod stats;
+pub mod volume_light;
 
 pub use film::Film;
 pub use kernel::{KernelCounters, RaySink, SceneView};

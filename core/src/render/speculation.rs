@@ -13,6 +13,9 @@
 //! premultiplied colour and opacity of each stretch of the ray between block faces), one
 //! verdict each, then a closing verdict that counts them; the group composites them in order
 //! along the ray, the fold the chained trace makes brick after brick, so the bits agree.
+//! With shadows, a segment that reflects a light's light is followed by one more verdict per
+//! such light ([`Verdict::Light`]), counted by the closing verdict too; the group sends the
+//! shadow rays as it folds the segment, as the chained trace does.
 
 use super::dvr::Segment;
 use crate::ray::RayRecord;
@@ -45,8 +48,24 @@ pub enum Verdict {
     Hit(SurfaceHit),
     /// One segment a volume ray's copy composited in its brick (not the copy's last verdict).
     Segment(Segment),
-    /// A volume ray's copy is done: it sent this many [`Verdict::Segment`]s before.
+    /// The light one segment reflects of one light, to be sent on in a shadow ray.
+    Light(SegmentLight),
+    /// A volume ray's copy is done: it sent this many [`Verdict::Segment`]s and
+    /// [`Verdict::Light`]s before.
     VolumeEnd(u32),
+}
+
+/// What a shadowed segment reflects of one light (`render::volume_light`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SegmentLight {
+    /// The segment's first sample: which segment this belongs to.
+    pub first: u32,
+    /// The light's index.
+    pub light: u32,
+    /// The segment's depth along the ray, where the shadow ray leaves.
+    pub depth: f32,
+    /// Premultiplied colour reflected of this light.
+    pub rgb: [f32; 3],
 }
 
 /// Most segments one ray may collect from all its copies: a bound on what a peer can make a
@@ -63,8 +82,11 @@ impl VerdictRecord {
     /// Kind of a volume segment: `order` its first sample, `normal` its premultiplied colour,
     /// `t` its opacity.
     pub const SEGMENT: u8 = 3;
-    /// Kind of a volume copy's closing verdict: `material` counts its segments.
+    /// Kind of a volume copy's closing verdict: `material` counts its segments and lights.
     pub const VOLUME_END: u8 = 4;
+    /// Kind of a segment's light: `order` the segment's first sample, `material` the light,
+    /// `t` the segment's depth, `normal` the premultiplied colour reflected.
+    pub const LIGHT: u8 = 5;
 
     /// `verdict` on `copy`, to go back to the copy's group.
     pub fn new(copy: &RayRecord, verdict: Verdict) -> Self {
@@ -97,6 +119,13 @@ impl VerdictRecord {
                 r.t = seg.alpha;
                 r.normal = seg.rgb;
             }
+            Verdict::Light(light) => {
+                r.kind = Self::LIGHT;
+                r.order = light.first;
+                r.material = light.light;
+                r.t = light.depth;
+                r.normal = light.rgb;
+            }
             Verdict::VolumeEnd(segments) => {
                 r.kind = Self::VOLUME_END;
                 r.material = segments;
@@ -115,10 +144,12 @@ impl VerdictRecord {
                 normal: self.normal,
                 material: self.material,
             }),
-            Self::SEGMENT => Verdict::Segment(Segment {
+            Self::SEGMENT => Verdict::Segment(Segment::plain(self.order, self.normal, self.t)),
+            Self::LIGHT => Verdict::Light(SegmentLight {
                 first: self.order,
+                light: self.material,
+                depth: self.t,
                 rgb: self.normal,
-                alpha: self.t,
             }),
             Self::VOLUME_END => Verdict::VolumeEnd(self.material),
             _ => Verdict::Clear,
@@ -135,6 +166,8 @@ pub struct Outcome {
     pub nearest: Option<SurfaceHit>,
     /// A volume ray's segments from all its bricks, in order along the ray once concluded.
     pub segments: Vec<Segment>,
+    /// With shadows, the segments' lights, in order of segment then light once concluded.
+    pub lights: Vec<SegmentLight>,
 }
 
 impl Outcome {
@@ -142,6 +175,7 @@ impl Outcome {
         match verdict {
             Verdict::Clear | Verdict::VolumeEnd(_) => {}
             Verdict::Segment(seg) => self.segments.push(seg),
+            Verdict::Light(light) => self.lights.push(light),
             Verdict::Blocked => self.blocked = true,
             Verdict::Hit(hit) => {
                 if self.nearest.is_none_or(|n| hit.order < n.order) {
@@ -247,8 +281,8 @@ impl Groups {
         }
         let verdict = record.verdict();
         match verdict {
-            Verdict::Segment(_) => {
-                let held = group.outcome.segments.len() as u32;
+            Verdict::Segment(_) | Verdict::Light(_) => {
+                let held = (group.outcome.segments.len() + group.outcome.lights.len()) as u32;
                 if held >= MAX_SEGMENTS || (group.waiting == 0 && group.segments_due <= 0) {
                     return Err(GroupError::TooManySegments(id));
                 }
@@ -278,6 +312,7 @@ impl Groups {
             let mut outcome = g.outcome;
             // Each segment's first sample is its own: the order along the ray, no ties.
             outcome.segments.sort_unstable_by_key(|s| s.first);
+            outcome.lights.sort_unstable_by_key(|l| (l.first, l.light));
             (g.ray, outcome)
         });
         self.release(id, &done.as_ref().map(|d| d.0));
@@ -403,6 +438,12 @@ mod tests {
             Verdict::Blocked,
             hit(4, 2.5),
             segment(9, 0.25),
+            Verdict::Light(SegmentLight {
+                first: 9,
+                light: 1,
+                depth: 2.5,
+                rgb: [0.1, 0.2, 0.3],
+            }),
             Verdict::VolumeEnd(3),
         ] {
             assert_eq!(VerdictRecord::new(&copy, v).verdict(), v);
@@ -410,11 +451,7 @@ mod tests {
     }
 
     fn segment(first: u32, alpha: f32) -> Verdict {
-        Verdict::Segment(Segment {
-            first,
-            rgb: [alpha * 0.5; 3],
-            alpha,
-        })
+        Verdict::Segment(Segment::plain(first, [alpha * 0.5; 3], alpha))
     }
 
     #[test]
@@ -440,6 +477,43 @@ mod tests {
         assert_eq!(settle(&mut groups, &copy, Verdict::VolumeEnd(0)), None);
         let (_, outcome) = settle(&mut groups, &copy, Verdict::Clear).unwrap();
         assert!(outcome.segments.is_empty());
+    }
+
+    fn light(first: u32, light: u32) -> Verdict {
+        Verdict::Light(SegmentLight {
+            first,
+            light,
+            depth: first as f32,
+            rgb: [0.25; 3],
+        })
+    }
+
+    #[test]
+    fn segment_lights_are_counted_and_sorted_by_segment_then_light() {
+        let mut groups = Groups::new();
+        let copy = spread(&mut groups, ray(7), &[1, 2]);
+        // The far brick: one segment lit by lights 1 and 0, in that order; then the near one,
+        // its lights before its segment.
+        assert_eq!(settle(&mut groups, &copy, segment(40, 0.2)), None);
+        assert_eq!(settle(&mut groups, &copy, light(40, 1)), None);
+        assert_eq!(settle(&mut groups, &copy, light(40, 0)), None);
+        assert_eq!(settle(&mut groups, &copy, Verdict::VolumeEnd(3)), None);
+        assert_eq!(settle(&mut groups, &copy, light(3, 2)), None);
+        assert_eq!(settle(&mut groups, &copy, Verdict::VolumeEnd(2)), None);
+        let (_, outcome) = settle(&mut groups, &copy, segment(3, 0.4)).unwrap();
+        let lights: Vec<(u32, u32)> = outcome.lights.iter().map(|l| (l.first, l.light)).collect();
+        assert_eq!(lights, [(3, 2), (40, 0), (40, 1)]);
+        // A light beyond the count is one verdict too many.
+        let copy = spread(&mut groups, ray(1), &[1]);
+        settle(&mut groups, &copy, segment(1, 0.5));
+        groups
+            .settle(&VerdictRecord::new(&copy, light(1, 0)))
+            .unwrap();
+        let end = VerdictRecord::new(&copy, Verdict::VolumeEnd(1));
+        assert_eq!(
+            groups.settle(&end),
+            Err(GroupError::TooManySegments(copy.group))
+        );
     }
 
     #[test]

@@ -55,8 +55,12 @@ pub struct VolumeSpec {
     pub spacing: [f32; 3],
     /// Distance between samples along a ray.
     pub step: f32,
-    /// Shade samples by the volume's gradient (a headlight, or the first directional light).
+    /// Shade samples by the volume's gradient and the scene's lights (a headlight if it has
+    /// none): `render::volume_light`.
     pub shading: bool,
+    /// With shading: shadow rays from each composited segment towards the lights.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub shadows: bool,
     /// Colour map and opacity curve.
     pub transfer: crate::transfer::TransferFunction,
 }
@@ -79,6 +83,9 @@ impl VolumeSpec {
                 "volume step {} must be finite and at least a thousandth of the spacing",
                 self.step
             ));
+        }
+        if self.shadows && !self.shading {
+            return Err("volume shadows need shading".into());
         }
         self.transfer
             .check()

@@ -1,6 +1,7 @@
 //! Writes the seed corpora of the fuzz targets into `fuzz/corpus/<target>/`: a few valid
 //! inputs of each kind (real ray and verdict batches, a real scene's manifest and domain
-//! files, meshes in every format, job requests, worker messages, peer bundles), from which
+//! files, meshes in every format, job requests, worker messages, peer bundles, a volume
+//! scene's bricks, the preset transfer functions, volume verdicts), from which
 //! libFuzzer's mutations start. `cargo run --release -p rayfarm-fuzz --example seeds`.
 
 use std::path::{Path, PathBuf};
@@ -11,9 +12,11 @@ use rayfarm_core::geometry::Aabb;
 use rayfarm_core::mesh::{
     TriangleMesh, write_obj, write_ply_ascii, write_ply_binary, write_stl_ascii, write_stl_binary,
 };
-use rayfarm_core::prepare::generate::{NbodyOptions, prepare_nbody};
+use rayfarm_core::prepare::brick_scene::VolumeLook;
+use rayfarm_core::prepare::generate::{NbodyOptions, prepare_nbody, prepare_nbody_volume};
 use rayfarm_core::ray::RayRecord;
 use rayfarm_core::scene::domain_file::{SourceTriangle, write_domain};
+use rayfarm_core::transfer::{PRESETS, TransferFunction};
 use rayfarm_core::wire::{self, VerdictRecord};
 use rayfarm_proto as proto;
 
@@ -67,6 +70,23 @@ fn verdict(i: u32) -> VerdictRecord {
         v.material = 1;
     }
     v
+}
+
+fn volume_verdicts() -> Vec<VerdictRecord> {
+    let mut segment = verdict(0);
+    (segment.kind, segment.order, segment.t, segment.normal) =
+        (VerdictRecord::SEGMENT, 12, 0.4, [0.1, 0.2, 0.05]);
+    let mut light = verdict(0);
+    (
+        light.kind,
+        light.order,
+        light.t,
+        light.normal,
+        light.material,
+    ) = (VerdictRecord::LIGHT, 12, 7.5, [0.3, 0.2, 0.1], 1);
+    let mut end = verdict(0);
+    (end.kind, end.material) = (VerdictRecord::VOLUME_END, 2);
+    vec![segment, light, end]
 }
 
 fn main() {
@@ -191,6 +211,11 @@ fn main() {
             proto::Tier::Results,
             wire::encode_verdicts(&verdicts),
         ),
+        (
+            "volume_verdicts",
+            proto::Tier::Results,
+            wire::encode_verdicts(&volume_verdicts()),
+        ),
     ] {
         let bundle = proto::PeerBundle {
             protocol_version: proto::PROTOCOL_VERSION,
@@ -201,6 +226,26 @@ fn main() {
             batches: vec![batch.into()],
         };
         seed("peer_bundle", name, &bundle.encode_to_vec());
+    }
+    // Volume verdicts: a shadowed segment, its light and the copy's closing count.
+    let volume: Vec<VerdictRecord> = volume_verdicts();
+    seed("verdict_batch", "volume", &wire::encode_verdicts(&volume));
+
+    // A real volume scene's bricks (lit, with shadows) and transfer functions.
+    let bricks = scene.join("bricks");
+    let look = VolumeLook {
+        transfer: TransferFunction::preset("density").unwrap(),
+        shading: true,
+        shadows: true,
+    };
+    let m = prepare_nbody_volume(&bricks, &options, 16, look).unwrap();
+    for d in &m.domains {
+        let bytes = std::fs::read(bricks.join(&d.file)).unwrap();
+        seed("brick", &d.file, &bytes);
+    }
+    for name in PRESETS {
+        let tf = TransferFunction::preset(name).unwrap();
+        seed("transfer_function", name, tf.to_toml().unwrap().as_bytes());
     }
     std::fs::remove_dir_all(&scene).unwrap();
     println!("seed corpora written under fuzz/corpus/");

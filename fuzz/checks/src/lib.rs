@@ -7,7 +7,10 @@
 //! The properties, beyond "no panic, no crash": an accepted ray or verdict batch re-encodes
 //! to the bytes it came from; an accepted domain file can be traced by every kernel this CPU
 //! runs, and they agree to the bit; an accepted mesh has only finite vertices and in-range
-//! indices; a refusal always says why.
+//! indices; an accepted volume brick can be marched, giving a finite colour and an opacity
+//! that is a fraction; an accepted transfer function re-parses to itself from its own TOML,
+//! and its table's opacities are fractions and are zero wherever it calls a range
+//! transparent; a refusal always says why.
 
 use glam::Vec3;
 use prost::Message;
@@ -194,6 +197,160 @@ pub fn peer_bundle(data: &[u8]) {
             verdict_batch(batch);
         } else {
             ray_batch(batch);
+        }
+    }
+}
+
+/// Volume bricks (`core::brick`): the checksum is fixed up first, as for domain files, and
+/// the bytes copied to a 64-byte aligned buffer, as a map would be. An accepted brick is
+/// marched along rays from its corners through its centre with a density transfer function,
+/// lit by a directional light: no panic, every segment's colour finite and non-negative, its
+/// opacity and the ray's a fraction.
+pub fn brick(data: &[u8]) {
+    use rayfarm_core::brick;
+    use rayfarm_core::ray::RayRecord;
+    use rayfarm_core::render::dvr::{SampleCounts, VolumeView, composite};
+    use rayfarm_core::scene::{Light, VolumeSpec};
+    use rayfarm_core::transfer::TransferFunction;
+
+    // Aligned for the voxels' f32 (a map is page-aligned; sections are checked for 64-byte
+    // offsets, not addresses).
+    let mut words = vec![0u64; data.len().div_ceil(8)];
+    let buffer: &mut [u8] = bytemuck::cast_slice_mut(&mut words);
+    let bytes = &mut buffer[..data.len()];
+    bytes.copy_from_slice(data);
+    brick::seal(bytes);
+    let bytes = &*bytes;
+    // The manifest's checksum is the file's own (the manifest is another target's).
+    let expected = brick::recorded_checksum(bytes).unwrap_or(0);
+    let layout = match brick::parse(bytes, expected, false) {
+        Ok(layout) => layout,
+        Err(e) => {
+            assert!(!e.is_empty(), "a refusal says why");
+            return;
+        }
+    };
+    let b = layout.view(bytes);
+    let h = b.header;
+    // Voxels the size of one world unit, voxel 0 at the origin.
+    let spec = VolumeSpec {
+        dims: h.volume_dims,
+        origin: [0.0; 3],
+        spacing: [1.0; 3],
+        step: 0.5,
+        shading: true,
+        shadows: true,
+        transfer: TransferFunction::preset("density").expect("preset"),
+    };
+    if spec.check().is_err() {
+        return;
+    }
+    let lights = [Light::Directional {
+        direction: [0.3, 0.9, 0.1],
+        radiance: [1.0; 3],
+    }];
+    let view = VolumeView::new(&spec, &lights);
+    let skip = view.transparent_blocks(&b);
+    assert_eq!(skip.len(), b.ranges().len());
+    let lo = Vec3::from(h.cells_lo.map(|c| c as f32));
+    let hi = Vec3::from(h.cells_hi.map(|c| c as f32));
+    let centre = (lo + hi) * 0.5;
+    for i in 0..8 {
+        let corner = Vec3::new(
+            if i & 1 == 0 { lo.x } else { hi.x },
+            if i & 2 == 0 { lo.y } else { hi.y },
+            if i & 4 == 0 { lo.z } else { hi.z },
+        );
+        let dir = (centre - corner).normalize_or(Vec3::X);
+        let length = (hi - lo).length();
+        let mut ray: RayRecord = RayRecord {
+            origin: corner.into(),
+            dir: dir.into(),
+            t_max: length,
+            throughput: [1.0; 3],
+            credit: 1,
+            ..bytemuck::Zeroable::zeroed()
+        };
+        let lit = view.lights_for(&ray);
+        let mut counts = SampleCounts::default();
+        view.march(
+            &b,
+            &skip,
+            (corner, dir),
+            &lit,
+            0.0,
+            length,
+            &mut counts,
+            |segment| {
+                let colour = segment.rgb.iter().chain(segment.direct.iter().flatten());
+                assert!(
+                    colour.clone().all(|c| c.is_finite() && *c >= 0.0),
+                    "{segment:?}"
+                );
+                assert!((0.0..=1.0).contains(&segment.alpha), "{segment:?}");
+                if composite(&mut ray, &segment) {
+                    std::ops::ControlFlow::Break(())
+                } else {
+                    std::ops::ControlFlow::Continue(())
+                }
+            },
+        );
+        assert!(
+            (0.0..=1.0).contains(&ray.volume_alpha),
+            "{}",
+            ray.volume_alpha
+        );
+    }
+}
+
+/// Transfer-function TOML (`core::transfer`): an accepted one passes its own check, parses
+/// again to itself from the TOML it serialises to, and its table (for a half-voxel step)
+/// holds opacities that are fractions, zero at every value of a range it calls transparent.
+pub fn transfer_function(data: &[u8]) {
+    use rayfarm_core::transfer::{TransferFunction, TransferTable};
+    let Ok(text) = std::str::from_utf8(data) else {
+        return;
+    };
+    let tf = match TransferFunction::parse(text) {
+        Ok(tf) => tf,
+        Err(e) => {
+            assert!(!e.is_empty(), "a refusal says why");
+            return;
+        }
+    };
+    tf.check()
+        .expect("an accepted transfer function checks out");
+    let toml = tf
+        .to_toml()
+        .expect("an accepted transfer function serialises");
+    let again = TransferFunction::parse(&toml).expect("its own TOML parses");
+    assert_eq!(again, tf, "TOML round trip");
+    let table = TransferTable::new(&tf, 0.5);
+    let lo = tf.points[0].value;
+    let hi = tf.points[tf.points.len() - 1].value;
+    let probe: Vec<f32> = (0..=64)
+        .map(|i| lo + (hi - lo) * (i as f32 / 64.0))
+        .chain([
+            lo - 1.0,
+            hi + 1.0,
+            f32::NAN,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+        ])
+        .collect();
+    for &v in &probe {
+        let [r, g, b, a] = table.lookup(v);
+        assert!((0.0..=1.0).contains(&a), "opacity {a} at {v}");
+        assert!(
+            [r, g, b].iter().all(|c| (0.0..=1.0).contains(c)),
+            "colour at {v}"
+        );
+    }
+    for w in probe[..65].windows(2) {
+        if table.transparent(w[0], w[1]) {
+            for v in [w[0], (w[0] + w[1]) * 0.5, w[1]] {
+                assert_eq!(table.lookup(v)[3], 0.0, "{v} in a transparent range");
+            }
         }
     }
 }

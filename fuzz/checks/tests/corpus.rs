@@ -5,7 +5,7 @@ use std::path::Path;
 
 type Check = fn(&[u8]);
 
-const TARGETS: [(&str, Check); 8] = [
+const TARGETS: [(&str, Check); 10] = [
     ("ray_batch", rayfarm_fuzz::ray_batch),
     ("verdict_batch", rayfarm_fuzz::verdict_batch),
     ("manifest", rayfarm_fuzz::manifest),
@@ -14,6 +14,8 @@ const TARGETS: [(&str, Check); 8] = [
     ("job_request", rayfarm_fuzz::job_request),
     ("worker_message", rayfarm_fuzz::worker_message),
     ("peer_bundle", rayfarm_fuzz::peer_bundle),
+    ("brick", rayfarm_fuzz::brick),
+    ("transfer_function", rayfarm_fuzz::transfer_function),
 ];
 
 #[test]
