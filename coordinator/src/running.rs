@@ -35,13 +35,15 @@ impl DerefMut for Running {
 }
 
 impl Running {
-    /// Writes tiles the frame committed to the film; the next preview shows them.
+    /// Adds tiles the frame committed to the film (a progressive subframe's to those
+    /// before it); the next preview shows them.
     pub fn write_tiles(&self, committed: &[CommittedTile]) -> anyhow::Result<()> {
+        let samples = self.frame.samples().count;
         for (tile, sums) in committed {
-            self.film.write_tile(*tile, sums)?;
+            self.film.add_tile(*tile, sums, samples)?;
         }
         self.previews
-            .advance(committed.iter().map(|(tile, _)| *tile));
+            .advance(committed.len(), self.frame.subframes().0);
         Ok(())
     }
 }

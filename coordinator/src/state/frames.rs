@@ -189,9 +189,44 @@ impl Coordinator {
         if let Some(frame) = st.running.take() {
             rayfarm_node::metrics::coordinator().frames_failed.inc();
             end_frame(st, &frame);
+            // Statistics of its committed subframes are of no use now.
+            st.finishing.retain(|_, f| f.job != frame.job_id);
             set_state(st, &frame.job_id, JobState::Failed, error);
         }
         self.try_start(st);
+    }
+
+    /// The running frame's current subframe has all its credit back and another follows:
+    /// its tiles are in the film; its frame ends on the workers (their statistics are kept
+    /// for the job's) and the next subframe starts on them at once.
+    pub(super) fn next_subframe(self: &Arc<Self>, st: &mut State) {
+        let Some(frame) = st.running.as_mut() else {
+            return;
+        };
+        let wall = now().since(frame.started).as_secs_f64();
+        let (done, total) = frame.subframes();
+        info!(job = %frame.job_id, subframe = done, subframes = total, wall, "subframe committed");
+        rayfarm_node::metrics::coordinator()
+            .subframes_committed
+            .inc();
+        st.finishing.insert(
+            frame.frame_id(),
+            Finishing {
+                job: frame.job_id.clone(),
+                waiting: frame.members().collect(),
+                reports: Vec::new(),
+                done: None,
+            },
+        );
+        let planning = Instant::now();
+        let out = frame.next_subframe();
+        let m = rayfarm_node::metrics::coordinator();
+        m.rounds.inc_by(frame.round);
+        m.planning_seconds.observe(planning.elapsed().as_secs_f64());
+        send(st, out);
+        if let Some(f) = st.running.as_ref() {
+            publish_progress(st, f);
+        }
     }
 
     /// The running frame has all its credit back: end it on the workers, collect their
@@ -201,13 +236,16 @@ impl Coordinator {
             return;
         };
         let wall = now().since(frame.started).as_secs_f64();
-        info!(job = %frame.job_id, wall, rounds = frame.round, "frame complete");
-        rayfarm_node::metrics::coordinator().frames_committed.inc();
+        info!(job = %frame.job_id, wall, rounds = frame.rounds_total(), "frame complete");
+        let m = rayfarm_node::metrics::coordinator();
+        m.frames_committed.inc();
+        m.subframes_committed.inc();
         end_frame(st, &frame);
         let (done_tx, done_rx) = oneshot::channel();
         st.finishing.insert(
-            frame.job_id.clone(),
+            frame.frame_id(),
             Finishing {
+                job: frame.job_id.clone(),
                 waiting: frame.members().collect(),
                 reports: Vec::new(),
                 done: Some(done_tx),
@@ -229,11 +267,17 @@ impl Coordinator {
         } = running;
         let id = frame.job_id.clone();
         let reports = {
+            // The last subframe's reports, and every earlier one's that came in.
             let mut st = self.lock();
-            st.finishing
-                .remove(&id)
-                .map(|f| f.reports)
-                .unwrap_or_default()
+            let mut reports = Vec::new();
+            st.finishing.retain(|_, f| {
+                let mine = f.job == id;
+                if mine {
+                    reports.append(&mut f.reports);
+                }
+                !mine
+            });
+            WorkerFrameStats::merge_by_worker(reports)
         };
         let spec = &frame.frame;
         let mut stats = ClusterStats {
@@ -246,7 +290,8 @@ impl Coordinator {
             max_depth: spec.max_depth,
             domains: frame.domain_count(),
             wall_seconds: wall,
-            rounds: frame.round,
+            rounds: frame.rounds_total(),
+            subframes: frame.subframes().1,
             left_out: frame.declined.clone(),
             refused_results: frame.refused_results,
             ..Default::default()
@@ -332,8 +377,11 @@ pub(super) fn publish_progress(st: &State, frame: &RunningFrame) {
     };
     let (done, total, rate, eta) = frame.progress(now());
     let preview_sequence = job.preview.as_ref().map_or(0, |p| p.sequence());
+    let (subframes_done, subframes) = frame.subframes();
     job.progress.send_modify(|p| {
         p.preview_sequence = preview_sequence;
+        p.subframes_done = subframes_done;
+        p.subframes = subframes;
         p.tiles_done = done;
         p.tiles_total = total;
         p.round = frame.round;

@@ -139,7 +139,11 @@ struct WorkerEntry {
     left_out: String,
 }
 
+/// A frame (or a progressive job's subframe) that has ended, waiting for its workers'
+/// statistics, by frame id.
 struct Finishing {
+    /// The job it is (a frame of).
+    job: String,
     waiting: BTreeSet<u32>,
     reports: Vec<WorkerFrameStats>,
     done: Option<oneshot::Sender<()>>,
@@ -354,6 +358,7 @@ fn set_state_then(st: &mut State, id: &str, state: JobState, error: &str, then: 
         p.preview_sequence = p.preview_sequence.max(preview_sequence);
         if state == JobState::Succeeded {
             p.tiles_done = p.tiles_total;
+            p.subframes_done = p.subframes;
             p.eta_seconds = 0.0;
         }
     });

@@ -2,6 +2,7 @@
 //! accusations), their loss, and what the cluster status shows of them.
 
 use super::*;
+use rayfarm_machine::coordinator::job_of_frame;
 use rayfarm_node::identity::PeerIdentity;
 use rayfarm_node::metrics;
 
@@ -159,7 +160,7 @@ impl Coordinator {
             FromWorker::QueueReport(r) => {
                 worker.last_report = Some(r.clone());
                 let out = match st.running.as_mut() {
-                    Some(f) if f.job_id == r.job_id => {
+                    Some(f) if f.frame_id() == r.job_id => {
                         let (round, planning) = (f.round, Instant::now());
                         let out = f.report(key, r);
                         count_rounds(f, round, planning);
@@ -216,7 +217,7 @@ impl Coordinator {
         key: u32,
         r: proto::TileResults,
     ) -> Option<String> {
-        let frame = st.running.as_mut().filter(|f| f.job_id == r.job_id)?;
+        let frame = st.running.as_mut().filter(|f| f.frame_id() == r.job_id)?;
         let (committed, refused) = frame.results(key, r);
         metrics::coordinator()
             .tiles_committed
@@ -238,7 +239,9 @@ impl Coordinator {
             }
             return Some(format!("impossible tile results: {e}"));
         }
-        if frame.ledger.is_complete() {
+        if frame.ledger.is_complete() && frame.has_next_subframe() {
+            self.next_subframe(st);
+        } else if frame.ledger.is_complete() {
             self.complete(st);
         } else if let Some(f) = st.running.as_ref() {
             publish_progress(st, f);
@@ -248,11 +251,11 @@ impl Coordinator {
 
     pub(super) fn frame_report(self: &Arc<Self>, st: &mut State, key: u32, r: proto::FrameReport) {
         if !r.error.is_empty() {
-            if st.running.as_ref().is_none_or(|f| f.job_id != r.job_id) {
+            if st.running.as_ref().is_none_or(|f| f.frame_id() != r.job_id) {
                 return;
             }
             if r.declined {
-                return self.declined(st, key, &r.job_id, &r.error);
+                return self.declined(st, key, job_of_frame(&r.job_id), &r.error);
             }
             self.fail_running(st, &r.error);
             return;

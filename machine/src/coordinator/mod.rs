@@ -13,4 +13,5 @@ pub mod grants;
 
 pub use accusations::{Accusations, Verdict};
 pub use frame::lifecycle::{ACCUSATION_GRACE, accusation_grace};
+pub use frame::subframes::{job_of_frame, subframe_id};
 pub use frame::{CommittedTile, Member, Outgoing, Rounds, RunningFrame};
