@@ -9,7 +9,6 @@ mod control;
 mod dashboard;
 mod journal;
 mod preview;
-mod queue;
 mod results;
 mod running;
 mod state;
@@ -231,10 +230,11 @@ async fn run(args: Args) -> anyhow::Result<()> {
         let c = coordinator.clone();
         let period = c.config().heartbeat;
         async move {
-            let mut tick = tokio::time::interval(period);
+            // Each heartbeat, or sooner when the machine has a deadline (a finished frame's
+            // report timeout) before then.
             loop {
-                tick.tick().await;
-                c.reap_silent_workers();
+                let wait = c.tick().map_or(period, |d| d.min(period));
+                tokio::time::sleep(wait.max(Duration::from_millis(1))).await;
             }
         }
     };

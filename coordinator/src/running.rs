@@ -1,49 +1,37 @@
-//! The running frame as the shell holds it: the machine's `RunningFrame` (which does no I/O)
-//! with the film file its committed tiles are written to and the previews made of it, and
-//! the clock the shell reads for the machine's events.
+//! A frame's film as the shell holds it (the frame itself is the machine's): the film file
+//! its committed tiles are written to and the previews made of it, from the frame's
+//! preparation to its results; and the clock the shell reads for the machine's events.
 
-use std::ops::{Deref, DerefMut};
 use std::sync::{Arc, OnceLock};
 use std::time::Instant;
 
 use rayfarm_core::render::Film;
 use rayfarm_machine::Time;
-use rayfarm_machine::coordinator::{CommittedTile, RunningFrame};
+use rayfarm_machine::coordinator::CommittedTile;
 
 use crate::preview::Previews;
 
-/// A frame and its film: they start, run and end together. Previews hold the film weakly
-/// (its file goes when the frame does) and outlive it with their last image.
+/// A frame's film and its previews. Previews hold the film weakly (its file goes when the
+/// frame's film does) and outlive it with their last image.
 pub struct Running {
-    pub frame: RunningFrame,
     pub film: Arc<Film>,
     pub previews: Arc<Previews>,
 }
 
-// The frame is what the state reads and changes; the film only takes its committed tiles.
-impl Deref for Running {
-    type Target = RunningFrame;
-    fn deref(&self) -> &RunningFrame {
-        &self.frame
-    }
-}
-
-impl DerefMut for Running {
-    fn deref_mut(&mut self) -> &mut RunningFrame {
-        &mut self.frame
-    }
-}
-
 impl Running {
-    /// Adds tiles the frame committed to the film (a progressive subframe's to those
-    /// before it); the next preview shows them.
-    pub fn write_tiles(&self, committed: &[CommittedTile]) -> anyhow::Result<()> {
-        let samples = self.frame.samples().count;
+    /// Adds tiles the frame committed, of `samples` samples a pixel, to the film (a
+    /// progressive subframe's to those before it); the next preview shows them, and
+    /// `subframes_done` whole subframes.
+    pub fn write_tiles(
+        &self,
+        committed: &[CommittedTile],
+        samples: u32,
+        subframes_done: u32,
+    ) -> anyhow::Result<()> {
         for (tile, sums) in committed {
             self.film.add_tile(*tile, sums, samples)?;
         }
-        self.previews
-            .advance(committed.len(), self.frame.subframes().0);
+        self.previews.advance(committed.len(), subframes_done);
         Ok(())
     }
 }

@@ -12,6 +12,7 @@
 
 use std::path::{Path, PathBuf};
 
+use rayfarm_machine::coordinator::cluster::JobRecord;
 use rayfarm_node::proto;
 use redb::{ReadableDatabase, ReadableTable, TableDefinition};
 
@@ -55,6 +56,32 @@ impl StoredJob {
     /// The job's id (empty if the record has no summary).
     pub fn id(&self) -> &str {
         self.summary.as_ref().map_or("", |s| s.job_id.as_str())
+    }
+
+    /// The stored form of the machine's record.
+    pub fn from_record(r: &JobRecord) -> Self {
+        StoredJob {
+            summary: Some(r.summary.clone()),
+            seq: r.seq,
+            attempts: r.attempts,
+            image_hash: r.image_hash.clone(),
+            stats_json: r.stats_json.clone(),
+        }
+    }
+
+    /// The machine's record of it; `None` for a record without a summary (skipped).
+    pub fn into_record(self) -> Option<JobRecord> {
+        let Some(summary) = self.summary else {
+            tracing::warn!(seq = self.seq, "a stored job without a summary; skipped");
+            return None;
+        };
+        Some(JobRecord {
+            summary,
+            seq: self.seq,
+            attempts: self.attempts,
+            image_hash: self.image_hash,
+            stats_json: self.stats_json,
+        })
     }
 }
 

@@ -1,6 +1,8 @@
 //! The user API's side of the state: jobs submitted, admitted, listed, watched, cancelled
 //! and fetched.
 
+use rayfarm_machine::coordinator::cluster::PriorityRefused;
+
 use super::*;
 
 impl Coordinator {
@@ -48,63 +50,41 @@ impl Coordinator {
         let cost = u64::from(frame.width) * u64::from(frame.height) * u64::from(frame.spp);
         let owner = user.map(|u| u.name.clone()).unwrap_or_default();
         let mut st = self.lock();
-        self.check_quota(&st, &owner, cost)?;
-        st.seq += 1;
-        let seq = st.seq;
-        let id = format!("job-{}-{seq}", unix_ms() / 1000);
-        let summary = proto::JobSummary {
-            job_id: id.clone(),
-            spec: Some(spec.clone()),
-            state: JobState::Queued as i32,
-            submitted_unix_ms: unix_ms(),
-            owner: owner.clone(),
-            ..Default::default()
-        };
-        let job = Job {
-            summary,
-            cost,
-            seq,
-            attempts: 0,
-            epoch_floor: 0,
-            workers_lost: BTreeMap::new(),
-            progress: progress_channel(&id, JobState::Queued, "", ""),
-            image_hash: String::new(),
-            stats_json: String::new(),
-            preview: None,
-        };
+        let record = st
+            .machine
+            .submit(now(), spec, cost, &owner)
+            .map_err(Status::resource_exhausted)?;
+        let id = record.id().to_string();
         // A job the client was told about must survive a restart: on disk before the reply,
         // and queued only then. It counts against the quota meanwhile.
         let (done, written) = std::sync::mpsc::channel();
         st.journal.put_then(
-            job.stored(),
+            StoredJob::from_record(&record),
             Box::new(move |r| {
                 let _ = done.send(r);
             }),
         );
-        st.add_job(id.clone(), job);
+        let view = JobView {
+            progress: progress_channel(&record),
+            preview: None,
+        };
+        st.views.insert(id.clone(), view);
         drop(st);
         let written = written
             .recv()
             .unwrap_or_else(|_| Err("the job store's writer is gone".into()));
         let mut st = self.lock();
-        if let Err(e) = written {
-            error!(job = %id, error = %e, "job not recorded");
-            if let Some(job) = st.jobs.remove(&id) {
-                st.by_seq.remove(&job.seq);
-            }
+        let failed = written.as_ref().err().cloned();
+        let input = Input::Recorded {
+            job_id: id.clone(),
+            result: written,
+        };
+        self.feed(&mut st, input);
+        if let Some(e) = failed {
+            st.views.remove(&id);
             return Err(Status::internal(format!(
                 "the job could not be recorded: {e}"
             )));
-        }
-        // Cancelled meanwhile: not queued.
-        if st
-            .jobs
-            .get(&id)
-            .is_some_and(|j| j.summary.state() == JobState::Queued)
-        {
-            st.queue.push(id.clone(), spec.priority, seq);
-            info!(job = %id, user = %owner, scene = %spec.scene, width = spec.width, height = spec.height, spp = spec.spp, priority = spec.priority, "job queued");
-            self.try_start(&mut st);
         }
         Ok(id)
     }
@@ -155,88 +135,40 @@ impl Coordinator {
         Ok((dir, manifest))
     }
 
-    /// Refuses (`RESOURCE_EXHAUSTED`) a job of `cost` that would take `owner` past a quota.
-    pub(super) fn check_quota(&self, st: &State, owner: &str, cost: u64) -> Result<(), Status> {
-        let (jobs, queued) = st
-            .jobs
-            .values()
-            .filter(|j| j.summary.owner == owner && !is_terminal(j.summary.state()))
-            .fold((0usize, 0u64), |(n, c), j| {
-                (n + 1, c.saturating_add(j.cost))
-            });
-        let who = if owner.is_empty() { "anonymous" } else { owner };
-        if jobs >= self.config.max_jobs_per_user {
-            warn!(user = %who, jobs, "job refused: queued-jobs quota");
-            return Err(Status::resource_exhausted(format!(
-                "user {who} has {jobs} jobs queued or running, the most allowed \
-                 (--max-jobs-per-user {})",
-                self.config.max_jobs_per_user
-            )));
-        }
-        let max = self.config.max_pixel_samples_per_user;
-        if queued.saturating_add(cost) > max {
-            warn!(user = %who, queued, cost, "job refused: pixel-samples quota");
-            return Err(Status::resource_exhausted(format!(
-                "user {who} has {queued} pixel-samples queued or running; this job's {cost} \
-                 would pass the quota of {max} (--max-pixel-samples-per-user)"
-            )));
-        }
-        Ok(())
-    }
-
     /// Cancels a queued or running job for `user` (`None` without user tokens: anyone may);
     /// returns its state afterwards. Only the job's owner or an admin may cancel it.
     pub fn cancel(self: &Arc<Self>, id: &str, user: Option<&User>) -> Result<JobState, Status> {
         let mut st = self.lock();
-        let job = st.jobs.get(id).ok_or_else(|| not_found(id))?;
+        let job = st.machine.job(id).ok_or_else(|| not_found(id))?;
         check_owner(job, user, "cancel")?;
-        let state = job.summary.state();
-        if is_terminal(state) {
-            return Ok(state);
-        }
-        if st.queue.remove(id) || st.preparing.as_deref() == Some(id) {
-            // A frame being prepared is dropped when it is ready (`begin`).
-            set_state(&mut st, id, JobState::Cancelled, "");
-        } else if st.running.as_ref().is_some_and(|f| f.job_id == id) {
-            if let Some(frame) = st.running.take() {
-                end_frame(&mut st, &frame);
-            }
-            set_state(&mut st, id, JobState::Cancelled, "");
-            self.try_start(&mut st);
-        }
+        let (state, actions) = st.machine.cancel(now(), id).ok_or_else(|| not_found(id))?;
+        self.carry_out(&mut st, actions, Instant::now());
         info!(job = %id, user = %user.map_or("", |u| u.name.as_str()), "job cancelled");
-        Ok(st
-            .jobs
-            .get(id)
-            .map_or(JobState::Cancelled, |j| j.summary.state()))
+        Ok(state)
     }
 
     /// Sets the priority of job `id` for `user` (as [`cancel`](Self::cancel) checks it);
     /// a queued job moves to its new place in the queue. Returns its state.
     pub fn set_priority(
-        &self,
+        self: &Arc<Self>,
         id: &str,
         priority: i32,
         user: Option<&User>,
     ) -> Result<JobState, Status> {
         let mut st = self.lock();
-        let job = st.jobs.get_mut(id).ok_or_else(|| not_found(id))?;
+        let job = st.machine.job(id).ok_or_else(|| not_found(id))?;
         check_owner(job, user, "change the priority of")?;
-        let state = job.summary.state();
-        if state != JobState::Queued {
-            return Err(Status::failed_precondition(format!(
-                "job {id} is {}: only a queued job's priority can change",
-                state_name(state)
-            )));
-        }
-        if let Some(spec) = job.summary.spec.as_mut() {
-            spec.priority = priority;
-        }
-        let (stored, seq) = (job.stored(), job.seq);
-        st.journal.put(stored);
-        if st.queue.remove(id) {
-            st.queue.push(id.to_string(), priority, seq);
-        }
+        let (state, actions) =
+            st.machine
+                .set_priority(id, priority)
+                .map_err(|refused| match refused {
+                    PriorityRefused::NotFound => not_found(id),
+                    PriorityRefused::NotQueued(state) => Status::failed_precondition(format!(
+                        "job {id} is {}: only a queued job's priority can change",
+                        state_name(state)
+                    )),
+                })?;
+        self.carry_out(&mut st, actions, Instant::now());
         info!(job = %id, user = %user.map_or("", |u| u.name.as_str()), priority, "job priority changed");
         Ok(state)
     }
@@ -244,12 +176,13 @@ impl Coordinator {
     /// The previews of job `id`'s latest frame, while they are kept.
     pub fn previews(&self, id: &str) -> Result<Arc<Previews>, Status> {
         let st = self.lock();
-        let job = st.jobs.get(id).ok_or_else(|| not_found(id))?;
-        job.preview.clone().ok_or_else(|| {
+        let job = st.machine.job(id).ok_or_else(|| not_found(id))?;
+        let preview = st.views.get(id).and_then(|v| v.preview.clone());
+        preview.ok_or_else(|| {
             Status::failed_precondition(format!(
                 "job {id} has no preview: it is {} and previews are kept only for the running \
                  frame and the last {KEPT_PREVIEWS} frames started by this coordinator",
-                state_name(job.summary.state())
+                state_name(job.state())
             ))
         })
     }
@@ -257,22 +190,16 @@ impl Coordinator {
     /// Jobs, newest first.
     pub fn list(&self, page: JobPage) -> (Vec<proto::JobSummary>, Option<u64>) {
         let st = self.lock();
-        let mut ids = st.by_seq.range(..=page.from_seq).rev();
-        let jobs = ids
-            .by_ref()
-            .take(page.size)
-            .filter_map(|(_, id)| st.jobs.get(id))
-            .map(|j| j.summary.clone())
-            .collect();
-        (jobs, ids.next().map(|(&seq, _)| seq))
+        let (jobs, next) = st.machine.page(page.size, page.from_seq);
+        (jobs.into_iter().map(|j| j.summary.clone()).collect(), next)
     }
 
     /// A receiver of a job's progress events.
     pub fn watch(&self, id: &str) -> Result<watch::Receiver<proto::WatchJobResponse>, Status> {
         let st = self.lock();
-        st.jobs
+        st.views
             .get(id)
-            .map(|j| j.progress.subscribe())
+            .map(|v| v.progress.subscribe())
             .ok_or_else(|| not_found(id))
     }
 
@@ -283,11 +210,11 @@ impl Coordinator {
         format: proto::ImageFormat,
     ) -> Result<(PathBuf, String, String), Status> {
         let st = self.lock();
-        let job = st.jobs.get(id).ok_or_else(|| not_found(id))?;
-        if job.summary.state() != JobState::Succeeded {
+        let job = st.machine.job(id).ok_or_else(|| not_found(id))?;
+        if job.state() != JobState::Succeeded {
             return Err(Status::failed_precondition(format!(
                 "job {id} is {} and has no result",
-                state_name(job.summary.state())
+                state_name(job.state())
             )));
         }
         Ok((
@@ -300,7 +227,7 @@ impl Coordinator {
 
 /// Refuses (`PERMISSION_DENIED`) `user` doing `action` to `job` unless it is the job's owner
 /// or an admin; without user tokens (`None`) anyone may.
-fn check_owner(job: &Job, user: Option<&User>, action: &str) -> Result<(), Status> {
+fn check_owner(job: &JobRecord, user: Option<&User>, action: &str) -> Result<(), Status> {
     match user {
         Some(user) if !user.admin && job.summary.owner != user.name => {
             let id = &job.summary.job_id;
@@ -311,12 +238,4 @@ fn check_owner(job: &Job, user: Option<&User>, action: &str) -> Result<(), Statu
         }
         _ => Ok(()),
     }
-}
-
-/// Pixels times samples per pixel of a spec as given (a field left 0 counts as 1).
-pub(super) fn spec_cost(spec: &proto::JobSpec) -> u64 {
-    [spec.width, spec.height, spec.spp]
-        .iter()
-        .map(|&v| u64::from(v.max(1)))
-        .product()
 }

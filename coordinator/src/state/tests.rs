@@ -1,6 +1,7 @@
 use rayfarm_core::prepare::generate::{NbodyOptions, prepare_nbody};
 
 use super::*;
+use rayfarm_node::proto::{PROTOCOL_VERSION, coordinator_message::Body};
 
 fn config(root: &std::path::Path) -> Config {
     Config {

@@ -1,17 +1,21 @@
 //! The coordinator machine: jobs, workers, rounds, the tile ledger, job store records.
 //!
-//! Landed so far: the running frame (`frame`: its members, their reports, the rounds of the
-//! dynamic schedule, tile dealing, losses and the tile ledger), its life around the rounds
-//! (`frame::lifecycle`: admission, restart epochs, judging accusations, the end), the judgement
-//! of workers' reports of unreachable peers (`accusations`), and which worker may send results
-//! of which tile (`grants`). The process shell (`rayfarm-coordinator`)
-//! holds the frame under its lock, sends what it returns and writes the tiles it commits.
+//! `cluster::Coordinator` is the whole of it (registered workers, the job queue of `queue`,
+//! job records, starting and finishing frames); inside it, the running frame (`frame`: its
+//! members, their reports, the rounds of the dynamic schedule, tile dealing, losses and the
+//! tile ledger), its life around the rounds (`frame::lifecycle`: admission, restart epochs,
+//! judging accusations, the end), the judgement of workers' reports of unreachable peers
+//! (`accusations`), and which worker may send results of which tile (`grants`). The process
+//! shell (`rayfarm-coordinator`) and the simulator feed it events and carry out its actions.
 
 pub mod accusations;
+pub mod cluster;
 pub mod frame;
 pub mod grants;
+pub mod queue;
 
 pub use accusations::{Accusations, Verdict};
+pub use cluster::Coordinator;
 pub use frame::lifecycle::{ACCUSATION_GRACE, accusation_grace};
 pub use frame::subframes::{job_of_frame, subframe_id};
 pub use frame::{CommittedTile, Member, Outgoing, Rounds, RunningFrame};

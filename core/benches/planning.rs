@@ -1,0 +1,105 @@
+//! The coordinator's planning at the papers' scale: one round of the dynamic schedule
+//! (`schedule::rounds`) for 1024 and 4096 workers over 8192 and 32768 domains.
+//!
+//! Three cases, each from the same synthetic reports (every worker holds two domains and has
+//! rays queued for sixteen, drawn from a fixed hash so every run plans the same cluster):
+//! - `barrier`: every member has reported, the whole cluster is planned at once;
+//! - `async_one_dry`: asynchronous rounds, one member ran dry while the rest are busy (the
+//!   common event: the coordinator handles one of these per report);
+//! - `async_all_dry`: asynchronous rounds with every member dry (a frame's first round).
+//!
+//! Each with Fig. 5 as written and with the coordinator's default, free cache slots filled with
+//! copies of the hottest domains.
+//!
+//! `cargo bench -p rayfarm-core --bench planning`
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::hint::black_box;
+
+use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
+use rayfarm_core::schedule::dynamic::Options;
+use rayfarm_core::schedule::rounds::{Cluster, Member, Queues};
+
+/// Domains each worker's cache holds.
+const RESIDENT: usize = 2;
+/// Domains each worker has rays queued for.
+const QUEUED: usize = 16;
+/// Bytes of every domain (the cache holds `RESIDENT` of them).
+const DOMAIN_BYTES: u64 = 64 << 20;
+
+/// A fixed 64-bit mix (splitmix64's finaliser), so the cluster is the same in every run.
+fn mix(mut x: u64) -> u64 {
+    x = (x ^ (x >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    x = (x ^ (x >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    x ^ (x >> 31)
+}
+
+/// `workers` members over `domains` domains; the first `dry` of them have run dry.
+fn members(workers: u32, domains: u32, dry: u32) -> BTreeMap<u32, Member> {
+    (0..workers)
+        .map(|w| {
+            let pick = |i: usize| (mix(u64::from(w) << 20 | i as u64) % u64::from(domains)) as u32;
+            let resident: Vec<u32> = (0..RESIDENT).map(pick).collect();
+            let queued: BTreeMap<u32, u64> = (RESIDENT..RESIDENT + QUEUED)
+                .map(|i| (pick(i), 1 + mix(i as u64 ^ u64::from(w)) % 10_000))
+                .collect();
+            let report = Queues {
+                round: 1,
+                resident: resident.clone(),
+                queued,
+                ..Queues::default()
+            };
+            let member = Member {
+                cache_bytes: RESIDENT as u64 * DOMAIN_BYTES,
+                report: Some(report),
+                plan: resident.into_iter().collect::<BTreeSet<u32>>(),
+                // A plan of a later round than the report means the member is still busy.
+                planned_round: if w < dry { 1 } else { 2 },
+            };
+            (w, member)
+        })
+        .collect()
+}
+
+fn planning(c: &mut Criterion) {
+    let mut group = c.benchmark_group("planning");
+    group.sample_size(10);
+    // Fig. 5 as written, and the coordinator's default (`--replicate free-slots`).
+    let variants = [
+        ("fig5", Options::default()),
+        (
+            "free_slots",
+            Options {
+                fill_free_slots: true,
+                ..Options::default()
+            },
+        ),
+    ];
+    for (workers, domains) in [(1024u32, 8192u32), (4096, 32768)] {
+        let sizes = vec![DOMAIN_BYTES; domains as usize];
+        let all_dry = members(workers, domains, workers);
+        let one_dry = members(workers, domains, 1);
+        for (name, options) in variants {
+            let id = format!("{name}/{workers}w_{domains}d");
+            let cluster = |members| Cluster {
+                members,
+                domain_bytes: &sizes,
+                oldest_first: false,
+                options,
+            };
+            group.bench_function(BenchmarkId::new("barrier", &id), |b| {
+                b.iter(|| black_box(cluster(&all_dry).barrier_round(1)))
+            });
+            group.bench_function(BenchmarkId::new("async_all_dry", &id), |b| {
+                b.iter(|| black_box(cluster(&all_dry).dry_plans()))
+            });
+            group.bench_function(BenchmarkId::new("async_one_dry", &id), |b| {
+                b.iter(|| black_box(cluster(&one_dry).dry_plans()))
+            });
+        }
+    }
+    group.finish();
+}
+
+criterion_group!(benches, planning);
+criterion_main!(benches);

@@ -1,0 +1,409 @@
+//! The coordinator as one machine: the registered workers (registration, refusals of a
+//! duplicate id or address, heartbeats and their loss, peers' accusations), the job queue and
+//! every job's record, and the frames (started when the cluster is free, finished when their
+//! workers' statistics are in, failed, cancelled, re-queued). It owns no socket, clock,
+//! thread or file: each event comes in with its time ([`Coordinator::handle`], or a method
+//! where the caller needs an answer: [`Coordinator::register`], [`Coordinator::submit`],
+//! [`Coordinator::cancel`], [`Coordinator::set_priority`]) and the machine answers with
+//! [`Action`]s: messages to workers, streams to close, job records to persist, a frame's scene
+//! to read, tiles to write, results to write. The process shell (`rayfarm-coordinator`) and
+//! the simulator (`rayfarm-sim`) drive this same value.
+//!
+//! Modules: `workers` (registration, messages, loss, the periodic tick), `jobs` (submission,
+//! quotas, cancel, priority, records), `frames` (starting, holding a start's messages until its
+//! record is stored, finishing and failing frames).
+
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
+use std::time::Duration;
+
+use rayfarm_core::cluster::stats::{ClusterStats, WorkerFrameStats};
+use rayfarm_core::render::local::FrameSpec;
+use rayfarm_core::schedule::dynamic::Options;
+use rayfarm_proto::{self as proto, JobState, worker_message::Body as FromWorker};
+
+use super::frame::{CommittedTile, Outgoing, Rounds, RunningFrame};
+use super::queue::JobQueue;
+use crate::Time;
+
+mod frames;
+mod jobs;
+mod workers;
+
+pub use jobs::PriorityRefused;
+pub use workers::Refusal;
+
+/// How the coordinator machine is set up.
+#[derive(Clone, Debug)]
+pub struct Config {
+    /// Heartbeat interval asked of workers.
+    pub heartbeat: Duration,
+    /// A worker silent this long is dropped.
+    pub worker_timeout: Duration,
+    /// How long a finished frame waits for the workers' statistics.
+    pub report_timeout: Duration,
+    /// Extensions of the dynamic schedule.
+    pub schedule_options: Options,
+    /// How the dynamic schedule's rounds advance.
+    pub rounds: Rounds,
+    /// Starts of a job's frame after which it fails instead of starting again (and losses of
+    /// one worker during one job after which the job fails).
+    pub max_attempts: u32,
+    /// Most jobs one user may have queued or running.
+    pub max_jobs_per_user: usize,
+    /// Most pixels x samples one user may have queued or running.
+    pub max_pixel_samples_per_user: u64,
+    /// Unix milliseconds at `Time(0)`: job records carry wall-clock times, and the machine
+    /// reads no clock (the simulator passes 0).
+    pub unix_origin_ms: i64,
+}
+
+/// A job as the store keeps it (the shell's store encodes it).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct JobRecord {
+    /// The job as the API lists it (spec, state, times, error, owner).
+    pub summary: proto::JobSummary,
+    /// Submission sequence number: equal priorities run in this order.
+    pub seq: u64,
+    /// Frames of this job started so far, across restarts.
+    pub attempts: u32,
+    pub image_hash: String,
+    pub stats_json: String,
+}
+
+impl JobRecord {
+    pub fn state(&self) -> JobState {
+        self.summary.state()
+    }
+
+    pub fn id(&self) -> &str {
+        &self.summary.job_id
+    }
+}
+
+/// A job and what the machine keeps of it beyond its record.
+struct Job {
+    record: JobRecord,
+    /// Pixels times samples per pixel: what the job weighs against its owner's quota.
+    cost: u64,
+    /// The epoch every tile of its next frame starts at, at least: one past the highest
+    /// epoch an earlier frame of it used in this process. A frame that lost every worker
+    /// bumped epochs with each loss; a worker dropped from it may still send rays and
+    /// results of those epochs, which the restarted frame must never take for its own.
+    epoch_floor: u32,
+    /// Times each worker (by id) was lost during this job's frames, in this process.
+    workers_lost: BTreeMap<String, u32>,
+}
+
+/// A registered worker.
+#[derive(Clone, Debug)]
+pub struct Registered {
+    pub id: String,
+    pub peer_address: String,
+    pub cache_bytes: u64,
+    /// When its last message came.
+    pub last_seen: Time,
+    pub last_report: Option<proto::QueueReport>,
+    /// Its latest heartbeat: its loads, rays traced and queue bytes.
+    pub heartbeat: proto::Heartbeat,
+    /// Why it declined its last frame ("job ID: reason"); empty once it reports a frame.
+    pub left_out: String,
+}
+
+/// A worker the coordinator dropped, as the dashboard lists it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct LostWorker {
+    pub worker_id: String,
+    pub peer_address: String,
+    /// When it was dropped, Unix milliseconds.
+    pub lost_unix_ms: i64,
+    pub reason: String,
+}
+
+/// Workers lost remembered for the dashboard, newest last.
+pub const KEPT_LOST_WORKERS: usize = 32;
+
+/// Why a worker's control stream is closed.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Closing {
+    /// It ended from the worker's side, or the worker is dropped without a word (its peers
+    /// reported it): the stream just ends.
+    Dropped,
+    /// It sent no heartbeat within the timeout.
+    NoHeartbeat,
+    /// Its tile results could not be right.
+    Refused(String),
+    /// The coordinator is stopping.
+    ShuttingDown,
+}
+
+/// A frame's figures for its watchers.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Progress {
+    pub tiles_done: u32,
+    pub tiles_total: u32,
+    /// Subframes committed, and in all (1 for a one-pass frame).
+    pub subframes_done: u32,
+    pub subframes: u32,
+    pub round: u64,
+    pub rays_per_second: f64,
+    /// Seconds, or -1 while unknown.
+    pub eta_seconds: f64,
+}
+
+/// What the shell read for a frame's start: the frame checked against its scene's camera,
+/// and the bytes of each domain file. (The shell created the film its tiles go to.)
+#[derive(Clone, Debug)]
+pub struct OpenedFrame {
+    pub frame: FrameSpec,
+    pub domain_bytes: Vec<u64>,
+}
+
+/// Counts for the shell's metrics.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Tally {
+    /// Rounds planned (the time the event took is planning time).
+    Rounds(u64),
+    TilesCommitted(u64),
+    /// A subframe of a frame committed (a one-pass frame is one subframe).
+    SubframeCommitted,
+    FrameCommitted,
+    FrameFailed,
+    WorkerLost,
+}
+
+/// Something that happened, with no answer owed to its caller.
+#[derive(Debug)]
+pub enum Input {
+    /// A message of a registered worker (by its key).
+    WorkerMessage { key: u32, body: FromWorker },
+    /// A worker's control stream ended, from its side.
+    WorkerGone { key: u32, why: String },
+    /// Time passed: silent workers are dropped, accusations judged, finished frames whose
+    /// reports are overdue written.
+    Tick,
+    /// The scene of the frame asked for by [`Action::PrepareFrame`] was read (or why not).
+    FrameOpened {
+        job_id: String,
+        opened: Result<OpenedFrame, String>,
+    },
+    /// The record persisted with `start: Some(start)` is stored.
+    Stored { start: u64 },
+    /// The first record of a submitted job is stored (or why not: the job is forgotten).
+    Recorded {
+        job_id: String,
+        result: Result<(), String>,
+    },
+    /// The results asked for by [`Action::WriteResults`] are written: (statistics JSON,
+    /// image hash), or why not.
+    ResultsWritten {
+        job_id: String,
+        result: Result<(String, String), String>,
+    },
+    /// The job's frame cannot go on (its film could not be written).
+    Fail { job_id: String, error: String },
+    /// The coordinator stops: every worker's stream closes, the running frame is abandoned
+    /// (its job stays recorded as running, so the next coordinator queues it again).
+    ShutDown,
+}
+
+/// Something for the shell to do, in order.
+#[derive(Debug)]
+pub enum Action {
+    /// This message to the worker with this key.
+    Send(Outgoing),
+    /// Close this worker's control stream (it is no longer registered).
+    Close {
+        key: u32,
+        closing: Closing,
+    },
+    /// Write this job record (after every record before it). With `start`, answer
+    /// [`Input::Stored`] once it is on disk: the frame's messages wait for it.
+    Persist {
+        record: JobRecord,
+        start: Option<u64>,
+    },
+    /// The running frame's figures changed.
+    Progress {
+        job_id: String,
+        progress: Progress,
+    },
+    /// Read the job's scene and create its film; answer [`Input::FrameOpened`].
+    PrepareFrame {
+        job_id: String,
+        spec: proto::JobSpec,
+    },
+    /// The prepared frame of this job started (this is its `attempt`-th start).
+    FrameStarted {
+        job_id: String,
+        attempt: u32,
+    },
+    /// Add these committed tiles, of `samples` samples a pixel, to the job's film (whose
+    /// previews then show `subframes_done` whole subframes); on failure answer
+    /// [`Input::Fail`].
+    WriteTiles {
+        job_id: String,
+        tiles: Vec<CommittedTile>,
+        samples: u32,
+        subframes_done: u32,
+    },
+    /// The job's film is not needed any more (its frame was abandoned or never started).
+    Discard {
+        job_id: String,
+    },
+    /// Write the finished job's images and statistics; answer [`Input::ResultsWritten`].
+    WriteResults {
+        job_id: String,
+        stats: Box<ClusterStats>,
+    },
+    Tally(Tally),
+}
+
+/// A frame whose tiles are all in, waiting for its workers' statistics, by the frame id the
+/// workers know (a progressive job's committed subframes each have one: their reports are
+/// summed into the job's statistics when its last subframe is written).
+struct Finishing {
+    /// The job it is a frame (or subframe) of.
+    job: String,
+    /// The job's statistics but the workers': for its last subframe only.
+    stats: Option<ClusterStats>,
+    waiting: BTreeSet<u32>,
+    reports: Vec<WorkerFrameStats>,
+    /// When it stops waiting.
+    deadline: Time,
+}
+
+/// See the module documentation.
+pub struct Coordinator {
+    config: Config,
+    jobs: BTreeMap<String, Job>,
+    /// Every job's id by its sequence number, so a page of the list is a range, not a sort.
+    by_seq: BTreeMap<u64, String>,
+    queue: JobQueue,
+    /// The highest sequence number handed out.
+    seq: u64,
+    workers: BTreeMap<u32, Registered>,
+    next_key: u32,
+    /// The job whose frame is being prepared by the shell.
+    preparing: Option<String>,
+    running: Option<RunningFrame>,
+    finishing: BTreeMap<String, Finishing>,
+    /// Frame starts so far, and the latest whose record is stored: until it is, messages to
+    /// workers wait in `held` (in order), so no worker hears of a frame before its start is
+    /// stored (a frame that kills the coordinator counts against the job's attempts).
+    starts: u64,
+    stored_starts: u64,
+    held: Vec<(u64, Outgoing)>,
+    /// Set by [`Input::ShutDown`]: no worker attaches and no frame starts any more.
+    stopping: bool,
+    /// The latest workers dropped (at most [`KEPT_LOST_WORKERS`]).
+    lost: VecDeque<LostWorker>,
+}
+
+fn is_terminal(state: JobState) -> bool {
+    matches!(
+        state,
+        JobState::Succeeded | JobState::Failed | JobState::Cancelled
+    )
+}
+
+impl Coordinator {
+    /// A coordinator with no jobs yet whose sequence numbers go on from `seq`; the stored
+    /// jobs come in through [`restore`](Self::restore).
+    pub fn new(config: Config, seq: u64) -> Self {
+        Coordinator {
+            config,
+            jobs: BTreeMap::new(),
+            by_seq: BTreeMap::new(),
+            queue: JobQueue::default(),
+            seq,
+            workers: BTreeMap::new(),
+            next_key: 0,
+            preparing: None,
+            running: None,
+            finishing: BTreeMap::new(),
+            starts: 0,
+            stored_starts: 0,
+            held: Vec::new(),
+            stopping: false,
+            lost: VecDeque::new(),
+        }
+    }
+
+    pub fn config(&self) -> &Config {
+        &self.config
+    }
+
+    /// Handles one event at `now`.
+    pub fn handle(&mut self, now: Time, input: Input) -> Vec<Action> {
+        let mut out = Vec::new();
+        match input {
+            Input::WorkerMessage { key, body } => self.worker_message(now, key, body, &mut out),
+            Input::WorkerGone { key, why } => self.lose(now, key, &why, Closing::Dropped, &mut out),
+            Input::Tick => self.tick(now, &mut out),
+            Input::FrameOpened { job_id, opened } => self.begin(now, &job_id, opened, &mut out),
+            Input::Stored { start } => self.release_held(start, &mut out),
+            Input::Recorded { job_id, result } => self.recorded(now, &job_id, result, &mut out),
+            Input::ResultsWritten { job_id, result } => {
+                self.results_written(now, &job_id, result, &mut out)
+            }
+            Input::Fail { job_id, error } => self.fail_job(now, &job_id, &error, &mut out),
+            Input::ShutDown => self.shut_down(&mut out),
+        }
+        out
+    }
+
+    /// Wall-clock milliseconds at `now`.
+    fn unix_ms(&self, now: Time) -> i64 {
+        self.config.unix_origin_ms + (now.0 / 1_000_000) as i64
+    }
+
+    /// The registered workers by key.
+    pub fn workers(&self) -> impl Iterator<Item = (u32, &Registered)> {
+        self.workers.iter().map(|(&k, w)| (k, w))
+    }
+
+    /// The frame running now.
+    pub fn running(&self) -> Option<&RunningFrame> {
+        self.running.as_ref()
+    }
+
+    /// The latest workers dropped, oldest first.
+    pub fn lost_workers(&self) -> impl Iterator<Item = &LostWorker> {
+        self.lost.iter()
+    }
+
+    /// Job `id`'s record.
+    pub fn job(&self, id: &str) -> Option<&JobRecord> {
+        self.jobs.get(id).map(|j| &j.record)
+    }
+
+    /// Every job's record, in no particular order.
+    pub fn jobs(&self) -> impl Iterator<Item = &JobRecord> {
+        self.jobs.values().map(|j| &j.record)
+    }
+
+    /// At most `size` jobs, newest first, from sequence number `from_seq` down; and the
+    /// sequence number the next page starts at, if any.
+    pub fn page(&self, size: usize, from_seq: u64) -> (Vec<&JobRecord>, Option<u64>) {
+        let mut ids = self.by_seq.range(..=from_seq).rev();
+        let jobs = ids
+            .by_ref()
+            .take(size)
+            .filter_map(|(_, id)| self.job(id))
+            .collect();
+        (jobs, ids.next().map(|(&seq, _)| seq))
+    }
+
+    /// The earliest time a [`Input::Tick`] has work to do besides the periodic reaping: a
+    /// finished frame's report deadline.
+    pub fn next_deadline(&self) -> Option<Time> {
+        self.finishing
+            .values()
+            .filter(|f| f.stats.is_some())
+            .map(|f| f.deadline)
+            .min()
+    }
+}
+
+#[cfg(test)]
+mod tests;
