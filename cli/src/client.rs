@@ -270,6 +270,20 @@ impl Coordinator {
         Ok(resp.map_err(|s| self.rpc_error(&s))?.into_inner().state())
     }
 
+    /// Changes a queued job's priority; returns its state.
+    pub async fn set_priority(
+        &mut self,
+        job_id: &str,
+        priority: i32,
+    ) -> anyhow::Result<proto::JobState> {
+        let req = proto::SetJobPriorityRequest {
+            job_id: job_id.to_string(),
+            priority,
+        };
+        let resp = self.client.set_job_priority(req).await;
+        Ok(resp.map_err(|s| self.rpc_error(&s))?.into_inner().state())
+    }
+
     /// A finished job's image file as a stream of chunks from byte `offset`; the first
     /// carries the file's size and checksum.
     pub async fn fetch_stream(

@@ -436,6 +436,7 @@ impl JobService for Api {
             width: p.width,
             height: p.height,
             scale: p.factor,
+            subframe: latest.subframe,
         }))
     }
 

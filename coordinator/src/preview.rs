@@ -2,10 +2,12 @@
 //! demand (`FetchPreview`, the dashboard), at most once per state of the film, on a blocking
 //! thread, never under the state lock.
 //!
-//! [`Previews`] is the one source: whatever adds to the film (today a tile committed; later a
-//! progressive subframe) calls [`Previews::advance`], which raises the sequence number, and
-//! the next fetch encodes the film as it is then. The sequence number only grows, across a
-//! frame's restarts too (a restarted frame's previews start where the last one stopped).
+//! [`Previews`] is the one source: whatever adds to the film (a tile committed, of a one-pass
+//! frame or of a progressive subframe) calls [`Previews::advance`], which raises the sequence
+//! number, and the next fetch encodes the film as it is then, each tile averaged over the
+//! samples the film holds of it (`Film::preview_png`). The sequence number only grows,
+//! across subframes and a frame's restarts too (a restarted frame's previews start where the
+//! last one stopped); so does the number of whole subframes in the preview.
 
 use std::sync::{Arc, Mutex, MutexGuard, Weak};
 
@@ -21,6 +23,8 @@ pub const MAX_SIDE: u32 = 1024;
 #[derive(Debug)]
 pub struct Encoded {
     pub sequence: u64,
+    /// Subframes wholly in it.
+    pub subframe: u32,
     pub preview: Preview,
 }
 
@@ -34,16 +38,16 @@ pub struct Previews {
 /// See [`Previews::source`].
 enum Source {
     Ready(Arc<Encoded>),
-    Encode(Arc<Film>, Vec<bool>, u64),
+    Encode(Arc<Film>, u64, u32),
     Gone,
 }
 
 struct Inner {
     /// The running frame's film; gone once the frame is dropped (its file goes with it).
     film: Weak<Film>,
-    /// Tiles written to the film, by index.
-    committed: Vec<bool>,
     sequence: u64,
+    /// Subframes wholly committed to the film.
+    subframe: u32,
     latest: Option<Arc<Encoded>>,
 }
 
@@ -54,8 +58,8 @@ impl Previews {
         Previews {
             inner: Mutex::new(Inner {
                 film: Arc::downgrade(film),
-                committed: vec![false; film.grid().count() as usize],
                 sequence: floor,
+                subframe: 0,
                 latest: None,
             }),
             encoding: tokio::sync::Mutex::new(()),
@@ -66,16 +70,12 @@ impl Previews {
         self.inner.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    /// `tiles` are written to the film: the next preview shows them.
-    pub fn advance(&self, tiles: impl IntoIterator<Item = u32>) {
+    /// `tiles` more tile commits are in the film, and `subframes` subframes wholly: the
+    /// next preview shows them.
+    pub fn advance(&self, tiles: usize, subframes: u32) {
         let mut inner = self.lock();
-        for tile in tiles {
-            if let Some(done) = inner.committed.get_mut(tile as usize)
-                && !std::mem::replace(done, true)
-            {
-                inner.sequence += 1;
-            }
-        }
+        inner.sequence += tiles as u64;
+        inner.subframe = inner.subframe.max(subframes);
     }
 
     /// The sequence number of the newest preview [`latest`](Self::latest) returns.
@@ -93,7 +93,7 @@ impl Previews {
             return Source::Ready(latest.clone());
         }
         match (inner.film.upgrade(), &inner.latest) {
-            (Some(film), _) => Source::Encode(film, inner.committed.clone(), inner.sequence),
+            (Some(film), _) => Source::Encode(film, inner.sequence, inner.subframe),
             (None, Some(latest)) => Source::Ready(latest.clone()),
             (None, None) => Source::Gone,
         }
@@ -116,31 +116,39 @@ impl Previews {
     /// last one.
     pub async fn latest(&self) -> Result<Arc<Encoded>, Status> {
         let _one = self.encoding.lock().await;
-        let (film, committed, sequence) = match self.source() {
+        let (film, sequence, subframe) = match self.source() {
             Source::Ready(ready) => return Ok(ready),
-            Source::Encode(film, committed, sequence) => (film, committed, sequence),
+            Source::Encode(film, sequence, subframe) => (film, sequence, subframe),
             Source::Gone => {
                 return Err(Status::failed_precondition(
                     "the frame ended before a preview of it was made",
                 ));
             }
         };
-        let preview = tokio::task::spawn_blocking(move || film.preview_png(&committed, MAX_SIDE))
+        let preview = tokio::task::spawn_blocking(move || film.preview_png(MAX_SIDE))
             .await
             .map_err(|e| Status::internal(format!("encoding the preview failed: {e}")))?
             .map_err(|e| Status::internal(format!("encoding the preview failed: {e}")))?;
-        Ok(self.keep(Encoded { sequence, preview }))
+        Ok(self.keep(Encoded {
+            sequence,
+            subframe,
+            preview,
+        }))
     }
 
     /// The frame is complete and its film about to go: encodes the final preview now, on
     /// the calling (blocking) thread, so it outlives the film.
     pub fn seal(&self) {
-        let Source::Encode(film, committed, sequence) = self.source() else {
+        let Source::Encode(film, sequence, subframe) = self.source() else {
             return;
         };
-        match film.preview_png(&committed, MAX_SIDE) {
+        match film.preview_png(MAX_SIDE) {
             Ok(preview) => {
-                self.keep(Encoded { sequence, preview });
+                self.keep(Encoded {
+                    sequence,
+                    subframe,
+                    preview,
+                });
             }
             Err(e) => tracing::warn!(error = %e, "the final preview could not be encoded"),
         }
@@ -163,16 +171,16 @@ mod tests {
         // Nothing new: the same encoding, not a second one.
         assert!(Arc::ptr_eq(&first, &previews.latest().await.unwrap()));
         film.write_tile(0, &[[1 << 24; 3]; 64]).unwrap();
-        previews.advance([0, 0]);
+        previews.advance(1, 0);
         let second = previews.latest().await.unwrap();
-        assert_eq!(second.sequence, 6);
+        assert_eq!((second.sequence, second.subframe), (6, 0));
         assert_ne!(second.preview.png, first.preview.png);
         // The film goes: the newest preview stays.
-        previews.advance([1]);
+        previews.advance(2, 1);
         previews.seal();
         drop(film);
         let last = previews.latest().await.unwrap();
-        assert_eq!(last.sequence, 7);
+        assert_eq!((last.sequence, last.subframe), (8, 1));
         assert!(Arc::ptr_eq(&last, &previews.latest().await.unwrap()));
     }
 }

@@ -19,13 +19,19 @@ pub struct Running {
 }
 
 impl Running {
-    /// Writes tiles the frame committed to the film; the next preview shows them.
-    pub fn write_tiles(&self, committed: &[CommittedTile]) -> anyhow::Result<()> {
+    /// Adds tiles the frame committed, of `samples` samples a pixel, to the film (a
+    /// progressive subframe's to those before it); the next preview shows them, and
+    /// `subframes_done` whole subframes.
+    pub fn write_tiles(
+        &self,
+        committed: &[CommittedTile],
+        samples: u32,
+        subframes_done: u32,
+    ) -> anyhow::Result<()> {
         for (tile, sums) in committed {
-            self.film.write_tile(*tile, sums)?;
+            self.film.add_tile(*tile, sums, samples)?;
         }
-        self.previews
-            .advance(committed.iter().map(|(tile, _)| *tile));
+        self.previews.advance(committed.len(), subframes_done);
         Ok(())
     }
 }

@@ -176,6 +176,42 @@ pub fn split_path_credit(credit: u64, leaves: usize) -> Result<PathSplit, Credit
     })
 }
 
+/// A run of consecutive samples of every pixel: a progressive subframe's, or a whole frame's.
+/// Sample numbers are the frame's own (the random numbers hash them), so the same sample
+/// renders the same light whichever run it is in.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Samples {
+    /// The run's first sample.
+    pub first: u32,
+    /// Samples in the run (at least 1 in a frame).
+    pub count: u32,
+}
+
+impl Samples {
+    /// All `spp` samples of a frame rendered in one pass.
+    pub fn all(spp: u32) -> Self {
+        Samples {
+            first: 0,
+            count: spp,
+        }
+    }
+
+    /// One past the run's last sample.
+    pub fn end(&self) -> u32 {
+        self.first.saturating_add(self.count)
+    }
+
+    /// The run's sample numbers.
+    pub fn range(&self) -> std::ops::Range<u32> {
+        self.first..self.end()
+    }
+
+    /// Where `sample` falls in the run (its index among the run's samples of a pixel).
+    pub fn offset(&self, sample: u32) -> Option<u32> {
+        self.range().contains(&sample).then(|| sample - self.first)
+    }
+}
+
 /// How the image is cut into square tiles, numbered row-major; edge tiles may be smaller.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct TileGrid {
@@ -447,6 +483,15 @@ impl FrameLedger {
     /// the forgery that would end a tile with nothing rendered, is refused.
     pub fn with_samples(mut self, spp: u32) -> Self {
         self.spp = Some(spp);
+        self
+    }
+
+    /// Every tile starts at `epoch` instead of 0: a progressive frame's next subframe starts
+    /// above every epoch the last one used, so nothing of it is taken for the new one's.
+    pub fn starting_at(mut self, epoch: u32) -> Self {
+        for t in &mut self.tiles {
+            t.epoch = epoch;
+        }
         self
     }
 

@@ -15,6 +15,7 @@ pub mod isosurface;
 pub mod mesh;
 pub mod nbody;
 pub mod prepare;
+pub mod progressive;
 pub mod ray;
 pub mod render;
 pub mod sampling;

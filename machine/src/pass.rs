@@ -11,7 +11,7 @@ use std::sync::{Arc, Mutex};
 
 use rayfarm_core::camera::PinholeCamera;
 use rayfarm_core::cluster::tile_sums;
-use rayfarm_core::frame::TileGrid;
+use rayfarm_core::frame::{Samples, TileGrid};
 use rayfarm_core::ray::RayRecord;
 use rayfarm_core::render::cache::DomainCache;
 use rayfarm_core::render::film::to_fixed;
@@ -35,17 +35,19 @@ pub struct FrameView {
     pub view: SceneView,
     pub camera: PinholeCamera,
     pub grid: TileGrid,
-    pub spp: u32,
+    /// The samples of each pixel this frame issues (a progressive subframe's, or all).
+    pub samples: Samples,
 }
 
 impl FrameView {
     /// The view of a frame of `frame` over the scene of `manifest`, in tiles of `tile_size`,
-    /// with the limits a peer's batches for it must keep. What a worker reads from a
+    /// issuing `samples` of each pixel, with the limits a peer's batches for it must keep. What a worker reads from a
     /// StartFrame; the shell and the simulator open frames alike.
     pub fn open(
         manifest: &Manifest,
         frame: &FrameSpec,
         tile_size: u32,
+        samples: Samples,
     ) -> Result<(FrameView, BatchLimits), String> {
         let grid = TileGrid::new(frame.width, frame.height, tile_size)
             .ok_or_else(|| format!("bad tile size {tile_size}"))?;
@@ -65,7 +67,7 @@ impl FrameView {
             view: SceneView::new(manifest, frame.max_depth as u16),
             camera,
             grid,
-            spp: frame.spp,
+            samples,
         };
         Ok((view, limits))
     }
@@ -162,9 +164,9 @@ pub fn run(input: PassInput) -> Result<PassOutput, PassError> {
             .map(|&(tile, epoch)| {
                 let mut s = Sink::default();
                 for pixel in frame.grid.pixels(tile) {
-                    for sample in 0..frame.spp {
+                    for sample in frame.samples.range() {
                         let mut ray =
-                            primary_ray(&frame.camera, &frame.grid, frame.spp, pixel, sample);
+                            primary_ray(&frame.camera, &frame.grid, frame.samples, pixel, sample);
                         ray.epoch = epoch;
                         frame.view.route_new(ray, &mut s);
                     }
@@ -176,7 +178,7 @@ pub fn run(input: PassInput) -> Result<PassOutput, PassError> {
         counters.primary_rays = work
             .primaries
             .iter()
-            .map(|&(t, _)| frame.grid.tile_pixel_count(t) as u64 * frame.spp as u64)
+            .map(|&(t, _)| frame.grid.tile_pixel_count(t) as u64 * u64::from(frame.samples.count))
             .sum();
     }
     if let Some(conclude) = &work.speculative {

@@ -1,6 +1,8 @@
 //! A job's frame as the user API carries it, checked once on the coordinator and read the
 //! same way by every worker.
 
+use rayfarm_core::frame::Samples;
+use rayfarm_core::progressive::Progressive;
 use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::scene::Camera;
 
@@ -66,6 +68,31 @@ pub fn frame_spec(spec: &proto::JobSpec, scene_camera: &Camera) -> Result<FrameS
     Ok(frame)
 }
 
+/// How a job cuts its samples into subframes.
+pub fn progressive(spec: &proto::JobSpec) -> Progressive {
+    Progressive::from_field(spec.progressive.map(|p| p.subframe_spp))
+}
+
+/// The samples a StartFrame renders of a frame of `spp` samples per pixel: its subframe's,
+/// or all of them when it names none.
+pub fn start_samples(s: &proto::StartFrame, spp: u32) -> Result<Samples, String> {
+    if s.sample_count == 0 {
+        return Ok(Samples::all(spp));
+    }
+    let samples = Samples {
+        first: s.first_sample,
+        count: s.sample_count,
+    };
+    if u64::from(s.first_sample) + u64::from(s.sample_count) > u64::from(spp) {
+        return Err(format!(
+            "StartFrame samples {}..{} outside the job's {spp} samples per pixel",
+            s.first_sample,
+            u64::from(s.first_sample) + u64::from(s.sample_count)
+        ));
+    }
+    Ok(samples)
+}
+
 fn camera_from_proto(c: &proto::Camera, scene: &Camera) -> Result<Camera, String> {
     let triple = |name: &str, v: &[f32], default: [f32; 3]| -> Result<[f32; 3], String> {
         if v.is_empty() {
@@ -113,6 +140,7 @@ mod tests {
             schedule: proto::Schedule::Dynamic as i32,
             priority: 0,
             cold_cache: false,
+            progressive: None,
         }
     }
 

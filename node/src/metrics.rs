@@ -127,6 +127,8 @@ pub struct CoordinatorMetrics {
     pub frames_committed: Counter,
     /// Frames that failed.
     pub frames_failed: Counter,
+    /// Subframes committed (a one-pass frame is one subframe).
+    pub subframes_committed: Counter,
     /// Scheduling rounds planned.
     pub rounds: Counter,
     /// Time planning a round took (the frame machine's report handling that planned one).
@@ -157,6 +159,7 @@ impl CoordinatorMetrics {
             workers: Gauge::default(),
             frames_committed: Counter::default(),
             frames_failed: Counter::default(),
+            subframes_committed: Counter::default(),
             rounds: Counter::default(),
             // 10 µs to about 2.6 s.
             planning_seconds: Histogram::new(exponential_buckets(1e-5, 4.0, 10)),
@@ -174,6 +177,11 @@ impl CoordinatorMetrics {
             "frames_failed",
             "Frames that failed",
             m.frames_failed.clone(),
+        );
+        registry.register(
+            "subframes_committed",
+            "Subframes whose every tile came back (a one-pass frame is one subframe)",
+            m.subframes_committed.clone(),
         );
         registry.register("rounds", "Scheduling rounds planned", m.rounds.clone());
         registry.register_with_unit(

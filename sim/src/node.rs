@@ -120,9 +120,10 @@ impl SimWorker {
         let spec = s.spec.as_ref().ok_or("StartFrame without a job spec")?;
         let manifest = &self.scene.manifest;
         let frame = rayfarm_node::job::frame_spec(spec, &manifest.camera)?;
-        let (view, limits) = FrameView::open(manifest, &frame, s.tile_size)?;
+        let samples = rayfarm_node::job::start_samples(s, frame.spp)?;
+        let (view, limits) = FrameView::open(manifest, &frame, s.tile_size, samples)?;
         let grid = view.grid;
-        let spp = view.spp;
+        let spp = samples.count;
         self.frame = Some((s.job_id.clone(), Arc::new(view)));
         let cache = self.lock();
         let (domain_bytes, resident) = (cache.domain_bytes(), cache.resident());

@@ -359,8 +359,9 @@ impl Engine {
             .as_ref()
             .ok_or_else(|| anyhow::anyhow!("StartFrame without a job spec"))?;
         let frame = job::frame_spec(spec, &manifest.camera).map_err(anyhow::Error::msg)?;
+        let samples = job::start_samples(s, frame.spp).map_err(anyhow::Error::msg)?;
         let (view, limits) =
-            FrameView::open(&manifest, &frame, s.tile_size).map_err(anyhow::Error::msg)?;
+            FrameView::open(&manifest, &frame, s.tile_size, samples).map_err(anyhow::Error::msg)?;
         let grid = view.grid;
         // Keyed by the manifest too: the domains mapped for an older version of the scene in
         // this directory are never traced for the new one (their files were replaced by a
@@ -402,7 +403,7 @@ impl Engine {
         });
         Ok(OpenedScene {
             grid,
-            spp: frame.spp,
+            spp: samples.count,
             limits,
             domain_bytes,
             resident,

@@ -17,6 +17,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, anyhow, bail};
 use clap::{Args, ValueEnum};
 use rayfarm_core::cluster::stats::ClusterStats;
+use rayfarm_core::progressive::Progressive;
 use rayfarm_core::scene::Manifest;
 use rayfarm_node::job::{parse_schedule, schedule_name};
 use rayfarm_node::proto;
@@ -76,6 +77,12 @@ pub struct BenchArgs {
     /// Maximum bounces.
     #[arg(long, env = "RAYFARM_DEPTH", default_value_t = 3)]
     pub depth: u32,
+    /// Also render every schedule progressively, in subframes (`doubling` or a number of
+    /// samples per subframe, as `submit --progressive`): each schedule then has two rows
+    /// side by side, one pass and `SCHEDULE+progressive`, and every image must still be the
+    /// same.
+    #[arg(long, env = "RAYFARM_BENCH_PROGRESSIVE", value_parser = Progressive::parse)]
+    pub progressive: Option<Progressive>,
     /// Also write one row per run (every measure; failed runs with their error) to this CSV
     /// file.
     #[arg(long, env = "RAYFARM_BENCH_CSV")]
@@ -152,8 +159,9 @@ pub fn parse_rate(s: &str) -> Result<Rate, String> {
 
 /// Everything the bench needs, checked before any process starts.
 struct Plan {
-    /// (name, schedule), in the order given.
-    schedules: Vec<(String, proto::Schedule)>,
+    /// (name, schedule, progressive field), in the order given; with `--progressive`, each
+    /// schedule's one-pass row is followed by its progressive one.
+    schedules: Vec<(String, proto::Schedule, Option<proto::Progressive>)>,
     repeats: usize,
     /// The job of every run, with its schedule left to fill in.
     spec: proto::JobSpec,
@@ -167,13 +175,19 @@ struct Plan {
 
 impl Plan {
     fn new(a: &BenchArgs) -> anyhow::Result<Self> {
-        let mut schedules: Vec<(String, proto::Schedule)> = Vec::new();
+        let mut schedules: Vec<(String, proto::Schedule, Option<proto::Progressive>)> = Vec::new();
         for &s in &a.schedules {
             let name = schedule_name(s).to_string();
-            if schedules.iter().any(|(n, _)| *n == name) {
+            if schedules.iter().any(|(n, _, _)| *n == name) {
                 bail!("--schedules names {name} twice");
             }
-            schedules.push((name, s));
+            schedules.push((name.clone(), s, None));
+            if let Some(field) = a.progressive.and_then(Progressive::field) {
+                let progressive = proto::Progressive {
+                    subframe_spp: field,
+                };
+                schedules.push((format!("{name}+progressive"), s, Some(progressive)));
+            }
         }
         if schedules.is_empty() {
             bail!("--schedules names no schedule");
@@ -217,6 +231,7 @@ impl Plan {
                 schedule: proto::Schedule::Dynamic as i32,
                 priority: 0,
                 cold_cache: true,
+                progressive: None,
             },
             scene_dir: a.scene.clone(),
             scene_name,
@@ -228,7 +243,7 @@ impl Plan {
     }
 
     fn names(&self) -> Vec<String> {
-        self.schedules.iter().map(|(n, _)| n.clone()).collect()
+        self.schedules.iter().map(|(n, _, _)| n.clone()).collect()
     }
 }
 
@@ -414,7 +429,7 @@ async fn bench(
                 stopped: Some(stopped),
             });
         }
-        let (name, schedule) = &plan.schedules[s];
+        let (name, schedule, progressive) = &plan.schedules[s];
         eprint!(
             "run {}/{}: {name} (repeat {repeat}) ... ",
             i + 1,
@@ -422,6 +437,7 @@ async fn bench(
         );
         let spec = proto::JobSpec {
             schedule: *schedule as i32,
+            progressive: *progressive,
             ..plan.spec.clone()
         };
         let started = Instant::now();
@@ -659,6 +675,10 @@ mod tests {
         );
         assert!(a.cache_bytes.is_none() && a.threads.is_none() && a.coordinator.is_none());
         assert!(coordinator_extra(&a).is_empty() && worker_extra(&a).is_empty());
+        assert!(a.progressive.is_none());
+        let p = parse(&["--progressive", "doubling"]).unwrap();
+        assert_eq!(p.progressive, Some(Progressive::Doubling));
+        assert!(parse(&["--progressive", "none"]).is_err());
     }
 
     #[test]

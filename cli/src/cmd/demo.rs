@@ -131,6 +131,7 @@ fn run_cluster(a: &DemoArgs, scene: &Path, cache_bytes: u64) -> anyhow::Result<(
         schedule: proto::Schedule::Dynamic as i32,
         priority: 0,
         cold_cache: false,
+        progressive: None,
     };
     let wait = WaitOptions {
         output: Some(a.dir.join("demo.png")),

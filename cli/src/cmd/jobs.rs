@@ -1,9 +1,10 @@
 //! `rayfarm jobs`: what the cluster has been asked to render, newest first, as a table for
-//! people or JSON for scripts.
+//! people or JSON for scripts; `rayfarm jobs priority JOB N` changes a queued job's priority.
 
 use std::time::{SystemTime, UNIX_EPOCH};
 
-use clap::Args;
+use anyhow::Context;
+use clap::{Args, Subcommand};
 use comfy_table::{ContentArrangement, Table, presets::UTF8_FULL_CONDENSED};
 use rayfarm_node::job::schedule_name;
 use rayfarm_node::proto::{self, JobState};
@@ -23,9 +24,51 @@ pub struct JobsArgs {
     /// Show the newest N jobs; 0 shows every job.
     #[arg(long, default_value_t = 100)]
     pub limit: usize,
+    #[command(subcommand)]
+    pub action: Option<JobsAction>,
+}
+
+/// What to do to a job instead of listing them.
+#[derive(Subcommand, Clone, Debug)]
+pub enum JobsAction {
+    /// Change a queued job's priority (higher runs first; equal ones in submission order):
+    /// its owner or an admin may.
+    Priority(PriorityArgs),
+}
+
+/// Options of `rayfarm jobs priority`.
+#[derive(Args, Clone, Debug)]
+pub struct PriorityArgs {
+    #[command(flatten)]
+    pub coordinator: CoordinatorArgs,
+    /// The queued job.
+    pub job_id: String,
+    /// Its new priority.
+    #[arg(allow_negative_numbers = true)]
+    pub priority: i32,
+}
+
+fn set_priority(a: PriorityArgs) -> anyhow::Result<()> {
+    let state = runtime()?.block_on(async {
+        let mut coord = a.coordinator.connect().await?;
+        coord
+            .set_priority(&a.job_id, a.priority)
+            .await
+            .with_context(|| format!("changing the priority of job {}", a.job_id))
+    })?;
+    println!(
+        "job {}: priority {} ({})",
+        a.job_id,
+        a.priority,
+        state_name(state)
+    );
+    Ok(())
 }
 
 pub fn run(a: JobsArgs) -> anyhow::Result<()> {
+    if let Some(JobsAction::Priority(p)) = a.action {
+        return set_priority(p);
+    }
     let jobs = runtime()?.block_on(async {
         let mut coord = a.coordinator.connect().await?;
         coord.jobs((a.limit > 0).then_some(a.limit)).await

@@ -8,6 +8,7 @@ use std::time::Duration;
 use anyhow::{Context, anyhow};
 use clap::Args;
 use clap::builder::BoolishValueParser;
+use rayfarm_core::progressive::Progressive;
 use rayfarm_node::job::parse_schedule;
 use rayfarm_node::proto;
 
@@ -44,6 +45,11 @@ pub struct SubmitArgs {
     /// (for comparing schedules; by default caches stay warm across frames of a scene).
     #[arg(long, env = "RAYFARM_COLD_CACHE", value_parser = BoolishValueParser::new())]
     pub cold_cache: bool,
+    /// Render the samples in subframes, each a whole image committed (a preview after each):
+    /// `doubling` (1, 1, 2, 4, ... samples) or a number of samples per subframe. The final
+    /// image is the one-pass image to the bit [default: one pass].
+    #[arg(long, env = "RAYFARM_PROGRESSIVE", value_parser = Progressive::parse)]
+    pub progressive: Option<Progressive>,
     #[command(flatten)]
     pub camera: CameraArgs,
     /// Follow the job to its end, then save the image and print the statistics.
@@ -78,6 +84,10 @@ impl SubmitArgs {
             schedule: self.schedule as i32,
             priority: self.priority,
             cold_cache: self.cold_cache,
+            progressive: self
+                .progressive
+                .and_then(Progressive::field)
+                .map(|subframe_spp| proto::Progressive { subframe_spp }),
         }
     }
 }
@@ -220,8 +230,21 @@ mod tests {
                 schedule: proto::Schedule::Dynamic as i32,
                 priority: 0,
                 cold_cache: false,
+                progressive: None,
             }
         );
+        let doubling = parse(&["--progressive", "doubling"]).job_spec();
+        assert_eq!(
+            doubling.progressive,
+            Some(proto::Progressive { subframe_spp: 0 })
+        );
+        let every = parse(&["--progressive", "2"]).job_spec();
+        assert_eq!(
+            every.progressive,
+            Some(proto::Progressive { subframe_spp: 2 })
+        );
+        let bad = T::try_parse_from(["submit", "--progressive", "0"]);
+        assert!(bad.is_err());
     }
 
     #[test]

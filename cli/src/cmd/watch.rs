@@ -312,11 +312,18 @@ fn show(bar: &ProgressBar, e: &proto::WatchJobResponse) {
     bar.set_message(progress_message(e));
 }
 
-/// The text beside the bar: the state while queued, rate, round and ETA while running.
+/// The text beside the bar: the state while queued, rate, round and ETA while running
+/// (and which subframe, for a progressive job: the bar counts its tiles).
 fn progress_message(e: &proto::WatchJobResponse) -> String {
+    let subframe = if e.subframes > 1 {
+        let current = (e.subframes_done + 1).min(e.subframes);
+        format!("subframe {current}/{}  ", e.subframes)
+    } else {
+        String::new()
+    };
     match e.state() {
         JobState::Running => format!(
-            "{:.2} Mrays/s  round {}  eta {}",
+            "{subframe}{:.2} Mrays/s  round {}  eta {}",
             e.rays_per_second / 1e6,
             e.round,
             eta(e.eta_seconds)
@@ -371,6 +378,15 @@ mod tests {
             ..Default::default()
         };
         assert_eq!(progress_message(&e), "12.35 Mrays/s  round 9  eta 3m05s");
+        let progressive = proto::WatchJobResponse {
+            subframes_done: 2,
+            subframes: 5,
+            ..e.clone()
+        };
+        assert_eq!(
+            progress_message(&progressive),
+            "subframe 3/5  12.35 Mrays/s  round 9  eta 3m05s"
+        );
         assert_eq!(progress_message(&event(JobState::Queued, "")), "queued");
         assert_eq!(eta(-1.0), "?");
         assert_eq!(eta(f64::NAN), "?");

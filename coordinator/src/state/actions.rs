@@ -57,8 +57,16 @@ impl Coordinator {
                     frame_started(st, &job_id, attempt);
                     None
                 }
-                Action::WriteTiles { job_id, tiles } => {
-                    let written = st.films.get(&job_id).map(|f| f.write_tiles(&tiles));
+                Action::WriteTiles {
+                    job_id,
+                    tiles,
+                    samples,
+                    subframes_done,
+                } => {
+                    let written = st
+                        .films
+                        .get(&job_id)
+                        .map(|f| f.write_tiles(&tiles, samples, subframes_done));
                     match written {
                         Some(Err(e)) => Some(Input::Fail {
                             job_id,
@@ -113,6 +121,7 @@ impl Coordinator {
             p.preview_sequence = p.preview_sequence.max(preview_sequence);
             if state == JobState::Succeeded {
                 p.tiles_done = p.tiles_total;
+                p.subframes_done = p.subframes;
                 p.eta_seconds = 0.0;
             }
         });
@@ -244,6 +253,8 @@ fn publish_progress(st: &State, id: &str, progress: Progress) {
         p.preview_sequence = preview_sequence;
         p.tiles_done = progress.tiles_done;
         p.tiles_total = progress.tiles_total;
+        p.subframes_done = progress.subframes_done;
+        p.subframes = progress.subframes;
         p.round = progress.round;
         p.rays_per_second = progress.rays_per_second;
         p.eta_seconds = progress.eta_seconds;
@@ -259,6 +270,9 @@ fn count(tally: Tally, began: Instant) {
         }
         Tally::TilesCommitted(n) => {
             m.tiles_committed.inc_by(n);
+        }
+        Tally::SubframeCommitted => {
+            m.subframes_committed.inc();
         }
         Tally::FrameCommitted => {
             m.frames_committed.inc();

@@ -81,6 +81,57 @@ fn is_zero(n: &u64) -> bool {
     *n == 0
 }
 
+fn one() -> u32 {
+    1
+}
+
+impl WorkerFrameStats {
+    /// One report per worker: a progressive frame's workers report once per subframe, and
+    /// a worker's reports are summed into one (its peak memory and cache peak are the
+    /// largest, its idle fraction recomputed over the summed times). Workers keep the order
+    /// of their first report.
+    pub fn merge_by_worker(reports: Vec<WorkerFrameStats>) -> Vec<WorkerFrameStats> {
+        let mut merged: Vec<WorkerFrameStats> = Vec::new();
+        for r in reports {
+            match merged.iter_mut().find(|m| m.worker_id == r.worker_id) {
+                Some(m) => m.add(&r),
+                None => merged.push(r),
+            }
+        }
+        merged
+    }
+
+    fn add(&mut self, o: &WorkerFrameStats) {
+        self.threads = self.threads.max(o.threads);
+        self.rays.add(&o.rays);
+        self.cache.loads += o.cache.loads;
+        self.cache.bytes_loaded += o.cache.bytes_loaded;
+        self.cache.evictions += o.cache.evictions;
+        self.cache.load_nanos += o.cache.load_nanos;
+        self.cache.peak_resident_bytes = self
+            .cache
+            .peak_resident_bytes
+            .max(o.cache.peak_resident_bytes);
+        self.rays_sent += o.rays_sent;
+        self.bytes_sent += o.bytes_sent;
+        self.rays_received += o.rays_received;
+        self.rays_spilled += o.rays_spilled;
+        self.verdicts_refused += o.verdicts_refused;
+        for t in &o.tiers {
+            match self.tiers.iter_mut().find(|x| x.tier == t.tier) {
+                Some(x) => x.sent.add(&t.sent),
+                None => self.tiers.push(t.clone()),
+            }
+        }
+        self.busy_seconds += o.busy_seconds;
+        self.load_seconds += o.load_seconds;
+        self.frame_seconds += o.frame_seconds;
+        self.idle_fraction =
+            (1.0 - self.busy_seconds / self.frame_seconds.max(1e-9)).clamp(0.0, 1.0);
+        self.peak_rss_bytes = self.peak_rss_bytes.max(o.peak_rss_bytes);
+    }
+}
+
 /// What a frame cost and produced across the cluster.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct ClusterStats {
@@ -123,6 +174,9 @@ pub struct ClusterStats {
     pub rays_per_s_per_core: f64,
     /// Scheduling rounds.
     pub rounds: u64,
+    /// Subframes the samples were rendered in (1: one pass).
+    #[serde(default = "one")]
+    pub subframes: u32,
     /// Rays sent between workers.
     pub rays_migrated: u64,
     /// Ray bytes sent between workers.

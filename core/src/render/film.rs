@@ -15,7 +15,7 @@ use std::io::{BufWriter, Write};
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
-use std::sync::atomic::{AtomicI64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicI64, AtomicU32, AtomicUsize, Ordering};
 
 use exr::block::writer::ChunksWriter;
 use exr::block::{BlockIndex, UncompressedBlock};
@@ -79,6 +79,21 @@ pub struct Film {
     remove: Option<PathBuf>,
     grid: TileGrid,
     spp: u32,
+    /// Per tile, the samples its slot holds (see [`TileSamples`]).
+    samples: Vec<TileSamples>,
+}
+
+/// How many samples of a tile the film holds, readable while the tile is written: a
+/// sequence lock (odd `version` while the slot is being changed), so a preview read beside
+/// a progressive subframe's additions sees each tile's sums with their own sample count.
+#[derive(Default)]
+struct TileSamples {
+    version: AtomicU32,
+    samples: AtomicU32,
+}
+
+fn tile_samples(grid: &TileGrid) -> Vec<TileSamples> {
+    (0..grid.count()).map(|_| TileSamples::default()).collect()
 }
 
 impl Film {
@@ -110,6 +125,7 @@ impl Film {
             file,
             shown: shown.clone(),
             remove: Some(path.to_path_buf()),
+            samples: tile_samples(&grid),
             grid,
             spp,
         };
@@ -130,6 +146,7 @@ impl Film {
             file,
             shown,
             remove: None,
+            samples: tile_samples(&grid),
             grid,
             spp,
         })
@@ -157,9 +174,40 @@ impl Film {
         }
     }
 
-    /// Writes a finished tile's sums, in [`TileGrid::pixels`] order. Fewer sums than the
-    /// tile has pixels leave the rest black; an unknown tile or too many sums is refused.
+    /// Writes a finished tile's sums, in [`TileGrid::pixels`] order, as all the frame's
+    /// samples of it. Fewer sums than the tile has pixels leave the rest black; an unknown
+    /// tile or too many sums is refused.
     pub fn write_tile(&self, tile: u32, sums: &[[i64; 3]]) -> Result<(), ImageError> {
+        self.check_tile(tile, sums)?;
+        self.change_tile(tile, self.spp, |_| sums.to_vec())
+    }
+
+    /// Adds a tile's sums of `samples` more samples (a progressive subframe's) to what the
+    /// film holds of it: integers, so the film after every subframe holds exactly the sums
+    /// of a one-pass render.
+    pub fn add_tile(&self, tile: u32, sums: &[[i64; 3]], samples: u32) -> Result<(), ImageError> {
+        self.check_tile(tile, sums)?;
+        let held = self.tile_samples(tile);
+        self.change_tile(tile, held.saturating_add(samples), |old| {
+            let mut new = old;
+            new.resize(sums.len().max(new.len()), [0; 3]);
+            for (n, s) in new.iter_mut().zip(sums) {
+                for (a, b) in n.iter_mut().zip(s) {
+                    *a = a.wrapping_add(*b);
+                }
+            }
+            new
+        })
+    }
+
+    /// Samples of `tile` the film holds (0: none written yet).
+    pub fn tile_samples(&self, tile: u32) -> u32 {
+        self.samples
+            .get(tile as usize)
+            .map_or(0, |t| t.samples.load(Ordering::Acquire))
+    }
+
+    fn check_tile(&self, tile: u32, sums: &[[i64; 3]]) -> Result<(), ImageError> {
         let pixels = self.grid.tile_pixel_count(tile);
         if tile >= self.grid.count() || sums.len() > pixels {
             return Err(self.io_error(std::io::Error::other(format!(
@@ -167,16 +215,52 @@ impl Film {
                 sums.len()
             ))));
         }
-        let mut bytes = Vec::with_capacity(sums.len() * PIXEL_BYTES as usize);
-        for rgb in sums {
+        Ok(())
+    }
+
+    /// Replaces `tile`'s sums by `change` of them (read from the file), now holding
+    /// `samples` samples. One writer at a time (the renderer's commits), readers any time.
+    fn change_tile(
+        &self,
+        tile: u32,
+        samples: u32,
+        change: impl FnOnce(Vec<[i64; 3]>) -> Vec<[i64; 3]>,
+    ) -> Result<(), ImageError> {
+        let slot = &self.samples[tile as usize];
+        let offset = u64::from(tile) * Self::slot_pixels(&self.grid) * PIXEL_BYTES;
+        let pixels = self.grid.tile_pixel_count(tile);
+        let old = if slot.samples.load(Ordering::Acquire) == 0 {
+            Vec::new()
+        } else {
+            let mut bytes = vec![0u8; pixels * PIXEL_BYTES as usize];
+            self.file
+                .read_exact_at(&mut bytes, offset)
+                .map_err(|e| self.io_error(e))?;
+            decode_sums(&bytes)
+        };
+        let new = change(old);
+        let mut bytes = Vec::with_capacity(new.len() * PIXEL_BYTES as usize);
+        for rgb in &new {
             for c in rgb {
                 bytes.extend_from_slice(&c.to_le_bytes());
             }
         }
-        let offset = u64::from(tile) * Self::slot_pixels(&self.grid) * PIXEL_BYTES;
-        self.file
-            .write_all_at(&bytes, offset)
-            .map_err(|e| self.io_error(e))
+        slot.version.fetch_add(1, Ordering::AcqRel);
+        let written = self.file.write_all_at(&bytes, offset);
+        slot.samples.store(samples, Ordering::Release);
+        slot.version.fetch_add(1, Ordering::AcqRel);
+        written.map_err(|e| self.io_error(e))
+    }
+
+    /// The versions of a row of tiles, or `None` while one of them is being written.
+    fn band_versions(&self, band: u32) -> Option<Vec<u32>> {
+        let tiles_x = self.grid.tiles_x();
+        let first = (band * tiles_x) as usize;
+        let versions: Vec<u32> = self.samples[first..first + tiles_x as usize]
+            .iter()
+            .map(|t| t.version.load(Ordering::Acquire))
+            .collect();
+        versions.iter().all(|v| v % 2 == 0).then_some(versions)
     }
 
     /// Reads one row of tiles as image rows: `rows` rows of `width` pixels, row-major.
@@ -292,54 +376,63 @@ impl Film {
         Ok(hasher.digest())
     }
 
-    /// An 8-bit sRGB PNG, in memory, of the tiles `committed` marks (by tile index) as
-    /// written: a running frame's preview. Tiles not committed show a dark checkerboard.
+    /// An 8-bit sRGB PNG, in memory, of the tiles written so far, each averaged over the
+    /// samples the film holds of it (a progressive frame's tiles may hold different counts
+    /// mid-subframe): a running frame's preview. Tiles not written show a dark checkerboard.
     /// An image longer than `max_side` pixels on a side is shrunk by the smallest whole
     /// factor that fits, each preview pixel the mean of the linear values it covers. Not
-    /// shrunk and with every tile committed, the bytes are those [`save`](Self::save)
-    /// writes to a `.png`.
-    pub fn preview_png(&self, committed: &[bool], max_side: u32) -> Result<Preview, ImageError> {
+    /// shrunk and with every tile holding all samples, the bytes are those
+    /// [`save`](Self::save) writes to a `.png`. Safe beside a writer: each row of tiles is
+    /// read again until no tile of it changed during the read.
+    pub fn preview_png(&self, max_side: u32) -> Result<Preview, ImageError> {
         let (w, h) = (self.width(), self.height());
         let factor = w.max(h).div_ceil(max_side.max(1)).max(1);
         let (pw, ph) = (w.div_ceil(factor), h.div_ceil(factor));
         let bytes = MemoryPng::default();
         let shown = Path::new("(preview)");
         let mut png = PngRows::to_writer(bytes.clone(), shown, pw, ph)?;
-        let (ts, tiles_x) = (self.grid.tile_size(), self.grid.tiles_x());
+        let ts = self.grid.tile_size();
         let mut sums = vec![0f64; pw as usize * 3];
         let mut counts = vec![0u32; pw as usize];
-        let (mut linear, mut out) = (Vec::new(), Vec::new());
+        let mut out = Vec::new();
+        let (mut buf, mut rows) = (Vec::new(), Vec::new());
         let mut y = 0u32;
-        self.for_each_row(|row| {
-            self.linear(row, &mut linear);
-            for x in 0..w {
-                let px = (x / factor) as usize;
-                let tile = (y / ts) * tiles_x + x / ts;
-                let sum = &mut sums[px * 3..px * 3 + 3];
-                if committed.get(tile as usize).copied().unwrap_or(false) {
-                    for (s, &v) in sum.iter_mut().zip(&linear[x as usize * 3..]) {
-                        *s += f64::from(v);
+        for band in 0..self.grid.tiles_y() {
+            let held = self.read_band_steady(band, &mut buf, &mut rows)?;
+            let scales: Vec<f64> = held
+                .iter()
+                .map(|&n| 1.0 / (FIXED_ONE * n.max(1) as f64))
+                .collect();
+            for row in rows.chunks_exact(w as usize) {
+                for x in 0..w {
+                    let px = (x / factor) as usize;
+                    let tile_x = (x / ts) as usize;
+                    let sum = &mut sums[px * 3..px * 3 + 3];
+                    if held[tile_x] > 0 {
+                        // The same value `linear` gives a tile of all the frame's samples.
+                        for (s, &c) in sum.iter_mut().zip(&row[x as usize]) {
+                            *s += f64::from((c as f64 * scales[tile_x]) as f32);
+                        }
+                    } else {
+                        let light = ((x / factor / 8) + (y / factor / 8)) % 2 == 1;
+                        let v = if light { CHECKER_LIGHT } else { CHECKER_DARK };
+                        sum.iter_mut().for_each(|s| *s += v);
                     }
-                } else {
-                    let light = ((x / factor / 8) + (y / factor / 8)) % 2 == 1;
-                    let v = if light { CHECKER_LIGHT } else { CHECKER_DARK };
-                    sum.iter_mut().for_each(|s| *s += v);
+                    counts[px] += 1;
                 }
-                counts[px] += 1;
-            }
-            y += 1;
-            if y.is_multiple_of(factor) || y == h {
-                out.clear();
-                for (sum, &n) in sums.chunks_exact(3).zip(&counts) {
-                    // Divided by 1 when not shrunk: the film's own values, to the bit.
-                    out.extend(sum.iter().map(|&s| (s / f64::from(n)) as f32));
+                y += 1;
+                if y.is_multiple_of(factor) || y == h {
+                    out.clear();
+                    for (sum, &n) in sums.chunks_exact(3).zip(&counts) {
+                        // Divided by 1 when not shrunk: the film's own values, to the bit.
+                        out.extend(sum.iter().map(|&s| (s / f64::from(n)) as f32));
+                    }
+                    png.write_row(&out)?;
+                    sums.fill(0.0);
+                    counts.fill(0);
                 }
-                png.write_row(&out)?;
-                sums.fill(0.0);
-                counts.fill(0);
             }
-            Ok(())
-        })?;
+        }
         png.finish()?;
         Ok(Preview {
             png: bytes.0.take(),
@@ -349,12 +442,57 @@ impl Film {
         })
     }
 
+    /// Reads a row of tiles as [`read_band`](Self::read_band) does, while no tile of it is
+    /// being written, and returns the samples each of its tiles holds. A writer changes a
+    /// tile in well under a millisecond, so a few tries do; past them the last read is used
+    /// (a preview, never a result, is made of it).
+    fn read_band_steady(
+        &self,
+        band: u32,
+        buf: &mut Vec<u8>,
+        rows: &mut Vec<[i64; 3]>,
+    ) -> Result<Vec<u32>, ImageError> {
+        let tiles_x = self.grid.tiles_x();
+        let held = || -> Vec<u32> {
+            (band * tiles_x..(band + 1) * tiles_x)
+                .map(|t| self.tile_samples(t))
+                .collect()
+        };
+        for _ in 0..1000 {
+            let Some(before) = self.band_versions(band) else {
+                std::thread::yield_now();
+                continue;
+            };
+            self.read_band(band, buf, rows)?;
+            let counts = held();
+            if self.band_versions(band).as_ref() == Some(&before) {
+                return Ok(counts);
+            }
+        }
+        self.read_band(band, buf, rows)?;
+        Ok(held())
+    }
+
     /// Linear radiance of a row of sums, averaged over samples, RGB per pixel.
     fn linear(&self, row: &[[i64; 3]], out: &mut Vec<f32>) {
         let scale = 1.0 / (FIXED_ONE * self.spp.max(1) as f64);
         out.clear();
         out.extend(row.iter().flatten().map(|&c| (c as f64 * scale) as f32));
     }
+}
+
+/// Little-endian `i64` triples as pixel sums.
+fn decode_sums(bytes: &[u8]) -> Vec<[i64; 3]> {
+    bytes
+        .chunks_exact(PIXEL_BYTES as usize)
+        .map(|px| {
+            let mut rgb = [0i64; 3];
+            for (c, b) in rgb.iter_mut().zip(px.chunks_exact(8)) {
+                *c = i64::from_le_bytes(b.try_into().expect("8 bytes"));
+            }
+            rgb
+        })
+        .collect()
 }
 
 /// A preview image made by [`Film::preview_png`].
@@ -701,14 +839,19 @@ mod tests {
         let film = film_with(dir.path(), g, |p| [p as i64 * 40_000, 1 << 22, 0]);
         let saved = dir.path().join("image.png");
         film.save(&saved).unwrap();
-        let all = vec![true; g.count() as usize];
-        let preview = film.preview_png(&all, 1024).unwrap();
+        let preview = film.preview_png(1024).unwrap();
         assert_eq!((preview.width, preview.height, preview.factor), (10, 7, 1));
         assert_eq!(preview.png, std::fs::read(&saved).unwrap());
-        // A tile not committed is drawn as the checkerboard, not its sums.
-        let mut some = all.clone();
-        some[0] = false;
-        assert_ne!(film.preview_png(&some, 1024).unwrap().png, preview.png);
+        // A tile not written is drawn as the checkerboard, not its sums.
+        let part = Film::temporary_in(dir.path(), g, 1).unwrap();
+        for tile in 1..g.count() {
+            let s: Vec<[i64; 3]> = g
+                .pixels(tile)
+                .map(|p| [p as i64 * 40_000, 1 << 22, 0])
+                .collect();
+            part.write_tile(tile, &s).unwrap();
+        }
+        assert_ne!(part.preview_png(1024).unwrap().png, preview.png);
     }
 
     #[test]
@@ -716,9 +859,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let g = grid(10, 7);
         let film = film_with(dir.path(), g, |_| [1 << 23, 1 << 23, 1 << 23]);
-        let preview = film
-            .preview_png(&vec![true; g.count() as usize], 4)
-            .unwrap();
+        let preview = film.preview_png(4).unwrap();
         // ceil(10 / 4) = 3; 10 / 3 and 7 / 3 rounded up.
         assert_eq!((preview.width, preview.height, preview.factor), (4, 3, 3));
         let mut decoder = png::Decoder::new(std::io::Cursor::new(preview.png))
@@ -728,6 +869,45 @@ mod tests {
         decoder.next_frame(&mut pixels).unwrap();
         // Every film pixel is 0.5: so is every mean of them.
         assert!(pixels.iter().all(|&b| b == srgb_byte(0.5)));
+    }
+
+    #[test]
+    fn subframes_added_tile_by_tile_make_the_one_pass_film_and_previews_average_each_tile() {
+        let dir = tempfile::tempdir().unwrap();
+        let g = grid(10, 7);
+        // Three subframes of 1, 1 and 2 samples; the one pass has all 4.
+        let part = |p: u32, k: i64| [p as i64 * 1000 + k, (1 << 24) * k, -k];
+        let one = Film::temporary_in(dir.path(), g, 4).unwrap();
+        let progressive = Film::temporary_in(dir.path(), g, 4).unwrap();
+        for tile in 0..g.count() {
+            let sub = |k: i64| -> Vec<[i64; 3]> { g.pixels(tile).map(|p| part(p, k)).collect() };
+            let total: Vec<[i64; 3]> = (0..sub(1).len())
+                .map(|i| [0, 1, 2].map(|c| sub(1)[i][c] + sub(1)[i][c] + sub(2)[i][c]))
+                .collect();
+            one.write_tile(tile, &total).unwrap();
+            for (k, n) in [(1, 1), (1, 1), (2, 2)] {
+                progressive.add_tile(tile, &sub(k), n).unwrap();
+            }
+            assert_eq!(progressive.tile_samples(tile), 4);
+        }
+        assert_eq!(progressive.hash().unwrap(), one.hash().unwrap());
+        assert_eq!(
+            progressive.preview_png(1024).unwrap().png,
+            one.preview_png(1024).unwrap().png
+        );
+        // One subframe of one sample of light 1.0 everywhere previews as 1.0, not 1/4.
+        let first = Film::temporary_in(dir.path(), g, 4).unwrap();
+        for tile in 0..g.count() {
+            let n = g.tile_pixel_count(tile);
+            first.add_tile(tile, &vec![[1 << 24; 3]; n], 1).unwrap();
+        }
+        let preview = first.preview_png(1024).unwrap();
+        let mut decoder = png::Decoder::new(std::io::Cursor::new(preview.png))
+            .read_info()
+            .unwrap();
+        let mut pixels = vec![0; decoder.output_buffer_size().unwrap()];
+        decoder.next_frame(&mut pixels).unwrap();
+        assert!(pixels.iter().all(|&b| b == srgb_byte(1.0)));
     }
 
     #[test]

@@ -16,7 +16,7 @@ use super::primary::primary_ray;
 use super::speculation::{Groups, Verdict};
 use super::stats::{RenderStats, peak_rss_bytes};
 use crate::camera::PinholeCamera;
-use crate::frame::{TILE_CREDIT, TileGrid};
+use crate::frame::{Samples, TILE_CREDIT, TileGrid};
 use crate::ray::RayRecord;
 use crate::scene::{Camera, DomainData, Manifest, SceneError};
 use crate::schedule::speculative::{GenerationCounts, QueueView, next_queue};
@@ -370,7 +370,7 @@ fn issue_primaries<'a>(
             let mut sink = new_sink(chunk.len());
             for &i in chunk {
                 let (pixel, sample) = ((i / spp as u64) as u32, (i % spp as u64) as u32);
-                let ray = primary_ray(camera, grid, spp, pixel, sample);
+                let ray = primary_ray(camera, grid, Samples::all(spp), pixel, sample);
                 view.route_new(ray, &mut sink);
             }
             sink.out

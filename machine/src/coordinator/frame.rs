@@ -12,7 +12,7 @@ use crate::Time;
 
 use rayfarm_core::cluster::tile_sums;
 use rayfarm_core::frame::TILE_SIZE;
-use rayfarm_core::frame::{Accept, FrameLedger, TILE_CREDIT, TileGrid};
+use rayfarm_core::frame::{Accept, FrameLedger, Samples, TILE_CREDIT, TileGrid};
 use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::schedule::DomainId;
 use rayfarm_core::schedule::dynamic::{Options, WorkerPlan};
@@ -115,6 +115,14 @@ pub struct RunningFrame {
     grants: Grants,
     /// Tile results refused as impossible (each dropped its sender).
     pub refused_results: u64,
+    /// The job's samples as subframes (one for a one-pass job), and the one being rendered:
+    /// each is a frame of its own on the workers (`frame_id`), its tiles committed into the
+    /// same film (see [`RunningFrame::next_subframe`]).
+    subframes: Vec<Samples>,
+    pub subframe: usize,
+    /// Rounds planned, and segments members reported, in the subframes committed before.
+    rounds_before: u64,
+    segments_before: u64,
 }
 
 fn msg(body: Body) -> proto::CoordinatorMessage {
@@ -148,7 +156,7 @@ impl RunningFrame {
             },
             _ => options,
         };
-        let spp = frame.spp;
+        let subframes = subframes::plan(&spec, frame.spp);
         let tiles = grid.count();
         Ok(RunningFrame {
             job_id,
@@ -156,7 +164,7 @@ impl RunningFrame {
             spec,
             frame,
             domain_bytes,
-            ledger: FrameLedger::new(grid, TILE_CREDIT).with_samples(spp),
+            ledger: FrameLedger::new(grid, TILE_CREDIT).with_samples(subframes[0].count),
             round: 0,
             members: BTreeMap::new(),
             started: now,
@@ -169,6 +177,10 @@ impl RunningFrame {
             accusations: Accusations::default(),
             grants: Grants::new(tiles),
             refused_results: 0,
+            subframes,
+            subframe: 0,
+            rounds_before: 0,
+            segments_before: 0,
         })
     }
 
@@ -181,11 +193,17 @@ impl RunningFrame {
     }
 
     fn start_message(&self, key: u32, tiles: Vec<u32>) -> proto::CoordinatorMessage {
+        let mut spec = self.spec.clone();
+        // Caches are dropped before the job, not before each of its subframes.
+        spec.cold_cache &= self.subframe == 0;
+        let samples = self.samples();
         msg(Body::StartFrame(proto::StartFrame {
             worker_key: key,
             roster: self.roster(),
-            job_id: self.job_id.clone(),
-            spec: Some(self.spec.clone()),
+            job_id: self.frame_id(),
+            spec: Some(spec),
+            first_sample: samples.first,
+            sample_count: samples.count,
             tile_size: TILE_SIZE,
             primary_tiles: tiles,
             round: self.round,
@@ -254,7 +272,7 @@ impl RunningFrame {
         keys.iter()
             .map(|&key| {
                 let body = Body::RoundPlan(proto::RoundPlan {
-                    job_id: self.job_id.clone(),
+                    job_id: self.frame_id(),
                     round: 1,
                     work_on: (0..domains).filter(|&d| owner(d) == key).collect(),
                     evict: Vec::new(),
@@ -270,7 +288,7 @@ impl RunningFrame {
     pub fn join(&mut self, key: u32, member: Member) -> Vec<Outgoing> {
         self.members.insert(key, member);
         let roster = Body::Roster(proto::Roster {
-            job_id: self.job_id.clone(),
+            job_id: self.frame_id(),
             members: self.roster(),
         });
         let mut out = vec![(key, self.start_message(key, Vec::new()))];
@@ -308,7 +326,7 @@ impl RunningFrame {
         self.grants.withdraw(bumped.iter().map(|&(t, _)| t));
         info!(tiles = bumped.len(), "epochs bumped after losing a worker");
         let bump = proto::EpochBump {
-            job_id: self.job_id.clone(),
+            job_id: self.frame_id(),
             epochs: bumped.iter().copied().collect(),
             lost_peers: vec![lost.peer_address],
         };
@@ -348,7 +366,7 @@ impl RunningFrame {
     fn hand_out(&mut self, key: u32, tiles: Vec<u32>) -> proto::CoordinatorMessage {
         self.grants.deal(key, &tiles);
         msg(Body::HandOutTiles(proto::HandOutTiles {
-            job_id: self.job_id.clone(),
+            job_id: self.frame_id(),
             tiles,
         }))
     }
@@ -402,7 +420,7 @@ impl RunningFrame {
     fn plan_message(&self, p: &WorkerPlan, holders: &[proto::DomainHolders]) -> Outgoing {
         debug!(worker = p.worker.0, keep = ?p.keep, load = ?p.load, evict = ?p.evict, "plan");
         let body = Body::RoundPlan(proto::RoundPlan {
-            job_id: self.job_id.clone(),
+            job_id: self.frame_id(),
             round: self.round,
             work_on: p.work().map(|d| d.0).collect(),
             evict: p.evict.iter().map(|d| d.0).collect(),
@@ -434,7 +452,7 @@ impl RunningFrame {
         let planned: BTreeSet<u32> = changed.iter().map(|p| p.worker.0).collect();
         for &key in self.members.keys().filter(|k| !planned.contains(k)) {
             let body = Body::Holders(proto::Holders {
-                job_id: self.job_id.clone(),
+                job_id: self.frame_id(),
                 holders: holders.clone(),
             });
             out.push((key, msg(body)));
@@ -531,17 +549,24 @@ impl RunningFrame {
         (committed, None)
     }
 
-    /// Progress for watchers `now`: (tiles done, tiles, segments per second, ETA seconds or
-    /// -1).
+    /// Progress for watchers `now`: (tiles done in the current subframe, tiles, segments
+    /// per second, ETA seconds or -1). The ETA counts samples: a subframe's tiles weigh its
+    /// samples.
     pub fn progress(&self, now: Time) -> (u32, u32, f64, f64) {
         let done = self.ledger.tiles_done();
         let total = self.ledger.grid().count();
         let elapsed = now.since(self.started).as_secs_f64();
-        let segments: u64 = self.members.values().map(|m| m.segments).sum();
-        let eta = if done == 0 {
+        let segments: u64 =
+            self.segments_before + self.members.values().map(|m| m.segments).sum::<u64>();
+        let samples = self.samples();
+        let spp = f64::from(self.frame.spp.max(1));
+        let fraction = (f64::from(samples.first)
+            + f64::from(samples.count) * f64::from(done) / f64::from(total.max(1)))
+            / spp;
+        let eta = if fraction <= 0.0 {
             -1.0
         } else {
-            elapsed * f64::from(total - done) / f64::from(done)
+            elapsed * (1.0 - fraction) / fraction
         };
         (done, total, segments as f64 / elapsed.max(1e-9), eta)
     }
@@ -549,6 +574,9 @@ impl RunningFrame {
 
 #[path = "lifecycle.rs"]
 pub mod lifecycle;
+
+#[path = "subframes.rs"]
+pub mod subframes;
 
 #[cfg(test)]
 #[path = "frame_tests.rs"]

@@ -78,7 +78,7 @@ impl RunningFrame {
         self.members()
             .map(|k| {
                 let body = Body::EndFrame(proto::EndFrame {
-                    job_id: self.job_id.clone(),
+                    job_id: self.frame_id(),
                 });
                 (k, msg(body))
             })

@@ -86,6 +86,7 @@ impl Payload {
 /// What the shell read from the scene for a StartFrame.
 pub struct OpenedScene<S> {
     pub grid: TileGrid,
+    /// Samples of each pixel the frame issues (a progressive subframe's count, or the spp).
     pub spp: u32,
     pub limits: BatchLimits,
     /// Bytes of every domain file, by domain id.

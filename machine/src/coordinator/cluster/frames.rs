@@ -183,6 +183,8 @@ impl Coordinator {
     pub(super) fn fail_running(&mut self, now: Time, error: &str, out: &mut Vec<Action>) {
         if let Some(frame) = self.running.take() {
             out.push(Action::Tally(Tally::FrameFailed));
+            // The statistics of its committed subframes are of no use now.
+            self.finishing.retain(|_, f| f.job != frame.job_id);
             self.send(frame.end_messages(), out);
             out.push(Action::Discard {
                 job_id: frame.job_id.clone(),
@@ -198,7 +200,9 @@ impl Coordinator {
         if self.running.as_ref().is_some_and(|f| f.job_id == id) {
             return self.fail_running(now, error, out);
         }
-        if self.finishing.remove(id).is_some() {
+        let finishing = self.finishing.len();
+        self.finishing.retain(|_, f| f.job != id);
+        if self.finishing.len() < finishing {
             out.push(Action::Discard { job_id: id.into() });
             self.set_state(now, id, JobState::Failed, error, out);
         }
@@ -213,6 +217,8 @@ impl Coordinator {
         };
         warn!(job = %frame.job_id, "every worker of the frame is gone: job re-queued");
         let id = frame.job_id.clone();
+        // It starts over from its first subframe, in a new film.
+        self.finishing.retain(|_, f| f.job != id);
         if let Some(job) = self.jobs.get_mut(&id) {
             job.record.epoch_floor = job.record.epoch_floor.max(frame.epoch_floor());
             self.queue
@@ -223,6 +229,33 @@ impl Coordinator {
         self.try_start(now, out);
     }
 
+    /// The running frame's current subframe has all its credit back and another follows:
+    /// its tiles are in the film, its frame ends on the workers (their statistics are kept
+    /// for the job's) and the next subframe starts on the same workers at once.
+    pub(super) fn next_subframe(&mut self, now: Time, out: &mut Vec<Action>) {
+        let Some(frame) = self.running.as_mut() else {
+            return;
+        };
+        let (done, total) = frame.subframes();
+        let wall = now.since(frame.started).as_secs_f64();
+        info!(job = %frame.job_id, subframe = done, subframes = total, wall, "subframe committed");
+        out.push(Action::Tally(Tally::SubframeCommitted));
+        self.finishing.insert(
+            frame.frame_id(),
+            Finishing {
+                job: frame.job_id.clone(),
+                stats: None,
+                waiting: frame.members().collect(),
+                reports: Vec::new(),
+                deadline: now + self.config.report_timeout,
+            },
+        );
+        let messages = frame.next_subframe();
+        tally_rounds(frame, 0, out);
+        self.send(messages, out);
+        self.publish_progress(now, out);
+    }
+
     /// The running frame has all its credit back: it ends on the workers, waits for their
     /// statistics (at most the report timeout), and the next job starts at once.
     pub(super) fn complete(&mut self, now: Time, out: &mut Vec<Action>) {
@@ -230,7 +263,8 @@ impl Coordinator {
             return;
         };
         let wall = now.since(frame.started).as_secs_f64();
-        info!(job = %frame.job_id, wall, rounds = frame.round, "frame complete");
+        info!(job = %frame.job_id, wall, rounds = frame.rounds_total(), "frame complete");
+        out.push(Action::Tally(Tally::SubframeCommitted));
         out.push(Action::Tally(Tally::FrameCommitted));
         self.send(frame.end_messages(), out);
         let spec = &frame.frame;
@@ -243,15 +277,17 @@ impl Coordinator {
             max_depth: spec.max_depth,
             domains: frame.domain_count(),
             wall_seconds: wall,
-            rounds: frame.round,
+            rounds: frame.rounds_total(),
+            subframes: frame.subframes().1,
             left_out: frame.declined.clone(),
             refused_results: frame.refused_results,
             ..Default::default()
         };
         self.finishing.insert(
-            frame.job_id.clone(),
+            frame.frame_id(),
             Finishing {
-                stats,
+                job: frame.job_id.clone(),
+                stats: Some(stats),
                 waiting: frame.members().collect(),
                 reports: Vec::new(),
                 deadline: now + self.config.report_timeout,
@@ -261,22 +297,32 @@ impl Coordinator {
         self.try_start(now, out);
     }
 
-    /// Finished frames whose statistics are all in, or overdue: their results to write.
+    /// Finished frames whose statistics are all in, or overdue: their results to write,
+    /// with the workers' reports of every committed subframe of the job that came in.
     pub(super) fn finish_ready(&mut self, now: Time, out: &mut Vec<Action>) {
         let ready: Vec<String> = self
             .finishing
             .iter()
-            .filter(|(_, f)| f.waiting.is_empty() || now >= f.deadline)
-            .map(|(id, _)| id.clone())
+            .filter(|(_, f)| f.stats.is_some() && (f.waiting.is_empty() || now >= f.deadline))
+            .map(|(_, f)| f.job.clone())
             .collect();
-        for id in ready {
-            let Some(f) = self.finishing.remove(&id) else {
+        for job in ready {
+            let mut stats = None;
+            let mut reports = Vec::new();
+            self.finishing.retain(|_, f| {
+                if f.job != job {
+                    return true;
+                }
+                stats = stats.take().or(f.stats.take());
+                reports.append(&mut f.reports);
+                false
+            });
+            let Some(mut stats) = stats else {
                 continue;
             };
-            let mut stats = f.stats;
-            stats.absorb(f.reports);
+            stats.absorb(WorkerFrameStats::merge_by_worker(reports));
             out.push(Action::WriteResults {
-                job_id: id,
+                job_id: job,
                 stats: Box::new(stats),
             });
         }
@@ -325,11 +371,14 @@ impl Coordinator {
             return;
         };
         let (tiles_done, tiles_total, rays_per_second, eta_seconds) = frame.progress(now);
+        let (subframes_done, subframes) = frame.subframes();
         out.push(Action::Progress {
             job_id: frame.job_id.clone(),
             progress: Progress {
                 tiles_done,
                 tiles_total,
+                subframes_done,
+                subframes,
                 round: frame.round,
                 rays_per_second,
                 eta_seconds,

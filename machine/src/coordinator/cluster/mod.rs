@@ -145,6 +145,9 @@ pub enum Closing {
 pub struct Progress {
     pub tiles_done: u32,
     pub tiles_total: u32,
+    /// Subframes committed, and in all (1 for a one-pass frame).
+    pub subframes_done: u32,
+    pub subframes: u32,
     pub round: u64,
     pub rays_per_second: f64,
     /// Seconds, or -1 while unknown.
@@ -165,6 +168,8 @@ pub enum Tally {
     /// Rounds planned (the time the event took is planning time).
     Rounds(u64),
     TilesCommitted(u64),
+    /// A subframe of a frame committed (a one-pass frame is one subframe).
+    SubframeCommitted,
     FrameCommitted,
     FrameFailed,
     WorkerLost,
@@ -237,10 +242,14 @@ pub enum Action {
         job_id: String,
         attempt: u32,
     },
-    /// Write these committed tiles to the job's film; on failure answer [`Input::Fail`].
+    /// Add these committed tiles, of `samples` samples a pixel, to the job's film (whose
+    /// previews then show `subframes_done` whole subframes); on failure answer
+    /// [`Input::Fail`].
     WriteTiles {
         job_id: String,
         tiles: Vec<CommittedTile>,
+        samples: u32,
+        subframes_done: u32,
     },
     /// The job's film is not needed any more (its frame was abandoned or never started).
     Discard {
@@ -254,9 +263,14 @@ pub enum Action {
     Tally(Tally),
 }
 
-/// A frame whose tiles are all in, waiting for its workers' statistics.
+/// A frame whose tiles are all in, waiting for its workers' statistics, by the frame id the
+/// workers know (a progressive job's committed subframes each have one: their reports are
+/// summed into the job's statistics when its last subframe is written).
 struct Finishing {
-    stats: ClusterStats,
+    /// The job it is a frame (or subframe) of.
+    job: String,
+    /// The job's statistics but the workers': for its last subframe only.
+    stats: Option<ClusterStats>,
     waiting: BTreeSet<u32>,
     reports: Vec<WorkerFrameStats>,
     /// When it stops waiting.
@@ -389,7 +403,11 @@ impl Coordinator {
     /// The earliest time a [`Input::Tick`] has work to do besides the periodic reaping: a
     /// finished frame's report deadline.
     pub fn next_deadline(&self) -> Option<Time> {
-        self.finishing.values().map(|f| f.deadline).min()
+        self.finishing
+            .values()
+            .filter(|f| f.stats.is_some())
+            .map(|f| f.deadline)
+            .min()
     }
 }
 

@@ -7,6 +7,7 @@ use tracing::{error, info, warn};
 use super::*;
 use crate::coordinator::frame::Member;
 use crate::coordinator::frame::lifecycle::accusation_grace;
+use crate::coordinator::frame::subframes::job_of_frame;
 use rayfarm_proto::{PROTOCOL_VERSION, coordinator_message::Body};
 
 /// Why a registration is refused.
@@ -131,7 +132,7 @@ impl Coordinator {
             FromWorker::Heartbeat(h) => worker.heartbeat = h,
             FromWorker::QueueReport(r) => {
                 worker.last_report = Some(r.clone());
-                if let Some(f) = self.running.as_mut().filter(|f| f.job_id == r.job_id) {
+                if let Some(f) = self.running.as_mut().filter(|f| f.frame_id() == r.job_id) {
                     let round = f.round;
                     let plans = f.report(key, r);
                     tally_rounds(f, round, out);
@@ -168,7 +169,7 @@ impl Coordinator {
     /// nothing of them is counted, the worker is dropped and sits out the frame, and the
     /// frame goes on without it, so its image is still the one `render --local` makes.
     fn tile_results(&mut self, now: Time, key: u32, r: proto::TileResults, out: &mut Vec<Action>) {
-        let Some(frame) = self.running.as_mut().filter(|f| f.job_id == r.job_id) else {
+        let Some(frame) = self.running.as_mut().filter(|f| f.frame_id() == r.job_id) else {
             return;
         };
         let (committed, refused) = frame.results(key, r);
@@ -177,6 +178,8 @@ impl Coordinator {
             out.push(Action::WriteTiles {
                 job_id: frame.job_id.clone(),
                 tiles: committed,
+                samples: frame.samples().count,
+                subframes_done: frame.subframes().0,
             });
         }
         if let Some(e) = refused {
@@ -190,7 +193,9 @@ impl Coordinator {
             let why = format!("impossible tile results: {e}");
             return self.lose(now, key, &why.clone(), Closing::Refused(why), out);
         }
-        if frame.ledger.is_complete() {
+        if frame.ledger.is_complete() && frame.has_next_subframe() {
+            self.next_subframe(now, out);
+        } else if frame.ledger.is_complete() {
             self.complete(now, out);
         } else {
             self.publish_progress(now, out);
@@ -199,11 +204,15 @@ impl Coordinator {
 
     fn frame_report(&mut self, now: Time, key: u32, r: proto::FrameReport, out: &mut Vec<Action>) {
         if !r.error.is_empty() {
-            if self.running.as_ref().is_none_or(|f| f.job_id != r.job_id) {
+            if self
+                .running
+                .as_ref()
+                .is_none_or(|f| f.frame_id() != r.job_id)
+            {
                 return;
             }
             if r.declined {
-                return self.declined(now, key, &r.job_id, &r.error, out);
+                return self.declined(now, key, job_of_frame(&r.job_id), &r.error, out);
             }
             return self.fail_running(now, &r.error, out);
         }
