@@ -1,6 +1,8 @@
 //! The docker-compose cluster of `deploy/`, built from scratch (no registry) and driven from
 //! the host's `rayfarm` CLI: its image equals `render --local`'s; then a worker container is
-//! killed mid-frame and the test reports what the cluster did. Security is on as the compose
+//! killed mid-frame, and another is taken off the compose network mid-frame past the worker
+//! timeout and put back (`docker network disconnect`/`connect`); the test reports what the
+//! cluster did, and the next job runs on every worker left. Security is on as the compose
 //! file ships it (mutual TLS, a certificate of its own for each worker, bound to its id and
 //! peer host): the host CLI takes the CA, a client certificate and the user token out of the
 //! cluster's `secrets` volume, and without the token it is refused. Skipped, saying so, where no Docker engine or
@@ -290,39 +292,39 @@ fn the_compose_cluster_renders_the_local_image_even_when_a_worker_is_killed() {
     eprintln!("compose frame identical; {migrated} rays crossed between worker containers");
     assert!(migrated > 0);
 
-    // A second, longer frame; one worker container is killed while it runs.
-    let (ok, out) = {
+    // A job of `frame`, submitted, once the coordinator runs it.
+    let submit_running = |frame: &[&str]| {
         let out = Command::new(bin("rayfarm"))
             .arg("submit")
-            .args(SECOND)
+            .args(frame)
             .envs(client_env)
             .output()
             .expect("submit");
-        (
-            out.status.success(),
-            String::from_utf8_lossy(&out.stdout).into_owned(),
-        )
-    };
-    assert!(ok);
-    let job = out.trim().to_string();
-    let deadline = Instant::now() + Duration::from_secs(60);
-    loop {
-        let listed = Command::new(bin("rayfarm"))
-            .args(["jobs", "--json"])
-            .envs(client_env)
-            .output()
-            .expect("jobs");
-        let jobs: serde_json::Value = serde_json::from_slice(&listed.stdout).expect("jobs json");
-        let running = jobs.as_array().is_some_and(|js| {
-            js.iter()
-                .any(|j| j["job_id"] == job.as_str() && j["state"] == "running")
-        });
-        if running {
-            break;
+        assert!(out.status.success(), "submit failed");
+        let job = String::from_utf8_lossy(&out.stdout).trim().to_string();
+        let deadline = Instant::now() + Duration::from_secs(60);
+        loop {
+            let listed = Command::new(bin("rayfarm"))
+                .args(["jobs", "--json"])
+                .envs(client_env)
+                .output()
+                .expect("jobs");
+            let jobs: serde_json::Value =
+                serde_json::from_slice(&listed.stdout).expect("jobs json");
+            let running = jobs.as_array().is_some_and(|js| {
+                js.iter()
+                    .any(|j| j["job_id"] == job.as_str() && j["state"] == "running")
+            });
+            if running {
+                return job;
+            }
+            assert!(Instant::now() < deadline, "the frame never started");
+            std::thread::sleep(Duration::from_millis(50));
         }
-        assert!(Instant::now() < deadline, "the second frame never started");
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    };
+
+    // A second, longer frame; one worker container is killed while it runs.
+    let job = submit_running(&SECOND);
     let victim = project.ok(&["ps", "-q", "worker-2"]).trim().to_string();
     assert!(!victim.is_empty(), "no worker-2 container");
     let killed = Command::new("docker")
@@ -364,6 +366,105 @@ fn the_compose_cluster_renders_the_local_image_even_when_a_worker_is_killed() {
          image identical to render --local ({})",
         stats_field(&json, "/workers"),
         hash_of(&json)
+    );
+
+    // A third frame like the second; worker-3's container drops off the compose network while
+    // it runs (`docker network disconnect`, as a host whose link goes), past the coordinator's
+    // worker timeout, and comes back under its name.
+    let victim = project.ok(&["ps", "-q", "worker-3"]).trim().to_string();
+    let inspect = Command::new("docker")
+        .args([
+            "inspect",
+            "-f",
+            "{{range $k, $v := .NetworkSettings.Networks}}{{$k}} {{end}}",
+            &victim,
+        ])
+        .output()
+        .expect("docker inspect");
+    let network = String::from_utf8_lossy(&inspect.stdout)
+        .split_whitespace()
+        .next()
+        .expect("worker-3 on a network")
+        .to_string();
+    let job = submit_running(&SECOND);
+    let docker = |args: &[&str]| {
+        let out = Command::new("docker").args(args).output().expect("docker");
+        assert!(
+            out.status.success(),
+            "docker {}: {}",
+            args.join(" "),
+            String::from_utf8_lossy(&out.stderr)
+        );
+    };
+    let cut_at = Instant::now();
+    docker(&["network", "disconnect", &network, &victim]);
+    // The coordinator notices within its worker timeout (10 s) that heartbeats stopped.
+    let lost = loop {
+        let logs = Command::new("docker")
+            .args(["logs", &coordinator])
+            .output()
+            .expect("docker logs");
+        let text = String::from_utf8_lossy(&logs.stderr).into_owned()
+            + &String::from_utf8_lossy(&logs.stdout);
+        if text
+            .lines()
+            .any(|l| l.contains("worker lost") && l.contains("worker-3"))
+        {
+            break true;
+        }
+        if cut_at.elapsed() > Duration::from_secs(30) {
+            break false;
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    };
+    docker(&[
+        "network", "connect", "--alias", "worker-3", &network, &victim,
+    ]);
+    let cut_for = cut_at.elapsed();
+    let (finished, err) = cli(&["watch", &job, "--quiet"]);
+    assert!(
+        finished,
+        "the frame did not survive the disconnected worker: {err}"
+    );
+    let third = dir.path().join("third.json");
+    let third_png = dir.path().join("third.png");
+    let (ok, err) = cli(&[
+        "fetch",
+        &job,
+        "-o",
+        s(&third_png),
+        "--stats-json",
+        s(&third),
+    ]);
+    assert!(ok, "{err}");
+    assert_eq!(hash_of(&third), hash_of(&second_local));
+    // Back on the network, worker-3 registers again and the next job has it.
+    let (ok, err) = cli(&["status", "--wait-workers", "3", "--timeout", "60"]);
+    assert!(ok, "worker-3 did not come back: {err}");
+    let last = dir.path().join("last.json");
+    let last_png = dir.path().join("last.png");
+    let mut args = vec!["submit", "--wait", "--quiet", "-o", s(&last_png)];
+    args.extend(["--stats-json", s(&last)]);
+    args.extend_from_slice(&frame);
+    let (ok, err) = cli(&args);
+    assert!(ok, "the job after the reconnect failed: {err}");
+    assert_eq!(hash_of(&last), hash_of(&local));
+    assert_eq!(
+        stats_field(&last, "/workers"),
+        3,
+        "the job after the reconnect"
+    );
+    eprintln!(
+        "REPORT: worker-3 off the compose network for {:.1} s ({}); the frame finished on {} \
+         workers, identical; the next job ran on {} workers, worker-3 among them",
+        cut_for.as_secs_f64(),
+        if lost {
+            "declared lost by the coordinator"
+        } else {
+            "never declared lost"
+        },
+        stats_field(&third, "/workers"),
+        stats_field(&last, "/workers"),
     );
     eprintln!("compose test took {:.1} s", started.elapsed().as_secs_f64());
 }

@@ -518,6 +518,17 @@ impl Cluster {
         self.coordinator.child.id()
     }
 
+    /// Worker `i`'s process id.
+    pub fn worker_pid(&self, i: usize) -> u32 {
+        self.workers[i].child.id()
+    }
+
+    /// Whether the cluster's processes run on test hosts of their own
+    /// ([`Cluster::start_on_hosts`]).
+    pub fn has_hosts(&self) -> bool {
+        self.net.is_some()
+    }
+
     /// The coordinator's HTTP address (host:port), when it was started with `--http`.
     pub fn coordinator_http(&self) -> Option<&str> {
         self.coordinator.http.as_deref()

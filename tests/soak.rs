@@ -1,0 +1,370 @@
+//! A soak: a stream of jobs while a chaos loop kills and restarts workers and the coordinator,
+//! freezes workers and cuts links at random. Every job submitted must finish with the image of
+//! `render --local`, none may be lost or fail, and memory must not grow with the jobs: the
+//! coordinator is killed only in the first half of the chaos (workers, links and freezes all
+//! along), and over the second half the heap of the coordinator and of worker 0 (never killed)
+//! must grow by less than 10%. Their heap after the first job is reported beside it: the first
+//! jobs warm up caches (the job store's 16 MiB page cache, the allocator's per-thread arenas)
+//! that a process keeps from then on.
+//!
+//! CI runs the short mode (`SOAK_SECS`, two and a half minutes of chaos). The long mode is a
+//! benchmark: `RAYFARM_SOAK_SECS=3600 cargo test --release -p rayfarm-tests --test soak --
+//! --nocapture` (README has its figures). `RAYFARM_SOAK_SEED` picks another sequence of faults;
+//! the seed is printed, so a failing run can be replayed.
+//!
+//! Processes run on test hosts of their own (network namespaces) so links can be cut; where
+//! namespaces cannot be made the soak runs on loopback without link cuts, saying so.
+
+use std::collections::VecDeque;
+use std::time::{Duration, Instant};
+
+use rayfarm_tests::hosts::Net;
+use rayfarm_tests::{
+    Cluster, ClusterOpts, WorkerOpts, domain_bytes, hash_of, jobs, local_hash, prepare_nbody,
+    proc_status_bytes, s,
+};
+
+/// Seconds of chaos in CI.
+const SOAK_SECS: u64 = 150;
+
+/// Workers kept running; a killed one is replaced at once.
+const WORKERS: usize = 3;
+
+/// Jobs queued or running at once.
+const IN_FLIGHT: usize = 2;
+
+/// How long a job may take once the chaos has stopped (faults cost time, never the image).
+const DRAIN_TIMEOUT: Duration = Duration::from_secs(300);
+
+/// Frames of the stream, each rendered under every schedule in turn.
+const FRAMES: [[&str; 8]; 2] = [
+    [
+        "--width", "96", "--height", "72", "--spp", "4", "--depth", "3",
+    ],
+    [
+        "--width", "64", "--height", "64", "--spp", "8", "--depth", "2",
+    ],
+];
+
+const SCHEDULES: [&str; 5] = ["dynamic", "image-plane", "domain", "hybrid", "predictive"];
+
+/// Growth of a process's heap allowed over the soak.
+const MEMORY_SLACK: f64 = 0.10;
+
+/// SplitMix64: the chaos loop's faults from a seed, with no crate.
+struct Rng(u64);
+
+impl Rng {
+    fn below(&mut self, n: u64) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        (z ^ (z >> 31)) % n
+    }
+
+    fn millis(&mut self, from: u64, to: u64) -> Duration {
+        Duration::from_millis(from + self.below(to - from))
+    }
+}
+
+/// A job of the stream: its id, the hash it must end with, and what it is.
+struct Job {
+    id: String,
+    expected: String,
+    what: String,
+}
+
+/// What the chaos loop did, for the report.
+#[derive(Default, Debug)]
+struct Faults {
+    workers_killed: u32,
+    coordinator_killed: u32,
+    workers_frozen: u32,
+    links_cut: u32,
+}
+
+/// A fault to undo later.
+enum Pending {
+    /// Worker `i` is frozen (SIGSTOP) until then.
+    Frozen(usize),
+    /// A worker is cut off from every other host until then.
+    Cut,
+}
+
+/// A process's heap (RssAnon) and resident memory (VmRSS), bytes.
+fn memory(pid: u32) -> (u64, u64) {
+    (
+        proc_status_bytes(pid, "RssAnon:"),
+        proc_status_bytes(pid, "VmRSS:"),
+    )
+}
+
+#[test]
+fn jobs_stream_through_chaos_none_lost_every_image_the_local_one() {
+    let secs: u64 = std::env::var("RAYFARM_SOAK_SECS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(SOAK_SECS);
+    let seed: u64 = std::env::var("RAYFARM_SOAK_SEED")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(1);
+    eprintln!("soak: {secs} s of chaos, seed {seed} (RAYFARM_SOAK_SECS, RAYFARM_SOAK_SEED)");
+    let mut rng = Rng(seed);
+
+    let root = tempfile::tempdir().expect("temp dir");
+    let scene = prepare_nbody(root.path(), "nb", 20_000, 8);
+    let (_, largest) = domain_bytes(&scene);
+    let expected: Vec<String> = FRAMES.iter().map(|f| local_hash(&scene, f)).collect();
+
+    let net = match Net::new() {
+        Ok(net) => Some(net),
+        Err(why) => {
+            eprintln!("SKIPPED link cuts in the soak: network namespaces cannot be made: {why}");
+            None
+        }
+    };
+    let worker = WorkerOpts::cache(2 * largest).arg("--peer-ack-timeout-ms", "1500");
+    let opts = ClusterOpts {
+        // Crashes here are the chaos loop's, not the job's: never fail a job for them.
+        coordinator_args: [
+            "--heartbeat-ms",
+            "200",
+            "--worker-timeout-ms",
+            "2000",
+            "--max-attempts",
+            "1000",
+        ]
+        .map(String::from)
+        .to_vec(),
+        ..ClusterOpts::default()
+    };
+    let workers = vec![worker.clone(); WORKERS];
+    let mut cluster = match net {
+        Some(net) => Cluster::start_on_hosts(net, root.path(), Some("nb"), &opts, &workers),
+        None => Cluster::start_with(root.path(), Some("nb"), &opts, &workers),
+    };
+    let on_hosts = cluster.has_hosts();
+
+    // Worker 0 is never killed (only frozen and cut off), so one worker lives through it all.
+    let mut alive: Vec<usize> = (0..WORKERS).collect();
+    let mut queue: VecDeque<Job> = VecDeque::new();
+    let mut pending: Vec<(Instant, Pending)> = Vec::new();
+    let mut faults = Faults::default();
+    let mut finished = 0u32;
+    let mut submitted = 0u32;
+    // After each finished job: (jobs finished, the coordinator's pid, its memory, worker 0's).
+    let mut samples: Vec<Sample> = Vec::new();
+
+    let start = Instant::now();
+    let chaos_until = start + Duration::from_secs(secs);
+    let mut next_fault = start + rng.millis(2000, 6000);
+    let mut drain_until = None;
+    loop {
+        let now = Instant::now();
+        let chaos = now < chaos_until;
+        if !chaos && drain_until.is_none() {
+            // Undo every fault still in force; from here on the jobs in flight must finish.
+            for (_, fault) in pending.drain(..) {
+                undo(&cluster, fault);
+            }
+            drain_until = Some(now + DRAIN_TIMEOUT);
+        }
+
+        // Keep the stream full while the chaos lasts.
+        while chaos && queue.len() < IN_FLIGHT {
+            let frame = (submitted as usize) % FRAMES.len();
+            let schedule = SCHEDULES[(submitted as usize / FRAMES.len()) % SCHEDULES.len()];
+            let mut args = vec!["submit", "--quiet", "--schedule", schedule];
+            args.extend(FRAMES[frame]);
+            let out = cluster.rayfarm_ok(&args);
+            let id = String::from_utf8_lossy(&out.stdout).trim().to_string();
+            assert!(!id.is_empty(), "submit printed no job id");
+            queue.push_back(Job {
+                id,
+                expected: expected[frame].clone(),
+                what: format!("frame {frame} under {schedule}"),
+            });
+            submitted += 1;
+        }
+
+        // Jobs that ended: each must have succeeded with the local image.
+        let listed = jobs(&cluster);
+        while let Some(job) = queue.front() {
+            let state = listed
+                .iter()
+                .find(|j| j["job_id"] == job.id.as_str())
+                .map(|j| {
+                    (
+                        j["state"].as_str().unwrap_or("").to_string(),
+                        j["error"].clone(),
+                    )
+                })
+                .unwrap_or_else(|| panic!("job {} ({}) is lost: not listed", job.id, job.what));
+            match state.0.as_str() {
+                "succeeded" => {}
+                "queued" | "running" => break,
+                other => panic!("job {} ({}) ended {other}: {}", job.id, job.what, state.1),
+            }
+            let job = queue.pop_front().expect("front job");
+            let stats = cluster.dir().join(format!("{}.json", job.id));
+            let png = cluster.dir().join(format!("{}.png", job.id));
+            cluster.rayfarm_ok(&["fetch", &job.id, "-o", s(&png), "--stats-json", s(&stats)]);
+            assert_eq!(
+                hash_of(&stats),
+                job.expected,
+                "job {} ({}) is not the local image",
+                job.id,
+                job.what
+            );
+            let _ = std::fs::remove_file(&png);
+            finished += 1;
+            let coordinator = cluster.coordinator_pid();
+            samples.push(Sample {
+                finished,
+                at: start.elapsed(),
+                coordinator,
+                coordinator_memory: memory(coordinator),
+                worker0: memory(cluster.worker_pid(0)),
+            });
+            if finished % 50 == 0 {
+                eprintln!("{}", samples[samples.len() - 1].line());
+            }
+        }
+        if let Some(until) = drain_until {
+            if queue.is_empty() {
+                break;
+            }
+            assert!(
+                now < until,
+                "jobs still unfinished {DRAIN_TIMEOUT:?} after the chaos stopped: {:?}",
+                queue.iter().map(|j| &j.id).collect::<Vec<_>>()
+            );
+        }
+
+        // Faults whose time is up are undone.
+        let (due, later): (Vec<_>, Vec<_>) = pending.drain(..).partition(|(t, _)| *t <= now);
+        pending = later;
+        for (_, fault) in due {
+            undo(&cluster, fault);
+        }
+
+        if chaos && now >= next_fault && pending.is_empty() {
+            next_fault = now + rng.millis(2000, 6000);
+            let kinds = if on_hosts { 4 } else { 3 };
+            match rng.below(kinds) {
+                0 => {
+                    // A worker crashes and a replacement joins (worker 0 is spared).
+                    let victims: Vec<usize> = alive.iter().copied().filter(|&w| w != 0).collect();
+                    let victim = victims[rng.below(victims.len() as u64) as usize];
+                    cluster.kill_worker(victim);
+                    alive.retain(|&w| w != victim);
+                    alive.push(cluster.add_worker(&worker));
+                    faults.workers_killed += 1;
+                }
+                // The coordinator only in the first half: its last life spans the second.
+                1 if now < start + Duration::from_secs(secs / 2) => {
+                    cluster.kill_coordinator();
+                    cluster.restart_coordinator();
+                    faults.coordinator_killed += 1;
+                }
+                1 | 2 => {
+                    let i = alive[rng.below(alive.len() as u64) as usize];
+                    cluster.pause_worker(i);
+                    pending.push((now + rng.millis(500, 4000), Pending::Frozen(i)));
+                    faults.workers_frozen += 1;
+                }
+                _ => {
+                    let i = alive[rng.below(alive.len() as u64) as usize];
+                    let others = peers_and_coordinator(&cluster, &alive, i);
+                    cluster.net().isolate(cluster.worker_host(i), &others);
+                    pending.push((now + rng.millis(500, 4000), Pending::Cut));
+                    faults.links_cut += 1;
+                }
+            }
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+
+    // After the last job, with every fault undone: memory over the second half, against the
+    // sample at its start; the first sample for the record.
+    assert!(finished >= 10, "only {finished} jobs finished");
+    let (first, middle, last) = (
+        &samples[0],
+        &samples[samples.len() / 2],
+        &samples[samples.len() - 1],
+    );
+    let report = format!(
+        "soak of {secs} s (seed {seed}): {finished} jobs finished, none lost, every image the \
+         local one; {faults:?}; {} s in all\n  first job: {}\n  halfway:   {}\n  last job:  {}",
+        start.elapsed().as_secs(),
+        first.line(),
+        middle.line(),
+        last.line(),
+    );
+    eprintln!("{report}");
+    assert_eq!(
+        middle.coordinator, last.coordinator,
+        "the coordinator was restarted in the second half: {report}"
+    );
+    let within = |from: u64, to: u64| to as f64 <= from as f64 * (1.0 + MEMORY_SLACK);
+    assert!(
+        within(middle.worker0.0, last.worker0.0),
+        "worker 0's heap grew by 10% or more over the second half: {report}"
+    );
+    assert!(
+        within(middle.coordinator_memory.0, last.coordinator_memory.0),
+        "the coordinator's heap grew by 10% or more over the second half: {report}"
+    );
+}
+
+/// The memory of the long-lived processes after a job.
+struct Sample {
+    finished: u32,
+    /// When, from the start of the soak.
+    at: Duration,
+    coordinator: u32,
+    /// Heap and resident bytes.
+    coordinator_memory: (u64, u64),
+    worker0: (u64, u64),
+}
+
+impl Sample {
+    fn line(&self) -> String {
+        let mib = |b: u64| b as f64 / 1048576.0;
+        format!(
+            "after {} jobs: coordinator heap {:.1} MiB (resident {:.1}), worker 0 heap {:.1} MiB \
+             (resident {:.1}); {} s",
+            self.finished,
+            mib(self.coordinator_memory.0),
+            mib(self.coordinator_memory.1),
+            mib(self.worker0.0),
+            mib(self.worker0.1),
+            self.at.as_secs()
+        )
+    }
+}
+
+/// Worker `i`'s peers among `alive` and the coordinator's host, on test hosts.
+fn peers_and_coordinator<'a>(
+    cluster: &'a Cluster,
+    alive: &[usize],
+    i: usize,
+) -> Vec<&'a rayfarm_tests::hosts::Host> {
+    let mut hosts: Vec<_> = alive
+        .iter()
+        .filter(|&&w| w != i)
+        .map(|&w| cluster.worker_host(w))
+        .collect();
+    hosts.push(cluster.coordinator_host());
+    hosts
+}
+
+/// Undoes a fault (one is in force at a time, so a cut is undone by healing every link).
+fn undo(cluster: &Cluster, fault: Pending) {
+    match fault {
+        Pending::Frozen(i) => cluster.resume_worker(i),
+        Pending::Cut => cluster.net().heal_all(),
+    }
+}
