@@ -351,12 +351,17 @@ impl SimCoordinator {
                     self.frames += 1;
                     None
                 }
-                Action::WriteTiles { job_id, tiles } => {
+                Action::WriteTiles {
+                    job_id,
+                    tiles,
+                    samples,
+                    ..
+                } => {
                     let film = p.films.get(&job_id);
                     let mut failed = None;
                     for (tile, sums) in &tiles {
                         self.commits.push((self.frames, *tile, now));
-                        if let Some(Err(e)) = film.map(|f| f.write_tile(*tile, sums)) {
+                        if let Some(Err(e)) = film.map(|f| f.add_tile(*tile, sums, samples)) {
                             failed = Some(e.to_string());
                         }
                     }
