@@ -228,7 +228,7 @@ fn jobs_stream_through_chaos_none_lost_every_image_the_local_one() {
                 coordinator_memory: memory(coordinator),
                 worker0: memory(cluster.worker_pid(0)),
             });
-            if finished % 50 == 0 {
+            if finished.is_multiple_of(50) {
                 eprintln!("{}", samples[samples.len() - 1].line());
             }
         }
