@@ -3,7 +3,8 @@
 //! `render --local`, none may be lost or fail, and memory must not grow with the jobs: the
 //! coordinator is killed only in the first half of the chaos (workers, links and freezes all
 //! along), and over the second half the heap of the coordinator and of worker 0 (never killed)
-//! must grow by less than 10%. Their heap after the first job is reported beside it: the first
+//! must grow by less than 10% (a worker 25% in soaks under half an hour: see
+//! [`WORKER_SLACK_SHORT`]). Their heap after the first job is reported beside it: the first
 //! jobs warm up caches (the job store's 16 MiB page cache, the allocator's per-thread arenas)
 //! that a process keeps from then on.
 //!
@@ -48,8 +49,18 @@ const FRAMES: [[&str; 8]; 2] = [
 
 const SCHEDULES: [&str; 5] = ["dynamic", "image-plane", "domain", "hybrid", "predictive"];
 
-/// Growth of a process's heap allowed over the soak.
+/// Growth of a process's heap allowed over the second half of the soak.
 const MEMORY_SLACK: f64 = 0.10;
+
+/// The same for a worker in a soak shorter than [`WARM_SECS`]: a worker's allocator reaches
+/// its per-thread arenas' high-water marks in steps over its first several hundred jobs (in an
+/// hour's run its heap went 13 -> 58 MiB by the halfway job and ended at 56), so a short soak
+/// still sees a step or two; a leak of the coordinator's old kind (17 KiB a job) would still
+/// show.
+const WORKER_SLACK_SHORT: f64 = 0.25;
+
+/// Soaks at least this long check workers at [`MEMORY_SLACK`].
+const WARM_SECS: u64 = 1800;
 
 /// SplitMix64: the chaos loop's faults from a seed, with no crate.
 struct Rng(u64);
@@ -308,13 +319,23 @@ fn jobs_stream_through_chaos_none_lost_every_image_the_local_one() {
         middle.coordinator, last.coordinator,
         "the coordinator was restarted in the second half: {report}"
     );
-    let within = |from: u64, to: u64| to as f64 <= from as f64 * (1.0 + MEMORY_SLACK);
+    let within = |from: u64, to: u64, slack: f64| to as f64 <= from as f64 * (1.0 + slack);
+    let worker_slack = if secs >= WARM_SECS {
+        MEMORY_SLACK
+    } else {
+        WORKER_SLACK_SHORT
+    };
     assert!(
-        within(middle.worker0.0, last.worker0.0),
-        "worker 0's heap grew by 10% or more over the second half: {report}"
+        within(middle.worker0.0, last.worker0.0, worker_slack),
+        "worker 0's heap grew by {:.0}% or more over the second half: {report}",
+        worker_slack * 100.0
     );
     assert!(
-        within(middle.coordinator_memory.0, last.coordinator_memory.0),
+        within(
+            middle.coordinator_memory.0,
+            last.coordinator_memory.0,
+            MEMORY_SLACK
+        ),
         "the coordinator's heap grew by 10% or more over the second half: {report}"
     );
 }
