@@ -270,8 +270,11 @@ impl SceneView {
         let packets = traverser.packets();
         for ray in rays {
             let (interval, next) = self.segment(ray, data.domain());
-            let Some((t0, t1)) = interval else {
-                // Not on this ray's path (a stale or foreign ray): start it over.
+            // Camera rays queue in pixel order: neighbours, traced together. Any other ray
+            // finishes the packet first, so outcomes leave in queue order.
+            let joins_packet =
+                packets && interval.is_some() && ray.kind() == RayKind::Radiance && ray.depth == 0;
+            if !joins_packet {
                 self.flush(
                     bvh,
                     &mut traverser,
@@ -280,6 +283,9 @@ impl SceneView {
                     sink,
                     counters,
                 );
+            }
+            let Some((t0, t1)) = interval else {
+                // Not on this ray's path (a stale or foreign ray): start it over.
                 self.route_new(*ray, sink);
                 continue;
             };
@@ -287,8 +293,7 @@ impl SceneView {
             let dir = Vec3::from(ray.dir);
             let tr = TraceRay::new(origin, dir);
             match ray.kind() {
-                RayKind::Radiance if packets && ray.depth == 0 => {
-                    // Camera rays queue in pixel order: neighbours, traced together.
+                RayKind::Radiance if joins_packet => {
                     packet.add(ray, tr, (t0, t1), next);
                     if packet.len == PACKET {
                         self.flush(
@@ -303,14 +308,6 @@ impl SceneView {
                     continue;
                 }
                 RayKind::Shadow => {
-                    self.flush(
-                        bvh,
-                        &mut traverser,
-                        &mut packet,
-                        &mut children,
-                        sink,
-                        counters,
-                    );
                     counters.shadow_segments += 1;
                     if traverser.any_hit(bvh, &tr, t0, t1) {
                         // Occluded: no light, but the credit still goes home.
@@ -319,14 +316,6 @@ impl SceneView {
                     }
                 }
                 RayKind::Radiance => {
-                    self.flush(
-                        bvh,
-                        &mut traverser,
-                        &mut packet,
-                        &mut children,
-                        sink,
-                        counters,
-                    );
                     let hit = traverser.nearest_hit(bvh, &tr, t0, t1);
                     self.radiance_done(bvh, ray, hit, next, &mut children, sink, counters);
                     continue;
