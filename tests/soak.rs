@@ -19,6 +19,7 @@
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
+use rayfarm_core::sampling::mix64;
 use rayfarm_tests::hosts::Net;
 use rayfarm_tests::{
     Cluster, ClusterOpts, WorkerOpts, domain_bytes, hash_of, jobs, local_hash, prepare_nbody,
@@ -62,16 +63,13 @@ const WORKER_SLACK_SHORT: f64 = 0.25;
 /// Soaks at least this long check workers at [`MEMORY_SLACK`].
 const WARM_SECS: u64 = 1800;
 
-/// SplitMix64: the chaos loop's faults from a seed, with no crate.
+/// SplitMix64: the chaos loop's faults from a seed.
 struct Rng(u64);
 
 impl Rng {
     fn below(&mut self, n: u64) -> u64 {
         self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        (z ^ (z >> 31)) % n
+        mix64(self.0) % n
     }
 
     fn millis(&mut self, from: u64, to: u64) -> Duration {

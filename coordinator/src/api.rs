@@ -8,10 +8,11 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, SystemTime};
 
 use rayfarm_core::scene::Manifest;
+use rayfarm_machine::coordinator::cluster::is_terminal;
 
 use rayfarm_node::bounds::check_field;
+use rayfarm_node::proto;
 use rayfarm_node::proto::job_service_server::JobService;
-use rayfarm_node::proto::{self, JobState};
 use rayfarm_node::security::User;
 use tokio::io::{AsyncReadExt, AsyncSeekExt};
 use tokio::sync::{Semaphore, mpsc};
@@ -255,10 +256,7 @@ impl JobService for Api {
         tokio::spawn(async move {
             loop {
                 let event = rx.borrow_and_update().clone();
-                let ended = matches!(
-                    event.state(),
-                    JobState::Succeeded | JobState::Failed | JobState::Cancelled
-                );
+                let ended = is_terminal(event.state());
                 if tx.send(Ok(event)).await.is_err() || ended {
                     break;
                 }

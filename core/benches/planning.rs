@@ -2,7 +2,7 @@
 //! (`schedule::rounds`) for 1024 and 4096 workers over 8192 and 32768 domains.
 //!
 //! Three cases, each from the same synthetic reports (every worker holds two domains and has
-//! rays queued for sixteen, drawn from a fixed hash so every run plans the same cluster):
+//! rays queued for sixteen, drawn from a fixed hash (`sampling::mix64`) so every run plans the same cluster):
 //! - `barrier`: every member has reported, the whole cluster is planned at once;
 //! - `async_one_dry`: asynchronous rounds, one member ran dry while the rest are busy (the
 //!   common event: the coordinator handles one of these per report);
@@ -17,6 +17,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::hint::black_box;
 
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
+use rayfarm_core::sampling::mix64;
 use rayfarm_core::schedule::dynamic::Options;
 use rayfarm_core::schedule::rounds::{Cluster, Member, Queues};
 
@@ -27,21 +28,15 @@ const QUEUED: usize = 16;
 /// Bytes of every domain (the cache holds `RESIDENT` of them).
 const DOMAIN_BYTES: u64 = 64 << 20;
 
-/// A fixed 64-bit mix (splitmix64's finaliser), so the cluster is the same in every run.
-fn mix(mut x: u64) -> u64 {
-    x = (x ^ (x >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-    x = (x ^ (x >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-    x ^ (x >> 31)
-}
-
 /// `workers` members over `domains` domains; the first `dry` of them have run dry.
 fn members(workers: u32, domains: u32, dry: u32) -> BTreeMap<u32, Member> {
     (0..workers)
         .map(|w| {
-            let pick = |i: usize| (mix(u64::from(w) << 20 | i as u64) % u64::from(domains)) as u32;
+            let pick =
+                |i: usize| (mix64(u64::from(w) << 20 | i as u64) % u64::from(domains)) as u32;
             let resident: Vec<u32> = (0..RESIDENT).map(pick).collect();
             let queued: BTreeMap<u32, u64> = (RESIDENT..RESIDENT + QUEUED)
-                .map(|i| (pick(i), 1 + mix(i as u64 ^ u64::from(w)) % 10_000))
+                .map(|i| (pick(i), 1 + mix64(i as u64 ^ u64::from(w)) % 10_000))
                 .collect();
             let report = Queues {
                 round: 1,

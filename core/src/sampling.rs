@@ -26,9 +26,10 @@ pub enum Purpose {
     LightV = 8,
 }
 
+/// The splitmix64 finaliser: a bijection of 64-bit words with full avalanche. Sampling's
+/// hashes are built on it; seeded generators elsewhere (tests, benchmarks) draw from it too.
 #[inline(always)]
-fn mix64(mut z: u64) -> u64 {
-    // The splitmix64 finaliser: a bijection with full avalanche.
+pub fn mix64(mut z: u64) -> u64 {
     z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
     z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
     z ^ (z >> 31)

@@ -125,7 +125,7 @@ impl Coordinator {
                 p.eta_seconds = 0.0;
             }
         });
-        if is_finished(state) {
+        if is_terminal(state) {
             st.finished.retain(|j| *j != id);
             st.finished.push_back(id);
             while st.finished.len() > KEPT_FINISHED_VIEWS {

@@ -16,7 +16,7 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use rayfarm_core::cluster::scene_ref;
 use rayfarm_core::scene::Manifest;
 use rayfarm_core::schedule::dynamic::Options;
-use rayfarm_machine::coordinator::cluster::{self, Input, JobRecord};
+use rayfarm_machine::coordinator::cluster::{self, Input, JobRecord, is_terminal};
 use rayfarm_machine::coordinator::{Coordinator as Machine, Rounds};
 use rayfarm_node::job::{frame_spec, schedule_name, state_name};
 use rayfarm_node::proto::{self, JobState, Schedule, worker_message::Body as FromWorker};
@@ -206,7 +206,7 @@ impl Coordinator {
                 }
             }
             // Finished jobs are answered from the store (see `KEPT_FINISHED_VIEWS`).
-            if let Some(record) = st.machine.job(&id).filter(|r| !is_finished(r.state())) {
+            if let Some(record) = st.machine.job(&id).filter(|r| !is_terminal(r.state())) {
                 let view = JobView {
                     progress: progress_channel(record),
                     preview: None,
@@ -285,14 +285,6 @@ impl Coordinator {
 
 fn not_found(id: &str) -> Status {
     Status::not_found(format!("no job {id}"))
-}
-
-/// Whether a job in `state` has ended.
-fn is_finished(state: JobState) -> bool {
-    matches!(
-        state,
-        JobState::Succeeded | JobState::Failed | JobState::Cancelled
-    )
 }
 
 /// A job's progress channel, starting at its record's state.

@@ -305,7 +305,9 @@ pub struct Coordinator {
     lost: VecDeque<LostWorker>,
 }
 
-fn is_terminal(state: JobState) -> bool {
+/// Whether a job in `state` has ended (succeeded, failed or cancelled): it never changes
+/// again.
+pub fn is_terminal(state: JobState) -> bool {
     matches!(
         state,
         JobState::Succeeded | JobState::Failed | JobState::Cancelled
