@@ -232,93 +232,116 @@ fn the_generator_emits_its_density_field_as_a_volume() {
 fn dvr_images_are_identical_at_1_8_and_64_bricks_any_cache_and_threads() {
     let tmp = tempfile::tempdir().unwrap();
     let mut per_look = Vec::new();
-    for look in ["unlit", "--shading", "--shadows"] {
-        let mut hashes = Vec::new();
-        let mut shadow_rays = Vec::new();
-        for bricks in ["1", "8", "64"] {
-            let scene = tmp.path().join(format!("nbody-{bricks}{look}"));
-            let mut prepare = vec![
-                "prepare",
-                "--generate",
-                "nbody",
-                "--volume",
-                "--dims",
-                "48,48,48",
-                "--bricks",
-                bricks,
-                "--out",
-                s(&scene),
-            ];
-            if look != "unlit" {
-                prepare.push(look);
-            }
-            rayfarm_ok(&prepare);
-            let bytes: u64 = Manifest::load(&scene)
-                .unwrap()
-                .domains
-                .iter()
-                .map(|d| d.bytes)
-                .sum();
-            let small = (bytes / 6).max(1).to_string();
-            for (cache, threads, placement) in [
-                ("4GiB", "1", "chained"),
-                (small.as_str(), "2", "chained"),
-                ("4GiB", "2", "chained"),
-                ("4GiB", "1", "speculative"),
-                (small.as_str(), "2", "speculative"),
-            ] {
-                let img = tmp
-                    .path()
-                    .join(format!("{bricks}-{threads}-{}.exr", hashes.len()));
-                let stats = tmp.path().join("stats.json");
-                let mut args = vec![
-                    "render",
-                    "--local",
-                    "--scene",
-                    s(&scene),
-                    "--width",
-                    "96",
-                    "--height",
-                    "72",
-                    "--spp",
-                    "2",
-                    "--threads",
-                    threads,
-                    "--cache-bytes",
-                    cache,
-                    "-o",
-                    s(&img),
-                    "--stats-json",
-                    s(&stats),
-                    "--quiet",
-                ];
-                if placement == "speculative" {
-                    args.push("--speculate");
-                }
-                rayfarm_ok(&args);
-                hashes.push((
-                    format!(
-                        "{look}: {bricks} bricks, cache {cache}, {threads} threads, {placement}"
-                    ),
-                    file_hash(&img),
-                ));
-                shadow_rays.push(stats_field(&stats, "/rays/shadow_rays").as_u64().unwrap());
-            }
-        }
-        for (what, h) in &hashes {
-            assert_eq!(h, &hashes[0].1, "{what} differs from {}", hashes[0].0);
-        }
-        // Shadow rays only with shadows, and as many whatever the bricking and placement.
-        assert!(
-            shadow_rays.iter().all(|&n| n == shadow_rays[0]),
-            "{look}: {shadow_rays:?}"
-        );
-        assert_eq!(shadow_rays[0] > 0, look == "--shadows", "{look}");
-        per_look.push(hashes[0].1.clone());
+    for look in [&[][..], &["--shading"], &["--shadows"]] {
+        let (hash, shadow_rays) = identical_at_any_bricking(tmp.path(), look);
+        assert_eq!(shadow_rays > 0, look == ["--shadows"], "{look:?}");
+        per_look.push(hash);
     }
     // Shading and shadows change the image.
     assert_ne!(per_look[0], per_look[1]);
     assert_ne!(per_look[1], per_look[2]);
+}
+
+/// Volumes and surfaces in one scene (the density field's isosurface inside it, `--iso`):
+/// compositing stops at the nearest surface a ray meets and the surface is shaded behind the
+/// volume in front of it, the same bits at 1, 8 and 64 bricks (a surface crossing bricks is
+/// referenced by each), any cache, 1-2 threads, chained or speculative (a brick's copy sends
+/// its hit with its segments); unlit and with shadow rays, which surfaces block.
+#[test]
+fn volumes_with_surfaces_are_identical_at_1_8_and_64_bricks_any_cache_and_threads() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (volume_only, _) = identical_at_any_bricking(tmp.path(), &["--shadows"]);
+    let (unlit, _) = identical_at_any_bricking(tmp.path(), &["--iso", "1.5"]);
+    let (shadowed, shadow_rays) =
+        identical_at_any_bricking(tmp.path(), &["--iso", "1.5", "--shadows"]);
+    assert!(shadow_rays > 0);
+    assert_ne!(unlit, shadowed);
+    assert_ne!(volume_only, shadowed, "the surfaces show");
+    let m = Manifest::load(&tmp.path().join("nbody-8---iso 1.5 --shadows")).unwrap();
+    assert!(m.triangles > 0);
+    assert!(m.domains.iter().any(|d| d.surfaces.is_some()));
+}
+
+/// Renders the generator's density volume prepared with `look` at 1, 8 and 64 bricks under
+/// several caches, threads and placements; asserts every image and shadow-ray count is the
+/// same and returns the image's hash and the shadow rays.
+fn identical_at_any_bricking(dir: &std::path::Path, look: &[&str]) -> (String, u64) {
+    let mut hashes = Vec::new();
+    let mut shadow_rays = Vec::new();
+    let name = look.join(" ");
+    for bricks in ["1", "8", "64"] {
+        let scene = dir.join(format!("nbody-{bricks}-{name}"));
+        let mut prepare = vec![
+            "prepare",
+            "--generate",
+            "nbody",
+            "--volume",
+            "--dims",
+            "48,48,48",
+            "--bricks",
+            bricks,
+            "--out",
+            s(&scene),
+        ];
+        prepare.extend_from_slice(look);
+        rayfarm_ok(&prepare);
+        let bytes: u64 = Manifest::load(&scene)
+            .unwrap()
+            .domains
+            .iter()
+            .map(|d| d.bytes)
+            .sum();
+        let small = (bytes / 6).max(1).to_string();
+        for (cache, threads, placement) in [
+            ("4GiB", "1", "chained"),
+            (small.as_str(), "2", "chained"),
+            ("4GiB", "2", "chained"),
+            ("4GiB", "1", "speculative"),
+            (small.as_str(), "2", "speculative"),
+        ] {
+            let img = dir.join(format!("{bricks}-{threads}-{}.exr", hashes.len()));
+            let stats = dir.join("stats.json");
+            let mut args = vec![
+                "render",
+                "--local",
+                "--scene",
+                s(&scene),
+                "--width",
+                "96",
+                "--height",
+                "72",
+                "--spp",
+                "2",
+                "--threads",
+                threads,
+                "--cache-bytes",
+                cache,
+                "-o",
+                s(&img),
+                "--stats-json",
+                s(&stats),
+                "--quiet",
+            ];
+            if placement == "speculative" {
+                args.push("--speculate");
+            }
+            rayfarm_ok(&args);
+            hashes.push((
+                format!("{name}: {bricks} bricks, cache {cache}, {threads} threads, {placement}"),
+                file_hash(&img),
+            ));
+            shadow_rays.push(stats_field(&stats, "/rays/shadow_rays").as_u64().unwrap());
+        }
+    }
+    for (what, h) in &hashes {
+        assert_eq!(h, &hashes[0].1, "{what} differs from {}", hashes[0].0);
+    }
+    // As many shadow rays whatever the bricking and placement.
+    assert!(
+        shadow_rays.iter().all(|&n| n == shadow_rays[0]),
+        "{name}: {shadow_rays:?}"
+    );
+    (hashes[0].1.clone(), shadow_rays[0])
 }
 
 /// On a real cluster of 1, 2 and 4 workers, every schedule gives the image of `render --local`
@@ -334,6 +357,13 @@ fn dvr_on_a_cluster_matches_the_local_image_under_every_schedule() {
 #[test]
 fn shadowed_dvr_on_a_cluster_matches_the_local_image_under_every_schedule() {
     dvr_on_a_cluster(&["--shadows"]);
+}
+
+/// The same with surfaces in the volume: a brick's surfaces travel with its voxels, and a
+/// speculative copy sends its hit with its segments.
+#[test]
+fn volumes_with_surfaces_on_a_cluster_match_the_local_image_under_every_schedule() {
+    dvr_on_a_cluster(&["--shadows", "--iso", "1.5"]);
 }
 
 fn dvr_on_a_cluster(look: &[&str]) {

@@ -39,6 +39,7 @@ fn scene(name: &str, shading: bool) -> (Manifest, DomainData) {
             transfer: TransferFunction::preset("density").expect("preset"),
             shading,
             shadows: false,
+            iso_surface: None,
         };
         prepare_nbody_volume(&dir, &options, SIDE, look).expect("generate the benchmark volume");
     }

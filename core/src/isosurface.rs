@@ -74,6 +74,19 @@ impl Grid {
         let [nx, ny, _] = self.cell_dims().map(u64::from);
         u64::from(i) + nx * (u64::from(j) + ny * u64::from(k))
     }
+
+    /// Cell ranges whose cells may hold triangles touching `b` (one cell more each side, so
+    /// rounding never leaves one out): what to march for the part of a surface in a box.
+    pub fn cells_touching(&self, b: &crate::geometry::Aabb) -> [Range<u32>; 3] {
+        let dims = self.cell_dims();
+        [0, 1, 2].map(|a| {
+            let lo = ((b.min[a] - self.origin[a]) / self.spacing[a]).floor() - 1.0;
+            let hi = ((b.max[a] - self.origin[a]) / self.spacing[a]).ceil() + 1.0;
+            let lo = lo.clamp(0.0, dims[a] as f32) as u32;
+            let hi = hi.clamp(0.0, dims[a] as f32) as u32;
+            lo..hi.max(lo)
+        })
+    }
 }
 
 fn axis_coord(origin: f32, spacing: f32, i: u32) -> f32 {

@@ -241,7 +241,7 @@ fn check_verdict(v: &VerdictRecord, l: &BatchLimits) -> Result<(), &'static str>
                 return Err("a verdict without a hit carries hit fields");
             }
         }
-        VerdictRecord::HIT => {
+        VerdictRecord::HIT | VerdictRecord::VOLUME_HIT => {
             let finite = v.t.is_finite() && v.normal.iter().all(|x| x.is_finite());
             if !(finite && v.t >= 0.0) {
                 return Err("non-finite or negative hit");
@@ -344,7 +344,8 @@ fn check_verdict_range(v: &VerdictRecord, l: &BatchLimits) -> Result<(), &'stati
     if v.pixel >= l.pixels {
         return Err("pixel out of range");
     }
-    if v.kind == VerdictRecord::HIT && v.material >= l.materials {
+    if matches!(v.kind, VerdictRecord::HIT | VerdictRecord::VOLUME_HIT) && v.material >= l.materials
+    {
         return Err("material out of range");
     }
     Ok(())
@@ -440,7 +441,15 @@ mod tests {
             decode_verdicts(&encode_verdicts(&v), &LIMITS).unwrap_err()
         };
         let reason = |reason| WireError::Record { index: 5, reason };
-        assert_eq!(refused(|v| v.kind = 6), reason("unknown verdict kind"));
+        assert_eq!(refused(|v| v.kind = 7), reason("unknown verdict kind"));
+        // A hit on a brick's surfaces is checked as any hit.
+        assert_eq!(
+            refused(|v| {
+                v.kind = VerdictRecord::VOLUME_HIT;
+                v.t = -1.0;
+            }),
+            reason("non-finite or negative hit")
+        );
         assert_eq!(refused(|v| v.material = 4), reason("material out of range"));
         assert_eq!(
             refused(|v| v.t = f32::NAN),

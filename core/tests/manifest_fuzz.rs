@@ -69,6 +69,7 @@ fn write_scene() -> Scene {
             triangles: summary.triangles,
             checksum: format!("{:016x}", summary.checksum),
             values: None,
+            surfaces: None,
         });
     }
     let manifest = Manifest {

@@ -62,8 +62,9 @@ pub struct PrepareArgs {
     /// Volume: voxel type.
     #[arg(long, default_value = "u8")]
     pub dtype: String,
-    /// Volume: iso value of the surface.
-    #[arg(long, conflicts_with = "volume")]
+    /// Volume: iso value of the surface; with --volume, that isosurface as surfaces inside
+    /// the volume, rendered with it (compositing stops where a ray meets the surface).
+    #[arg(long)]
     pub iso: Option<f32>,
     /// Volume: distance between voxel centres SX,SY,SZ (e.g. a CT's 0.957,0.957,1.5 mm).
     #[arg(long, value_parser = units::triple::<f32>, default_value = "1,1,1")]
@@ -107,6 +108,7 @@ pub fn run(a: PrepareArgs) -> anyhow::Result<()> {
             transfer,
             shading: a.shading || a.shadows,
             shadows: a.shadows,
+            iso_surface: a.iso,
         })
     };
     let bricks = a.bricks.unwrap_or(a.domains);

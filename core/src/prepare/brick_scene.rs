@@ -11,12 +11,16 @@ use std::path::Path;
 use glam::Vec3;
 use tracing::{info, info_span};
 
-use super::{PrepareError, default_lighting, publish_staged};
+use super::{DomainTriangles, PrepareError, default_lighting, publish_staged, reference_margin};
 use crate::brick::{BLOCK, write_brick};
 use crate::geometry::Aabb;
-use crate::isosurface::{Grid, Lattice};
+use crate::isosurface::{Grid, Lattice, march};
+use crate::scene::domain_file::SourceTriangle;
 use crate::scene::manifest::FORMAT_VERSION;
-use crate::scene::{DomainEntry, DomainTree, KdNode, Manifest, Material, SceneError, VolumeSpec};
+use crate::scene::{
+    DomainEntry, DomainTree, KdNode, Manifest, Material, SceneError, SurfaceFile, VolumeSpec,
+    write_domain,
+};
 use crate::transfer::TransferFunction;
 
 /// Most bricks a volume is cut into.
@@ -55,6 +59,10 @@ pub struct VolumeLook {
     pub shading: bool,
     /// With shading: shadow rays towards the lights.
     pub shadows: bool,
+    /// Surfaces in the volume: its isosurface at this value (by marching cubes, in the
+    /// volume's own coordinates), traced with its voxels; compositing stops where a ray meets
+    /// it and the surface is shaded behind the volume in front of it.
+    pub iso_surface: Option<f32>,
 }
 
 impl VolumeLook {
@@ -64,6 +72,7 @@ impl VolumeLook {
             transfer,
             shading: false,
             shadows: false,
+            iso_surface: None,
         }
     }
 }
@@ -163,6 +172,33 @@ fn spec_of(o: &BrickOptions) -> Result<(Grid, VolumeSpec), PrepareError> {
     Ok((grid, spec))
 }
 
+/// The triangles of `volume`'s isosurface at `iso` that brick `domain` (box `b`) of `tree`
+/// references: those of the cells around it whose box, grown by the reference margin,
+/// overlaps it, as a mesh scene's domain references the triangles crossing into it. Marching
+/// cubes gives a triangle the same bits and id whichever cells are marched, so a triangle
+/// two bricks share is the same triangle in both.
+fn surfaces_in(
+    grid: &Grid,
+    volume: &impl Lattice,
+    iso: f32,
+    tree: &DomainTree,
+    domain: u32,
+    b: &Aabb,
+) -> DomainTriangles {
+    let grown = b.expanded(reference_margin(&tree.bounds()));
+    let mut tris = Vec::new();
+    march(grid, volume, iso, grid.cells_touching(&grown), |t| {
+        if Aabb::of_triangle(&t.vertices).overlaps(&grown) {
+            tris.push(SourceTriangle {
+                vertices: t.vertices,
+                id: t.id,
+                material: 0,
+            });
+        }
+    });
+    DomainTriangles::new(tree, domain, tris)
+}
+
 /// Cuts `volume` into bricks and writes the scene to `out`, one brick at a time.
 pub fn prepare_bricks(
     out: &Path,
@@ -180,8 +216,10 @@ pub fn prepare_bricks(
             .point(o.dims[0] - 1, o.dims[1] - 1, o.dims[2] - 1)
             .into(),
     };
+    let tree = DomainTree::new(bounds, kd_nodes.clone());
     publish_staged(out, "volume", |staging| {
         let mut domains = Vec::with_capacity(cells.len());
+        let mut triangles = 0;
         for (id, c) in cells.iter().enumerate() {
             let _span = info_span!("write_brick", domain = id).entered();
             let file = format!("brick-{id:05}.rfb");
@@ -196,17 +234,47 @@ pub fn prepare_bricks(
                     e => e.into(),
                 })?;
             info!(bytes = summary.bytes, "brick written");
-            domains.push(DomainEntry {
+            let brick_box = Aabb {
+                min: grid.point(lo[0], lo[1], lo[2]).into(),
+                max: grid.point(hi[0], hi[1], hi[2]).into(),
+            };
+            let mut entry = DomainEntry {
                 file,
-                bounds: Aabb {
-                    min: grid.point(lo[0], lo[1], lo[2]).into(),
-                    max: grid.point(hi[0], hi[1], hi[2]).into(),
-                },
+                bounds: brick_box,
                 bytes: summary.bytes,
                 triangles: 0,
                 checksum: format!("{:016x}", summary.checksum),
                 values: Some(summary.values),
-            });
+                surfaces: None,
+            };
+            if let Some(iso) = o.look.iso_surface {
+                let tris = surfaces_in(&grid, volume, iso, &tree, id as u32, &brick_box);
+                if !tris.triangles.is_empty() {
+                    let file = format!("surface-{id:05}.rfd");
+                    let s =
+                        write_domain(&staging.join(&file), id as u32, brick_box, &tris.triangles)?;
+                    info!(
+                        triangles = s.triangles,
+                        bytes = s.bytes,
+                        "brick's surfaces written"
+                    );
+                    triangles += tris.owned;
+                    entry.bytes += s.bytes;
+                    entry.triangles = s.triangles;
+                    entry.surfaces = Some(SurfaceFile {
+                        file,
+                        checksum: format!("{:016x}", s.checksum),
+                    });
+                }
+            }
+            domains.push(entry);
+        }
+        if o.look.iso_surface.is_some() && triangles == 0 {
+            return Err(PrepareError::Invalid(format!(
+                "{}: no surface at iso {} (every voxel is on one side)",
+                o.source,
+                o.look.iso_surface.unwrap_or_default()
+            )));
         }
         // A black sky: the volume's colour is what the image shows.
         let (camera, _, lights) = default_lighting(&bounds);
@@ -214,7 +282,7 @@ pub fn prepare_bricks(
             format: FORMAT_VERSION,
             name: o.name.clone(),
             bounds,
-            triangles: 0,
+            triangles,
             ray_epsilon: bounds.diagonal() * 1e-5,
             camera,
             sky: crate::scene::Sky {

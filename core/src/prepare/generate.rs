@@ -98,7 +98,7 @@ pub fn prepare_nbody(out: &Path, o: &NbodyOptions) -> Result<Manifest, PrepareEr
             .filter(|t| Aabb::of_triangle(&t.vertices).overlaps(&grown))
             .copied()
             .collect();
-        let cells = cells_touching(&grid, &grown);
+        let cells = grid.cells_touching(&grown);
         if cells.iter().all(|r| !r.is_empty()) {
             march(&grid, &sampled, iso, cells, |t| {
                 if Aabb::of_triangle(&t.vertices).overlaps(&grown) {
@@ -212,18 +212,6 @@ fn domains_for_memory(
         );
     }
     Ok(domains)
-}
-
-/// Cell ranges of `grid` whose cells may hold triangles touching `b`.
-fn cells_touching(grid: &Grid, b: &Aabb) -> [std::ops::Range<u32>; 3] {
-    let dims = grid.cell_dims();
-    [0, 1, 2].map(|a| {
-        let lo = ((b.min[a] - grid.origin[a]) / grid.spacing[a]).floor() - 1.0;
-        let hi = ((b.max[a] - grid.origin[a]) / grid.spacing[a]).ceil() + 1.0;
-        let lo = lo.clamp(0.0, dims[a] as f32) as u32;
-        let hi = hi.clamp(0.0, dims[a] as f32) as u32;
-        lo..hi.max(lo)
-    })
 }
 
 fn scene_bounds() -> Aabb {

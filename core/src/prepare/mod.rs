@@ -114,6 +114,7 @@ pub fn write_scene(
                 triangles: summary.triangles,
                 checksum: format!("{:016x}", summary.checksum),
                 values: None,
+                surfaces: None,
             });
         }
         let bounds = spec.tree.bounds();

@@ -227,6 +227,11 @@ impl VolumeView {
             .collect()
     }
 
+    /// Where along a ray its sample `k` lies: `t_k = k * step`, the one formula of the grid.
+    pub fn sample_t(&self, k: u32) -> f32 {
+        k as f32 * self.step
+    }
+
     /// The first sample index `k` with `t_k >= t` (on the grid `t_k = k * step`).
     fn first_sample_at(&self, t: f32) -> u32 {
         let dt = self.step;

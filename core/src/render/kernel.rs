@@ -147,7 +147,8 @@ impl SceneView {
             .domains
             .iter()
             .map(|d| match (&volume, d.values) {
-                (Some(v), Some(values)) => !v.transparent(values),
+                // A brick with surfaces in it is visited even where its voxels show nothing.
+                (Some(v), Some(values)) => !v.transparent(values) || d.triangles > 0,
                 _ => d.triangles > 0,
             })
             .collect();
@@ -223,8 +224,9 @@ impl SceneView {
                 let up = Vec3::from(ray.dir).y.clamp(0.0, 1.0);
                 let sky = t * Vec3::from(self.sky.horizon).lerp(Vec3::from(self.sky.zenith), up);
                 if self.volume.is_some() {
-                    // The volume's colour over what shows through it.
-                    Vec3::from(ray.volume_rgb) + sky * (1.0 - ray.volume_alpha)
+                    // The volume's colour over what shows through it (the path's weight
+                    // applies to both: a bounce off a surface sees the volume too).
+                    Vec3::from(ray.volume_rgb) * t + sky * (1.0 - ray.volume_alpha)
                 } else {
                     sky
                 }
@@ -260,7 +262,8 @@ impl SceneView {
         counters: &mut KernelCounters,
     ) {
         if let (Some(volume), Some(brick)) = (&self.volume, data.brick()) {
-            self.trace_brick(volume, &brick, rays, sink, counters);
+            let surfaces = data.surfaces().map(DomainData::bvh);
+            self.trace_brick(volume, (&brick, surfaces), rays, sink, counters);
             return;
         }
         let bvh = data.bvh();
@@ -415,17 +418,20 @@ impl SceneView {
 
     /// Marches `rays` through `brick`: each is composited over its interval there, then
     /// retired if it became opaque, else sent on to the next brick that can show anything
-    /// (or retired over the sky).
+    /// (or retired over the sky). With `surfaces` in the brick, a shadow ray they block
+    /// brings nothing, and a radiance ray is composited up to the nearest surface it meets
+    /// there, exactly, then shaded there behind the volume (`shade_behind_volume`).
     fn trace_brick(
         &self,
         volume: &VolumeView,
-        brick: &crate::brick::Brick,
+        (brick, surfaces): (&crate::brick::Brick, Option<Bvh>),
         rays: &[RayRecord],
         sink: &mut impl RaySink,
         counters: &mut KernelCounters,
     ) {
         let skip = volume.transparent_blocks(brick);
         let mut counts = SampleCounts::default();
+        let mut traverser = Traverser::new();
         for ray in rays {
             let (interval, next) = self.segment(ray, brick.header.domain);
             let Some((t0, t1)) = interval else {
@@ -438,17 +444,31 @@ impl SceneView {
             }
             let mut ray = *ray;
             let line = (Vec3::from(ray.origin), Vec3::from(ray.dir));
+            let (hit, end) =
+                match surfaces.map(|bvh| (bvh, surface_in(&mut traverser, bvh, &ray, t0, t1))) {
+                    Some((_, SurfaceIn::Blocks)) => {
+                        sink.retire(&ray, [0.0; 3]);
+                        continue;
+                    }
+                    Some((bvh, SurfaceIn::Hit(h))) => (Some((bvh, h)), h.t),
+                    _ => (None, t1),
+                };
             let lit = volume.lights_for(&ray);
-            let march = volume.march(brick, &skip, line, &lit, t0, t1, &mut counts, |segment| {
+            let march = volume.march(brick, &skip, line, &lit, t0, end, &mut counts, |segment| {
                 if self.fold_segment(volume, &lit, &mut ray, &segment, sink, counters) {
                     ControlFlow::Break(())
                 } else {
                     ControlFlow::Continue(())
                 }
             });
-            match march {
-                March::Opaque => self.retire_opaque(&ray, sink),
-                March::Through => {
+            match (march, hit) {
+                (March::Opaque, _) => self.retire_opaque(&ray, sink),
+                (March::Through, Some((bvh, h))) => {
+                    let tri = bvh.triangle(&h);
+                    let surface = (tri.normal(), tri.material);
+                    self.shade_behind_volume(&ray, h.t, surface, sink, counters);
+                }
+                (March::Through, None) => {
                     if next.is_some() {
                         counters.forwarded += 1;
                     }
@@ -480,7 +500,7 @@ impl SceneView {
             let mut children = [*ray; MAX_LIGHTS];
             let mut made = 0;
             for i in segment.lit_by() {
-                let carried = Vec3::from(segment.direct[i]) * w;
+                let carried = Vec3::from(segment.direct[i]) * w * Vec3::from(ray.throughput);
                 let Some((dir, t_max)) = lit.shadow_ray(i, origin) else {
                     continue;
                 };
@@ -519,7 +539,10 @@ impl SceneView {
     /// no light.
     fn retire_opaque(&self, ray: &RayRecord, sink: &mut impl RaySink) {
         match ray.kind() {
-            RayKind::Radiance => sink.retire(ray, ray.volume_rgb),
+            RayKind::Radiance => {
+                let rgb = Vec3::from(ray.volume_rgb) * Vec3::from(ray.throughput);
+                sink.retire(ray, rgb.into());
+            }
             RayKind::Shadow => sink.retire(ray, [0.0; 3]),
         }
     }
@@ -581,10 +604,31 @@ impl SceneView {
             }
             let skip = scratch.skip.as_ref().map_or(&[][..], |(_, s)| s.as_slice());
             let line = (Vec3::from(ray.origin), Vec3::from(ray.dir));
+            // Surfaces in the brick, as the chained trace meets them (`trace_brick`).
+            let surfaces = data.surfaces().map(DomainData::bvh);
+            let mut end = t1;
+            let mut hit = None;
+            match surfaces.map(|bvh| (bvh, surface_in(&mut scratch.traverser, bvh, ray, t0, t1))) {
+                Some((_, SurfaceIn::Blocks)) => {
+                    out.push(Verdict::Blocked);
+                    return;
+                }
+                Some((bvh, SurfaceIn::Hit(h))) => {
+                    let tri = bvh.triangle(&h);
+                    end = h.t;
+                    hit = Some(SurfaceHit {
+                        order,
+                        t: h.t,
+                        normal: tri.normal().into(),
+                        material: tri.material,
+                    });
+                }
+                _ => {}
+            }
             let mut counts = SampleCounts::default();
             let before = out.len();
             let lit = volume.lights_for(ray);
-            volume.march(&brick, skip, line, &lit, t0, t1, &mut counts, |segment| {
+            volume.march(&brick, skip, line, &lit, t0, end, &mut counts, |segment| {
                 out.push(Verdict::Segment(segment));
                 for light in segment.lit_by() {
                     out.push(Verdict::Light(SegmentLight {
@@ -596,6 +640,9 @@ impl SceneView {
                 }
                 ControlFlow::Continue(())
             });
+            if let Some(hit) = hit {
+                out.push(Verdict::VolumeHit(hit));
+            }
             let segments = (out.len() - before) as u32;
             out.push(Verdict::VolumeEnd(segments));
             counters.volume_samples += counts.taken;
@@ -644,12 +691,24 @@ impl SceneView {
         counters: &mut KernelCounters,
     ) {
         if let Some(volume) = &self.volume {
+            if outcome.blocked {
+                // A surface in the volume blocks this shadow ray.
+                sink.retire(ray, [0.0; 3]);
+                return;
+            }
             // The segments of every brick, in order along the ray, each with the light it
-            // reflects of each light: the chained trace's fold.
+            // reflects of each light: the chained trace's fold. With a surface hit, only
+            // those in front of it: the hit's brick composited up to it, the bricks behind
+            // it hold samples at or beyond it (the chained trace never reaches them).
             let mut ray = *ray;
             let lit = volume.lights_for(&ray);
             let mut lights = outcome.lights.iter().peekable();
-            for segment in &outcome.segments {
+            let in_front = |s: &&Segment| {
+                outcome
+                    .nearest
+                    .is_none_or(|h| volume.sample_t(s.first) < h.t)
+            };
+            for segment in outcome.segments.iter().filter(in_front) {
                 let mut segment = *segment;
                 while let Some(l) = lights.next_if(|l| l.first <= segment.first) {
                     if l.first == segment.first && (l.light as usize) < MAX_LIGHTS {
@@ -662,7 +721,13 @@ impl SceneView {
                     return;
                 }
             }
-            self.escape(&ray, sink);
+            match outcome.nearest {
+                Some(h) => {
+                    let surface = (Vec3::from(h.normal), h.material);
+                    self.shade_behind_volume(&ray, h.t, surface, sink, counters);
+                }
+                None => self.escape(&ray, sink),
+            }
             return;
         }
         match (ray.kind(), outcome.nearest) {
@@ -675,6 +740,64 @@ impl SceneView {
                 self.hand_on_credit(ray, &mut children, sink);
             }
             _ => self.escape(ray, sink),
+        }
+    }
+
+    /// A radiance ray composited up to a surface at `t` in the volume, and not opaque there:
+    /// the surface is shaded as if the ray had met it bare, its children carrying the ray's
+    /// weight times the volume's transparency in front of it (and starting their own
+    /// compositing from nothing), and the ray retires the volume's colour (weighted by its
+    /// own throughput) as one more leaf: pixel = volume colour + transparency * surface.
+    fn shade_behind_volume(
+        &self,
+        ray: &RayRecord,
+        t: f32,
+        surface: (Vec3, u32),
+        sink: &mut impl RaySink,
+        counters: &mut KernelCounters,
+    ) {
+        let weight = Vec3::from(ray.throughput);
+        let behind = RayRecord {
+            throughput: (weight * (1.0 - ray.volume_alpha)).into(),
+            volume_rgb: [0.0; 3],
+            volume_alpha: 0.0,
+            ..*ray
+        };
+        let p = Vec3::from(ray.origin) + Vec3::from(ray.dir) * t;
+        let mut children = Vec::with_capacity(self.lights.len() + 1);
+        self.shade(&behind, p, surface, &mut children, counters);
+        let own = Vec3::from(ray.volume_rgb) * weight;
+        if own == Vec3::ZERO {
+            self.hand_on_credit(&behind, &mut children, sink);
+            return;
+        }
+        // The ray's own report is a leaf: with a bounce, it takes a leaf's share; without,
+        // the continuation's (so credit still sums exactly).
+        let leaves = children
+            .iter()
+            .filter(|c| c.kind() == RayKind::Shadow)
+            .count();
+        let bounce = leaves < children.len();
+        match split_path_credit(ray.credit, leaves + usize::from(bounce)) {
+            Ok(s) => {
+                let own_credit = if bounce { s.leaf } else { s.continuation };
+                sink.retire(
+                    &RayRecord {
+                        credit: own_credit,
+                        ..*ray
+                    },
+                    own.into(),
+                );
+                for child in &mut children {
+                    child.credit = if child.kind() == RayKind::Shadow {
+                        s.leaf
+                    } else {
+                        s.continuation
+                    };
+                    self.route_new(*child, sink);
+                }
+            }
+            Err(_) => sink.retire(ray, own.into()),
         }
     }
 
@@ -885,6 +1008,28 @@ impl SceneView {
                 ..*ray
             });
         }
+    }
+}
+
+/// What the surfaces in a brick do to a ray over its interval `[t0, t1)` there.
+enum SurfaceIn {
+    /// Nothing: the ray goes on through the voxels.
+    Clear,
+    /// A shadow ray is blocked.
+    Blocks,
+    /// A radiance ray's nearest hit (ties by triangle id, as in any mesh domain).
+    Hit(Hit),
+}
+
+fn surface_in(traverser: &mut Traverser, bvh: Bvh, ray: &RayRecord, t0: f32, t1: f32) -> SurfaceIn {
+    let tr = TraceRay::new(Vec3::from(ray.origin), Vec3::from(ray.dir));
+    match ray.kind() {
+        RayKind::Shadow if traverser.any_hit(bvh, &tr, t0, t1) => SurfaceIn::Blocks,
+        RayKind::Shadow => SurfaceIn::Clear,
+        RayKind::Radiance => match traverser.nearest_hit(bvh, &tr, t0, t1) {
+            Some(h) => SurfaceIn::Hit(h),
+            None => SurfaceIn::Clear,
+        },
     }
 }
 

@@ -15,7 +15,9 @@
 //! along the ray, the fold the chained trace makes brick after brick, so the bits agree.
 //! With shadows, a segment that reflects a light's light is followed by one more verdict per
 //! such light ([`Verdict::Light`]), counted by the closing verdict too; the group sends the
-//! shadow rays as it folds the segment, as the chained trace does.
+//! shadow rays as it folds the segment, as the chained trace does. A brick with surfaces in it
+//! sends its nearest hit too ([`Verdict::VolumeHit`], counted with the segments, which stop
+//! at it), or a shadow ray's [`Verdict::Blocked`] alone.
 
 use super::dvr::Segment;
 use crate::ray::RayRecord;
@@ -50,8 +52,11 @@ pub enum Verdict {
     Segment(Segment),
     /// The light one segment reflects of one light, to be sent on in a shadow ray.
     Light(SegmentLight),
-    /// A volume ray's copy is done: it sent this many [`Verdict::Segment`]s and
-    /// [`Verdict::Light`]s before.
+    /// A radiance ray's nearest hit on the surfaces in a brick (not the copy's last verdict:
+    /// the brick's segments in front of it come with it).
+    VolumeHit(SurfaceHit),
+    /// A volume ray's copy is done: it sent this many [`Verdict::Segment`]s,
+    /// [`Verdict::Light`]s and [`Verdict::VolumeHit`]s before.
     VolumeEnd(u32),
 }
 
@@ -87,6 +92,8 @@ impl VerdictRecord {
     /// Kind of a segment's light: `order` the segment's first sample, `material` the light,
     /// `t` the segment's depth, `normal` the premultiplied colour reflected.
     pub const LIGHT: u8 = 5;
+    /// Kind of a hit on the surfaces in a brick: the fields of [`VerdictRecord::HIT`].
+    pub const VOLUME_HIT: u8 = 6;
 
     /// `verdict` on `copy`, to go back to the copy's group.
     pub fn new(copy: &RayRecord, verdict: Verdict) -> Self {
@@ -106,8 +113,12 @@ impl VerdictRecord {
         match verdict {
             Verdict::Clear => {}
             Verdict::Blocked => r.kind = Self::BLOCKED,
-            Verdict::Hit(hit) => {
-                r.kind = Self::HIT;
+            Verdict::Hit(hit) | Verdict::VolumeHit(hit) => {
+                r.kind = if matches!(verdict, Verdict::Hit(_)) {
+                    Self::HIT
+                } else {
+                    Self::VOLUME_HIT
+                };
                 r.order = hit.order;
                 r.t = hit.t;
                 r.normal = hit.normal;
@@ -139,6 +150,12 @@ impl VerdictRecord {
         match self.kind {
             Self::BLOCKED => Verdict::Blocked,
             Self::HIT => Verdict::Hit(SurfaceHit {
+                order: self.order,
+                t: self.t,
+                normal: self.normal,
+                material: self.material,
+            }),
+            Self::VOLUME_HIT => Verdict::VolumeHit(SurfaceHit {
                 order: self.order,
                 t: self.t,
                 normal: self.normal,
@@ -177,7 +194,7 @@ impl Outcome {
             Verdict::Segment(seg) => self.segments.push(seg),
             Verdict::Light(light) => self.lights.push(light),
             Verdict::Blocked => self.blocked = true,
-            Verdict::Hit(hit) => {
+            Verdict::Hit(hit) | Verdict::VolumeHit(hit) => {
                 if self.nearest.is_none_or(|n| hit.order < n.order) {
                     self.nearest = Some(hit);
                 }
@@ -281,7 +298,7 @@ impl Groups {
         }
         let verdict = record.verdict();
         match verdict {
-            Verdict::Segment(_) | Verdict::Light(_) => {
+            Verdict::Segment(_) | Verdict::Light(_) | Verdict::VolumeHit(_) => {
                 let held = (group.outcome.segments.len() + group.outcome.lights.len()) as u32;
                 if held >= MAX_SEGMENTS || (group.waiting == 0 && group.segments_due <= 0) {
                     return Err(GroupError::TooManySegments(id));
@@ -477,6 +494,32 @@ mod tests {
         assert_eq!(settle(&mut groups, &copy, Verdict::VolumeEnd(0)), None);
         let (_, outcome) = settle(&mut groups, &copy, Verdict::Clear).unwrap();
         assert!(outcome.segments.is_empty());
+    }
+
+    #[test]
+    fn a_hit_on_a_bricks_surfaces_comes_with_its_segments_and_the_nearest_wins() {
+        // The near brick's hit arrives after its closing count, which counts it; the far
+        // brick's hit is farther along the ray and loses.
+        let mut groups = Groups::new();
+        let copy = spread(&mut groups, ray(7), &[1, 2]);
+        let volume_hit = |order, t| {
+            Verdict::VolumeHit(SurfaceHit {
+                order,
+                t,
+                normal: [0.0, 0.0, 1.0],
+                material: 0,
+            })
+        };
+        assert_eq!(settle(&mut groups, &copy, segment(3, 0.1)), None);
+        assert_eq!(settle(&mut groups, &copy, Verdict::VolumeEnd(2)), None);
+        assert_eq!(settle(&mut groups, &copy, volume_hit(1, 9.0)), None);
+        assert_eq!(settle(&mut groups, &copy, volume_hit(0, 2.5)), None);
+        let (_, outcome) = settle(&mut groups, &copy, Verdict::VolumeEnd(1)).unwrap();
+        assert_eq!(outcome.nearest.map(|h| (h.order, h.t)), Some((0, 2.5)));
+        assert_eq!(outcome.segments.len(), 1);
+        // Through the wire and back, a brick's hit stays one.
+        let back = VerdictRecord::new(&copy, volume_hit(0, 2.5)).verdict();
+        assert_eq!(back, volume_hit(0, 2.5));
     }
 
     fn light(first: u32, light: u32) -> Verdict {

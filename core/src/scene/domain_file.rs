@@ -139,7 +139,8 @@ pub fn write_domain(
 }
 
 /// A mapped, checked domain file: a mesh domain, or a volume brick (`crate::brick`), whose
-/// mesh sections are then empty.
+/// mesh sections are then empty; a brick of a scene with surfaces in its volume carries its
+/// surfaces' mesh domain beside it ([`DomainData::surfaces`]).
 pub struct DomainData {
     map: Mmap,
     path: PathBuf,
@@ -148,6 +149,7 @@ pub struct DomainData {
     triangles: u64,
     sections: [Range<usize>; SECTIONS],
     brick: Option<crate::brick::BrickLayout>,
+    surfaces: Option<Box<DomainData>>,
 }
 
 impl std::fmt::Debug for DomainData {
@@ -197,6 +199,7 @@ impl DomainData {
                 triangles: 0,
                 sections: Default::default(),
                 brick: Some(layout),
+                surfaces: None,
                 map,
             });
         }
@@ -245,6 +248,7 @@ impl DomainData {
             sections,
             map,
             brick: None,
+            surfaces: None,
         };
         bvh::validate(data.nodes(), data.blocks()).map_err(bad)?;
         for b in data.blocks() {
@@ -286,14 +290,46 @@ impl DomainData {
         self.bounds
     }
 
-    /// Size of the mapping.
+    /// Size of the mappings: the domain's file, and its surfaces' file if it has one.
     pub fn bytes(&self) -> u64 {
-        self.map.len() as u64
+        self.map.len() as u64 + self.surfaces.as_ref().map_or(0, |s| s.bytes())
     }
 
-    /// Triangles the domain holds (distinct ones; a brick holds none).
+    /// Triangles the domain holds (distinct ones; a brick only those of its surfaces).
     pub fn triangle_count(&self) -> u64 {
-        self.triangles
+        self.triangles + self.surfaces.as_ref().map_or(0, |s| s.triangle_count())
+    }
+
+    /// A brick's surfaces: the mesh domain of the triangles inside its box, if the scene has
+    /// surfaces in its volume.
+    pub fn surfaces(&self) -> Option<&DomainData> {
+        self.surfaces.as_deref()
+    }
+
+    /// Gives this brick the mesh domain `surfaces` of the triangles inside its box; refused
+    /// (naming the surfaces' file) unless this is a brick and `surfaces` a mesh domain of the
+    /// same id.
+    pub fn attach_surfaces(&mut self, surfaces: DomainData) -> Result<(), SceneError> {
+        let reason = if self.brick.is_none() {
+            Some("surfaces belong to a volume brick, not to a mesh domain".to_string())
+        } else if surfaces.brick.is_some() {
+            Some("is a volume brick where a brick's surfaces belong".to_string())
+        } else if surfaces.domain != self.domain {
+            Some(format!(
+                "holds the surfaces of domain {}, not of brick {}",
+                surfaces.domain, self.domain
+            ))
+        } else {
+            None
+        };
+        if let Some(reason) = reason {
+            return Err(SceneError::Domain {
+                path: surfaces.path.clone(),
+                reason,
+            });
+        }
+        self.surfaces = Some(Box::new(surfaces));
+        Ok(())
     }
 
     /// BVH nodes.

@@ -228,9 +228,9 @@ pub struct DomainEntry {
     pub file: String,
     /// The domain's box (a leaf of the k-d tree).
     pub bounds: Aabb,
-    /// Size of the file in bytes.
+    /// Size of the domain's files in bytes (with its surfaces' file, if any).
     pub bytes: u64,
-    /// Triangles referenced by the domain.
+    /// Triangles referenced by the domain (a brick's: those of its surfaces).
     pub triangles: u64,
     /// xxh3-64 of the file with its checksum field zeroed, as 16 hex digits.
     pub checksum: String,
@@ -238,6 +238,20 @@ pub struct DomainEntry {
     /// brick the transfer function makes transparent is skipped without loading it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub values: Option<[f32; 2]>,
+    /// A brick of a volume with surfaces in it: the mesh domain file of the triangles in its
+    /// box, traced in the same pass as its voxels (`render::kernel`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub surfaces: Option<SurfaceFile>,
+}
+
+/// The mesh domain file of a brick's surfaces.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SurfaceFile {
+    /// File name inside the scene directory.
+    pub file: String,
+    /// xxh3-64 of the file with its checksum field zeroed, as 16 hex digits.
+    pub checksum: String,
 }
 
 /// Largest manifest read (far above any real one: 16 domains take about 4 KiB).
@@ -339,12 +353,14 @@ impl Manifest {
         // Hex was checked when the manifest was parsed.
         let checksum = u64::from_str_radix(&entry.checksum, 16).unwrap_or_default();
         let path = dir.join(&entry.file);
-        let data = DomainData::open(
-            &path,
-            checksum,
-            verify_checksum,
-            self.materials.len() as u32,
-        )?;
+        let materials = self.materials.len() as u32;
+        let mut data = DomainData::open(&path, checksum, verify_checksum, materials)?;
+        if let Some(s) = &entry.surfaces {
+            let checksum = u64::from_str_radix(&s.checksum, 16).unwrap_or_default();
+            let surfaces =
+                DomainData::open(&dir.join(&s.file), checksum, verify_checksum, materials)?;
+            data.attach_surfaces(surfaces)?;
+        }
         let mismatch = if data.domain() != domain {
             Some(format!(
                 "holds domain {}, the manifest says {domain}",
@@ -442,14 +458,22 @@ impl Manifest {
             }
         }
         for (i, d) in self.domains.iter().enumerate() {
-            if d.file.is_empty() || d.file.contains('/') || d.file.contains("..") {
-                return Err(format!(
-                    "domain {i}: file name {:?} must be a plain name",
-                    d.file
-                ));
+            let files = std::iter::once((&d.file, &d.checksum))
+                .chain(d.surfaces.as_ref().map(|s| (&s.file, &s.checksum)));
+            for (file, checksum) in files {
+                if file.is_empty() || file.contains('/') || file.contains("..") {
+                    return Err(format!(
+                        "domain {i}: file name {file:?} must be a plain name"
+                    ));
+                }
+                if u64::from_str_radix(checksum, 16).is_err() {
+                    return Err(format!("domain {i}: checksum {checksum:?} is not hex"));
+                }
             }
-            if u64::from_str_radix(&d.checksum, 16).is_err() {
-                return Err(format!("domain {i}: checksum {:?} is not hex", d.checksum));
+            if d.surfaces.is_some() && self.volume.is_none() {
+                return Err(format!(
+                    "domain {i}: only a volume's bricks have surfaces beside them"
+                ));
             }
         }
         for (i, l) in self.lights.iter().enumerate() {

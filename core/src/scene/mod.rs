@@ -8,7 +8,7 @@ use std::fs::File;
 use std::path::{Path, PathBuf};
 
 pub use domain_file::{DomainData, DomainSummary, write_domain};
-pub use manifest::{Camera, DomainEntry, Light, Manifest, Material, Sky, VolumeSpec};
+pub use manifest::{Camera, DomainEntry, Light, Manifest, Material, Sky, SurfaceFile, VolumeSpec};
 pub use partition::{DomainTree, KdNode};
 
 /// Name of the manifest inside a scene directory.

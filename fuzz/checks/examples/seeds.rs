@@ -237,6 +237,7 @@ fn main() {
         transfer: TransferFunction::preset("density").unwrap(),
         shading: true,
         shadows: true,
+        iso_surface: None,
     };
     let m = prepare_nbody_volume(&bricks, &options, 16, look).unwrap();
     for d in &m.domains {
