@@ -404,6 +404,7 @@ fn every_readme_command_runs_or_is_skipped_with_its_reason() {
         "docs/cranium/dvr-bone.png",
         "docs/cranium/dvr-skin.png",
         "docs/cranium/isosurface.png",
+        "docs/cranium/dvr-skin-bone-surface.png",
     ] {
         assert!(dir.join(f).exists(), "{f} was not written");
     }
