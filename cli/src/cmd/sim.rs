@@ -350,7 +350,7 @@ pub fn run(a: SimArgs) -> anyhow::Result<()> {
         units::human(a.model.nic_bandwidth),
     );
     println!(
-        "{:<12} {:>7} {:>12} {:>7} {:>12} {:>10} {:>10} {:>12} {:>9} {:>7} {:>8} {:>8}  image hash",
+        "{:<12} {:>7} {:>12} {:>7} {:>12} {:>10} {:>10} {:>12} {:>9} {:>7} {:>8}  image hash",
         "schedule",
         "workers",
         "virtual ms",
@@ -362,7 +362,6 @@ pub fn run(a: SimArgs) -> anyhow::Result<()> {
         "messages",
         "rounds",
         "plan %",
-        "wall s"
     );
     let mut failed: Vec<String> = Vec::new();
     for &workers in &a.workers.0 {
@@ -442,7 +441,9 @@ pub fn run(a: SimArgs) -> anyhow::Result<()> {
             summary.print(schedule, &a.seeds);
         }
     }
-    println!(
+    // Measurements of this machine go to stderr: stdout is the simulation's, the same for
+    // the same seed to the byte.
+    eprintln!(
         "peak RSS of this process: {}",
         units::human(rayfarm_core::render::stats::peak_rss_bytes())
     );
@@ -515,8 +516,12 @@ fn run_calibrate(c: CalibrateArgs) -> anyhow::Result<()> {
 
 fn print_row(schedule: Schedule, workers: usize, o: &Outcome, wall: f64) {
     let t = o.frame_time.map_or(f64::NAN, |t| t.as_secs_f64());
+    eprintln!(
+        "{} at {workers} workers: {wall:.1} s of wall time",
+        schedule_name(schedule)
+    );
     println!(
-        "{:<12} {:>7} {:>12.3} {:>7} {:>12} {:>10} {:>10} {:>12} {:>9} {:>7} {:>8.2} {:>8.1}  {}",
+        "{:<12} {:>7} {:>12.3} {:>7} {:>12} {:>10} {:>10} {:>12} {:>9} {:>7} {:>8.2}  {}",
         schedule_name(schedule),
         workers,
         t * 1e3,
@@ -528,7 +533,6 @@ fn print_row(schedule: Schedule, workers: usize, o: &Outcome, wall: f64) {
         o.messages,
         o.rounds,
         o.coordinator_busy.as_secs_f64() / t * 100.0,
-        wall,
         o.image_hash.as_deref().unwrap_or("-")
     );
 }
