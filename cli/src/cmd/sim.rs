@@ -293,7 +293,10 @@ fn bound(clean: Duration) -> Duration {
     clean * 20 + (ACK_DEADLINE + WORKER_TIMEOUT + Duration::from_secs(2)) * 2 + RECONNECT
 }
 
-const CLEAN_BOUND: Duration = Duration::from_secs(3600);
+/// How long a clean run may take in virtual time: a day, since a domain charged at a stated
+/// size (`--charge-domain-bytes`) makes frames of simulated hours (at 20 GiB a domain, 4
+/// image-plane workers on a 1.25 GB/s link each take about an hour).
+const CLEAN_BOUND: Duration = Duration::from_secs(24 * 3600);
 
 pub fn run(a: SimArgs) -> anyhow::Result<()> {
     if let Some(SimCommand::Calibrate(c)) = a.command {
