@@ -19,6 +19,7 @@ use rayfarm_machine::coordinator::Rounds;
 use rayfarm_machine::coordinator::cluster::{Action, Config, Input, JobRecord, OpenedFrame, Tally};
 use rayfarm_proto::{self as proto, JobState, worker_message::Body as FromWorker};
 
+use crate::cost::CostModel;
 use crate::net::NodeId;
 
 /// What the coordinator does to a worker's node.
@@ -40,6 +41,8 @@ pub struct CoordConfig {
     pub worker_timeout: Duration,
     /// How long one record takes to reach the disk.
     pub disk_latency: Duration,
+    /// What its planning rounds cost.
+    pub cost: CostModel,
 }
 
 /// How long a finished frame waits for its workers' statistics (the coordinator's).
@@ -88,6 +91,11 @@ pub struct SimCoordinator {
     pub problems: Vec<String>,
     /// Rounds planned over every frame.
     pub rounds: u64,
+    /// Virtual time spent planning, over every process.
+    pub busy: Duration,
+    /// When the process is done planning what it was given so far: what it sends leaves
+    /// then.
+    pub free_at: Time,
 }
 
 impl SimCoordinator {
@@ -108,6 +116,8 @@ impl SimCoordinator {
             failed: None,
             problems: Vec::new(),
             rounds: 0,
+            busy: Duration::ZERO,
+            free_at: Time(0),
         };
         c.start(Time(0));
         Ok(c)
@@ -154,6 +164,8 @@ impl SimCoordinator {
     /// of its workers end.
     pub fn crash(&mut self) -> Vec<(NodeId, u64)> {
         self.disk.pending.clear();
+        // Its planning dies with it.
+        self.free_at = Time(0);
         self.process
             .take()
             .map(|p| p.nodes.into_values().collect())
@@ -391,6 +403,12 @@ impl SimCoordinator {
                 }
                 Action::Tally(Tally::Rounds(n)) => {
                     self.rounds += n;
+                    let took =
+                        self.config
+                            .cost
+                            .planning(n, p.nodes.len(), self.config.domain_bytes.len());
+                    self.busy += took;
+                    self.free_at = self.free_at.max(now) + took;
                     None
                 }
                 Action::Tally(_) => None,

@@ -1,57 +1,139 @@
-//! How long things take in virtual time. The model is deliberately simple and stated in the
-//! README: a domain load costs a fixed latency plus its bytes over the storage bandwidth; a
-//! pass costs its traced segments and issued camera rays over the worker's threads; a
-//! message costs its link's latency plus its bytes over the bandwidth (`net`). Nothing else
-//! takes time (the coordinator's and the machines' own work is free).
+//! How long computing takes in virtual time: a pass costs a fixed overhead plus its radiance
+//! segments, shadow segments, camera samples and volume samples, each at its own price, over
+//! the worker's threads; a planning round of the coordinator costs a fixed part plus a part
+//! per member and per domain. The prices are measured on a machine by `rayfarm sim calibrate`
+//! (`calibrate`) and kept in a TOML file ([`ComputeCost::load`]); the defaults are one such
+//! measurement. Loads are priced by the shared storage (`storage`), messages by the network
+//! (`net`).
 
+use std::path::Path;
 use std::time::Duration;
 
 use rayfarm_core::render::KernelCounters;
+use serde::{Deserialize, Serialize};
 
-/// The cost model. See the module documentation.
+/// Prices of computing, in nanoseconds of one core. See the module documentation.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ComputeCost {
+    /// Fixed cost of one pass (setting it up, sorting its rays, handing its output back).
+    pub pass_ns: f64,
+    /// One radiance-ray segment traced against a domain.
+    pub radiance_segment_ns: f64,
+    /// One shadow-ray segment traced against a domain.
+    pub shadow_segment_ns: f64,
+    /// One camera sample generated and routed to its first domain.
+    pub camera_sample_ns: f64,
+    /// One volume sample interpolated and composited.
+    pub volume_sample_ns: f64,
+    /// Fixed cost of one planning round of the coordinator.
+    pub round_ns: f64,
+    /// A planning round's cost per member of the cluster.
+    pub round_member_ns: f64,
+    /// A planning round's cost per domain of the scene.
+    pub round_domain_ns: f64,
+}
+
+impl Default for ComputeCost {
+    /// `rayfarm sim calibrate` on this project's 2-core VM (the file `sim/calibration.toml`,
+    /// rounded; the command is in it and in README "Simulator"). Volume samples were not in
+    /// that scene: their price is the direct volume benchmark's 14 M samples/s a core (README
+    /// "Benchmarks", unlit, skipping on).
+    fn default() -> Self {
+        ComputeCost {
+            pass_ns: 44_700.0,
+            radiance_segment_ns: 223.0,
+            shadow_segment_ns: 229.5,
+            camera_sample_ns: 116.7,
+            volume_sample_ns: 71.0,
+            round_ns: 0.0,
+            round_member_ns: 2_046.0,
+            round_domain_ns: 90.6,
+        }
+    }
+}
+
+impl ComputeCost {
+    /// Reads a calibration file written by `rayfarm sim calibrate`.
+    pub fn load(path: &Path) -> Result<Self, String> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| format!("reading {}: {e}", path.display()))?;
+        let c: ComputeCost =
+            toml::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+        c.check().map_err(|e| format!("{}: {e}", path.display()))?;
+        Ok(c)
+    }
+
+    /// The file `load` reads back.
+    pub fn to_toml(&self) -> String {
+        toml::to_string(self).unwrap_or_default()
+    }
+
+    /// Refuses prices that are negative, not numbers, or absurd (above a second).
+    pub fn check(&self) -> Result<(), String> {
+        let all = [
+            ("pass_ns", self.pass_ns),
+            ("radiance_segment_ns", self.radiance_segment_ns),
+            ("shadow_segment_ns", self.shadow_segment_ns),
+            ("camera_sample_ns", self.camera_sample_ns),
+            ("volume_sample_ns", self.volume_sample_ns),
+            ("round_ns", self.round_ns),
+            ("round_member_ns", self.round_member_ns),
+            ("round_domain_ns", self.round_domain_ns),
+        ];
+        for (name, v) in all {
+            if !(0.0..=1e9).contains(&v) {
+                return Err(format!("{name} = {v} is not a price in 0..=1e9 ns"));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The cost model of computing: the prices and the threads of every worker.
 #[derive(Clone, Copy, Debug)]
 pub struct CostModel {
-    /// Fixed cost of opening and mapping one domain file.
-    pub load_latency: Duration,
-    /// Storage bandwidth a load reads at, bytes per second.
-    pub load_bytes_per_second: u64,
-    /// One ray segment traced against a domain, on one thread.
-    pub segment: Duration,
-    /// One camera ray generated and routed, on one thread.
-    pub primary: Duration,
+    pub compute: ComputeCost,
     /// Tracing threads per worker.
     pub threads: u32,
 }
 
 impl Default for CostModel {
-    /// Figures of this project's machines: a shared disk of 500 MB/s with 2 ms to open a
-    /// domain, and about 2 M segments per second per core (`NOTES.md`, coherent rays).
     fn default() -> Self {
         CostModel {
-            load_latency: Duration::from_millis(2),
-            load_bytes_per_second: 500_000_000,
-            segment: Duration::from_nanos(500),
-            primary: Duration::from_nanos(100),
+            compute: ComputeCost::default(),
             threads: 1,
         }
     }
 }
 
+/// Nanoseconds as a duration, rounded down (never negative).
+fn nanos(ns: f64) -> Duration {
+    Duration::from_nanos(ns.max(0.0) as u64)
+}
+
 impl CostModel {
-    /// Virtual time of `loads` domain loads of `bytes` in all.
-    pub fn loads(&self, loads: u64, bytes: u64) -> Duration {
-        self.load_latency * loads as u32
-            + Duration::from_nanos(
-                (u128::from(bytes) * 1_000_000_000 / u128::from(self.load_bytes_per_second.max(1)))
-                    as u64,
-            )
+    /// The single-core time of a pass that did the work of `c`, its loads aside.
+    pub fn pass_work_ns(&self, c: &KernelCounters) -> f64 {
+        let p = &self.compute;
+        p.pass_ns
+            + p.radiance_segment_ns * c.radiance_segments as f64
+            + p.shadow_segment_ns * c.shadow_segments as f64
+            + p.camera_sample_ns * c.primary_rays as f64
+            + p.volume_sample_ns * c.volume_samples as f64
     }
 
-    /// Virtual time of a pass that did the work of `c`, its loads aside.
+    /// Virtual time of a pass that did the work of `c` on the worker's threads, its loads
+    /// aside.
     pub fn pass(&self, c: &KernelCounters) -> Duration {
-        let work = self.segment.as_nanos() as u64 * c.segments()
-            + self.primary.as_nanos() as u64 * c.primary_rays;
-        Duration::from_nanos(work / u64::from(self.threads.max(1)))
+        nanos(self.pass_work_ns(c) / f64::from(self.threads.max(1)))
+    }
+
+    /// Virtual time of `rounds` planning rounds over `members` workers and `domains` domains.
+    pub fn planning(&self, rounds: u64, members: usize, domains: usize) -> Duration {
+        let p = &self.compute;
+        let one =
+            p.round_ns + p.round_member_ns * members as f64 + p.round_domain_ns * domains as f64;
+        nanos(one * rounds as f64)
     }
 }
 
@@ -60,19 +142,49 @@ mod tests {
     use super::*;
 
     #[test]
-    fn a_pass_costs_its_segments_over_its_threads_and_a_load_its_bytes() {
+    fn a_pass_costs_its_work_over_its_threads_and_a_round_its_size() {
         let m = CostModel {
             threads: 2,
-            ..CostModel::default()
+            compute: ComputeCost {
+                pass_ns: 1000.0,
+                radiance_segment_ns: 500.0,
+                shadow_segment_ns: 250.0,
+                camera_sample_ns: 100.0,
+                volume_sample_ns: 10.0,
+                round_ns: 1000.0,
+                round_member_ns: 10.0,
+                round_domain_ns: 1.0,
+            },
         };
         let c = KernelCounters {
             radiance_segments: 3000,
             shadow_segments: 1000,
             primary_rays: 2000,
+            volume_samples: 100,
             ..KernelCounters::default()
         };
-        // (4000 x 500 ns + 2000 x 100 ns) / 2 threads.
-        assert_eq!(m.pass(&c), Duration::from_micros(1100));
-        assert_eq!(m.loads(2, 1_000_000), Duration::from_millis(6));
+        // (1000 + 3000 x 500 + 1000 x 250 + 2000 x 100 + 100 x 10) ns / 2 threads.
+        assert_eq!(m.pass(&c), Duration::from_nanos(976_000));
+        // Two rounds of (1000 + 64 x 10 + 512 x 1) ns.
+        assert_eq!(m.planning(2, 64, 512), Duration::from_nanos(4304));
+    }
+
+    #[test]
+    fn a_calibration_file_reads_back_and_bad_prices_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("c.toml");
+        let c = ComputeCost {
+            shadow_segment_ns: 123.5,
+            ..ComputeCost::default()
+        };
+        std::fs::write(&path, c.to_toml()).unwrap();
+        assert_eq!(ComputeCost::load(&path).unwrap(), c);
+        let bad = c.to_toml().replace("123.5", "-1.0");
+        std::fs::write(&path, bad).unwrap();
+        assert!(
+            ComputeCost::load(&path)
+                .unwrap_err()
+                .contains("shadow_segment_ns")
+        );
     }
 }

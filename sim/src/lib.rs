@@ -12,11 +12,13 @@
 //! owns every source of order (one heap ordered by time then sequence number, per-link FIFO,
 //! ordered maps) and so repeats bit for bit.
 //!
-//! Modules: [`events`] (the heap), [`net`] (links: latency, bandwidth, FIFO, partitions),
-//! [`cost`] (virtual time of loads and passes), [`faults`] (a seed's faults), [`node`] (a
+//! Modules: [`events`] (the heap), [`net`] (links: latency, NIC bandwidth, FIFO, partitions),
+//! [`cost`] (virtual time of passes and planning), [`storage`] (the shared storage loads read
+//! from), [`calibrate`] (the cost model's prices measured here), [`faults`] (a seed's faults), [`node`] (a
 //! simulated worker shell), [`coord`] (the simulated coordinator process and its disk), [`world`] (the
 //! loop), [`check`] (the invariants after a run).
 
+pub mod calibrate;
 pub mod check;
 pub mod coord;
 pub mod cost;
@@ -24,9 +26,11 @@ pub mod events;
 pub mod faults;
 pub mod net;
 pub mod node;
+pub mod storage;
 pub mod world;
 
 pub use check::Violation;
-pub use cost::CostModel;
+pub use cost::{ComputeCost, CostModel};
 pub use faults::{Fault, FaultPlan};
+pub use storage::StorageModel;
 pub use world::{Outcome, RECONNECT, SimConfig, simulate};

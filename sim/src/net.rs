@@ -1,6 +1,7 @@
-//! The simulated network: a message from one node to another arrives after the link's
-//! latency plus its bytes over the link's bandwidth (a link sends one message at a time), in
-//! the order it was sent on that link (per-link FIFO, as over one TCP stream). Faults add to
+//! The simulated network: a message from one node to another arrives after the network's
+//! latency plus its bytes over the sender's NIC bandwidth (a NIC sends one message at a time,
+//! whatever its destination), in the order it was sent on that link (per-link FIFO, as over
+//! one TCP stream). Faults add to
 //! this: seeded jitter, extra delay on a node's links for a while, and partitions that hold a
 //! link's messages until it heals.
 
@@ -17,17 +18,18 @@ pub type NodeId = usize;
 /// The coordinator's node id.
 pub const COORDINATOR: NodeId = 0;
 
-/// What every link is like when nothing is wrong.
+/// What the network is like when nothing is wrong.
 #[derive(Clone, Copy, Debug)]
 pub struct LinkModel {
     /// One-way latency of a message.
     pub latency: Duration,
-    /// Bytes per second a link carries.
+    /// Bytes per second each node's NIC sends.
     pub bytes_per_second: u64,
 }
 
 impl Default for LinkModel {
-    /// A 10 Gb/s data-centre network: 100 us one way, 1.25 GB/s.
+    /// A commodity 10 Gb/s Ethernet data-centre network: 100 us one way through its switches,
+    /// 1.25 GB/s per NIC.
     fn default() -> Self {
         LinkModel {
             latency: Duration::from_micros(100),
@@ -53,8 +55,8 @@ impl Window {
 /// The links between nodes and the faults on them.
 pub struct Network {
     model: LinkModel,
-    /// When each directed link is free to send its next message.
-    free_at: BTreeMap<(NodeId, NodeId), Time>,
+    /// When each node's NIC is free to send its next message.
+    free_at: BTreeMap<NodeId, Time>,
     /// When the last message on each directed link arrives (later ones never overtake it).
     last_arrival: BTreeMap<(NodeId, NodeId), Time>,
     /// Links cut both ways for a while: what is sent meanwhile arrives after the heal.
@@ -107,11 +109,11 @@ impl Network {
         self.messages += 1;
         self.bytes += bytes as u64;
         let link = (from, to);
-        let start = now.max(self.free_at.get(&link).copied().unwrap_or_default());
+        let start = now.max(self.free_at.get(&from).copied().unwrap_or_default());
         let transmit = Duration::from_nanos(
             (bytes as u128 * 1_000_000_000 / u128::from(self.model.bytes_per_second.max(1))) as u64,
         );
-        self.free_at.insert(link, start + transmit);
+        self.free_at.insert(from, start + transmit);
         let mut at = start + transmit + self.model.latency;
         if !self.jitter.is_zero() {
             at = at + Duration::from_nanos(self.rng.below(self.jitter.as_nanos() as u64 + 1));
@@ -145,6 +147,16 @@ mod tests {
         let mut n = net();
         // 1.25 MB at 1.25 GB/s is 1 ms, plus 100 us.
         assert_eq!(n.arrival(Time(0), 1, 2, 1_250_000), Time(1_100_000));
+    }
+
+    #[test]
+    fn a_node_sends_one_message_at_a_time_whatever_its_destination() {
+        let mut n = net();
+        // Two 1.25 MB messages to two nodes: the second leaves when the first is sent.
+        assert_eq!(n.arrival(Time(0), 1, 2, 1_250_000), Time(1_100_000));
+        assert_eq!(n.arrival(Time(0), 1, 3, 1_250_000), Time(2_100_000));
+        // Another sender's NIC is free.
+        assert_eq!(n.arrival(Time(0), 2, 3, 1_250_000), Time(1_100_000));
     }
 
     #[test]

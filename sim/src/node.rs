@@ -16,8 +16,10 @@ use rayfarm_machine::worker::{
 };
 use rayfarm_proto as proto;
 
+use crate::calibrate::thread_cpu_ns;
 use crate::cost::CostModel;
 use crate::net::NodeId;
+use crate::storage::SharedStorage;
 
 /// The scene every simulated worker reads: one directory, one manifest.
 pub struct Scene {
@@ -47,6 +49,8 @@ pub struct PassRun {
     /// Domains it had to load, and the part of `took` the loads took.
     pub loads: u64,
     pub load_time: std::time::Duration,
+    /// CPU time of this thread the pass took on this machine, when measured (`calibrate`).
+    pub cpu_ns: Option<u64>,
 }
 
 /// See the module documentation.
@@ -143,14 +147,24 @@ impl SimWorker {
         })
     }
 
-    /// Runs a pass of `job_id` now, on the real kernel, and prices it with `cost`.
-    pub fn run_pass(&mut self, job_id: &str, work: PassWork, cost: &CostModel) -> PassRun {
+    /// Runs a pass of `job_id` at `now`, on the real kernel, and prices it with `cost`, its
+    /// loads read from `storage`; with `measure`, also the CPU time it took here.
+    pub fn run_pass(
+        &mut self,
+        now: Time,
+        job_id: &str,
+        work: PassWork,
+        cost: &CostModel,
+        storage: &mut SharedStorage,
+        measure: bool,
+    ) -> PassRun {
         let Some((_, frame)) = self.frame.as_ref().filter(|(j, _)| j == job_id) else {
             return PassRun {
                 result: Err("no scene open for the pass".into()),
                 took: Default::default(),
                 loads: 0,
                 load_time: Default::default(),
+                cpu_ns: None,
             };
         };
         let before = self.lock().counters();
@@ -159,10 +173,12 @@ impl SimWorker {
             work,
             cache: self.cache.clone(),
         };
+        let started = measure.then(thread_cpu_ns);
         let result = pass::run(input).map_err(|e| e.to_string());
+        let cpu_ns = started.map(|s| thread_cpu_ns().saturating_sub(s));
         let after = self.lock().counters();
         let loads = after.loads - before.loads;
-        let load_time = cost.loads(loads, after.bytes_loaded - before.bytes_loaded);
+        let load_time = storage.read(now, loads, after.bytes_loaded - before.bytes_loaded);
         let took = load_time
             + result
                 .as_ref()
@@ -176,6 +192,7 @@ impl SimWorker {
             took,
             loads,
             load_time,
+            cpu_ns,
         }
     }
 

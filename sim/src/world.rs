@@ -26,6 +26,7 @@ use crate::events::EventHeap;
 use crate::faults::{Fault, FaultPlan, Rng};
 use crate::net::{COORDINATOR, LinkModel, Network, NodeId};
 use crate::node::{PassRun, QueueCaps, Scene, SimWorker};
+use crate::storage::{SharedStorage, StorageModel};
 
 /// How long a worker whose control stream ended waits before it registers again (the
 /// worker shell backs off from 100 ms to 5 s; one second stands for it here).
@@ -52,6 +53,10 @@ pub struct SimConfig {
     pub pass_rays: usize,
     pub links: LinkModel,
     pub cost: CostModel,
+    pub storage: StorageModel,
+    /// Measure each pass's CPU time on this machine (`calibrate`; the virtual times do not
+    /// depend on it).
+    pub measure: bool,
     pub caps: QueueCaps,
     /// A peer that acknowledges nothing for this long is reported unresponsive.
     pub ack_deadline: Duration,
@@ -83,6 +88,8 @@ pub struct Outcome {
     pub segments: u64,
     /// Bytes of peer bundles sent.
     pub peer_bytes: u64,
+    /// Rays sent to another worker, as the workers' frame reports count them.
+    pub rays_migrated: u64,
     /// Messages of every kind.
     pub messages: u64,
     pub rounds: u64,
@@ -92,6 +99,19 @@ pub struct Outcome {
     /// Frames started (more than one after a coordinator crash or a loss of every worker).
     pub frames: u64,
     pub violations: Vec<Violation>,
+    /// Virtual time the coordinator spent planning.
+    pub coordinator_busy: Duration,
+    /// Bytes the storage was charged for.
+    pub storage_bytes: u64,
+    /// Every pass that loaded nothing, with the CPU time it took here, when measured.
+    pub measured: Vec<MeasuredPass>,
+}
+
+/// A pass's work and what it cost on this machine (`calibrate` fits the prices to these).
+#[derive(Clone, Debug, PartialEq)]
+pub struct MeasuredPass {
+    pub counters: rayfarm_core::render::KernelCounters,
+    pub cpu_ns: u64,
 }
 
 /// What travels between nodes. Control-stream messages name their stream (`conn`): each
@@ -163,6 +183,7 @@ struct World<'a> {
     now: Time,
     heap: EventHeap<Ev>,
     net: Network,
+    storage: SharedStorage,
     coord: SimCoordinator,
     /// Index 0 is the coordinator's place; workers from 1.
     workers: Vec<Option<SimWorker>>,
@@ -217,6 +238,7 @@ pub fn simulate(
         heartbeat: config.heartbeat,
         worker_timeout: config.worker_timeout,
         disk_latency: config.disk_latency,
+        cost: config.cost,
     })?;
     let mut world = World {
         config,
@@ -224,6 +246,7 @@ pub fn simulate(
         now: Time(0),
         heap: EventHeap::default(),
         net: Network::new(config.links, plan.jitter, Rng::new(plan.seed ^ 0x5eed)),
+        storage: SharedStorage::new(config.storage),
         coord,
         workers: vec![None],
         checks: Checks::default(),
@@ -339,6 +362,11 @@ impl World<'_> {
     }
 
     fn send(&mut self, from: NodeId, to: NodeId, msg: Msg) {
+        self.send_at(self.now, from, to, msg);
+    }
+
+    /// Sends `msg` when its sender is done with it at `depart` (not before now).
+    fn send_at(&mut self, depart: Time, from: NodeId, to: NodeId, msg: Msg) {
         let bytes = match &msg {
             Msg::Register(r, _) => r.encoded_len(),
             Msg::ToCoordinator(b, _) => proto::WorkerMessage {
@@ -352,7 +380,7 @@ impl World<'_> {
         if let Msg::Bundle { .. } = msg {
             self.outcome.peer_bytes += bytes as u64;
         }
-        let at = self.net.arrival(self.now, from, to, bytes);
+        let at = self.net.arrival(depart.max(self.now), from, to, bytes);
         self.heap.push(at, Ev::Deliver { from, to, msg });
     }
 
@@ -368,6 +396,12 @@ impl World<'_> {
                 let resident = w.resident();
                 if let Ok(out) = &run.result {
                     self.outcome.segments += out.counters.segments();
+                    if let Some(cpu_ns) = run.cpu_ns.filter(|_| run.loads == 0) {
+                        self.outcome.measured.push(MeasuredPass {
+                            counters: out.counters,
+                            cpu_ns,
+                        });
+                    }
                 }
                 let result = run.result.map_err(machine::PassFailed::Load);
                 self.feed(
@@ -488,11 +522,18 @@ impl World<'_> {
         self.carry_out(out);
     }
 
+    /// Sends what the coordinator answered, once it is done planning (it handles one thing
+    /// at a time, so what it sends leaves when all it was given so far is done).
     fn carry_out(&mut self, out: Vec<ToNode>) {
+        let depart = self.coord.free_at;
         for o in out {
             match o {
-                ToNode::Send(node, conn, m) => self.send(COORDINATOR, node, Msg::Control(*m, conn)),
-                ToNode::Close(node, conn) => self.send(COORDINATOR, node, Msg::Closed(conn)),
+                ToNode::Send(node, conn, m) => {
+                    self.send_at(depart, COORDINATOR, node, Msg::Control(*m, conn))
+                }
+                ToNode::Close(node, conn) => {
+                    self.send_at(depart, COORDINATOR, node, Msg::Closed(conn))
+                }
             }
         }
     }
@@ -584,6 +625,7 @@ impl World<'_> {
     fn action(&mut self, node: NodeId, action: Action) {
         let now = self.now;
         let cost = self.config.cost;
+        let measure = self.config.measure;
         let ack_deadline = self.config.ack_deadline;
         let Some(w) = self.worker_mut(node) else {
             return;
@@ -637,7 +679,10 @@ impl World<'_> {
                 }
             }
             Action::StartPass { job_id, work } => {
-                let run = w.run_pass(&job_id, work, &cost);
+                let Some(w) = self.workers.get_mut(node).and_then(Option::as_mut) else {
+                    return;
+                };
+                let run = w.run_pass(now, &job_id, work, &cost, &mut self.storage, measure);
                 let until = now + run.took;
                 w.pass_until = Some((until, now + run.load_time));
                 self.outcome.loads += run.loads;
@@ -648,6 +693,7 @@ impl World<'_> {
             Action::FrameEnded { job_id, mut stats } => {
                 stats.cache = w.cache_counters();
                 stats.threads = cost.threads as usize;
+                let migrated = stats.rays_sent;
                 let report = proto::FrameReport {
                     job_id,
                     stats_json: serde_json::to_string(&stats).unwrap_or_default(),
@@ -662,6 +708,7 @@ impl World<'_> {
                         Msg::ToCoordinator(FromWorker::FrameReport(report), conn),
                     );
                 }
+                self.outcome.rays_migrated += migrated;
             }
         }
     }
@@ -673,6 +720,8 @@ impl World<'_> {
         o.rounds = self.coord.rounds;
         o.frame_time = self.coord.completed_at.map(|t| t.since(Time(0)));
         o.frames = self.coord.frames;
+        o.coordinator_busy = self.coord.busy;
+        o.storage_bytes = self.storage.bytes;
         for p in &self.coord.problems {
             self.checks.violation("worker error", p.clone());
         }

@@ -1,19 +1,24 @@
 //! `rayfarm sim`: the cluster simulated in this process on virtual time (`rayfarm-sim`): a
-//! clean run per schedule, its figures and image hash, and with `--faults` a run per seed
-//! whose invariants are checked. Exits non-zero naming every seed that broke one, with the
-//! command that replays it.
+//! clean run per worker count and schedule, its figures and image hash, and with `--faults` a
+//! run per seed whose invariants are checked. Exits non-zero naming every seed that broke
+//! one, with the command that replays it. `rayfarm sim calibrate` measures the cost model's
+//! prices on this machine and writes the file `--cost` reads.
 
 use std::io::Write;
 use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::{Context, bail};
-use clap::Args;
+use clap::{Args, Subcommand};
 use rayfarm_node::job::{parse_schedule, schedule_name};
 use rayfarm_node::proto::Schedule;
+use rayfarm_sim::calibrate::calibrate;
+use rayfarm_sim::net::LinkModel;
 use rayfarm_sim::node::QueueCaps;
 use rayfarm_sim::world::open_scene;
-use rayfarm_sim::{CostModel, FaultPlan, Outcome, RECONNECT, SimConfig, simulate};
+use rayfarm_sim::{
+    ComputeCost, CostModel, FaultPlan, Outcome, RECONNECT, SimConfig, StorageModel, simulate,
+};
 use rayon::prelude::*;
 
 use crate::units;
@@ -21,31 +26,23 @@ use crate::view::FrameArgs;
 
 /// Options of `rayfarm sim`.
 #[derive(Args, Clone, Debug)]
+#[command(args_conflicts_with_subcommands = true)]
 pub struct SimArgs {
+    #[command(subcommand)]
+    pub command: Option<SimCommand>,
     /// Scene directory (holding scene.toml).
     #[arg(long)]
-    pub scene: PathBuf,
-    /// Workers at the start.
-    #[arg(long, default_value_t = 3)]
-    pub workers: usize,
+    pub scene: Option<PathBuf>,
+    /// Workers at the start, or several counts separated by commas (e.g. 64,256,1024): a run
+    /// of every schedule at each.
+    #[arg(long, default_value = "3", value_parser = parse_counts)]
+    pub workers: Counts,
     /// Schedule, or several separated by commas (image-plane, domain, dynamic, hybrid,
     /// predictive).
     #[arg(long, default_value = "dynamic")]
     pub schedule: String,
     #[command(flatten)]
-    pub frame: FrameArgs,
-    /// Each worker's domain cache budget, e.g. 512MiB.
-    #[arg(long, value_parser = units::bytes, default_value = "4GiB")]
-    pub cache_bytes: u64,
-    /// Camera rays a worker issues while fewer rays than this are queued on it.
-    #[arg(long, default_value_t = 4096)]
-    pub wave_rays: usize,
-    /// Most rays a worker traces in one pass.
-    #[arg(long, default_value_t = 2048)]
-    pub pass_rays: usize,
-    /// Tracing threads each worker is costed with (the cost model's divisor).
-    #[arg(long, default_value_t = 1)]
-    pub threads: u32,
+    pub model: ModelArgs,
     /// Run every seed of --seeds with its faults and check the invariants.
     #[arg(long)]
     pub faults: bool,
@@ -60,6 +57,188 @@ pub struct SimArgs {
     #[arg(long)]
     pub csv: Option<PathBuf>,
 }
+
+/// What `rayfarm sim` does besides simulating.
+#[derive(Subcommand, Clone, Debug)]
+pub enum SimCommand {
+    /// Measure the cost model's prices on this machine (per-segment trace cost, radiance and
+    /// shadow apart, per camera and volume sample, per pass, per planning round) and write
+    /// them to the file `rayfarm sim --cost` reads.
+    Calibrate(CalibrateArgs),
+}
+
+/// Options of `rayfarm sim calibrate`.
+#[derive(Args, Clone, Debug)]
+pub struct CalibrateArgs {
+    /// Scene directory whose passes are measured.
+    #[arg(long)]
+    pub scene: PathBuf,
+    /// Workers of the measured simulation (their passes are the samples).
+    #[arg(long, default_value_t = 4)]
+    pub workers: usize,
+    /// Schedule of the measured simulation.
+    #[arg(long, default_value = "dynamic")]
+    pub schedule: String,
+    /// The calibration file to write.
+    #[arg(long, default_value = "calibration.toml")]
+    pub out: PathBuf,
+    #[command(flatten)]
+    pub model: ModelArgs,
+}
+
+/// The simulated frame, the workers' settings and the cost model (every price and bandwidth a
+/// flag; the defaults describe a commodity cluster: 10 Gb/s Ethernet, a parallel file system of
+/// 10 GB/s aggregate with each node's link at 1.25 GB/s, and cores priced as this project's
+/// VM measured them).
+#[derive(Args, Clone, Debug)]
+pub struct ModelArgs {
+    #[command(flatten)]
+    pub frame: FrameArgs,
+    /// Each worker's domain cache budget, e.g. 512MiB.
+    #[arg(long, value_parser = units::bytes, default_value = "4GiB")]
+    pub cache_bytes: u64,
+    /// Camera rays a worker issues while fewer rays than this are queued on it.
+    #[arg(long, default_value_t = 4096)]
+    pub wave_rays: usize,
+    /// Most rays a worker traces in one pass.
+    #[arg(long, default_value_t = 2048)]
+    pub pass_rays: usize,
+    /// Tracing threads each worker is costed with (the cost model's divisor).
+    #[arg(long, default_value_t = 1)]
+    pub threads: u32,
+    /// Prices of computing, from `rayfarm sim calibrate` [default: the ones measured on this
+    /// project's VM, README "Simulator"].
+    #[arg(long)]
+    pub cost: Option<PathBuf>,
+    /// Aggregate bandwidth of the shared storage, shared by every reader, bytes per second
+    /// (binary units: 1GiB/s) [default: 10 GB/s, a few parallel file system servers].
+    #[arg(long, value_parser = rayfarm_core::units::parse_rate, default_value = "10000000000")]
+    pub storage_bandwidth: u64,
+    /// Most bytes per second one node reads from the storage; 0 for no cap [default: 1.25
+    /// GB/s, a 10 Gb/s link].
+    #[arg(long, value_parser = units::bytes, default_value = "1250000000")]
+    pub node_storage_bandwidth: u64,
+    /// Microseconds to open one domain on the storage.
+    #[arg(long, default_value_t = 1000)]
+    pub storage_latency_us: u64,
+    /// Charge every domain load this many bytes instead of the domain's size here (e.g. the
+    /// paper's 650 GB over its domains), so this scene stands for a larger one.
+    #[arg(long, value_parser = units::bytes)]
+    pub charge_domain_bytes: Option<u64>,
+    /// One-way network latency of a message, microseconds.
+    #[arg(long, default_value_t = 100)]
+    pub net_latency_us: u64,
+    /// Bytes per second each node's NIC sends [default: 1.25 GB/s, 10 Gb/s Ethernet].
+    #[arg(long, value_parser = rayfarm_core::units::parse_rate, default_value = "1250000000")]
+    pub nic_bandwidth: u64,
+}
+
+impl ModelArgs {
+    fn cost(&self) -> anyhow::Result<CostModel> {
+        let compute = match &self.cost {
+            Some(p) => ComputeCost::load(p).map_err(anyhow::Error::msg)?,
+            None => ComputeCost::default(),
+        };
+        Ok(CostModel {
+            compute,
+            threads: self.threads.max(1),
+        })
+    }
+
+    fn storage(&self) -> StorageModel {
+        StorageModel {
+            latency: Duration::from_micros(self.storage_latency_us),
+            aggregate_bytes_per_second: self.storage_bandwidth,
+            node_bytes_per_second: Some(self.node_storage_bandwidth).filter(|&b| b > 0),
+            charge_domain_bytes: self.charge_domain_bytes,
+        }
+    }
+
+    /// The flags that give this model, for a replay command.
+    fn flags(&self) -> String {
+        let mut f = format!(
+            "--width {} --height {} --spp {} --depth {} --cache-bytes {} --wave-rays {} \
+             --pass-rays {} --threads {} --storage-bandwidth {} --node-storage-bandwidth {} \
+             --storage-latency-us {} --net-latency-us {} --nic-bandwidth {}",
+            self.frame.width,
+            self.frame.height,
+            self.frame.spp,
+            self.frame.depth,
+            self.cache_bytes,
+            self.wave_rays,
+            self.pass_rays,
+            self.threads,
+            self.storage_bandwidth,
+            self.node_storage_bandwidth,
+            self.storage_latency_us,
+            self.net_latency_us,
+            self.nic_bandwidth
+        );
+        if let Some(b) = self.charge_domain_bytes {
+            f.push_str(&format!(" --charge-domain-bytes {b}"));
+        }
+        if let Some(p) = &self.cost {
+            f.push_str(&format!(" --cost {}", p.display()));
+        }
+        f
+    }
+
+    fn config(
+        &self,
+        scene: &std::path::Path,
+        workers: usize,
+        schedule: Schedule,
+    ) -> anyhow::Result<SimConfig> {
+        Ok(SimConfig {
+            scene: scene.to_path_buf(),
+            workers,
+            schedule,
+            width: self.frame.width,
+            height: self.frame.height,
+            spp: self.frame.spp,
+            depth: self.frame.depth,
+            cache_bytes: self.cache_bytes,
+            wave_rays: self.wave_rays.max(1),
+            pass_rays: self.pass_rays.max(1),
+            links: LinkModel {
+                latency: Duration::from_micros(self.net_latency_us),
+                bytes_per_second: self.nic_bandwidth,
+            },
+            cost: self.cost()?,
+            storage: self.storage(),
+            measure: false,
+            caps: QueueCaps {
+                queue_bytes: 512 << 20,
+                spill_bytes: 8 << 30,
+            },
+            ack_deadline: ACK_DEADLINE,
+            heartbeat: HEARTBEAT,
+            worker_timeout: WORKER_TIMEOUT,
+            disk_latency: DISK_LATENCY,
+        })
+    }
+}
+
+/// Worker counts, as given.
+#[derive(Clone, Debug)]
+pub struct Counts(pub Vec<usize>);
+
+fn parse_counts(s: &str) -> Result<Counts, String> {
+    let counts: Vec<usize> = s
+        .split(',')
+        .map(|c| {
+            c.trim()
+                .parse::<usize>()
+                .ok()
+                .filter(|&n| (1..=MAX_WORKERS).contains(&n))
+                .ok_or_else(|| format!("worker count {c:?}: give 1 to {MAX_WORKERS}"))
+        })
+        .collect::<Result<_, _>>()?;
+    Ok(Counts(counts))
+}
+
+/// Most simulated workers in one run.
+const MAX_WORKERS: usize = 65_536;
 
 fn parse_seeds(s: &str) -> Result<std::ops::Range<u64>, String> {
     let bad = || format!("seeds {s:?}: give A..B (B excluded) or one seed");
@@ -86,51 +265,19 @@ const WORKER_TIMEOUT: Duration = Duration::from_millis(200);
 const DISK_LATENCY: Duration = Duration::from_millis(2);
 
 impl SimArgs {
-    fn config(&self, schedule: Schedule) -> SimConfig {
-        SimConfig {
-            scene: self.scene.clone(),
-            workers: self.workers,
-            schedule,
-            width: self.frame.width,
-            height: self.frame.height,
-            spp: self.frame.spp,
-            depth: self.frame.depth,
-            cache_bytes: self.cache_bytes,
-            wave_rays: self.wave_rays.max(1),
-            pass_rays: self.pass_rays.max(1),
-            links: Default::default(),
-            cost: CostModel {
-                threads: self.threads.max(1),
-                ..CostModel::default()
-            },
-            caps: QueueCaps {
-                queue_bytes: 512 << 20,
-                spill_bytes: 8 << 30,
-            },
-            ack_deadline: ACK_DEADLINE,
-            heartbeat: HEARTBEAT,
-            worker_timeout: WORKER_TIMEOUT,
-            disk_latency: DISK_LATENCY,
-        }
-    }
-
-    /// The command that replays `seed` of `schedule` alone.
-    fn replay(&self, schedule: Schedule, seed: u64) -> String {
+    /// The command that replays `seed` of `schedule` at `workers` alone.
+    fn replay(
+        &self,
+        scene: &std::path::Path,
+        workers: usize,
+        schedule: Schedule,
+        seed: u64,
+    ) -> String {
         format!(
-            "rayfarm sim --scene {} --workers {} --schedule {} --width {} --height {} --spp {} \
-             --depth {} --cache-bytes {} --wave-rays {} --pass-rays {} --threads {} --faults \
-             --seeds {seed}..{}{}",
-            self.scene.display(),
-            self.workers,
+            "rayfarm sim --scene {} --workers {workers} --schedule {} {} --faults --seeds {seed}..{}{}",
+            scene.display(),
             schedule_name(schedule),
-            self.frame.width,
-            self.frame.height,
-            self.frame.spp,
-            self.frame.depth,
-            self.cache_bytes,
-            self.wave_rays,
-            self.pass_rays,
-            self.threads,
+            self.model.flags(),
             seed + 1,
             self.bound_us
                 .map_or(String::new(), |b| format!(" --bound-us {b}"))
@@ -146,140 +293,281 @@ fn bound(clean: Duration) -> Duration {
     clean * 20 + (ACK_DEADLINE + WORKER_TIMEOUT + Duration::from_secs(2)) * 2 + RECONNECT
 }
 
-const CLEAN_BOUND: Duration = Duration::from_secs(3600);
+/// How long a clean run may take in virtual time: a day, since a domain charged at a stated
+/// size (`--charge-domain-bytes`) makes frames of simulated hours (at 20 GiB a domain, 4
+/// image-plane workers on a 1.25 GB/s link each take about an hour).
+const CLEAN_BOUND: Duration = Duration::from_secs(24 * 3600);
 
 pub fn run(a: SimArgs) -> anyhow::Result<()> {
-    if a.workers == 0 {
-        bail!("--workers must be at least 1");
+    if let Some(SimCommand::Calibrate(c)) = a.command {
+        return run_calibrate(c);
     }
+    let Some(scene_dir) = a.scene.clone() else {
+        bail!("--scene is required");
+    };
     let schedules: Vec<Schedule> = a
         .schedule
         .split(',')
         .map(|s| parse_schedule(s.trim()).map_err(anyhow::Error::msg))
         .collect::<anyhow::Result<_>>()?;
-    let scene = open_scene(&a.scene)
+    let scene = open_scene(&scene_dir)
         .map_err(anyhow::Error::msg)
-        .with_context(|| format!("scene {}", a.scene.display()))?;
+        .with_context(|| format!("scene {}", scene_dir.display()))?;
+    let domains = scene.manifest.domains.len();
     let mut csv = match &a.csv {
         Some(p) => {
             let mut f =
                 std::fs::File::create(p).with_context(|| format!("creating {}", p.display()))?;
             writeln!(
                 f,
-                "schedule,seed,faults,virtual_ms,loads,segments,peer_bytes,messages,rounds,image_hash,violations"
+                "workers,schedule,seed,faults,virtual_ms,loads,bytes_loaded,segments,rays_migrated,peer_bytes,messages,rounds,planning_ms,wall_seconds,image_hash,violations"
             )?;
             Some(f)
         }
         None => None,
     };
+    let storage = a.model.storage();
     println!(
-        "{:<12} {:>12} {:>7} {:>10} {:>12} {:>9} {:>7}  image hash",
-        "schedule", "virtual ms", "loads", "segments", "peer bytes", "messages", "rounds"
+        "scene {} ({domains} domains), {}x{}, {} spp, depth {}; storage {}/s aggregate{}, {} us a \
+         domain{}; network {} us, {}/s per NIC",
+        scene_dir.display(),
+        a.model.frame.width,
+        a.model.frame.height,
+        a.model.frame.spp,
+        a.model.frame.depth,
+        units::human(storage.aggregate_bytes_per_second),
+        storage
+            .node_bytes_per_second
+            .map_or(String::new(), |b| format!(
+                ", {}/s per node",
+                units::human(b)
+            )),
+        a.model.storage_latency_us,
+        storage
+            .charge_domain_bytes
+            .map_or(String::new(), |b| format!(
+                "; every domain load CHARGED {} (not its size here)",
+                units::human(b)
+            )),
+        a.model.net_latency_us,
+        units::human(a.model.nic_bandwidth),
+    );
+    println!(
+        "{:<12} {:>7} {:>12} {:>7} {:>12} {:>10} {:>10} {:>12} {:>9} {:>7} {:>8}  image hash",
+        "schedule",
+        "workers",
+        "virtual ms",
+        "loads",
+        "bytes loaded",
+        "segments",
+        "migrated",
+        "peer bytes",
+        "messages",
+        "rounds",
+        "plan %",
     );
     let mut failed: Vec<String> = Vec::new();
-    for &schedule in &schedules {
-        let config = a.config(schedule);
-        let clean = simulate(
-            &config,
-            scene.clone(),
-            &FaultPlan::clean(),
-            CLEAN_BOUND,
-            None,
-        )
-        .map_err(anyhow::Error::msg)?;
-        print_row(schedule, &clean);
-        if let Some(f) = csv.as_mut() {
-            write_csv(f, schedule, "clean", "none", &clean)?;
-        }
-        if !clean.violations.is_empty() || clean.frame_time.is_none() {
-            for v in &clean.violations {
-                eprintln!("{}: clean run: {v}", schedule_name(schedule));
-            }
-            failed.push(format!("{} clean run", schedule_name(schedule)));
-            continue;
-        }
-        if !a.faults {
-            continue;
-        }
-        let span = clean.frame_time.unwrap_or_default();
-        let hash = clean.image_hash.clone();
-        let bound = a.bound_us.map_or(bound(span), Duration::from_micros);
-        let runs: Vec<(FaultPlan, Result<Outcome, String>)> = a
-            .seeds
-            .clone()
-            .into_par_iter()
-            .map(|seed| {
-                let plan = FaultPlan::from_seed(seed, a.workers, span);
-                let out = simulate(&config, scene.clone(), &plan, bound, hash.as_deref());
-                (plan, out)
-            })
-            .collect();
-        let mut summary = Summary::default();
-        for (plan, out) in &runs {
-            let out = out
-                .as_ref()
-                .map_err(|e| anyhow::anyhow!("seed {}: {e}", plan.seed))?;
-            summary.add(out, span);
+    for &workers in &a.workers.0 {
+        for &schedule in &schedules {
+            let config = a.model.config(&scene_dir, workers, schedule)?;
+            let wall = std::time::Instant::now();
+            let clean = simulate(
+                &config,
+                scene.clone(),
+                &FaultPlan::clean(),
+                CLEAN_BOUND,
+                None,
+            )
+            .map_err(anyhow::Error::msg)?;
+            let wall = wall.elapsed().as_secs_f64();
+            print_row(schedule, workers, &clean, wall);
             if let Some(f) = csv.as_mut() {
-                write_csv(f, schedule, &plan.seed.to_string(), &plan.describe(), out)?;
+                write_csv(f, workers, schedule, "clean", "none", &clean, wall)?;
             }
-            if !out.violations.is_empty() {
-                eprintln!(
-                    "FAILED seed {} ({}; faults: {}):",
-                    plan.seed,
-                    schedule_name(schedule),
-                    plan.describe()
-                );
-                for v in &out.violations {
-                    eprintln!("  {v}");
+            if !clean.violations.is_empty() || clean.frame_time.is_none() {
+                for v in &clean.violations {
+                    eprintln!("{}: clean run: {v}", schedule_name(schedule));
                 }
-                eprintln!("  replay: {}", a.replay(schedule, plan.seed));
-                failed.push(format!("{} seed {}", schedule_name(schedule), plan.seed));
+                failed.push(format!("{} clean run", schedule_name(schedule)));
+                continue;
             }
+            if !a.faults {
+                continue;
+            }
+            let span = clean.frame_time.unwrap_or_default();
+            let hash = clean.image_hash.clone();
+            let bound = a.bound_us.map_or(bound(span), Duration::from_micros);
+            let runs: Vec<(FaultPlan, Result<Outcome, String>)> = a
+                .seeds
+                .clone()
+                .into_par_iter()
+                .map(|seed| {
+                    let plan = FaultPlan::from_seed(seed, workers, span);
+                    let out = simulate(&config, scene.clone(), &plan, bound, hash.as_deref());
+                    (plan, out)
+                })
+                .collect();
+            let mut summary = Summary::default();
+            for (plan, out) in &runs {
+                let out = out
+                    .as_ref()
+                    .map_err(|e| anyhow::anyhow!("seed {}: {e}", plan.seed))?;
+                summary.add(out, span);
+                if let Some(f) = csv.as_mut() {
+                    write_csv(
+                        f,
+                        workers,
+                        schedule,
+                        &plan.seed.to_string(),
+                        &plan.describe(),
+                        out,
+                        0.0,
+                    )?;
+                }
+                if !out.violations.is_empty() {
+                    eprintln!(
+                        "FAILED seed {} ({}; faults: {}):",
+                        plan.seed,
+                        schedule_name(schedule),
+                        plan.describe()
+                    );
+                    for v in &out.violations {
+                        eprintln!("  {v}");
+                    }
+                    eprintln!(
+                        "  replay: {}",
+                        a.replay(&scene_dir, workers, schedule, plan.seed)
+                    );
+                    failed.push(format!("{} seed {}", schedule_name(schedule), plan.seed));
+                }
+            }
+            summary.print(schedule, &a.seeds);
         }
-        summary.print(schedule, &a.seeds);
     }
+    // Measurements of this machine go to stderr: stdout is the simulation's, the same for
+    // the same seed to the byte.
+    eprintln!(
+        "peak RSS of this process: {}",
+        units::human(rayfarm_core::render::stats::peak_rss_bytes())
+    );
     if !failed.is_empty() {
         bail!("invariants broken: {}", failed.join(", "));
     }
     Ok(())
 }
 
-fn print_row(schedule: Schedule, o: &Outcome) {
+/// `rayfarm sim calibrate`: measures, prints and writes the prices.
+fn run_calibrate(c: CalibrateArgs) -> anyhow::Result<()> {
+    let schedule = parse_schedule(c.schedule.trim()).map_err(anyhow::Error::msg)?;
+    let scene = open_scene(&c.scene)
+        .map_err(anyhow::Error::msg)
+        .with_context(|| format!("scene {}", c.scene.display()))?;
+    let config = c.model.config(&c.scene, c.workers.max(1), schedule)?;
+    let defaults = config.cost.compute;
+    let cal = calibrate(&config, scene, defaults).map_err(anyhow::Error::msg)?;
+    let p = &cal.cost;
     println!(
-        "{:<12} {:>12.3} {:>7} {:>10} {:>12} {:>9} {:>7}  {}",
+        "passes: {} without loads, {:.3} s of CPU; fit error {:.1}% (rms over the mean pass)",
+        cal.passes,
+        cal.pass_cpu.as_secs_f64(),
+        cal.pass_fit_error * 100.0
+    );
+    println!(
+        "  per pass {:.0} ns, radiance segment {:.1} ns, shadow segment {:.1} ns, camera sample \
+         {:.1} ns, volume sample {:.1} ns{}",
+        p.pass_ns,
+        p.radiance_segment_ns,
+        p.shadow_segment_ns,
+        p.camera_sample_ns,
+        p.volume_sample_ns,
+        if p.volume_sample_ns == defaults.volume_sample_ns {
+            " (not measured: kept from the cost model)"
+        } else {
+            ""
+        }
+    );
+    for (w, d, ns) in &cal.rounds {
+        println!(
+            "planning round, {w} members x {d} domains: {:.3} ms",
+            ns / 1e6
+        );
+    }
+    println!(
+        "  per round {:.0} ns + {:.1} ns a member + {:.1} ns a domain; fit error {:.1}%",
+        p.round_ns,
+        p.round_member_ns,
+        p.round_domain_ns,
+        cal.round_fit_error * 100.0
+    );
+    let text = format!(
+        "# rayfarm sim calibrate --scene {} --workers {} --schedule {} {}\n# {} passes (fit \
+         error {:.1}%), planning at {} sizes (fit error {:.1}%)\n{}",
+        c.scene.display(),
+        c.workers,
+        c.schedule,
+        c.model.flags(),
+        cal.passes,
+        cal.pass_fit_error * 100.0,
+        cal.rounds.len(),
+        cal.round_fit_error * 100.0,
+        p.to_toml()
+    );
+    std::fs::write(&c.out, text).with_context(|| format!("writing {}", c.out.display()))?;
+    println!("wrote {}", c.out.display());
+    Ok(())
+}
+
+fn print_row(schedule: Schedule, workers: usize, o: &Outcome, wall: f64) {
+    let t = o.frame_time.map_or(f64::NAN, |t| t.as_secs_f64());
+    eprintln!(
+        "{} at {workers} workers: {wall:.1} s of wall time",
+        schedule_name(schedule)
+    );
+    println!(
+        "{:<12} {:>7} {:>12.3} {:>7} {:>12} {:>10} {:>10} {:>12} {:>9} {:>7} {:>8.2}  {}",
         schedule_name(schedule),
-        o.frame_time.map_or(f64::NAN, |t| t.as_secs_f64() * 1e3),
+        workers,
+        t * 1e3,
         o.loads,
+        units::human(o.storage_bytes),
         o.segments,
+        o.rays_migrated,
         o.peer_bytes,
         o.messages,
         o.rounds,
+        o.coordinator_busy.as_secs_f64() / t * 100.0,
         o.image_hash.as_deref().unwrap_or("-")
     );
 }
 
 fn write_csv(
     f: &mut std::fs::File,
+    workers: usize,
     schedule: Schedule,
     seed: &str,
     faults: &str,
     o: &Outcome,
+    wall: f64,
 ) -> anyhow::Result<()> {
     let violations: Vec<String> = o.violations.iter().map(|v| v.to_string()).collect();
     let quote = |s: &str| format!("\"{}\"", s.replace('"', "\"\""));
     writeln!(
         f,
-        "{},{},{},{:.6},{},{},{},{},{},{},{}",
+        "{},{},{},{},{:.6},{},{},{},{},{},{},{},{:.6},{:.3},{},{}",
+        workers,
         schedule_name(schedule),
         seed,
         quote(faults),
         o.frame_time.map_or(f64::NAN, |t| t.as_secs_f64() * 1e3),
         o.loads,
+        o.storage_bytes,
         o.segments,
+        o.rays_migrated,
         o.peer_bytes,
         o.messages,
         o.rounds,
+        o.coordinator_busy.as_secs_f64() * 1e3,
+        wall,
         o.image_hash.as_deref().unwrap_or(""),
         quote(&violations.join("; "))
     )?;

@@ -1,0 +1,327 @@
+//! `rayfarm sim calibrate`: the cost model's prices (`cost::ComputeCost`) measured on this
+//! machine rather than guessed.
+//!
+//! Passes: a simulation of the scene runs on one thread with every pass's CPU time measured
+//! (the thread's own clock, so other processes on the machine do not inflate it); passes
+//! that loaded a domain are left out (their time is the storage's, priced apart). The passes
+//! differ in their mix of radiance segments, shadow segments and camera samples (a pass of a
+//! domain the camera sees starts paths; one of a domain behind holds bounces and shadows),
+//! which lets a least-squares fit of `time = pass + radiance x R + shadow x S + camera x C +
+//! volume x V` tell the prices apart. A price the fit makes negative is dropped to zero and
+//! the rest fitted again (non-negative least squares by elimination).
+//!
+//! Planning: one asynchronous round of the dynamic schedule (one member dry, the rest busy,
+//! free cache slots filled, as the coordinator plans by default) over synthetic clusters of
+//! several sizes, timed on the thread's clock (the fastest of a few repeats), fitted as
+//! `round + member x M + domain x D`.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::sync::Arc;
+use std::time::Duration;
+
+use rayfarm_core::sampling::mix64;
+use rayfarm_core::schedule::dynamic::Options;
+use rayfarm_core::schedule::rounds::{Cluster, Member, Queues};
+
+use crate::cost::ComputeCost;
+use crate::faults::FaultPlan;
+use crate::node::Scene;
+use crate::world::{MeasuredPass, SimConfig, simulate};
+
+/// CPU time of the calling thread, in nanoseconds.
+pub fn thread_cpu_ns() -> u64 {
+    let mut t = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: `t` is a valid timespec to write into; the clock id is a libc constant.
+    let r = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut t) };
+    if r != 0 {
+        return 0;
+    }
+    t.tv_sec as u64 * 1_000_000_000 + t.tv_nsec as u64
+}
+
+/// What a calibration measured, and how well the prices fit it.
+#[derive(Clone, Debug)]
+pub struct Calibration {
+    pub cost: ComputeCost,
+    /// Passes the pass prices were fitted to.
+    pub passes: usize,
+    /// Their CPU time in all, and the root-mean-square error of the fit over the mean pass.
+    pub pass_cpu: Duration,
+    pub pass_fit_error: f64,
+    /// Cluster sizes the planning prices were fitted to: (members, domains, ns of a round).
+    pub rounds: Vec<(usize, usize, f64)>,
+    pub round_fit_error: f64,
+}
+
+/// Least squares with non-negative coefficients: `rows` of (features, value); a feature
+/// whose coefficient comes out negative is dropped (its coefficient zero) and the rest fitted
+/// again. Features that are zero in every row keep a zero coefficient. Returns the
+/// coefficients and the fit's root-mean-square error over the mean value.
+pub fn fit(rows: &[(Vec<f64>, f64)]) -> (Vec<f64>, f64) {
+    let n = rows.first().map_or(0, |r| r.0.len());
+    let mut active: Vec<bool> = (0..n)
+        .map(|j| rows.iter().any(|(x, _)| x[j] != 0.0))
+        .collect();
+    loop {
+        let cols: Vec<usize> = (0..n).filter(|&j| active[j]).collect();
+        let beta = solve_normal(rows, &cols);
+        let mut coef = vec![0.0; n];
+        for (k, &j) in cols.iter().enumerate() {
+            coef[j] = beta[k];
+        }
+        match cols.iter().enumerate().find(|(k, _)| beta[*k] < 0.0) {
+            Some((_, &j)) => active[j] = false,
+            None => {
+                let mean = rows.iter().map(|r| r.1).sum::<f64>() / rows.len().max(1) as f64;
+                let sq: f64 = rows
+                    .iter()
+                    .map(|(x, y)| {
+                        let p: f64 = x.iter().zip(&coef).map(|(a, b)| a * b).sum();
+                        (p - y).powi(2)
+                    })
+                    .sum();
+                let rms = (sq / rows.len().max(1) as f64).sqrt();
+                return (coef, if mean > 0.0 { rms / mean } else { 0.0 });
+            }
+        }
+    }
+}
+
+/// Solves the normal equations of `rows` over the columns `cols` (Gaussian elimination with
+/// partial pivoting; a singular column gets zero).
+fn solve_normal(rows: &[(Vec<f64>, f64)], cols: &[usize]) -> Vec<f64> {
+    let m = cols.len();
+    // Columns scaled to unit size so counts in millions and a constant 1 mix well.
+    let scale: Vec<f64> = cols
+        .iter()
+        .map(|&j| {
+            let s = rows.iter().map(|r| r.0[j].abs()).fold(0.0, f64::max);
+            if s > 0.0 { s } else { 1.0 }
+        })
+        .collect();
+    let mut a = vec![vec![0.0; m + 1]; m];
+    for (x, y) in rows {
+        for p in 0..m {
+            let xp = x[cols[p]] / scale[p];
+            for q in 0..m {
+                a[p][q] += xp * x[cols[q]] / scale[q];
+            }
+            a[p][m] += xp * y;
+        }
+    }
+    for c in 0..m {
+        let pivot = (c..m)
+            .max_by(|&i, &j| a[i][c].abs().total_cmp(&a[j][c].abs()))
+            .unwrap_or(c);
+        a.swap(c, pivot);
+        if a[c][c].abs() < 1e-12 {
+            continue;
+        }
+        let pivot_row = a[c].clone();
+        for (r, row) in a.iter_mut().enumerate() {
+            if r != c {
+                let f = row[c] / pivot_row[c];
+                for (x, p) in row.iter_mut().zip(&pivot_row).skip(c) {
+                    *x -= f * p;
+                }
+            }
+        }
+    }
+    (0..m)
+        .map(|c| {
+            if a[c][c].abs() < 1e-12 {
+                0.0
+            } else {
+                a[c][m] / a[c][c] / scale[c]
+            }
+        })
+        .collect()
+}
+
+/// Measures the prices: passes of `config` over `scene` (run on one thread), and planning
+/// rounds. `defaults` gives the prices the measurement cannot see (volume samples in a scene
+/// without volumes).
+pub fn calibrate(
+    config: &SimConfig,
+    scene: Arc<Scene>,
+    defaults: ComputeCost,
+) -> Result<Calibration, String> {
+    let config = SimConfig {
+        measure: true,
+        ..config.clone()
+    };
+    // One thread: the pass's parallel loops run on the thread whose clock is read.
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .map_err(|e| e.to_string())?;
+    let outcome = pool.install(|| {
+        simulate(
+            &config,
+            scene,
+            &FaultPlan::clean(),
+            Duration::from_secs(3600),
+            None,
+        )
+    })?;
+    if let Some(v) = outcome.violations.first() {
+        return Err(format!("the calibration run broke an invariant: {v}"));
+    }
+    let passes = &outcome.measured;
+    if passes.len() < 8 {
+        return Err(format!(
+            "only {} passes without loads to measure: give a larger frame or smaller --pass-rays",
+            passes.len()
+        ));
+    }
+    let (pass_coef, pass_fit_error) = fit(&passes.iter().map(pass_row).collect::<Vec<_>>());
+    let volumes = passes.iter().any(|p| p.counters.volume_samples > 0);
+    let rounds = time_rounds();
+    let (round_coef, round_fit_error) = fit(&rounds
+        .iter()
+        .map(|&(w, d, ns)| (vec![1.0, w as f64, d as f64], ns))
+        .collect::<Vec<_>>());
+    Ok(Calibration {
+        cost: ComputeCost {
+            pass_ns: pass_coef[0],
+            radiance_segment_ns: pass_coef[1],
+            shadow_segment_ns: pass_coef[2],
+            camera_sample_ns: pass_coef[3],
+            volume_sample_ns: if volumes {
+                pass_coef[4]
+            } else {
+                defaults.volume_sample_ns
+            },
+            round_ns: round_coef[0],
+            round_member_ns: round_coef[1],
+            round_domain_ns: round_coef[2],
+        },
+        passes: passes.len(),
+        pass_cpu: Duration::from_nanos(passes.iter().map(|p| p.cpu_ns).sum()),
+        pass_fit_error,
+        rounds,
+        round_fit_error,
+    })
+}
+
+fn pass_row(p: &MeasuredPass) -> (Vec<f64>, f64) {
+    let c = &p.counters;
+    (
+        vec![
+            1.0,
+            c.radiance_segments as f64,
+            c.shadow_segments as f64,
+            c.primary_rays as f64,
+            c.volume_samples as f64,
+        ],
+        p.cpu_ns as f64,
+    )
+}
+
+/// Cluster sizes planning is timed at: members and domains varied apart, so the fit tells
+/// their prices apart.
+const ROUND_SIZES: [(u32, u32); 5] = [
+    (128, 1024),
+    (512, 1024),
+    (128, 4096),
+    (512, 4096),
+    (1024, 8192),
+];
+
+/// One asynchronous round per size, the fastest of five: (members, domains, ns).
+fn time_rounds() -> Vec<(usize, usize, f64)> {
+    let options = Options {
+        fill_free_slots: true,
+        ..Options::default()
+    };
+    ROUND_SIZES
+        .iter()
+        .map(|&(workers, domains)| {
+            let sizes = vec![DOMAIN_BYTES; domains as usize];
+            let members = members(workers, domains);
+            let best = (0..5)
+                .map(|_| {
+                    let start = thread_cpu_ns();
+                    let cluster = Cluster {
+                        members: &members,
+                        domain_bytes: &sizes,
+                        oldest_first: false,
+                        options,
+                    };
+                    std::hint::black_box(cluster.dry_plans());
+                    thread_cpu_ns().saturating_sub(start)
+                })
+                .min()
+                .unwrap_or(0);
+            (workers as usize, domains as usize, best as f64)
+        })
+        .collect()
+}
+
+/// Domains each synthetic member holds, and has rays queued for.
+const RESIDENT: usize = 2;
+const QUEUED: usize = 16;
+const DOMAIN_BYTES: u64 = 64 << 20;
+
+/// `workers` synthetic members over `domains` domains, the first dry and the rest busy (the
+/// common event: the coordinator plans one of these per report), drawn from a fixed hash.
+fn members(workers: u32, domains: u32) -> BTreeMap<u32, Member> {
+    (0..workers)
+        .map(|w| {
+            let pick =
+                |i: usize| (mix64(u64::from(w) << 20 | i as u64) % u64::from(domains)) as u32;
+            let resident: Vec<u32> = (0..RESIDENT).map(pick).collect();
+            let queued: BTreeMap<u32, u64> = (RESIDENT..RESIDENT + QUEUED)
+                .map(|i| (pick(i), 1 + mix64(i as u64 ^ u64::from(w)) % 10_000))
+                .collect();
+            let member = Member {
+                cache_bytes: RESIDENT as u64 * DOMAIN_BYTES,
+                report: Some(Queues {
+                    round: 1,
+                    resident: resident.clone(),
+                    queued,
+                    ..Queues::default()
+                }),
+                plan: resident.into_iter().collect::<BTreeSet<u32>>(),
+                // A plan of a later round than the report: still busy.
+                planned_round: if w == 0 { 1 } else { 2 },
+            };
+            (w, member)
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_fit_recovers_known_prices_and_drops_a_negative_one() {
+        // time = 100 + 5 a + 2 b, exactly; c is noise-free and unused.
+        let rows: Vec<(Vec<f64>, f64)> = (0..20)
+            .map(|i| {
+                let (a, b) = ((i * 7 % 13) as f64, (i * 3 % 5) as f64 * 1000.0);
+                (vec![1.0, a, b, 0.0], 100.0 + 5.0 * a + 2.0 * b)
+            })
+            .collect();
+        let (coef, err) = fit(&rows);
+        for (got, want) in coef.iter().zip([100.0, 5.0, 2.0, 0.0]) {
+            assert!((got - want).abs() < 1e-6, "{coef:?}");
+        }
+        assert!(err < 1e-9);
+        // A feature that only hurts gets zero, not a negative price.
+        let rows: Vec<(Vec<f64>, f64)> = (0..20)
+            .map(|i| {
+                let a = i as f64;
+                let noise = if i % 2 == 0 { 1.0 } else { 0.0 };
+                (vec![a, noise], 3.0 * a - 0.5 * noise)
+            })
+            .collect();
+        let (coef, _) = fit(&rows);
+        assert_eq!(coef[1], 0.0);
+        assert!(coef[0] > 2.9, "{coef:?}");
+    }
+}
