@@ -1,7 +1,8 @@
 //! The dashboard in a real browser: chromedriver and headless Chromium drive the page a
 //! local cluster's coordinator serves on `--http`, speaking the W3C WebDriver protocol over
-//! plain HTTP. The page lists the workers and the submitted job; the running frame's preview
-//! appears and changes at least once; the cancel button cancels the job, as the gRPC API
+//! plain HTTP. The page lists the workers and the submitted (progressive) job; the running
+//! frame's preview appears and changes at least once, and the page says which subframe is
+//! rendering; the cancel button cancels the job, as the gRPC API
 //! (`rayfarm jobs`) then says. SKIPPED when chromium or chromedriver is not installed.
 //!
 //! With `RAYFARM_DASHBOARD_SCREENSHOT=PATH` the page mid-frame is saved there as PNG (how
@@ -179,6 +180,8 @@ const PAGE_STATE: &str = "
       jobs: Array.from(document.querySelectorAll('#jobs tbody tr')).map(r => r.dataset.jobId + ':' + r.dataset.state),
       sequence: img.complete && img.naturalWidth > 0 ? img.dataset.sequence : '',
       width: img.naturalWidth,
+      note: document.getElementById('preview-note').textContent,
+      progress: Array.from(document.querySelectorAll('#jobs tbody tr td:nth-child(3)')).map(c => c.textContent),
     };";
 
 #[test]
@@ -209,7 +212,9 @@ fn the_dashboard_lists_the_cluster_previews_the_frame_and_cancels_from_the_page(
     let browser = Browser::start(&root.path().join("chromium-profile"));
     browser.session("POST", "/url", &json!({"url": format!("http://{http}/")}));
 
-    let mut args = vec!["submit"];
+    // In subframes (1, 1, 2, 4, ... 32 samples), so the page shows which one is rendering
+    // and the preview sharpens as they commit.
+    let mut args = vec!["submit", "--progressive", "doubling"];
     args.extend_from_slice(&FRAME);
     let out = cluster.rayfarm_ok(&args);
     let id = String::from_utf8_lossy(&out.stdout).trim().to_string();
@@ -249,6 +254,20 @@ fn the_dashboard_lists_the_cluster_previews_the_frame_and_cancels_from_the_page(
         page = browser.script(PAGE_STATE);
         page["sequence"].as_str().is_some_and(|s| !s.is_empty()) && page["sequence"] != first
     });
+    // The first subframe committed: the preview is a whole 1-sample image being refined, and
+    // the page says which subframe of the seven is rendering.
+    wait_until("a preview past the first subframe", TIMEOUT, || {
+        page = browser.script(PAGE_STATE);
+        page["note"]
+            .as_str()
+            .is_some_and(|n| (2..=7).any(|k| n.contains(&format!("subframe {k}/7"))))
+    });
+    assert!(
+        page["progress"].as_array().is_some_and(|p| p
+            .iter()
+            .any(|c| c.as_str().is_some_and(|c| c.contains("/7")))),
+        "{page}"
+    );
     let now = job(&jobs(&cluster), &id)["state"].clone();
     assert_eq!(
         now, "running",

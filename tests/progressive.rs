@@ -1,7 +1,8 @@
 //! Progressive frames on a real cluster: a job's samples rendered in subframes, each a whole
 //! image pass committed into the coordinator's film. The final image hash equals the
 //! one-pass job's and `render --local`'s under every schedule, and with a worker killed once
-//! a subframe has committed; the previews' subframe numbers (and sequence numbers) only grow,
+//! a subframe has committed (under every schedule too); the statistics' per-subframe costs
+//! add up to the frame's; the previews' subframe numbers (and sequence numbers) only grow,
 //! a preview exists between subframes, and the last one is the result PNG byte for byte.
 
 use std::path::Path;
@@ -50,6 +51,7 @@ fn a_progressive_frame_is_the_one_pass_image_under_every_schedule() {
                 "{schedule}, progressive {progressive}"
             );
             assert_eq!(stats_field(&json, "/subframes"), subframes, "{tag}");
+            assert_subframe_costs(&json, subframes, 6, &tag);
             // Every worker's reports of every subframe are one row per worker.
             assert_eq!(
                 stats_field(&json, "/per_worker").as_array().map(Vec::len),
@@ -58,6 +60,32 @@ fn a_progressive_frame_is_the_one_pass_image_under_every_schedule() {
             );
         }
     }
+}
+
+/// The statistics' per-subframe costs: `subframes` of them in sample order, their samples
+/// adding up to `spp`, each done no earlier than the one before, and their loads adding up to
+/// the frame's (every subframe's reports are in the job's statistics).
+fn assert_subframe_costs(json: &Path, subframes: u64, spp: u64, tag: &str) {
+    let costs = stats_field(json, "/subframe_costs");
+    let costs = costs.as_array().expect("subframe_costs is a list");
+    assert_eq!(costs.len() as u64, subframes, "{tag}: {costs:?}");
+    let mut next_sample = 0;
+    let mut done = 0.0;
+    let mut loads = 0;
+    for c in costs {
+        assert_eq!(
+            c["first_sample"].as_u64(),
+            Some(next_sample),
+            "{tag}: {costs:?}"
+        );
+        next_sample += c["samples"].as_u64().unwrap();
+        let at = c["done_seconds"].as_f64().unwrap();
+        assert!(at >= done, "{tag}: {costs:?}");
+        done = at;
+        loads += c["loads"].as_u64().unwrap();
+    }
+    assert_eq!(next_sample, spp, "{tag}");
+    assert_eq!(stats_field(json, "/cache/loads"), loads, "{tag}: {costs:?}");
 }
 
 fn spawn_submit_wait(cluster: &Cluster, args: &[&str], png: &Path, json: &Path) -> Child {
@@ -114,7 +142,7 @@ fn a_worker_killed_between_subframes_keeps_the_committed_ones_and_the_image() {
     ];
     let expected = local_hash(&scene, &frame);
     let runtime = tokio::runtime::Runtime::new().unwrap();
-    for schedule in ["dynamic", "image-plane"] {
+    for schedule in SCHEDULES {
         let mut cluster = Cluster::start(
             root.path(),
             Some("nb"),
@@ -149,6 +177,7 @@ fn a_worker_killed_between_subframes_keeps_the_committed_ones_and_the_image() {
         assert!(ok, "{schedule}: the frame failed after a worker was killed");
         assert_eq!(hash_of(&json), expected, "{schedule}");
         assert_eq!(stats_field(&json, "/subframes"), 16, "{schedule}");
+        assert_subframe_costs(&json, 16, 16, schedule);
         // The job ran once: the committed subframes were kept, not rendered again.
         let log = cluster.coordinator_log();
         assert_eq!(

@@ -10,6 +10,7 @@
 //! last one stopped); so does the number of whole subframes in the preview.
 
 use std::sync::{Arc, Mutex, MutexGuard, Weak};
+use std::time::{Duration, Instant};
 
 use rayfarm_core::render::Film;
 use rayfarm_core::render::film::Preview;
@@ -18,6 +19,17 @@ use tonic::Status;
 /// Longest side of a preview in pixels: larger frames are shrunk by a whole factor, so a
 /// preview of a 16384-pixel frame is 1024 pixels across (a few MiB at most).
 pub const MAX_SIDE: u32 = 1024;
+
+/// Share of the time a job's previews may spend encoding: a preview of a 1024x1024 film
+/// takes about 45 ms here, so a page asking once a second would cost 4.5% of a core; past
+/// the allowance below, the newest preview is served until encoding is back under this share
+/// of the time since (a new one at most every 2.3 s at 1024x1024, as often as asked for small
+/// frames).
+const ENCODING_SHARE: f64 = 0.02;
+
+/// Encoding time a job's previews may spend at once before [`ENCODING_SHARE`] holds them
+/// back: the first previews of any frame, and every preview of small ones, are made at once.
+const ENCODING_ALLOWANCE: Duration = Duration::from_millis(250);
 
 /// An encoded preview and the film state it shows.
 #[derive(Debug)]
@@ -49,6 +61,20 @@ struct Inner {
     /// Subframes wholly committed to the film.
     subframe: u32,
     latest: Option<Arc<Encoded>>,
+    /// Encoding time still allowed, in seconds, as of `allowed_at` (see [`ENCODING_SHARE`]).
+    allowed: f64,
+    allowed_at: Instant,
+}
+
+impl Inner {
+    /// Whether a new encode may start now: the allowance, grown by the share of the time
+    /// since it was last spent, is not used up.
+    fn may_encode(&mut self, now: Instant) -> bool {
+        let grown = now.duration_since(self.allowed_at).as_secs_f64() * ENCODING_SHARE;
+        self.allowed = (self.allowed + grown).min(ENCODING_ALLOWANCE.as_secs_f64());
+        self.allowed_at = now;
+        self.allowed > 0.0
+    }
 }
 
 impl Previews {
@@ -61,6 +87,8 @@ impl Previews {
                 sequence: floor,
                 subframe: 0,
                 latest: None,
+                allowed: ENCODING_ALLOWANCE.as_secs_f64(),
+                allowed_at: Instant::now(),
             }),
             encoding: tokio::sync::Mutex::new(()),
         }
@@ -78,19 +106,27 @@ impl Previews {
         inner.subframe = inner.subframe.max(subframes);
     }
 
-    /// The sequence number of the newest preview [`latest`](Self::latest) returns.
+    /// The sequence number of the newest film state (what [`latest`](Self::latest) shows,
+    /// unless encoding is being held back: see [`ENCODING_SHARE`]).
     pub fn sequence(&self) -> u64 {
         self.lock().sequence
     }
 
     /// What the next preview is made of, or the newest one if it is already made (or the
-    /// film is gone, so none newer can be).
-    fn source(&self) -> Source {
-        let inner = self.lock();
+    /// film is gone, so none newer can be, or `held_back` and encoding has used up its share
+    /// of the time).
+    fn source(&self, held_back: bool) -> Source {
+        let mut inner = self.lock();
         if let Some(latest) = &inner.latest
             && latest.sequence == inner.sequence
         {
             return Source::Ready(latest.clone());
+        }
+        if held_back
+            && let Some(latest) = inner.latest.clone()
+            && !inner.may_encode(Instant::now())
+        {
+            return Source::Ready(latest);
         }
         match (inner.film.upgrade(), &inner.latest) {
             (Some(film), _) => Source::Encode(film, inner.sequence, inner.subframe),
@@ -113,10 +149,10 @@ impl Previews {
     }
 
     /// The newest preview, encoded now on a blocking thread if the film changed since the
-    /// last one.
+    /// last one (unless encoding has used up its share of the time: then the last one).
     pub async fn latest(&self) -> Result<Arc<Encoded>, Status> {
         let _one = self.encoding.lock().await;
-        let (film, sequence, subframe) = match self.source() {
+        let (film, sequence, subframe) = match self.source(true) {
             Source::Ready(ready) => return Ok(ready),
             Source::Encode(film, sequence, subframe) => (film, sequence, subframe),
             Source::Gone => {
@@ -125,10 +161,12 @@ impl Previews {
                 ));
             }
         };
+        let started = Instant::now();
         let preview = tokio::task::spawn_blocking(move || film.preview_png(MAX_SIDE))
             .await
             .map_err(|e| Status::internal(format!("encoding the preview failed: {e}")))?
             .map_err(|e| Status::internal(format!("encoding the preview failed: {e}")))?;
+        self.lock().allowed -= started.elapsed().as_secs_f64();
         Ok(self.keep(Encoded {
             sequence,
             subframe,
@@ -139,7 +177,8 @@ impl Previews {
     /// The frame is complete and its film about to go: encodes the final preview now, on
     /// the calling (blocking) thread, so it outlives the film.
     pub fn seal(&self) {
-        let Source::Encode(film, sequence, subframe) = self.source() else {
+        // Never held back: the final preview is the frame's result.
+        let Source::Encode(film, sequence, subframe) = self.source(false) else {
             return;
         };
         match film.preview_png(MAX_SIDE) {
@@ -182,5 +221,30 @@ mod tests {
         let last = previews.latest().await.unwrap();
         assert_eq!((last.sequence, last.subframe), (8, 1));
         assert!(Arc::ptr_eq(&last, &previews.latest().await.unwrap()));
+    }
+
+    #[tokio::test]
+    async fn encoding_past_its_share_of_the_time_serves_the_last_preview_but_never_the_final() {
+        let dir = tempfile::tempdir().unwrap();
+        let grid = TileGrid::new(20, 10, 8).unwrap();
+        let film = Arc::new(Film::temporary_in(dir.path(), grid, 1).unwrap());
+        let previews = Previews::new(&film, 0);
+        let first = previews.latest().await.unwrap();
+        // As if the encodes so far had taken the whole allowance and more.
+        previews.lock().allowed = -1.0;
+        film.write_tile(0, &[[1 << 24; 3]; 64]).unwrap();
+        previews.advance(1, 0);
+        assert_eq!(previews.sequence(), 1);
+        assert!(Arc::ptr_eq(&first, &previews.latest().await.unwrap()));
+        // Time gives the allowance back at the share's rate: 1 s of encoding after 50 s.
+        previews.lock().allowed_at -= Duration::from_secs_f64(1.01 / ENCODING_SHARE);
+        assert_eq!(previews.latest().await.unwrap().sequence, 1);
+        // Held back again, but the frame's end is encoded whatever the time spent.
+        previews.lock().allowed = -1.0;
+        previews.advance(2, 1);
+        previews.seal();
+        drop(film);
+        let last = previews.latest().await.unwrap();
+        assert_eq!((last.sequence, last.subframe), (3, 1));
     }
 }

@@ -6,6 +6,8 @@ use std::path::Path;
 use anyhow::Context;
 use serde::Serialize;
 
+use rayfarm_core::cluster::stats::{ClusterStats, SubframeCost};
+
 use super::{RunOutcome, ray_work_seconds, tier_bundles};
 
 /// What every row repeats: how the bench was set up.
@@ -51,6 +53,10 @@ struct Row<'a> {
     bundles_migrated: Option<u64>,
     bundles_tasks: Option<u64>,
     rounds: Option<u64>,
+    /// Per subframe, in order, `+`-separated: loads, and seconds from the frame's start to
+    /// its last tile (one entry for a one-pass frame).
+    subframe_loads: String,
+    subframe_done_seconds: String,
     idle_fraction: Option<f64>,
     peak_rss_bytes: Option<u64>,
     busy_seconds: Option<f64>,
@@ -98,6 +104,8 @@ fn row<'a>(r: &'a RunOutcome, setup: &'a Setup) -> Row<'a> {
         bundles_migrated: bundles("migrated"),
         bundles_tasks: bundles("tasks"),
         rounds: s.map(|s| s.rounds),
+        subframe_loads: per_subframe(s, |c| c.loads.to_string()),
+        subframe_done_seconds: per_subframe(s, |c| format!("{:.3}", c.done_seconds)),
         idle_fraction: idle,
         peak_rss_bytes: s.map(|s| s.peak_rss_bytes),
         busy_seconds: s.map(|s| s.per_worker.iter().map(|w| w.busy_seconds).sum()),
@@ -117,6 +125,13 @@ fn row<'a>(r: &'a RunOutcome, setup: &'a Setup) -> Row<'a> {
         storage_bandwidth: &setup.storage_bandwidth,
         storage_latency: &setup.storage_latency,
     }
+}
+
+/// One figure of each subframe, joined by `+`; empty for a failed run.
+fn per_subframe(s: Option<&ClusterStats>, f: impl Fn(&SubframeCost) -> String) -> String {
+    s.map_or_else(String::new, |s| {
+        s.subframe_costs.iter().map(f).collect::<Vec<_>>().join("+")
+    })
 }
 
 /// Writes the runs as CSV, a header and one row per run, to `out`.

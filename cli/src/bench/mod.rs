@@ -7,6 +7,7 @@
 
 pub mod chart;
 pub mod csv_out;
+pub mod progressive;
 pub mod report;
 
 use rayfarm_core::cluster::stats::ClusterStats;

@@ -25,6 +25,7 @@ use rayfarm_node::security::ClientSecurity;
 
 use super::watch::{ended_ok, follow, parse_stats};
 use crate::bench::csv_out::{Setup, write_runs_file};
+use crate::bench::progressive::{SUFFIX, compare, progressive_table};
 use crate::bench::report::{bench_table, bound_footnote, hash_verdict};
 use crate::bench::{HashCheck, RunOutcome, bound, check_hashes, run_order, summarize};
 use crate::client::{ClientAuthArgs, Coordinator, runtime};
@@ -186,7 +187,7 @@ impl Plan {
                 let progressive = proto::Progressive {
                     subframe_spp: field,
                 };
-                schedules.push((format!("{name}+progressive"), s, Some(progressive)));
+                schedules.push((format!("{name}{SUFFIX}"), s, Some(progressive)));
             }
         }
         if schedules.is_empty() {
@@ -507,6 +508,17 @@ async fn run_one(
 /// The end of a run's progress line: "2.31 s, 48 loads, 12 rounds" or "failed: why".
 fn progress(result: &Result<ClusterStats, String>) -> String {
     match result {
+        Ok(s) if s.subframe_costs.len() > 1 => format!(
+            "{:.2} s, {} loads ({} per subframe), {} rounds",
+            s.wall_seconds,
+            s.cache.loads,
+            s.subframe_costs
+                .iter()
+                .map(|c| c.loads.to_string())
+                .collect::<Vec<_>>()
+                .join("+"),
+            s.rounds
+        ),
         Ok(s) => format!(
             "{:.2} s, {} loads, {} rounds",
             s.wall_seconds, s.cache.loads, s.rounds
@@ -547,6 +559,14 @@ fn report(a: &BenchArgs, plan: &Plan, runs: &[RunOutcome], setup: &Setup) -> any
             s.schedule,
             s.errors.join("; ")
         );
+    }
+    if a.progressive.is_some() {
+        println!(
+            "progressive against one pass (medians; first preview: when the first subframe's \
+             last tile came back, from the frame's start; loads per subframe: summed over \
+             workers, with the subframe's samples per pixel):"
+        );
+        println!("{}", progressive_table(&compare(&plan.names(), runs)));
     }
     let check = check_hashes(runs);
     println!("{}", hash_verdict(&check));

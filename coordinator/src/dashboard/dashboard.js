@@ -60,6 +60,13 @@ function status(text, error) {
   s.className = error ? "error" : "";
 }
 
+// "subframe 2/4" while a progressive job runs (the one being rendered), "4/4 subframes"
+// once it is done.
+function subframeText(j) {
+  if (j.subframes_done >= j.subframes) return j.subframes + "/" + j.subframes + " subframes";
+  return "subframe " + (j.subframes_done + 1) + "/" + j.subframes;
+}
+
 function drawJobs(jobs) {
   const body = document.querySelector("#jobs tbody");
   body.replaceChildren();
@@ -78,6 +85,7 @@ function drawJobs(jobs) {
       bar.appendChild(fill);
       p.append(bar, " " + j.tiles_done + "/" + j.tiles_total);
     }
+    if (j.subframes > 1) p.append(" " + subframeText(j));
     const pr = cell(tr, "");
     const input = document.createElement("input");
     input.type = "number";
@@ -159,7 +167,8 @@ async function drawPreview(jobs, cluster) {
   previewJob = shown.job_id;
   previewSequence = shown.preview_sequence;
   document.getElementById("preview-note").textContent =
-    shown.job_id + ": " + shown.tiles_done + "/" + shown.tiles_total + " tiles (preview " + sequence + ")";
+    shown.job_id + ": " + (shown.subframes > 1 ? subframeText(shown) + ", " : "") +
+    shown.tiles_done + "/" + shown.tiles_total + " tiles (preview " + sequence + ")";
 }
 
 // One chart: each series is [{t, v}], drawn as lines over the samples' time span.

@@ -147,6 +147,9 @@ struct JobRow {
     rays_per_second: f64,
     eta_seconds: f64,
     preview_sequence: u64,
+    /// Subframes of a progressive job (1: one pass), and those committed so far.
+    subframes: u32,
+    subframes_done: u32,
 }
 
 async fn jobs(State(ctx): State<Ctx>, headers: HeaderMap) -> Result<Response, ApiError> {
@@ -174,6 +177,8 @@ async fn jobs(State(ctx): State<Ctx>, headers: HeaderMap) -> Result<Response, Ap
                 rays_per_second: progress.rays_per_second,
                 eta_seconds: progress.eta_seconds,
                 preview_sequence: progress.preview_sequence,
+                subframes: progress.subframes,
+                subframes_done: progress.subframes_done,
                 job_id: j.job_id,
             }
         })

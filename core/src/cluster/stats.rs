@@ -132,6 +132,20 @@ impl WorkerFrameStats {
     }
 }
 
+/// One subframe's share of a frame's cost (a one-pass frame is one subframe).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct SubframeCost {
+    /// Its first sample of every pixel.
+    pub first_sample: u32,
+    /// Its samples per pixel.
+    pub samples: u32,
+    /// When its last tile came back, seconds from the frame's start (so the time to the first
+    /// preview is the first subframe's).
+    pub done_seconds: f64,
+    /// Domain loads, summed over the workers that reported it.
+    pub loads: u64,
+}
+
 /// What a frame cost and produced across the cluster.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct ClusterStats {
@@ -177,6 +191,10 @@ pub struct ClusterStats {
     /// Subframes the samples were rendered in (1: one pass).
     #[serde(default = "one")]
     pub subframes: u32,
+    /// What each subframe cost, in sample order (one entry for a one-pass frame): what a
+    /// progressive frame pays per subframe, and which subframes found their domains loaded.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub subframe_costs: Vec<SubframeCost>,
     /// Rays sent between workers.
     pub rays_migrated: u64,
     /// Ray bytes sent between workers.

@@ -245,6 +245,7 @@ impl Coordinator {
             Finishing {
                 job: frame.job_id.clone(),
                 stats: None,
+                cost: cost_so_far(frame, wall),
                 waiting: frame.members().collect(),
                 reports: Vec::new(),
                 deadline: now + self.config.report_timeout,
@@ -288,6 +289,7 @@ impl Coordinator {
             Finishing {
                 job: frame.job_id.clone(),
                 stats: Some(stats),
+                cost: cost_so_far(&frame, wall),
                 waiting: frame.members().collect(),
                 reports: Vec::new(),
                 deadline: now + self.config.report_timeout,
@@ -309,17 +311,25 @@ impl Coordinator {
         for job in ready {
             let mut stats = None;
             let mut reports = Vec::new();
+            let mut costs = Vec::new();
             self.finishing.retain(|_, f| {
                 if f.job != job {
                     return true;
                 }
                 stats = stats.take().or(f.stats.take());
+                costs.push(SubframeCost {
+                    loads: f.reports.iter().map(|r| r.cache.loads).sum(),
+                    ..f.cost
+                });
                 reports.append(&mut f.reports);
                 false
             });
             let Some(mut stats) = stats else {
                 continue;
             };
+            // Frame ids sort as text (`JOB~10` before `JOB~2`): put them in sample order.
+            costs.sort_by_key(|c| c.first_sample);
+            stats.subframe_costs = costs;
             stats.absorb(WorkerFrameStats::merge_by_worker(reports));
             out.push(Action::WriteResults {
                 job_id: job,
@@ -384,5 +394,17 @@ impl Coordinator {
                 eta_seconds,
             },
         });
+    }
+}
+
+/// The current subframe's samples and the time its last tile came back (`wall` seconds from
+/// the frame's start); its loads come with the workers' reports.
+fn cost_so_far(frame: &RunningFrame, wall: f64) -> SubframeCost {
+    let samples = frame.samples();
+    SubframeCost {
+        first_sample: samples.first,
+        samples: samples.count,
+        done_seconds: wall,
+        loads: 0,
     }
 }

@@ -16,7 +16,7 @@
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::time::Duration;
 
-use rayfarm_core::cluster::stats::{ClusterStats, WorkerFrameStats};
+use rayfarm_core::cluster::stats::{ClusterStats, SubframeCost, WorkerFrameStats};
 use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::schedule::dynamic::Options;
 use rayfarm_proto::{self as proto, JobState, worker_message::Body as FromWorker};
@@ -271,6 +271,8 @@ struct Finishing {
     job: String,
     /// The job's statistics but the workers': for its last subframe only.
     stats: Option<ClusterStats>,
+    /// This subframe's samples and time; its loads are summed from `reports` at the end.
+    cost: SubframeCost,
     waiting: BTreeSet<u32>,
     reports: Vec<WorkerFrameStats>,
     /// When it stops waiting.
