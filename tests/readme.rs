@@ -40,6 +40,11 @@ const SMALL: &[(&str, &str)] = &[
         "--width 32 --height 32 --spp 1",
     ),
     ("--spp 16", "--spp 1"),
+    // Progressive against one pass: still two subframes (1 and 1 sample).
+    (
+        "--width 256 --height 256 --spp 8",
+        "--width 32 --height 32 --spp 2",
+    ),
     ("--width 512 --height 512", "--width 32 --height 32"),
     // The skull CT's dims, for a small int16 ball of the same name.
     ("--dims 256,256,108", "--dims 64,64,32"),
