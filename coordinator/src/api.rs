@@ -122,11 +122,10 @@ impl Api {
         job_id: &str,
         format: proto::ImageFormat,
     ) -> Result<(std::path::PathBuf, String, String), Status> {
-        let coordinator = self.coordinator.clone();
         let id = job_id.to_string();
-        tokio::task::spawn_blocking(move || coordinator.result(&id, format))
+        self.coordinator
+            .off_runtime(move |c| c.result(&id, format))
             .await
-            .map_err(|e| Status::internal(format!("reading the result failed: {e}")))?
     }
 
     /// Reads `scene`'s manifest on a blocking thread, within [`SCENE_READ_TIMEOUT`], so slow
@@ -247,11 +246,8 @@ impl JobService for Api {
         let job_id = request.into_inner().job_id;
         check_field("job_id", &job_id)?;
         // A job finished long ago is read from the store: off the runtime.
-        let coordinator = self.coordinator.clone();
         let id = job_id.clone();
-        let mut rx = tokio::task::spawn_blocking(move || coordinator.watch(&id))
-            .await
-            .map_err(|e| Status::internal(format!("watching the job failed: {e}")))??;
+        let mut rx = self.coordinator.off_runtime(move |c| c.watch(&id)).await?;
         let (tx, out) = mpsc::channel(4);
         tokio::spawn(async move {
             loop {
@@ -287,7 +283,7 @@ impl JobService for Api {
                 })?,
             },
         };
-        let (jobs, next) = self.coordinator.list(page);
+        let (jobs, next) = self.coordinator.off_runtime(move |c| c.list(page)).await?;
         Ok(Response::new(proto::ListJobsResponse {
             jobs,
             next_page_token: next.map(|seq| seq.to_string()).unwrap_or_default(),
@@ -301,7 +297,10 @@ impl JobService for Api {
         let user = request.extensions().get::<User>().cloned();
         let job_id = request.into_inner().job_id;
         check_field("job_id", &job_id)?;
-        let state = self.coordinator.cancel(&job_id, user.as_ref())?;
+        let state = self
+            .coordinator
+            .off_runtime(move |c| c.cancel(&job_id, user.as_ref()))
+            .await?;
         Ok(Response::new(proto::CancelJobResponse {
             state: state as i32,
         }))
@@ -426,7 +425,11 @@ impl JobService for Api {
     ) -> Result<Response<proto::FetchPreviewResponse>, Status> {
         let job_id = request.into_inner().job_id;
         check_field("job_id", &job_id)?;
-        let latest = self.coordinator.previews(&job_id)?.latest().await?;
+        let previews = self
+            .coordinator
+            .off_runtime(move |c| c.previews(&job_id))
+            .await?;
+        let latest = previews.latest().await?;
         let p = &latest.preview;
         Ok(Response::new(proto::FetchPreviewResponse {
             png: p.png.clone(),
@@ -447,7 +450,8 @@ impl JobService for Api {
         check_field("job_id", &r.job_id)?;
         let state = self
             .coordinator
-            .set_priority(&r.job_id, r.priority, user.as_ref())?;
+            .off_runtime(move |c| c.set_priority(&r.job_id, r.priority, user.as_ref()))
+            .await?;
         Ok(Response::new(proto::SetJobPriorityResponse {
             state: state as i32,
         }))

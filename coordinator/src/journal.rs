@@ -122,6 +122,19 @@ impl Reader {
             None => Err("the job store is closed".into()),
         }
     }
+
+    /// A page of the stored jobs (see [`Store::page`]); an error says why it could not be
+    /// read.
+    pub fn page(
+        &self,
+        size: usize,
+        from_seq: u64,
+    ) -> Result<(Vec<StoredJob>, Option<u64>), String> {
+        match lock(&self.store).as_ref() {
+            Some(store) => store.page(size, from_seq).map_err(|e| e.with_causes()),
+            None => Err("the job store is closed".into()),
+        }
+    }
 }
 
 fn lock(store: &Mutex<Option<Store>>) -> std::sync::MutexGuard<'_, Option<Store>> {

@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 
 use rayfarm_machine::coordinator::cluster::JobRecord;
 use rayfarm_node::proto;
-use redb::{ReadableDatabase, ReadableTable, TableDefinition};
+use redb::{ReadableDatabase, ReadableTable, ReadableTableMetadata, TableDefinition};
 
 /// File name of the database inside the data directory.
 pub const FILE_NAME: &str = "rayfarm.redb";
@@ -24,6 +24,8 @@ const CACHE_BYTES: usize = 1 << 20;
 
 /// Job id -> [`StoredJob`] (protobuf).
 const JOBS: TableDefinition<&str, &[u8]> = TableDefinition::new("jobs");
+/// Sequence number -> job id: the list of jobs, newest first, read a page at a time.
+const BY_SEQ: TableDefinition<u64, &str> = TableDefinition::new("jobs_by_seq");
 /// Small facts about the store itself, by name.
 const META: TableDefinition<&str, u64> = TableDefinition::new("meta");
 /// Meta key: the layout version of the records.
@@ -245,7 +247,20 @@ impl Store {
         let e = self.err("creating the tables");
         let txn = self.db()?.begin_write().map_err(|x| e(x.into()))?;
         {
-            txn.open_table(JOBS).map_err(|x| e(x.into()))?;
+            let jobs = txn.open_table(JOBS).map_err(|x| e(x.into()))?;
+            let mut by_seq = txn.open_table(BY_SEQ).map_err(|x| e(x.into()))?;
+            // A store written before the index existed gets it now (a record replaced in
+            // place keeps its sequence number, so the counts differ only then).
+            if by_seq.len().map_err(|x| e(x.into()))? != jobs.len().map_err(|x| e(x.into()))? {
+                by_seq.retain(|_, _| false).map_err(|x| e(x.into()))?;
+                for entry in jobs.iter().map_err(|x| e(x.into()))? {
+                    let (id, bytes) = entry.map_err(|x| e(x.into()))?;
+                    let job = self.decode(id.value(), bytes.value())?;
+                    by_seq
+                        .insert(job.seq, id.value())
+                        .map_err(|x| e(x.into()))?;
+                }
+            }
             let mut meta = txn.open_table(META).map_err(|x| e(x.into()))?;
             let found = meta
                 .get(SCHEMA_KEY)
@@ -267,7 +282,8 @@ impl Store {
         txn.commit().map_err(|x| e(x.into()))
     }
 
-    /// Every stored job and the highest sequence number.
+    /// Every stored job, without its statistics (read them with [`get`](Self::get)), and
+    /// the highest sequence number.
     pub fn load(&self) -> Result<Loaded, StoreError> {
         let e = self.err("reading the jobs");
         let txn = self.db()?.begin_read().map_err(|x| e(x.into()))?;
@@ -282,13 +298,7 @@ impl Store {
         };
         for entry in table.iter().map_err(|x| e(x.into()))? {
             let (id, bytes) = entry.map_err(|x| e(x.into()))?;
-            let job = <StoredJob as prost::Message>::decode(bytes.value()).map_err(|source| {
-                StoreError::Record {
-                    path: self.path.clone(),
-                    id: id.value().to_string(),
-                    source,
-                }
-            })?;
+            let mut job = self.decode(id.value(), bytes.value())?;
             if job.id() != id.value() {
                 return Err(StoreError::Misfiled {
                     path: self.path.clone(),
@@ -296,10 +306,47 @@ impl Store {
                     found: job.id().to_string(),
                 });
             }
+            // The bulk of a finished job's record, and nothing a starting coordinator needs.
+            job.stats_json = String::new();
             loaded.seq = loaded.seq.max(job.seq);
             loaded.jobs.push(job);
         }
         Ok(loaded)
+    }
+
+    /// At most `size` stored jobs, newest first, from sequence number `from_seq` down; and
+    /// the sequence number the next page starts at, if any.
+    pub fn page(
+        &self,
+        size: usize,
+        from_seq: u64,
+    ) -> Result<(Vec<StoredJob>, Option<u64>), StoreError> {
+        let e = self.err("listing jobs");
+        let txn = self.db()?.begin_read().map_err(|x| e(x.into()))?;
+        let by_seq = txn.open_table(BY_SEQ).map_err(|x| e(x.into()))?;
+        let table = txn.open_table(JOBS).map_err(|x| e(x.into()))?;
+        let mut ids = by_seq.range(..=from_seq).map_err(|x| e(x.into()))?.rev();
+        let mut jobs = Vec::new();
+        for entry in ids.by_ref().take(size) {
+            let (_, id) = entry.map_err(|x| e(x.into()))?;
+            if let Some(bytes) = table.get(id.value()).map_err(|x| e(x.into()))? {
+                jobs.push(self.decode(id.value(), bytes.value())?);
+            }
+        }
+        let next = match ids.next() {
+            Some(entry) => Some(entry.map_err(|x| e(x.into()))?.0.value()),
+            None => None,
+        };
+        Ok((jobs, next))
+    }
+
+    /// The record stored under `id`.
+    fn decode(&self, id: &str, bytes: &[u8]) -> Result<StoredJob, StoreError> {
+        <StoredJob as prost::Message>::decode(bytes).map_err(|source| StoreError::Record {
+            path: self.path.clone(),
+            id: id.to_string(),
+            source,
+        })
     }
 
     /// Job `id`'s record, if stored.
@@ -310,14 +357,7 @@ impl Store {
         let Some(bytes) = table.get(id).map_err(|x| e(x.into()))? else {
             return Ok(None);
         };
-        let job = <StoredJob as prost::Message>::decode(bytes.value()).map_err(|source| {
-            StoreError::Record {
-                path: self.path.clone(),
-                id: id.to_string(),
-                source,
-            }
-        })?;
-        Ok(Some(job))
+        self.decode(id, bytes.value()).map(Some)
     }
 
     /// Writes `job` (replacing its previous record) and raises the stored sequence number to
@@ -331,6 +371,8 @@ impl Store {
             table
                 .insert(job.id(), bytes.as_slice())
                 .map_err(|x| e(x.into()))?;
+            let mut by_seq = txn.open_table(BY_SEQ).map_err(|x| e(x.into()))?;
+            by_seq.insert(job.seq, job.id()).map_err(|x| e(x.into()))?;
             let mut meta = txn.open_table(META).map_err(|x| e(x.into()))?;
             let seq = meta
                 .get(SEQ_KEY)
@@ -390,10 +432,52 @@ mod tests {
             store.put(&b).unwrap();
         }
         let store = Store::open(dir.path()).unwrap();
+        assert_eq!(store.get("job-2").unwrap().as_ref(), Some(&b));
         let mut loaded = store.load().unwrap();
         loaded.jobs.sort_by_key(|j| j.seq);
+        // Loaded without the statistics, which only a fetch of the result reads.
+        b.stats_json = String::new();
         assert_eq!(loaded.jobs, vec![a, b]);
         assert_eq!(loaded.seq, 2);
+    }
+
+    #[test]
+    fn jobs_come_in_pages_newest_first_even_from_a_store_written_before_the_index() {
+        let dir = tempfile::tempdir().unwrap();
+        {
+            let store = Store::open(dir.path()).unwrap();
+            for seq in 1..=5 {
+                store
+                    .put(&job(&format!("job-{seq}"), seq, JobState::Queued))
+                    .unwrap();
+            }
+            // Its state changes are written in place: still one entry each.
+            store.put(&job("job-2", 2, JobState::Succeeded)).unwrap();
+            // As a coordinator of the last version left it: no index.
+            let txn = store.db().unwrap().begin_write().unwrap();
+            assert!(txn.delete_table(BY_SEQ).unwrap());
+            txn.commit().unwrap();
+        }
+        let store = Store::open(dir.path()).unwrap();
+        let ids = |jobs: Vec<StoredJob>| -> Vec<String> {
+            jobs.iter().map(|j| j.id().to_string()).collect()
+        };
+        let (first, next) = store.page(2, u64::MAX).unwrap();
+        assert_eq!(
+            (ids(first), next),
+            (vec!["job-5".into(), "job-4".into()], Some(3))
+        );
+        let (second, next) = store.page(2, 3).unwrap();
+        assert_eq!(
+            second[1].summary.as_ref().unwrap().state(),
+            JobState::Succeeded
+        );
+        assert_eq!(
+            (ids(second), next),
+            (vec!["job-3".into(), "job-2".into()], Some(1))
+        );
+        let (last, next) = store.page(2, 1).unwrap();
+        assert_eq!((ids(last), next), (vec!["job-1".to_string()], None));
     }
 
     #[test]

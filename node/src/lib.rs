@@ -4,6 +4,7 @@
 
 pub mod bounds;
 pub mod fault;
+pub mod heap;
 pub mod http;
 pub mod identity;
 pub mod idle;

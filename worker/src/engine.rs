@@ -258,6 +258,8 @@ impl Engine {
                         },
                     )),
                 });
+                // What the frame freed goes back to the system.
+                tokio::task::spawn_blocking(rayfarm_node::heap::release_free_memory);
             }
         }
     }

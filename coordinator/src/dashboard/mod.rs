@@ -154,7 +154,10 @@ struct JobRow {
 
 async fn jobs(State(ctx): State<Ctx>, headers: HeaderMap) -> Result<Response, ApiError> {
     user(&ctx, &headers)?;
-    let (jobs, _) = ctx.coordinator.list(JobPage::newest(LISTED_JOBS));
+    let (jobs, _) = ctx
+        .coordinator
+        .off_runtime(|c| c.list(JobPage::newest(LISTED_JOBS)))
+        .await?;
     let rows: Vec<JobRow> = jobs
         .into_iter()
         .map(|j| {
@@ -241,7 +244,11 @@ async fn preview(
 ) -> Result<Response, ApiError> {
     user(&ctx, &headers)?;
     job_id(&id)?;
-    let latest = ctx.coordinator.previews(&id)?.latest().await?;
+    let previews = ctx
+        .coordinator
+        .off_runtime(move |c| c.previews(&id))
+        .await?;
+    let latest = previews.latest().await?;
     Ok((
         [
             (header::CONTENT_TYPE, "image/png".to_string()),
@@ -268,7 +275,10 @@ async fn cancel(
 ) -> Result<Response, ApiError> {
     let user = user(&ctx, &headers)?;
     job_id(&id)?;
-    let state: JobState = ctx.coordinator.cancel(&id, user.as_ref())?;
+    let state: JobState = ctx
+        .coordinator
+        .off_runtime(move |c| c.cancel(&id, user.as_ref()))
+        .await?;
     Ok(Json(serde_json::json!({ "state": state_name(state) })).into_response())
 }
 
@@ -287,6 +297,7 @@ async fn priority(
     job_id(&id)?;
     let state = ctx
         .coordinator
-        .set_priority(&id, body.priority, user.as_ref())?;
+        .off_runtime(move |c| c.set_priority(&id, body.priority, user.as_ref()))
+        .await?;
     Ok(Json(serde_json::json!({ "state": state_name(state) })).into_response())
 }

@@ -206,6 +206,9 @@ impl Coordinator {
                     result,
                 },
             );
+            drop(st);
+            // The frame's film buffers and encoders are freed: back to the system with them.
+            rayfarm_node::heap::release_free_memory();
         };
         match std::thread::Builder::new()
             .name("write-results".into())

@@ -136,10 +136,17 @@ impl Coordinator {
     }
 
     /// Cancels a queued or running job for `user` (`None` without user tokens: anyone may);
-    /// returns its state afterwards. Only the job's owner or an admin may cancel it.
+    /// returns its state afterwards. Only the job's owner or an admin may cancel it. May read
+    /// the store (a job finished long ago): call it off the async runtime.
     pub fn cancel(self: &Arc<Self>, id: &str, user: Option<&User>) -> Result<JobState, Status> {
         let mut st = self.lock();
-        let job = st.machine.job(id).ok_or_else(|| not_found(id))?;
+        let Some(job) = st.machine.job(id) else {
+            drop(st);
+            // Finished long ago: there is nothing to cancel.
+            let job = self.stored_record(id)?;
+            check_owner(&job, user, "cancel")?;
+            return Ok(job.state());
+        };
         check_owner(job, user, "cancel")?;
         let (state, actions) = st.machine.cancel(now(), id).ok_or_else(|| not_found(id))?;
         self.carry_out(&mut st, actions, Instant::now());
@@ -148,50 +155,79 @@ impl Coordinator {
     }
 
     /// Sets the priority of job `id` for `user` (as [`cancel`](Self::cancel) checks it);
-    /// a queued job moves to its new place in the queue. Returns its state.
+    /// a queued job moves to its new place in the queue. Returns its state. May read the
+    /// store: call it off the async runtime.
     pub fn set_priority(
         self: &Arc<Self>,
         id: &str,
         priority: i32,
         user: Option<&User>,
     ) -> Result<JobState, Status> {
+        let not_queued = |state| {
+            Status::failed_precondition(format!(
+                "job {id} is {}: only a queued job's priority can change",
+                state_name(state)
+            ))
+        };
         let mut st = self.lock();
-        let job = st.machine.job(id).ok_or_else(|| not_found(id))?;
+        let Some(job) = st.machine.job(id) else {
+            drop(st);
+            let job = self.stored_record(id)?;
+            check_owner(&job, user, "change the priority of")?;
+            return Err(not_queued(job.state()));
+        };
         check_owner(job, user, "change the priority of")?;
         let (state, actions) =
             st.machine
                 .set_priority(id, priority)
                 .map_err(|refused| match refused {
                     PriorityRefused::NotFound => not_found(id),
-                    PriorityRefused::NotQueued(state) => Status::failed_precondition(format!(
-                        "job {id} is {}: only a queued job's priority can change",
-                        state_name(state)
-                    )),
+                    PriorityRefused::NotQueued(state) => not_queued(state),
                 })?;
         self.carry_out(&mut st, actions, Instant::now());
         info!(job = %id, user = %user.map_or("", |u| u.name.as_str()), priority, "job priority changed");
         Ok(state)
     }
 
-    /// The previews of job `id`'s latest frame, while they are kept.
+    /// The previews of job `id`'s latest frame, while they are kept. May read the store (a
+    /// job finished long ago): call it off the async runtime.
     pub fn previews(&self, id: &str) -> Result<Arc<Previews>, Status> {
-        let st = self.lock();
-        let job = st.machine.job(id).ok_or_else(|| not_found(id))?;
-        let preview = st.views.get(id).and_then(|v| v.preview.clone());
-        preview.ok_or_else(|| {
-            Status::failed_precondition(format!(
-                "job {id} has no preview: it is {} and previews are kept only for the running \
-                 frame and the last {KEPT_PREVIEWS} frames started by this coordinator",
-                state_name(job.state())
-            ))
-        })
+        let state = {
+            let st = self.lock();
+            if let Some(preview) = st.views.get(id).and_then(|v| v.preview.clone()) {
+                return Ok(preview);
+            }
+            st.machine.job(id).map(|j| j.state())
+        };
+        let state = match state {
+            Some(state) => state,
+            None => self.stored_record(id)?.state(),
+        };
+        Err(Status::failed_precondition(format!(
+            "job {id} has no preview: it is {} and previews are kept only for the running \
+             frame and the last {KEPT_PREVIEWS} frames started by this coordinator",
+            state_name(state)
+        )))
     }
 
-    /// Jobs, newest first.
-    pub fn list(&self, page: JobPage) -> (Vec<proto::JobSummary>, Option<u64>) {
+    /// Jobs, newest first, read from the store, each as the machine has it if it holds the
+    /// job (its record may be newer than the stored one). A job whose first record is not
+    /// stored yet is not listed: its submitter has not been told of it either. Call it off
+    /// the async runtime.
+    pub fn list(&self, page: JobPage) -> Result<(Vec<proto::JobSummary>, Option<u64>), Status> {
+        let (stored, next) = self
+            .store
+            .page(page.size, page.from_seq)
+            .map_err(|e| Status::unavailable(format!("the job store cannot be read: {e}")))?;
         let st = self.lock();
-        let (jobs, next) = st.machine.page(page.size, page.from_seq);
-        (jobs.into_iter().map(|j| j.summary.clone()).collect(), next)
+        let jobs = stored
+            .into_iter()
+            .filter_map(|stored| match st.machine.job(stored.id()) {
+                Some(held) => Some(held.summary.clone()),
+                None => stored.summary,
+            })
+            .collect();
+        Ok((jobs, next))
     }
 
     /// A job's latest progress event, while it has a progress channel (queued, running, or
@@ -212,9 +248,13 @@ impl Coordinator {
             if let Some(view) = st.views.get(id) {
                 return Ok(view.progress.subscribe());
             }
-            st.machine.job(id).cloned().ok_or_else(|| not_found(id))?
+            st.machine.job(id).cloned()
         };
-        record.stats_json = self.stored_stats(id);
+        match &mut record {
+            Some(record) => record.stats_json = self.stored_stats(id),
+            None => record = Some(self.stored_record(id)?),
+        }
+        let record = record.unwrap_or_default();
         Ok(progress_channel(&record).subscribe())
     }
 
@@ -225,30 +265,60 @@ impl Coordinator {
         id: &str,
         format: proto::ImageFormat,
     ) -> Result<(PathBuf, String, String), Status> {
-        let (hash, recent_stats) = {
+        let held = {
             let st = self.lock();
-            let job = st.machine.job(id).ok_or_else(|| not_found(id))?;
-            if job.state() != JobState::Succeeded {
-                return Err(Status::failed_precondition(format!(
-                    "job {id} is {} and has no result",
-                    state_name(job.state())
-                )));
-            }
-            // A job that just finished: its final record may still be on its way to the
-            // store, and its progress channel holds the statistics.
-            let recent = st
-                .views
-                .get(id)
-                .map(|v| v.progress.borrow().stats_json.clone())
-                .filter(|s| !s.is_empty());
-            (job.image_hash.clone(), recent)
+            st.machine.job(id).map(|job| {
+                // A job that just finished: its final record may still be on its way to the
+                // store, and its progress channel holds the statistics.
+                let recent = st
+                    .views
+                    .get(id)
+                    .map(|v| v.progress.borrow().stats_json.clone())
+                    .filter(|s| !s.is_empty());
+                (job.state(), job.image_hash.clone(), recent)
+            })
         };
-        let stats_json = recent_stats.unwrap_or_else(|| self.stored_stats(id));
+        let (state, hash, stats_json) = match held {
+            Some((state, hash, recent)) => {
+                let stats = match (state, recent) {
+                    (JobState::Succeeded, Some(stats)) => stats,
+                    (JobState::Succeeded, None) => self.stored_stats(id),
+                    _ => String::new(),
+                };
+                (state, hash, stats)
+            }
+            None => {
+                let job = self.stored_record(id)?;
+                (job.state(), job.image_hash, job.stats_json)
+            }
+        };
+        if state != JobState::Succeeded {
+            return Err(Status::failed_precondition(format!(
+                "job {id} is {} and has no result",
+                state_name(state)
+            )));
+        }
         Ok((
             results::image_path(&self.config.data_dir, id, format),
             stats_json,
             hash,
         ))
+    }
+
+    /// Job `id`'s stored record, for a job the machine no longer holds (finished long ago):
+    /// `NOT_FOUND` if there is none.
+    fn stored_record(&self, id: &str) -> Result<JobRecord, Status> {
+        match self.store.get(id) {
+            Ok(stored) => stored
+                .and_then(StoredJob::into_record)
+                .ok_or_else(|| not_found(id)),
+            Err(e) => {
+                error!(job = %id, error = %e, "the job's record could not be read");
+                Err(Status::unavailable(format!(
+                    "job {id}'s record cannot be read from the job store"
+                )))
+            }
+        }
     }
 
     /// A finished job's statistics from the store (the machine keeps none); empty, and

@@ -214,10 +214,11 @@ impl Coordinator {
                 st.views.insert(id, view);
             }
         }
+        let counts = st.machine.job_counts();
         info!(
             store = %st.journal.path().display(),
-            jobs = st.machine.jobs().count(),
-            queued = st.machine.jobs().filter(|j| j.state() == JobState::Queued).count(),
+            queued = counts.queued,
+            finished = counts.succeeded + counts.failed + counts.cancelled,
             "job store opened"
         );
         Ok(Arc::new(Coordinator {
@@ -229,30 +230,38 @@ impl Coordinator {
 
     /// Sets the gauges that are read off the state (jobs by state, workers), for a scrape.
     pub fn refresh_metrics(&self) {
-        let mut by_state = [0i64; 5];
-        let workers = {
+        let (counts, workers) = {
             let st = self.lock();
-            for job in st.machine.jobs() {
-                let i = match job.state() {
-                    JobState::Queued | JobState::Unspecified => 0,
-                    JobState::Running => 1,
-                    JobState::Succeeded => 2,
-                    JobState::Failed => 3,
-                    JobState::Cancelled => 4,
-                };
-                by_state[i] += 1;
-            }
-            st.machine.workers().count()
+            (st.machine.job_counts(), st.machine.workers().count())
         };
+        let by_state = [
+            counts.queued,
+            counts.running,
+            counts.succeeded,
+            counts.failed,
+            counts.cancelled,
+        ];
         let m = rayfarm_node::metrics::coordinator();
         for (gauge, n) in m.jobs.iter().zip(by_state) {
-            gauge.set(n);
+            gauge.set(n as i64);
         }
         m.workers.set(workers as i64);
     }
 
     pub fn config(&self) -> &Config {
         &self.config
+    }
+
+    /// Runs `call` on a blocking thread, as a request handler must for the calls that may
+    /// read the job store (a job finished long ago is only there).
+    pub async fn off_runtime<T: Send + 'static>(
+        self: &Arc<Self>,
+        call: impl FnOnce(&Arc<Coordinator>) -> Result<T, Status> + Send + 'static,
+    ) -> Result<T, Status> {
+        let this = self.clone();
+        tokio::task::spawn_blocking(move || call(&this))
+            .await
+            .map_err(|e| Status::internal(format!("the request failed: {e}")))?
     }
 
     fn lock(&self) -> MutexGuard<'_, State> {

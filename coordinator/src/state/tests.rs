@@ -92,7 +92,7 @@ fn a_worker_lost_three_times_on_one_job_fails_the_job_and_stays() {
     next_start(&mut stays);
     for lost in 1..=3 {
         assert_eq!(
-            c.list(JobPage::newest(100)).0[0].state(),
+            c.list(JobPage::newest(100)).unwrap().0[0].state(),
             JobState::Running,
             "loss {lost}"
         );
@@ -101,6 +101,7 @@ fn a_worker_lost_three_times_on_one_job_fails_the_job_and_stays() {
     }
     let job = c
         .list(JobPage::newest(100))
+        .unwrap()
         .0
         .into_iter()
         .find(|j| j.job_id == id)
@@ -149,7 +150,10 @@ fn a_job_whose_workers_were_all_lost_restarts_above_every_epoch_it_used() {
     // Losing a bumps every tile to epoch 1; losing b too re-queues the job.
     c.worker_gone(a, "test");
     c.worker_gone(b, "test");
-    assert_eq!(c.list(JobPage::newest(100)).0[0].state(), JobState::Queued);
+    assert_eq!(
+        c.list(JobPage::newest(100)).unwrap().0[0].state(),
+        JobState::Queued
+    );
     // Worker b, dropped but still running, may send epoch-1 rays: the new frame is above.
     let (_, again) = start_epochs_of(&c, "c");
     assert!(
@@ -168,19 +172,22 @@ fn a_job_restarted_after_a_coordinator_restart_starts_its_tiles_at_a_new_epoch()
         start_epochs(&c).is_empty(),
         "a first frame starts at epoch 0"
     );
-    assert_eq!(c.list(JobPage::newest(100)).0[0].state(), JobState::Running);
+    assert_eq!(
+        c.list(JobPage::newest(100)).unwrap().0[0].state(),
+        JobState::Running
+    );
     let_go(c);
     for epoch in 1..=2 {
         // As after a crash: the running job is queued again, and its next frame's tiles
         // are all at an epoch the dead run never used.
         let c = Coordinator::open(config(root.path())).unwrap();
-        let jobs = c.list(JobPage::newest(100)).0;
+        let jobs = c.list(JobPage::newest(100)).unwrap().0;
         assert_eq!((jobs.len(), jobs[0].state()), (1, JobState::Queued));
         let epochs = start_epochs(&c);
         let tiles = epochs.len();
         assert!(tiles >= 2, "{epochs:?}");
         assert!(epochs.values().all(|&e| e == epoch), "{epochs:?}");
-        assert_eq!(c.list(JobPage::newest(100)).0[0].job_id, id);
+        assert_eq!(c.list(JobPage::newest(100)).unwrap().0[0].job_id, id);
         let_go(c);
     }
     // Sequence numbers go on where they stopped.
@@ -200,25 +207,95 @@ fn the_job_list_comes_in_pages_that_new_jobs_do_not_shift() {
     let names = |jobs: &[proto::JobSummary]| -> Vec<String> {
         jobs.iter().map(|j| j.job_id.clone()).collect()
     };
-    let (first, next) = c.list(JobPage::newest(2));
+    let (first, next) = c.list(JobPage::newest(2)).unwrap();
     assert_eq!(names(&first), [ids[4].clone(), ids[3].clone()]);
     // A job submitted between two pages is newer than both: the next page goes on.
     let newest = c.submit(Some(spec)).unwrap();
-    let (second, next) = c.list(JobPage {
-        size: 2,
-        from_seq: next.expect("more pages"),
-    });
+    let (second, next) = c
+        .list(JobPage {
+            size: 2,
+            from_seq: next.expect("more pages"),
+        })
+        .unwrap();
     assert_eq!(names(&second), [ids[2].clone(), ids[1].clone()]);
-    let (last, next) = c.list(JobPage {
-        size: 2,
-        from_seq: next.expect("more pages"),
-    });
+    let (last, next) = c
+        .list(JobPage {
+            size: 2,
+            from_seq: next.expect("more pages"),
+        })
+        .unwrap();
     assert_eq!((names(&last), next), (vec![ids[0].clone()], None));
-    assert_eq!(c.list(JobPage::newest(1)).0[0].job_id, newest);
+    assert_eq!(c.list(JobPage::newest(1)).unwrap().0[0].job_id, newest);
     // The order survives a restart.
     drop(c);
     let c = Coordinator::open(config(root.path())).unwrap();
-    let all = c.list(JobPage::newest(10)).0;
+    let all = c.list(JobPage::newest(10)).unwrap().0;
     assert_eq!(all.len(), 6);
     assert_eq!(all[5].job_id, ids[0]);
+}
+
+#[test]
+fn a_job_the_machine_has_forgotten_is_answered_from_the_store() {
+    use rayfarm_machine::coordinator::cluster::KEPT_FINISHED_JOBS;
+    let root = tempfile::tempdir().unwrap();
+    let spec = small_job(root.path());
+    let c = Coordinator::open(config(root.path())).unwrap();
+    let cancelled: Vec<String> = (0..KEPT_FINISHED_JOBS + 3)
+        .map(|_| {
+            let id = c.submit(Some(spec.clone())).unwrap();
+            assert_eq!(c.cancel(&id, None).unwrap(), JobState::Cancelled);
+            id
+        })
+        .collect();
+    // A frame's start is stored after the cancellations' records: the oldest are forgotten.
+    let running = c.submit(Some(spec)).unwrap();
+    start_epochs(&c);
+    let oldest = &cancelled[0];
+    assert!(c.lock().machine.job(oldest).is_none(), "still held");
+    // Listed, in order, with the running job first.
+    let listed = c.list(JobPage::newest(1000)).unwrap().0;
+    assert_eq!(listed.len(), cancelled.len() + 1);
+    assert_eq!(
+        (listed[0].job_id.as_str(), listed[0].state()),
+        (running.as_str(), JobState::Running)
+    );
+    let last = listed.last().unwrap();
+    assert_eq!((&last.job_id, last.state()), (oldest, JobState::Cancelled));
+    // Every call answers for it as for a held job.
+    assert_eq!(c.cancel(oldest, None).unwrap(), JobState::Cancelled);
+    assert_eq!(
+        c.watch(oldest).unwrap().borrow().state(),
+        JobState::Cancelled
+    );
+    let no_result = c.result(oldest, proto::ImageFormat::Png).unwrap_err();
+    assert!(
+        no_result.message().contains("is cancelled"),
+        "{no_result:?}"
+    );
+    let no_priority = c.set_priority(oldest, 5, None).unwrap_err();
+    assert_eq!(
+        no_priority.code(),
+        tonic::Code::FailedPrecondition,
+        "{no_priority:?}"
+    );
+    let no_preview = c.previews(oldest).err().expect("no preview");
+    assert_eq!(
+        no_preview.code(),
+        tonic::Code::FailedPrecondition,
+        "{no_preview:?}"
+    );
+    // A job that never was is still unknown.
+    for e in [
+        c.cancel("job-0-9999", None).unwrap_err(),
+        c.watch("job-0-9999").unwrap_err(),
+        c.previews("job-0-9999").err().expect("unknown"),
+    ] {
+        assert_eq!(e.code(), tonic::Code::NotFound, "{e:?}");
+    }
+    // The metrics count the forgotten jobs.
+    assert_eq!(
+        c.lock().machine.job_counts().cancelled,
+        cancelled.len() as u64
+    );
+    let_go(c);
 }

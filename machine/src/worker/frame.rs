@@ -334,7 +334,7 @@ impl<S: RaySpill> Frame<S> {
         let domains: Vec<u32> = self
             .plan
             .held_elsewhere()
-            .filter(|&d| !self.plan.planned_or_resident(d) && d < self.queues.domains())
+            .filter(|&d| self.plan.forwards(d) && d < self.queues.domains())
             .collect();
         let mut queued = Vec::new();
         for d in domains {

@@ -152,6 +152,17 @@ impl Plan {
         self.work_on.contains(&domain) || self.resident.contains(&domain)
     }
 
+    /// Whether rays queued here for `domain` leave for its holders elsewhere. Under the
+    /// domain schedule only the owner ever traces a domain, however many are mapped here: a
+    /// ray queued before the plan came (a pass that ended first) must still go to it.
+    /// Otherwise a domain planned or mapped here is traced here.
+    pub fn forwards(&self, domain: u32) -> bool {
+        match self.mode {
+            Mode::Domain => !self.work_on.contains(&domain),
+            _ => !self.planned_or_resident(domain),
+        }
+    }
+
     /// Whether this worker may trace the queue of `domain` now.
     pub fn traces(&self, domain: u32) -> bool {
         match self.mode {

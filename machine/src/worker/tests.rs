@@ -179,6 +179,39 @@ fn a_batch_goes_to_the_holder_the_latest_plan_names() {
 }
 
 #[test]
+fn domain_schedule_rays_queued_before_the_plan_go_to_their_owner_though_mapped_here() {
+    // A real frame hung this way: the first pass ended before the owners' plan came, its rays
+    // waited here for every domain, and those of domains the worker had mapped from earlier
+    // frames but does not own stayed, traced by no one.
+    let mut w = worker();
+    w.handle(
+        Time(0),
+        Event::FrameOpened {
+            start: start(JOB, Schedule::Domain, &[]),
+            opened: Ok(OpenedScene {
+                resident: vec![0, 1, 2],
+                ..scene()
+            }),
+        },
+    );
+    let rays = [ray(0, 0, 0, 1), ray(0, 0, 1, 2), ray(0, 0, 2, 3)];
+    let early = w.handle(Time(1), bundle(JOB, &rays));
+    assert!(rays_sent(&early).is_empty(), "no owner known yet");
+    let mut out = w.handle(
+        Time(2),
+        plan(1, &[0], &[(0, "me:1"), (1, "b:1"), (2, "b:1")]),
+    );
+    let work = pass_started(&out).expect("its own domain traced");
+    assert_eq!(
+        work.trace.as_ref().map(|(d, r)| (*d, r.len())),
+        Some((0, 1))
+    );
+    // The others are on their way to their owner (bundled: they go out within a second).
+    out.extend(w.handle(Time::from_duration(Duration::from_secs(1)), Event::Tick));
+    assert_eq!(rays_sent(&out)["b:1"], [rays[1], rays[2]]);
+}
+
+#[test]
 fn a_stale_epochs_rays_are_dropped() {
     let mut w = worker();
     w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));

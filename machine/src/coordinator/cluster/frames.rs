@@ -169,6 +169,7 @@ impl Coordinator {
     /// barriers) go out to the workers still registered.
     pub(super) fn release_held(&mut self, barrier: u64, out: &mut Vec<Action>) {
         self.stored_barriers = self.stored_barriers.max(barrier);
+        self.forget_finished();
         let ready = self.held.iter().take_while(|(b, _)| *b <= barrier).count();
         let workers = &self.workers;
         out.extend(

@@ -27,7 +27,7 @@ impl Coordinator {
     /// old order; a job that was running queued again in its place (its frame died with the
     /// old process and starts over at fresh tile epochs, since its record counts the
     /// attempt); a finished job whose result file is gone (`missing_result`, as the shell
-    /// found it) failed.
+    /// found it) failed. A finished job is only counted: the store answers for it.
     pub fn restore(
         &mut self,
         now: Time,
@@ -73,8 +73,9 @@ impl Coordinator {
         }
         self.seq = self.seq.max(record.seq);
         if is_terminal(record.state()) {
-            // In the store, not in memory (see `set_state_stored`).
-            record.stats_json = String::new();
+            // The store's, not the machine's (see `KEPT_FINISHED_JOBS`).
+            self.count_ended(record.state());
+            return out;
         }
         let job = Job {
             cost: record.summary.spec.as_ref().map_or(0, spec_cost),
@@ -257,6 +258,7 @@ impl Coordinator {
         let Some(job) = self.jobs.get_mut(id) else {
             return;
         };
+        let newly_ended = is_terminal(state) && !is_terminal(job.record.state());
         let summary = &mut job.record.summary;
         summary.state = state as i32;
         summary.error = error.to_string();
@@ -275,6 +277,36 @@ impl Coordinator {
             record.stats_json = std::mem::take(&mut job.record.stats_json);
         }
         out.push(Action::Persist { record, barrier });
+        if newly_ended {
+            self.count_ended(state);
+            // Stored with `barrier`, or before the next barrier made after it.
+            let stored_by = barrier.unwrap_or(self.barriers + 1);
+            self.finished.push_back((id.to_string(), stored_by));
+            self.forget_finished();
+        }
+    }
+
+    fn count_ended(&mut self, state: JobState) {
+        let i = match state {
+            JobState::Succeeded => 0,
+            JobState::Failed => 1,
+            _ => 2,
+        };
+        self.ended[i] += 1;
+    }
+
+    /// Forgets the oldest finished jobs past [`KEPT_FINISHED_JOBS`] whose final records are
+    /// known to be stored: from then on the shell answers for them from the store.
+    pub(super) fn forget_finished(&mut self) {
+        while self.finished.len() > KEPT_FINISHED_JOBS
+            && let Some((id, stored_by)) = self.finished.front()
+            && *stored_by <= self.stored_barriers
+        {
+            if let Some(job) = self.jobs.remove(id) {
+                self.by_seq.remove(&job.record.seq);
+            }
+            self.finished.pop_front();
+        }
     }
 
     pub(super) fn set_state(

@@ -126,6 +126,23 @@ pub struct LostWorker {
 /// Workers lost remembered for the dashboard, newest last.
 pub const KEPT_LOST_WORKERS: usize = 32;
 
+/// Finished jobs the machine keeps, the latest: a client that saw a job finish asks for its
+/// result at once, perhaps before its final record is stored. Older finished jobs are
+/// forgotten once their final record is known to be stored (the shell reads them from the
+/// store), so the machine's memory does not grow with the jobs it has finished.
+pub const KEPT_FINISHED_JOBS: usize = 64;
+
+/// How many jobs are in each state, finished ones included (those the machine has
+/// forgotten too), for the metrics.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct JobCounts {
+    pub queued: u64,
+    pub running: u64,
+    pub succeeded: u64,
+    pub failed: u64,
+    pub cancelled: u64,
+}
+
 /// Why a worker's control stream is closed.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum Closing {
@@ -305,6 +322,11 @@ pub struct Coordinator {
     stopping: bool,
     /// The latest workers dropped (at most [`KEPT_LOST_WORKERS`]).
     lost: VecDeque<LostWorker>,
+    /// Finished jobs still held, oldest first, each with the barrier whose storing proves
+    /// its final record stored (records are stored in the order they are made).
+    finished: VecDeque<(String, u64)>,
+    /// Jobs finished in each state since the store began: succeeded, failed, cancelled.
+    ended: [u64; 3],
 }
 
 /// Whether a job in `state` has ended (succeeded, failed or cancelled): it never changes
@@ -336,6 +358,8 @@ impl Coordinator {
             held: Vec::new(),
             stopping: false,
             lost: VecDeque::new(),
+            finished: VecDeque::new(),
+            ended: [0; 3],
         }
     }
 
@@ -382,18 +406,38 @@ impl Coordinator {
         self.lost.iter()
     }
 
-    /// Job `id`'s record.
+    /// Job `id`'s record, if the machine holds it: every unfinished job and the latest
+    /// finished ones ([`KEPT_FINISHED_JOBS`]); the others are the store's.
     pub fn job(&self, id: &str) -> Option<&JobRecord> {
         self.jobs.get(id).map(|j| &j.record)
     }
 
-    /// Every job's record, in no particular order.
+    /// Every job's record the machine holds, in no particular order.
     pub fn jobs(&self) -> impl Iterator<Item = &JobRecord> {
         self.jobs.values().map(|j| &j.record)
     }
 
-    /// At most `size` jobs, newest first, from sequence number `from_seq` down; and the
-    /// sequence number the next page starts at, if any.
+    /// How many jobs are in each state, the forgotten finished ones included.
+    pub fn job_counts(&self) -> JobCounts {
+        let mut counts = JobCounts {
+            succeeded: self.ended[0],
+            failed: self.ended[1],
+            cancelled: self.ended[2],
+            ..JobCounts::default()
+        };
+        for job in self.jobs.values() {
+            match job.record.state() {
+                JobState::Queued | JobState::Unspecified => counts.queued += 1,
+                JobState::Running => counts.running += 1,
+                // Counted in `ended` when they finished.
+                JobState::Succeeded | JobState::Failed | JobState::Cancelled => {}
+            }
+        }
+        counts
+    }
+
+    /// At most `size` of the jobs the machine holds, newest first, from sequence number
+    /// `from_seq` down; and the sequence number the next page starts at, if any.
     pub fn page(&self, size: usize, from_seq: u64) -> (Vec<&JobRecord>, Option<u64>) {
         let mut ids = self.by_seq.range(..=from_seq).rev();
         let jobs = ids

@@ -424,14 +424,15 @@ fn a_complete_frame_is_written_once_its_workers_reported_or_at_the_report_deadli
         (kept.image_hash.as_str(), kept.stats_json.as_str()),
         ("abc", "")
     );
-    // Nor does a coordinator that restores it from the store.
+    // A coordinator that restores it from the store keeps nothing of it but its count.
     let mut restored = Coordinator::new(config(), 0);
     assert!(
         restored
             .restore(secs(8), h.store[&id].clone(), None)
             .is_empty()
     );
-    assert_eq!(restored.job(&id).expect("restored").stats_json, "");
+    assert!(restored.job(&id).is_none());
+    assert_eq!(restored.job_counts().succeeded, 1);
 }
 
 #[test]
@@ -522,6 +523,40 @@ fn quotas_refuse_a_third_job_and_a_cancelled_job_frees_its_place() {
     );
     assert!(h.c.submit(Time(2), spec(), 1, "ann").is_ok());
     assert!(h.c.cancel(Time(2), "job-none").is_none());
+}
+
+#[test]
+fn finished_jobs_past_the_kept_ones_are_forgotten_once_their_records_are_stored() {
+    let mut h = Harness::new();
+    let n = KEPT_FINISHED_JOBS + 5;
+    let ids: Vec<String> = (0..n)
+        .map(|_| {
+            let (id, _) = h.submit(Time(0));
+            let (state, out) = h.c.cancel(Time(0), &id).expect("known");
+            assert_eq!(state, JobState::Cancelled);
+            h.keep(out);
+            id
+        })
+        .collect();
+    // No barrier stored since they finished, so no proof their records are on disk: all held.
+    assert!(ids.iter().all(|id| h.c.job(id).is_some()));
+    // A frame's start is stored with a barrier, after every record made before it.
+    let (job, _) = h.submit(Time(0));
+    h.register(Time(0), "w");
+    h.open(Time(0), &job);
+    assert!(ids[..5].iter().all(|id| h.c.job(id).is_none()));
+    assert!(ids[5..].iter().all(|id| h.c.job(id).is_some()));
+    let counts = h.c.job_counts();
+    assert_eq!((counts.cancelled, counts.running), (n as u64, 1));
+    // A restarted coordinator holds no finished job, and counts them all.
+    let mut c = Coordinator::new(config(), 0);
+    for record in h.store.values() {
+        c.restore(Time(0), record.clone(), None);
+    }
+    assert!(ids.iter().all(|id| c.job(id).is_none()));
+    let counts = c.job_counts();
+    assert_eq!((counts.cancelled, counts.queued), (n as u64, 1));
+    assert_eq!(c.page(100, u64::MAX).0.len(), 1);
 }
 
 #[test]
