@@ -2,7 +2,7 @@
 //! ([`Isa`]): ordered nearest-hit, shadow any-hit, and the [`Traverser`] that holds their
 //! stacks and dispatches to the selected kernel.
 
-use super::packet::{PacketStack, nearest_packet};
+use super::packet::{PacketStack, any_packet, nearest_packet};
 #[cfg(target_arch = "x86_64")]
 use super::x86;
 use super::{
@@ -135,6 +135,48 @@ impl Traverser {
             #[cfg(target_arch = "x86_64")]
             Kernel::Sse => any::<x86::Sse>(stack, bvh, ray, t0, t1),
             _ => any::<Scalar>(stack, bvh, ray, t0, t1),
+        }
+    }
+
+    /// Whether each of neighbouring, coherent shadow rays (a tile's rays towards one light) is
+    /// blocked within its own `t0[i] <= t <= t1[i]`, into `out`: traced as packets of
+    /// [`PACKET`] in lock step, or one at a time if packets are off. The same answers as
+    /// [`Traverser::any_hit`] per ray.
+    ///
+    /// # Panics
+    /// If the four slices differ in length.
+    pub fn any_hits(
+        &mut self,
+        bvh: Bvh,
+        rays: &[TraceRay],
+        t0: &[f32],
+        t1: &[f32],
+        out: &mut [bool],
+    ) {
+        let n = rays.len();
+        assert!(
+            t0.len() == n && t1.len() == n && out.len() == n,
+            "every ray needs an interval and a place for its answer"
+        );
+        if !self.packets || bvh.nodes.is_empty() || n < 2 {
+            for i in 0..n {
+                out[i] = self.any_hit(bvh, &rays[i], t0[i], t1[i]);
+            }
+            return;
+        }
+        let (stack, single) = (&mut self.packet_stack, &mut self.stack);
+        for start in (0..n).step_by(PACKET) {
+            let at = start..(start + PACKET).min(n);
+            let (r, a, b) = (&rays[at.clone()], &t0[at.clone()], &t1[at.clone()]);
+            let o = &mut out[at];
+            match self.kernel {
+                #[cfg(target_arch = "x86_64")]
+                // SAFETY: a traverser holds only a kernel this CPU supports (`with_kernel`).
+                Kernel::Avx2 => unsafe { x86::any_packet_avx2(stack, single, bvh, r, a, b, o) },
+                #[cfg(target_arch = "x86_64")]
+                Kernel::Sse => any_packet::<x86::Sse>(stack, single, bvh, r, a, b, o),
+                _ => any_packet::<Scalar>(stack, single, bvh, r, a, b, o),
+            }
         }
     }
 }
@@ -434,7 +476,7 @@ pub(super) fn descend<K: Isa>(
 
 /// Whether a leaf's blocks hold a hit in `[t0, t1]`.
 #[inline(always)]
-fn leaf_any<K: Isa>(blocks: &[TriangleBlock], ray: &K::Ray, t0: f32, t1: f32) -> bool {
+pub(super) fn leaf_any<K: Isa>(blocks: &[TriangleBlock], ray: &K::Ray, t0: f32, t1: f32) -> bool {
     blocks.iter().any(|b| K::block(b, ray, t0, t1).1 != 0)
 }
 
@@ -443,12 +485,25 @@ fn leaf_any<K: Isa>(blocks: &[TriangleBlock], ray: &K::Ray, t0: f32, t1: f32) ->
 #[inline(always)]
 pub(super) fn any<K: Isa>(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32) -> bool {
     let r = K::prepare(ray);
+    any_from::<K>(stack, bvh, &r, t0, t1, 0)
+}
+
+/// [`any`] of the subtree under inner node `node` (the root for a whole ray; a packet's ray that
+/// is left alone, from where it was left).
+#[inline(always)]
+pub(super) fn any_from<K: Isa>(
+    stack: &mut Stack,
+    bvh: Bvh,
+    r: &K::Ray,
+    t0: f32,
+    t1: f32,
+    mut node: u32,
+) -> bool {
     stack.len = 0;
-    let mut node = 0u32;
     loop {
         // SAFETY: the root or a child index of a validated tree.
         let n = unsafe { bvh.node(node) };
-        let (_, mut mask) = K::slab(n, &r, t0, t1);
+        let (_, mut mask) = K::slab(n, r, t0, t1);
         if mask & (mask - 1) != 0 {
             prefetch_children(bvh, n, mask);
         }
@@ -468,7 +523,7 @@ pub(super) fn any<K: Isa>(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, 
             } else {
                 // SAFETY: a leaf child's range of a validated tree.
                 let blocks = unsafe { bvh.leaf(child, meta) };
-                if leaf_any::<K>(blocks, &r, t0, t1) {
+                if leaf_any::<K>(blocks, r, t0, t1) {
                     return true;
                 }
             }
