@@ -13,10 +13,12 @@ impl SceneView {
     /// Splits the parent's credit among its children (shadow rays get the minimum, the bounce
     /// the rest, so credit lasts for any depth) and sends them on. A parent without children, or
     /// whose credit cannot be split, ends its path and returns its credit; credit depends only
-    /// on the ray tree, so that cut is the same in every run.
+    /// on the ray tree, so that cut is the same in every run. `here` is the domain of the hit
+    /// ([`SceneView::route_child`]).
     pub(super) fn hand_on_credit(
         &self,
         parent: &RayRecord,
+        here: Option<u32>,
         children: &mut [RayRecord],
         sink: &mut impl RaySink,
     ) {
@@ -35,7 +37,7 @@ impl SceneView {
                 Ok(shares) => {
                     for (child, credit) in children.iter_mut().zip(shares) {
                         child.credit = credit;
-                        self.route_new(*child, sink);
+                        self.route_child(*child, here, sink);
                     }
                 }
                 Err(_) => sink.retire(parent, [0.0; 3]),
@@ -50,7 +52,7 @@ impl SceneView {
                     } else {
                         s.continuation
                     };
-                    self.route_new(*child, sink);
+                    self.route_child(*child, here, sink);
                 }
             }
             Err(_) => sink.retire(parent, [0.0; 3]),
