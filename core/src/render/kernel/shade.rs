@@ -1,0 +1,243 @@
+//! Shading a surface hit: the children of a radiance ray (shadow rays towards the lights,
+//! at most one bounce) and the split of its credit among them.
+
+use glam::Vec3;
+
+use super::{KernelCounters, RaySink, SceneView};
+use crate::frame::{split_credit, split_path_credit};
+use crate::ray::{RayKind, RayRecord};
+use crate::sampling::{Purpose, uniform};
+use crate::scene::{Light, Material};
+
+impl SceneView {
+    /// Splits the parent's credit among its children (shadow rays get the minimum, the bounce
+    /// the rest, so credit lasts for any depth) and sends them on. A parent without children, or
+    /// whose credit cannot be split, ends its path and returns its credit; credit depends only
+    /// on the ray tree, so that cut is the same in every run. `here` is the domain of the hit
+    /// ([`SceneView::route_child`]).
+    pub(super) fn hand_on_credit(
+        &self,
+        parent: &RayRecord,
+        here: Option<u32>,
+        children: &mut [RayRecord],
+        sink: &mut impl RaySink,
+    ) {
+        let leaves = children
+            .iter()
+            .filter(|c| c.kind() == RayKind::Shadow)
+            .count();
+        if children.is_empty() {
+            sink.retire(parent, [0.0; 3]);
+            return;
+        }
+        // The shares are computed in place (no vector of them per ray): even shares when every
+        // child is a leaf, else the minimum per leaf and the rest to the bounce.
+        if leaves == children.len() {
+            match split_credit(parent.credit, leaves) {
+                Ok(shares) => {
+                    for (child, credit) in children.iter_mut().zip(shares) {
+                        child.credit = credit;
+                        self.route_child(*child, here, sink);
+                    }
+                }
+                Err(_) => sink.retire(parent, [0.0; 3]),
+            }
+            return;
+        }
+        match split_path_credit(parent.credit, leaves) {
+            Ok(s) => {
+                for child in children.iter_mut() {
+                    child.credit = if child.kind() == RayKind::Shadow {
+                        s.leaf
+                    } else {
+                        s.continuation
+                    };
+                    self.route_child(*child, here, sink);
+                }
+            }
+            Err(_) => sink.retire(parent, [0.0; 3]),
+        }
+    }
+
+    /// The children of a radiance ray that hit a surface (geometric normal, material) at `p`:
+    /// shadow rays towards the lights and at most one bounce, pushed to `out` without credit.
+    pub(super) fn shade(
+        &self,
+        ray: &RayRecord,
+        p: Vec3,
+        surface: (Vec3, u32),
+        out: &mut Vec<RayRecord>,
+        counters: &mut KernelCounters,
+    ) {
+        let dir = Vec3::from(ray.dir);
+        let (mut n, material) = surface;
+        if n.dot(dir) > 0.0 {
+            n = -n;
+        }
+        // Leave the surface by a scene-relative margin plus a few ulps of the hit's magnitude.
+        let origin = p + n * (self.epsilon + p.abs().max_element() * 1e-6);
+        let throughput = Vec3::from(ray.throughput);
+        let u = |purpose| uniform(ray.pixel, ray.sample, ray.depth as u32, purpose, 0);
+        let can_bounce = ray.depth < self.max_depth;
+        let child = |d: Vec3, weight: Vec3| RayRecord {
+            origin: origin.into(),
+            t_min: 0.0,
+            dir: d.into(),
+            t_max: f32::INFINITY,
+            throughput: weight.into(),
+            depth: ray.depth + 1,
+            kind: RayKind::Radiance as u8,
+            ..*ray
+        };
+        // Materials are checked against the manifest when a domain is loaded.
+        match self.materials[material as usize] {
+            Material::Diffuse { albedo } => {
+                let albedo = Vec3::from(albedo);
+                self.direct_light(ray, origin, n, throughput * albedo, out, counters);
+                if can_bounce {
+                    let d = cosine_direction(n, u(Purpose::BounceU), u(Purpose::BounceV));
+                    counters.bounce_rays += 1;
+                    out.push(child(d, throughput * albedo));
+                }
+            }
+            Material::Mirror { tint } => {
+                if can_bounce {
+                    counters.reflection_rays += 1;
+                    let d = reflect(dir, n);
+                    out.push(child(d, throughput * Vec3::from(tint)));
+                }
+            }
+            Material::Glossy {
+                albedo,
+                specular,
+                roughness,
+            } => {
+                let specular = specular.clamp(0.0, 1.0);
+                let base = throughput * Vec3::from(albedo) * (1.0 - specular);
+                self.direct_light(ray, origin, n, base, out, counters);
+                if !can_bounce {
+                    return;
+                }
+                // One bounce: the coat with probability `specular`, else the base. Both
+                // weights are divided by their probability, so the estimate stays unbiased.
+                if u(Purpose::Lobe) < specular {
+                    let fuzz = sphere_point(u(Purpose::GlossU), u(Purpose::GlossV)) * roughness;
+                    let d = (reflect(dir, n) + fuzz).normalize_or(n);
+                    if d.dot(n) > 0.0 {
+                        counters.bounce_rays += 1;
+                        out.push(child(d, throughput));
+                    }
+                } else if specular < 1.0 {
+                    let d = cosine_direction(n, u(Purpose::BounceU), u(Purpose::BounceV));
+                    counters.bounce_rays += 1;
+                    out.push(child(d, throughput * Vec3::from(albedo)));
+                }
+            }
+        }
+    }
+
+    /// Shadow rays towards every light, each carrying the light it will add if unoccluded.
+    /// `weight` is the path throughput times the diffuse reflectance.
+    fn direct_light(
+        &self,
+        ray: &RayRecord,
+        origin: Vec3,
+        n: Vec3,
+        weight: Vec3,
+        out: &mut Vec<RayRecord>,
+        counters: &mut KernelCounters,
+    ) {
+        let brdf = weight * std::f32::consts::FRAC_1_PI;
+        for (i, light) in self.lights.iter().enumerate() {
+            let (dir, t_max, light_in) = match *light {
+                Light::Directional {
+                    direction,
+                    radiance,
+                } => {
+                    let l = Vec3::from(direction).normalize_or(Vec3::Y);
+                    let cos = n.dot(l);
+                    if cos <= 0.0 {
+                        continue;
+                    }
+                    (
+                        l,
+                        f32::INFINITY,
+                        Vec3::from(radiance) * cos * std::f32::consts::PI,
+                    )
+                }
+                Light::Quad {
+                    corner,
+                    edge_u,
+                    edge_v,
+                    emission,
+                } => {
+                    let (eu, ev) = (Vec3::from(edge_u), Vec3::from(edge_v));
+                    let su = uniform(
+                        ray.pixel,
+                        ray.sample,
+                        ray.depth as u32,
+                        Purpose::LightU,
+                        i as u32,
+                    );
+                    let sv = uniform(
+                        ray.pixel,
+                        ray.sample,
+                        ray.depth as u32,
+                        Purpose::LightV,
+                        i as u32,
+                    );
+                    let q = Vec3::from(corner) + eu * su + ev * sv;
+                    let to = q - origin;
+                    let dist2 = to.length_squared();
+                    if dist2 <= 0.0 {
+                        continue;
+                    }
+                    let dist = dist2.sqrt();
+                    let l = to / dist;
+                    let area_n = eu.cross(ev);
+                    let cos_s = n.dot(l);
+                    let cos_l = -area_n.dot(l); // area_n carries the quad's area
+                    if cos_s <= 0.0 || cos_l <= 0.0 {
+                        continue;
+                    }
+                    let geometry = cos_s * cos_l / dist2;
+                    (l, dist * (1.0 - 1e-4), Vec3::from(emission) * geometry)
+                }
+            };
+            let carried = brdf * light_in;
+            if carried.max_element() <= 0.0 {
+                continue;
+            }
+            counters.shadow_rays += 1;
+            out.push(RayRecord {
+                origin: origin.into(),
+                t_min: 0.0,
+                dir: dir.into(),
+                t_max,
+                throughput: carried.into(),
+                kind: RayKind::Shadow as u8,
+                ..*ray
+            });
+        }
+    }
+}
+
+fn reflect(d: Vec3, n: Vec3) -> Vec3 {
+    d - n * (2.0 * d.dot(n))
+}
+
+/// Cosine-weighted direction about `n` (pdf cos/pi, which cancels the Lambert BRDF's cos/pi).
+fn cosine_direction(n: Vec3, u: f32, v: f32) -> Vec3 {
+    let (t, b) = n.any_orthonormal_pair();
+    let r = u.sqrt();
+    let phi = 2.0 * std::f32::consts::PI * v;
+    (t * (r * phi.cos()) + b * (r * phi.sin()) + n * (1.0 - u).max(0.0).sqrt()).normalize_or(n)
+}
+
+/// A point on the unit sphere.
+fn sphere_point(u: f32, v: f32) -> Vec3 {
+    let z = 1.0 - 2.0 * u;
+    let r = (1.0 - z * z).max(0.0).sqrt();
+    let phi = 2.0 * std::f32::consts::PI * v;
+    Vec3::new(r * phi.cos(), r * phi.sin(), z)
+}
