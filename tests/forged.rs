@@ -8,7 +8,8 @@
 use std::time::Duration;
 
 use rayfarm_core::cluster::tile_sums;
-use rayfarm_core::frame::{TILE_CREDIT, TILE_SIZE, TileGrid};
+use rayfarm_core::tile::credit::TILE_CREDIT;
+use rayfarm_core::tile::{TILE_SIZE, TileGrid};
 use rayfarm_node::proto;
 use rayfarm_node::proto::coordinator_message::Body as ToWorker;
 use rayfarm_node::proto::worker_message::Body as FromWorker;

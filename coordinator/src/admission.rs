@@ -4,10 +4,10 @@
 
 use std::path::Path;
 
-use rayfarm_core::frame::{TILE_SIZE, TileGrid};
 use rayfarm_core::ray::RayRecord;
 use rayfarm_core::render::Film;
 use rayfarm_core::render::local::FrameSpec;
+use rayfarm_core::tile::{TILE_SIZE, TileGrid};
 use rayfarm_core::units::format_bytes;
 
 /// What one frame needs, in bytes.

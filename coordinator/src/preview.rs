@@ -13,7 +13,7 @@ use std::sync::{Arc, Mutex, MutexGuard, Weak};
 use std::time::{Duration, Instant};
 
 use rayfarm_core::render::Film;
-use rayfarm_core::render::film::Preview;
+use rayfarm_core::render::film::encode::Preview;
 use tonic::Status;
 
 /// Longest side of a preview in pixels: larger frames are shrunk by a whole factor, so a
@@ -197,7 +197,7 @@ impl Previews {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use rayfarm_core::frame::TileGrid;
+    use rayfarm_core::tile::TileGrid;
 
     #[tokio::test]
     async fn one_preview_per_film_state_and_the_numbers_only_grow() {

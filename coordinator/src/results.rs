@@ -5,8 +5,8 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use rayfarm_core::cluster::stats::ClusterStats;
-use rayfarm_core::frame::TileGrid;
 use rayfarm_core::render::Film;
+use rayfarm_core::tile::TileGrid;
 use rayfarm_node::proto::ImageFormat;
 
 /// The directory of one job's results.

@@ -3,7 +3,41 @@
 //! sample, depth, purpose) and the sums are integers, the film after the last subframe holds
 //! the very sums a one-pass render makes: the same image to the bit.
 
-use crate::frame::Samples;
+/// A run of consecutive samples of every pixel: a progressive subframe's, or a whole frame's.
+/// Sample numbers are the frame's own (the random numbers hash them), so the same sample
+/// renders the same light whichever run it is in.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Samples {
+    /// The run's first sample.
+    pub first: u32,
+    /// Samples in the run (at least 1 in a frame).
+    pub count: u32,
+}
+
+impl Samples {
+    /// All `spp` samples of a frame rendered in one pass.
+    pub fn all(spp: u32) -> Self {
+        Samples {
+            first: 0,
+            count: spp,
+        }
+    }
+
+    /// One past the run's last sample.
+    pub fn end(&self) -> u32 {
+        self.first.saturating_add(self.count)
+    }
+
+    /// The run's sample numbers.
+    pub fn range(&self) -> std::ops::Range<u32> {
+        self.first..self.end()
+    }
+
+    /// Where `sample` falls in the run (its index among the run's samples of a pixel).
+    pub fn offset(&self, sample: u32) -> Option<u32> {
+        self.range().contains(&sample).then(|| sample - self.first)
+    }
+}
 
 /// Most subframes a frame is cut into: each costs a frame start on every worker, so a job
 /// asking for more gets subframes this many at most (larger ones).

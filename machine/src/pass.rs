@@ -11,7 +11,7 @@ use std::sync::{Arc, Mutex};
 
 use rayfarm_core::camera::PinholeCamera;
 use rayfarm_core::cluster::tile_sums;
-use rayfarm_core::frame::{Samples, TileGrid};
+use rayfarm_core::progressive::Samples;
 use rayfarm_core::ray::RayRecord;
 use rayfarm_core::render::cache::DomainCache;
 use rayfarm_core::render::film::to_fixed;
@@ -20,6 +20,7 @@ use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::render::primary::primary_ray;
 use rayfarm_core::render::{KernelCounters, RaySink, SceneView};
 use rayfarm_core::scene::{DomainData, Manifest, SceneError};
+use rayfarm_core::tile::TileGrid;
 use rayfarm_core::wire::{BatchLimits, VerdictRecord};
 use rayfarm_proto as proto;
 use rayon::prelude::*;

@@ -1,8 +1,7 @@
 //! A job's frame as the user API carries it, checked once on the coordinator and read the
 //! same way by every worker.
 
-use rayfarm_core::frame::Samples;
-use rayfarm_core::progressive::Progressive;
+use rayfarm_core::progressive::{Progressive, Samples};
 use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::scene::Camera;
 

@@ -9,10 +9,10 @@
 use std::collections::{BTreeMap, VecDeque};
 use std::time::Duration;
 
-use rayfarm_core::frame::{TILE_SIZE, TileGrid};
 use rayfarm_core::render::Film;
 use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::schedule::dynamic::Options;
+use rayfarm_core::tile::{TILE_SIZE, TileGrid};
 use rayfarm_machine::Time;
 use rayfarm_machine::coordinator::Coordinator;
 use rayfarm_machine::coordinator::Rounds;

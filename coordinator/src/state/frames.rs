@@ -1,7 +1,7 @@
 //! A frame's preparation, off the lock: its scene's manifest read again (it may have changed
 //! since the job was submitted), the frame checked against it, its film file created.
 
-use rayfarm_core::frame::{TILE_SIZE, TileGrid};
+use rayfarm_core::tile::{TILE_SIZE, TileGrid};
 use rayfarm_machine::coordinator::cluster::OpenedFrame;
 
 use super::*;

@@ -153,7 +153,7 @@ fn unzigzag(v: u64) -> i64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::frame::TileGrid;
+    use crate::tile::TileGrid;
 
     #[test]
     fn sums_round_trip_at_the_extremes() {

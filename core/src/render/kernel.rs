@@ -11,10 +11,10 @@ use super::dvr::{self, March, SampleCounts, Segment, VolumeView};
 use super::speculation::{Outcome, SegmentLight, SurfaceHit, Verdict};
 use super::volume_light::{MAX_LIGHTS, RayLights};
 use crate::bvh::{Bvh, Hit, PACKET, TraceRay, Traverser};
-use crate::frame::split_path_credit;
 use crate::geometry::Aabb;
 use crate::ray::{RayKind, RayRecord};
 use crate::scene::{DomainData, DomainTree, Light, Manifest, Material, Sky};
+use crate::tile::credit::{split_credit, split_path_credit};
 
 mod shade;
 

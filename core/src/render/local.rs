@@ -16,10 +16,12 @@ use super::primary::primary_ray;
 use super::speculation::{Groups, Verdict};
 use super::stats::{RenderStats, peak_rss_bytes};
 use crate::camera::PinholeCamera;
-use crate::frame::{Samples, TILE_CREDIT, TileGrid};
+use crate::progressive::Samples;
 use crate::ray::RayRecord;
 use crate::scene::{Camera, DomainData, Manifest, SceneError};
 use crate::schedule::speculative::{GenerationCounts, QueueView, next_queue};
+use crate::tile::TileGrid;
+use crate::tile::credit::TILE_CREDIT;
 use crate::wire::VerdictRecord;
 
 /// Largest image side accepted.
@@ -225,7 +227,7 @@ fn render_in_pool(
         frame.width,
         frame.height,
     );
-    let grid = TileGrid::new(frame.width, frame.height, crate::frame::TILE_SIZE)
+    let grid = TileGrid::new(frame.width, frame.height, crate::tile::TILE_SIZE)
         .ok_or_else(|| RenderError::Frame("image does not fit the tile grid".into()))?;
     let film_dir = options.film_dir.clone().unwrap_or_else(std::env::temp_dir);
     let film = Film::temporary_in(&film_dir, grid, frame.spp)?;
@@ -336,7 +338,7 @@ fn sinks<'a>(
 }
 
 /// Pixels of a full tile.
-const TILE_PIXELS: u32 = crate::frame::TILE_SIZE * crate::frame::TILE_SIZE;
+const TILE_PIXELS: u32 = crate::tile::TILE_SIZE * crate::tile::TILE_SIZE;
 
 /// Moves every tile whose credit is all back from memory to the film; returns how many.
 fn commit_finished(

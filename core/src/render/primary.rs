@@ -2,8 +2,10 @@
 //! credit, whichever process makes it and in whatever order.
 
 use crate::camera::PinholeCamera;
-use crate::frame::{Samples, TILE_CREDIT, TileGrid, primary_credit};
+use crate::progressive::Samples;
 use crate::ray::RayRecord;
+use crate::tile::TileGrid;
+use crate::tile::credit::{TILE_CREDIT, primary_credit};
 
 /// The camera ray of `sample` of `pixel`, tagged with its tile and its share of the tile's
 /// credit. The tile's rays in a pass of `samples` (a progressive subframe, or the whole

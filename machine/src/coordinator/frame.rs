@@ -11,14 +11,16 @@ use super::grants::Grants;
 use crate::Time;
 
 use rayfarm_core::cluster::tile_sums;
-use rayfarm_core::frame::TILE_SIZE;
-use rayfarm_core::frame::{Accept, FrameLedger, Samples, TILE_CREDIT, TileGrid};
+use rayfarm_core::progressive::Samples;
 use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::schedule::DomainId;
 use rayfarm_core::schedule::dynamic::{Options, WorkerPlan};
 use rayfarm_core::schedule::rounds;
 use rayfarm_core::schedule::static_plans::{domain_owner, image_plane_share};
 use rayfarm_core::schedule::tiles::{HandOuts, strided_share};
+use rayfarm_core::tile::credit::TILE_CREDIT;
+use rayfarm_core::tile::ledger::{Accept, FrameLedger};
+use rayfarm_core::tile::{TILE_SIZE, TileGrid};
 use rayfarm_proto::{self as proto, Schedule, coordinator_message::Body};
 use tracing::{debug, info};
 

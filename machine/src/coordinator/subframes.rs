@@ -7,8 +7,9 @@
 //! (the committed subframes are in the film); every worker lost, or a restarted
 //! coordinator, starts the job over from its first subframe (the film is made anew).
 
-use rayfarm_core::frame::{FrameLedger, Samples, TILE_CREDIT};
-use rayfarm_core::progressive::Progressive;
+use rayfarm_core::progressive::{Progressive, Samples};
+use rayfarm_core::tile::credit::TILE_CREDIT;
+use rayfarm_core::tile::ledger::FrameLedger;
 use rayfarm_proto as proto;
 use tracing::info;
 

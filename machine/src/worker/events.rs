@@ -6,10 +6,10 @@ use std::time::Duration;
 use bytes::Bytes;
 use rayfarm_core::bundler::Tier;
 use rayfarm_core::cluster::stats::WorkerFrameStats;
-use rayfarm_core::frame::TileGrid;
 use rayfarm_core::ray::RayRecord;
 use rayfarm_core::render::KernelCounters;
 use rayfarm_core::render::speculation::Outcome;
+use rayfarm_core::tile::TileGrid;
 use rayfarm_core::wire::{BatchLimits, VerdictRecord};
 use rayfarm_proto as proto;
 

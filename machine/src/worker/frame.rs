@@ -11,11 +11,11 @@ use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::time::Duration;
 use tracing::debug;
 
-use rayfarm_core::frame::TileGrid;
 use rayfarm_core::ray::RayRecord;
 use rayfarm_core::render::KernelCounters;
 use rayfarm_core::render::speculation::Outcome;
 use rayfarm_core::schedule::speculative::{GenerationCounts, QueueView, next_queue};
+use rayfarm_core::tile::TileGrid;
 use rayfarm_core::wire::{BatchLimits, VerdictRecord};
 use rayfarm_proto as proto;
 

@@ -6,8 +6,8 @@ use std::collections::{BTreeMap, HashMap};
 use std::time::Duration;
 
 use rayfarm_core::bundler::Tier;
-use rayfarm_core::frame::TileGrid;
 use rayfarm_core::ray::RayRecord;
+use rayfarm_core::tile::TileGrid;
 use rayfarm_core::wire::{self, BatchLimits, VerdictRecord};
 use rayfarm_proto::{self as proto, Schedule, coordinator_message::Body as FromCoordinator};
 

@@ -4,7 +4,7 @@
 use glam::Vec3;
 
 use super::{KernelCounters, RaySink, SceneView};
-use crate::frame::{split_credit, split_path_credit};
+use crate::tile::credit::{split_credit, split_path_credit};
 use crate::ray::{RayKind, RayRecord};
 use crate::sampling::{Purpose, uniform};
 use crate::scene::{Light, Material};

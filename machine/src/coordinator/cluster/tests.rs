@@ -354,7 +354,7 @@ fn whole_tile(c: &Coordinator, tile: u32, epoch: u32) -> proto::TileResult {
     proto::TileResult {
         tile,
         epoch,
-        credit: rayfarm_core::frame::TILE_CREDIT,
+        credit: rayfarm_core::tile::credit::TILE_CREDIT,
         sums: tile_sums::encode(&pixels),
     }
 }
