@@ -14,7 +14,7 @@ use crate::bvh::{Bvh, Hit, PACKET, TraceRay, Traverser};
 use crate::geometry::Aabb;
 use crate::ray::{RayKind, RayRecord};
 use crate::scene::{DomainData, DomainTree, Light, Manifest, Material, Sky};
-use crate::tile::credit::{split_credit, split_path_credit};
+use crate::tile::credit::split_path_credit;
 
 mod shade;
 
