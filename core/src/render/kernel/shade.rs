@@ -4,10 +4,10 @@
 use glam::Vec3;
 
 use super::{KernelCounters, RaySink, SceneView};
-use crate::tile::credit::{split_credit, split_path_credit};
 use crate::ray::{RayKind, RayRecord};
 use crate::sampling::{Purpose, uniform};
 use crate::scene::{Light, Material};
+use crate::tile::credit::{split_credit, split_path_credit};
 
 impl SceneView {
     /// Splits the parent's credit among its children (shadow rays get the minimum, the bounce
