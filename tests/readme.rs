@@ -84,7 +84,11 @@ fn plan(command: &str) -> Option<Plan> {
         ("rayfarm prepare", || Plan::Run(&[])),
         ("rayfarm render", || Plan::Run(&[])),
         ("rayfarm sim", || {
-            Plan::Run(&[("--seeds 0..100000", "--seeds 0..20")])
+            Plan::Run(&[
+                ("--seeds 0..100000", "--seeds 0..20"),
+                // The 64-worker run takes ten minutes: the same command on two.
+                ("--workers 64", "--workers 2"),
+            ])
         }),
         ("rayfarm-coordinator", || {
             Plan::Serve(&[
@@ -131,6 +135,8 @@ fn plan(command: &str) -> Option<Plan> {
         ("rayfarm bench --scene DIR", || Plan::Synopsis),
         ("rayfarm bench-api [", || Plan::Synopsis),
         ("rayfarm bench --scene scenes/", || Plan::Run(&[])),
+        // The simulator's validation: the same scene through the real cluster.
+        ("rayfarm bench --scene b32", || Plan::Run(&[])),
         ("rayfarm certs", || Plan::Run(&[])),
         ("deploy/build-image.sh", || Plan::Skip(COMPOSE)),
         ("docker ", || Plan::Skip(COMPOSE)),
@@ -300,6 +306,12 @@ fn every_readme_command_runs_or_is_skipped_with_its_reason() {
     for name in ["b48", "big48"] {
         prepare_nbody(&scenes, name, 20_000, 4);
     }
+    // The simulator's section names its scene from the working directory, and calibrates into
+    // sim/.
+    for name in ["b32", "s2048"] {
+        prepare_nbody(dir, name, 20_000, 4);
+    }
+    std::fs::create_dir_all(dir.join("sim")).expect("sim");
     let bins: PathBuf = bin("rayfarm").parent().expect("bin dir").to_path_buf();
     let path = format!(
         "{}:{}",
