@@ -93,6 +93,9 @@ impl Drop for FetchSlot {
 const SCENE_READ_TIMEOUT: Duration = Duration::from_secs(10);
 /// Most scene manifests read at once.
 const MAX_SCENE_READS: usize = 8;
+/// Result files whose checksum is remembered, at most (a few hundred bytes each).
+const KEPT_CHECKSUMS: usize = 1024;
+
 /// Most result fetches served at once, in all and to one client address; more are refused
 /// with `RESOURCE_EXHAUSTED`.
 const MAX_FETCHES: usize = 16;
@@ -182,8 +185,13 @@ impl Api {
             tokio::task::spawn_blocking(move || rayfarm_node::result_file::checksum(&owned))
                 .await
                 .map_err(std::io::Error::other)??;
-        self.lock_checksums()
-            .insert(path.to_path_buf(), (modified, len, sum.clone()));
+        let mut known = self.lock_checksums();
+        // A cache, not a record of every result ever fetched: memory must not grow with the
+        // jobs a coordinator has finished. A result fetched again after a clear is summed again.
+        if known.len() >= KEPT_CHECKSUMS {
+            known.clear();
+        }
+        known.insert(path.to_path_buf(), (modified, len, sum.clone()));
         Ok((len, sum))
     }
 
