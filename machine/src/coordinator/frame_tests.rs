@@ -288,6 +288,31 @@ fn results_of_a_tile_whose_rays_the_sender_was_never_given_are_refused() {
 }
 
 #[test]
+fn a_subframe_after_the_first_is_planned_once_every_member_has_reported() {
+    // Two subframes of one sample each, on two members.
+    let mut f = frame_of(Schedule::Predictive, Rounds::Async);
+    f.spec.spp = 2;
+    f.spec.progressive = Some(proto::Progressive { subframe_spp: 1 });
+    f.frame.spp = 2;
+    f.subframes = subframes::plan(&f.spec, 2);
+    f.start(
+        (0..2)
+            .map(|k| (k, Member::new(format!("w{k}"), 200)))
+            .collect(),
+    );
+    f.next_subframe();
+    assert_eq!(f.subframe, 1);
+    // Worker 0 holds domain 1 from the subframe before and has rays for domain 2, which worker
+    // 1 holds: planned alone it would be given domain 2 to load; it waits for worker 1.
+    assert!(f.report(0, report(0, &[1], &[(2, 50, 0)])).is_empty());
+    assert_eq!(f.round, 0);
+    let out = f.report(1, report(0, &[2], &[(1, 50, 0)]));
+    assert_eq!(f.round, 1);
+    assert!(planned_domains(&out, 0).contains(&1), "{out:?}");
+    assert!(planned_domains(&out, 1).contains(&2), "{out:?}");
+}
+
+#[test]
 fn a_worker_named_a_holder_may_send_results_of_any_tile() {
     let half = TILE_CREDIT / 2;
     // Dynamic: before any plan, a worker holds nothing and only its own tiles are its.
