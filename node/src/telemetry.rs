@@ -38,13 +38,15 @@ pub async fn shutdown_signal() {
 /// How long a server's blocking tasks get to finish once `run` has returned.
 const SHUTDOWN_GRACE: std::time::Duration = std::time::Duration::from_secs(1);
 
-/// The `main` of a server binary: logging at the level `-v` asks for, a tokio runtime (with
+/// The `main` of a server binary: the allocator's arenas capped ([`crate::heap::limit_arenas`]),
+/// logging at the level `-v` asks for, a tokio runtime (with
 /// `worker_threads` threads, or one per core), then `run`; an error is logged, printed and
 /// turned into a failing exit code.
 pub fn server_main<F>(verbose: u8, worker_threads: Option<usize>, run: F) -> ExitCode
 where
     F: Future<Output = anyhow::Result<()>>,
 {
+    crate::heap::limit_arenas();
     init_logging(match verbose {
         0 => "info",
         1 => "debug",
