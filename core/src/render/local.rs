@@ -9,6 +9,8 @@ use std::time::Instant;
 use rayon::prelude::*;
 use tracing::{info, info_span};
 
+use self::queue::{Batch, Queues, SEGMENT, SegmentPool};
+
 use super::cache::DomainCache;
 use super::film::{Film, ImageError, OpenTiles};
 use super::kernel::{CopyScratch, KernelCounters, RaySink, SceneView};
@@ -19,10 +21,11 @@ use crate::camera::PinholeCamera;
 use crate::progressive::Samples;
 use crate::ray::RayRecord;
 use crate::scene::{Camera, DomainData, Manifest, SceneError};
-use crate::schedule::speculative::{GenerationCounts, QueueView, next_queue};
 use crate::tile::TileGrid;
 use crate::tile::credit::TILE_CREDIT;
 use crate::wire::VerdictRecord;
+
+mod queue;
 
 /// Largest image side accepted.
 pub const MAX_SIDE: u32 = 16384;
@@ -112,50 +115,8 @@ pub enum RenderError {
     },
 }
 
-/// Rays traced per rayon task: large enough to amortise, small enough to balance.
-const CHUNK: usize = 4096;
-
-/// Ray buffers handed back after use, so passes reuse memory instead of faulting in fresh
-/// pages: growing new queues and chunk outputs took a third of a one-thread render's time in
-/// the kernel zeroing pages (README, "Benchmarks").
-struct Buffers(std::sync::Mutex<Vec<Vec<RayRecord>>>);
-
-impl Buffers {
-    /// Buffers kept at most; the rest are freed.
-    const KEPT: usize = 64;
-
-    fn new() -> Self {
-        Buffers(std::sync::Mutex::new(Vec::new()))
-    }
-
-    /// An empty buffer with room for `capacity` rays: the smallest kept one that has it, or
-    /// with `capacity` 0 (a queue, which grows) the largest.
-    fn get(&self, capacity: usize) -> Vec<RayRecord> {
-        let mut kept = self.0.lock().unwrap_or_else(|p| p.into_inner());
-        let by_size = kept.iter().enumerate().map(|(i, v)| (v.capacity(), i));
-        let pick = if capacity == 0 {
-            by_size.max()
-        } else {
-            by_size.filter(|&(c, _)| c >= capacity).min()
-        };
-        let mut v = pick.map(|(_, i)| kept.swap_remove(i)).unwrap_or_default();
-        drop(kept);
-        v.reserve(capacity);
-        v
-    }
-
-    /// Gives `v`'s memory back for another pass.
-    fn put(&self, mut v: Vec<RayRecord>) {
-        v.clear();
-        let mut kept = self.0.lock().unwrap_or_else(|p| p.into_inner());
-        if kept.len() < Self::KEPT && v.capacity() > 0 {
-            kept.push(v);
-        }
-    }
-}
-
 struct QueueSink<'a> {
-    out: Vec<RayRecord>,
+    out: Batch<'a>,
     film: &'a OpenTiles,
     /// Credit returned per tile: the local renderer checks the kernel conserves it exactly,
     /// as the cluster will rely on it to know when a tile is done.
@@ -246,17 +207,17 @@ fn render_in_pool(
     let mut passes = 0u64;
     let mut tiles_done = 0u32;
     let wave = options.wave_rays.max(1) as u64;
-    let buffers = Buffers::new();
+    let pool = SegmentPool::new();
     loop {
         let queued = queues.total();
         let room = open.in_memory() < max_open || queued == 0;
         if queued < wave as usize && issued < total_primary && room {
             let end = (issued + wave).min(total_primary);
-            let new_sink = sinks(&open, &returned, &buffers);
+            let new_sink = sinks(&open, &returned, &pool);
             let outs = issue_primaries(&view, &camera, &grid, frame.spp, issued..end, new_sink);
             counters.primary_rays += end - issued;
             issued = end;
-            queues.place(&view, outs, &buffers);
+            queues.place(&view, outs, &pool);
             // Camera rays that meet nothing retire at once: their tiles may be finished.
             tiles_done += commit_finished(&mut open, &returned, &film)?;
             continue;
@@ -265,16 +226,18 @@ fn render_in_pool(
             break;
         };
         let data = cache.get(d)?;
-        let rays = queues.take(d, &buffers);
-        let _pass = info_span!("trace_queue", domain = d, rays = rays.len()).entered();
-        let new_sink = sinks(&open, &returned, &buffers);
+        let rays = queues.take(d);
+        let count: usize = rays.iter().map(Vec::len).sum();
+        let _pass = info_span!("trace_queue", domain = d, rays = count).entered();
+        let new_sink = sinks(&open, &returned, &pool);
         let outs = match &mut queues.groups {
-            None => trace_chained(&view, &data, &rays, new_sink, &mut counters),
-            Some(groups) => trace_speculative(&view, &data, &rays, groups, new_sink, &mut counters),
+            None => trace_chained(&view, &data, rays, new_sink, &pool, &mut counters),
+            Some(groups) => {
+                trace_speculative(&view, &data, rays, groups, new_sink, &pool, &mut counters)
+            }
         };
         passes += 1;
-        buffers.put(rays);
-        queues.place(&view, outs, &buffers);
+        queues.place(&view, outs, &pool);
         tiles_done += commit_finished(&mut open, &returned, &film)?;
         on_progress(&Progress {
             tiles_done,
@@ -328,10 +291,10 @@ fn render_in_pool(
 fn sinks<'a>(
     open: &'a OpenTiles,
     returned: &'a [AtomicU64],
-    buffers: &'a Buffers,
-) -> impl Fn(usize) -> QueueSink<'a> + Sync {
-    move |capacity| QueueSink {
-        out: buffers.get(capacity),
+    pool: &'a SegmentPool,
+) -> impl Fn() -> QueueSink<'a> + Sync {
+    move || QueueSink {
+        out: Batch::new(pool),
         film: open,
         returned,
     }
@@ -357,53 +320,58 @@ fn commit_finished(
 }
 
 /// Camera rays for the flat (pixel, sample) indices in `range`, each with its share of its
-/// tile's credit, routed to their first domain.
+/// tile's credit, routed to their first domain; in segments.
 fn issue_primaries<'a>(
     view: &SceneView,
     camera: &PinholeCamera,
     grid: &TileGrid,
     spp: u32,
     range: std::ops::Range<u64>,
-    new_sink: impl Fn(usize) -> QueueSink<'a> + Sync,
+    new_sink: impl Fn() -> QueueSink<'a> + Sync,
 ) -> Vec<Vec<RayRecord>> {
-    let idx: Vec<u64> = range.collect();
-    idx.par_chunks(CHUNK)
-        .map(|chunk| {
-            let mut sink = new_sink(chunk.len());
-            for &i in chunk {
+    let starts: Vec<u64> = range.clone().step_by(SEGMENT).collect();
+    let per_chunk: Vec<Vec<Vec<RayRecord>>> = starts
+        .par_iter()
+        .map(|&first| {
+            let mut sink = new_sink();
+            for i in first..(first + SEGMENT as u64).min(range.end) {
                 let (pixel, sample) = ((i / spp as u64) as u32, (i % spp as u64) as u32);
                 let ray = primary_ray(camera, grid, Samples::all(spp), pixel, sample);
                 view.route_new(ray, &mut sink);
             }
-            sink.out
+            sink.out.finish()
         })
-        .collect()
+        .collect();
+    per_chunk.into_iter().flatten().collect()
 }
 
 /// Traces a domain's queue one domain at a time: rays that miss move on to the next domain.
+/// Each segment is one task; it goes back to `pool` once traced, for the outcomes of the
+/// next.
 fn trace_chained<'a>(
     view: &SceneView,
     data: &DomainData,
-    rays: &[RayRecord],
-    new_sink: impl Fn(usize) -> QueueSink<'a> + Sync,
+    rays: Vec<Vec<RayRecord>>,
+    new_sink: impl Fn() -> QueueSink<'a> + Sync,
+    pool: &SegmentPool,
     counters: &mut KernelCounters,
 ) -> Vec<Vec<RayRecord>> {
-    let results: Vec<(Vec<RayRecord>, KernelCounters)> = rays
-        .par_chunks(CHUNK)
-        .map(|chunk| {
-            let mut sink = new_sink(chunk.len() * 2);
+    let results: Vec<(Vec<Vec<RayRecord>>, KernelCounters)> = rays
+        .into_par_iter()
+        .map(|segment| {
+            let mut sink = new_sink();
             let mut c = KernelCounters::default();
-            view.trace(data, chunk, &mut sink, &mut c);
-            (sink.out, c)
+            view.trace(data, &segment, &mut sink, &mut c);
+            pool.put(segment);
+            (sink.out.finish(), c)
         })
         .collect();
-    results
-        .into_iter()
-        .map(|(out, c)| {
-            counters.add(&c);
-            out
-        })
-        .collect()
+    let mut outs = Vec::with_capacity(results.len());
+    for (out, c) in results {
+        counters.add(&c);
+        outs.extend(out);
+    }
+    outs
 }
 
 /// Traces speculative copies queued for a domain and concludes every ray whose last copy
@@ -411,108 +379,43 @@ fn trace_chained<'a>(
 fn trace_speculative<'a>(
     view: &SceneView,
     data: &DomainData,
-    rays: &[RayRecord],
+    rays: Vec<Vec<RayRecord>>,
     groups: &mut Groups,
-    new_sink: impl Fn(usize) -> QueueSink<'a> + Sync,
+    new_sink: impl Fn() -> QueueSink<'a> + Sync,
+    pool: &SegmentPool,
     counters: &mut KernelCounters,
 ) -> Vec<Vec<RayRecord>> {
-    // Per chunk: each copy's verdicts (a brick's copy has several), in the order of the rays.
+    // Per segment: each copy's verdicts (a brick's copy has several), in the order of the rays.
     let verdicts: Vec<(Vec<(usize, Verdict)>, KernelCounters)> = rays
-        .par_chunks(CHUNK)
-        .enumerate()
-        .map(|(n, chunk)| {
+        .par_iter()
+        .map(|segment| {
             let mut c = KernelCounters::default();
             let mut scratch = CopyScratch::new();
             let mut found = Vec::new();
-            let mut v = Vec::with_capacity(chunk.len());
-            for (i, r) in chunk.iter().enumerate() {
+            let mut v = Vec::with_capacity(segment.len());
+            for (i, r) in segment.iter().enumerate() {
                 found.clear();
                 view.trace_copy(data, r, &mut scratch, &mut c, &mut found);
-                v.extend(found.iter().map(|&f| (n * CHUNK + i, f)));
+                v.extend(found.iter().map(|&f| (i, f)));
             }
             (v, c)
         })
         .collect();
-    let mut sink = new_sink(0);
-    for (verdicts, c) in verdicts {
+    let mut sink = new_sink();
+    for (segment, (verdicts, c)) in rays.iter().zip(verdicts) {
         counters.add(&c);
         for (i, verdict) in verdicts {
             // Every copy here was made by `Queues::place` in this frame.
             let settled = groups
-                .settle(&VerdictRecord::new(&rays[i], verdict))
+                .settle(&VerdictRecord::new(&segment[i], verdict))
                 .expect("copy of a waiting ray");
             if let Some((ray, outcome)) = settled {
                 view.conclude(&ray, &outcome, &mut sink, counters);
             }
         }
     }
-    vec![sink.out]
-}
-
-/// One queue per domain. Rays are placed in the first domain along them, or, speculating,
-/// in all of them at once.
-struct Queues {
-    rays: Vec<Vec<RayRecord>>,
-    /// Speculating: the rays waiting for their copies, and the generations queued.
-    groups: Option<Groups>,
-    generations: GenerationCounts,
-}
-
-impl Queues {
-    fn new(domains: usize, speculate: bool) -> Self {
-        Queues {
-            rays: vec![Vec::new(); domains],
-            groups: speculate.then(Groups::new),
-            generations: GenerationCounts::new(domains),
-        }
+    for segment in rays {
+        pool.put(segment);
     }
-
-    fn total(&self) -> usize {
-        self.rays.iter().map(Vec::len).sum()
-    }
-
-    /// Queues rays routed to their first domain (`SceneView::route_new` or the kernel).
-    /// The emptied `outs` go back to `buffers`.
-    fn place(&mut self, view: &SceneView, outs: Vec<Vec<RayRecord>>, buffers: &Buffers) {
-        for mut out in outs {
-            for ray in out.drain(..) {
-                match &mut self.groups {
-                    None => self.rays[ray.domain as usize].push(ray),
-                    Some(groups) => {
-                        for copy in groups.spread(ray, &view.domains_along(&ray), 0) {
-                            self.generations.add(copy.domain, copy.generation());
-                            self.rays[copy.domain as usize].push(copy);
-                        }
-                    }
-                }
-            }
-            buffers.put(out);
-        }
-    }
-
-    /// The queue to trace next: the fullest, or, speculating, `speculative::next_queue`.
-    fn next(&self, resident: &[u32]) -> Option<u32> {
-        let lens = (0u32..).zip(self.rays.iter().map(Vec::len));
-        if self.groups.is_none() {
-            // Ties go to the lowest domain id.
-            return lens
-                .filter(|&(_, len)| len > 0)
-                .max_by_key(|&(d, len)| (len, std::cmp::Reverse(d)))
-                .map(|(d, _)| d);
-        }
-        next_queue(lens.filter_map(|(domain, len)| {
-            Some(QueueView {
-                domain,
-                rays: len as u64,
-                oldest: self.generations.oldest(domain)?,
-                resident: resident.contains(&domain),
-            })
-        }))
-    }
-
-    /// Domain `domain`'s queue, replaced by an empty buffer from `buffers`.
-    fn take(&mut self, domain: u32, buffers: &Buffers) -> Vec<RayRecord> {
-        self.generations.clear(domain);
-        std::mem::replace(&mut self.rays[domain as usize], buffers.get(0))
-    }
+    sink.out.finish()
 }
