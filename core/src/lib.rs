@@ -8,6 +8,7 @@ pub mod brick;
 pub mod bundler;
 pub mod bvh;
 pub mod camera;
+pub mod colour_map;
 pub mod cluster;
 pub mod geometry;
 pub mod isosurface;
