@@ -396,11 +396,7 @@ fn on_a_cluster(root: &std::path::Path, name: &str) {
     let (_, largest) = domain_bytes(&scene);
     for n in [1, 2, 4] {
         // Two-brick caches: bricks page in and out.
-        let cluster = Cluster::start(
-            root,
-            Some(name),
-            &vec![WorkerOpts::cache(2 * largest); n],
-        );
+        let cluster = Cluster::start(root, Some(name), &vec![WorkerOpts::cache(2 * largest); n]);
         cluster.wait_for_workers(n, rayfarm_tests::START_TIMEOUT);
         for schedule in ["image-plane", "domain", "dynamic", "hybrid", "predictive"] {
             let mut f = frame.to_vec();
@@ -481,16 +477,34 @@ fn smooth_isosurfaces_are_identical_at_1_8_and_64_domains_any_cache_and_threads(
         ] {
             let img = tmp.path().join(format!("{domains}-{}.exr", hashes.len()));
             let mut args = vec![
-                "render", "--local", "--scene", s(&scene), "--width", "96", "--height", "72",
-                "--spp", "2", "--depth", "2", "--threads", threads, "--cache-bytes", cache,
-                "-o", s(&img), "--quiet",
+                "render",
+                "--local",
+                "--scene",
+                s(&scene),
+                "--width",
+                "96",
+                "--height",
+                "72",
+                "--spp",
+                "2",
+                "--depth",
+                "2",
+                "--threads",
+                threads,
+                "--cache-bytes",
+                cache,
+                "-o",
+                s(&img),
+                "--quiet",
             ];
             if speculate {
                 args.push("--speculate");
             }
             rayfarm_ok(&args);
             hashes.push((
-                format!("{domains} domains, cache {cache}, {threads} threads, speculate {speculate}"),
+                format!(
+                    "{domains} domains, cache {cache}, {threads} threads, speculate {speculate}"
+                ),
                 file_hash(&img),
             ));
         }
@@ -502,12 +516,28 @@ fn smooth_isosurfaces_are_identical_at_1_8_and_64_domains_any_cache_and_threads(
     let render = |scene: &std::path::Path, name: &str| {
         let img = tmp.path().join(name);
         rayfarm_ok(&[
-            "render", "--local", "--scene", s(scene), "--width", "96", "--height", "72",
-            "--spp", "2", "--depth", "2", "-o", s(&img), "--quiet",
+            "render",
+            "--local",
+            "--scene",
+            s(scene),
+            "--width",
+            "96",
+            "--height",
+            "72",
+            "--spp",
+            "2",
+            "--depth",
+            "2",
+            "-o",
+            s(&img),
+            "--quiet",
         ]);
         file_hash(&img)
     };
-    let flat = render(&prepare_blobs(tmp.path(), "8", &["--normals", "flat"]), "flat.exr");
+    let flat = render(
+        &prepare_blobs(tmp.path(), "8", &["--normals", "flat"]),
+        "flat.exr",
+    );
     assert_ne!(flat, hashes[0].1, "smooth normals change the image");
     let mapped = prepare_blobs(tmp.path(), "8", &["--colour-map", "viridis"]);
     let m = Manifest::load(&mapped).unwrap();
@@ -515,12 +545,26 @@ fn smooth_isosurfaces_are_identical_at_1_8_and_64_domains_any_cache_and_threads(
         m.materials[0],
         rayfarm_core::scene::Material::Mapped { axis: 2, .. }
     ));
-    assert_ne!(render(&mapped, "mapped.exr"), hashes[0].1, "the colour map shows");
+    assert_ne!(
+        render(&mapped, "mapped.exr"),
+        hashes[0].1,
+        "the colour map shows"
+    );
     // A colour map that does not exist is refused naming the presets.
     let raw = tmp.path().join("blobs.raw");
     let err = rayfarm_err(&[
-        "prepare", s(&raw), "--dims", "40,36,24", "--dtype", "i16", "--iso", "500",
-        "--colour-map", "rainbow", "--out", s(&tmp.path().join("x")),
+        "prepare",
+        s(&raw),
+        "--dims",
+        "40,36,24",
+        "--dtype",
+        "i16",
+        "--iso",
+        "500",
+        "--colour-map",
+        "rainbow",
+        "--out",
+        s(&tmp.path().join("x")),
     ]);
     assert!(err.contains("rainbow") && err.contains("viridis"), "{err}");
 }

@@ -97,7 +97,11 @@ mod tests {
             let want = stops[stops.len() - 1];
             assert!((0..3).all(|c| (end[c] - want[c]).abs() < 1e-6));
             assert_eq!(map.at(7.0), end);
-            assert!((0..=100).all(|k| map.at(k as f32 / 100.0).iter().all(|c| (0.0..=1.0).contains(c))));
+            assert!((0..=100).all(|k| {
+                map.at(k as f32 / 100.0)
+                    .iter()
+                    .all(|c| (0.0..=1.0).contains(c))
+            }));
         }
         assert!(ColourMap::parse("rainbow").unwrap_err().contains("viridis"));
     }

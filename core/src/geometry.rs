@@ -246,7 +246,8 @@ impl NormalBlock {
     /// A lane's three corner normals, or `None` if any is zero or not finite.
     #[inline]
     pub fn lane(&self, lane: usize) -> Option<[Vec3; 3]> {
-        let n = [0, 1, 2].map(|i| Vec3::new(self.n[i][0][lane], self.n[i][1][lane], self.n[i][2][lane]));
+        let n = [0, 1, 2]
+            .map(|i| Vec3::new(self.n[i][0][lane], self.n[i][1][lane], self.n[i][2][lane]));
         n.iter()
             .all(|v| v.is_finite() && *v != Vec3::ZERO)
             .then_some(n)

@@ -319,7 +319,11 @@ pub fn gradient_at(grid: &Grid, lattice: &impl Lattice, p: [u32; 3]) -> [f32; 3]
         let n = grid.dims[axis];
         let at = |offset: u32, back: bool| {
             let mut q = p;
-            q[axis] = if back { p[axis] - offset } else { p[axis] + offset };
+            q[axis] = if back {
+                p[axis] - offset
+            } else {
+                p[axis] + offset
+            };
             lattice.value(q[0], q[1], q[2])
         };
         let (hi, lo, steps) = match (p[axis] > 0, p[axis] + 1 < n) {
@@ -349,7 +353,8 @@ fn march_cell<L: Lattice>(
             let t = edge_t(cell.values[lo], cell.values[hi], iso);
             edge_points[e] = lerp(cell.point(lo), cell.point(hi), t);
             if let Some(g) = &gradients {
-                let mut corner = |c: usize| *corner_gradients[c].get_or_insert_with(|| g.at_corner(c));
+                let mut corner =
+                    |c: usize| *corner_gradients[c].get_or_insert_with(|| g.at_corner(c));
                 let (ga, gb) = (corner(lo), corner(hi));
                 edge_normals[e] = outward_unit(lerp(ga, gb, t));
             }
@@ -919,7 +924,11 @@ mod tests {
         }
         // Central differences of a distance field, interpolated along an edge: within a few
         // degrees of the true normal at this resolution (flat facets are off by ~10).
-        assert!(worst > 0.995, "a normal is {} degrees off radial", worst.acos().to_degrees());
+        assert!(
+            worst > 0.995,
+            "a normal is {} degrees off radial",
+            worst.acos().to_degrees()
+        );
         // Plain marching gives none, and the same triangles.
         let flat = collect(&s.grid, &s, 0.0, s.grid.all_cells());
         assert!(flat.iter().all(|t| t.normals.is_none()));

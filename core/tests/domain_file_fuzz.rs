@@ -40,7 +40,11 @@ fn source_triangles() -> Vec<SourceTriangle> {
                 id: i,
                 material: (i % 2) as u32,
                 // Smooth normals on some, so the file has its normals section to lie about.
-                normals: (i % 3 == 0).then_some([[0.0, 0.0, 1.0], [0.0, 0.6, 0.8], [1.0, 0.0, 0.0]]),
+                normals: (i % 3 == 0).then_some([
+                    [0.0, 0.0, 1.0],
+                    [0.0, 0.6, 0.8],
+                    [1.0, 0.0, 0.0],
+                ]),
             }
         })
         .collect()

@@ -4,9 +4,9 @@ use std::path::PathBuf;
 
 use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
+use rayfarm_core::colour_map::ColourMap;
 use rayfarm_core::prepare::brick_scene::MAX_BRICKS;
 use rayfarm_core::prepare::brick_scene::VolumeLook;
-use rayfarm_core::colour_map::ColourMap;
 use rayfarm_core::prepare::generate::{
     NbodyLook, NbodyOptions, prepare_nbody_volume, prepare_nbody_with,
 };

@@ -10,8 +10,8 @@ use glam::Vec3;
 use tracing::info;
 
 use super::{DomainTriangles, PrepareError, SceneSpec, reference_margin, write_scene};
-use crate::geometry::Aabb;
 use crate::colour_map::ColourMap;
+use crate::geometry::Aabb;
 use crate::isosurface::{Grid, IsoTriangle, march, march_smooth};
 use crate::nbody::{NbodyField, SampledField, resolution_for_triangles};
 use crate::scene::domain_file::SourceTriangle;

@@ -46,7 +46,11 @@ impl IsoLook {
             Some(map) => Material::Mapped {
                 map,
                 axis: self.colour_axis.min(2),
-                range: if low < high { [low, high] } else { [low, low + 1.0] },
+                range: if low < high {
+                    [low, high]
+                } else {
+                    [low, low + 1.0]
+                },
             },
             None => Material::Diffuse {
                 albedo: [0.75, 0.72, 0.68],
@@ -102,9 +106,12 @@ pub fn prepare_volume(
         )));
     }
     let axis = usize::from(look.colour_axis.min(2));
-    let (low, high) = tris.iter().flatten().fold((f32::MAX, f32::MIN), |(lo, hi), v| {
-        (lo.min(v[axis]), hi.max(v[axis]))
-    });
+    let (low, high) = tris
+        .iter()
+        .flatten()
+        .fold((f32::MAX, f32::MIN), |(lo, hi), v| {
+            (lo.min(v[axis]), hi.max(v[axis]))
+        });
     let surface = SurfaceLook {
         material: look.material(low, high),
         normals: look.smooth.then_some(normals.as_slice()),

@@ -81,9 +81,8 @@ impl SceneView {
         };
         let p = Vec3::from(ray.origin) + dir * hit.t;
         let corners_at = [tri.v0, tri.v1, tri.v2].map(Vec3::from);
-        let smooth = barycentrics(corners_at, p).map(|b| {
-            (corners[0] * b[0] + corners[1] * b[1] + corners[2] * b[2]) * facing
-        });
+        let smooth = barycentrics(corners_at, p)
+            .map(|b| (corners[0] * b[0] + corners[1] * b[1] + corners[2] * b[2]) * facing);
         (smooth.map_or(n, |s| bend_to_side(s, n)), tri.material)
     }
 
@@ -278,7 +277,11 @@ fn barycentrics(v: [Vec3; 3], p: Vec3) -> Option<[f32; 3]> {
     let b1 = ((d22 * dw1 - d12 * dw2) / det).clamp(0.0, 1.0);
     let b2 = ((d11 * dw2 - d12 * dw1) / det).clamp(0.0, 1.0);
     let sum = b1 + b2;
-    let (b1, b2) = if sum > 1.0 { (b1 / sum, b2 / sum) } else { (b1, b2) };
+    let (b1, b2) = if sum > 1.0 {
+        (b1 / sum, b2 / sum)
+    } else {
+        (b1, b2)
+    };
     Some([1.0 - b1 - b2, b1, b2])
 }
 
@@ -330,14 +333,25 @@ mod tests {
         // Outside (rounding): clamped into the triangle, still summing to one.
         let b = barycentrics(v, Vec3::new(0.7, 0.7, 0.0)).unwrap();
         assert!(b.iter().all(|&x| x >= 0.0) && (b.iter().sum::<f32>() - 1.0).abs() < 1e-6);
-        assert_eq!(barycentrics([Vec3::ZERO, Vec3::X, Vec3::X * 2.0], Vec3::X), None);
+        assert_eq!(
+            barycentrics([Vec3::ZERO, Vec3::X, Vec3::X * 2.0], Vec3::X),
+            None
+        );
     }
 
     #[test]
     fn shading_normals_stay_on_the_geometric_side() {
         let g = Vec3::Z;
-        assert_eq!(bend_to_side(Vec3::new(0.0, 0.6, 0.8), g), Vec3::new(0.0, 0.6, 0.8));
-        for s in [Vec3::X, -Vec3::Z, Vec3::new(1.0, 0.0, -0.2), Vec3::new(0.3, 0.2, 0.01)] {
+        assert_eq!(
+            bend_to_side(Vec3::new(0.0, 0.6, 0.8), g),
+            Vec3::new(0.0, 0.6, 0.8)
+        );
+        for s in [
+            Vec3::X,
+            -Vec3::Z,
+            Vec3::new(1.0, 0.0, -0.2),
+            Vec3::new(0.3, 0.2, 0.01),
+        ] {
             let b = bend_to_side(s, g);
             assert!((b.length() - 1.0).abs() < 1e-5);
             assert!(b.dot(g) >= MIN_SHADING_COS * 0.9, "{s} bent to {b}");
