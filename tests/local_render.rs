@@ -164,9 +164,9 @@ fn a_scene_of_an_older_domain_format_is_refused_with_re_run_prepare() {
         .map(|e| e.unwrap().path())
         .find(|p| p.extension().is_some_and(|e| e == "rfd"))
         .unwrap();
-    // What files of formats 3 and 4 start with: the same magic, then their version.
+    // What files of formats 3 to 5 start with: the same magic, then their version.
     let current = std::fs::read(&file).unwrap();
-    for old in [3u32, 4] {
+    for old in [3u32, 4, 5] {
         let mut bytes = current.clone();
         bytes[8..12].copy_from_slice(&old.to_le_bytes());
         std::fs::write(&file, bytes).unwrap();
@@ -174,7 +174,7 @@ fn a_scene_of_an_older_domain_format_is_refused_with_re_run_prepare() {
         let err = rayfarm_err(&args(s(&scene), s(&out)));
         assert!(
             err.contains(&format!("version {old}"))
-                && err.contains("version 5")
+                && err.contains("version 6")
                 && err.contains("re-run `rayfarm prepare`"),
             "{err}"
         );

@@ -421,6 +421,8 @@ fn every_readme_command_runs_or_is_skipped_with_its_reason() {
         "docs/cranium/dvr-bone.png",
         "docs/cranium/dvr-skin.png",
         "docs/cranium/isosurface.png",
+        "docs/cranium/isosurface-smooth.png",
+        "docs/cranium/isosurface-bone.png",
         "docs/cranium/dvr-skin-bone-surface.png",
     ] {
         assert!(dir.join(f).exists(), "{f} was not written");

@@ -367,7 +367,6 @@ fn volumes_with_surfaces_on_a_cluster_match_the_local_image_under_every_schedule
 }
 
 fn dvr_on_a_cluster(look: &[&str]) {
-    use rayfarm_tests::{Cluster, WorkerOpts, domain_bytes, hash_of, local_hash, submit_wait};
     let root = tempfile::tempdir().unwrap();
     let scene = root.path().join("vol");
     let mut prepare = vec![
@@ -384,16 +383,20 @@ fn dvr_on_a_cluster(look: &[&str]) {
     ];
     prepare.extend_from_slice(look);
     rayfarm_ok(&prepare);
+    on_a_cluster(root.path(), "vol");
+}
+
+/// Renders the scene `name` in `root` on 1, 2 and 4 workers with two-domain caches under
+/// every schedule; every image must be `render --local`'s.
+fn on_a_cluster(root: &std::path::Path, name: &str) {
+    use rayfarm_tests::{Cluster, WorkerOpts, domain_bytes, hash_of, local_hash, submit_wait};
+    let scene = root.join(name);
     let frame = ["--width", "96", "--height", "72", "--spp", "2"];
     let expected = local_hash(&scene, &frame);
     let (_, largest) = domain_bytes(&scene);
     for n in [1, 2, 4] {
         // Two-brick caches: bricks page in and out.
-        let cluster = Cluster::start(
-            root.path(),
-            Some("vol"),
-            &vec![WorkerOpts::cache(2 * largest); n],
-        );
+        let cluster = Cluster::start(root, Some(name), &vec![WorkerOpts::cache(2 * largest); n]);
         cluster.wait_for_workers(n, rayfarm_tests::START_TIMEOUT);
         for schedule in ["image-plane", "domain", "dynamic", "hybrid", "predictive"] {
             let mut f = frame.to_vec();
@@ -402,4 +405,176 @@ fn dvr_on_a_cluster(look: &[&str]) {
             assert_eq!(hash_of(&stats), expected, "{schedule} with {n} workers");
         }
     }
+}
+
+/// A 40x36x24 i16 volume at 1 x 1 x 1.5 spacing: two overlapping smooth blobs (their sum
+/// falls off with distance), so the isosurface at 500 is one curved surface with a saddle.
+fn blobs_volume(path: &std::path::Path) {
+    let mut bytes = Vec::new();
+    for k in 0..24i32 {
+        for j in 0..36i32 {
+            for i in 0..40i32 {
+                let blob = |cx: f32, cy: f32, cz: f32, r: f32| {
+                    let d2 = (i as f32 - cx).powi(2)
+                        + (j as f32 - cy).powi(2)
+                        + (1.5 * (k as f32 - cz)).powi(2);
+                    1000.0 * (-d2 / (r * r)).exp()
+                };
+                let v = blob(15.0, 17.0, 11.0, 9.0) + blob(25.0, 19.0, 13.0, 7.0);
+                bytes.extend_from_slice(&(v as i16).to_le_bytes());
+            }
+        }
+    }
+    std::fs::write(path, bytes).unwrap();
+}
+
+fn prepare_blobs(dir: &std::path::Path, domains: &str, extra: &[&str]) -> std::path::PathBuf {
+    let raw = dir.join("blobs.raw");
+    if !raw.exists() {
+        blobs_volume(&raw);
+    }
+    let out = dir.join(format!("blobs-{domains}{}", extra.join("")));
+    let mut args = vec![
+        "prepare",
+        s(&raw),
+        "--dims",
+        "40,36,24",
+        "--dtype",
+        "i16",
+        "--spacing",
+        "1,1,1.5",
+        "--iso",
+        "500",
+        "--domains",
+        domains,
+        "--out",
+        s(&out),
+    ];
+    args.extend_from_slice(extra);
+    rayfarm_ok(&args);
+    out
+}
+
+/// An isosurface shaded with the volume's gradient (the default for `--iso`): the same bits
+/// at 1, 8 and 64 domains (a vertex cut across domains gets its normal from the whole
+/// volume's gradient, the same in each), any cache, 1-2 threads, chained or speculative
+/// (a copy sends the shading normal home); and not the flat-shaded image.
+#[test]
+fn smooth_isosurfaces_are_identical_at_1_8_and_64_domains_any_cache_and_threads() {
+    let tmp = tempfile::tempdir().unwrap();
+    let mut hashes = Vec::new();
+    for domains in ["1", "8", "64"] {
+        let scene = prepare_blobs(tmp.path(), domains, &[]);
+        let m = Manifest::load(&scene).unwrap();
+        assert_eq!(m.domains.len(), domains.parse::<usize>().unwrap());
+        let bytes: u64 = m.domains.iter().map(|d| d.bytes).sum();
+        let small = (bytes / 6).max(1).to_string();
+        for (cache, threads, speculate) in [
+            ("4GiB", "1", false),
+            (small.as_str(), "2", false),
+            ("4GiB", "1", true),
+            (small.as_str(), "2", true),
+        ] {
+            let img = tmp.path().join(format!("{domains}-{}.exr", hashes.len()));
+            let mut args = vec![
+                "render",
+                "--local",
+                "--scene",
+                s(&scene),
+                "--width",
+                "96",
+                "--height",
+                "72",
+                "--spp",
+                "2",
+                "--depth",
+                "2",
+                "--threads",
+                threads,
+                "--cache-bytes",
+                cache,
+                "-o",
+                s(&img),
+                "--quiet",
+            ];
+            if speculate {
+                args.push("--speculate");
+            }
+            rayfarm_ok(&args);
+            hashes.push((
+                format!(
+                    "{domains} domains, cache {cache}, {threads} threads, speculate {speculate}"
+                ),
+                file_hash(&img),
+            ));
+        }
+    }
+    for (what, h) in &hashes {
+        assert_eq!(h, &hashes[0].1, "{what} differs from {}", hashes[0].0);
+    }
+    // Flat normals and a colour map give other images (so the smooth ones were used).
+    let render = |scene: &std::path::Path, name: &str| {
+        let img = tmp.path().join(name);
+        rayfarm_ok(&[
+            "render",
+            "--local",
+            "--scene",
+            s(scene),
+            "--width",
+            "96",
+            "--height",
+            "72",
+            "--spp",
+            "2",
+            "--depth",
+            "2",
+            "-o",
+            s(&img),
+            "--quiet",
+        ]);
+        file_hash(&img)
+    };
+    let flat = render(
+        &prepare_blobs(tmp.path(), "8", &["--normals", "flat"]),
+        "flat.exr",
+    );
+    assert_ne!(flat, hashes[0].1, "smooth normals change the image");
+    let mapped = prepare_blobs(tmp.path(), "8", &["--colour-map", "viridis"]);
+    let m = Manifest::load(&mapped).unwrap();
+    assert!(matches!(
+        m.materials[0],
+        rayfarm_core::scene::Material::Mapped { axis: 2, .. }
+    ));
+    assert_ne!(
+        render(&mapped, "mapped.exr"),
+        hashes[0].1,
+        "the colour map shows"
+    );
+    // A colour map that does not exist is refused naming the presets.
+    let raw = tmp.path().join("blobs.raw");
+    let err = rayfarm_err(&[
+        "prepare",
+        s(&raw),
+        "--dims",
+        "40,36,24",
+        "--dtype",
+        "i16",
+        "--iso",
+        "500",
+        "--colour-map",
+        "rainbow",
+        "--out",
+        s(&tmp.path().join("x")),
+    ]);
+    assert!(err.contains("rainbow") && err.contains("viridis"), "{err}");
+}
+
+/// The smooth isosurface on a real cluster of 1, 2 and 4 workers: every schedule gives the
+/// image of `render --local` to the bit, predictive included (copies send the shading normal).
+#[test]
+fn smooth_isosurfaces_on_a_cluster_match_the_local_image_under_every_schedule() {
+    let root = tempfile::tempdir().unwrap();
+    let scene = prepare_blobs(root.path(), "8", &["--colour-map", "bone"]);
+    let name = scene.file_name().unwrap().to_str().unwrap().to_string();
+    on_a_cluster(root.path(), &name);
 }

@@ -15,7 +15,7 @@
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
 
-use crate::geometry::{BLOCK, PackedTriangle, ShearedRay, TriangleBlock};
+use crate::geometry::{BLOCK, NormalBlock, PackedTriangle, ShearedRay, TriangleBlock};
 
 mod build;
 mod packet;
@@ -127,18 +127,43 @@ pub fn validate(nodes: &[BvhNode], blocks: &[TriangleBlock]) -> Result<usize, St
 pub struct Bvh<'a> {
     nodes: &'a [BvhNode],
     blocks: &'a [TriangleBlock],
+    /// Corner shading normals, one per block, or empty (facet normals): shading only,
+    /// traversal never reads them.
+    normals: &'a [NormalBlock],
 }
 
 impl<'a> Bvh<'a> {
     /// The tree of `nodes` and `blocks`, if [`validate`] accepts it.
     pub fn new(nodes: &'a [BvhNode], blocks: &'a [TriangleBlock]) -> Result<Self, String> {
         validate(nodes, blocks)?;
-        Ok(Bvh { nodes, blocks })
+        Ok(Bvh {
+            nodes,
+            blocks,
+            normals: &[],
+        })
     }
 
-    /// A tree the caller has validated (a loaded domain file).
-    pub(crate) fn trusted(nodes: &'a [BvhNode], blocks: &'a [TriangleBlock]) -> Self {
-        Bvh { nodes, blocks }
+    /// A tree the caller has validated (a loaded domain file), with its corner shading
+    /// `normals` (empty, or one per block: the caller checked).
+    pub(crate) fn trusted(
+        nodes: &'a [BvhNode],
+        blocks: &'a [TriangleBlock],
+        normals: &'a [NormalBlock],
+    ) -> Self {
+        Bvh {
+            nodes,
+            blocks,
+            normals,
+        }
+    }
+
+    /// The corner shading normals of the triangle `hit` names, if the tree has them and they
+    /// are set for it (a smooth surface's; else shading uses the facet normal).
+    #[inline]
+    pub fn vertex_normals(&self, hit: &Hit) -> Option<[Vec3; 3]> {
+        self.normals
+            .get(hit.block as usize)
+            .and_then(|b| b.lane(hit.lane as usize))
     }
 
     /// Nodes, root first.

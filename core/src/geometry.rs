@@ -229,6 +229,31 @@ pub fn within_interval(t: f32, t0: f32, t1: f32) -> bool {
     t >= t0 && t <= t1 && t != f32::INFINITY
 }
 
+/// Shading normals at the corners of a [`TriangleBlock`]'s four triangles, `n[vertex][axis]
+/// [lane]` as the block's vertices: a domain file of a smooth surface (an isosurface's
+/// gradient normals) stores one per block, in block order. A lane of all zeros has none (the
+/// facet normal shades it).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct NormalBlock {
+    /// Unit normals (or zeros): `n[vertex][axis][lane]`.
+    pub n: [[[f32; BLOCK]; 3]; 3],
+}
+
+const _: () = assert!(std::mem::size_of::<NormalBlock>() == 144);
+
+impl NormalBlock {
+    /// A lane's three corner normals, or `None` if any is zero or not finite.
+    #[inline]
+    pub fn lane(&self, lane: usize) -> Option<[Vec3; 3]> {
+        let n = [0, 1, 2]
+            .map(|i| Vec3::new(self.n[i][0][lane], self.n[i][1][lane], self.n[i][2][lane]));
+        n.iter()
+            .all(|v| v.is_finite() && *v != Vec3::ZERO)
+            .then_some(n)
+    }
+}
+
 /// Triangles tested together: one SSE register's worth.
 pub const BLOCK: usize = 4;
 

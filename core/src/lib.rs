@@ -9,6 +9,7 @@ pub mod bundler;
 pub mod bvh;
 pub mod camera;
 pub mod cluster;
+pub mod colour_map;
 pub mod geometry;
 pub mod isosurface;
 pub mod mesh;

@@ -4,8 +4,8 @@
 use proptest::prelude::*;
 use rayfarm_core::scene::domain_file::{SourceTriangle, parse_domain_bytes, write_domain};
 
-/// Bytes of the format-5 header.
-const HEADER: usize = 88;
+/// Bytes of the format-6 header.
+const HEADER: usize = 104;
 
 fn valid_file() -> Vec<u8> {
     static FILE: std::sync::OnceLock<Vec<u8>> = std::sync::OnceLock::new();
@@ -24,11 +24,11 @@ fn write_valid_file() -> Vec<u8> {
     std::fs::read(&path).unwrap()
 }
 
-/// Recomputes the checksum, which sits after magic(8) version(4) domain(4) counts(24) bounds(24).
+/// Recomputes the checksum, which sits after magic(8) version(4) domain(4) counts(32) bounds(24).
 fn reseal(bytes: &mut [u8]) {
-    bytes[64..72].fill(0);
+    bytes[72..80].fill(0);
     let sum = xxhash_rust::xxh3::xxh3_64(bytes);
-    bytes[64..72].copy_from_slice(&sum.to_le_bytes());
+    bytes[72..80].copy_from_slice(&sum.to_le_bytes());
 }
 
 fn source_triangles() -> Vec<SourceTriangle> {
@@ -39,6 +39,12 @@ fn source_triangles() -> Vec<SourceTriangle> {
                 vertices: [[x, 0.0, 0.0], [x + 0.02, 0.1, 0.0], [x, 0.0, 0.1 + x]],
                 id: i,
                 material: (i % 2) as u32,
+                // Smooth normals on some, so the file has its normals section to lie about.
+                normals: (i % 3 == 0).then_some([
+                    [0.0, 0.0, 1.0],
+                    [0.0, 0.6, 0.8],
+                    [1.0, 0.0, 0.0],
+                ]),
             }
         })
         .collect()
@@ -49,6 +55,21 @@ fn a_valid_file_reads_back() {
     let d = parse_domain_bytes(&valid_file(), 2).unwrap();
     assert_eq!(d.triangle_count(), 200);
     // The blocks are the only copy: every triangle reads back from them, bit for bit.
+    assert_eq!(d.normals().len(), d.blocks().len());
+    let bvh = d.bvh();
+    for (block, b) in d.blocks().iter().enumerate() {
+        for lane in 0..4 {
+            let hit = rayfarm_core::bvh::Hit {
+                t: 0.0,
+                block: block as u32,
+                lane: lane as u32,
+                id: b.id(lane),
+            };
+            let want = source_triangles()[b.id(lane) as usize].normals;
+            let got = bvh.vertex_normals(&hit).map(|n| n.map(|v| v.to_array()));
+            assert_eq!(got, want, "triangle {}", b.id(lane));
+        }
+    }
     let mut back: Vec<_> = d.bvh().triangles().collect();
     back.sort_by_key(|t| t.id());
     assert_eq!(back.len(), 200);
@@ -65,7 +86,7 @@ fn a_valid_file_reads_back() {
     // Resealing after an edit the structure allows must be accepted, or the fuzzing below
     // would only ever exercise the checksum.
     let mut f = valid_file();
-    f[44] ^= 1; // a bit of the bounds
+    f[52] ^= 1; // a bit of the bounds
     assert!(parse_domain_bytes(&f, 2).is_err());
     reseal(&mut f);
     assert!(parse_domain_bytes(&f, 2).is_ok());
@@ -74,13 +95,13 @@ fn a_valid_file_reads_back() {
 #[test]
 fn a_file_of_an_older_format_is_refused_with_its_version_and_what_to_do() {
     let mut f = valid_file();
-    for old in [3u32, 4] {
+    for old in [3u32, 4, 5] {
         f[8..12].copy_from_slice(&old.to_le_bytes());
         reseal(&mut f);
         let e = parse_domain_bytes(&f, 2).unwrap_err().to_string();
         assert!(
             e.contains(&format!("version {old}"))
-                && e.contains("version 5")
+                && e.contains("version 6")
                 && e.contains("re-run `rayfarm prepare`"),
             "{e}"
         );

@@ -57,6 +57,7 @@ fn write_scene() -> Scene {
                     vertices: [[x, 0.1, 0.1], [x + 0.03, 0.9, 0.1], [x, 0.1, 0.9]],
                     id: 100 * d as u64 + i,
                     material: (i % 3) as u32,
+                    normals: None,
                 }
             })
             .collect();

@@ -78,6 +78,9 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
             step: None,
             shading: false,
             shadows: false,
+            normals: None,
+            colour_map: None,
+            colour_axis: None,
         })?;
     }
     let manifest = Manifest::load(&scene)?;

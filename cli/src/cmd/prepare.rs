@@ -4,12 +4,15 @@ use std::path::PathBuf;
 
 use anyhow::{Context, bail};
 use clap::{Args, ValueEnum};
+use rayfarm_core::colour_map::ColourMap;
 use rayfarm_core::prepare::brick_scene::MAX_BRICKS;
 use rayfarm_core::prepare::brick_scene::VolumeLook;
-use rayfarm_core::prepare::generate::{NbodyOptions, prepare_nbody, prepare_nbody_volume};
+use rayfarm_core::prepare::generate::{
+    NbodyLook, NbodyOptions, prepare_nbody_volume, prepare_nbody_with,
+};
 use rayfarm_core::prepare::mesh_scene::MAX_DOMAINS;
 use rayfarm_core::prepare::prepare_mesh;
-use rayfarm_core::prepare::volume_scene::{prepare_raw_bricks, prepare_volume};
+use rayfarm_core::prepare::volume_scene::{IsoLook, prepare_raw_bricks, prepare_volume};
 use rayfarm_core::scene::Manifest;
 use rayfarm_core::transfer::TransferFunction;
 
@@ -92,6 +95,39 @@ pub struct PrepareArgs {
     /// towards the lights (implies --shading).
     #[arg(long, requires = "volume")]
     pub shadows: bool,
+    /// Isosurfaces: shading normals, `smooth` (the field's gradient at the vertices; the
+    /// default for a raw volume's --iso, and always for --volume --iso) or `flat` (the facets';
+    /// the generator's default).
+    #[arg(long, value_enum)]
+    pub normals: Option<Normals>,
+    /// Isosurfaces (--iso without --volume, or --generate nbody): colour the surface by height
+    /// with this colour map (bone, terrain, viridis, cool-warm) instead of a plain colour (the
+    /// generator's: colours by region of space).
+    #[arg(long)]
+    pub colour_map: Option<String>,
+    /// --colour-map: the axis heights run along (default z for a volume, y for the generator).
+    #[arg(long, value_enum, requires = "colour_map")]
+    pub colour_axis: Option<Axis>,
+}
+
+/// Shading normals of an isosurface.
+#[derive(ValueEnum, Clone, Copy, Debug, PartialEq)]
+pub enum Normals {
+    /// The volume's gradient at the vertices, interpolated across each triangle.
+    Smooth,
+    /// Each triangle's own normal.
+    Flat,
+}
+
+/// A coordinate axis.
+#[derive(ValueEnum, Clone, Copy, Debug)]
+pub enum Axis {
+    /// x.
+    X,
+    /// y.
+    Y,
+    /// z.
+    Z,
 }
 
 pub fn run(a: PrepareArgs) -> anyhow::Result<()> {
@@ -111,6 +147,18 @@ pub fn run(a: PrepareArgs) -> anyhow::Result<()> {
             iso_surface: a.iso,
         })
     };
+    let colour_map = a
+        .colour_map
+        .as_deref()
+        .map(ColourMap::parse)
+        .transpose()
+        .map_err(anyhow::Error::msg)?;
+    if a.volume && (colour_map.is_some() || a.normals.is_some()) {
+        bail!(
+            "--colour-map and --normals are for isosurfaces without --volume (a volume's \
+             surfaces are always smooth)"
+        );
+    }
     let bricks = a.bricks.unwrap_or(a.domains);
     let nbody = |domains| NbodyOptions {
         name: a.name.clone().unwrap_or_else(|| "nbody".into()),
@@ -129,7 +177,16 @@ pub fn run(a: PrepareArgs) -> anyhow::Result<()> {
             };
             prepare_nbody_volume(&a.out, &nbody(bricks), n, transfer()?)?
         }
-        (Some(Generator::Nbody), None, None) => prepare_nbody(&a.out, &nbody(a.domains))?,
+        (Some(Generator::Nbody), None, None) => {
+            if !matches!(a.colour_axis, None | Some(Axis::Y)) {
+                bail!("the generator colours by height along y, its up");
+            }
+            let look = NbodyLook {
+                smooth: a.normals == Some(Normals::Smooth),
+                colour_map,
+            };
+            prepare_nbody_with(&a.out, &nbody(a.domains), look)?
+        }
         (Some(_), Some(_), _) | (Some(_), _, Some(_)) => {
             bail!("--generate makes a scene without an INPUT or --dims (but for --volume)")
         }
@@ -157,6 +214,15 @@ pub fn run(a: PrepareArgs) -> anyhow::Result<()> {
                 dtype,
                 a.spacing,
                 iso,
+                IsoLook {
+                    smooth: a.normals != Some(Normals::Flat),
+                    colour_map,
+                    colour_axis: match a.colour_axis {
+                        Some(Axis::X) => 0,
+                        Some(Axis::Y) => 1,
+                        Some(Axis::Z) | None => 2,
+                    },
+                },
                 &name_of(&a),
                 &a.out,
                 a.domains,

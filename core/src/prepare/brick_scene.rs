@@ -14,7 +14,7 @@ use tracing::{info, info_span};
 use super::{DomainTriangles, PrepareError, default_lighting, publish_staged, reference_margin};
 use crate::brick::{BLOCK, write_brick};
 use crate::geometry::Aabb;
-use crate::isosurface::{Grid, Lattice, march};
+use crate::isosurface::{Grid, Lattice, march_smooth};
 use crate::scene::domain_file::SourceTriangle;
 use crate::scene::manifest::FORMAT_VERSION;
 use crate::scene::{
@@ -172,8 +172,8 @@ fn spec_of(o: &BrickOptions) -> Result<(Grid, VolumeSpec), PrepareError> {
     Ok((grid, spec))
 }
 
-/// The triangles of `volume`'s isosurface at `iso` that brick `domain` (box `b`) of `tree`
-/// references: those of the cells around it whose box, grown by the reference margin,
+/// The triangles of `volume`'s isosurface at `iso`, with smooth normals from the volume's
+/// gradient (`isosurface::march_smooth`), that brick `domain` (box `b`) of `tree` references: those of the cells around it whose box, grown by the reference margin,
 /// overlaps it, as a mesh scene's domain references the triangles crossing into it. Marching
 /// cubes gives a triangle the same bits and id whichever cells are marched, so a triangle
 /// two bricks share is the same triangle in both.
@@ -187,12 +187,13 @@ fn surfaces_in(
 ) -> DomainTriangles {
     let grown = b.expanded(reference_margin(&tree.bounds()));
     let mut tris = Vec::new();
-    march(grid, volume, iso, grid.cells_touching(&grown), |t| {
+    march_smooth(grid, volume, iso, grid.cells_touching(&grown), |t| {
         if Aabb::of_triangle(&t.vertices).overlaps(&grown) {
             tris.push(SourceTriangle {
                 vertices: t.vertices,
                 id: t.id,
                 material: 0,
+                normals: t.normals,
             });
         }
     });

@@ -10,8 +10,9 @@ use glam::Vec3;
 use tracing::info;
 
 use super::{DomainTriangles, PrepareError, SceneSpec, reference_margin, write_scene};
+use crate::colour_map::ColourMap;
 use crate::geometry::Aabb;
-use crate::isosurface::{Grid, march};
+use crate::isosurface::{Grid, IsoTriangle, march, march_smooth};
 use crate::nbody::{NbodyField, SampledField, resolution_for_triangles};
 use crate::scene::domain_file::SourceTriangle;
 use crate::scene::{Camera, DomainTree, Light, Manifest, Material, Sky};
@@ -48,9 +49,32 @@ const MIRROR_Z: f32 = -0.2;
 const MAT_GROUND: u32 = 0;
 const MAT_MIRROR: u32 = 1;
 const BLOB_MATERIALS: u32 = 4;
+/// The blobs' material with a colour map: after the ground, the mirror and the four blob
+/// colours.
+const MAT_MAPPED: u32 = 2 + BLOB_MATERIALS;
 
-/// Generates the scene into `out`.
+/// How the generated blobs are shaded and coloured.
+#[derive(Clone, Copy, Debug, PartialEq, Default)]
+pub struct NbodyLook {
+    /// Smooth normals from the density field's gradient (`isosurface::march_smooth`) instead
+    /// of the facets'.
+    pub smooth: bool,
+    /// Colour the blobs by height (along y, the scene's up, from the ground to the top of the
+    /// field) with this map, instead of one of four colours per region of space.
+    pub colour_map: Option<ColourMap>,
+}
+
+/// Generates the scene into `out`, with flat normals and colours by region of space.
 pub fn prepare_nbody(out: &Path, o: &NbodyOptions) -> Result<Manifest, PrepareError> {
+    prepare_nbody_with(out, o, NbodyLook::default())
+}
+
+/// Generates the scene into `out`, its blobs looking as `look` says.
+pub fn prepare_nbody_with(
+    out: &Path,
+    o: &NbodyOptions,
+    look: NbodyLook,
+) -> Result<Manifest, PrepareError> {
     if o.triangles < 1_000 || o.triangles > 1 << 36 {
         return Err(PrepareError::Invalid(format!(
             "--triangles {} is outside 1000..={}",
@@ -87,7 +111,7 @@ pub fn prepare_nbody(out: &Path, o: &NbodyOptions) -> Result<Manifest, PrepareEr
             horizon: [0.6, 0.65, 0.75],
             zenith: [0.2, 0.3, 0.6],
         },
-        materials: materials(),
+        materials: materials(look.colour_map),
         lights: lights(),
     };
     let tree_for_count = tree.clone();
@@ -100,15 +124,24 @@ pub fn prepare_nbody(out: &Path, o: &NbodyOptions) -> Result<Manifest, PrepareEr
             .collect();
         let cells = grid.cells_touching(&grown);
         if cells.iter().all(|r| !r.is_empty()) {
-            march(&grid, &sampled, iso, cells, |t| {
+            let emit = |t: IsoTriangle| {
                 if Aabb::of_triangle(&t.vertices).overlaps(&grown) {
                     tris.push(SourceTriangle {
                         vertices: t.vertices,
                         id: fixed.len() as u64 + t.id,
-                        material: blob_material(&t.vertices),
+                        material: match look.colour_map {
+                            Some(_) => MAT_MAPPED,
+                            None => blob_material(&t.vertices),
+                        },
+                        normals: t.normals,
                     });
                 }
-            });
+            };
+            if look.smooth {
+                march_smooth(&grid, &sampled, iso, cells, emit);
+            } else {
+                march(&grid, &sampled, iso, cells, emit);
+            }
         }
         Ok(DomainTriangles::new(&tree_for_count, d, tris))
     })
@@ -237,11 +270,13 @@ fn fixed_triangles() -> Vec<SourceTriangle> {
                 vertices: [p[0], p[1], p[2]],
                 id: first,
                 material,
+                normals: None,
             },
             SourceTriangle {
                 vertices: [p[0], p[2], p[3]],
                 id: first + 1,
                 material,
+                normals: None,
             },
         ]
     };
@@ -263,8 +298,10 @@ fn fixed_triangles() -> Vec<SourceTriangle> {
     v
 }
 
-fn materials() -> Vec<Material> {
-    vec![
+/// The scene's materials; with a colour map, one more after the others for the blobs
+/// ([`MAT_MAPPED`]).
+fn materials(colour_map: Option<ColourMap>) -> Vec<Material> {
+    let mut m = vec![
         Material::Diffuse {
             albedo: [0.55, 0.55, 0.52],
         },
@@ -285,7 +322,15 @@ fn materials() -> Vec<Material> {
             specular: 0.4,
             roughness: 0.12,
         },
-    ]
+    ];
+    if let Some(map) = colour_map {
+        m.push(Material::Mapped {
+            map,
+            axis: 1,
+            range: [GROUND, 1.0],
+        });
+    }
+    m
 }
 
 /// Colour by region of space, so a blob keeps its colour at every triangle count.

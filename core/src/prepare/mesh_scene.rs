@@ -47,13 +47,40 @@ pub fn prepare_mesh(
             }
         })
         .collect::<Result<_, _>>()?;
+    let look = SurfaceLook {
+        material: Material::Diffuse {
+            albedo: [0.75, 0.72, 0.68],
+        },
+        normals: None,
+    };
+    prepare_triangles(&tris, look, name, out, domains, force)
+}
+
+/// How a mesh scene's triangles are shaded.
+pub(crate) struct SurfaceLook<'a> {
+    /// The one material of every triangle.
+    pub material: Material,
+    /// Corner shading normals, one triple per triangle (a smooth surface), or facet normals.
+    pub normals: Option<&'a [[[f32; 3]; 3]]>,
+}
+
+/// Cuts the triangles `tris` into `domains` domains and writes the scene to `out`.
+pub(crate) fn prepare_triangles(
+    tris: &[[[f32; 3]; 3]],
+    look: SurfaceLook,
+    name: &str,
+    out: &Path,
+    domains: u32,
+    force: bool,
+) -> Result<Manifest, PrepareError> {
+    check_domains(domains)?;
     if tris.is_empty() {
         return Err(PrepareError::Invalid(
             "the mesh has no triangles (an empty file, or only points and lines)".into(),
         ));
     }
     let mut bounds = Aabb::EMPTY;
-    for t in &tris {
+    for t in tris {
         for v in t {
             if v.iter().any(|x| !x.is_finite()) {
                 return Err(PrepareError::Invalid(
@@ -84,9 +111,7 @@ pub fn prepare_mesh(
         tree: tree.clone(),
         camera,
         sky,
-        materials: vec![Material::Diffuse {
-            albedo: [0.75, 0.72, 0.68],
-        }],
+        materials: vec![look.material],
         lights,
     };
     write_scene(out, spec, force, |d, _| {
@@ -96,6 +121,7 @@ pub fn prepare_mesh(
                 vertices: tris[i as usize],
                 id: i as u64,
                 material: 0,
+                normals: look.normals.map(|n| n[i as usize]),
             })
             .collect();
         Ok(DomainTriangles::new(&tree, d, mine))

@@ -6,16 +6,61 @@ use std::path::Path;
 
 use glam::Vec3;
 
-use super::{PrepareError, prepare_mesh};
-use crate::isosurface::{Grid, march};
-use crate::mesh::TriangleMesh;
-use crate::scene::Manifest;
+use super::PrepareError;
+use super::mesh_scene::{SurfaceLook, prepare_triangles};
+use crate::colour_map::ColourMap;
+use crate::isosurface::{Grid, IsoTriangle, march, march_smooth};
+use crate::scene::{Manifest, Material};
 
 use super::brick_scene::{BrickOptions, VolumeLook, prepare_bricks};
 use crate::volume::{RawVolume, VoxelType};
 
+/// How an isosurface is shaded and coloured.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct IsoLook {
+    /// Shade with the volume's gradient at the vertices (`isosurface::march_smooth`), not the
+    /// facets' normals.
+    pub smooth: bool,
+    /// Colour by height with this map along `colour_axis` (over the surface's extent along
+    /// it), instead of one plain colour.
+    pub colour_map: Option<ColourMap>,
+    /// The axis heights are measured along: 0, 1 or 2.
+    pub colour_axis: u8,
+}
+
+impl Default for IsoLook {
+    /// Smooth, plain colour, heights along z (a CT's slices).
+    fn default() -> Self {
+        IsoLook {
+            smooth: true,
+            colour_map: None,
+            colour_axis: 2,
+        }
+    }
+}
+
+impl IsoLook {
+    /// The material of a surface whose extent along the colour axis is `low..high`.
+    pub fn material(&self, low: f32, high: f32) -> Material {
+        match self.colour_map {
+            Some(map) => Material::Mapped {
+                map,
+                axis: self.colour_axis.min(2),
+                range: if low < high {
+                    [low, high]
+                } else {
+                    [low, low + 1.0]
+                },
+            },
+            None => Material::Diffuse {
+                albedo: [0.75, 0.72, 0.68],
+            },
+        }
+    }
+}
+
 /// Extracts the isosurface of the volume in `input` (voxels `spacing` apart) and writes it as
-/// a scene to `out`.
+/// a scene to `out`, shaded and coloured as `look` says.
 #[allow(clippy::too_many_arguments)]
 pub fn prepare_volume(
     input: &Path,
@@ -23,6 +68,7 @@ pub fn prepare_volume(
     dtype: VoxelType,
     spacing: [f32; 3],
     iso: f32,
+    look: IsoLook,
     name: &str,
     out: &Path,
     domains: u32,
@@ -40,19 +86,37 @@ pub fn prepare_volume(
         spacing: Vec3::from(spacing) * scale,
         dims,
     };
-    let mut mesh = TriangleMesh::default();
-    march(&grid, &volume, iso, grid.all_cells(), |t| {
-        let base = mesh.positions.len() as u32;
-        mesh.positions.extend_from_slice(&t.vertices);
-        mesh.triangles.push([base, base + 1, base + 2]);
-    });
-    if mesh.triangles.is_empty() {
+    let mut tris = Vec::new();
+    let mut normals = Vec::new();
+    let emit = |t: IsoTriangle| {
+        tris.push(t.vertices);
+        if let Some(n) = t.normals {
+            normals.push(n);
+        }
+    };
+    if look.smooth {
+        march_smooth(&grid, &volume, iso, grid.all_cells(), emit);
+    } else {
+        march(&grid, &volume, iso, grid.all_cells(), emit);
+    }
+    if tris.is_empty() {
         return Err(PrepareError::Invalid(format!(
             "{}: no surface at iso {iso} (every voxel is on one side)",
             input.display()
         )));
     }
-    prepare_mesh(&mesh, name, out, domains, force)
+    let axis = usize::from(look.colour_axis.min(2));
+    let (low, high) = tris
+        .iter()
+        .flatten()
+        .fold((f32::MAX, f32::MIN), |(lo, hi), v| {
+            (lo.min(v[axis]), hi.max(v[axis]))
+        });
+    let surface = SurfaceLook {
+        material: look.material(low, high),
+        normals: look.smooth.then_some(normals.as_slice()),
+    };
+    prepare_triangles(&tris, surface, name, out, domains, force)
 }
 
 fn check_spacing(input: &Path, spacing: [f32; 3]) -> Result<(), PrepareError> {

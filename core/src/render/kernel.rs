@@ -456,9 +456,8 @@ impl SceneView {
         counters.radiance_segments += 1;
         match hit {
             Some(hit) => {
-                let tri = bvh.triangle(&hit);
                 children.clear();
-                let surface = (tri.normal(), tri.material);
+                let surface = self.surface_at(bvh, &hit, ray);
                 let p = Vec3::from(ray.origin) + Vec3::from(ray.dir) * hit.t;
                 self.shade(ray, p, surface, children, counters);
                 self.hand_on_credit(ray, Some(here), children, sink);
@@ -520,8 +519,7 @@ impl SceneView {
             match (march, hit) {
                 (March::Opaque, _) => self.retire_opaque(&ray, sink),
                 (March::Through, Some((bvh, h))) => {
-                    let tri = bvh.triangle(&h);
-                    let surface = (tri.normal(), tri.material);
+                    let surface = self.surface_at(bvh, &h, &ray);
                     self.shade_behind_volume(&ray, h.t, surface, sink, counters);
                 }
                 (March::Through, None) => {
@@ -670,13 +668,13 @@ impl SceneView {
                     return;
                 }
                 Some((bvh, SurfaceIn::Hit(h))) => {
-                    let tri = bvh.triangle(&h);
+                    let (normal, material) = self.surface_at(bvh, &h, ray);
                     end = h.t;
                     hit = Some(SurfaceHit {
                         order,
                         t: h.t,
-                        normal: tri.normal().into(),
-                        material: tri.material,
+                        normal: normal.into(),
+                        material,
                     });
                 }
                 _ => {}
@@ -721,12 +719,12 @@ impl SceneView {
                 counters.radiance_segments += 1;
                 match traverser.nearest_hit(bvh, &tr, t0, t1) {
                     Some(hit) => {
-                        let tri = bvh.triangle(&hit);
+                        let (normal, material) = self.surface_at(bvh, &hit, ray);
                         Verdict::Hit(SurfaceHit {
                             order,
                             t: hit.t,
-                            normal: tri.normal().into(),
-                            material: tri.material,
+                            normal: normal.into(),
+                            material,
                         })
                     }
                     None => Verdict::Clear,

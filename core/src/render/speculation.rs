@@ -33,7 +33,8 @@ pub struct SurfaceHit {
     pub order: u32,
     /// Distance of the hit along the ray.
     pub t: f32,
-    /// Geometric normal of the triangle hit.
+    /// The normal to shade the hit with, on the side the ray came from
+    /// (`SceneView::surface_at`: the facet normal, or a smooth surface's shading normal).
     pub normal: [f32; 3],
     /// Material of the triangle hit.
     pub material: u32,

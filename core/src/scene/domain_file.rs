@@ -1,10 +1,12 @@
 //! The domain file: one little-endian blob laid out so that loading is `mmap` plus a cast.
 //!
 //! ```text
-//! header (88 bytes)   magic, version, domain id, counts, bounds, checksum, section offsets
+//! header (104 bytes)  magic, version, domain id, counts, bounds, checksum, section offsets
 //! nodes               BvhNode (256 bytes, 8-wide) each
 //! blocks              TriangleBlock (192 bytes: four triangles as structure-of-arrays, with
 //!                     their scene-wide ids and materials) each, in BVH leaf order
+//! normals             NormalBlock (144 bytes: the blocks' corner shading normals) per block,
+//!                     or none: a smooth surface's (an isosurface's gradient), else empty
 //! ```
 //! The blocks are the only copy of the domain's triangles: traversal tests them, a hit names
 //! a block and lane, shading reads that lane back (`Bvh::triangle`), and tools that need the
@@ -20,15 +22,16 @@ use memmap2::Mmap;
 
 use super::{SceneError, check_domain_checksum, domain_checksum, write_domain_file};
 use crate::bvh::{self, BvhNode};
-use crate::geometry::{Aabb, BLOCK, PackedTriangle, TriangleBlock};
+use crate::geometry::{Aabb, BLOCK, NormalBlock, PackedTriangle, TriangleBlock};
 
 /// First bytes of every domain file.
 pub const MAGIC: [u8; 8] = *b"RFDOMAIN";
-/// Layout version. 5: the blocks are the only copy of the triangles (4 also stored the mesh
-/// and a packed array of every triangle; 3 had 4-wide nodes and no blocks).
-pub const VERSION: u32 = 5;
+/// Layout version. 6: a section of corner shading normals per block (none for flat meshes);
+/// 5: the blocks are the only copy of the triangles (4 also stored the mesh and a packed array
+/// of every triangle; 3 had 4-wide nodes and no blocks).
+pub const VERSION: u32 = 6;
 /// Number of sections after the header.
-const SECTIONS: usize = 2;
+const SECTIONS: usize = 3;
 const ALIGN: u64 = 64;
 
 #[repr(C)]
@@ -41,14 +44,16 @@ struct Header {
     triangle_count: u64,
     node_count: u64,
     block_count: u64,
+    /// Normal blocks: zero, or `block_count`.
+    normal_count: u64,
     bounds: Aabb,
     checksum: u64,
-    /// Offsets of nodes, blocks.
+    /// Offsets of nodes, blocks, normals.
     offsets: [u64; SECTIONS],
 }
 
 const HEADER_BYTES: usize = std::mem::size_of::<Header>();
-const _: () = assert!(HEADER_BYTES == 88);
+const _: () = assert!(HEADER_BYTES == 104);
 
 /// A triangle handed to the domain writer.
 #[derive(Clone, Copy, Debug)]
@@ -59,6 +64,9 @@ pub struct SourceTriangle {
     pub id: u64,
     /// Material index.
     pub material: u32,
+    /// Shading normals at the corners (unit, or zero for none), for a smooth surface; `None`
+    /// shades by the facet normal. A domain stores them if any of its triangles has them.
+    pub normals: Option<[[f32; 3]; 3]>,
 }
 
 /// What the manifest needs to know about a written domain file.
@@ -89,6 +97,7 @@ pub fn write_domain(
         .collect();
     let bvh::Built { nodes, blocks } = bvh::build(&mut packed);
     drop(packed);
+    let normals = normal_blocks(triangles, &blocks);
     let checked = bvh::validate(&nodes, &blocks).and_then(|_| {
         let held = distinct_triangles(&blocks);
         if held == triangles.len() as u64 {
@@ -108,7 +117,11 @@ pub fn write_domain(
         });
     }
 
-    let sections: [&[u8]; SECTIONS] = [bytemuck::cast_slice(&nodes), bytemuck::cast_slice(&blocks)];
+    let sections: [&[u8]; SECTIONS] = [
+        bytemuck::cast_slice(&nodes),
+        bytemuck::cast_slice(&blocks),
+        bytemuck::cast_slice(&normals),
+    ];
     let mut body = Vec::new();
     let mut offsets = [0u64; SECTIONS];
     for (k, s) in sections.iter().enumerate() {
@@ -124,6 +137,7 @@ pub fn write_domain(
         triangle_count: triangles.len() as u64,
         node_count: nodes.len() as u64,
         block_count: blocks.len() as u64,
+        normal_count: normals.len() as u64,
         bounds,
         checksum: 0,
         offsets,
@@ -136,6 +150,34 @@ pub fn write_domain(
         triangles: triangles.len() as u64,
         checksum,
     })
+}
+
+/// The corner normals of `blocks` (built from `triangles`), lane by lane as the blocks hold
+/// the triangles: one per block if any triangle has normals, else none.
+fn normal_blocks(triangles: &[SourceTriangle], blocks: &[TriangleBlock]) -> Vec<NormalBlock> {
+    if triangles.iter().all(|t| t.normals.is_none()) {
+        return Vec::new();
+    }
+    let by_id: std::collections::HashMap<u64, [[f32; 3]; 3]> = triangles
+        .iter()
+        .filter_map(|t| t.normals.map(|n| (t.id, n)))
+        .collect();
+    blocks
+        .iter()
+        .map(|b| {
+            let mut out = NormalBlock::zeroed();
+            for lane in 0..BLOCK {
+                if let Some(n) = by_id.get(&b.id(lane)) {
+                    for (vertex, normal) in n.iter().enumerate() {
+                        for (axis, &c) in normal.iter().enumerate() {
+                            out.n[vertex][axis][lane] = c;
+                        }
+                    }
+                }
+            }
+            out
+        })
+        .collect()
 }
 
 /// A mapped, checked domain file: a mesh domain, or a volume brick (`crate::brick`), whose
@@ -210,7 +252,17 @@ impl DomainData {
                 header.block_count,
                 std::mem::size_of::<TriangleBlock>() as u64,
             ),
+            (
+                header.normal_count,
+                std::mem::size_of::<NormalBlock>() as u64,
+            ),
         ];
+        if header.normal_count != 0 && header.normal_count != header.block_count {
+            return Err(bad(format!(
+                "{} normal blocks for {} triangle blocks (zero or one each)",
+                header.normal_count, header.block_count
+            )));
+        }
         let mut sections: [Range<usize>; SECTIONS] = Default::default();
         for (k, (count, size)) in sizes.iter().enumerate() {
             let start = header.offsets[k];
@@ -251,6 +303,16 @@ impl DomainData {
             surfaces: None,
         };
         bvh::validate(data.nodes(), data.blocks()).map_err(bad)?;
+        if let Some(i) = data
+            .normals()
+            .iter()
+            .flat_map(|b| b.n.iter().flatten().flatten())
+            .position(|c| !c.is_finite() || c.abs() > 1.0 + 1e-3)
+        {
+            return Err(bad(format!(
+                "shading normal component {i} is not a unit vector's"
+            )));
+        }
         for b in data.blocks() {
             if let Some(lane) = (0..BLOCK).find(|&l| b.material[l] >= materials) {
                 return Err(bad(format!(
@@ -342,10 +404,16 @@ impl DomainData {
         self.section(1)
     }
 
-    /// The BVH, nodes and leaf blocks, for traversal and for reading triangles back.
+    /// Corner shading normals, one per block, or none (a flat mesh).
+    pub fn normals(&self) -> &[NormalBlock] {
+        self.section(2)
+    }
+
+    /// The BVH, nodes and leaf blocks (and the blocks' shading normals), for traversal and
+    /// for reading triangles back.
     pub fn bvh(&self) -> bvh::Bvh<'_> {
-        // Checked by `bvh::validate` when the file was opened.
-        bvh::Bvh::trusted(self.nodes(), self.blocks())
+        // Checked by `bvh::validate` (and the normals' count) when the file was opened.
+        bvh::Bvh::trusted(self.nodes(), self.blocks(), self.normals())
     }
 }
 

@@ -194,6 +194,16 @@ pub enum Material {
         /// Spread of the coat's reflection (0 = mirror).
         roughness: f32,
     },
+    /// Lambertian, its reflectance read from a colour map at the height of the point shaded:
+    /// its coordinate along `axis`, `range[0]` reading the map's start and `range[1]` its end.
+    Mapped {
+        /// The colour map.
+        map: crate::colour_map::ColourMap,
+        /// The axis heights are measured along: 0, 1 or 2 (x, y, z).
+        axis: u8,
+        /// Heights of the map's two ends (the first below the second).
+        range: [f32; 2],
+    },
 }
 
 /// A light source.
@@ -452,6 +462,16 @@ impl Manifest {
                     specular,
                     roughness,
                 } => finite(&albedo) && specular.is_finite() && roughness.is_finite(),
+                Material::Mapped { axis, range, .. } => {
+                    let ordered = range.iter().all(|x| x.is_finite()) && range[0] < range[1];
+                    if axis > 2 || !ordered {
+                        return Err(format!(
+                            "material {i}: a colour map needs an axis of 0, 1 or 2 and a range \
+                             [low, high] with low below high, not axis {axis} and {range:?}"
+                        ));
+                    }
+                    true
+                }
             };
             if !ok {
                 return Err(format!("material {i} has a non-finite value"));

@@ -128,6 +128,12 @@ fn main() {
                     vertices: [[x, 0.0, 0.0], [x + 1.0, 0.0, 0.0], [x, 1.0, 0.5]],
                     id: 10 + i,
                     material: (i % 2) as u32,
+                    // Smooth normals on some: files with the normals section (format 6).
+                    normals: (i % 2 == 0).then_some([
+                        [0.0, 0.0, 1.0],
+                        [0.0, 0.6, 0.8],
+                        [0.6, 0.0, 0.8],
+                    ]),
                 }
             })
             .collect();

@@ -134,6 +134,11 @@ pub fn domain_file(data: &[u8]) {
             .map(|r| {
                 let hit = t.nearest_hit(domain.bvh(), r, 0.0, f32::INFINITY);
                 let blocked = t.any_hit(domain.bvh(), r, 0.0, f32::INFINITY);
+                // A hit's shading normals, if stored, are unit vectors (the reader checked
+                // their components; a set lane is three non-zero normals).
+                if let Some(normals) = hit.and_then(|h| domain.bvh().vertex_normals(&h)) {
+                    assert!(normals.iter().all(|n| n.is_finite() && n.length() <= 2.0));
+                }
                 (hit.map(|h| (h.t.to_bits(), h.id)), blocked)
             })
             .collect::<Vec<_>>()
