@@ -100,6 +100,7 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
             cache_bytes,
             wave_rays: 1 << 20,
             speculate: false,
+            speculation: rayfarm_core::schedule::speculation_depth::Depth::Full,
             stats_json: Some(a.dir.join("demo-stats.json")),
             quiet: false,
         });
@@ -132,6 +133,7 @@ fn run_cluster(a: &DemoArgs, scene: &Path, cache_bytes: u64) -> anyhow::Result<(
         priority: 0,
         cold_cache: false,
         progressive: None,
+        speculation: String::new(),
     };
     let wait = WaitOptions {
         output: Some(a.dir.join("demo.png")),

@@ -19,6 +19,7 @@ use crate::camera::PinholeCamera;
 use crate::progressive::Samples;
 use crate::ray::RayRecord;
 use crate::scene::{Camera, DomainData, Manifest, SceneError};
+use crate::schedule::speculation_depth::Depth;
 use crate::schedule::speculative::{GenerationCounts, QueueView, next_queue};
 use crate::tile::TileGrid;
 use crate::tile::credit::TILE_CREDIT;
@@ -80,6 +81,8 @@ pub struct LocalOptions {
     /// Queue every new ray in all domains along it at once (`speculation`), oldest
     /// generation first: fewer domain loads, more ray segments traced.
     pub speculate: bool,
+    /// Speculating, how many domains ahead a ray is copied (`schedule::speculation_depth`).
+    pub depth: Depth,
     /// Where the film file goes (an unnamed temporary file; the system's temporary
     /// directory when `None`). It takes [`Film::file_bytes`] on disk.
     pub film_dir: Option<PathBuf>,
@@ -239,7 +242,7 @@ fn render_in_pool(
     let max_open = 4 * (wave_tiles as usize + 2 * grid.tiles_x() as usize);
     let returned: Vec<AtomicU64> = (0..grid.count()).map(|_| AtomicU64::new(0)).collect();
     let mut cache = DomainCache::new(dir, manifest, options.cache_bytes);
-    let mut queues = Queues::new(view.domain_count(), options.speculate);
+    let mut queues = Queues::new(view.domain_count(), options.speculate.then_some(options.depth));
     let mut counters = KernelCounters::default();
     let total_primary = frame.width as u64 * frame.height as u64 * frame.spp as u64;
     let mut issued = 0u64;
@@ -270,7 +273,12 @@ fn render_in_pool(
         let new_sink = sinks(&open, &returned, &buffers);
         let outs = match &mut queues.groups {
             None => trace_chained(&view, &data, &rays, new_sink, &mut counters),
-            Some(groups) => trace_speculative(&view, &data, &rays, groups, new_sink, &mut counters),
+            Some(groups) => {
+                let (outs, mut more) =
+                    trace_speculative(&view, &data, &rays, groups, new_sink, &mut counters);
+                queues.queue_copies(&mut more);
+                outs
+            }
         };
         passes += 1;
         buffers.put(rays);
@@ -319,6 +327,8 @@ fn render_in_pool(
         wall,
         segments = counters.segments(),
         loads = stats.cache.loads,
+        copies = queues.groups.as_ref().map_or(0, |g| g.copies),
+        windows_after_the_first = queues.groups.as_ref().map_or(0, |g| g.extensions),
         "frame done"
     );
     Ok((film, stats))
@@ -407,7 +417,8 @@ fn trace_chained<'a>(
 }
 
 /// Traces speculative copies queued for a domain and concludes every ray whose last copy
-/// this was; returns the rays those conclusions made.
+/// this was; returns the rays those conclusions made, and the copies of the next windows of
+/// rays whose last window did not end them.
 fn trace_speculative<'a>(
     view: &SceneView,
     data: &DomainData,
@@ -415,7 +426,7 @@ fn trace_speculative<'a>(
     groups: &mut Groups,
     new_sink: impl Fn(usize) -> QueueSink<'a> + Sync,
     counters: &mut KernelCounters,
-) -> Vec<Vec<RayRecord>> {
+) -> (Vec<Vec<RayRecord>>, Vec<RayRecord>) {
     // Per chunk: each copy's verdicts (a brick's copy has several), in the order of the rays.
     let verdicts: Vec<(Vec<(usize, Verdict)>, KernelCounters)> = rays
         .par_chunks(CHUNK)
@@ -434,19 +445,20 @@ fn trace_speculative<'a>(
         })
         .collect();
     let mut sink = new_sink(0);
+    let mut more = Vec::new();
     for (verdicts, c) in verdicts {
         counters.add(&c);
         for (i, verdict) in verdicts {
             // Every copy here was made by `Queues::place` in this frame.
             let settled = groups
-                .settle(&VerdictRecord::new(&rays[i], verdict))
+                .settle(&VerdictRecord::new(&rays[i], verdict), &mut more)
                 .expect("copy of a waiting ray");
             if let Some((ray, outcome)) = settled {
                 view.conclude(&ray, &outcome, &mut sink, counters);
             }
         }
     }
-    vec![sink.out]
+    (vec![sink.out], more)
 }
 
 /// One queue per domain. Rays are placed in the first domain along them, or, speculating,
@@ -459,10 +471,11 @@ struct Queues {
 }
 
 impl Queues {
-    fn new(domains: usize, speculate: bool) -> Self {
+    /// Queues for `domains` domains; speculating when `depth` is given.
+    fn new(domains: usize, depth: Option<Depth>) -> Self {
         Queues {
             rays: vec![Vec::new(); domains],
-            groups: speculate.then(Groups::new),
+            groups: depth.map(Groups::new),
             generations: GenerationCounts::new(domains),
         }
     }
@@ -474,19 +487,26 @@ impl Queues {
     /// Queues rays routed to their first domain (`SceneView::route_new` or the kernel).
     /// The emptied `outs` go back to `buffers`.
     fn place(&mut self, view: &SceneView, outs: Vec<Vec<RayRecord>>, buffers: &Buffers) {
+        let mut copies = Vec::new();
         for mut out in outs {
             for ray in out.drain(..) {
                 match &mut self.groups {
                     None => self.rays[ray.domain as usize].push(ray),
                     Some(groups) => {
-                        for copy in groups.spread(ray, &view.domains_along(&ray), 0) {
-                            self.generations.add(copy.domain, copy.generation());
-                            self.rays[copy.domain as usize].push(copy);
-                        }
+                        groups.spread(ray, view.domains_along(&ray), 0, &mut copies);
+                        self.queue_copies(&mut copies);
                     }
                 }
             }
             buffers.put(out);
+        }
+    }
+
+    /// Queues speculative copies in their domains.
+    fn queue_copies(&mut self, copies: &mut Vec<RayRecord>) {
+        for copy in copies.drain(..) {
+            self.generations.add(copy.domain, copy.generation());
+            self.rays[copy.domain as usize].push(copy);
         }
     }
 
