@@ -232,8 +232,15 @@ fn speculation_at_any_depth_renders_the_same_image_and_prediction_saves_segments
     }
     let scene = generate(tmp.path(), 8);
     let err = rayfarm_err(&[
-        "render", "--local", "--scene", s(&scene), "--out", "x.png", "--speculate",
-        "--speculation", "sometimes",
+        "render",
+        "--local",
+        "--scene",
+        s(&scene),
+        "--out",
+        "x.png",
+        "--speculate",
+        "--speculation",
+        "sometimes",
     ]);
     assert!(err.contains("unknown speculation"), "{err}");
 }

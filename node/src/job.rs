@@ -238,7 +238,11 @@ mod tests {
         assert!(parse_schedule_setting("predictive:sometimes").is_err());
         let mut on_dynamic = spec();
         on_dynamic.speculation = "none".into();
-        assert!(frame_spec(&on_dynamic, &SCENE).unwrap_err().contains("predictive"));
+        assert!(
+            frame_spec(&on_dynamic, &SCENE)
+                .unwrap_err()
+                .contains("predictive")
+        );
         on_dynamic.schedule = proto::Schedule::Predictive as i32;
         assert_eq!(speculation(&on_dynamic), Ok(None));
         assert_eq!(schedule_name(proto::Schedule::Unspecified), "dynamic");

@@ -242,7 +242,10 @@ fn render_in_pool(
     let max_open = 4 * (wave_tiles as usize + 2 * grid.tiles_x() as usize);
     let returned: Vec<AtomicU64> = (0..grid.count()).map(|_| AtomicU64::new(0)).collect();
     let mut cache = DomainCache::new(dir, manifest, options.cache_bytes);
-    let mut queues = Queues::new(view.domain_count(), options.speculate.then_some(options.depth));
+    let mut queues = Queues::new(
+        view.domain_count(),
+        options.speculate.then_some(options.depth),
+    );
     let mut counters = KernelCounters::default();
     let total_primary = frame.width as u64 * frame.height as u64 * frame.spp as u64;
     let mut issued = 0u64;

@@ -26,8 +26,8 @@
 //! at it), or a shadow ray's [`Verdict::Blocked`] alone.
 
 use super::dvr::Segment;
-use crate::ray::RayRecord;
 use crate::ray::RayKind;
+use crate::ray::RayRecord;
 use crate::schedule::speculation_depth::{Depth, Windows};
 use crate::schedule::speculative::Generations;
 use crate::wire::VerdictRecord;
@@ -338,9 +338,7 @@ impl Groups {
         let Some(group) = self.slots[id as usize].as_mut() else {
             return;
         };
-        let n = self
-            .windows
-            .window(&group.ray, &group.path, group.copied);
+        let n = self.windows.window(&group.ray, &group.path, group.copied);
         let window = &group.path[group.copied..(group.copied + n).min(group.path.len())];
         group.waiting = window.len() as u32;
         group.copied += window.len();
@@ -485,7 +483,8 @@ mod tests {
     }
 
     fn settle(groups: &mut Groups, copy: &RayRecord, v: Verdict) -> Option<(RayRecord, Outcome)> {
-        groups.settle(&VerdictRecord::new(copy, v), &mut Vec::new())
+        groups
+            .settle(&VerdictRecord::new(copy, v), &mut Vec::new())
             .unwrap()
     }
 
@@ -514,7 +513,8 @@ mod tests {
         assert_eq!(groups.oldest_waiting(), Some(0));
         groups.retain(|r| r.depth > 0);
         assert_eq!(groups.oldest_waiting(), Some(3));
-        groups.settle(&VerdictRecord::new(&copy, Verdict::Clear), &mut Vec::new())
+        groups
+            .settle(&VerdictRecord::new(&copy, Verdict::Clear), &mut Vec::new())
             .unwrap();
         assert_eq!(groups.oldest_waiting(), None);
     }
@@ -543,7 +543,10 @@ mod tests {
         let settled = groups.settle(&VerdictRecord::new(&first[0], Verdict::Clear), &mut more);
         assert_eq!(settled, Ok(None));
         assert_eq!(more.iter().map(|c| c.domain).collect::<Vec<_>>(), [6]);
-        assert!(more.iter().all(|c| c.group == first[0].group && c.credit == 0));
+        assert!(
+            more.iter()
+                .all(|c| c.group == first[0].group && c.credit == 0)
+        );
         let (r, outcome) = settle(&mut groups, &more[0], hit(1, 2.0)).unwrap();
         assert_eq!((r.credit, outcome.nearest.map(|h| h.order)), (7, Some(1)));
         assert_eq!((groups.copies, groups.extensions), (2, 1));
@@ -683,7 +686,8 @@ mod tests {
         // A light beyond the count is one verdict too many.
         let copy = spread(&mut groups, ray(1), &[1]);
         settle(&mut groups, &copy, segment(1, 0.5));
-        groups.settle(&VerdictRecord::new(&copy, light(1, 0)), &mut Vec::new())
+        groups
+            .settle(&VerdictRecord::new(&copy, light(1, 0)), &mut Vec::new())
             .unwrap();
         let end = VerdictRecord::new(&copy, Verdict::VolumeEnd(1));
         assert_eq!(
@@ -720,15 +724,27 @@ mod tests {
         let a = spread(&mut groups, ray(1), &[1]);
         settle(&mut groups, &a, Verdict::Clear).unwrap();
         let stale = VerdictRecord::new(&a, Verdict::Clear);
-        assert_eq!(groups.settle(&stale, &mut Vec::new()), Err(GroupError::Unknown(a.group)));
+        assert_eq!(
+            groups.settle(&stale, &mut Vec::new()),
+            Err(GroupError::Unknown(a.group))
+        );
         let far = VerdictRecord { group: 99, ..stale };
-        assert_eq!(groups.settle(&far, &mut Vec::new()), Err(GroupError::Unknown(99)));
+        assert_eq!(
+            groups.settle(&far, &mut Vec::new()),
+            Err(GroupError::Unknown(99))
+        );
         let b = spread(&mut groups, RayRecord { epoch: 1, ..ray(2) }, &[1, 2]);
         assert_eq!(a.group, b.group);
-        assert_eq!(groups.settle(&stale, &mut Vec::new()), Err(GroupError::Mismatch(b.group)));
+        assert_eq!(
+            groups.settle(&stale, &mut Vec::new()),
+            Err(GroupError::Mismatch(b.group))
+        );
         groups.retain(|r| r.credit != 2);
         assert_eq!(groups.waiting(), 0);
         let late = VerdictRecord::new(&b, Verdict::Clear);
-        assert_eq!(groups.settle(&late, &mut Vec::new()), Err(GroupError::Unknown(b.group)));
+        assert_eq!(
+            groups.settle(&late, &mut Vec::new()),
+            Err(GroupError::Unknown(b.group))
+        );
     }
 }

@@ -54,7 +54,9 @@ impl Depth {
             },
             ("ahead", Some(n)) => match n.parse::<u32>() {
                 Ok(n) if n >= 1 => Ok(Depth::Ahead(n)),
-                _ => Err(format!("speculation depth {n:?} is not a whole number >= 1")),
+                _ => Err(format!(
+                    "speculation depth {n:?} is not a whole number >= 1"
+                )),
             },
             _ => Err(format!(
                 "unknown speculation {s:?} (known: full, ahead:N, predicted, predicted:P)"
@@ -210,13 +212,24 @@ mod tests {
             Depth::parse("predicted").unwrap(),
             Depth::Predicted(Depth::DEFAULT_TARGET)
         );
-        for bad in ["ahead:0", "ahead", "predicted:1.5", "predicted:x", "none", "full:2"] {
+        for bad in [
+            "ahead:0",
+            "ahead",
+            "predicted:1.5",
+            "predicted:x",
+            "none",
+            "full:2",
+        ] {
             assert!(Depth::parse(bad).is_err(), "{bad}");
         }
         assert_eq!(parse_setting(""), Ok(Some(Depth::Full)));
         assert_eq!(parse_setting("none"), Ok(None));
         assert_eq!(parse_setting("ahead:2"), Ok(Some(Depth::Ahead(2))));
-        assert!(parse_setting(&"x".repeat(40)).unwrap_err().contains("at most"));
+        assert!(
+            parse_setting(&"x".repeat(40))
+                .unwrap_err()
+                .contains("at most")
+        );
     }
 
     #[test]

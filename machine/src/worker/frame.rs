@@ -151,8 +151,7 @@ impl<S: RaySpill> Frame<S> {
             to_issue: to_issue.into(),
             plan,
             generations: GenerationCounts::new(queues.domains() as usize),
-            speculation: speculation
-                .map(|(me, roster, depth)| Speculation::new(me, roster, depth)),
+            speculation: speculation.map(|(me, roster, depth)| Speculation::new(me, roster, depth)),
             queues,
             report: Report::Due,
             ahead: Vec::new(),
