@@ -230,7 +230,7 @@ fn speculation_at_any_depth_renders_the_same_image_and_prediction_saves_segments
         assert!(seg("predicted") < seg("full"), "{segments:?}");
         assert!(seg("ahead:1") <= seg("predicted"), "{segments:?}");
     }
-    let scene = generate(tmp.path(), 8);
+    let scene = tmp.path().join("nbody-8");
     let err = rayfarm_err(&[
         "render",
         "--local",
