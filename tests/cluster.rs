@@ -137,6 +137,53 @@ fn every_schedule_renders_the_local_image_with_one_to_four_workers() {
     }
 }
 
+/// Segments traced in a frame (radiance and shadow).
+fn segments(stats: &Path) -> u64 {
+    ["/rays/radiance_segments", "/rays/shadow_segments"]
+        .iter()
+        .map(|f| stats_field(stats, f).as_u64().expect(f))
+        .sum()
+}
+
+#[test]
+fn predictive_speculation_renders_the_local_image_at_every_setting_with_one_to_four_workers() {
+    // How far ahead rays are copied only moves work between copies traced and verdicts' round
+    // trips: the image is the local one whatever is predicted, and whatever order the
+    // verdicts the prediction learns from arrive in.
+    let root = tempfile::tempdir().expect("temp dir");
+    let scene = prepare_nbody(root.path(), "nb", 30_000, 8);
+    let (_, largest) = domain_bytes(&scene);
+    let expected = local_hash(&scene, &FRAME);
+    for n in 1..=4 {
+        let cluster = Cluster::start(
+            root.path(),
+            Some("nb"),
+            &vec![WorkerOpts::cache(2 * largest); n],
+        );
+        let mut traced = Vec::new();
+        for setting in ["none", "full", "ahead:1", "predicted", "predicted:0.5"] {
+            let mut frame = FRAME.to_vec();
+            frame.extend(["--schedule", "predictive", "--cold-cache"]);
+            frame.extend(["--speculation", setting]);
+            let stats = submit_wait(&cluster, &frame, &format!("{setting}-{n}"));
+            assert_eq!(hash_of(&stats), expected, "{setting} with {n} workers");
+            let verdict_bundles = stats_field(&stats, "/tiers/1/bundles").as_u64();
+            if setting == "none" {
+                assert_eq!(verdict_bundles, Some(0), "no copies, no verdicts");
+            } else if n > 1 {
+                assert!(verdict_bundles > Some(0), "{setting} with {n} workers");
+            }
+            traced.push((setting, segments(&stats)));
+        }
+        // Copies beyond a hit are what full speculation pays; one domain at a time pays none
+        // (the chained trace's segments exactly), prediction some.
+        let seg = |s: &str| traced.iter().find(|t| t.0 == s).unwrap().1;
+        assert_eq!(seg("ahead:1"), seg("none"), "{n} workers: {traced:?}");
+        assert!(seg("predicted") < seg("full"), "{n} workers: {traced:?}");
+        assert!(seg("predicted") >= seg("none"), "{n} workers: {traced:?}");
+    }
+}
+
 #[test]
 fn dynamic_rounds_with_a_barrier_render_the_local_image() {
     // The default is asynchronous rounds; Fig. 5's barrier rounds must agree to the bit.

@@ -205,6 +205,46 @@ fn speculative_placement_renders_the_same_image_with_fewer_loads() {
     }
 }
 
+#[test]
+fn speculation_at_any_depth_renders_the_same_image_and_prediction_saves_segments() {
+    // Windows of copies, fixed or predicted, conclude each ray as the chained trace does.
+    let tmp = tempfile::tempdir().unwrap();
+    for domains in [8, 64] {
+        let scene = generate(tmp.path(), domains);
+        let chained = render(&scene, tmp.path(), 2, "1", &format!("chained{domains}"));
+        let mut segments = Vec::new();
+        for depth in ["full", "ahead:1", "ahead:3", "predicted", "predicted:0.5"] {
+            let tag = format!("depth{domains}-{}", depth.replace(':', "-"));
+            let extra = ["--speculate", "--speculation", depth];
+            let r = render_with(&scene, tmp.path(), 2, "1", &tag, &extra);
+            assert_eq!(r.hash, chained.hash, "{domains} domains, {depth}");
+            assert_eq!(r.png, chained.png);
+            let json = tmp.path().join(format!("{tag}.json"));
+            let traced: u64 = ["/rays/radiance_segments", "/rays/shadow_segments"]
+                .iter()
+                .map(|f| stats_field(&json, f).as_u64().unwrap())
+                .sum();
+            segments.push((depth, traced));
+        }
+        let seg = |d: &str| segments.iter().find(|s| s.0 == d).unwrap().1;
+        assert!(seg("predicted") < seg("full"), "{segments:?}");
+        assert!(seg("ahead:1") <= seg("predicted"), "{segments:?}");
+    }
+    let scene = tmp.path().join("nbody-8");
+    let err = rayfarm_err(&[
+        "render",
+        "--local",
+        "--scene",
+        s(&scene),
+        "--out",
+        "x.png",
+        "--speculate",
+        "--speculation",
+        "sometimes",
+    ]);
+    assert!(err.contains("unknown speculation"), "{err}");
+}
+
 /// A sphere over a floor, written as ASCII PLY: crossing triangles and shared edges everywhere.
 fn write_ply(path: &Path) {
     let mut verts = Vec::new();

@@ -36,12 +36,12 @@ pub struct VerdictRecord {
     pub epoch: u32,
     pub pixel: u32,
     pub sample: u32,
-    /// `CLEAR`, `BLOCKED` or `HIT`.
+    /// `CLEAR`, `BLOCKED`, `HIT` or a volume kind (`render::speculation`).
     pub kind: u8,
     /// Zero.
     pub _pad: [u8; 3],
     /// A hit: the domain's place along the ray, the distance, the surface's normal and
-    /// material (`SurfaceHit`); zero otherwise.
+    /// material (`SurfaceHit`); an occluder: the domain's place alone; zero otherwise.
     pub order: u32,
     pub t: f32,
     pub normal: [f32; 3],
@@ -236,8 +236,14 @@ fn check_verdict(v: &VerdictRecord, l: &BatchLimits) -> Result<(), &'static str>
         return Err("padding is not zero");
     }
     match v.kind {
-        VerdictRecord::CLEAR | VerdictRecord::BLOCKED => {
+        VerdictRecord::CLEAR => {
             if v.order != 0 || v.t != 0.0 || v.normal != [0.0; 3] || v.material != 0 {
+                return Err("a verdict without a hit carries hit fields");
+            }
+        }
+        // An occluder's verdict names the domain's place along the ray (`order`) alone.
+        VerdictRecord::BLOCKED => {
+            if v.t != 0.0 || v.normal != [0.0; 3] || v.material != 0 {
                 return Err("a verdict without a hit carries hit fields");
             }
         }

@@ -4,6 +4,7 @@
 use rayfarm_core::progressive::{Progressive, Samples};
 use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::scene::Camera;
+use rayfarm_core::schedule::speculation_depth::{Depth, parse_setting};
 
 use crate::proto;
 
@@ -64,7 +65,39 @@ pub fn frame_spec(spec: &proto::JobSpec, scene_camera: &Camera) -> Result<FrameS
         camera,
     };
     frame.check()?;
+    speculation(spec)?;
     Ok(frame)
+}
+
+/// How far ahead the job's new rays are copied (`JobSpec.speculation`): `None` for no copies.
+/// A setting on another schedule than predictive is refused, not ignored.
+pub fn speculation(spec: &proto::JobSpec) -> Result<Option<Depth>, String> {
+    let predictive = spec.schedule == proto::Schedule::Predictive as i32;
+    if !predictive && !spec.speculation.is_empty() {
+        return Err(format!(
+            "speculation {:?} applies to the predictive schedule only",
+            spec.speculation
+        ));
+    }
+    parse_setting(&spec.speculation)
+}
+
+/// A schedule with its speculation setting, as `rayfarm bench` names them: `SCHEDULE`, or
+/// `predictive:SETTING` (`none`, `full`, `ahead:N`, `predicted`, `predicted:P`).
+pub fn parse_schedule_setting(name: &str) -> Result<(proto::Schedule, String), String> {
+    let (schedule, setting) = match name.split_once(':') {
+        Some((s, setting)) => (parse_schedule(s)?, setting.to_string()),
+        None => (parse_schedule(name)?, String::new()),
+    };
+    if !setting.is_empty() {
+        if schedule != proto::Schedule::Predictive {
+            return Err(format!(
+                "{name:?}: a speculation setting applies to the predictive schedule only"
+            ));
+        }
+        parse_setting(&setting)?;
+    }
+    Ok((schedule, setting))
 }
 
 /// How a job cuts its samples into subframes.
@@ -140,6 +173,7 @@ mod tests {
             priority: 0,
             cold_cache: false,
             progressive: None,
+            speculation: String::new(),
         }
     }
 
@@ -192,6 +226,25 @@ mod tests {
             Ok(proto::Schedule::ImagePlane)
         );
         assert!(parse_schedule("fastest").unwrap_err().contains("known"));
+        assert_eq!(
+            parse_schedule_setting("predictive:none"),
+            Ok((proto::Schedule::Predictive, "none".to_string()))
+        );
+        assert_eq!(
+            parse_schedule_setting("dynamic"),
+            Ok((proto::Schedule::Dynamic, String::new()))
+        );
+        assert!(parse_schedule_setting("dynamic:full").is_err());
+        assert!(parse_schedule_setting("predictive:sometimes").is_err());
+        let mut on_dynamic = spec();
+        on_dynamic.speculation = "none".into();
+        assert!(
+            frame_spec(&on_dynamic, &SCENE)
+                .unwrap_err()
+                .contains("predictive")
+        );
+        on_dynamic.schedule = proto::Schedule::Predictive as i32;
+        assert_eq!(speculation(&on_dynamic), Ok(None));
         assert_eq!(schedule_name(proto::Schedule::Unspecified), "dynamic");
     }
 }

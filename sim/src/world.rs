@@ -64,6 +64,8 @@ pub struct SimConfig {
     pub disk_latency: Duration,
     pub heartbeat: Duration,
     pub worker_timeout: Duration,
+    /// The predictive schedule's speculation setting (`JobSpec.speculation`; empty: full).
+    pub speculation: String,
 }
 
 /// Kills by what the killed worker was doing.
@@ -220,6 +222,7 @@ pub fn simulate(
         spp: config.spp,
         max_depth: config.depth,
         schedule: config.schedule as i32,
+        speculation: config.speculation.clone(),
         ..Default::default()
     };
     let frame = FrameSpec {

@@ -19,7 +19,7 @@ use clap::{Args, ValueEnum};
 use rayfarm_core::cluster::stats::ClusterStats;
 use rayfarm_core::progressive::Progressive;
 use rayfarm_core::scene::Manifest;
-use rayfarm_node::job::{parse_schedule, schedule_name};
+use rayfarm_node::job::{parse_schedule_setting, schedule_name};
 use rayfarm_node::proto;
 use rayfarm_node::security::ClientSecurity;
 
@@ -49,10 +49,13 @@ pub struct BenchArgs {
           value_parser = clap::value_parser!(u32).range(1..=64))]
     pub workers: u32,
     /// Schedules to compare, comma-separated: dynamic, image-plane, domain, hybrid,
-    /// predictive.
+    /// predictive; the predictive schedule with a speculation setting as
+    /// `predictive:SETTING` (none, full, ahead:N, predicted, predicted:P; see `submit
+    /// --speculation`), so several settings run side by side.
     #[arg(long, env = "RAYFARM_BENCH_SCHEDULES", value_delimiter = ',',
-          default_value = "dynamic,predictive,image-plane,domain", value_parser = parse_schedule)]
-    pub schedules: Vec<proto::Schedule>,
+          default_value = "dynamic,predictive,image-plane,domain",
+          value_parser = parse_schedule_setting)]
+    pub schedules: Vec<(proto::Schedule, String)>,
     /// Domain cache budget of each worker, e.g. 8MiB [default: a quarter of the scene, so
     /// domains are paged in and out as on a farm]. Not used with --coordinator.
     #[arg(long, env = "RAYFARM_CACHE_BYTES", value_parser = units::bytes)]
@@ -158,11 +161,20 @@ pub fn parse_rate(s: &str) -> Result<Rate, String> {
     })
 }
 
+/// What one row of the bench runs: a schedule, in one pass or subframes, with its
+/// speculation setting.
+#[derive(Clone, Debug)]
+struct Run {
+    schedule: proto::Schedule,
+    progressive: Option<proto::Progressive>,
+    speculation: String,
+}
+
 /// Everything the bench needs, checked before any process starts.
 struct Plan {
     /// (name, schedule, progressive field), in the order given; with `--progressive`, each
     /// schedule's one-pass row is followed by its progressive one.
-    schedules: Vec<(String, proto::Schedule, Option<proto::Progressive>)>,
+    schedules: Vec<(String, Run)>,
     repeats: usize,
     /// The job of every run, with its schedule left to fill in.
     spec: proto::JobSpec,
@@ -176,18 +188,30 @@ struct Plan {
 
 impl Plan {
     fn new(a: &BenchArgs) -> anyhow::Result<Self> {
-        let mut schedules: Vec<(String, proto::Schedule, Option<proto::Progressive>)> = Vec::new();
-        for &s in &a.schedules {
-            let name = schedule_name(s).to_string();
-            if schedules.iter().any(|(n, _, _)| *n == name) {
+        let mut schedules: Vec<(String, Run)> = Vec::new();
+        for (s, speculation) in &a.schedules {
+            let mut name = schedule_name(*s).to_string();
+            if !speculation.is_empty() {
+                name = format!("{name}:{speculation}");
+            }
+            if schedules.iter().any(|(n, _)| *n == name) {
                 bail!("--schedules names {name} twice");
             }
-            schedules.push((name.clone(), s, None));
+            let run = Run {
+                schedule: *s,
+                progressive: None,
+                speculation: speculation.clone(),
+            };
+            schedules.push((name.clone(), run.clone()));
             if let Some(field) = a.progressive.and_then(Progressive::field) {
                 let progressive = proto::Progressive {
                     subframe_spp: field,
                 };
-                schedules.push((format!("{name}{SUFFIX}"), s, Some(progressive)));
+                let run = Run {
+                    progressive: Some(progressive),
+                    ..run
+                };
+                schedules.push((format!("{name}{SUFFIX}"), run));
             }
         }
         if schedules.is_empty() {
@@ -233,6 +257,7 @@ impl Plan {
                 priority: 0,
                 cold_cache: true,
                 progressive: None,
+                speculation: String::new(),
             },
             scene_dir: a.scene.clone(),
             scene_name,
@@ -244,7 +269,7 @@ impl Plan {
     }
 
     fn names(&self) -> Vec<String> {
-        self.schedules.iter().map(|(n, _, _)| n.clone()).collect()
+        self.schedules.iter().map(|(n, _)| n.clone()).collect()
     }
 }
 
@@ -430,15 +455,16 @@ async fn bench(
                 stopped: Some(stopped),
             });
         }
-        let (name, schedule, progressive) = &plan.schedules[s];
+        let (name, run) = &plan.schedules[s];
         eprint!(
             "run {}/{}: {name} (repeat {repeat}) ... ",
             i + 1,
             order.len()
         );
         let spec = proto::JobSpec {
-            schedule: *schedule as i32,
-            progressive: *progressive,
+            schedule: run.schedule as i32,
+            progressive: run.progressive,
+            speculation: run.speculation.clone(),
             ..plan.spec.clone()
         };
         let started = Instant::now();
@@ -682,12 +708,13 @@ mod tests {
         let a = parse(&[]).unwrap();
         assert_eq!(
             a.schedules,
-            vec![
+            [
                 proto::Schedule::Dynamic,
                 proto::Schedule::Predictive,
                 proto::Schedule::ImagePlane,
                 proto::Schedule::Domain
             ]
+            .map(|s| (s, String::new()))
         );
         assert_eq!(
             (a.workers, a.repeats, a.width, a.height, a.spp, a.depth),
@@ -713,7 +740,7 @@ mod tests {
             "--cache-bytes",
             "8MiB",
             "--schedules",
-            "domain,dynamic",
+            "domain,dynamic,predictive:predicted",
         ])
         .unwrap();
         assert_eq!(
@@ -733,7 +760,12 @@ mod tests {
         assert_eq!(a.cache_bytes, Some(8 << 20));
         assert_eq!(
             a.schedules,
-            vec![proto::Schedule::Domain, proto::Schedule::Dynamic]
+            [
+                (proto::Schedule::Domain, ""),
+                (proto::Schedule::Dynamic, ""),
+                (proto::Schedule::Predictive, "predicted")
+            ]
+            .map(|(s, setting)| (s, setting.to_string()))
         );
     }
 
@@ -758,6 +790,7 @@ mod tests {
                 .unwrap_err()
                 .contains("known")
         );
+        assert!(parse(&["--schedules", "dynamic:full"]).is_err());
         assert!(parse(&["--repeats", "0"]).is_err());
         assert!(parse(&["--replicate", "all"]).is_err());
     }

@@ -103,6 +103,7 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
             cache_bytes,
             wave_rays: 1 << 20,
             speculate: false,
+            speculation: rayfarm_core::schedule::speculation_depth::Depth::Full,
             stats_json: Some(a.dir.join("demo-stats.json")),
             quiet: false,
         });
@@ -135,6 +136,7 @@ fn run_cluster(a: &DemoArgs, scene: &Path, cache_bytes: u64) -> anyhow::Result<(
         priority: 0,
         cold_cache: false,
         progressive: None,
+        speculation: String::new(),
     };
     let wait = WaitOptions {
         output: Some(a.dir.join("demo.png")),

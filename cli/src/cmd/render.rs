@@ -9,6 +9,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rayfarm_core::render::local::{FrameSpec, LocalOptions, Progress, render_local};
 use rayfarm_core::scene::MANIFEST_FILE;
 use rayfarm_core::scene::Manifest;
+use rayfarm_core::schedule::speculation_depth::Depth;
 
 use crate::table::stats_table;
 use crate::units;
@@ -44,6 +45,12 @@ pub struct RenderArgs {
     /// per pass of rays through it. Same image; more ray segments. Pays when loads dominate.
     #[arg(long, env = "RAYFARM_SPECULATE", value_parser = BoolishValueParser::new())]
     pub speculate: bool,
+    /// With --speculate, how many domains ahead a new ray is copied: `full` (every domain
+    /// along it), `ahead:N` (N at a time), `predicted` or `predicted:P` (as many as make the
+    /// ray end among them with probability P, 0.9 by default, from the termination rates of
+    /// the rays concluded before; Park et al.). Same image whatever the depth.
+    #[arg(long, env = "RAYFARM_SPECULATION", value_parser = Depth::parse, default_value = "full")]
+    pub speculation: Depth,
     /// Also write the statistics as JSON here.
     #[arg(long, env = "RAYFARM_STATS_JSON")]
     pub stats_json: Option<PathBuf>,
@@ -96,6 +103,7 @@ pub fn run(a: RenderArgs) -> anyhow::Result<()> {
         cache_bytes: a.cache_bytes,
         wave_rays: a.wave_rays,
         speculate: a.speculate,
+        depth: a.speculation,
         // Next to the output: the temporary directory may be memory (tmpfs).
         film_dir: Some(match a.out.parent() {
             Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),

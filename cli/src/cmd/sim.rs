@@ -131,6 +131,14 @@ pub struct ModelArgs {
     /// Bytes per second each node's NIC sends [default: 1.25 GB/s, 10 Gb/s Ethernet].
     #[arg(long, value_parser = rayfarm_core::units::parse_rate, default_value = "1250000000")]
     pub nic_bandwidth: u64,
+    /// The predictive schedule's speculation setting (as `submit --speculation`: full, none,
+    /// ahead:N, predicted, predicted:P); other schedules ignore it [default: full].
+    #[arg(long, value_parser = check_speculation)]
+    pub speculation: Option<String>,
+}
+
+fn check_speculation(s: &str) -> Result<String, String> {
+    rayfarm_core::schedule::speculation_depth::parse_setting(s).map(|_| s.to_string())
 }
 
 impl ModelArgs {
@@ -180,6 +188,9 @@ impl ModelArgs {
         if let Some(p) = &self.cost {
             f.push_str(&format!(" --cost {}", p.display()));
         }
+        if let Some(s) = &self.speculation {
+            f.push_str(&format!(" --speculation {s}"));
+        }
         f
     }
 
@@ -215,6 +226,10 @@ impl ModelArgs {
             heartbeat: HEARTBEAT,
             worker_timeout: WORKER_TIMEOUT,
             disk_latency: DISK_LATENCY,
+            speculation: match schedule {
+                Schedule::Predictive => self.speculation.clone().unwrap_or_default(),
+                _ => String::new(),
+            },
         })
     }
 }

@@ -50,6 +50,12 @@ pub struct SubmitArgs {
     /// image is the one-pass image to the bit [default: one pass].
     #[arg(long, env = "RAYFARM_PROGRESSIVE", value_parser = Progressive::parse)]
     pub progressive: Option<Progressive>,
+    /// With --schedule predictive, how many domains ahead a new ray is copied: full (every
+    /// domain along it), none (no copies: one domain at a time), ahead:N, predicted or
+    /// predicted:P (as many as make the ray end among them with probability P, 0.9 by
+    /// default; Park et al.). The image is the same whatever the setting [default: full].
+    #[arg(long, env = "RAYFARM_SPECULATION")]
+    pub speculation: Option<String>,
     #[command(flatten)]
     pub camera: CameraArgs,
     /// Follow the job to its end, then save the image and print the statistics.
@@ -88,6 +94,7 @@ impl SubmitArgs {
                 .progressive
                 .and_then(Progressive::field)
                 .map(|subframe_spp| proto::Progressive { subframe_spp }),
+            speculation: self.speculation.clone().unwrap_or_default(),
         }
     }
 }
@@ -231,6 +238,7 @@ mod tests {
                 priority: 0,
                 cold_cache: false,
                 progressive: None,
+                speculation: String::new(),
             }
         );
         let doubling = parse(&["--progressive", "doubling"]).job_spec();

@@ -664,7 +664,7 @@ impl SceneView {
             let mut hit = None;
             match surfaces.map(|bvh| (bvh, surface_in(&mut scratch.traverser, bvh, ray, t0, t1))) {
                 Some((_, SurfaceIn::Blocks)) => {
-                    out.push(Verdict::Blocked);
+                    out.push(Verdict::Blocked(order));
                     return;
                 }
                 Some((bvh, SurfaceIn::Hit(h))) => {
@@ -710,7 +710,7 @@ impl SceneView {
             RayKind::Shadow => {
                 counters.shadow_segments += 1;
                 if traverser.any_hit(bvh, &tr, t0, t1) {
-                    Verdict::Blocked
+                    Verdict::Blocked(order)
                 } else {
                     Verdict::Clear
                 }

@@ -21,6 +21,7 @@ use crate::camera::PinholeCamera;
 use crate::progressive::Samples;
 use crate::ray::RayRecord;
 use crate::scene::{Camera, DomainData, Manifest, SceneError};
+use crate::schedule::speculation_depth::Depth;
 use crate::tile::TileGrid;
 use crate::tile::credit::TILE_CREDIT;
 use crate::wire::VerdictRecord;
@@ -83,6 +84,8 @@ pub struct LocalOptions {
     /// Queue every new ray in all domains along it at once (`speculation`), oldest
     /// generation first: fewer domain loads, more ray segments traced.
     pub speculate: bool,
+    /// Speculating, how many domains ahead a ray is copied (`schedule::speculation_depth`).
+    pub depth: Depth,
     /// Where the film file goes (an unnamed temporary file; the system's temporary
     /// directory when `None`). It takes [`Film::file_bytes`] on disk.
     pub film_dir: Option<PathBuf>,
@@ -200,7 +203,10 @@ fn render_in_pool(
     let max_open = 4 * (wave_tiles as usize + 2 * grid.tiles_x() as usize);
     let returned: Vec<AtomicU64> = (0..grid.count()).map(|_| AtomicU64::new(0)).collect();
     let mut cache = DomainCache::new(dir, manifest, options.cache_bytes);
-    let mut queues = Queues::new(view.domain_count(), options.speculate);
+    let mut queues = Queues::new(
+        view.domain_count(),
+        options.speculate.then_some(options.depth),
+    );
     let mut counters = KernelCounters::default();
     let total_primary = frame.width as u64 * frame.height as u64 * frame.spp as u64;
     let mut issued = 0u64;
@@ -233,7 +239,10 @@ fn render_in_pool(
         let outs = match &mut queues.groups {
             None => trace_chained(&view, &data, rays, new_sink, &pool, &mut counters),
             Some(groups) => {
-                trace_speculative(&view, &data, rays, groups, new_sink, &pool, &mut counters)
+                let (outs, mut more) =
+                    trace_speculative(&view, &data, rays, groups, new_sink, &pool, &mut counters);
+                queues.queue_copies(&mut more, &pool);
+                outs
             }
         };
         passes += 1;
@@ -282,6 +291,8 @@ fn render_in_pool(
         wall,
         segments = counters.segments(),
         loads = stats.cache.loads,
+        copies = queues.groups.as_ref().map_or(0, |g| g.copies),
+        windows_after_the_first = queues.groups.as_ref().map_or(0, |g| g.extensions),
         "frame done"
     );
     Ok((film, stats))
@@ -375,7 +386,8 @@ fn trace_chained<'a>(
 }
 
 /// Traces speculative copies queued for a domain and concludes every ray whose last copy
-/// this was; returns the rays those conclusions made.
+/// this was; returns the rays those conclusions made, and the copies of the next windows of
+/// rays whose last window did not end them.
 fn trace_speculative<'a>(
     view: &SceneView,
     data: &DomainData,
@@ -384,7 +396,7 @@ fn trace_speculative<'a>(
     new_sink: impl Fn() -> QueueSink<'a> + Sync,
     pool: &SegmentPool,
     counters: &mut KernelCounters,
-) -> Vec<Vec<RayRecord>> {
+) -> (Vec<Vec<RayRecord>>, Vec<RayRecord>) {
     // Per segment: each copy's verdicts (a brick's copy has several), in the order of the rays.
     let verdicts: Vec<(Vec<(usize, Verdict)>, KernelCounters)> = rays
         .par_iter()
@@ -402,12 +414,13 @@ fn trace_speculative<'a>(
         })
         .collect();
     let mut sink = new_sink();
+    let mut more = Vec::new();
     for (segment, (verdicts, c)) in rays.iter().zip(verdicts) {
         counters.add(&c);
         for (i, verdict) in verdicts {
             // Every copy here was made by `Queues::place` in this frame.
             let settled = groups
-                .settle(&VerdictRecord::new(&segment[i], verdict))
+                .settle(&VerdictRecord::new(&segment[i], verdict), &mut more)
                 .expect("copy of a waiting ray");
             if let Some((ray, outcome)) = settled {
                 view.conclude(&ray, &outcome, &mut sink, counters);
@@ -417,5 +430,5 @@ fn trace_speculative<'a>(
     for segment in rays {
         pool.put(segment);
     }
-    sink.out.finish()
+    (sink.out.finish(), more)
 }

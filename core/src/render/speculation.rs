@@ -9,6 +9,12 @@
 //! the paths' lengths. The price is tracing copies beyond a radiance ray's hit or a shadow
 //! ray's occluder, which the answer then ignores.
 //!
+//! How far ahead a ray is copied is a knob (`schedule::speculation_depth`): the copies go out
+//! in windows, nearest domains first, and the next window only once the last one's verdicts
+//! are all in and none ended the ray. Every window is a prefix of what is left of the path,
+//! so the outcome is the same whatever the windows (the nearest domain with a hit, or any
+//! occluder, is always in the first window that has one).
+//!
 //! A volume ray's copy returns its brick's composited segments (`render::dvr::Segment`: the
 //! premultiplied colour and opacity of each stretch of the ray between block faces), one
 //! verdict each, then a closing verdict that counts them; the group composites them in order
@@ -20,7 +26,9 @@
 //! at it), or a shadow ray's [`Verdict::Blocked`] alone.
 
 use super::dvr::Segment;
+use crate::ray::RayKind;
 use crate::ray::RayRecord;
+use crate::schedule::speculation_depth::{Depth, Windows};
 use crate::schedule::speculative::Generations;
 use crate::wire::VerdictRecord;
 
@@ -45,8 +53,9 @@ pub struct SurfaceHit {
 pub enum Verdict {
     /// Nothing in this domain's stretch of the ray.
     Clear,
-    /// A shadow ray's occluder.
-    Blocked,
+    /// A shadow ray's occluder, in the domain at this place along the ray (see
+    /// [`SurfaceHit::order`]).
+    Blocked(u32),
     /// A radiance ray's nearest hit in this domain.
     Hit(SurfaceHit),
     /// One segment a volume ray's copy composited in its brick (not the copy's last verdict).
@@ -81,7 +90,7 @@ pub const MAX_SEGMENTS: u32 = 1 << 16;
 impl VerdictRecord {
     /// Kind of a verdict that found nothing.
     pub const CLEAR: u8 = 0;
-    /// Kind of a verdict that found an occluder.
+    /// Kind of a verdict that found an occluder: `order` is the domain's place along the ray.
     pub const BLOCKED: u8 = 1;
     /// Kind of a verdict that found a hit.
     pub const HIT: u8 = 2;
@@ -113,7 +122,10 @@ impl VerdictRecord {
         };
         match verdict {
             Verdict::Clear => {}
-            Verdict::Blocked => r.kind = Self::BLOCKED,
+            Verdict::Blocked(order) => {
+                r.kind = Self::BLOCKED;
+                r.order = order;
+            }
             Verdict::Hit(hit) | Verdict::VolumeHit(hit) => {
                 r.kind = if matches!(verdict, Verdict::Hit(_)) {
                     Self::HIT
@@ -149,7 +161,7 @@ impl VerdictRecord {
     /// The verdict carried (an unknown kind, refused by the wire checks, reads as clear).
     pub fn verdict(&self) -> Verdict {
         match self.kind {
-            Self::BLOCKED => Verdict::Blocked,
+            Self::BLOCKED => Verdict::Blocked(self.order),
             Self::HIT => Verdict::Hit(SurfaceHit {
                 order: self.order,
                 t: self.t,
@@ -180,6 +192,8 @@ impl VerdictRecord {
 pub struct Outcome {
     /// Some copy found an occluder.
     pub blocked: bool,
+    /// The nearest place along the ray where a copy found an occluder.
+    pub blocker: Option<u32>,
     /// The hit of the nearest domain that has one.
     pub nearest: Option<SurfaceHit>,
     /// A volume ray's segments from all its bricks, in order along the ray once concluded.
@@ -194,7 +208,10 @@ impl Outcome {
             Verdict::Clear | Verdict::VolumeEnd(_) => {}
             Verdict::Segment(seg) => self.segments.push(seg),
             Verdict::Light(light) => self.lights.push(light),
-            Verdict::Blocked => self.blocked = true,
+            Verdict::Blocked(order) => {
+                self.blocked = true;
+                self.blocker = Some(self.blocker.map_or(order, |b| b.min(order)));
+            }
             Verdict::Hit(hit) | Verdict::VolumeHit(hit) => {
                 if self.nearest.is_none_or(|n| hit.order < n.order) {
                     self.nearest = Some(hit);
@@ -202,12 +219,27 @@ impl Outcome {
             }
         }
     }
+
+    /// Where along the ray it ended, if it did (as a place among the domains with geometry
+    /// along it): a radiance ray at its nearest hit, a shadow ray at its nearest occluder.
+    fn ended(&self, ray: &RayRecord) -> Option<u32> {
+        match ray.kind() {
+            RayKind::Radiance => self.nearest.map(|h| h.order),
+            RayKind::Shadow => self.blocker,
+        }
+    }
 }
 
 /// A ray waiting for its copies' verdicts. It keeps the ray's credit: copies carry none.
 struct Group {
     ray: RayRecord,
-    /// Copies whose last verdict is still to come.
+    /// The domains with geometry along the ray, nearest first.
+    path: Vec<u32>,
+    /// How many of them have been sent copies (the windows so far).
+    copied: usize,
+    /// The worker holding the group, named in the copies.
+    resolver: u32,
+    /// Copies of the current window whose last verdict is still to come.
     waiting: u32,
     /// Segments announced by closing verdicts minus segments received: a copy's segments
     /// may arrive before or after its closing verdict, so this dips below zero meanwhile.
@@ -230,33 +262,61 @@ pub enum GroupError {
 }
 
 /// The rays born here that wait for their copies; group ids are reused once concluded.
-#[derive(Default)]
 pub struct Groups {
     slots: Vec<Option<Group>>,
     free: Vec<u32>,
     /// Rays waiting per generation (`RayRecord::generation`).
     by_generation: Generations,
+    /// How many domains ahead copies go, and what it learned.
+    windows: Windows,
+    /// Copies sent, in all windows (each is a segment traced).
+    pub copies: u64,
+    /// Windows sent after a ray's first (each a round trip of verdicts).
+    pub extensions: u64,
+}
+
+impl Default for Groups {
+    fn default() -> Self {
+        Self::new(Depth::Full)
+    }
 }
 
 impl Groups {
-    /// No rays waiting.
-    pub fn new() -> Self {
-        Self::default()
+    /// No rays waiting; copies go `depth` domains ahead.
+    pub fn new(depth: Depth) -> Self {
+        Groups {
+            slots: Vec::new(),
+            free: Vec::new(),
+            by_generation: Generations::default(),
+            windows: Windows::new(depth),
+            copies: 0,
+            extensions: 0,
+        }
     }
 
-    /// Makes `ray` wait for one verdict from each of `domains` (non-empty: a ray that meets
-    /// no domain concludes at once) and returns its copies, one per domain, without credit,
-    /// their verdicts addressed to `resolver` (this worker).
+    /// How far ahead copies go.
+    pub fn depth(&self) -> Depth {
+        self.windows.depth()
+    }
+
+    /// Makes `ray` wait for its copies in `path` (the domains with geometry along it, nearest
+    /// first; non-empty: a ray that meets no domain concludes at once) and appends the copies
+    /// of its first window to `out`, one per domain, without credit, their verdicts
+    /// addressed to `resolver` (this worker).
     pub fn spread(
         &mut self,
         ray: RayRecord,
-        domains: &[u32],
+        path: Vec<u32>,
         resolver: u32,
-    ) -> impl Iterator<Item = RayRecord> {
-        debug_assert!(!domains.is_empty());
+        out: &mut Vec<RayRecord>,
+    ) {
+        debug_assert!(!path.is_empty());
         let group = Group {
             ray,
-            waiting: domains.len() as u32,
+            path,
+            copied: 0,
+            resolver,
+            waiting: 0,
             segments_due: 0,
             outcome: Outcome::default(),
         };
@@ -271,19 +331,36 @@ impl Groups {
                 (self.slots.len() - 1) as u32
             }
         };
-        domains.iter().map(move |&domain| RayRecord {
+        self.next_window(id, out);
+    }
+
+    /// Sends group `id`'s next window of copies to `out`.
+    fn next_window(&mut self, id: u32, out: &mut Vec<RayRecord>) {
+        let Some(group) = self.slots[id as usize].as_mut() else {
+            return;
+        };
+        let n = self.windows.window(&group.ray, &group.path, group.copied);
+        let window = &group.path[group.copied..(group.copied + n).min(group.path.len())];
+        group.waiting = window.len() as u32;
+        group.copied += window.len();
+        self.copies += window.len() as u64;
+        let (ray, resolver) = (group.ray, group.resolver);
+        out.extend(window.iter().map(|&domain| RayRecord {
             domain,
             group: id,
             resolver,
             credit: 0,
             ..ray
-        })
+        }));
     }
 
-    /// Takes one copy's verdict; returns the ray and its outcome when it was the last.
+    /// Takes one copy's verdict; returns the ray and its outcome when it was the last. When
+    /// it was the last of a window that did not end the ray, the copies of the next window
+    /// go to `more` instead.
     pub fn settle(
         &mut self,
         record: &VerdictRecord,
+        more: &mut Vec<RayRecord>,
     ) -> Result<Option<(RayRecord, Outcome)>, GroupError> {
         let id = record.group;
         let slot = self
@@ -326,7 +403,16 @@ impl Groups {
             }
             return Ok(None);
         }
-        let done = slot.take().map(|g| {
+        let ended = group.outcome.ended(&group.ray);
+        if ended.is_none() && !group.outcome.blocked && group.copied < group.path.len() {
+            // The window found nothing that ends the ray: on to the next.
+            self.extensions += 1;
+            self.next_window(id, more);
+            return Ok(None);
+        }
+        self.windows
+            .learn(&group.ray, &group.path, ended.map(|e| e as usize));
+        let done = self.slots[id as usize].take().map(|g| {
             let mut outcome = g.outcome;
             // Each segment's first sample is its own: the order along the ray, no ties.
             outcome.segments.sort_unstable_by_key(|s| s.first);
@@ -387,18 +473,26 @@ mod tests {
         }
     }
 
+    fn copies(groups: &mut Groups, r: RayRecord, domains: &[u32]) -> Vec<RayRecord> {
+        let mut out = Vec::new();
+        groups.spread(r, domains.to_vec(), 3, &mut out);
+        out
+    }
+
     fn spread(groups: &mut Groups, r: RayRecord, domains: &[u32]) -> RayRecord {
-        groups.spread(r, domains, 3).next().unwrap()
+        copies(groups, r, domains)[0]
     }
 
     fn settle(groups: &mut Groups, copy: &RayRecord, v: Verdict) -> Option<(RayRecord, Outcome)> {
-        groups.settle(&VerdictRecord::new(copy, v)).unwrap()
+        groups
+            .settle(&VerdictRecord::new(copy, v), &mut Vec::new())
+            .unwrap()
     }
 
     #[test]
     fn copies_go_to_every_domain_without_credit() {
-        let mut groups = Groups::new();
-        let copies: Vec<_> = groups.spread(ray(7), &[4, 9, 2], 3).collect();
+        let mut groups = Groups::default();
+        let copies = copies(&mut groups, ray(7), &[4, 9, 2]);
         assert_eq!(
             copies.iter().map(|c| c.domain).collect::<Vec<_>>(),
             [4, 9, 2]
@@ -416,19 +510,19 @@ mod tests {
             kind: crate::ray::RayKind::Shadow as u8,
             ..ray(1)
         };
-        let copy = groups.spread(shadow, &[1], 3).next().unwrap();
+        let copy = spread(&mut groups, shadow, &[1]);
         assert_eq!(groups.oldest_waiting(), Some(0));
         groups.retain(|r| r.depth > 0);
         assert_eq!(groups.oldest_waiting(), Some(3));
         groups
-            .settle(&VerdictRecord::new(&copy, Verdict::Clear))
+            .settle(&VerdictRecord::new(&copy, Verdict::Clear), &mut Vec::new())
             .unwrap();
         assert_eq!(groups.oldest_waiting(), None);
     }
 
     #[test]
     fn the_nearest_domain_with_a_hit_wins_whatever_the_order_verdicts_arrive_in() {
-        let mut groups = Groups::new();
+        let mut groups = Groups::default();
         let copy = spread(&mut groups, ray(7), &[1, 2, 3]);
         assert_eq!(settle(&mut groups, &copy, hit(2, 0.5)), None);
         assert_eq!(settle(&mut groups, &copy, Verdict::Clear), None);
@@ -440,20 +534,63 @@ mod tests {
     }
 
     #[test]
+    fn windows_go_out_one_after_another_until_one_ends_the_ray() {
+        // One domain at a time: a hit in the second domain ends the ray there, the third is
+        // never copied.
+        let mut groups = Groups::new(Depth::Ahead(1));
+        let first = copies(&mut groups, ray(7), &[5, 6, 7]);
+        assert_eq!(first.iter().map(|c| c.domain).collect::<Vec<_>>(), [5]);
+        let mut more = Vec::new();
+        let settled = groups.settle(&VerdictRecord::new(&first[0], Verdict::Clear), &mut more);
+        assert_eq!(settled, Ok(None));
+        assert_eq!(more.iter().map(|c| c.domain).collect::<Vec<_>>(), [6]);
+        assert!(
+            more.iter()
+                .all(|c| c.group == first[0].group && c.credit == 0)
+        );
+        let (r, outcome) = settle(&mut groups, &more[0], hit(1, 2.0)).unwrap();
+        assert_eq!((r.credit, outcome.nearest.map(|h| h.order)), (7, Some(1)));
+        assert_eq!((groups.copies, groups.extensions), (2, 1));
+
+        // Two at a time: a shadow ray blocked in the first window ends; one that goes through
+        // every window concludes clear after the last.
+        let mut groups = Groups::new(Depth::Ahead(2));
+        let shadow = RayRecord {
+            kind: crate::ray::RayKind::Shadow as u8,
+            ..ray(1)
+        };
+        let w = copies(&mut groups, shadow, &[1, 2, 3]);
+        assert_eq!(w.len(), 2);
+        assert_eq!(settle(&mut groups, &w[1], Verdict::Blocked(1)), None);
+        let (_, outcome) = settle(&mut groups, &w[0], Verdict::Clear).unwrap();
+        assert_eq!((outcome.blocked, outcome.blocker), (true, Some(1)));
+        let w = copies(&mut groups, shadow, &[1, 2, 3]);
+        let mut more = Vec::new();
+        for c in &w {
+            let v = VerdictRecord::new(c, Verdict::Clear);
+            assert_eq!(groups.settle(&v, &mut more), Ok(None));
+        }
+        assert_eq!(more.iter().map(|c| c.domain).collect::<Vec<_>>(), [3]);
+        let (_, outcome) = settle(&mut groups, &more[0], Verdict::Clear).unwrap();
+        assert!(!outcome.blocked);
+        assert_eq!(groups.waiting(), 0);
+    }
+
+    #[test]
     fn one_blocking_copy_blocks_the_shadow_ray() {
-        let mut groups = Groups::new();
+        let mut groups = Groups::default();
         let copy = spread(&mut groups, ray(1), &[1, 2]);
-        settle(&mut groups, &copy, Verdict::Blocked);
+        settle(&mut groups, &copy, Verdict::Blocked(1));
         let (_, outcome) = settle(&mut groups, &copy, Verdict::Clear).unwrap();
         assert!(outcome.blocked);
     }
 
     #[test]
     fn verdicts_survive_the_wire_form() {
-        let copy = spread(&mut Groups::new(), ray(1), &[1]);
+        let copy = spread(&mut Groups::default(), ray(1), &[1]);
         for v in [
             Verdict::Clear,
-            Verdict::Blocked,
+            Verdict::Blocked(1),
             hit(4, 2.5),
             segment(9, 0.25),
             Verdict::Light(SegmentLight {
@@ -476,7 +613,7 @@ mod tests {
     fn volume_segments_conclude_once_all_copies_closed_in_order_along_the_ray() {
         // Two bricks: the far one's segments (and its closing count) arrive first, the near
         // one's closing verdict before its segments.
-        let mut groups = Groups::new();
+        let mut groups = Groups::default();
         let copy = spread(&mut groups, ray(7), &[1, 2]);
         assert_eq!(settle(&mut groups, &copy, segment(40, 0.2)), None);
         assert_eq!(settle(&mut groups, &copy, segment(30, 0.1)), None);
@@ -501,7 +638,7 @@ mod tests {
     fn a_hit_on_a_bricks_surfaces_comes_with_its_segments_and_the_nearest_wins() {
         // The near brick's hit arrives after its closing count, which counts it; the far
         // brick's hit is farther along the ray and loses.
-        let mut groups = Groups::new();
+        let mut groups = Groups::default();
         let copy = spread(&mut groups, ray(7), &[1, 2]);
         let volume_hit = |order, t| {
             Verdict::VolumeHit(SurfaceHit {
@@ -534,7 +671,7 @@ mod tests {
 
     #[test]
     fn segment_lights_are_counted_and_sorted_by_segment_then_light() {
-        let mut groups = Groups::new();
+        let mut groups = Groups::default();
         let copy = spread(&mut groups, ray(7), &[1, 2]);
         // The far brick: one segment lit by lights 1 and 0, in that order; then the near one,
         // its lights before its segment.
@@ -551,25 +688,25 @@ mod tests {
         let copy = spread(&mut groups, ray(1), &[1]);
         settle(&mut groups, &copy, segment(1, 0.5));
         groups
-            .settle(&VerdictRecord::new(&copy, light(1, 0)))
+            .settle(&VerdictRecord::new(&copy, light(1, 0)), &mut Vec::new())
             .unwrap();
         let end = VerdictRecord::new(&copy, Verdict::VolumeEnd(1));
         assert_eq!(
-            groups.settle(&end),
+            groups.settle(&end, &mut Vec::new()),
             Err(GroupError::TooManySegments(copy.group))
         );
     }
 
     #[test]
     fn segments_beyond_what_the_copies_announce_are_refused() {
-        let mut groups = Groups::new();
+        let mut groups = Groups::default();
         let copy = spread(&mut groups, ray(1), &[1]);
         settle(&mut groups, &copy, segment(1, 0.5));
         let extra = VerdictRecord::new(&copy, segment(2, 0.5));
-        groups.settle(&extra).unwrap();
+        groups.settle(&extra, &mut Vec::new()).unwrap();
         let end = VerdictRecord::new(&copy, Verdict::VolumeEnd(1));
         assert_eq!(
-            groups.settle(&end),
+            groups.settle(&end, &mut Vec::new()),
             Err(GroupError::TooManySegments(copy.group)),
             "two segments, one announced: the group is dropped"
         );
@@ -577,26 +714,38 @@ mod tests {
         let copy = spread(&mut groups, ray(1), &[1]);
         let huge = VerdictRecord::new(&copy, Verdict::VolumeEnd(MAX_SEGMENTS + 1));
         assert_eq!(
-            groups.settle(&huge),
+            groups.settle(&huge, &mut Vec::new()),
             Err(GroupError::TooManySegments(copy.group))
         );
     }
 
     #[test]
     fn ids_are_reused_and_stale_verdicts_are_refused() {
-        let mut groups = Groups::new();
+        let mut groups = Groups::default();
         let a = spread(&mut groups, ray(1), &[1]);
         settle(&mut groups, &a, Verdict::Clear).unwrap();
         let stale = VerdictRecord::new(&a, Verdict::Clear);
-        assert_eq!(groups.settle(&stale), Err(GroupError::Unknown(a.group)));
+        assert_eq!(
+            groups.settle(&stale, &mut Vec::new()),
+            Err(GroupError::Unknown(a.group))
+        );
         let far = VerdictRecord { group: 99, ..stale };
-        assert_eq!(groups.settle(&far), Err(GroupError::Unknown(99)));
+        assert_eq!(
+            groups.settle(&far, &mut Vec::new()),
+            Err(GroupError::Unknown(99))
+        );
         let b = spread(&mut groups, RayRecord { epoch: 1, ..ray(2) }, &[1, 2]);
         assert_eq!(a.group, b.group);
-        assert_eq!(groups.settle(&stale), Err(GroupError::Mismatch(b.group)));
+        assert_eq!(
+            groups.settle(&stale, &mut Vec::new()),
+            Err(GroupError::Mismatch(b.group))
+        );
         groups.retain(|r| r.credit != 2);
         assert_eq!(groups.waiting(), 0);
         let late = VerdictRecord::new(&b, Verdict::Clear);
-        assert_eq!(groups.settle(&late), Err(GroupError::Unknown(b.group)));
+        assert_eq!(
+            groups.settle(&late, &mut Vec::new()),
+            Err(GroupError::Unknown(b.group))
+        );
     }
 }

@@ -9,6 +9,7 @@
 //! - [`static_plans`]: the image-plane and domain decompositions (Figs. 3-4);
 //! - [`dynamic`]: the ray-weighted schedule, `ScheduleNextRound` (Figs. 5-6);
 //! - [`speculative`]: the queue order for speculatively placed rays (Park et al.);
+//! - [`speculation_depth`]: how many domains ahead a speculative ray is copied (Park et al.);
 //! - [`rounds`]: when members are planned (barrier or asynchronous rounds) and from what;
 //! - [`tiles`]: dealing tiles to workers, in fixed shares or on demand.
 
@@ -17,6 +18,7 @@ use std::fmt;
 
 pub mod dynamic;
 pub mod rounds;
+pub mod speculation_depth;
 pub mod speculative;
 pub mod static_plans;
 pub mod tiles;

@@ -14,6 +14,7 @@ use tracing::debug;
 use rayfarm_core::ray::RayRecord;
 use rayfarm_core::render::KernelCounters;
 use rayfarm_core::render::speculation::Outcome;
+use rayfarm_core::schedule::speculation_depth::Depth;
 use rayfarm_core::schedule::speculative::{GenerationCounts, QueueView, next_queue};
 use rayfarm_core::tile::TileGrid;
 use rayfarm_core::wire::{BatchLimits, VerdictRecord};
@@ -108,8 +109,9 @@ pub struct FrameParts<S> {
     pub epochs: HashMap<u32, u32>,
     /// Domains mapped here now.
     pub resident: Vec<u32>,
-    /// Predictive schedule: this worker's key and the roster of the frame's workers.
-    pub speculation: Option<(u32, HashMap<u32, String>)>,
+    /// Predictive schedule placing rays speculatively: this worker's key, the roster of the
+    /// frame's workers and how far ahead rays are copied.
+    pub speculation: Option<(u32, HashMap<u32, String>, Depth)>,
 }
 
 impl<S: RaySpill> Frame<S> {
@@ -149,7 +151,7 @@ impl<S: RaySpill> Frame<S> {
             to_issue: to_issue.into(),
             plan,
             generations: GenerationCounts::new(queues.domains() as usize),
-            speculation: speculation.map(|(me, roster)| Speculation::new(me, roster)),
+            speculation: speculation.map(|(me, roster, depth)| Speculation::new(me, roster, depth)),
             queues,
             report: Report::Due,
             ahead: Vec::new(),
@@ -263,6 +265,15 @@ impl<S: RaySpill> Frame<S> {
         true
     }
 
+    /// Predictive: the copies of the next windows of rays whose last window did not end
+    /// them, to route like any copy.
+    pub fn take_next_windows(&mut self) -> Vec<RayRecord> {
+        self.speculation
+            .as_mut()
+            .map(|s| std::mem::take(&mut s.next_windows))
+            .unwrap_or_default()
+    }
+
     /// What a pass's rays become: as they are, or, speculating, the copies of the rays born
     /// of a current tile (the rest would wait forever), with the pass's verdicts addressed.
     pub fn born(
@@ -280,10 +291,13 @@ impl<S: RaySpill> Frame<S> {
             .zip(paths)
             .filter(|(r, _)| plan.is_current(r.tile, r.epoch))
             .unzip();
-        let copies = spec.spread(&born, &paths);
+        let mut copies = spec.spread(&born, paths);
+        let to_peers = spec.address(verdicts);
+        // This pass's own verdicts may have ended windows here.
+        copies.append(&mut spec.next_windows);
         // Copies queued here for domains no one traces yet must be reported.
         self.report = Report::Due;
-        (copies, spec.address(verdicts))
+        (copies, to_peers)
     }
 
     /// This worker's queues for the coordinator, if it has not heard them since they changed.

@@ -88,5 +88,18 @@ impl<S: RaySpill> Worker<S> {
                 Err(e) => error!(%sender, error = %e, "dropping a verdict batch outside the frame"),
             }
         }
+        // Rays whose window ended clear go on to their next window's domains.
+        let next = frame.take_next_windows();
+        if next.is_empty() {
+            return;
+        }
+        match frame.route(next) {
+            Ok(out) => {
+                for (peer, rays) in out {
+                    self.send_rays(peer, &rays);
+                }
+            }
+            Err(e) => self.queue_failed(e),
+        }
     }
 }

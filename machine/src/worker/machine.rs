@@ -9,6 +9,7 @@ use bytes::Bytes;
 use rayfarm_core::bundler::{Bundle, Bundler, BundlerConfig, ConfigError, PushErrorKind, Tier};
 use rayfarm_core::cluster::stats::{WorkerFrameStats, tier_traffic};
 use rayfarm_core::ray::RayRecord;
+use rayfarm_core::schedule::speculation_depth::parse_setting;
 use rayfarm_core::wire::{self, VerdictRecord};
 use rayfarm_proto::{self as proto, Schedule, coordinator_message::Body as FromCoordinator};
 use tracing::{debug, error, info, info_span, warn};
@@ -268,7 +269,11 @@ impl<S: RaySpill> Worker<S> {
             round: s.round,
             epochs: s.epochs.clone(),
             resident: scene.resident,
-            speculation: (mode == Mode::Predictive).then(|| (s.worker_key, s.roster.clone())),
+            speculation: match mode {
+                Mode::Predictive => parse_setting(&spec.speculation)?
+                    .map(|depth| (s.worker_key, s.roster.clone(), depth)),
+                _ => None,
+            },
         }))
     }
 

@@ -7,6 +7,7 @@ use std::collections::{BTreeMap, BTreeSet, HashMap};
 
 use rayfarm_core::ray::RayRecord;
 use rayfarm_core::render::speculation::{GroupError, Groups, Outcome};
+use rayfarm_core::schedule::speculation_depth::Depth;
 use rayfarm_core::wire::VerdictRecord;
 use tracing::{debug, warn};
 
@@ -19,6 +20,8 @@ pub struct Speculation {
     groups: Groups,
     /// Rays whose verdicts are all in, for the next pass to conclude.
     pub to_conclude: Vec<(RayRecord, Outcome)>,
+    /// Copies of the next windows of rays whose last window did not end them, to route.
+    pub next_windows: Vec<RayRecord>,
     /// Verdicts for workers not in the roster yet (one that joined the frame and whose
     /// copies arrived before the coordinator's word of it).
     unaddressed: BTreeMap<u32, Vec<VerdictRecord>>,
@@ -29,12 +32,15 @@ pub struct Speculation {
 }
 
 impl Speculation {
-    pub fn new(me: u32, roster: HashMap<u32, String>) -> Self {
+    /// Groups for rays born at worker `me`, copied `depth` domains ahead, their verdicts
+    /// sent to the workers of `roster`.
+    pub fn new(me: u32, roster: HashMap<u32, String>, depth: Depth) -> Self {
         Speculation {
             me,
             roster,
-            groups: Groups::new(),
+            groups: Groups::new(depth),
             to_conclude: Vec::new(),
+            next_windows: Vec::new(),
             unaddressed: BTreeMap::new(),
             gone: BTreeSet::new(),
             refused: 0,
@@ -59,20 +65,25 @@ impl Speculation {
             .collect()
     }
 
-    /// Makes each ray born here wait for its copies, one per domain of its path (`paths`, in
-    /// the same order), and returns the copies.
-    pub fn spread(&mut self, born: &[RayRecord], paths: &[Vec<u32>]) -> Vec<RayRecord> {
-        let mut copies = Vec::with_capacity(paths.iter().map(Vec::len).sum());
+    /// Makes each ray born here wait for its copies in the domains of its path (`paths`, in
+    /// the same order) and returns the copies of their first windows.
+    pub fn spread(&mut self, born: &[RayRecord], paths: Vec<Vec<u32>>) -> Vec<RayRecord> {
+        let mut copies = Vec::with_capacity(born.len());
         for (ray, path) in born.iter().zip(paths) {
-            copies.extend(self.groups.spread(*ray, path, self.me));
+            self.groups.spread(*ray, path, self.me, &mut copies);
         }
         copies
+    }
+
+    /// Copies sent in all windows, and windows sent after a ray's first.
+    pub fn copies_and_extensions(&self) -> (u64, u64) {
+        (self.groups.copies, self.groups.extensions)
     }
 
     /// Takes verdicts for rays born here; the rays they conclude join `to_conclude`.
     pub fn settle(&mut self, verdicts: &[VerdictRecord]) {
         for v in verdicts {
-            match self.groups.settle(v) {
+            match self.groups.settle(v, &mut self.next_windows) {
                 Ok(Some(done)) => self.to_conclude.push(done),
                 Ok(None) => {}
                 Err(e @ (GroupError::Unknown(_) | GroupError::Mismatch(_))) => {
@@ -128,6 +139,7 @@ impl Speculation {
         let current = |tile: u32, epoch: u32| epochs.get(tile as usize) == Some(&epoch);
         self.groups.retain(|r| current(r.tile, r.epoch));
         self.to_conclude.retain(|(r, _)| current(r.tile, r.epoch));
+        self.next_windows.retain(|r| current(r.tile, r.epoch));
         for held in self.unaddressed.values_mut() {
             held.retain(|v| current(v.tile, v.epoch));
         }

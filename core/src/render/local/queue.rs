@@ -10,6 +10,7 @@ use std::sync::Mutex;
 use super::super::kernel::SceneView;
 use super::super::speculation::Groups;
 use crate::ray::RayRecord;
+use crate::schedule::speculation_depth::Depth;
 use crate::schedule::speculative::{GenerationCounts, QueueView, next_queue};
 
 /// Rays a segment holds; also the rays one rayon task traces.
@@ -114,10 +115,11 @@ pub(super) struct Queues {
 }
 
 impl Queues {
-    pub(super) fn new(domains: usize, speculate: bool) -> Self {
+    /// Queues for `domains` domains; speculating when `depth` is given.
+    pub(super) fn new(domains: usize, depth: Option<Depth>) -> Self {
         Queues {
             rays: (0..domains).map(|_| DomainQueue::default()).collect(),
-            groups: speculate.then(Groups::new),
+            groups: depth.map(Groups::new),
             generations: GenerationCounts::new(domains),
         }
     }
@@ -135,6 +137,7 @@ impl Queues {
         segments: impl IntoIterator<Item = Vec<RayRecord>>,
         pool: &SegmentPool,
     ) {
+        let mut copies = Vec::new();
         for segment in segments {
             match &mut self.groups {
                 None => {
@@ -153,15 +156,18 @@ impl Queues {
                 }
                 Some(groups) => {
                     for ray in &segment {
-                        for copy in groups.spread(*ray, &view.domains_along(ray), 0) {
-                            self.generations.add(copy.domain, copy.generation());
-                            self.rays[copy.domain as usize].push(copy, pool);
-                        }
+                        groups.spread(*ray, view.domains_along(ray), 0, &mut copies);
+                        queue_copies(&mut self.rays, &mut self.generations, &mut copies, pool);
                     }
                 }
             }
             pool.put(segment);
         }
+    }
+
+    /// Queues speculative copies in their domains.
+    pub(super) fn queue_copies(&mut self, copies: &mut Vec<RayRecord>, pool: &SegmentPool) {
+        queue_copies(&mut self.rays, &mut self.generations, copies, pool);
     }
 
     /// The queue to trace next: the fullest, or, speculating, `speculative::next_queue`.
@@ -195,5 +201,19 @@ impl Queues {
             segments.push(std::mem::take(&mut queue.open));
         }
         segments
+    }
+}
+
+/// Queues speculative copies in their domains' queues, counting their generations (the
+/// queues' fields apart, for `Queues::place`, which holds the groups meanwhile).
+fn queue_copies(
+    rays: &mut [DomainQueue],
+    generations: &mut GenerationCounts,
+    copies: &mut Vec<RayRecord>,
+    pool: &SegmentPool,
+) {
+    for copy in copies.drain(..) {
+        generations.add(copy.domain, copy.generation());
+        rays[copy.domain as usize].push(copy, pool);
     }
 }
