@@ -10,12 +10,15 @@
 //! - [`dynamic`]: the ray-weighted schedule, `ScheduleNextRound` (Figs. 5-6);
 //! - [`speculative`]: the queue order for speculatively placed rays (Park et al.);
 //! - [`rounds`]: when members are planned (barrier or asynchronous rounds) and from what;
+//! - [`round_index`]: the same asynchronous rounds planned incrementally, from figures kept
+//!   up to date report by report;
 //! - [`tiles`]: dealing tiles to workers, in fixed shares or on demand.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::fmt;
 
 pub mod dynamic;
+pub mod round_index;
 pub mod rounds;
 pub mod speculative;
 pub mod static_plans;
