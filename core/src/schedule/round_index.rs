@@ -41,7 +41,11 @@ struct Part {
 impl Part {
     fn of(m: &Member, dry: bool, domains: u32) -> Part {
         let plan = m.plan.iter().copied().filter(|&d| d < domains);
-        let holding_plan = if dry { BTreeSet::new() } else { plan.clone().collect() };
+        let holding_plan = if dry {
+            BTreeSet::new()
+        } else {
+            plan.clone().collect()
+        };
         let Some(report) = m.report.as_ref() else {
             return Part {
                 in_memory: plan.collect(),
@@ -70,7 +74,12 @@ impl Part {
             held,
             in_memory: resident.chain(plan).collect(),
             holding_plan,
-            queues: report.queued.keys().copied().filter(|&d| d < domains).collect(),
+            queues: report
+                .queued
+                .keys()
+                .copied()
+                .filter(|&d| d < domains)
+                .collect(),
         }
     }
 }

@@ -18,8 +18,13 @@ enum Change {
     /// The coordinator plans the dry members and adopts the plans.
     Plan,
     /// Member `key` joins (with a cache of `slots` domains) or leaves.
-    Join { key: u32, slots: u64 },
-    Leave { key: u32 },
+    Join {
+        key: u32,
+        slots: u64,
+    },
+    Leave {
+        key: u32,
+    },
     /// Every report dropped (an epoch bump).
     Forget,
 }
@@ -82,7 +87,12 @@ fn run(changes: &[Change], oldest_first: bool, options: Options) -> Result<(), T
                 };
                 m.report = Some(Queues {
                     round: at,
-                    resident: resident.iter().copied().collect::<BTreeSet<_>>().into_iter().collect(),
+                    resident: resident
+                        .iter()
+                        .copied()
+                        .collect::<BTreeSet<_>>()
+                        .into_iter()
+                        .collect(),
                     queued: queued.iter().map(|&(d, n, _)| (d, n)).collect(),
                     oldest_generation: queued.iter().map(|&(d, _, g)| (d, g)).collect(),
                     oldest_waiting: *waiting,

@@ -164,10 +164,7 @@ impl RunningFrame {
         };
         let subframes = subframes::plan(&spec, frame.spp);
         let tiles = grid.count();
-        let index = RoundIndex::new(
-            domain_bytes.len() as u32,
-            schedule == Schedule::Predictive,
-        );
+        let index = RoundIndex::new(domain_bytes.len() as u32, schedule == Schedule::Predictive);
         Ok(RunningFrame {
             job_id,
             schedule,
