@@ -6,7 +6,10 @@
 //! - `barrier`: every member has reported, the whole cluster is planned at once;
 //! - `async_one_dry`: asynchronous rounds, one member ran dry while the rest are busy (the
 //!   common event: the coordinator handles one of these per report);
-//! - `async_all_dry`: asynchronous rounds with every member dry (a frame's first round).
+//! - `async_all_dry`: asynchronous rounds with every member dry (a frame's first round);
+//! - `incremental_one_dry`: `async_one_dry` as the coordinator plans it, from a
+//!   `round_index::RoundIndex` kept up to date report by report: the dry member's report taken
+//!   in (`update`) and the dry member planned (`dry_plans`), equal plans.
 //!
 //! Each with Fig. 5 as written and with the coordinator's default, free cache slots filled with
 //! copies of the hottest domains.
@@ -19,6 +22,7 @@ use std::hint::black_box;
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 use rayfarm_core::sampling::mix64;
 use rayfarm_core::schedule::dynamic::Options;
+use rayfarm_core::schedule::round_index::RoundIndex;
 use rayfarm_core::schedule::rounds::{Cluster, Member, Queues};
 
 /// Domains each worker's cache holds.
@@ -90,6 +94,20 @@ fn planning(c: &mut Criterion) {
             });
             group.bench_function(BenchmarkId::new("async_one_dry", &id), |b| {
                 b.iter(|| black_box(cluster(&one_dry).dry_plans()))
+            });
+            let mut index = RoundIndex::new(domains, false);
+            for (&k, m) in &one_dry {
+                index.update(k, Some(m));
+            }
+            assert_eq!(
+                index.dry_plans(&one_dry, &sizes, options),
+                cluster(&one_dry).dry_plans()
+            );
+            group.bench_function(BenchmarkId::new("incremental_one_dry", &id), |b| {
+                b.iter(|| {
+                    index.update(0, Some(&one_dry[&0]));
+                    black_box(index.dry_plans(&one_dry, &sizes, options))
+                })
             });
         }
     }

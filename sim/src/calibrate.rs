@@ -12,7 +12,9 @@
 //!
 //! Planning: one asynchronous round of the dynamic schedule (one member dry, the rest busy,
 //! free cache slots filled, as the coordinator plans by default) over synthetic clusters of
-//! several sizes, timed on the thread's clock (the fastest of a few repeats), fitted as
+//! several sizes, as the coordinator makes it (`round_index::RoundIndex`: the dry member's
+//! report taken in, the dry member planned, the plan adopted and queued counts moved), timed
+//! on the thread's clock (the fastest of a few repeats), fitted as
 //! `round + member x M + domain x D`.
 
 use std::collections::{BTreeMap, BTreeSet};
@@ -21,7 +23,8 @@ use std::time::Duration;
 
 use rayfarm_core::sampling::mix64;
 use rayfarm_core::schedule::dynamic::Options;
-use rayfarm_core::schedule::rounds::{Cluster, Member, Queues};
+use rayfarm_core::schedule::round_index::RoundIndex;
+use rayfarm_core::schedule::rounds::{Member, Queues};
 
 use crate::cost::ComputeCost;
 use crate::faults::FaultPlan;
@@ -223,12 +226,13 @@ fn pass_row(p: &MeasuredPass) -> (Vec<f64>, f64) {
 
 /// Cluster sizes planning is timed at: members and domains varied apart, so the fit tells
 /// their prices apart.
-const ROUND_SIZES: [(u32, u32); 5] = [
+const ROUND_SIZES: [(u32, u32); 6] = [
     (128, 1024),
     (512, 1024),
     (128, 4096),
     (512, 4096),
     (1024, 8192),
+    (4096, 32768),
 ];
 
 /// One asynchronous round per size, the fastest of five: (members, domains, ns).
@@ -241,17 +245,25 @@ fn time_rounds() -> Vec<(usize, usize, f64)> {
         .iter()
         .map(|&(workers, domains)| {
             let sizes = vec![DOMAIN_BYTES; domains as usize];
-            let members = members(workers, domains);
+            let fresh = members(workers, domains);
             let best = (0..5)
                 .map(|_| {
+                    let mut members = fresh.clone();
+                    let mut index = RoundIndex::new(domains, false);
+                    for (&k, m) in &members {
+                        index.update(k, Some(m));
+                    }
+                    // One round untimed: the index's first adoption looks at every queue
+                    // (all are new to it); from then on a round looks at what changed.
+                    let plans = index.dry_plans(&members, &sizes, options);
+                    index.adopt(&mut members, &plans, 2);
+                    if let Some(r) = members.get_mut(&0).and_then(|m| m.report.as_mut()) {
+                        r.round = 2;
+                    }
                     let start = thread_cpu_ns();
-                    let cluster = Cluster {
-                        members: &members,
-                        domain_bytes: &sizes,
-                        oldest_first: false,
-                        options,
-                    };
-                    std::hint::black_box(cluster.dry_plans());
+                    index.update(0, members.get(&0));
+                    let plans = index.dry_plans(&members, &sizes, options);
+                    std::hint::black_box(index.adopt(&mut members, &plans, 3));
                     thread_cpu_ns().saturating_sub(start)
                 })
                 .min()

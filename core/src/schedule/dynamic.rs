@@ -337,16 +337,16 @@ impl HotDomains {
 
 /// A wanted domain's rays and holders, ordered by rays per holder (compared as fractions,
 /// without division), then the lower domain id first.
-#[derive(Clone, Copy)]
-struct Heat {
-    domain: DomainId,
-    rays: u64,
-    copies: u64,
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Heat {
+    pub(super) domain: DomainId,
+    pub(super) rays: u64,
+    pub(super) copies: u64,
 }
 
 impl Heat {
     /// Whether another copy still leaves every holder at least one ray.
-    fn splits(&self) -> bool {
+    pub(super) fn splits(&self) -> bool {
         self.rays > self.copies
     }
 }

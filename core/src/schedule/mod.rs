@@ -11,12 +11,15 @@
 //! - [`speculative`]: the queue order for speculatively placed rays (Park et al.);
 //! - [`speculation_depth`]: how many domains ahead a speculative ray is copied (Park et al.);
 //! - [`rounds`]: when members are planned (barrier or asynchronous rounds) and from what;
+//! - [`round_index`]: the same asynchronous rounds planned incrementally, from figures kept
+//!   up to date report by report;
 //! - [`tiles`]: dealing tiles to workers, in fixed shares or on demand.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::fmt;
 
 pub mod dynamic;
+pub mod round_index;
 pub mod rounds;
 pub mod speculation_depth;
 pub mod speculative;

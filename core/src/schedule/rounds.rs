@@ -190,6 +190,16 @@ impl<M: AsRef<Member>> Cluster<'_, M> {
         };
         let largest = self.domain_bytes.iter().copied().max().unwrap_or(1).max(1);
         let mut queued: BTreeMap<DomainId, u64> = BTreeMap::new();
+        for (_, m) in self.each_member() {
+            let Some(report) = m.report.as_ref() else {
+                continue;
+            };
+            for (&d, &n) in &report.queued {
+                if d < domains && counts(report, &d) && n > 0 {
+                    *queued.entry(DomainId(d)).or_default() += n;
+                }
+            }
+        }
         let mut workers = Vec::new();
         for (key, m) in self.each_member() {
             let Some(report) = m.report.as_ref() else {
@@ -209,16 +219,15 @@ impl<M: AsRef<Member>> Cluster<'_, M> {
                     .max(resident.len());
                 workers.push(WorkerState::new(WorkerId(key), resident, capacity));
             } else {
+                // A busy member holds exactly the wanted domains of its plan and memory, with
+                // no slot to spare: what it holds and nobody wants is not a free slot (it is
+                // not being re-planned, so a load handed to it would be handed to no one).
                 resident.extend(m.plan.iter().map(|&d| DomainId(d)));
-                // A busy member holding nothing has no place in the plan; its rays count.
+                resident.retain(|d| queued.contains_key(d));
+                // A busy member holding nothing wanted has no place in the plan; its rays count.
                 if !resident.is_empty() {
                     let capacity = resident.len();
                     workers.push(WorkerState::new(WorkerId(key), resident, capacity));
-                }
-            }
-            for (&d, &n) in &report.queued {
-                if d < domains && counts(report, &d) {
-                    *queued.entry(DomainId(d)).or_default() += n;
                 }
             }
         }
@@ -231,31 +240,35 @@ impl<M: AsRef<Member>> Cluster<'_, M> {
     }
 }
 
-/// Asynchronous rounds: `plans` become round `round`'s; returns the domain loads they ask for.
-/// The queued counts move to the new holders (see `move_queued_to_holders`).
+/// Asynchronous rounds: `plans` become round `round`'s; returns the domain loads they ask for
+/// and the keys of the members changed (planned, or whose queued counts moved: see
+/// `move_queued_to_holders`), for a [`RoundIndex`](super::round_index::RoundIndex) to update.
 pub fn adopt_plans<M: AsMut<Member>>(
     members: &mut BTreeMap<u32, M>,
     plans: &[WorkerPlan],
     round: u64,
-) -> u64 {
+) -> (u64, BTreeSet<u32>) {
     let mut loads = 0;
+    let mut changed = BTreeSet::new();
     for p in plans {
         loads += p.load.len() as u64;
         if let Some(m) = members.get_mut(&p.worker.0).map(AsMut::as_mut) {
             m.plan = p.work().map(|d| d.0).collect();
             m.planned_round = round;
+            changed.insert(p.worker.0);
         }
     }
-    move_queued_to_holders(members);
-    loads
+    changed.extend(move_queued_to_holders(members));
+    (loads, changed)
 }
 
 /// Once told the new holders, a busy member sends its waiting rays for their domains to them,
 /// but its next report may be far off: the move is accounted for now, so that its older
 /// figures do not keep a dry holder waiting on rays it has already traced. A dry holder
 /// reports again when the rays reach it; counted there now, they would stay after it traced
-/// them and mislead every later plan.
-pub fn move_queued_to_holders<M: AsMut<Member>>(members: &mut BTreeMap<u32, M>) {
+/// them and mislead every later plan. Returns the keys of the members whose figures changed.
+pub fn move_queued_to_holders<M: AsMut<Member>>(members: &mut BTreeMap<u32, M>) -> BTreeSet<u32> {
+    let mut changed = BTreeSet::new();
     let holder_of: BTreeMap<u32, u32> = members
         .iter_mut()
         .map(|(&k, m)| (k, &*m.as_mut()))
@@ -264,7 +277,8 @@ pub fn move_queued_to_holders<M: AsMut<Member>>(members: &mut BTreeMap<u32, M>) 
         .collect();
     // Per new holder: domain -> (rays, oldest generation among them).
     let mut moved: BTreeMap<u32, BTreeMap<u32, (u64, Option<u32>)>> = BTreeMap::new();
-    for m in members.values_mut().map(AsMut::as_mut) {
+    for (&key, m) in members.iter_mut() {
+        let m = m.as_mut();
         let Some(report) = m.report.as_mut() else {
             continue;
         };
@@ -275,6 +289,9 @@ pub fn move_queued_to_holders<M: AsMut<Member>>(members: &mut BTreeMap<u32, M>) 
             .copied()
             .filter(|d| holder_of.contains_key(d) && !keeps(d))
             .collect();
+        if !leaving.is_empty() {
+            changed.insert(key);
+        }
         for d in leaving {
             let generation = report.oldest_generation.remove(&d);
             if let Some(n) = report.queued.remove(&d) {
@@ -291,6 +308,7 @@ pub fn move_queued_to_holders<M: AsMut<Member>>(members: &mut BTreeMap<u32, M>) 
     for (key, queues) in moved {
         let member = members.get_mut(&key).map(AsMut::as_mut);
         if let Some(report) = member.and_then(|m| m.report.as_mut()) {
+            changed.insert(key);
             for (d, (n, generation)) in queues {
                 *report.queued.entry(d).or_default() += n;
                 if let Some(g) = generation {
@@ -300,6 +318,7 @@ pub fn move_queued_to_holders<M: AsMut<Member>>(members: &mut BTreeMap<u32, M>) 
             }
         }
     }
+    changed
 }
 
 /// Every domain someone's current plan includes, with the keys of its holders.

@@ -102,7 +102,7 @@ fn queued_counts_move_to_the_new_holder_at_once() {
     m.get_mut(&1).expect("member").report = Some(report(0, &[], &[(3, 2, 6)]));
     let plans = cluster(&m, false).dry_plans();
     assert_eq!(planned(&plans), [3]);
-    let loads = adopt_plans(&mut m, &plans, 2);
+    let (loads, _) = adopt_plans(&mut m, &plans, 2);
     assert_eq!(loads, 1);
     // Member 1 is busy on domain 3 now: member 0's rays for it are counted there at once,
     // with the oldest generation among both.

@@ -15,6 +15,7 @@ use rayfarm_core::progressive::Samples;
 use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::schedule::DomainId;
 use rayfarm_core::schedule::dynamic::{Options, WorkerPlan};
+use rayfarm_core::schedule::round_index::RoundIndex;
 use rayfarm_core::schedule::rounds;
 use rayfarm_core::schedule::static_plans::{domain_owner, image_plane_share};
 use rayfarm_core::schedule::tiles::{HandOuts, strided_share};
@@ -100,6 +101,9 @@ pub struct RunningFrame {
     pub ledger: FrameLedger,
     pub round: u64,
     members: BTreeMap<u32, Member>,
+    /// The members' figures for asynchronous rounds, updated whenever a member's report, plan
+    /// or presence changes (`touch`), so a dry member is planned without re-reading them all.
+    index: RoundIndex,
     /// When it started, for its wall time and rate.
     pub started: Time,
     /// Domain loads the plans asked for.
@@ -164,6 +168,7 @@ impl RunningFrame {
         };
         let subframes = subframes::plan(&spec, frame.spp);
         let tiles = grid.count();
+        let index = RoundIndex::new(domain_bytes.len() as u32, schedule == Schedule::Predictive);
         Ok(RunningFrame {
             job_id,
             schedule,
@@ -173,6 +178,7 @@ impl RunningFrame {
             ledger: FrameLedger::new(grid, TILE_CREDIT).with_samples(subframes[0].count),
             round: 0,
             members: BTreeMap::new(),
+            index,
             started: now,
             planned_loads: 0,
             options,
@@ -245,6 +251,9 @@ impl RunningFrame {
         };
         let keys: Vec<u32> = workers.iter().map(|&(k, _)| k).collect();
         self.members.extend(workers);
+        for &k in &keys {
+            self.touch(k);
+        }
         let mut out: Vec<Outgoing> = keys
             .into_iter()
             .zip(tiles)
@@ -293,6 +302,7 @@ impl RunningFrame {
     /// learn its key and address.
     pub fn join(&mut self, key: u32, member: Member) -> Vec<Outgoing> {
         self.members.insert(key, member);
+        self.touch(key);
         let roster = Body::Roster(proto::Roster {
             job_id: self.frame_id(),
             members: self.roster(),
@@ -324,6 +334,7 @@ impl RunningFrame {
     /// part, and no messages if no member is left (the caller decides the job's fate).
     pub fn lose(&mut self, key: u32) -> Option<Vec<Outgoing>> {
         let lost = self.members.remove(&key)?;
+        self.touch(key);
         if self.members.is_empty() {
             return Some(Vec::new());
         }
@@ -344,6 +355,10 @@ impl RunningFrame {
         // What members reported before the bump counted rays they have now dropped.
         for m in self.members.values_mut() {
             m.rounds.report = None;
+        }
+        let keys: Vec<u32> = self.members.keys().copied().collect();
+        for &k in &keys {
+            self.touch(k);
         }
         // The new owners go out before the re-dealt tiles: a worker traces a hand-out as soon
         // as it arrives, and under the old plan the rays leaving its tiles would be routed to
@@ -386,6 +401,7 @@ impl RunningFrame {
         };
         member.rounds.report = Some(queues(report));
         member.reported = true;
+        self.touch(key);
         match self.schedule {
             Schedule::Dynamic | Schedule::Predictive | Schedule::Unspecified => match self.rounds {
                 Rounds::Barrier => self.plan_if_round_over(),
@@ -437,8 +453,8 @@ impl RunningFrame {
     }
 
     /// Asynchronous rounds: plans every member that has run dry, from the latest reports of
-    /// all (`rounds::Cluster::dry_plans`); members whose plan did not change learn the new
-    /// holders.
+    /// all, kept in `index` (the plans of `rounds::Cluster::dry_plans`, at the cost of the
+    /// dry members' plans); members whose plan did not change learn the new holders.
     fn plan_dry_members(&mut self) -> Vec<Outgoing> {
         // In a subframe after the first, its first plan waits until every member has reported
         // once: the members hold what they loaded for the subframe before, but a member that
@@ -453,12 +469,15 @@ impl RunningFrame {
         if self.subframe > 0 && self.round == 0 && self.members.values().any(|m| !m.reported) {
             return Vec::new();
         }
-        let changed = self.cluster().dry_plans();
+        let changed = self
+            .index
+            .dry_plans(&self.members, &self.domain_bytes, self.options);
         if changed.is_empty() {
             return Vec::new();
         }
         self.round += 1;
-        self.planned_loads += rounds::adopt_plans(&mut self.members, &changed, self.round);
+        let (loads, _) = self.index.adopt(&mut self.members, &changed, self.round);
+        self.planned_loads += loads;
         let holders = self.holders(rounds::current_holders(&self.members));
         debug!(
             round = self.round,
@@ -478,6 +497,12 @@ impl RunningFrame {
             out.push((key, msg(body)));
         }
         out
+    }
+
+    /// Takes member `key`'s report, plan and presence as they are now into `index`.
+    fn touch(&mut self, key: u32) {
+        self.index
+            .update(key, self.members.get(&key).map(|m| &m.rounds));
     }
 
     /// The frame's members as the rounds see them. Only the predictive schedule plans the

@@ -16,6 +16,7 @@ use tracing::info;
 use super::{Member, Outgoing, RunningFrame};
 use crate::coordinator::accusations::Accusations;
 use crate::coordinator::grants::Grants;
+use rayfarm_core::schedule::round_index::RoundIndex;
 use rayfarm_core::schedule::tiles::HandOuts;
 
 /// The subframes of a job of `spec` with `spp` samples per pixel.
@@ -89,6 +90,10 @@ impl RunningFrame {
         self.grants = Grants::new(grid.count());
         self.hand_outs = HandOuts::default();
         self.accusations = Accusations::default();
+        self.index = RoundIndex::new(
+            self.domain_bytes.len() as u32,
+            self.schedule == proto::Schedule::Predictive,
+        );
         let members: Vec<(u32, Member)> = std::mem::take(&mut self.members)
             .into_iter()
             .map(|(k, m)| {

@@ -1,0 +1,591 @@
+//! Asynchronous rounds planned incrementally: the figures Fig. 5 reads (rays wanted per domain,
+//! who holds what, which wanted domains nobody holds, fullest first, and which have the most
+//! rays per holder) kept up to date member by member as reports and plans change, so that
+//! planning the members that ran dry costs what their own plans cost, not what turning every
+//! report of the cluster into a [`ClusterState`](super::ClusterState) and drafting every
+//! member's plan costs (`Cluster::dry_plans`, linear in members and domains).
+//!
+//! The plans equal `Cluster::dry_plans`'s, which equal Fig. 5's loops on the cluster's state
+//! (property tests here and in `dynamic.rs`). When nobody is busy (a frame's first round, or
+//! its tail) every member is planned anyway, and the index hands over to `Cluster::dry_plans`.
+//!
+//! The owner calls [`RoundIndex::update`] for a member whenever its report, plan or presence
+//! changes; nothing else is read from the members between updates except their cache sizes,
+//! reports and plans of the members that ran dry.
+
+use std::cmp::Reverse;
+use std::collections::{BTreeMap, BTreeSet};
+
+use super::DomainId;
+use super::dynamic::{Heat, Options, WorkerPlan};
+use super::rounds::{Cluster, Member};
+
+/// What one member adds to the cluster's figures, kept so it can be taken out again.
+#[derive(Debug, Default)]
+struct Part {
+    /// (domain, rays, oldest generation among them) of its report, domains in the scene only.
+    queued: Vec<(u32, u64, Option<u32>)>,
+    /// Every generation its report names (the oldest-generation rule reads the least).
+    generations: Vec<u32>,
+    /// Domains it holds as the schedule sees it: its memory if it ran dry, its memory and plan
+    /// if it is busy; nothing if it has not reported.
+    held: BTreeSet<u32>,
+    /// Domains in its memory or plan (the oldest-generation rule counts their queues).
+    in_memory: BTreeSet<u32>,
+    /// Domains of its plan if it is busy (rays queued elsewhere for them move to it).
+    holding_plan: BTreeSet<u32>,
+    /// Domains its report has a queue for, empty or not.
+    queues: BTreeSet<u32>,
+}
+
+impl Part {
+    fn of(m: &Member, dry: bool, domains: u32) -> Part {
+        let plan = m.plan.iter().copied().filter(|&d| d < domains);
+        let holding_plan = if dry {
+            BTreeSet::new()
+        } else {
+            plan.clone().collect()
+        };
+        let Some(report) = m.report.as_ref() else {
+            return Part {
+                in_memory: plan.collect(),
+                holding_plan,
+                ..Part::default()
+            };
+        };
+        let resident = report.resident.iter().copied().filter(|&d| d < domains);
+        let mut held: BTreeSet<u32> = resident.clone().collect();
+        if !dry {
+            held.extend(m.plan.iter().copied().filter(|&d| d < domains));
+        }
+        Part {
+            queued: report
+                .queued
+                .iter()
+                .filter(|&(&d, &n)| d < domains && n > 0)
+                .map(|(&d, &n)| (d, n, report.oldest_generation.get(&d).copied()))
+                .collect(),
+            generations: report
+                .oldest_generation
+                .values()
+                .copied()
+                .chain(report.oldest_waiting)
+                .collect(),
+            held,
+            in_memory: resident.chain(plan).collect(),
+            holding_plan,
+            queues: report
+                .queued
+                .keys()
+                .copied()
+                .filter(|&d| d < domains)
+                .collect(),
+        }
+    }
+}
+
+/// The cluster's figures for asynchronous rounds, kept up to date member by member.
+#[derive(Debug)]
+pub struct RoundIndex {
+    domains: u32,
+    oldest_first: bool,
+    parts: BTreeMap<u32, Part>,
+    /// Members that ran dry since their last plan.
+    dry: BTreeSet<u32>,
+    /// Rays reported per domain, over every member.
+    queued: Vec<u64>,
+    /// Rays reported per domain by oldest generation (the oldest-generation rule only).
+    by_generation: Vec<BTreeMap<u32, u64>>,
+    /// Every generation reported, with how many times.
+    generations: BTreeMap<u32, usize>,
+    /// The oldest generation the figures below were counted for.
+    oldest: Option<u32>,
+    /// Members holding each domain as the schedule sees them.
+    held: Vec<u32>,
+    /// Members with each domain in memory or plan.
+    in_memory: Vec<u32>,
+    /// (rays that count, holders) of each domain as the sets below show it.
+    shown: Vec<(u64, u32)>,
+    /// Domains with rays that count.
+    wanted: usize,
+    /// Wanted domains nobody holds, fullest first, then the lower id (Fig. 5's `to_assign`).
+    unheld: BTreeSet<(Reverse<u64>, u32)>,
+    /// Wanted domains with more rays than holders, by rays per holder.
+    hot: BTreeSet<Heat>,
+    /// Busy members with each domain in their plan (the last one receives rays moved).
+    plan_holders: Vec<BTreeSet<u32>>,
+    /// Members whose report has a queue for each domain.
+    queuers: Vec<BTreeSet<u32>>,
+    /// Members changed, and domains that gained a busy holder, since rays last moved: only
+    /// their queues can have a holder elsewhere (`adopt`).
+    unmoved: BTreeSet<u32>,
+    newly_held: BTreeSet<u32>,
+}
+
+impl RoundIndex {
+    /// An empty index for a scene of `domains` domains; `oldest_first` as in [`Cluster`].
+    pub fn new(domains: u32, oldest_first: bool) -> RoundIndex {
+        let n = domains as usize;
+        RoundIndex {
+            domains,
+            oldest_first,
+            parts: BTreeMap::new(),
+            dry: BTreeSet::new(),
+            queued: vec![0; n],
+            by_generation: if oldest_first {
+                vec![BTreeMap::new(); n]
+            } else {
+                Vec::new()
+            },
+            generations: BTreeMap::new(),
+            oldest: None,
+            held: vec![0; n],
+            in_memory: vec![0; n],
+            shown: vec![(0, 0); n],
+            wanted: 0,
+            unheld: BTreeSet::new(),
+            hot: BTreeSet::new(),
+            plan_holders: vec![BTreeSet::new(); n],
+            queuers: vec![BTreeSet::new(); n],
+            unmoved: BTreeSet::new(),
+            newly_held: BTreeSet::new(),
+        }
+    }
+
+    /// Takes member `key` as it is now (`None`: it left the frame) into the figures: its
+    /// report, plan and whether it ran dry. Costs its report's size, not the cluster's.
+    pub fn update(&mut self, key: u32, member: Option<&Member>) {
+        let mut touched = BTreeSet::new();
+        self.unmoved.insert(key);
+        let old = self.parts.remove(&key);
+        if let Some(old) = &old {
+            self.count(key, old, false, &mut touched);
+        }
+        self.dry.remove(&key);
+        if let Some(m) = member {
+            let dry = m.is_dry();
+            if dry {
+                self.dry.insert(key);
+            }
+            let part = Part::of(m, dry, self.domains);
+            self.count(key, &part, true, &mut touched);
+            let before = old.map(|o| o.holding_plan).unwrap_or_default();
+            self.newly_held
+                .extend(part.holding_plan.difference(&before).copied());
+            self.parts.insert(key, part);
+        }
+        let oldest = if self.oldest_first {
+            self.generations.keys().next().copied()
+        } else {
+            None
+        };
+        if oldest != self.oldest {
+            self.oldest = oldest;
+            for d in 0..self.domains {
+                self.refresh(d);
+            }
+        } else {
+            for d in touched {
+                self.refresh(d);
+            }
+        }
+    }
+
+    /// Adds (or takes out) one member's part, noting the domains whose figures moved.
+    fn count(&mut self, key: u32, part: &Part, add: bool, touched: &mut BTreeSet<u32>) {
+        fn step<T: std::ops::AddAssign + std::ops::SubAssign>(x: &mut T, by: T, add: bool) {
+            if add { *x += by } else { *x -= by }
+        }
+        for &(d, n, g) in &part.queued {
+            step(&mut self.queued[d as usize], n, add);
+            if let (true, Some(g)) = (self.oldest_first, g) {
+                let sums = &mut self.by_generation[d as usize];
+                let sum = sums.entry(g).or_default();
+                step(sum, n, add);
+                if *sum == 0 {
+                    sums.remove(&g);
+                }
+            }
+            touched.insert(d);
+        }
+        for &g in &part.generations {
+            let times = self.generations.entry(g).or_default();
+            step(times, 1, add);
+            if *times == 0 {
+                self.generations.remove(&g);
+            }
+        }
+        for &d in &part.held {
+            step(&mut self.held[d as usize], 1, add);
+            touched.insert(d);
+        }
+        for &d in &part.in_memory {
+            step(&mut self.in_memory[d as usize], 1, add);
+            touched.insert(d);
+        }
+        for &d in &part.holding_plan {
+            if add {
+                self.plan_holders[d as usize].insert(key);
+            } else {
+                self.plan_holders[d as usize].remove(&key);
+            }
+        }
+        for &d in &part.queues {
+            if add {
+                self.queuers[d as usize].insert(key);
+            } else {
+                self.queuers[d as usize].remove(&key);
+            }
+        }
+    }
+
+    /// Asynchronous rounds: `plans` become round `round`'s, as
+    /// [`adopt_plans`](super::rounds::adopt_plans) makes them, with the same rays moved to
+    /// their new holders; only the queues of members changed since the last move, and of
+    /// domains that gained a holder, are looked at (any other queue was looked at then and
+    /// nothing about it changed). Returns the loads the plans ask for and the members changed;
+    /// the index is up to date with them.
+    pub fn adopt<M: AsMut<Member> + AsRef<Member>>(
+        &mut self,
+        members: &mut BTreeMap<u32, M>,
+        plans: &[WorkerPlan],
+        round: u64,
+    ) -> (u64, BTreeSet<u32>) {
+        let mut loads = 0;
+        let mut changed = BTreeSet::new();
+        for p in plans {
+            loads += p.load.len() as u64;
+            if let Some(m) = members.get_mut(&p.worker.0).map(AsMut::as_mut) {
+                m.plan = p.work().map(|d| d.0).collect();
+                m.planned_round = round;
+                changed.insert(p.worker.0);
+                self.update(p.worker.0, Some(m));
+            }
+        }
+        let moved = self.move_queued_to_holders(members);
+        for &k in &moved {
+            self.update(k, members.get(&k).map(AsRef::as_ref));
+        }
+        // Rays just moved went to members that keep them: nothing is left to move.
+        self.unmoved.clear();
+        self.newly_held.clear();
+        changed.extend(moved);
+        (loads, changed)
+    }
+
+    /// `rounds::move_queued_to_holders` over the queues that may have a holder elsewhere.
+    fn move_queued_to_holders<M: AsMut<Member>>(
+        &mut self,
+        members: &mut BTreeMap<u32, M>,
+    ) -> BTreeSet<u32> {
+        let mut candidates: BTreeSet<(u32, u32)> = BTreeSet::new();
+        for &k in &self.unmoved {
+            if let Some(part) = self.parts.get(&k) {
+                candidates.extend(part.queues.iter().map(|&d| (k, d)));
+            }
+        }
+        for &d in &self.newly_held {
+            candidates.extend(self.queuers[d as usize].iter().map(|&k| (k, d)));
+        }
+        let mut changed = BTreeSet::new();
+        // Per new holder: domain -> (rays, oldest generation among them).
+        let mut moved: BTreeMap<u32, BTreeMap<u32, (u64, Option<u32>)>> = BTreeMap::new();
+        for (k, d) in candidates {
+            let Some(&holder) = self.plan_holders[d as usize].last() else {
+                continue;
+            };
+            let Some(m) = members.get_mut(&k).map(AsMut::as_mut) else {
+                continue;
+            };
+            let Some(report) = m.report.as_mut() else {
+                continue;
+            };
+            if m.plan.contains(&d) || report.resident.contains(&d) {
+                continue;
+            }
+            let generation = report.oldest_generation.remove(&d);
+            if let Some(n) = report.queued.remove(&d) {
+                changed.insert(k);
+                let entry = moved.entry(holder).or_default().entry(d).or_default();
+                entry.0 += n;
+                entry.1 = entry.1.into_iter().chain(generation).min();
+            }
+        }
+        for (key, queues) in moved {
+            let member = members.get_mut(&key).map(AsMut::as_mut);
+            if let Some(report) = member.and_then(|m| m.report.as_mut()) {
+                changed.insert(key);
+                for (d, (n, generation)) in queues {
+                    *report.queued.entry(d).or_default() += n;
+                    if let Some(g) = generation {
+                        let oldest = report.oldest_generation.entry(d).or_insert(g);
+                        *oldest = (*oldest).min(g);
+                    }
+                }
+            }
+        }
+        changed
+    }
+
+    /// Rays queued for `d` that count: under the oldest-generation rule only queues whose
+    /// oldest rays are of the oldest generation, unless `d` is in memory somewhere.
+    fn counted(&self, d: u32) -> u64 {
+        let i = d as usize;
+        match self.oldest {
+            Some(g) if self.in_memory[i] == 0 => {
+                self.by_generation[i].get(&g).copied().unwrap_or(0)
+            }
+            _ => self.queued[i],
+        }
+    }
+
+    /// Brings domain `d`'s entries in the ordered sets in line with its figures.
+    fn refresh(&mut self, d: u32) {
+        let now = (self.counted(d), self.held[d as usize]);
+        let before = std::mem::replace(&mut self.shown[d as usize], now);
+        if before == now {
+            return;
+        }
+        for ((rays, holders), add) in [(before, false), (now, true)] {
+            if rays == 0 {
+                continue;
+            }
+            let heat = Heat {
+                domain: DomainId(d),
+                rays,
+                copies: u64::from(holders),
+            };
+            if add {
+                self.wanted += 1;
+                if holders == 0 {
+                    self.unheld.insert((Reverse(rays), d));
+                }
+                if heat.splits() {
+                    self.hot.insert(heat);
+                }
+            } else {
+                self.wanted -= 1;
+                self.unheld.remove(&(Reverse(rays), d));
+                self.hot.remove(&heat);
+            }
+        }
+    }
+
+    /// New plans for the members that ran dry, equal to
+    /// [`Cluster::dry_plans`](super::rounds::Cluster::dry_plans) over the same members.
+    /// `members` must be the members this index was last updated with.
+    pub fn dry_plans<M: AsRef<Member>>(
+        &mut self,
+        members: &BTreeMap<u32, M>,
+        domain_bytes: &[u64],
+        options: Options,
+    ) -> Vec<WorkerPlan> {
+        if self.dry.is_empty() {
+            return Vec::new();
+        }
+        if self.dry.len() == members.len() {
+            // Nobody is busy: every member is planned, from the whole cluster.
+            let cluster = Cluster {
+                members,
+                domain_bytes,
+                oldest_first: self.oldest_first,
+                options,
+            };
+            return cluster.dry_plans();
+        }
+        if self.wanted == 0 {
+            return Vec::new();
+        }
+        let largest = domain_bytes.iter().copied().max().unwrap_or(1).max(1);
+        let mut drafts: Vec<Draft> = self
+            .dry
+            .iter()
+            .filter_map(|k| Some((*k, members.get(k)?.as_ref())))
+            .map(|(key, m)| Draft::keeping_wanted(key, m, largest, self))
+            .collect();
+        let mut hot = HotOverlay::new(&mut self.hot);
+        // Fig. 5's pairing: the fullest unheld domain to the dry member with a free slot and
+        // the fewest planned domains (lower key on ties).
+        let mut open: BTreeSet<(usize, usize)> = drafts
+            .iter()
+            .enumerate()
+            .filter(|(_, d)| d.free_slots() > 0)
+            .map(|(i, d)| (d.planned(), i))
+            .collect();
+        for &(Reverse(rays), domain) in &self.unheld {
+            let Some((_, i)) = open.pop_first() else {
+                break;
+            };
+            let draft = &mut drafts[i];
+            draft.load.insert(domain);
+            if draft.free_slots() > 0 {
+                open.insert((draft.planned(), i));
+            }
+            hot.add_copy(domain, rays, 0);
+        }
+        if options.replicate_onto_idle {
+            for draft in drafts.iter_mut().filter(|d| d.planned() == 0) {
+                if let Some(domain) = hot.take_hottest(|_| true) {
+                    draft.load.insert(domain.0);
+                }
+            }
+        }
+        if options.fill_free_slots {
+            loop {
+                let mut placed = false;
+                for draft in drafts.iter_mut().filter(|d| d.free_slots() > 0) {
+                    if let Some(domain) = hot.take_hottest(|d| !draft.works_on(d)) {
+                        draft.load.insert(domain.0);
+                        placed = true;
+                    }
+                }
+                if !placed {
+                    break;
+                }
+            }
+        }
+        hot.undo(&self.shown);
+        drafts
+            .into_iter()
+            .map(Draft::finish)
+            .filter(|p| {
+                let work: BTreeSet<u32> = p.work().map(|d| d.0).collect();
+                !p.evict.is_empty() || work != members[&p.worker.0].as_ref().plan
+            })
+            .collect()
+    }
+}
+
+/// A dry member's plan while it is being built (as `dynamic::Draft`).
+struct Draft {
+    key: u32,
+    resident: BTreeSet<u32>,
+    capacity: usize,
+    keep: BTreeSet<u32>,
+    load: BTreeSet<u32>,
+}
+
+impl Draft {
+    fn keeping_wanted(key: u32, m: &Member, largest: u64, index: &RoundIndex) -> Draft {
+        let resident: BTreeSet<u32> = m
+            .report
+            .iter()
+            .flat_map(|r| r.resident.iter().copied())
+            .filter(|&d| d < index.domains)
+            .collect();
+        // Domains differ in size: slots counted by the largest, never fewer than it holds.
+        let capacity = ((m.cache_bytes / largest) as usize)
+            .max(1)
+            .max(resident.len());
+        let keep = resident
+            .iter()
+            .copied()
+            .filter(|&d| index.shown[d as usize].0 > 0)
+            .collect();
+        Draft {
+            key,
+            resident,
+            capacity,
+            keep,
+            load: BTreeSet::new(),
+        }
+    }
+
+    fn planned(&self) -> usize {
+        self.keep.len() + self.load.len()
+    }
+
+    fn free_slots(&self) -> usize {
+        self.capacity - self.planned()
+    }
+
+    fn works_on(&self, d: DomainId) -> bool {
+        self.keep.contains(&d.0) || self.load.contains(&d.0)
+    }
+
+    /// Evicts just enough unwanted data to fit the loads (lower id first).
+    fn finish(self) -> WorkerPlan {
+        let overflow = (self.resident.len() + self.load.len()).saturating_sub(self.capacity);
+        let evict = self
+            .resident
+            .iter()
+            .copied()
+            .filter(|d| !self.keep.contains(d))
+            .take(overflow)
+            .map(DomainId)
+            .collect();
+        WorkerPlan {
+            worker: super::WorkerId(self.key),
+            keep: self.keep.into_iter().map(DomainId).collect(),
+            load: self.load.into_iter().map(DomainId).collect(),
+            evict,
+        }
+    }
+}
+
+/// The hot set with this round's copies counted in, put back as it was afterwards.
+struct HotOverlay<'a> {
+    hot: &'a mut BTreeSet<Heat>,
+    /// Domains whose entry changed, with their entry now.
+    changed: BTreeMap<u32, Option<Heat>>,
+}
+
+impl<'a> HotOverlay<'a> {
+    fn new(hot: &'a mut BTreeSet<Heat>) -> Self {
+        HotOverlay {
+            hot,
+            changed: BTreeMap::new(),
+        }
+    }
+
+    /// Counts one more holder of `domain`, which has `rays` rays and `copies` holders.
+    fn add_copy(&mut self, domain: u32, rays: u64, copies: u64) {
+        let heat = Heat {
+            domain: DomainId(domain),
+            rays,
+            copies,
+        };
+        self.hot.remove(&heat);
+        self.replace(heat);
+    }
+
+    /// `heat`, taken out of the set, back with one more copy if it still splits.
+    fn replace(&mut self, mut heat: Heat) {
+        heat.copies += 1;
+        let now = heat.splits().then_some(heat);
+        if let Some(h) = now {
+            self.hot.insert(h);
+        }
+        self.changed.insert(heat.domain.0, now);
+    }
+
+    /// The hottest domain among `eligible` ones, counted as having one more holder.
+    fn take_hottest(&mut self, eligible: impl Fn(DomainId) -> bool) -> Option<DomainId> {
+        let heat = *self.hot.iter().rev().find(|h| eligible(h.domain))?;
+        self.hot.remove(&heat);
+        self.replace(heat);
+        Some(heat.domain)
+    }
+
+    /// Puts every changed entry back as the figures show it.
+    fn undo(self, shown: &[(u64, u32)]) {
+        for (d, now) in self.changed {
+            if let Some(h) = now {
+                self.hot.remove(&h);
+            }
+            let (rays, holders) = shown[d as usize];
+            let heat = Heat {
+                domain: DomainId(d),
+                rays,
+                copies: u64::from(holders),
+            };
+            if rays > 0 && heat.splits() {
+                self.hot.insert(heat);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+#[path = "round_index_tests.rs"]
+mod tests;

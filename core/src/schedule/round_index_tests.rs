@@ -1,0 +1,181 @@
+use super::*;
+use crate::schedule::rounds::{Queues, adopt_plans};
+use proptest::prelude::*;
+
+const DOMAINS: u32 = 10;
+
+/// One change the coordinator makes to its members between plans.
+#[derive(Clone, Debug)]
+enum Change {
+    /// Member `key` reports, of its plan's round (it ran dry) or of the one before (busy).
+    Report {
+        key: u32,
+        dry: bool,
+        resident: Vec<u32>,
+        queued: Vec<(u32, u64, u32)>,
+        waiting: Option<u32>,
+    },
+    /// The coordinator plans the dry members and adopts the plans.
+    Plan,
+    /// Member `key` joins (with a cache of `slots` domains) or leaves.
+    Join {
+        key: u32,
+        slots: u64,
+    },
+    Leave {
+        key: u32,
+    },
+    /// Every report dropped (an epoch bump).
+    Forget,
+}
+
+fn change() -> impl Strategy<Value = Change> {
+    let key = 0u32..6;
+    let domain = 0..DOMAINS + 1; // one past the scene: reports may name what it lacks
+    prop_oneof![
+        4 => (
+            key.clone(),
+            any::<bool>(),
+            prop::collection::vec(domain.clone(), 0..4),
+            prop::collection::vec((domain, 0u64..40, 0u32..3), 0..6),
+            prop::option::of(0u32..3),
+        )
+            .prop_map(|(key, dry, resident, queued, waiting)| Change::Report {
+                key,
+                dry,
+                resident,
+                queued,
+                waiting,
+            }),
+        3 => Just(Change::Plan),
+        1 => (key.clone(), 1u64..4).prop_map(|(key, slots)| Change::Join { key, slots }),
+        1 => key.prop_map(|key| Change::Leave { key }),
+        1 => Just(Change::Forget),
+    ]
+}
+
+const SIZE: u64 = 100;
+
+/// Applies `changes`, planning with the index and with `Cluster::dry_plans` at every `Plan`
+/// and checking they agree.
+fn run(changes: &[Change], oldest_first: bool, options: Options) -> Result<(), TestCaseError> {
+    let sizes = vec![SIZE; DOMAINS as usize];
+    let mut members: BTreeMap<u32, Member> = (0..3).map(|k| (k, Member::new(2 * SIZE))).collect();
+    let mut index = RoundIndex::new(DOMAINS, oldest_first);
+    for (&k, m) in &members {
+        index.update(k, Some(m));
+    }
+    let mut round = 1;
+    for c in changes {
+        match c {
+            Change::Report {
+                key,
+                dry,
+                resident,
+                queued,
+                waiting,
+            } => {
+                let Some(m) = members.get_mut(key) else {
+                    continue;
+                };
+                let at = if *dry {
+                    m.planned_round
+                } else if m.planned_round > 0 {
+                    m.planned_round - 1
+                } else {
+                    continue;
+                };
+                m.report = Some(Queues {
+                    round: at,
+                    resident: resident
+                        .iter()
+                        .copied()
+                        .collect::<BTreeSet<_>>()
+                        .into_iter()
+                        .collect(),
+                    queued: queued.iter().map(|&(d, n, _)| (d, n)).collect(),
+                    oldest_generation: queued.iter().map(|&(d, _, g)| (d, g)).collect(),
+                    oldest_waiting: *waiting,
+                });
+                index.update(*key, Some(m));
+            }
+            Change::Plan => {
+                let cluster = Cluster {
+                    members: &members,
+                    domain_bytes: &sizes,
+                    oldest_first,
+                    options,
+                };
+                let want = cluster.dry_plans();
+                let got = index.dry_plans(&members, &sizes, options);
+                prop_assert_eq!(&got, &want);
+                if !got.is_empty() {
+                    round += 1;
+                    let mut reference = members.clone();
+                    let want = adopt_plans(&mut reference, &got, round);
+                    let got = index.adopt(&mut members, &got, round);
+                    prop_assert_eq!(got, want);
+                    for (k, m) in &members {
+                        let r = &reference[k];
+                        prop_assert_eq!(&m.report, &r.report, "member {}", k);
+                        prop_assert_eq!(&m.plan, &r.plan);
+                        prop_assert_eq!(m.planned_round, r.planned_round);
+                    }
+                }
+            }
+            Change::Join { key, slots } => {
+                members.insert(*key, Member::new(slots * SIZE));
+                index.update(*key, members.get(key));
+            }
+            Change::Leave { key } => {
+                members.remove(key);
+                index.update(*key, None);
+            }
+            Change::Forget => {
+                for (&k, m) in members.iter_mut() {
+                    m.report = None;
+                    index.update(k, Some(m));
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(2000))]
+
+    #[test]
+    fn incremental_plans_equal_whole_cluster_plans(
+        changes in prop::collection::vec(change(), 1..40),
+        oldest_first in any::<bool>(),
+        replicate_onto_idle in any::<bool>(),
+        fill_free_slots in any::<bool>(),
+    ) {
+        run(&changes, oldest_first, Options { replicate_onto_idle, fill_free_slots })?;
+    }
+}
+
+#[test]
+fn a_dry_member_takes_the_fullest_unheld_domain_while_the_others_work() {
+    let sizes = vec![SIZE; DOMAINS as usize];
+    let mut members: BTreeMap<u32, Member> = (0..2).map(|k| (k, Member::new(SIZE))).collect();
+    let mut index = RoundIndex::new(DOMAINS, false);
+    let busy = members.get_mut(&1).expect("member");
+    busy.plan = BTreeSet::from([3]);
+    busy.planned_round = 2;
+    busy.report = Some(Queues {
+        round: 1,
+        resident: vec![3],
+        queued: BTreeMap::from([(3, 5), (4, 9), (5, 20)]),
+        ..Queues::default()
+    });
+    members.get_mut(&0).expect("member").report = Some(Queues::default());
+    for (&k, m) in &members {
+        index.update(k, Some(m));
+    }
+    let plans = index.dry_plans(&members, &sizes, Options::default());
+    assert_eq!(plans.len(), 1);
+    assert_eq!(plans[0].worker.0, 0);
+    assert_eq!(plans[0].load, BTreeSet::from([DomainId(5)]));
+}
