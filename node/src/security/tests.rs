@@ -1,3 +1,6 @@
+use tonic::Request;
+use tonic::service::Interceptor;
+
 use super::*;
 
 fn file(text: &str) -> tempfile::NamedTempFile {
