@@ -19,7 +19,7 @@ use rayfarm_core::schedule::rounds;
 use rayfarm_core::schedule::static_plans::{domain_owner, image_plane_share};
 use rayfarm_core::schedule::tiles::{HandOuts, strided_share};
 use rayfarm_core::tile::credit::TILE_CREDIT;
-use rayfarm_core::tile::ledger::{Accept, FrameLedger};
+use rayfarm_core::tile::ledger::{Accept, TileLedger};
 use rayfarm_core::tile::{TILE_SIZE, TileGrid};
 use rayfarm_proto::{self as proto, Schedule, coordinator_message::Body};
 use tracing::{debug, info};
@@ -93,7 +93,7 @@ pub struct RunningFrame {
     pub spec: proto::JobSpec,
     pub frame: FrameSpec,
     domain_bytes: Vec<u64>,
-    pub ledger: FrameLedger,
+    pub ledger: TileLedger,
     pub round: u64,
     members: BTreeMap<u32, Member>,
     /// When it started, for its wall time and rate.
@@ -166,7 +166,7 @@ impl RunningFrame {
             spec,
             frame,
             domain_bytes,
-            ledger: FrameLedger::new(grid, TILE_CREDIT).with_samples(subframes[0].count),
+            ledger: TileLedger::new(grid, TILE_CREDIT).with_samples(subframes[0].count),
             round: 0,
             members: BTreeMap::new(),
             started: now,
