@@ -1,0 +1,478 @@
+//! `rayfarm sim`: the cluster simulated in this process on virtual time (`rayfarm-sim`): a
+//! clean run per worker count and schedule, its figures and image hash, and with `--faults` a
+//! run per seed whose invariants are checked. Exits non-zero naming every seed that broke
+//! one, with the command that replays it. `rayfarm sim calibrate` measures the cost model's
+//! prices on this machine and writes the file `--cost` reads.
+//!
+//! The parts: this module holds the options and the runs, [`calibrate`] the measurement of the
+//! prices, [`report`] the table, the CSV rows and the summary of the fault seeds.
+
+use std::io::Write;
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::{Context, bail};
+use clap::{Args, Subcommand};
+use rayfarm_node::job::{parse_schedule, schedule_name};
+use rayfarm_node::proto::Schedule;
+use rayfarm_sim::net::LinkModel;
+use rayfarm_sim::node::QueueCaps;
+use rayfarm_sim::world::open_scene;
+use rayfarm_sim::{
+    ComputeCost, CostModel, FaultPlan, Outcome, RECONNECT, SimConfig, StorageModel, simulate,
+};
+use rayon::prelude::*;
+
+use crate::units;
+use crate::view::FrameArgs;
+
+mod calibrate;
+mod report;
+
+pub use calibrate::CalibrateArgs;
+use calibrate::run_calibrate;
+use report::{Summary, print_row, write_csv};
+
+/// Options of `rayfarm sim`.
+#[derive(Args, Clone, Debug)]
+#[command(args_conflicts_with_subcommands = true)]
+pub struct SimArgs {
+    #[command(subcommand)]
+    pub command: Option<SimCommand>,
+    /// Scene directory (holding scene.toml).
+    #[arg(long)]
+    pub scene: Option<PathBuf>,
+    /// Workers at the start, or several counts separated by commas (e.g. 64,256,1024): a run
+    /// of every schedule at each.
+    #[arg(long, default_value = "3", value_parser = parse_counts)]
+    pub workers: Counts,
+    /// Schedule, or several separated by commas (image-plane, domain, dynamic, hybrid,
+    /// predictive).
+    #[arg(long, default_value = "dynamic")]
+    pub schedule: String,
+    #[command(flatten)]
+    pub model: ModelArgs,
+    /// Jobs of the same frame the same workers render before the measured one, each with its
+    /// schedule, separated by commas (e.g. image-plane): the measured job starts with the
+    /// domains they left mapped and the machines they left, as on a farm that has rendered
+    /// before. Every job's image is checked; faults fall anywhere in the sequence.
+    #[arg(long, value_delimiter = ',', value_parser = parse_schedule_arg)]
+    pub warm_up: Vec<Schedule>,
+    /// Run every seed of --seeds with its faults and check the invariants.
+    #[arg(long)]
+    pub faults: bool,
+    /// Seeds to run with --faults: A..B (B excluded) or one seed.
+    #[arg(long, default_value = "0..100", value_parser = parse_seeds)]
+    pub seeds: std::ops::Range<u64>,
+    /// Liveness bound of a faulty run in virtual microseconds [default: twenty clean frames
+    /// and every deadline twice].
+    #[arg(long)]
+    pub bound_us: Option<u64>,
+    /// Also write one row per run here (CSV).
+    #[arg(long)]
+    pub csv: Option<PathBuf>,
+}
+
+/// What `rayfarm sim` does besides simulating.
+#[derive(Subcommand, Clone, Debug)]
+pub enum SimCommand {
+    /// Measure the cost model's prices on this machine (per-segment trace cost, radiance and
+    /// shadow apart, per camera and volume sample, per pass, per planning round) and write
+    /// them to the file `rayfarm sim --cost` reads.
+    Calibrate(CalibrateArgs),
+}
+
+/// The simulated frame, the workers' settings and the cost model (every price and bandwidth a
+/// flag; the defaults describe a commodity cluster: 10 Gb/s Ethernet, a parallel file system of
+/// 10 GB/s aggregate with each node's link at 1.25 GB/s, and cores priced as this project's
+/// VM measured them).
+#[derive(Args, Clone, Debug)]
+pub struct ModelArgs {
+    #[command(flatten)]
+    pub frame: FrameArgs,
+    /// Each worker's domain cache budget, e.g. 512MiB.
+    #[arg(long, value_parser = units::bytes, default_value = "4GiB")]
+    pub cache_bytes: u64,
+    /// Camera rays a worker issues while fewer rays than this are queued on it.
+    #[arg(long, default_value_t = 4096)]
+    pub wave_rays: usize,
+    /// Most rays a worker traces in one pass.
+    #[arg(long, default_value_t = 2048)]
+    pub pass_rays: usize,
+    /// Tracing threads each worker is costed with (the cost model's divisor).
+    #[arg(long, default_value_t = 1)]
+    pub threads: u32,
+    /// Prices of computing, from `rayfarm sim calibrate` [default: the ones measured on this
+    /// project's VM, README "Simulator"].
+    #[arg(long)]
+    pub cost: Option<PathBuf>,
+    /// Aggregate bandwidth of the shared storage, shared by every reader, bytes per second
+    /// (binary units: 1GiB/s) [default: 10 GB/s, a few parallel file system servers].
+    #[arg(long, value_parser = rayfarm_core::units::parse_rate, default_value = "10000000000")]
+    pub storage_bandwidth: u64,
+    /// Most bytes per second one node reads from the storage; 0 for no cap [default: 1.25
+    /// GB/s, a 10 Gb/s link].
+    #[arg(long, value_parser = units::bytes, default_value = "1250000000")]
+    pub node_storage_bandwidth: u64,
+    /// Microseconds to open one domain on the storage.
+    #[arg(long, default_value_t = 1000)]
+    pub storage_latency_us: u64,
+    /// Charge every domain load this many bytes instead of the domain's size here (e.g. the
+    /// paper's 650 GB over its domains), so this scene stands for a larger one.
+    #[arg(long, value_parser = units::bytes)]
+    pub charge_domain_bytes: Option<u64>,
+    /// One-way network latency of a message, microseconds.
+    #[arg(long, default_value_t = 100)]
+    pub net_latency_us: u64,
+    /// Bytes per second each node's NIC sends [default: 1.25 GB/s, 10 Gb/s Ethernet].
+    #[arg(long, value_parser = rayfarm_core::units::parse_rate, default_value = "1250000000")]
+    pub nic_bandwidth: u64,
+}
+
+impl ModelArgs {
+    fn cost(&self) -> anyhow::Result<CostModel> {
+        let compute = match &self.cost {
+            Some(p) => ComputeCost::load(p).map_err(anyhow::Error::msg)?,
+            None => ComputeCost::default(),
+        };
+        Ok(CostModel {
+            compute,
+            threads: self.threads.max(1),
+        })
+    }
+
+    fn storage(&self) -> StorageModel {
+        StorageModel {
+            latency: Duration::from_micros(self.storage_latency_us),
+            aggregate_bytes_per_second: self.storage_bandwidth,
+            node_bytes_per_second: Some(self.node_storage_bandwidth).filter(|&b| b > 0),
+            charge_domain_bytes: self.charge_domain_bytes,
+        }
+    }
+
+    /// The flags that give this model, for a replay command.
+    fn flags(&self) -> String {
+        let mut f = format!(
+            "--width {} --height {} --spp {} --depth {} --cache-bytes {} --wave-rays {} \
+             --pass-rays {} --threads {} --storage-bandwidth {} --node-storage-bandwidth {} \
+             --storage-latency-us {} --net-latency-us {} --nic-bandwidth {}",
+            self.frame.width,
+            self.frame.height,
+            self.frame.spp,
+            self.frame.depth,
+            self.cache_bytes,
+            self.wave_rays,
+            self.pass_rays,
+            self.threads,
+            self.storage_bandwidth,
+            self.node_storage_bandwidth,
+            self.storage_latency_us,
+            self.net_latency_us,
+            self.nic_bandwidth
+        );
+        if let Some(b) = self.charge_domain_bytes {
+            f.push_str(&format!(" --charge-domain-bytes {b}"));
+        }
+        if let Some(p) = &self.cost {
+            f.push_str(&format!(" --cost {}", p.display()));
+        }
+        f
+    }
+
+    fn config(
+        &self,
+        scene: &std::path::Path,
+        workers: usize,
+        schedule: Schedule,
+    ) -> anyhow::Result<SimConfig> {
+        Ok(SimConfig {
+            scene: scene.to_path_buf(),
+            workers,
+            schedule,
+            warm_up: Vec::new(),
+            width: self.frame.width,
+            height: self.frame.height,
+            spp: self.frame.spp,
+            depth: self.frame.depth,
+            cache_bytes: self.cache_bytes,
+            wave_rays: self.wave_rays.max(1),
+            pass_rays: self.pass_rays.max(1),
+            links: LinkModel {
+                latency: Duration::from_micros(self.net_latency_us),
+                bytes_per_second: self.nic_bandwidth,
+            },
+            cost: self.cost()?,
+            storage: self.storage(),
+            measure: false,
+            caps: QueueCaps {
+                queue_bytes: 512 << 20,
+                spill_bytes: 8 << 30,
+            },
+            ack_deadline: ACK_DEADLINE,
+            heartbeat: HEARTBEAT,
+            worker_timeout: WORKER_TIMEOUT,
+            disk_latency: DISK_LATENCY,
+        })
+    }
+}
+
+fn parse_schedule_arg(s: &str) -> Result<Schedule, String> {
+    parse_schedule(s.trim())
+}
+
+/// Worker counts, as given.
+#[derive(Clone, Debug)]
+pub struct Counts(pub Vec<usize>);
+
+fn parse_counts(s: &str) -> Result<Counts, String> {
+    let counts: Vec<usize> = s
+        .split(',')
+        .map(|c| {
+            c.trim()
+                .parse::<usize>()
+                .ok()
+                .filter(|&n| (1..=MAX_WORKERS).contains(&n))
+                .ok_or_else(|| format!("worker count {c:?}: give 1 to {MAX_WORKERS}"))
+        })
+        .collect::<Result<_, _>>()?;
+    Ok(Counts(counts))
+}
+
+/// Most simulated workers in one run.
+const MAX_WORKERS: usize = 65_536;
+
+fn parse_seeds(s: &str) -> Result<std::ops::Range<u64>, String> {
+    let bad = || format!("seeds {s:?}: give A..B (B excluded) or one seed");
+    match s.split_once("..") {
+        Some((a, b)) => {
+            let (a, b) = (a.parse().map_err(|_| bad())?, b.parse().map_err(|_| bad())?);
+            if a >= b {
+                return Err(format!("seeds {s:?}: empty range"));
+            }
+            Ok(a..b)
+        }
+        None => {
+            let a: u64 = s.parse().map_err(|_| bad())?;
+            Ok(a..a.saturating_add(1))
+        }
+    }
+}
+
+/// Virtual deadlines of the simulated cluster: scaled to frames of milliseconds.
+const ACK_DEADLINE: Duration = Duration::from_millis(10);
+
+const HEARTBEAT: Duration = Duration::from_millis(20);
+
+const WORKER_TIMEOUT: Duration = Duration::from_millis(200);
+
+/// A job record's write to the coordinator's store (a redb commit with its fsync).
+const DISK_LATENCY: Duration = Duration::from_millis(2);
+
+impl SimArgs {
+    /// The command that replays `seed` of `schedule` at `workers` alone.
+    fn replay(
+        &self,
+        scene: &std::path::Path,
+        workers: usize,
+        schedule: Schedule,
+        seed: u64,
+    ) -> String {
+        let warm_up = if self.warm_up.is_empty() {
+            String::new()
+        } else {
+            let names: Vec<&str> = self.warm_up.iter().map(|&s| schedule_name(s)).collect();
+            format!(" --warm-up {}", names.join(","))
+        };
+        format!(
+            "rayfarm sim --scene {} --workers {workers} --schedule {}{warm_up} {} --faults --seeds {seed}..{}{}",
+            scene.display(),
+            schedule_name(schedule),
+            self.model.flags(),
+            seed + 1,
+            self.bound_us
+                .map_or(String::new(), |b| format!(" --bound-us {b}"))
+        )
+    }
+}
+
+/// The liveness bound of a faulty run whose clean run took `clean`: twenty clean frames, time
+/// for every deadline to expire twice (the accusation grace is 2 s), and for the workers to
+/// register again after a coordinator crash (their reconnect delay; the crashed coordinator
+/// is down less than a clean frame).
+fn bound(clean: Duration) -> Duration {
+    clean * 20 + (ACK_DEADLINE + WORKER_TIMEOUT + Duration::from_secs(2)) * 2 + RECONNECT
+}
+
+/// How long a clean run may take in virtual time: a day, since a domain charged at a stated
+/// size (`--charge-domain-bytes`) makes frames of simulated hours (at 20 GiB a domain, 4
+/// image-plane workers on a 1.25 GB/s link each take about an hour).
+const CLEAN_BOUND: Duration = Duration::from_secs(24 * 3600);
+
+pub fn run(a: SimArgs) -> anyhow::Result<()> {
+    if let Some(SimCommand::Calibrate(c)) = a.command {
+        return run_calibrate(c);
+    }
+    let Some(scene_dir) = a.scene.clone() else {
+        bail!("--scene is required");
+    };
+    let schedules: Vec<Schedule> = a
+        .schedule
+        .split(',')
+        .map(|s| parse_schedule(s.trim()).map_err(anyhow::Error::msg))
+        .collect::<anyhow::Result<_>>()?;
+    let scene = open_scene(&scene_dir)
+        .map_err(anyhow::Error::msg)
+        .with_context(|| format!("scene {}", scene_dir.display()))?;
+    let domains = scene.manifest.domains.len();
+    let mut csv = match &a.csv {
+        Some(p) => {
+            let mut f =
+                std::fs::File::create(p).with_context(|| format!("creating {}", p.display()))?;
+            writeln!(
+                f,
+                "workers,schedule,seed,faults,virtual_ms,loads,bytes_loaded,segments,rays_migrated,peer_bytes,messages,rounds,planning_ms,wall_seconds,image_hash,violations"
+            )?;
+            Some(f)
+        }
+        None => None,
+    };
+    let storage = a.model.storage();
+    println!(
+        "scene {} ({domains} domains), {}x{}, {} spp, depth {}; storage {}/s aggregate{}, {} us a \
+         domain{}; network {} us, {}/s per NIC",
+        scene_dir.display(),
+        a.model.frame.width,
+        a.model.frame.height,
+        a.model.frame.spp,
+        a.model.frame.depth,
+        units::human(storage.aggregate_bytes_per_second),
+        storage
+            .node_bytes_per_second
+            .map_or(String::new(), |b| format!(
+                ", {}/s per node",
+                units::human(b)
+            )),
+        a.model.storage_latency_us,
+        storage
+            .charge_domain_bytes
+            .map_or(String::new(), |b| format!(
+                "; every domain load CHARGED {} (not its size here)",
+                units::human(b)
+            )),
+        a.model.net_latency_us,
+        units::human(a.model.nic_bandwidth),
+    );
+    if !a.warm_up.is_empty() {
+        let names: Vec<&str> = a.warm_up.iter().map(|&s| schedule_name(s)).collect();
+        println!(
+            "each run renders the frame with {} first, on the same workers (virtual ms: to the \
+             end of the last job)",
+            names.join(", then ")
+        );
+    }
+    println!(
+        "{:<12} {:>7} {:>12} {:>7} {:>12} {:>10} {:>10} {:>12} {:>9} {:>7} {:>8}  image hash",
+        "schedule",
+        "workers",
+        "virtual ms",
+        "loads",
+        "bytes loaded",
+        "segments",
+        "migrated",
+        "peer bytes",
+        "messages",
+        "rounds",
+        "plan %",
+    );
+    let mut failed: Vec<String> = Vec::new();
+    for &workers in &a.workers.0 {
+        for &schedule in &schedules {
+            let config = SimConfig {
+                warm_up: a.warm_up.clone(),
+                ..a.model.config(&scene_dir, workers, schedule)?
+            };
+            let wall = std::time::Instant::now();
+            let clean = simulate(
+                &config,
+                scene.clone(),
+                &FaultPlan::clean(),
+                CLEAN_BOUND,
+                None,
+            )
+            .map_err(anyhow::Error::msg)?;
+            let wall = wall.elapsed().as_secs_f64();
+            print_row(schedule, workers, &clean, wall);
+            if let Some(f) = csv.as_mut() {
+                write_csv(f, workers, schedule, "clean", "none", &clean, wall)?;
+            }
+            if !clean.violations.is_empty() || clean.frame_time.is_none() {
+                for v in &clean.violations {
+                    eprintln!("{}: clean run: {v}", schedule_name(schedule));
+                }
+                failed.push(format!("{} clean run", schedule_name(schedule)));
+                continue;
+            }
+            if !a.faults {
+                continue;
+            }
+            let span = clean.frame_time.unwrap_or_default();
+            let hash = clean.image_hash.clone();
+            let bound = a.bound_us.map_or(bound(span), Duration::from_micros);
+            let runs: Vec<(FaultPlan, Result<Outcome, String>)> = a
+                .seeds
+                .clone()
+                .into_par_iter()
+                .map(|seed| {
+                    let plan = FaultPlan::from_seed(seed, workers, span);
+                    let out = simulate(&config, scene.clone(), &plan, bound, hash.as_deref());
+                    (plan, out)
+                })
+                .collect();
+            let mut summary = Summary::default();
+            for (plan, out) in &runs {
+                let out = out
+                    .as_ref()
+                    .map_err(|e| anyhow::anyhow!("seed {}: {e}", plan.seed))?;
+                summary.add(out, span);
+                if let Some(f) = csv.as_mut() {
+                    write_csv(
+                        f,
+                        workers,
+                        schedule,
+                        &plan.seed.to_string(),
+                        &plan.describe(),
+                        out,
+                        0.0,
+                    )?;
+                }
+                if !out.violations.is_empty() {
+                    eprintln!(
+                        "FAILED seed {} ({}; faults: {}):",
+                        plan.seed,
+                        schedule_name(schedule),
+                        plan.describe()
+                    );
+                    for v in &out.violations {
+                        eprintln!("  {v}");
+                    }
+                    eprintln!(
+                        "  replay: {}",
+                        a.replay(&scene_dir, workers, schedule, plan.seed)
+                    );
+                    failed.push(format!("{} seed {}", schedule_name(schedule), plan.seed));
+                }
+            }
+            summary.print(schedule, &a.seeds);
+        }
+    }
+    // Measurements of this machine go to stderr: stdout is the simulation's, the same for
+    // the same seed to the byte.
+    eprintln!(
+        "peak RSS of this process: {}",
+        units::human(rayfarm_core::render::stats::peak_rss_bytes())
+    );
+    if !failed.is_empty() {
+        bail!("invariants broken: {}", failed.join(", "));
+    }
+    Ok(())
+}

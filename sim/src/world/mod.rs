@@ -1,0 +1,508 @@
+//! The simulation loop: the coordinator and the workers as nodes on the simulated network,
+//! one heap of timed events, faults of a seed applied at their times. A run ends when the
+//! frame is complete and every member's report is in, when the job fails, or at the
+//! liveness bound.
+//!
+//! The parts: [`run`] is what a run is given and what it produced; this module holds the
+//! loop, the coordinator's side and the faults; [`workers`] is the workers' side (their
+//! machines' events and actions, peer bundles and acknowledgements, kills).
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use bytes::Bytes;
+use prost::Message;
+use rayfarm_core::bundler::Tier;
+use rayfarm_core::render::local::FrameSpec;
+use rayfarm_core::scene::Manifest;
+use rayfarm_machine::Time;
+use rayfarm_machine::worker::{self as machine, WorkerConfig};
+use rayfarm_proto::{
+    self as proto, worker_message::Body as FromWorker,
+};
+
+use crate::check::Checks;
+use crate::coord::{CoordConfig, SimCoordinator, ToNode};
+use crate::events::EventHeap;
+use crate::faults::{Fault, FaultPlan, Rng};
+use crate::net::{COORDINATOR, Network, NodeId};
+use crate::node::{PassRun, Scene, SimWorker};
+use crate::storage::SharedStorage;
+
+mod run;
+mod workers;
+
+pub use run::{Kills, MeasuredPass, Outcome, SimConfig};
+
+/// How long a worker whose control stream ended waits before it registers again (the
+/// worker shell backs off from 100 ms to 5 s; one second stands for it here).
+pub const RECONNECT: Duration = Duration::from_secs(1);
+
+/// Most events one run may take (a machine that asks for a timer in the past forever would
+/// otherwise spin at one virtual instant).
+const MAX_EVENTS: u64 = 20_000_000;
+
+/// What travels between nodes. Control-stream messages name their stream (`conn`): each
+/// registration opens a new one, and what was sent on a stream that has ended (the worker was
+/// dropped, or the coordinator died) is for nobody.
+enum Msg {
+    Register(proto::Register, u64),
+    ToCoordinator(FromWorker, u64),
+    Control(proto::CoordinatorMessage, u64),
+    /// The coordinator closed the worker's control stream (or died, or refused it).
+    Closed(u64),
+    /// The worker's process died: its stream ends.
+    StreamEnded(u64),
+    Bundle {
+        sender: String,
+        job_id: String,
+        tier: Tier,
+        batches: Vec<Bytes>,
+        seq: u64,
+    },
+    Ack {
+        from: String,
+        seq: u64,
+    },
+}
+
+enum Ev {
+    Deliver {
+        from: NodeId,
+        to: NodeId,
+        msg: Msg,
+    },
+    PassDone {
+        node: NodeId,
+        job_id: String,
+        run: PassRun,
+    },
+    Tick {
+        node: NodeId,
+    },
+    AckDue {
+        node: NodeId,
+        peer: String,
+        seq: u64,
+    },
+    Heartbeat {
+        node: NodeId,
+    },
+    CoordTick,
+    Kill {
+        node: NodeId,
+    },
+    Join,
+    Reregister {
+        node: NodeId,
+    },
+    /// The coordinator's next job record is on disk.
+    Disk,
+    /// The coordinator's process dies, and a new one starts `down` later.
+    Crash {
+        down: Duration,
+    },
+    Restart,
+}
+
+struct World<'a> {
+    config: &'a SimConfig,
+    scene: Arc<Scene>,
+    now: Time,
+    heap: EventHeap<Ev>,
+    net: Network,
+    storage: SharedStorage,
+    coord: SimCoordinator,
+    /// Index 0 is the coordinator's place; workers from 1.
+    workers: Vec<Option<SimWorker>>,
+    checks: Checks,
+    outcome: Outcome,
+    /// When an `Ev::Disk` is due.
+    disk_at: Option<Time>,
+    /// Control streams opened so far.
+    conns: u64,
+}
+
+/// Opens the scene a simulation reads (once for many runs).
+pub fn open_scene(dir: &std::path::Path) -> Result<Arc<Scene>, String> {
+    let manifest = Manifest::load(dir).map_err(|e| e.to_string())?;
+    Ok(Arc::new(Scene {
+        dir: dir.to_path_buf(),
+        manifest,
+    }))
+}
+
+/// Runs one simulation of `config` over `scene` with the faults of `plan`, ending at `bound`
+/// at the latest. `expected_hash`: the clean run's image, which every job's must equal.
+pub fn simulate(
+    config: &SimConfig,
+    scene: Arc<Scene>,
+    plan: &FaultPlan,
+    bound: Duration,
+    expected_hash: Option<&str>,
+) -> Result<Outcome, String> {
+    // The warm-up jobs, then the measured one: the same frame, each with its schedule.
+    let specs = config
+        .warm_up
+        .iter()
+        .chain([&config.schedule])
+        .map(|&schedule| proto::JobSpec {
+            scene: config.scene.display().to_string(),
+            width: config.width,
+            height: config.height,
+            spp: config.spp,
+            max_depth: config.depth,
+            schedule: schedule as i32,
+            ..Default::default()
+        })
+        .collect();
+    let frame = FrameSpec {
+        width: config.width,
+        height: config.height,
+        spp: config.spp,
+        max_depth: config.depth,
+        camera: None,
+    };
+    frame.check()?;
+    let coord = SimCoordinator::new(CoordConfig {
+        specs,
+        frame,
+        domain_bytes: scene.manifest.domains.iter().map(|d| d.bytes).collect(),
+        workers: config.workers,
+        heartbeat: config.heartbeat,
+        worker_timeout: config.worker_timeout,
+        disk_latency: config.disk_latency,
+        cost: config.cost,
+    })?;
+    let mut world = World {
+        config,
+        scene,
+        now: Time(0),
+        heap: EventHeap::default(),
+        net: Network::new(config.links, plan.jitter, Rng::new(plan.seed ^ 0x5eed)),
+        storage: SharedStorage::new(config.storage),
+        coord,
+        workers: vec![None],
+        checks: Checks::default(),
+        outcome: Outcome::default(),
+        disk_at: None,
+        conns: 0,
+    };
+    for _ in 0..config.workers {
+        world.spawn()?;
+    }
+    world.apply(plan)?;
+    world
+        .heap
+        .push(Time(0) + config.heartbeat / 4, Ev::CoordTick);
+    let bound = Time(0) + bound;
+    let mut ended = false;
+    while let Some((t, ev)) = world.heap.pop() {
+        if t > bound || world.heap.scheduled() > MAX_EVENTS {
+            break;
+        }
+        world.now = t;
+        world.event(ev);
+        world.schedule_disk();
+        if world.coord.is_done() {
+            ended = true;
+            break;
+        }
+    }
+    Ok(world.finish(ended, bound, expected_hash))
+}
+
+impl World<'_> {
+    /// A new worker node; it registers at once.
+    fn spawn(&mut self) -> Result<NodeId, String> {
+        let node = self.workers.len();
+        let id = format!("sim-w{}", node - 1);
+        let address = format!("{id}:7000");
+        let config = WorkerConfig {
+            wave_rays: self.config.wave_rays,
+            pass_rays: self.config.pass_rays,
+            ..WorkerConfig::new(id, address, self.config.cache_bytes)
+        };
+        let w = SimWorker::new(node, config, self.scene.clone(), self.config.caps)?;
+        self.workers.push(Some(w));
+        self.register(node);
+        self.heap
+            .push(self.now + self.config.heartbeat, Ev::Heartbeat { node });
+        Ok(node)
+    }
+
+    fn register(&mut self, node: NodeId) {
+        self.conns += 1;
+        let conn = self.conns;
+        let Some(w) = self.worker_mut(node) else {
+            return;
+        };
+        w.conn = conn;
+        let r = proto::Register {
+            protocol_version: proto::PROTOCOL_VERSION,
+            worker_id: w.id.clone(),
+            peer_address: w.address.clone(),
+            cache_bytes: w.cache_bytes,
+            threads: self.config.cost.threads,
+        };
+        self.send(node, COORDINATOR, Msg::Register(r, conn));
+    }
+
+    /// An `Ev::Disk` at the coordinator's next disk write, if it is sooner than the one due.
+    fn schedule_disk(&mut self) {
+        if let Some(t) = self.coord.next_write()
+            && self.disk_at.is_none_or(|d| t < d)
+        {
+            self.disk_at = Some(t);
+            self.heap.push(t, Ev::Disk);
+        }
+    }
+
+    /// Schedules the plan's faults.
+    fn apply(&mut self, plan: &FaultPlan) -> Result<(), String> {
+        for f in &plan.faults {
+            match *f {
+                Fault::Kill { worker, at } => self.heap.push(at, Ev::Kill { node: worker + 1 }),
+                Fault::Join { at } => self.heap.push(at, Ev::Join),
+                Fault::Delay {
+                    worker,
+                    window,
+                    extra,
+                } => self.net.delay(worker + 1, window, extra),
+                Fault::Partition { a, b, window } => self.net.partition(a + 1, b + 1, window),
+                Fault::StopAcking { worker, at } => {
+                    if let Some(w) = self.worker_mut(worker + 1) {
+                        w.stuck_from = Some(at);
+                    }
+                }
+                Fault::CrashCoordinator { at, down } => self.heap.push(at, Ev::Crash { down }),
+            }
+        }
+        Ok(())
+    }
+
+    fn worker(&self, node: NodeId) -> Option<&SimWorker> {
+        self.workers.get(node)?.as_ref().filter(|w| w.alive)
+    }
+
+    fn worker_mut(&mut self, node: NodeId) -> Option<&mut SimWorker> {
+        self.workers.get_mut(node)?.as_mut().filter(|w| w.alive)
+    }
+
+    fn node_of(&self, address: &str) -> Option<NodeId> {
+        self.workers
+            .iter()
+            .position(|w| w.as_ref().is_some_and(|w| w.address == address))
+    }
+
+    fn send(&mut self, from: NodeId, to: NodeId, msg: Msg) {
+        self.send_at(self.now, from, to, msg);
+    }
+
+    /// Sends `msg` when its sender is done with it at `depart` (not before now).
+    fn send_at(&mut self, depart: Time, from: NodeId, to: NodeId, msg: Msg) {
+        let bytes = match &msg {
+            Msg::Register(r, _) => r.encoded_len(),
+            Msg::ToCoordinator(b, _) => proto::WorkerMessage {
+                body: Some(b.clone()),
+            }
+            .encoded_len(),
+            Msg::Control(m, _) => m.encoded_len(),
+            Msg::Bundle { batches, .. } => batches.iter().map(Bytes::len).sum::<usize>() + 64,
+            Msg::Closed(_) | Msg::StreamEnded(_) | Msg::Ack { .. } => 16,
+        };
+        if let Msg::Bundle { .. } = msg {
+            self.outcome.peer_bytes += bytes as u64;
+        }
+        let at = self.net.arrival(depart.max(self.now), from, to, bytes);
+        self.heap.push(at, Ev::Deliver { from, to, msg });
+    }
+
+    fn event(&mut self, ev: Ev) {
+        match ev {
+            Ev::Deliver { from, to, msg } if to == COORDINATOR => self.at_coordinator(from, msg),
+            Ev::Deliver { from, to, msg } => self.at_worker(from, to, msg),
+            Ev::PassDone { node, job_id, run } => {
+                let Some(w) = self.worker_mut(node) else {
+                    return;
+                };
+                w.pass_until = None;
+                let resident = w.resident();
+                if let Ok(out) = &run.result {
+                    self.outcome.segments += out.counters.segments();
+                    if let Some(cpu_ns) = run.cpu_ns.filter(|_| run.loads == 0) {
+                        self.outcome.measured.push(MeasuredPass {
+                            counters: out.counters,
+                            cpu_ns,
+                        });
+                    }
+                }
+                let result = run.result.map_err(machine::PassFailed::Load);
+                self.feed(
+                    node,
+                    machine::Event::PassFinished {
+                        job_id,
+                        result,
+                        resident,
+                    },
+                );
+            }
+            Ev::Tick { node } => {
+                let now = self.now;
+                let Some(w) = self.worker_mut(node) else {
+                    return;
+                };
+                if w.tick_at != Some(now) {
+                    return;
+                }
+                w.tick_at = None;
+                self.feed(node, machine::Event::Tick);
+            }
+            Ev::AckDue { node, peer, seq } => {
+                let Some(w) = self.worker_mut(node) else {
+                    return;
+                };
+                let Some(link) = w.links.get_mut(&peer) else {
+                    return;
+                };
+                if link.reported || link.owed.front().is_none_or(|&(s, _)| s > seq) {
+                    return;
+                }
+                link.reported = true;
+                let reason = format!("{} bundles unacknowledged", link.owed.len());
+                self.feed(node, machine::Event::PeerUnresponsive { peer, reason });
+            }
+            Ev::Heartbeat { node } => {
+                let Some(w) = self.worker(node) else { return };
+                if !w.disconnected {
+                    let hb = FromWorker::Heartbeat(proto::Heartbeat {
+                        sent_ms: self.now.0 / 1_000_000,
+                        ..Default::default()
+                    });
+                    let conn = w.conn;
+                    self.send(node, COORDINATOR, Msg::ToCoordinator(hb, conn));
+                }
+                self.heap
+                    .push(self.now + self.config.heartbeat, Ev::Heartbeat { node });
+            }
+            Ev::CoordTick => {
+                let out = self.coord.tick(self.now);
+                self.carry_out(out);
+                self.heap
+                    .push(self.now + self.config.heartbeat / 4, Ev::CoordTick);
+            }
+            Ev::Kill { node } => self.kill(node),
+            Ev::Join => {
+                // A failure to make a worker is a simulator bug; the run goes on without it.
+                let _ = self.spawn();
+            }
+            Ev::Reregister { node } => {
+                if let Some(w) = self.worker_mut(node) {
+                    w.disconnected = false;
+                    self.register(node);
+                }
+            }
+            Ev::Disk => {
+                self.disk_at = None;
+                let out = self.coord.disk_done(self.now);
+                self.carry_out(out);
+            }
+            Ev::Crash { down } => {
+                self.outcome.coordinator_crashes += 1;
+                // Its operating system closes its sockets: every worker's stream ends.
+                for (node, conn) in self.coord.crash() {
+                    self.send(COORDINATOR, node, Msg::Closed(conn));
+                }
+                self.heap.push(self.now + down, Ev::Restart);
+            }
+            Ev::Restart => {
+                let out = self.coord.restart(self.now);
+                self.carry_out(out);
+            }
+        }
+    }
+
+    fn at_coordinator(&mut self, from: NodeId, msg: Msg) {
+        let now = self.now;
+        let out = match msg {
+            Msg::Register(r, conn) => self.coord.register(now, from, conn, r),
+            Msg::ToCoordinator(body, conn) => self.coord.message(now, from, conn, body),
+            Msg::StreamEnded(conn) => self.coord.gone(now, from, conn),
+            _ => Vec::new(),
+        };
+        for &(frame, tile, at) in &self.coord.commits[self.checks.commits_seen..] {
+            self.checks.commit(frame, tile, at);
+        }
+        self.checks.commits_seen = self.coord.commits.len();
+        self.carry_out(out);
+    }
+
+    /// Sends what the coordinator answered, once it is done planning (it handles one thing
+    /// at a time, so what it sends leaves when all it was given so far is done).
+    fn carry_out(&mut self, out: Vec<ToNode>) {
+        let depart = self.coord.free_at;
+        for o in out {
+            match o {
+                ToNode::Send(node, conn, m) => {
+                    self.send_at(depart, COORDINATOR, node, Msg::Control(*m, conn))
+                }
+                ToNode::Close(node, conn) => {
+                    self.send_at(depart, COORDINATOR, node, Msg::Closed(conn))
+                }
+            }
+        }
+    }
+
+    fn finish(mut self, ended: bool, bound: Time, expected_hash: Option<&str>) -> Outcome {
+        let mut o = std::mem::take(&mut self.outcome);
+        o.events = self.heap.scheduled();
+        o.messages = self.net.messages;
+        o.rounds = self.coord.rounds;
+        o.frame_time = self.coord.completed_at.map(|t| t.since(Time(0)));
+        o.frames = self.coord.frames;
+        o.coordinator_busy = self.coord.busy;
+        o.storage_bytes = self.storage.bytes;
+        for p in &self.coord.problems {
+            self.checks.violation("worker error", p.clone());
+        }
+        if let Some(e) = &self.coord.failed {
+            self.checks.violation("job failed", e.clone());
+        }
+        o.jobs = self.coord.job_ids.len() as u64;
+        if o.frame_time.is_none() || !self.coord.all_written() {
+            let why = if ended {
+                "the job ended without its image".to_string()
+            } else if o.events > MAX_EVENTS {
+                format!("more than {MAX_EVENTS} events without completing")
+            } else {
+                format!(
+                    "not complete at the bound of {:.3} s virtual",
+                    bound.0 as f64 / 1e9
+                )
+            };
+            self.checks.violation("liveness", why);
+        } else {
+            // Every job renders the same frame: each image must be the clean run's, or, in
+            // the clean run, the first job's.
+            let mut want = expected_hash.map(str::to_string);
+            for (i, id) in self.coord.job_ids.iter().enumerate() {
+                match &self.coord.images[id] {
+                    Ok(h) => {
+                        match &want {
+                            Some(w) if w != h => self.checks.violation(
+                                "image",
+                                format!("job {} of {}: image hash {h}, expected {w}", i + 1, o.jobs),
+                            ),
+                            Some(_) => {}
+                            None => want = Some(h.clone()),
+                        }
+                        o.image_hash = Some(h.clone());
+                    }
+                    Err(e) => self.checks.violation("image", e.clone()),
+                }
+            }
+        }
+        o.violations = self.checks.into_violations();
+        o
+    }
+}
