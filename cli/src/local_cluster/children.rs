@@ -12,7 +12,6 @@ use tokio::io::{AsyncBufReadExt, BufReader};
 use tokio::process::{Child, ChildStdout, Command};
 use tokio::time::{Instant, timeout_at};
 
-
 /// What a process prints on stdout, alone on a line, once its gRPC server is bound.
 const LISTENING: &str = "listening on ";
 

@@ -246,11 +246,7 @@ fn wanted(s: &ClusterState) -> BTreeSet<DomainId> {
     s.wanted().map(|(dom, _)| dom).collect()
 }
 
-fn check_worker(
-    s: &ClusterState,
-    w: &WorkerState,
-    p: &WorkerPlan,
-) -> Result<(), TestCaseError> {
+fn check_worker(s: &ClusterState, w: &WorkerState, p: &WorkerPlan) -> Result<(), TestCaseError> {
     let wanted = wanted(s);
     prop_assert_eq!(w.id, p.worker);
     prop_assert!(p.work().count() <= w.capacity, "too many domains");

@@ -130,7 +130,6 @@ pub enum SecurityError {
     Tls(String),
 }
 
-
 fn read(path: &Path, what: &'static str) -> Result<Vec<u8>, SecurityError> {
     std::fs::read(path).map_err(|reason| SecurityError::Read {
         what,

@@ -127,7 +127,6 @@ impl ConnectTlsArgs {
     }
 }
 
-
 fn certificate(path: &Path, what: &'static str) -> Result<Certificate, SecurityError> {
     read_pem(path, what).map(Certificate::from_pem)
 }

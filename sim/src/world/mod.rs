@@ -17,9 +17,7 @@ use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::scene::Manifest;
 use rayfarm_machine::Time;
 use rayfarm_machine::worker::{self as machine, WorkerConfig};
-use rayfarm_proto::{
-    self as proto, worker_message::Body as FromWorker,
-};
+use rayfarm_proto::{self as proto, worker_message::Body as FromWorker};
 
 use crate::check::Checks;
 use crate::coord::{CoordConfig, SimCoordinator, ToNode};
@@ -491,7 +489,11 @@ impl World<'_> {
                         match &want {
                             Some(w) if w != h => self.checks.violation(
                                 "image",
-                                format!("job {} of {}: image hash {h}, expected {w}", i + 1, o.jobs),
+                                format!(
+                                    "job {} of {}: image hash {h}, expected {w}",
+                                    i + 1,
+                                    o.jobs
+                                ),
                             ),
                             Some(_) => {}
                             None => want = Some(h.clone()),

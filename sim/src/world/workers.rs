@@ -2,14 +2,11 @@
 //! bundles, finished passes) and its actions carried out (messages, bundles with their
 //! acknowledgements, passes on the real kernel, cache changes, reports), and a worker killed.
 
-
 use bytes::Bytes;
 use rayfarm_core::bundler::Tier;
 use rayfarm_core::wire::{self, BatchLimits};
 use rayfarm_machine::worker::{self as machine, Action, Payload};
-use rayfarm_proto::{
-    self as proto, coordinator_message::Body, worker_message::Body as FromWorker,
-};
+use rayfarm_proto::{self as proto, coordinator_message::Body, worker_message::Body as FromWorker};
 
 use crate::net::{COORDINATOR, NodeId};
 

@@ -27,8 +27,7 @@ use rayfarm_node::security::ClientSecurity;
 use crate::bench::csv_out::Setup;
 use crate::client::{ClientAuthArgs, runtime};
 use crate::local_cluster::{
-    ClusterConfig, Interrupted, JobInFlight, interruptible,
-    threads_per_worker, with_local_cluster,
+    ClusterConfig, Interrupted, JobInFlight, interruptible, threads_per_worker, with_local_cluster,
 };
 use crate::units::{self};
 

@@ -1,7 +1,6 @@
 //! The bench's report: the table of medians against the bound, the image check, the failures,
 //! the CSV of every run and the chart.
 
-
 use anyhow::bail;
 
 use crate::bench::csv_out::{Setup, write_runs_file};
@@ -14,7 +13,12 @@ use super::*;
 
 /// Prints the table, the bound, the image check and the failures; writes the CSV and the
 /// chart. An error if every run failed or the images differ.
-pub(super) fn report(a: &BenchArgs, plan: &Plan, runs: &[RunOutcome], setup: &Setup) -> anyhow::Result<()> {
+pub(super) fn report(
+    a: &BenchArgs,
+    plan: &Plan,
+    runs: &[RunOutcome],
+    setup: &Setup,
+) -> anyhow::Result<()> {
     let summaries = summarize(&plan.names(), runs);
     let bandwidth = a
         .storage_bandwidth

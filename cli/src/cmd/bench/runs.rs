@@ -8,9 +8,9 @@ use rayfarm_core::cluster::stats::ClusterStats;
 use rayfarm_node::proto;
 use rayfarm_node::security::ClientSecurity;
 
-use crate::cmd::watch::{ended_ok, follow, parse_stats};
 use crate::bench::{RunOutcome, run_order};
 use crate::client::Coordinator;
+use crate::cmd::watch::{ended_ok, follow, parse_stats};
 use crate::local_cluster::JobInFlight;
 use crate::units::human;
 

@@ -9,7 +9,6 @@ use rayfarm_node::job::parse_schedule;
 use rayfarm_sim::calibrate::calibrate;
 use rayfarm_sim::world::open_scene;
 
-
 use super::ModelArgs;
 
 /// Options of `rayfarm sim calibrate`.
