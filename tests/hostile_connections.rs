@@ -6,17 +6,13 @@
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use rayfarm_node::proto;
-use rayfarm_node::proto::job_service_client::JobServiceClient;
-use rayfarm_tests::hostile::{
-    HOSTILE_IP, PREFACE_BYTES, frame, hostile_connect, hpack_literal, runtime,
-};
+use rayfarm_tests::hostile::{PREFACE_BYTES, frame, hostile_connect, runtime};
 use rayfarm_tests::{
-    Cluster, ClusterOpts, WorkerOpts, bin, certs, hash_of, local_hash, prepare_nbody,
-    proc_status_bytes, s, stats_field, submit_wait, wait_child, wait_until,
+    Cluster, ClusterOpts, WorkerOpts, bin, certs, hash_of, local_hash, prepare_nbody, s,
+    submit_wait, wait_child,
 };
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::net::{TcpSocket, TcpStream};
+use tokio::net::TcpStream;
 
 #[test]
 fn only_loopback_is_served_without_protection_unless_insecure() {

@@ -5,17 +5,10 @@
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use rayfarm_node::proto;
-use rayfarm_node::proto::job_service_client::JobServiceClient;
-use rayfarm_tests::hostile::{
-    HOSTILE_IP, PREFACE_BYTES, frame, hostile_connect, hpack_literal, runtime,
-};
 use rayfarm_tests::{
-    Cluster, ClusterOpts, WorkerOpts, bin, certs, hash_of, local_hash, prepare_nbody,
-    proc_status_bytes, s, stats_field, submit_wait, wait_child, wait_until,
+    Cluster, WorkerOpts, bin, hash_of, local_hash, prepare_nbody, s, stats_field, submit_wait,
+    wait_child, wait_until,
 };
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::net::{TcpSocket, TcpStream};
 
 const FRAME: [&str; 8] = [
     "--width", "48", "--height", "32", "--spp", "1", "--depth", "2",

@@ -2,20 +2,17 @@
 //! HTTP/2 streams and result fetches that are never read. Each time a legitimate client keeps
 //! being served and the coordinator's memory (VmRSS) stays within a stated bound.
 
-use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use rayfarm_node::proto;
 use rayfarm_node::proto::job_service_client::JobServiceClient;
-use rayfarm_tests::hostile::{
-    HOSTILE_IP, PREFACE_BYTES, frame, hostile_connect, hpack_literal, runtime,
-};
+use rayfarm_tests::hostile::{PREFACE_BYTES, frame, hostile_connect, hpack_literal, runtime};
 use rayfarm_tests::{
-    Cluster, ClusterOpts, WorkerOpts, bin, certs, hash_of, local_hash, prepare_nbody,
-    proc_status_bytes, s, stats_field, submit_wait, wait_child, wait_until,
+    Cluster, WorkerOpts, hash_of, local_hash, prepare_nbody, proc_status_bytes, s, stats_field,
+    submit_wait, wait_until,
 };
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::net::{TcpSocket, TcpStream};
+use tokio::net::TcpStream;
 
 /// Opens `streams` CancelJob requests on one connection, each with headers and no body (never
 /// finished), reading everything the server sends; returns the number of RST_STREAM and

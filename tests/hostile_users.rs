@@ -1,20 +1,9 @@
 //! Hostile nodes and users: a node registering with another worker's peer address, a user
 //! cancelling another's jobs or past their quotas.
 
-use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
-
 use rayfarm_node::proto;
-use rayfarm_node::proto::job_service_client::JobServiceClient;
-use rayfarm_tests::hostile::{
-    HOSTILE_IP, PREFACE_BYTES, frame, hostile_connect, hpack_literal, runtime,
-};
-use rayfarm_tests::{
-    Cluster, ClusterOpts, WorkerOpts, bin, certs, hash_of, local_hash, prepare_nbody,
-    proc_status_bytes, s, stats_field, submit_wait, wait_child, wait_until,
-};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::net::{TcpSocket, TcpStream};
+use rayfarm_tests::hostile::runtime;
+use rayfarm_tests::{Cluster, ClusterOpts, WorkerOpts, prepare_nbody, s};
 
 /// A node with the cluster credentials (none configured here: loopback) attaches as a worker.
 async fn fake_worker(

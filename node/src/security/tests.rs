@@ -1,5 +1,6 @@
 use tonic::Request;
 use tonic::service::Interceptor;
+use tonic::transport::ClientTlsConfig;
 
 use super::*;
 
