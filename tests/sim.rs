@@ -125,3 +125,29 @@ fn predictive_fault_seeds_with_coordinator_crashes_keep_every_invariant() {
     assert!(out.contains("200 runs, 0 failed"), "{out}");
     assert!(!out.contains(" 0 coordinator crashes"), "{out}");
 }
+
+#[test]
+fn domain_schedule_after_a_warm_up_frame_keeps_every_invariant() {
+    let root = tempfile::tempdir().unwrap();
+    let scene = prepare_nbody(root.path(), "nb", 5_000, 4);
+    let expected = local_hash(&scene, &FRAME);
+    // An image-plane frame first maps every domain on every worker, so the domain job starts
+    // with domains mapped that other workers own. A real frame hung this way (the first pass
+    // ended before the owners' plan came, and its rays for domains mapped here but owned
+    // elsewhere were traced by no one; `Plan::forwards`); with that fix reverted, 31 of these 200 seeds hang (liveness),
+    // among them 4, 9, 11, 42 and 50.
+    let out = sim(
+        &scene,
+        &[
+            "--schedule",
+            "domain",
+            "--warm-up",
+            "image-plane",
+            "--faults",
+            "--seeds",
+            "0..200",
+        ],
+    );
+    assert_eq!(hash_of_row(&out, "domain"), expected, "{out}");
+    assert!(out.contains("200 runs, 0 failed"), "{out}");
+}

@@ -123,7 +123,7 @@ impl RaySink for Sink {
         sum.credit += ray.credit;
         // Fixed point per contribution, exactly as the local film does, so sums agree.
         // The pixel is named even when it adds no light: the coordinator refuses credit
-        // beyond what the named pixels' rays can hold (`FrameLedger::with_samples`).
+        // beyond what the named pixels' rays can hold (`TileLedger::with_samples`).
         let fixed = rgb.map(to_fixed);
         add_fixed(sum.pixels.entry(ray.pixel).or_default(), &fixed);
     }

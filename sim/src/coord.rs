@@ -5,6 +5,10 @@
 //! process can crash (the machine, its films and the writes not yet on disk are gone, every
 //! worker's stream ends) and restart from the records on disk, as the real one does. It
 //! records what the invariants need: every tile committed, by frame, and when.
+//!
+//! The jobs of a run are submitted one after another, each once the one before has its
+//! results written, as a user's script does: the workers render them with the caches and
+//! machines the frames before left them.
 
 use std::collections::{BTreeMap, VecDeque};
 use std::time::Duration;
@@ -32,10 +36,11 @@ pub enum ToNode {
 
 /// How the simulated coordinator is set up.
 pub struct CoordConfig {
-    pub spec: proto::JobSpec,
+    /// The jobs submitted, in order (never empty).
+    pub specs: Vec<proto::JobSpec>,
     pub frame: FrameSpec,
     pub domain_bytes: Vec<u64>,
-    /// The job is submitted once this many workers registered.
+    /// The first job is submitted once this many workers registered.
     pub workers: usize,
     pub heartbeat: Duration,
     pub worker_timeout: Duration,
@@ -73,9 +78,11 @@ pub struct SimCoordinator {
     disk: Disk,
     film_dir: tempfile::TempDir,
     /// Registrations tried so far (refused ones and ones that found the coordinator dead
-    /// included): the job is submitted at the `workers`-th, or when the coordinator is back.
+    /// included): the first job is submitted at the `workers`-th, or when the coordinator is
+    /// back.
     registrations: usize,
-    pub job_id: Option<String>,
+    /// The jobs submitted so far, in order.
+    pub job_ids: Vec<String>,
     /// Frames started so far (a restarted or re-queued job starts another).
     pub frames: u64,
     /// Every tile committed, in order: (frame, tile, when). A tile twice in one frame is a
@@ -83,8 +90,9 @@ pub struct SimCoordinator {
     pub commits: Vec<(u64, u32, Time)>,
     /// When the latest frame was complete.
     pub completed_at: Option<Time>,
-    /// The image of the frame whose results were written.
-    pub image_hash: Option<Result<String, String>>,
+    /// By job: the image of its frame whose results were written last (a job restored after
+    /// a crash may write them again).
+    pub images: BTreeMap<String, Result<String, String>>,
     /// Why the job failed, if it did.
     pub failed: Option<String>,
     /// What went wrong that no healthy run does (a worker's error, impossible results).
@@ -108,11 +116,11 @@ impl SimCoordinator {
             disk: Disk::default(),
             film_dir,
             registrations: 0,
-            job_id: None,
+            job_ids: Vec::new(),
             frames: 0,
             commits: Vec::new(),
             completed_at: None,
-            image_hash: None,
+            images: BTreeMap::new(),
             failed: None,
             problems: Vec::new(),
             rounds: 0,
@@ -181,9 +189,15 @@ impl SimCoordinator {
         self.process.is_some()
     }
 
-    /// Whether the job is over: its results written, or failed.
+    /// Whether the run is over: every job's results written, or one failed.
     pub fn is_done(&self) -> bool {
-        self.image_hash.is_some() || self.failed.is_some()
+        self.failed.is_some() || self.all_written()
+    }
+
+    /// Whether every job was submitted and has its results written.
+    pub fn all_written(&self) -> bool {
+        self.job_ids.len() == self.config.specs.len()
+            && self.job_ids.iter().all(|id| self.images.contains_key(id))
     }
 
     /// When the next record reaches the disk.
@@ -238,25 +252,31 @@ impl SimCoordinator {
         out
     }
 
-    /// The job is submitted once the first workers tried to register (some may have died
-    /// since, or found the coordinator dead), as a user submits to a running cluster, or
-    /// once the coordinator is back if it was down then (the client tries again); it is on
-    /// disk before the reply, as the shell waits for it.
+    /// The first job is submitted once the first workers tried to register (some may have
+    /// died since, or found the coordinator dead), as a user submits to a running cluster,
+    /// and each next one once the one before has its results written; or once the
+    /// coordinator is back if it was down then (the client tries again). A job is on disk
+    /// before the reply, as the shell waits for it.
     fn submit_when_due(&mut self, now: Time) -> Vec<ToNode> {
-        if self.registrations < self.config.workers || self.job_id.is_some() {
+        let next = self.job_ids.len();
+        if self.registrations < self.config.workers
+            || next == self.config.specs.len()
+            || self.job_ids.iter().any(|id| !self.images.contains_key(id))
+        {
             return Vec::new();
         }
         let Some(p) = self.process.as_mut() else {
             return Vec::new();
         };
         let cost = u64::from(self.config.frame.width) * u64::from(self.config.frame.height);
-        let Ok(record) = p.machine.submit(now, self.config.spec.clone(), cost, "") else {
+        let spec = self.config.specs[next].clone();
+        let Ok(record) = p.machine.submit(now, spec, cost, "") else {
             self.problems.push("the job was refused".into());
             return Vec::new();
         };
         let id = record.id().to_string();
         self.disk.stored.insert(id.clone(), record);
-        self.job_id = Some(id.clone());
+        self.job_ids.push(id.clone());
         self.feed(
             now,
             Input::Recorded {
@@ -313,6 +333,7 @@ impl SimCoordinator {
     fn carry_out(&mut self, now: Time, actions: Vec<Action>) -> Vec<ToNode> {
         let mut todo: VecDeque<Action> = actions.into();
         let mut out = Vec::new();
+        let mut written = false;
         while let Some(action) = todo.pop_front() {
             let Some(p) = self.process.as_mut() else {
                 break;
@@ -394,7 +415,8 @@ impl SimCoordinator {
                         .and_then(|f| f.hash().map_err(|e| e.to_string()))
                         .map(|h| format!("{h:016x}"));
                     let result = hash.clone().map(|h| ("{}".to_string(), h));
-                    self.image_hash = Some(hash);
+                    self.images.insert(job_id.clone(), hash);
+                    written = true;
                     Some(Input::ResultsWritten { job_id, result })
                 }
                 Action::Tally(Tally::FrameCommitted) => {
@@ -418,6 +440,9 @@ impl SimCoordinator {
             {
                 todo.extend(p.machine.handle(now, input));
             }
+        }
+        if written {
+            out.extend(self.submit_when_due(now));
         }
         out
     }

@@ -3,7 +3,7 @@
 //! Every tile owns a fixed integer credit, [`TILE_CREDIT`]. Its primary rays share it
 //! ([`primary_credit`]); a ray that spawns children hands its credit on to them
 //! ([`split_credit`], [`split_path_credit`]); a ray that retires sends its credit back with its
-//! pixel sums in one message. The coordinator's [`FrameLedger`](super::ledger::FrameLedger) commits a tile once all of its
+//! pixel sums in one message. The coordinator's [`TileLedger`](super::ledger::TileLedger) commits a tile once all of its
 //! credit is back. Credit is only ever split, never created, so the returned total can reach
 //! [`TILE_CREDIT`] only after every ray of the tile has retired and reported.
 //!

@@ -50,7 +50,7 @@ pub enum Reject {
         tile_credit: u64,
     },
     /// More credit than the pixels the result names can hold: credit without the sums it
-    /// stands for (see [`FrameLedger::with_samples`]).
+    /// stands for (see [`TileLedger::with_samples`]).
     Uncovered {
         /// The tile named.
         tile: u32,
@@ -129,7 +129,7 @@ struct TileState {
 /// Sums are added with wrapping integer arithmetic: it is associative and commutative, so the
 /// committed sums do not depend on the order results arrive in.
 #[derive(Clone, Debug, PartialEq, Eq)]
-pub struct FrameLedger {
+pub struct TileLedger {
     grid: TileGrid,
     tile_credit: u64,
     tiles: Vec<TileState>,
@@ -138,7 +138,7 @@ pub struct FrameLedger {
     spp: Option<u32>,
 }
 
-impl FrameLedger {
+impl TileLedger {
     /// A ledger with every tile at epoch 0 and nothing returned.
     ///
     /// # Panics

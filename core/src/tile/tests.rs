@@ -120,7 +120,7 @@ fn grid_rejects_degenerate_sizes() {
 
 #[test]
 fn tile_completes_when_all_credit_is_back() {
-    let mut l = FrameLedger::new(grid(), 10);
+    let mut l = TileLedger::new(grid(), 10);
     assert_eq!(l.accept(0, 0, 4, &[(0, [1, 2, 3])]), Ok(Accept::Pending));
     assert!(!l.is_tile_done(0));
     assert_eq!(l.accept(0, 0, 6, &[(0, [1, 0, 0])]), Ok(Accept::Completed));
@@ -131,7 +131,7 @@ fn tile_completes_when_all_credit_is_back() {
 
 #[test]
 fn frame_completes_when_every_tile_does() {
-    let mut l = FrameLedger::new(grid(), 1);
+    let mut l = TileLedger::new(grid(), 1);
     for tile in 0..6 {
         assert!(!l.is_complete());
         assert_eq!(l.accept(tile, 0, 1, &[]), Ok(Accept::Completed));
@@ -142,7 +142,7 @@ fn frame_completes_when_every_tile_does() {
 
 #[test]
 fn stale_results_are_ignored() {
-    let mut l = FrameLedger::new(grid(), 10);
+    let mut l = TileLedger::new(grid(), 10);
     l.accept(1, 0, 3, &[(2, [5, 5, 5])]).unwrap();
     assert_eq!(l.bump(&[1]), [(1, 1)]);
     let before = l.clone();
@@ -157,7 +157,7 @@ fn stale_results_are_ignored() {
 
 #[test]
 fn malformed_results_leave_the_ledger_unchanged() {
-    let mut l = FrameLedger::new(grid(), 10);
+    let mut l = TileLedger::new(grid(), 10);
     l.accept(0, 0, 9, &[(0, [1, 1, 1])]).unwrap();
     let before = l.clone();
     let cases = [
@@ -181,7 +181,7 @@ fn malformed_results_leave_the_ledger_unchanged() {
 
 #[test]
 fn committed_tile_refuses_more_credit() {
-    let mut l = FrameLedger::new(grid(), 1);
+    let mut l = TileLedger::new(grid(), 1);
     l.accept(0, 0, 1, &[]).unwrap();
     assert!(matches!(
         l.accept(0, 0, 1, &[]),
@@ -191,7 +191,7 @@ fn committed_tile_refuses_more_credit() {
 
 #[test]
 fn bump_resets_unfinished_and_spares_finished() {
-    let mut l = FrameLedger::new(grid(), 10);
+    let mut l = TileLedger::new(grid(), 10);
     l.accept(0, 0, 10, &[(0, [1, 1, 1])]).unwrap();
     l.accept(1, 0, 4, &[(2, [2, 2, 2])]).unwrap();
     assert_eq!(l.bump(&[1, 0, 1, 99]), [(1, 1)]);
@@ -206,7 +206,7 @@ fn bump_resets_unfinished_and_spares_finished() {
 
 #[test]
 fn taken_sums_leave_the_ledger_once() {
-    let mut l = FrameLedger::new(grid(), 2);
+    let mut l = TileLedger::new(grid(), 2);
     l.accept(0, 0, 1, &[(0, [1, 2, 3])]).unwrap();
     assert!(l.take_sums(0).is_empty(), "not committed yet");
     l.accept(0, 0, 1, &[(1, [4, 5, 6])]).unwrap();
@@ -218,7 +218,7 @@ fn taken_sums_leave_the_ledger_once() {
 
 #[test]
 fn image_sums_hold_only_committed_tiles() {
-    let mut l = FrameLedger::new(grid(), 10);
+    let mut l = TileLedger::new(grid(), 10);
     l.accept(0, 0, 5, &[(0, [1, 1, 1])]).unwrap();
     assert!(l.image_sums().iter().all(|s| *s == [0; 3]));
 }
@@ -253,7 +253,7 @@ fn credit_beyond_what_the_named_pixels_hold_is_refused() {
     // 2x1 pixels in one tile, 2 samples: 4 primary rays of 10 credit each (41 in all,
     // the first ray takes the remainder 1).
     let g = TileGrid::new(2, 1, 2).unwrap();
-    let mut l = FrameLedger::new(g, 41).with_samples(2);
+    let mut l = TileLedger::new(g, 41).with_samples(2);
     let forged = l.accept(0, 0, 41, &[]);
     assert_eq!(
         forged,
@@ -347,7 +347,7 @@ fn trace_tile(g: &TileGrid, tile: u32, epoch: u32, spp: u32, seed: u64) -> Vec<M
 
 /// Delivers `msgs` in order, checking each verdict: stale exactly when its epoch is old,
 /// and a tile completes on its last current-epoch message and not a moment before.
-fn deliver(l: &mut FrameLedger, msgs: &[Msg], pending: &mut [usize]) {
+fn deliver(l: &mut TileLedger, msgs: &[Msg], pending: &mut [usize]) {
     for m in msgs {
         let current = l.epoch(m.tile).unwrap();
         let expected = if m.epoch < current {
@@ -365,7 +365,7 @@ fn deliver(l: &mut FrameLedger, msgs: &[Msg], pending: &mut [usize]) {
 }
 
 /// Number of messages per tile that belong to the tile's current epoch.
-fn current_counts(l: &FrameLedger, msgs: &[Msg]) -> Vec<usize> {
+fn current_counts(l: &TileLedger, msgs: &[Msg]) -> Vec<usize> {
     let mut counts = vec![0; l.grid().count() as usize];
     for m in msgs.iter().filter(|m| Some(m.epoch) == l.epoch(m.tile)) {
         counts[m.tile as usize] += 1;
@@ -382,7 +382,7 @@ fn trace_frame(g: &TileGrid, spp: u32, seed: u64) -> Vec<Msg> {
 fn clean_run(g: TileGrid, spp: u32, seed: u64, order: &mut Rng) -> Vec<[i64; 3]> {
     let mut msgs = trace_frame(&g, spp, seed);
     order.shuffle(&mut msgs);
-    let mut l = FrameLedger::new(g, TILE_CREDIT).with_samples(spp);
+    let mut l = TileLedger::new(g, TILE_CREDIT).with_samples(spp);
     let mut pending = current_counts(&l, &msgs);
     deliver(&mut l, &msgs, &mut pending);
     assert!(l.is_complete());
@@ -404,7 +404,7 @@ proptest! {
         // Epoch 0 is cut short by a fault after a random prefix.
         let mut first = trace_frame(&g, spp, seed);
         order.shuffle(&mut first);
-        let mut l = FrameLedger::new(g, TILE_CREDIT).with_samples(spp);
+        let mut l = TileLedger::new(g, TILE_CREDIT).with_samples(spp);
         let mut pending = current_counts(&l, &first);
         let cut = first.len() * cut_permille as usize / 1000;
         deliver(&mut l, &first[..cut], &mut pending);
@@ -450,7 +450,7 @@ proptest! {
     ) {
         let g = grid();
         let tile = g.tile_of(pixel).unwrap();
-        let mut l = FrameLedger::new(g, 1000);
+        let mut l = TileLedger::new(g, 1000);
         let first = first.min(999);
         l.accept(tile, 0, first, &[(pixel, [1, 2, 3])]).unwrap();
         let before = l.clone();

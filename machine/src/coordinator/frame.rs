@@ -20,7 +20,7 @@ use rayfarm_core::schedule::rounds;
 use rayfarm_core::schedule::static_plans::{domain_owner, image_plane_share};
 use rayfarm_core::schedule::tiles::{HandOuts, strided_share};
 use rayfarm_core::tile::credit::TILE_CREDIT;
-use rayfarm_core::tile::ledger::{Accept, FrameLedger};
+use rayfarm_core::tile::ledger::{Accept, TileLedger};
 use rayfarm_core::tile::{TILE_SIZE, TileGrid};
 use rayfarm_proto::{self as proto, Schedule, coordinator_message::Body};
 use tracing::{debug, info};
@@ -98,7 +98,7 @@ pub struct RunningFrame {
     pub spec: proto::JobSpec,
     pub frame: FrameSpec,
     domain_bytes: Vec<u64>,
-    pub ledger: FrameLedger,
+    pub ledger: TileLedger,
     pub round: u64,
     members: BTreeMap<u32, Member>,
     /// The members' figures for asynchronous rounds, updated whenever a member's report, plan
@@ -175,7 +175,7 @@ impl RunningFrame {
             spec,
             frame,
             domain_bytes,
-            ledger: FrameLedger::new(grid, TILE_CREDIT).with_samples(subframes[0].count),
+            ledger: TileLedger::new(grid, TILE_CREDIT).with_samples(subframes[0].count),
             round: 0,
             members: BTreeMap::new(),
             index,

@@ -9,7 +9,7 @@
 
 use rayfarm_core::progressive::{Progressive, Samples};
 use rayfarm_core::tile::credit::TILE_CREDIT;
-use rayfarm_core::tile::ledger::FrameLedger;
+use rayfarm_core::tile::ledger::TileLedger;
 use rayfarm_proto as proto;
 use tracing::info;
 
@@ -82,7 +82,7 @@ impl RunningFrame {
         let floor = self.epoch_floor();
         self.subframe += 1;
         let grid = *self.ledger.grid();
-        self.ledger = FrameLedger::new(grid, TILE_CREDIT)
+        self.ledger = TileLedger::new(grid, TILE_CREDIT)
             .with_samples(self.samples().count)
             .starting_at(floor);
         self.rounds_before += self.round;

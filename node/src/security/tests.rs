@@ -1,3 +1,7 @@
+use tonic::Request;
+use tonic::service::Interceptor;
+use tonic::transport::ClientTlsConfig;
+
 use super::*;
 
 fn file(text: &str) -> tempfile::NamedTempFile {

@@ -2,8 +2,11 @@
 //! one heap of timed events, faults of a seed applied at their times. A run ends when the
 //! frame is complete and every member's report is in, when the job fails, or at the
 //! liveness bound.
+//!
+//! The parts: [`run`] is what a run is given and what it produced; this module holds the
+//! loop, the coordinator's side and the faults; [`workers`] is the workers' side (their
+//! machines' events and actions, peer bundles and acknowledgements, kills).
 
-use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -12,21 +15,22 @@ use prost::Message;
 use rayfarm_core::bundler::Tier;
 use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::scene::Manifest;
-use rayfarm_core::wire::{self, BatchLimits};
 use rayfarm_machine::Time;
-use rayfarm_machine::worker::{self as machine, Action, Payload, WorkerConfig};
-use rayfarm_proto::{
-    self as proto, Schedule, coordinator_message::Body, worker_message::Body as FromWorker,
-};
+use rayfarm_machine::worker::{self as machine, WorkerConfig};
+use rayfarm_proto::{self as proto, worker_message::Body as FromWorker};
 
-use crate::check::{Checks, Violation};
+use crate::check::Checks;
 use crate::coord::{CoordConfig, SimCoordinator, ToNode};
-use crate::cost::CostModel;
 use crate::events::EventHeap;
 use crate::faults::{Fault, FaultPlan, Rng};
-use crate::net::{COORDINATOR, LinkModel, Network, NodeId};
-use crate::node::{PassRun, QueueCaps, Scene, SimWorker};
-use crate::storage::{SharedStorage, StorageModel};
+use crate::net::{COORDINATOR, Network, NodeId};
+use crate::node::{PassRun, Scene, SimWorker};
+use crate::storage::SharedStorage;
+
+mod run;
+mod workers;
+
+pub use run::{Kills, MeasuredPass, Outcome, SimConfig};
 
 /// How long a worker whose control stream ended waits before it registers again (the
 /// worker shell backs off from 100 ms to 5 s; one second stands for it here).
@@ -35,86 +39,6 @@ pub const RECONNECT: Duration = Duration::from_secs(1);
 /// Most events one run may take (a machine that asks for a timer in the past forever would
 /// otherwise spin at one virtual instant).
 const MAX_EVENTS: u64 = 20_000_000;
-
-/// What to simulate.
-#[derive(Clone, Debug)]
-pub struct SimConfig {
-    pub scene: PathBuf,
-    pub workers: usize,
-    pub schedule: Schedule,
-    pub width: u32,
-    pub height: u32,
-    pub spp: u32,
-    pub depth: u32,
-    pub cache_bytes: u64,
-    /// Camera rays are issued while fewer than this many rays are queued on a worker.
-    pub wave_rays: usize,
-    /// Most rays a worker traces in one pass.
-    pub pass_rays: usize,
-    pub links: LinkModel,
-    pub cost: CostModel,
-    pub storage: StorageModel,
-    /// Measure each pass's CPU time on this machine (`calibrate`; the virtual times do not
-    /// depend on it).
-    pub measure: bool,
-    pub caps: QueueCaps,
-    /// A peer that acknowledges nothing for this long is reported unresponsive.
-    pub ack_deadline: Duration,
-    /// How long one job record takes to reach the coordinator's disk.
-    pub disk_latency: Duration,
-    pub heartbeat: Duration,
-    pub worker_timeout: Duration,
-    /// The predictive schedule's speculation setting (`JobSpec.speculation`; empty: full).
-    pub speculation: String,
-}
-
-/// Kills by what the killed worker was doing.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct Kills {
-    pub total: u64,
-    pub mid_pass: u64,
-    pub mid_load: u64,
-    /// With bundles it sent still unacknowledged.
-    pub bundles_in_flight: u64,
-}
-
-/// What a run produced.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct Outcome {
-    /// Virtual time from the start to the last tile committed.
-    pub frame_time: Option<Duration>,
-    pub image_hash: Option<String>,
-    /// Domain loads of every worker.
-    pub loads: u64,
-    /// Ray segments traced, in every pass that finished.
-    pub segments: u64,
-    /// Bytes of peer bundles sent.
-    pub peer_bytes: u64,
-    /// Rays sent to another worker, as the workers' frame reports count them.
-    pub rays_migrated: u64,
-    /// Messages of every kind.
-    pub messages: u64,
-    pub rounds: u64,
-    pub events: u64,
-    pub kills: Kills,
-    pub coordinator_crashes: u64,
-    /// Frames started (more than one after a coordinator crash or a loss of every worker).
-    pub frames: u64,
-    pub violations: Vec<Violation>,
-    /// Virtual time the coordinator spent planning.
-    pub coordinator_busy: Duration,
-    /// Bytes the storage was charged for.
-    pub storage_bytes: u64,
-    /// Every pass that loaded nothing, with the CPU time it took here, when measured.
-    pub measured: Vec<MeasuredPass>,
-}
-
-/// A pass's work and what it cost on this machine (`calibrate` fits the prices to these).
-#[derive(Clone, Debug, PartialEq)]
-pub struct MeasuredPass {
-    pub counters: rayfarm_core::render::KernelCounters,
-    pub cpu_ns: u64,
-}
 
 /// What travels between nodes. Control-stream messages name their stream (`conn`): each
 /// registration opens a new one, and what was sent on a stream that has ended (the worker was
@@ -207,7 +131,7 @@ pub fn open_scene(dir: &std::path::Path) -> Result<Arc<Scene>, String> {
 }
 
 /// Runs one simulation of `config` over `scene` with the faults of `plan`, ending at `bound`
-/// at the latest. `expected_hash`: the clean run's image, which the run's must equal.
+/// at the latest. `expected_hash`: the clean run's image, which every job's must equal.
 pub fn simulate(
     config: &SimConfig,
     scene: Arc<Scene>,
@@ -215,16 +139,22 @@ pub fn simulate(
     bound: Duration,
     expected_hash: Option<&str>,
 ) -> Result<Outcome, String> {
-    let spec = proto::JobSpec {
-        scene: config.scene.display().to_string(),
-        width: config.width,
-        height: config.height,
-        spp: config.spp,
-        max_depth: config.depth,
-        schedule: config.schedule as i32,
-        speculation: config.speculation.clone(),
-        ..Default::default()
-    };
+    // The warm-up jobs, then the measured one: the same frame, each with its schedule.
+    let specs = config
+        .warm_up
+        .iter()
+        .chain([&config.schedule])
+        .map(|&schedule| proto::JobSpec {
+            scene: config.scene.display().to_string(),
+            width: config.width,
+            height: config.height,
+            spp: config.spp,
+            max_depth: config.depth,
+            schedule: schedule as i32,
+            speculation: config.speculation.clone(),
+            ..Default::default()
+        })
+        .collect();
     let frame = FrameSpec {
         width: config.width,
         height: config.height,
@@ -234,7 +164,7 @@ pub fn simulate(
     };
     frame.check()?;
     let coord = SimCoordinator::new(CoordConfig {
-        spec,
+        specs,
         frame,
         domain_bytes: scene.manifest.domains.iter().map(|d| d.bytes).collect(),
         workers: config.workers,
@@ -491,25 +421,6 @@ impl World<'_> {
         }
     }
 
-    fn kill(&mut self, node: NodeId) {
-        let Some(w) = self.worker_mut(node) else {
-            return;
-        };
-        w.alive = false;
-        let pass = w.pass_until;
-        let in_flight = w.links.values().any(|l| !l.owed.is_empty());
-        let conn = w.conn;
-        let k = &mut self.outcome.kills;
-        k.total += 1;
-        if let Some((_, loaded_at)) = pass {
-            k.mid_pass += 1;
-            k.mid_load += u64::from(self.now < loaded_at);
-        }
-        k.bundles_in_flight += u64::from(in_flight);
-        // Its operating system closes its sockets: the coordinator sees the stream end.
-        self.send(node, COORDINATOR, Msg::StreamEnded(conn));
-    }
-
     fn at_coordinator(&mut self, from: NodeId, msg: Msg) {
         let now = self.now;
         let out = match msg {
@@ -541,181 +452,6 @@ impl World<'_> {
         }
     }
 
-    fn at_worker(&mut self, from: NodeId, to: NodeId, msg: Msg) {
-        let now = self.now;
-        let Some(w) = self.worker_mut(to) else { return };
-        match msg {
-            // What was sent on an older stream than the worker's is for nobody.
-            Msg::Control(_, conn) | Msg::Closed(conn) if conn != w.conn => {}
-            Msg::Control(m, _) => match m.body {
-                Some(Body::StartFrame(start)) => {
-                    let opened = w.open(&start);
-                    self.feed(to, machine::Event::FrameOpened { start, opened });
-                }
-                body => self.feed(
-                    to,
-                    machine::Event::Control(proto::CoordinatorMessage { body }),
-                ),
-            },
-            Msg::Closed(_) => {
-                w.disconnected = true;
-                self.feed(to, machine::Event::Disconnected);
-                // The shell reconnects; a worker sidelined for this frame sits it out.
-                self.heap.push(now + RECONNECT, Ev::Reregister { node: to });
-            }
-            Msg::Bundle {
-                sender,
-                job_id,
-                tier,
-                batches,
-                seq,
-            } => {
-                if w.is_stuck(now) {
-                    return;
-                }
-                let me = w.address.clone();
-                match decode(tier, &batches) {
-                    Ok(payload) => self.feed(
-                        to,
-                        machine::Event::PeerBundle {
-                            sender,
-                            job_id,
-                            payload,
-                        },
-                    ),
-                    Err(e) => self
-                        .checks
-                        .violation("bundle", format!("undecodable bundle: {e}")),
-                }
-                self.send(to, from, Msg::Ack { from: me, seq });
-            }
-            Msg::Ack { from: peer, seq } => {
-                if let Some(link) = w.links.get_mut(&peer) {
-                    while link.owed.front().is_some_and(|&(s, _)| s <= seq) {
-                        link.owed.pop_front();
-                    }
-                }
-            }
-            Msg::Register(..) | Msg::ToCoordinator(..) | Msg::StreamEnded(_) => {}
-        }
-    }
-
-    /// Hands `event` to the machine of `node` and carries out its actions.
-    fn feed(&mut self, node: NodeId, event: machine::Event<machine::MemorySpill>) {
-        let now = self.now;
-        let Some(w) = self.worker_mut(node) else {
-            return;
-        };
-        let actions = w.machine.handle(now, event);
-        let (queued, cap) = w.queued_bytes();
-        let (early, early_cap) = (w.machine.early_bytes(), w.early_cap);
-        self.checks.caps(queued, cap, early, early_cap);
-        for a in actions {
-            self.action(node, a);
-        }
-        let Some(w) = self.worker_mut(node) else {
-            return;
-        };
-        if let Some(t) = w.machine.next_timeout() {
-            let t = t.max(now);
-            if w.tick_at.is_none_or(|x| t < x) {
-                w.tick_at = Some(t);
-                self.heap.push(t, Ev::Tick { node });
-            }
-        }
-    }
-
-    fn action(&mut self, node: NodeId, action: Action) {
-        let now = self.now;
-        let cost = self.config.cost;
-        let measure = self.config.measure;
-        let ack_deadline = self.config.ack_deadline;
-        let Some(w) = self.worker_mut(node) else {
-            return;
-        };
-        match action {
-            Action::ToCoordinator(body) => {
-                if !w.disconnected {
-                    let conn = w.conn;
-                    self.send(node, COORDINATOR, Msg::ToCoordinator(body, conn));
-                }
-            }
-            Action::ToPeer {
-                peer,
-                job_id,
-                tier,
-                batches,
-            } => {
-                let seq = w.next_bundle;
-                w.next_bundle += 1;
-                w.links
-                    .entry(peer.clone())
-                    .or_default()
-                    .owed
-                    .push_back((seq, now));
-                let sender = w.address.clone();
-                self.heap.push(
-                    now + ack_deadline,
-                    Ev::AckDue {
-                        node,
-                        peer: peer.clone(),
-                        seq,
-                    },
-                );
-                if let Some(to) = self.node_of(&peer) {
-                    self.send(
-                        node,
-                        to,
-                        Msg::Bundle {
-                            sender,
-                            job_id,
-                            tier,
-                            batches,
-                            seq,
-                        },
-                    );
-                }
-            }
-            Action::DropPeers(peers) => {
-                for p in peers {
-                    w.links.remove(&p);
-                }
-            }
-            Action::StartPass { job_id, work } => {
-                let Some(w) = self.workers.get_mut(node).and_then(Option::as_mut) else {
-                    return;
-                };
-                let run = w.run_pass(now, &job_id, work, &cost, &mut self.storage, measure);
-                let until = now + run.took;
-                w.pass_until = Some((until, now + run.load_time));
-                self.outcome.loads += run.loads;
-                self.heap.push(until, Ev::PassDone { node, job_id, run });
-            }
-            Action::Evict(domains) => w.evict(&domains),
-            Action::Pin(domains) => w.pin(domains),
-            Action::FrameEnded { job_id, mut stats } => {
-                stats.cache = w.cache_counters();
-                stats.threads = cost.threads as usize;
-                let migrated = stats.rays_sent;
-                let report = proto::FrameReport {
-                    job_id,
-                    stats_json: serde_json::to_string(&stats).unwrap_or_default(),
-                    error: String::new(),
-                    declined: false,
-                };
-                if !w.disconnected {
-                    let conn = w.conn;
-                    self.send(
-                        node,
-                        COORDINATOR,
-                        Msg::ToCoordinator(FromWorker::FrameReport(report), conn),
-                    );
-                }
-                self.outcome.rays_migrated += migrated;
-            }
-        }
-    }
-
     fn finish(mut self, ended: bool, bound: Time, expected_hash: Option<&str>) -> Outcome {
         let mut o = std::mem::take(&mut self.outcome);
         o.events = self.heap.scheduled();
@@ -731,8 +467,8 @@ impl World<'_> {
         if let Some(e) = &self.coord.failed {
             self.checks.violation("job failed", e.clone());
         }
-        let written = self.coord.image_hash.clone();
-        if o.frame_time.is_none() || written.is_none() {
+        o.jobs = self.coord.job_ids.len() as u64;
+        if o.frame_time.is_none() || !self.coord.all_written() {
             let why = if ended {
                 "the job ended without its image".to_string()
             } else if o.events > MAX_EVENTS {
@@ -744,40 +480,32 @@ impl World<'_> {
                 )
             };
             self.checks.violation("liveness", why);
-        } else if let Some(written) = written {
-            match written {
-                Ok(h) => {
-                    if let Some(want) = expected_hash
-                        && want != h
-                    {
-                        self.checks
-                            .violation("image", format!("image hash {h}, the clean run's {want}"));
+        } else {
+            // Every job renders the same frame: each image must be the clean run's, or, in
+            // the clean run, the first job's.
+            let mut want = expected_hash.map(str::to_string);
+            for (i, id) in self.coord.job_ids.iter().enumerate() {
+                match &self.coord.images[id] {
+                    Ok(h) => {
+                        match &want {
+                            Some(w) if w != h => self.checks.violation(
+                                "image",
+                                format!(
+                                    "job {} of {}: image hash {h}, expected {w}",
+                                    i + 1,
+                                    o.jobs
+                                ),
+                            ),
+                            Some(_) => {}
+                            None => want = Some(h.clone()),
+                        }
+                        o.image_hash = Some(h.clone());
                     }
-                    o.image_hash = Some(h);
+                    Err(e) => self.checks.violation("image", e.clone()),
                 }
-                Err(e) => self.checks.violation("image", e),
             }
         }
         o.violations = self.checks.into_violations();
         o
     }
-}
-
-/// A bundle's batches decoded for any frame, as the worker shell's peer service does.
-fn decode(tier: Tier, batches: &[Bytes]) -> Result<Payload, String> {
-    let limits = BatchLimits::any_frame(1 << 20);
-    Ok(match tier {
-        Tier::Results => Payload::Verdicts(
-            batches
-                .iter()
-                .map(|b| wire::decode_verdicts(b, &limits).map_err(|e| e.to_string()))
-                .collect::<Result<_, _>>()?,
-        ),
-        _ => Payload::Rays(
-            batches
-                .iter()
-                .map(|b| wire::decode_batch(b, &limits).map_err(|e| e.to_string()))
-                .collect::<Result<_, _>>()?,
-        ),
-    })
 }

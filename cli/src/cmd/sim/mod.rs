@@ -3,6 +3,9 @@
 //! run per seed whose invariants are checked. Exits non-zero naming every seed that broke
 //! one, with the command that replays it. `rayfarm sim calibrate` measures the cost model's
 //! prices on this machine and writes the file `--cost` reads.
+//!
+//! The parts: this module holds the options and the runs, [`calibrate`] the measurement of the
+//! prices, [`report`] the table, the CSV rows and the summary of the fault seeds.
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -12,7 +15,6 @@ use anyhow::{Context, bail};
 use clap::{Args, Subcommand};
 use rayfarm_node::job::{parse_schedule, schedule_name};
 use rayfarm_node::proto::Schedule;
-use rayfarm_sim::calibrate::calibrate;
 use rayfarm_sim::net::LinkModel;
 use rayfarm_sim::node::QueueCaps;
 use rayfarm_sim::world::open_scene;
@@ -23,6 +25,13 @@ use rayon::prelude::*;
 
 use crate::units;
 use crate::view::FrameArgs;
+
+mod calibrate;
+mod report;
+
+pub use calibrate::CalibrateArgs;
+use calibrate::run_calibrate;
+use report::{Summary, print_row, write_csv};
 
 /// Options of `rayfarm sim`.
 #[derive(Args, Clone, Debug)]
@@ -43,6 +52,12 @@ pub struct SimArgs {
     pub schedule: String,
     #[command(flatten)]
     pub model: ModelArgs,
+    /// Jobs of the same frame the same workers render before the measured one, each with its
+    /// schedule, separated by commas (e.g. image-plane): the measured job starts with the
+    /// domains they left mapped and the machines they left, as on a farm that has rendered
+    /// before. Every job's image is checked; faults fall anywhere in the sequence.
+    #[arg(long, value_delimiter = ',', value_parser = parse_schedule_arg)]
+    pub warm_up: Vec<Schedule>,
     /// Run every seed of --seeds with its faults and check the invariants.
     #[arg(long)]
     pub faults: bool,
@@ -65,25 +80,6 @@ pub enum SimCommand {
     /// shadow apart, per camera and volume sample, per pass, per planning round) and write
     /// them to the file `rayfarm sim --cost` reads.
     Calibrate(CalibrateArgs),
-}
-
-/// Options of `rayfarm sim calibrate`.
-#[derive(Args, Clone, Debug)]
-pub struct CalibrateArgs {
-    /// Scene directory whose passes are measured.
-    #[arg(long)]
-    pub scene: PathBuf,
-    /// Workers of the measured simulation (their passes are the samples).
-    #[arg(long, default_value_t = 4)]
-    pub workers: usize,
-    /// Schedule of the measured simulation.
-    #[arg(long, default_value = "dynamic")]
-    pub schedule: String,
-    /// The calibration file to write.
-    #[arg(long, default_value = "calibration.toml")]
-    pub out: PathBuf,
-    #[command(flatten)]
-    pub model: ModelArgs,
 }
 
 /// The simulated frame, the workers' settings and the cost model (every price and bandwidth a
@@ -204,6 +200,7 @@ impl ModelArgs {
             scene: scene.to_path_buf(),
             workers,
             schedule,
+            warm_up: Vec::new(),
             width: self.frame.width,
             height: self.frame.height,
             spp: self.frame.spp,
@@ -232,6 +229,10 @@ impl ModelArgs {
             },
         })
     }
+}
+
+fn parse_schedule_arg(s: &str) -> Result<Schedule, String> {
+    parse_schedule(s.trim())
 }
 
 /// Worker counts, as given.
@@ -274,8 +275,11 @@ fn parse_seeds(s: &str) -> Result<std::ops::Range<u64>, String> {
 
 /// Virtual deadlines of the simulated cluster: scaled to frames of milliseconds.
 const ACK_DEADLINE: Duration = Duration::from_millis(10);
+
 const HEARTBEAT: Duration = Duration::from_millis(20);
+
 const WORKER_TIMEOUT: Duration = Duration::from_millis(200);
+
 /// A job record's write to the coordinator's store (a redb commit with its fsync).
 const DISK_LATENCY: Duration = Duration::from_millis(2);
 
@@ -288,8 +292,14 @@ impl SimArgs {
         schedule: Schedule,
         seed: u64,
     ) -> String {
+        let warm_up = if self.warm_up.is_empty() {
+            String::new()
+        } else {
+            let names: Vec<&str> = self.warm_up.iter().map(|&s| schedule_name(s)).collect();
+            format!(" --warm-up {}", names.join(","))
+        };
         format!(
-            "rayfarm sim --scene {} --workers {workers} --schedule {} {} --faults --seeds {seed}..{}{}",
+            "rayfarm sim --scene {} --workers {workers} --schedule {}{warm_up} {} --faults --seeds {seed}..{}{}",
             scene.display(),
             schedule_name(schedule),
             self.model.flags(),
@@ -367,6 +377,14 @@ pub fn run(a: SimArgs) -> anyhow::Result<()> {
         a.model.net_latency_us,
         units::human(a.model.nic_bandwidth),
     );
+    if !a.warm_up.is_empty() {
+        let names: Vec<&str> = a.warm_up.iter().map(|&s| schedule_name(s)).collect();
+        println!(
+            "each run renders the frame with {} first, on the same workers (virtual ms: to the \
+             end of the last job)",
+            names.join(", then ")
+        );
+    }
     println!(
         "{:<12} {:>7} {:>12} {:>7} {:>12} {:>10} {:>10} {:>12} {:>9} {:>7} {:>8}  image hash",
         "schedule",
@@ -384,7 +402,10 @@ pub fn run(a: SimArgs) -> anyhow::Result<()> {
     let mut failed: Vec<String> = Vec::new();
     for &workers in &a.workers.0 {
         for &schedule in &schedules {
-            let config = a.model.config(&scene_dir, workers, schedule)?;
+            let config = SimConfig {
+                warm_up: a.warm_up.clone(),
+                ..a.model.config(&scene_dir, workers, schedule)?
+            };
             let wall = std::time::Instant::now();
             let clean = simulate(
                 &config,
@@ -469,180 +490,4 @@ pub fn run(a: SimArgs) -> anyhow::Result<()> {
         bail!("invariants broken: {}", failed.join(", "));
     }
     Ok(())
-}
-
-/// `rayfarm sim calibrate`: measures, prints and writes the prices.
-fn run_calibrate(c: CalibrateArgs) -> anyhow::Result<()> {
-    let schedule = parse_schedule(c.schedule.trim()).map_err(anyhow::Error::msg)?;
-    let scene = open_scene(&c.scene)
-        .map_err(anyhow::Error::msg)
-        .with_context(|| format!("scene {}", c.scene.display()))?;
-    let config = c.model.config(&c.scene, c.workers.max(1), schedule)?;
-    let defaults = config.cost.compute;
-    let cal = calibrate(&config, scene, defaults).map_err(anyhow::Error::msg)?;
-    let p = &cal.cost;
-    println!(
-        "passes: {} without loads, {:.3} s of CPU; fit error {:.1}% (rms over the mean pass)",
-        cal.passes,
-        cal.pass_cpu.as_secs_f64(),
-        cal.pass_fit_error * 100.0
-    );
-    println!(
-        "  per pass {:.0} ns, radiance segment {:.1} ns, shadow segment {:.1} ns, camera sample \
-         {:.1} ns, volume sample {:.1} ns{}",
-        p.pass_ns,
-        p.radiance_segment_ns,
-        p.shadow_segment_ns,
-        p.camera_sample_ns,
-        p.volume_sample_ns,
-        if p.volume_sample_ns == defaults.volume_sample_ns {
-            " (not measured: kept from the cost model)"
-        } else {
-            ""
-        }
-    );
-    for (w, d, ns) in &cal.rounds {
-        println!(
-            "planning round, {w} members x {d} domains: {:.3} ms",
-            ns / 1e6
-        );
-    }
-    println!(
-        "  per round {:.0} ns + {:.1} ns a member + {:.1} ns a domain; fit error {:.1}%",
-        p.round_ns,
-        p.round_member_ns,
-        p.round_domain_ns,
-        cal.round_fit_error * 100.0
-    );
-    let text = format!(
-        "# rayfarm sim calibrate --scene {} --workers {} --schedule {} {}\n# {} passes (fit \
-         error {:.1}%), planning at {} sizes (fit error {:.1}%)\n{}",
-        c.scene.display(),
-        c.workers,
-        c.schedule,
-        c.model.flags(),
-        cal.passes,
-        cal.pass_fit_error * 100.0,
-        cal.rounds.len(),
-        cal.round_fit_error * 100.0,
-        p.to_toml()
-    );
-    std::fs::write(&c.out, text).with_context(|| format!("writing {}", c.out.display()))?;
-    println!("wrote {}", c.out.display());
-    Ok(())
-}
-
-fn print_row(schedule: Schedule, workers: usize, o: &Outcome, wall: f64) {
-    let t = o.frame_time.map_or(f64::NAN, |t| t.as_secs_f64());
-    eprintln!(
-        "{} at {workers} workers: {wall:.1} s of wall time",
-        schedule_name(schedule)
-    );
-    println!(
-        "{:<12} {:>7} {:>12.3} {:>7} {:>12} {:>10} {:>10} {:>12} {:>9} {:>7} {:>8.2}  {}",
-        schedule_name(schedule),
-        workers,
-        t * 1e3,
-        o.loads,
-        units::human(o.storage_bytes),
-        o.segments,
-        o.rays_migrated,
-        o.peer_bytes,
-        o.messages,
-        o.rounds,
-        o.coordinator_busy.as_secs_f64() / t * 100.0,
-        o.image_hash.as_deref().unwrap_or("-")
-    );
-}
-
-fn write_csv(
-    f: &mut std::fs::File,
-    workers: usize,
-    schedule: Schedule,
-    seed: &str,
-    faults: &str,
-    o: &Outcome,
-    wall: f64,
-) -> anyhow::Result<()> {
-    let violations: Vec<String> = o.violations.iter().map(|v| v.to_string()).collect();
-    let quote = |s: &str| format!("\"{}\"", s.replace('"', "\"\""));
-    writeln!(
-        f,
-        "{},{},{},{},{:.6},{},{},{},{},{},{},{},{:.6},{:.3},{},{}",
-        workers,
-        schedule_name(schedule),
-        seed,
-        quote(faults),
-        o.frame_time.map_or(f64::NAN, |t| t.as_secs_f64() * 1e3),
-        o.loads,
-        o.storage_bytes,
-        o.segments,
-        o.rays_migrated,
-        o.peer_bytes,
-        o.messages,
-        o.rounds,
-        o.coordinator_busy.as_secs_f64() * 1e3,
-        wall,
-        o.image_hash.as_deref().unwrap_or(""),
-        quote(&violations.join("; "))
-    )?;
-    Ok(())
-}
-
-/// What the fault runs of one schedule came to.
-#[derive(Default)]
-struct Summary {
-    runs: u64,
-    failed: u64,
-    kills: u64,
-    mid_pass: u64,
-    mid_load: u64,
-    in_flight: u64,
-    /// Coordinator crashes, and frames started again after them or after losing every
-    /// worker.
-    crashes: u64,
-    restarted_frames: u64,
-    events: u64,
-    /// Slowest faulty frame over the clean one.
-    worst: f64,
-}
-
-impl Summary {
-    fn add(&mut self, o: &Outcome, clean: Duration) {
-        self.runs += 1;
-        self.failed += u64::from(!o.violations.is_empty());
-        self.kills += o.kills.total;
-        self.mid_pass += o.kills.mid_pass;
-        self.mid_load += o.kills.mid_load;
-        self.in_flight += o.kills.bundles_in_flight;
-        self.crashes += o.coordinator_crashes;
-        self.restarted_frames += o.frames.saturating_sub(1);
-        self.events += o.events;
-        if let Some(t) = o.frame_time {
-            self.worst = self
-                .worst
-                .max(t.as_secs_f64() / clean.as_secs_f64().max(1e-12));
-        }
-    }
-
-    fn print(&self, schedule: Schedule, seeds: &std::ops::Range<u64>) {
-        println!(
-            "{}: seeds {}..{}: {} runs, {} failed; {} kills ({} mid-pass, {} mid-load, {} with \
-             bundles in flight); {} coordinator crashes, {} frames started again; {} events; \
-             slowest frame {:.2}x the clean one",
-            schedule_name(schedule),
-            seeds.start,
-            seeds.end,
-            self.runs,
-            self.failed,
-            self.kills,
-            self.mid_pass,
-            self.mid_load,
-            self.in_flight,
-            self.crashes,
-            self.restarted_frames,
-            self.events,
-            self.worst
-        );
-    }
 }

@@ -1,0 +1,126 @@
+//! What `rayfarm sim` prints and writes: a row per run (stdout and CSV) and the summary of a
+//! schedule's fault seeds.
+
+use std::io::Write;
+use std::time::Duration;
+
+use rayfarm_node::job::schedule_name;
+use rayfarm_node::proto::Schedule;
+use rayfarm_sim::Outcome;
+
+use crate::units;
+
+pub(super) fn print_row(schedule: Schedule, workers: usize, o: &Outcome, wall: f64) {
+    let t = o.frame_time.map_or(f64::NAN, |t| t.as_secs_f64());
+    eprintln!(
+        "{} at {workers} workers: {wall:.1} s of wall time",
+        schedule_name(schedule)
+    );
+    println!(
+        "{:<12} {:>7} {:>12.3} {:>7} {:>12} {:>10} {:>10} {:>12} {:>9} {:>7} {:>8.2}  {}",
+        schedule_name(schedule),
+        workers,
+        t * 1e3,
+        o.loads,
+        units::human(o.storage_bytes),
+        o.segments,
+        o.rays_migrated,
+        o.peer_bytes,
+        o.messages,
+        o.rounds,
+        o.coordinator_busy.as_secs_f64() / t * 100.0,
+        o.image_hash.as_deref().unwrap_or("-")
+    );
+}
+
+pub(super) fn write_csv(
+    f: &mut std::fs::File,
+    workers: usize,
+    schedule: Schedule,
+    seed: &str,
+    faults: &str,
+    o: &Outcome,
+    wall: f64,
+) -> anyhow::Result<()> {
+    let violations: Vec<String> = o.violations.iter().map(|v| v.to_string()).collect();
+    let quote = |s: &str| format!("\"{}\"", s.replace('"', "\"\""));
+    writeln!(
+        f,
+        "{},{},{},{},{:.6},{},{},{},{},{},{},{},{:.6},{:.3},{},{}",
+        workers,
+        schedule_name(schedule),
+        seed,
+        quote(faults),
+        o.frame_time.map_or(f64::NAN, |t| t.as_secs_f64() * 1e3),
+        o.loads,
+        o.storage_bytes,
+        o.segments,
+        o.rays_migrated,
+        o.peer_bytes,
+        o.messages,
+        o.rounds,
+        o.coordinator_busy.as_secs_f64() * 1e3,
+        wall,
+        o.image_hash.as_deref().unwrap_or(""),
+        quote(&violations.join("; "))
+    )?;
+    Ok(())
+}
+
+/// What the fault runs of one schedule came to.
+#[derive(Default)]
+pub(super) struct Summary {
+    runs: u64,
+    failed: u64,
+    kills: u64,
+    mid_pass: u64,
+    mid_load: u64,
+    in_flight: u64,
+    /// Coordinator crashes, and frames started again after them or after losing every
+    /// worker.
+    crashes: u64,
+    restarted_frames: u64,
+    events: u64,
+    /// Slowest faulty frame over the clean one.
+    worst: f64,
+}
+
+impl Summary {
+    pub(super) fn add(&mut self, o: &Outcome, clean: Duration) {
+        self.runs += 1;
+        self.failed += u64::from(!o.violations.is_empty());
+        self.kills += o.kills.total;
+        self.mid_pass += o.kills.mid_pass;
+        self.mid_load += o.kills.mid_load;
+        self.in_flight += o.kills.bundles_in_flight;
+        self.crashes += o.coordinator_crashes;
+        self.restarted_frames += o.frames.saturating_sub(o.jobs);
+        self.events += o.events;
+        if let Some(t) = o.frame_time {
+            self.worst = self
+                .worst
+                .max(t.as_secs_f64() / clean.as_secs_f64().max(1e-12));
+        }
+    }
+
+    pub(super) fn print(&self, schedule: Schedule, seeds: &std::ops::Range<u64>) {
+        println!(
+            "{}: seeds {}..{}: {} runs, {} failed; {} kills ({} mid-pass, {} mid-load, {} with \
+             bundles in flight); {} coordinator crashes, {} frames started again; {} events; \
+             slowest frame {:.2}x the clean one",
+            schedule_name(schedule),
+            seeds.start,
+            seeds.end,
+            self.runs,
+            self.failed,
+            self.kills,
+            self.mid_pass,
+            self.mid_load,
+            self.in_flight,
+            self.crashes,
+            self.restarted_frames,
+            self.events,
+            self.worst
+        );
+    }
+}

@@ -1,0 +1,100 @@
+//! What one simulated run is given (the cluster, the frame and the model) and what it
+//! produced (figures, the image, the invariants broken).
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use rayfarm_proto::Schedule;
+
+use crate::check::Violation;
+use crate::cost::CostModel;
+use crate::net::LinkModel;
+use crate::node::QueueCaps;
+use crate::storage::StorageModel;
+
+/// What to simulate.
+#[derive(Clone, Debug)]
+pub struct SimConfig {
+    pub scene: PathBuf,
+    pub workers: usize,
+    pub schedule: Schedule,
+    /// Jobs of the same frame the same workers render first, in order, each with its
+    /// schedule: the measured job starts with the caches (domains mapped) and the machines
+    /// they left, as on a farm that has rendered before.
+    pub warm_up: Vec<Schedule>,
+    pub width: u32,
+    pub height: u32,
+    pub spp: u32,
+    pub depth: u32,
+    pub cache_bytes: u64,
+    /// Camera rays are issued while fewer than this many rays are queued on a worker.
+    pub wave_rays: usize,
+    /// Most rays a worker traces in one pass.
+    pub pass_rays: usize,
+    pub links: LinkModel,
+    pub cost: CostModel,
+    pub storage: StorageModel,
+    /// Measure each pass's CPU time on this machine (`calibrate`; the virtual times do not
+    /// depend on it).
+    pub measure: bool,
+    pub caps: QueueCaps,
+    /// A peer that acknowledges nothing for this long is reported unresponsive.
+    pub ack_deadline: Duration,
+    /// How long one job record takes to reach the coordinator's disk.
+    pub disk_latency: Duration,
+    pub heartbeat: Duration,
+    pub worker_timeout: Duration,
+    /// The predictive schedule's speculation setting (`JobSpec.speculation`; empty: full).
+    pub speculation: String,
+}
+
+/// Kills by what the killed worker was doing.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Kills {
+    pub total: u64,
+    pub mid_pass: u64,
+    pub mid_load: u64,
+    /// With bundles it sent still unacknowledged.
+    pub bundles_in_flight: u64,
+}
+
+/// What a run produced.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Outcome {
+    /// Virtual time from the start to the last tile committed (of the last job).
+    pub frame_time: Option<Duration>,
+    pub image_hash: Option<String>,
+    /// Domain loads of every worker.
+    pub loads: u64,
+    /// Ray segments traced, in every pass that finished.
+    pub segments: u64,
+    /// Bytes of peer bundles sent.
+    pub peer_bytes: u64,
+    /// Rays sent to another worker, as the workers' frame reports count them.
+    pub rays_migrated: u64,
+    /// Messages of every kind.
+    pub messages: u64,
+    pub rounds: u64,
+    pub events: u64,
+    pub kills: Kills,
+    pub coordinator_crashes: u64,
+    /// Frames started (more than one a job after a coordinator crash or a loss of every
+    /// worker).
+    pub frames: u64,
+    /// Jobs submitted (the warm-up ones and the measured one).
+    pub jobs: u64,
+    pub violations: Vec<Violation>,
+    /// Virtual time the coordinator spent planning.
+    pub coordinator_busy: Duration,
+    /// Bytes the storage was charged for.
+    pub storage_bytes: u64,
+    /// Every pass that loaded nothing, with the CPU time it took here, when measured.
+    pub measured: Vec<MeasuredPass>,
+}
+
+/// A pass's work and what it cost on this machine (`calibrate` fits the prices to these).
+#[derive(Clone, Debug, PartialEq)]
+pub struct MeasuredPass {
+    pub counters: rayfarm_core::render::KernelCounters,
+    pub cpu_ns: u64,
+}

@@ -1,0 +1,228 @@
+//! The workers' side of the world: a worker's machine fed its events (control messages, peer
+//! bundles, finished passes) and its actions carried out (messages, bundles with their
+//! acknowledgements, passes on the real kernel, cache changes, reports), and a worker killed.
+
+use bytes::Bytes;
+use rayfarm_core::bundler::Tier;
+use rayfarm_core::wire::{self, BatchLimits};
+use rayfarm_machine::worker::{self as machine, Action, Payload};
+use rayfarm_proto::{self as proto, coordinator_message::Body, worker_message::Body as FromWorker};
+
+use crate::net::{COORDINATOR, NodeId};
+
+use super::{Ev, Msg, RECONNECT, World};
+
+impl World<'_> {
+    pub(super) fn kill(&mut self, node: NodeId) {
+        let Some(w) = self.worker_mut(node) else {
+            return;
+        };
+        w.alive = false;
+        let pass = w.pass_until;
+        let in_flight = w.links.values().any(|l| !l.owed.is_empty());
+        let conn = w.conn;
+        let k = &mut self.outcome.kills;
+        k.total += 1;
+        if let Some((_, loaded_at)) = pass {
+            k.mid_pass += 1;
+            k.mid_load += u64::from(self.now < loaded_at);
+        }
+        k.bundles_in_flight += u64::from(in_flight);
+        // Its operating system closes its sockets: the coordinator sees the stream end.
+        self.send(node, COORDINATOR, Msg::StreamEnded(conn));
+    }
+
+    pub(super) fn at_worker(&mut self, from: NodeId, to: NodeId, msg: Msg) {
+        let now = self.now;
+        let Some(w) = self.worker_mut(to) else { return };
+        match msg {
+            // What was sent on an older stream than the worker's is for nobody.
+            Msg::Control(_, conn) | Msg::Closed(conn) if conn != w.conn => {}
+            Msg::Control(m, _) => match m.body {
+                Some(Body::StartFrame(start)) => {
+                    let opened = w.open(&start);
+                    self.feed(to, machine::Event::FrameOpened { start, opened });
+                }
+                body => self.feed(
+                    to,
+                    machine::Event::Control(proto::CoordinatorMessage { body }),
+                ),
+            },
+            Msg::Closed(_) => {
+                w.disconnected = true;
+                self.feed(to, machine::Event::Disconnected);
+                // The shell reconnects; a worker sidelined for this frame sits it out.
+                self.heap.push(now + RECONNECT, Ev::Reregister { node: to });
+            }
+            Msg::Bundle {
+                sender,
+                job_id,
+                tier,
+                batches,
+                seq,
+            } => {
+                if w.is_stuck(now) {
+                    return;
+                }
+                let me = w.address.clone();
+                match decode(tier, &batches) {
+                    Ok(payload) => self.feed(
+                        to,
+                        machine::Event::PeerBundle {
+                            sender,
+                            job_id,
+                            payload,
+                        },
+                    ),
+                    Err(e) => self
+                        .checks
+                        .violation("bundle", format!("undecodable bundle: {e}")),
+                }
+                self.send(to, from, Msg::Ack { from: me, seq });
+            }
+            Msg::Ack { from: peer, seq } => {
+                if let Some(link) = w.links.get_mut(&peer) {
+                    while link.owed.front().is_some_and(|&(s, _)| s <= seq) {
+                        link.owed.pop_front();
+                    }
+                }
+            }
+            Msg::Register(..) | Msg::ToCoordinator(..) | Msg::StreamEnded(_) => {}
+        }
+    }
+
+    /// Hands `event` to the machine of `node` and carries out its actions.
+    pub(super) fn feed(&mut self, node: NodeId, event: machine::Event<machine::MemorySpill>) {
+        let now = self.now;
+        let Some(w) = self.worker_mut(node) else {
+            return;
+        };
+        let actions = w.machine.handle(now, event);
+        let (queued, cap) = w.queued_bytes();
+        let (early, early_cap) = (w.machine.early_bytes(), w.early_cap);
+        self.checks.caps(queued, cap, early, early_cap);
+        for a in actions {
+            self.action(node, a);
+        }
+        let Some(w) = self.worker_mut(node) else {
+            return;
+        };
+        if let Some(t) = w.machine.next_timeout() {
+            let t = t.max(now);
+            if w.tick_at.is_none_or(|x| t < x) {
+                w.tick_at = Some(t);
+                self.heap.push(t, Ev::Tick { node });
+            }
+        }
+    }
+
+    fn action(&mut self, node: NodeId, action: Action) {
+        let now = self.now;
+        let cost = self.config.cost;
+        let measure = self.config.measure;
+        let ack_deadline = self.config.ack_deadline;
+        let Some(w) = self.worker_mut(node) else {
+            return;
+        };
+        match action {
+            Action::ToCoordinator(body) => {
+                if !w.disconnected {
+                    let conn = w.conn;
+                    self.send(node, COORDINATOR, Msg::ToCoordinator(body, conn));
+                }
+            }
+            Action::ToPeer {
+                peer,
+                job_id,
+                tier,
+                batches,
+            } => {
+                let seq = w.next_bundle;
+                w.next_bundle += 1;
+                w.links
+                    .entry(peer.clone())
+                    .or_default()
+                    .owed
+                    .push_back((seq, now));
+                let sender = w.address.clone();
+                self.heap.push(
+                    now + ack_deadline,
+                    Ev::AckDue {
+                        node,
+                        peer: peer.clone(),
+                        seq,
+                    },
+                );
+                if let Some(to) = self.node_of(&peer) {
+                    self.send(
+                        node,
+                        to,
+                        Msg::Bundle {
+                            sender,
+                            job_id,
+                            tier,
+                            batches,
+                            seq,
+                        },
+                    );
+                }
+            }
+            Action::DropPeers(peers) => {
+                for p in peers {
+                    w.links.remove(&p);
+                }
+            }
+            Action::StartPass { job_id, work } => {
+                let Some(w) = self.workers.get_mut(node).and_then(Option::as_mut) else {
+                    return;
+                };
+                let run = w.run_pass(now, &job_id, work, &cost, &mut self.storage, measure);
+                let until = now + run.took;
+                w.pass_until = Some((until, now + run.load_time));
+                self.outcome.loads += run.loads;
+                self.heap.push(until, Ev::PassDone { node, job_id, run });
+            }
+            Action::Evict(domains) => w.evict(&domains),
+            Action::Pin(domains) => w.pin(domains),
+            Action::FrameEnded { job_id, mut stats } => {
+                stats.cache = w.cache_counters();
+                stats.threads = cost.threads as usize;
+                let migrated = stats.rays_sent;
+                let report = proto::FrameReport {
+                    job_id,
+                    stats_json: serde_json::to_string(&stats).unwrap_or_default(),
+                    error: String::new(),
+                    declined: false,
+                };
+                if !w.disconnected {
+                    let conn = w.conn;
+                    self.send(
+                        node,
+                        COORDINATOR,
+                        Msg::ToCoordinator(FromWorker::FrameReport(report), conn),
+                    );
+                }
+                self.outcome.rays_migrated += migrated;
+            }
+        }
+    }
+}
+
+/// A bundle's batches decoded for any frame, as the worker shell's peer service does.
+fn decode(tier: Tier, batches: &[Bytes]) -> Result<Payload, String> {
+    let limits = BatchLimits::any_frame(1 << 20);
+    Ok(match tier {
+        Tier::Results => Payload::Verdicts(
+            batches
+                .iter()
+                .map(|b| wire::decode_verdicts(b, &limits).map_err(|e| e.to_string()))
+                .collect::<Result<_, _>>()?,
+        ),
+        _ => Payload::Rays(
+            batches
+                .iter()
+                .map(|b| wire::decode_batch(b, &limits).map_err(|e| e.to_string()))
+                .collect::<Result<_, _>>()?,
+        ),
+    })
+}
