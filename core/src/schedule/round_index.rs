@@ -18,7 +18,7 @@ use std::collections::{BTreeMap, BTreeSet};
 
 use super::DomainId;
 use super::dynamic::{Heat, Options, WorkerPlan};
-use super::rounds::{Cluster, Member};
+use super::rounds::{Cluster, Member, deposit_moved};
 
 /// What one member adds to the cluster's figures, kept so it can be taken out again.
 #[derive(Debug, Default)]
@@ -311,19 +311,7 @@ impl RoundIndex {
                 entry.1 = entry.1.into_iter().chain(generation).min();
             }
         }
-        for (key, queues) in moved {
-            let member = members.get_mut(&key).map(AsMut::as_mut);
-            if let Some(report) = member.and_then(|m| m.report.as_mut()) {
-                changed.insert(key);
-                for (d, (n, generation)) in queues {
-                    *report.queued.entry(d).or_default() += n;
-                    if let Some(g) = generation {
-                        let oldest = report.oldest_generation.entry(d).or_insert(g);
-                        *oldest = (*oldest).min(g);
-                    }
-                }
-            }
-        }
+        changed.extend(deposit_moved(members, moved));
         changed
     }
 

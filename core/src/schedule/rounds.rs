@@ -305,6 +305,18 @@ pub fn move_queued_to_holders<M: AsMut<Member>>(members: &mut BTreeMap<u32, M>) 
             }
         }
     }
+    changed.extend(deposit_moved(members, moved));
+    changed
+}
+
+/// Queued counts taken from members for domains others hold now, by (holder, domain): the
+/// rays and their oldest generation, added to each holder's report. Returns the holders
+/// whose report changed.
+pub(crate) fn deposit_moved<M: AsMut<Member>>(
+    members: &mut BTreeMap<u32, M>,
+    moved: BTreeMap<u32, BTreeMap<u32, (u64, Option<u32>)>>,
+) -> BTreeSet<u32> {
+    let mut changed = BTreeSet::new();
     for (key, queues) in moved {
         let member = members.get_mut(&key).map(AsMut::as_mut);
         if let Some(report) = member.and_then(|m| m.report.as_mut()) {
