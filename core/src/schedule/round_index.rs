@@ -18,7 +18,7 @@ use std::collections::{BTreeMap, BTreeSet};
 
 use super::DomainId;
 use super::dynamic::{Heat, Options, WorkerPlan};
-use super::rounds::{Cluster, Member, deposit_moved};
+use super::rounds::{Cluster, Member, deposit_moved, set_plans};
 
 /// What one member adds to the cluster's figures, kept so it can be taken out again.
 #[derive(Debug, Default)]
@@ -251,16 +251,9 @@ impl RoundIndex {
         plans: &[WorkerPlan],
         round: u64,
     ) -> (u64, BTreeSet<u32>) {
-        let mut loads = 0;
-        let mut changed = BTreeSet::new();
-        for p in plans {
-            loads += p.load.len() as u64;
-            if let Some(m) = members.get_mut(&p.worker.0).map(AsMut::as_mut) {
-                m.plan = p.work().map(|d| d.0).collect();
-                m.planned_round = round;
-                changed.insert(p.worker.0);
-                self.update(p.worker.0, Some(m));
-            }
+        let (loads, mut changed) = set_plans(members, plans, round);
+        for &k in &changed {
+            self.update(k, members.get(&k).map(AsRef::as_ref));
         }
         let moved = self.move_queued_to_holders(members);
         for &k in &moved {

@@ -248,18 +248,29 @@ pub fn adopt_plans<M: AsMut<Member>>(
     plans: &[WorkerPlan],
     round: u64,
 ) -> (u64, BTreeSet<u32>) {
+    let (loads, mut changed) = set_plans(members, plans, round);
+    changed.extend(move_queued_to_holders(members));
+    (loads, changed)
+}
+
+/// `plans` become round `round`'s plans of their members; returns the domain loads they ask
+/// for and the keys of the members planned.
+pub(crate) fn set_plans<M: AsMut<Member>>(
+    members: &mut BTreeMap<u32, M>,
+    plans: &[WorkerPlan],
+    round: u64,
+) -> (u64, BTreeSet<u32>) {
     let mut loads = 0;
-    let mut changed = BTreeSet::new();
+    let mut planned = BTreeSet::new();
     for p in plans {
         loads += p.load.len() as u64;
         if let Some(m) = members.get_mut(&p.worker.0).map(AsMut::as_mut) {
             m.plan = p.work().map(|d| d.0).collect();
             m.planned_round = round;
-            changed.insert(p.worker.0);
+            planned.insert(p.worker.0);
         }
     }
-    changed.extend(move_queued_to_holders(members));
-    (loads, changed)
+    (loads, planned)
 }
 
 /// Once told the new holders, a busy member sends its waiting rays for their domains to them,
