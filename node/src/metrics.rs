@@ -68,8 +68,13 @@ static RPC_ERRORS: LazyLock<[Counter; 17]> = LazyLock::new(|| {
     })
 });
 
-/// Registers what both kinds of process export: build information and the gRPC errors
-/// they answered.
+/// The allocator's bytes in use and held free (set at each scrape, shared by both registries:
+/// a process has one heap).
+static HEAP_IN_USE: LazyLock<Gauge> = LazyLock::new(Gauge::default);
+static HEAP_FREE: LazyLock<Gauge> = LazyLock::new(Gauge::default);
+
+/// Registers what both kinds of process export: build information, the gRPC errors they
+/// answered and the allocator's heap.
 fn register_common(registry: &mut Registry, role: &'static str) {
     let info = Info::new(vec![("version", env!("CARGO_PKG_VERSION")), ("role", role)]);
     registry.register("build", "The build of this process (value 1)", info);
@@ -80,6 +85,18 @@ fn register_common(registry: &mut Registry, role: &'static str) {
         RPC_ERROR_FAMILY.clone(),
     );
     LazyLock::force(&RPC_ERRORS);
+    registry.register_with_unit(
+        "heap_in_use",
+        "Heap allocated by this process now (glibc's mallinfo2: arenas and large mappings)",
+        Unit::Bytes,
+        HEAP_IN_USE.clone(),
+    );
+    registry.register_with_unit(
+        "heap_free",
+        "Heap freed by this process but kept by the allocator for reuse",
+        Unit::Bytes,
+        HEAP_FREE.clone(),
+    );
 }
 
 /// Counts a call answered with gRPC status `code` (0, OK, and unknown codes are not).
@@ -382,6 +399,10 @@ impl WorkerMetrics {
 }
 
 fn encode_registry(registry: &Registry) -> String {
+    if let Some(heap) = crate::heap::usage() {
+        HEAP_IN_USE.set(i64::try_from(heap.in_use).unwrap_or(i64::MAX));
+        HEAP_FREE.set(i64::try_from(heap.free).unwrap_or(i64::MAX));
+    }
     let mut text = String::new();
     // Writing into a String cannot fail.
     let _ = encode(&mut text, registry);
@@ -424,6 +445,11 @@ mod tests {
             assert!(text.lines().any(|l| l == line), "no {line:?} in\n{text}");
         }
         assert!(text.contains("rayfarm_build_info{"), "{text}");
+        let heap = text
+            .lines()
+            .find_map(|l| l.strip_prefix("rayfarm_heap_in_use_bytes "))
+            .and_then(|v| v.parse::<i64>().ok());
+        assert!(heap.is_some_and(|b| b > 0), "{text}");
         assert!(text.ends_with("# EOF\n"), "{text}");
         let c = CoordinatorMetrics::new();
         c.planning_seconds.observe(0.001);
