@@ -10,7 +10,7 @@
 //! hits back. `bench/embree/run.sh` builds that program and the scene, then runs this.
 //!
 //! ```text
-//! embree_compare SCENE_DIR --embree PATH [--size N] [--reps N] [--high]
+//! embree_compare SCENE_DIR --embree PATH [--size N] [--reps N] [--high] [--keep DIR]
 //! embree_compare SCENE_DIR --count SET [--size N]
 //! ```
 //!
@@ -72,10 +72,11 @@ struct Options {
     size: u32,
     reps: usize,
     high: bool,
+    keep: Option<PathBuf>,
 }
 
 fn parse_args() -> Result<Options> {
-    let usage = "usage: embree_compare SCENE_DIR (--embree PATH | --count SET) [--size N] [--reps N] [--high] [--rebuild]";
+    let usage = "usage: embree_compare SCENE_DIR (--embree PATH | --count SET) [--size N] [--reps N] [--high] [--rebuild] [--keep DIR]";
     let mut scene = None;
     let mut embree = None;
     let mut count = None;
@@ -83,6 +84,7 @@ fn parse_args() -> Result<Options> {
     let mut size = 1024;
     let mut reps = 5;
     let mut high = false;
+    let mut keep = None;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         let mut value = || {
@@ -95,6 +97,7 @@ fn parse_args() -> Result<Options> {
             "--size" => size = value()?.parse()?,
             "--reps" => reps = value()?.parse()?,
             "--high" => high = true,
+            "--keep" => keep = Some(PathBuf::from(value()?)),
             "--rebuild" => rebuild = true,
             "-h" | "--help" => return Err(usage.into()),
             s if s.starts_with("--") => return Err(format!("unknown option {s}\n{usage}").into()),
@@ -113,6 +116,7 @@ fn parse_args() -> Result<Options> {
         size,
         reps: reps.max(1),
         high,
+        keep,
     })
 }
 
@@ -627,16 +631,25 @@ fn main() -> Result<()> {
         return Ok(());
     }
 
-    let dir = tempfile::Builder::new()
+    let temp = tempfile::Builder::new()
         .prefix("embree-compare")
         .tempdir()?;
+    // `--keep DIR`: the mesh, ray and hit files stay there, to run `embree_trace` on its own
+    // (under callgrind, for example).
+    let dir = match &opts.keep {
+        Some(keep) => {
+            std::fs::create_dir_all(keep)?;
+            keep.clone()
+        }
+        None => temp.path().to_path_buf(),
+    };
     let mesh: Vec<PackedTriangle> = bvh.triangles().collect();
     let mesh_ids: Vec<u64> = mesh.iter().map(PackedTriangle::id).collect();
-    write_mesh(&dir.path().join("mesh.bin"), &mesh)?;
+    write_mesh(&dir.join("mesh.bin"), &mesh)?;
     let ray_files: Vec<PathBuf> = sets
         .iter()
         .map(|(name, rays)| {
-            let path = dir.path().join(format!("{name}.rays"));
+            let path = dir.join(format!("{name}.rays"));
             write_rays(&path, rays).map(|()| path)
         })
         .collect::<Result<_>>()?;
@@ -665,7 +678,7 @@ fn main() -> Result<()> {
         .zip(&ray_files)
         .map(|((name, _), path)| (*name, path.as_path()))
         .collect();
-    let report = run_embree(&opts, dir.path(), &named_files)?;
+    let report = run_embree(&opts, dir.as_path(), &named_files)?;
 
     // Which ISA each side may use, so a table made from this output can say so.
     println!(
@@ -682,7 +695,7 @@ fn main() -> Result<()> {
     for ((name, rays), (timing, hits)) in sets.iter().zip(&ours) {
         let n = rays.len();
         let theirs: Vec<EmbreeHit> =
-            bytemuck::pod_collect_to_vec(&std::fs::read(dir.path().join(format!("{name}.hits")))?);
+            bytemuck::pod_collect_to_vec(&std::fs::read(dir.join(format!("{name}.hits")))?);
         if theirs.len() != n {
             return Err(format!("embree_trace wrote {} hits for {n} rays", theirs.len()).into());
         }
