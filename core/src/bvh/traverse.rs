@@ -449,8 +449,7 @@ pub(super) fn any<K: Isa>(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, 
     any_from::<K>(stack, bvh, &r, t0, t1, 0)
 }
 
-/// [`any`] of the subtree under inner node `node` (the root for a whole ray; a packet's ray that
-/// is left alone, from where it was left).
+/// [`any`] of the subtree under inner node `node` (the root, for a whole ray).
 #[inline(always)]
 pub(super) fn any_from<K: Isa>(
     stack: &mut Stack,
