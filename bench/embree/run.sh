@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # rayfarm's BVH traversal against Embree 3 on one core: builds the Embree side, makes the
 # one-domain benchmark scene if it is missing or older than `rayfarm`, and runs
-# common/examples/embree_compare.rs. Extra arguments go to the example (--size N, --reps N, --high).
+# core/examples/embree_compare.rs. Extra arguments go to the example (--size N, --reps N, --high,
+# --keep DIR to keep the mesh, ray and hit files).
 #
 # Environment: CARGO_TARGET_DIR (default ./target; the scene and the C++ binary live there too),
 # TRIANGLES (generator's target count, default 1000000), SCENE (an existing one-domain scene to

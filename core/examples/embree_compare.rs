@@ -1,15 +1,16 @@
 //! Benchmark: rayfarm's BVH traversal (`bvh::Traverser::nearest_hit`) against Embree 3, one core each, on
 //! the same one-domain scene and the same rays, in one run.
 //!
-//! Two ray sets: coherent camera rays (one per pixel of a square image from the manifest's
-//! camera) and incoherent diffuse rays (one cosine-distributed bounce from every camera hit).
-//! Both are closest-hit, each ray over the finite interval the render kernel would give it in
-//! the domain; rays that miss the domain are left out, as a render never traces them. Embree is not a dependency of rayfarm: this example writes the mesh
+//! Three ray sets: coherent camera rays (one per pixel of a square image from the manifest's
+//! camera) and incoherent diffuse rays (one cosine-distributed bounce from every camera hit),
+//! both closest-hit, and shadow rays (from every camera hit towards each of the scene's
+//! lights, any-hit: `Traverser::any_hit` against Embree's `rtcOccluded1`), each ray over the
+//! finite interval the render kernel would give it in the domain; rays that miss the domain are left out, as a render never traces them. Embree is not a dependency of rayfarm: this example writes the mesh
 //! and the rays to files, runs `bench/embree/embree_trace` on them, and reads its timings and
 //! hits back. `bench/embree/run.sh` builds that program and the scene, then runs this.
 //!
 //! ```text
-//! embree_compare SCENE_DIR --embree PATH [--size N] [--reps N] [--high]
+//! embree_compare SCENE_DIR --embree PATH [--size N] [--reps N] [--high] [--keep DIR]
 //! embree_compare SCENE_DIR --count SET [--size N]
 //! ```
 //!
@@ -17,7 +18,7 @@
 //! (to compare build settings without preparing again). Times are the tracing thread's CPU
 //! time on both sides, so a shared machine's other processes do not count against either.
 //!
-//! `--count coherent|incoherent` traces that set once on rayfarm's side only, in
+//! `--count coherent|incoherent|shadow` traces that set once on rayfarm's side only, in
 //! `counted_pass`, for instruction counts: `valgrind --tool=callgrind
 //! --toggle-collect='*counted_pass*' embree_compare SCENE --count coherent` (README, "Benchmarks").
 
@@ -34,7 +35,7 @@ use rayfarm_core::bvh::{Bvh, BvhNode, Hit, PACKET, SLOT_EMPTY, SLOT_INNER, Trace
 use rayfarm_core::camera::PinholeCamera;
 use rayfarm_core::geometry::{PackedTriangle, TriangleBlock};
 use rayfarm_core::sampling::{Purpose, uniform};
-use rayfarm_core::scene::{DomainData, DomainTree, Manifest};
+use rayfarm_core::scene::{DomainData, DomainTree, Light, Manifest};
 use serde_json::{Value, json};
 
 type Result<T> = std::result::Result<T, Box<dyn Error>>;
@@ -71,10 +72,11 @@ struct Options {
     size: u32,
     reps: usize,
     high: bool,
+    keep: Option<PathBuf>,
 }
 
 fn parse_args() -> Result<Options> {
-    let usage = "usage: embree_compare SCENE_DIR (--embree PATH | --count SET) [--size N] [--reps N] [--high] [--rebuild]";
+    let usage = "usage: embree_compare SCENE_DIR (--embree PATH | --count SET) [--size N] [--reps N] [--high] [--rebuild] [--keep DIR]";
     let mut scene = None;
     let mut embree = None;
     let mut count = None;
@@ -82,6 +84,7 @@ fn parse_args() -> Result<Options> {
     let mut size = 1024;
     let mut reps = 5;
     let mut high = false;
+    let mut keep = None;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         let mut value = || {
@@ -94,6 +97,7 @@ fn parse_args() -> Result<Options> {
             "--size" => size = value()?.parse()?,
             "--reps" => reps = value()?.parse()?,
             "--high" => high = true,
+            "--keep" => keep = Some(PathBuf::from(value()?)),
             "--rebuild" => rebuild = true,
             "-h" | "--help" => return Err(usage.into()),
             s if s.starts_with("--") => return Err(format!("unknown option {s}\n{usage}").into()),
@@ -112,6 +116,7 @@ fn parse_args() -> Result<Options> {
         size,
         reps: reps.max(1),
         high,
+        keep,
     })
 }
 
@@ -148,30 +153,67 @@ fn thread_seconds() -> f64 {
     t.tv_sec as f64 + t.tv_nsec as f64 * 1e-9
 }
 
-/// One closest-hit pass of rayfarm's kernel over `rays` on this thread, in thread CPU seconds.
+/// How a set is traced.
+#[derive(Clone, Copy, PartialEq)]
+enum Mode {
+    /// Closest hit, in packets of eight neighbours as the render kernel traces camera rays
+    /// (unless `RAYFARM_PACKETS=0`).
+    Packets,
+    /// Closest hit, one ray at a time.
+    Single,
+    /// Any hit (shadow rays), one ray at a time.
+    Any,
+}
+
+/// The mode of the set named `name`.
+fn mode_of(name: &str) -> Mode {
+    match name {
+        "coherent" => Mode::Packets,
+        "shadow" => Mode::Any,
+        _ => Mode::Single,
+    }
+}
+
+/// A blocked shadow ray, as `hits` record it (only hit or miss is compared).
+const BLOCKED: Hit = Hit {
+    t: 0.0,
+    block: 0,
+    lane: 0,
+    id: 0,
+};
+
+/// One pass of rayfarm's kernel over `rays` on this thread, in thread CPU seconds.
 /// Preparing each `TraceRay` is inside the timed loop, as filling each `RTCRayHit` is on the
 /// Embree side.
-/// Coherent (camera) rays go in packets of eight neighbours as the render kernel traces them,
-/// unless `RAYFARM_PACKETS=0`; incoherent ones one at a time.
-fn trace_rayfarm(bvh: Bvh, rays: &[BenchRay], packets: bool, hits: &mut Vec<Option<Hit>>) -> f64 {
+fn trace_rayfarm(bvh: Bvh, rays: &[BenchRay], mode: Mode, hits: &mut Vec<Option<Hit>>) -> f64 {
     hits.clear();
     hits.resize(rays.len(), None);
     let mut traverser = Traverser::new();
     let start = thread_seconds();
-    trace_all(&mut traverser, bvh, rays, packets, hits);
+    trace_all(&mut traverser, bvh, rays, mode, hits);
     thread_seconds() - start
 }
 
-/// Traces `rays` into `hits`, in packets or one at a time.
+/// Traces `rays` into `hits`, in packets or one at a time ([`BLOCKED`] for a blocked
+/// shadow ray).
 #[inline(always)]
 fn trace_all(
     traverser: &mut Traverser,
     bvh: Bvh,
     rays: &[BenchRay],
-    packets: bool,
+    mode: Mode,
     hits: &mut [Option<Hit>],
 ) {
-    if !(packets && traverser.packets()) {
+    if mode == Mode::Any {
+        for (r, hit) in rays.iter().zip(hits) {
+            let ray = TraceRay::new(r.origin.into(), r.dir.into());
+            *hit = traverser
+                .any_hit(bvh, &ray, r.t_min, r.t_max)
+                .then_some(BLOCKED);
+        }
+        return;
+    }
+    if !(mode == Mode::Packets && traverser.packets()) {
         for (r, hit) in rays.iter().zip(hits) {
             let ray = TraceRay::new(r.origin.into(), r.dir.into());
             *hit = traverser.nearest_hit(bvh, &ray, r.t_min, r.t_max);
@@ -192,10 +234,10 @@ fn trace_all(
 
 /// One untimed pass for instruction counts; returns the number of hits.
 #[inline(never)]
-fn counted_pass(bvh: Bvh, rays: &[BenchRay], packets: bool) -> usize {
+fn counted_pass(bvh: Bvh, rays: &[BenchRay], mode: Mode) -> usize {
     let mut traverser = Traverser::new();
     let mut hits = vec![None; rays.len()];
-    trace_all(&mut traverser, bvh, rays, packets, &mut hits);
+    trace_all(&mut traverser, bvh, rays, mode, &mut hits);
     hits.iter().filter(|h| h.is_some()).count()
 }
 
@@ -307,6 +349,67 @@ fn diffuse_rays(
     rays
 }
 
+/// Shadow rays from every camera ray that hit towards each of `lights` (a quad light's centre,
+/// up to just before it; a directional light without end), leaving the surface as
+/// [`diffuse_rays`] do; a light behind the surface gets none, as in a render.
+fn shadow_rays(
+    camera: &[BenchRay],
+    hits: &[Option<Hit>],
+    bvh: Bvh,
+    tree: &DomainTree,
+    (epsilon, lights): (f32, &[Light]),
+) -> Vec<BenchRay> {
+    let mut rays = Vec::with_capacity(camera.len() * lights.len());
+    for (ray, hit) in camera.iter().zip(hits) {
+        let Some(hit) = hit else { continue };
+        let dir = Vec3::from(ray.dir);
+        let p = Vec3::from(ray.origin) + dir * hit.t;
+        let normal = bvh.triangle(hit).normal();
+        let n = if normal.dot(dir) > 0.0 {
+            -normal
+        } else {
+            normal
+        };
+        let origin = p + n * (epsilon + p.abs().max_element() * 1e-6);
+        for light in lights {
+            let (l, end) = match *light {
+                Light::Directional { direction, .. } => {
+                    (Vec3::from(direction).normalize_or(Vec3::Y), f32::INFINITY)
+                }
+                Light::Quad {
+                    corner,
+                    edge_u,
+                    edge_v,
+                    ..
+                } => {
+                    let q = Vec3::from(corner) + 0.5 * (Vec3::from(edge_u) + Vec3::from(edge_v));
+                    let to = q - origin;
+                    let dist = to.length();
+                    (to / dist, dist * (1.0 - 1e-4))
+                }
+            };
+            let cos = n.dot(l);
+            if cos <= 0.0 || cos.is_nan() {
+                continue;
+            }
+            let mut interval = None;
+            tree.walk(origin, l, 0.0, end, |_, t0, t1| {
+                interval = Some((t0, t1));
+                ControlFlow::Break(())
+            });
+            if let Some((t_min, t_max)) = interval {
+                rays.push(BenchRay {
+                    origin: origin.into(),
+                    t_min,
+                    dir: l.into(),
+                    t_max,
+                });
+            }
+        }
+    }
+    rays
+}
+
 /// A cosine-distributed unit direction about the unit vector `n`: a uniform point on the unit
 /// disk, lifted onto the hemisphere (Malley's method).
 fn cosine_about(n: Vec3, u: f32, v: f32) -> Vec3 {
@@ -375,7 +478,8 @@ impl Agreement {
     }
 }
 
-fn compare(ours: &[Option<Hit>], theirs: &[EmbreeHit], mesh_ids: &[u64]) -> Agreement {
+/// How far `ours` and `theirs` agree; for a shadow set (`any`) hit or miss is all there is.
+fn compare(ours: &[Option<Hit>], theirs: &[EmbreeHit], mesh_ids: &[u64], any: bool) -> Agreement {
     let mut a = Agreement {
         rays: ours.len(),
         ..Default::default()
@@ -392,6 +496,10 @@ fn compare(ours: &[Option<Hit>], theirs: &[EmbreeHit], mesh_ids: &[u64]) -> Agre
             (None, Some(_)) => {
                 a.only_embree_hits += 1;
                 false
+            }
+            (Some(_), Some(_)) if any => {
+                a.both_hit += 1;
+                true
             }
             (Some(h), Some((t, id))) => {
                 a.both_hit += 1;
@@ -497,16 +605,23 @@ fn main() -> Result<()> {
     let tree = manifest.domain_tree();
     let (camera, pixels) = camera_rays(&manifest, &tree, opts.size);
     let mut hits = Vec::new();
-    trace_rayfarm(bvh, &camera, false, &mut hits);
+    trace_rayfarm(bvh, &camera, Mode::Single, &mut hits);
     let diffuse = diffuse_rays(&camera, &pixels, &hits, bvh, &tree, manifest.ray_epsilon);
-    let sets: [(&str, &[BenchRay]); 2] = [("coherent", &camera), ("incoherent", &diffuse)];
+    let light = (manifest.ray_epsilon, manifest.lights.as_slice());
+    let shadow = shadow_rays(&camera, &hits, bvh, &tree, light);
+    let sets: [(&str, &[BenchRay]); 3] = [
+        ("coherent", &camera),
+        ("incoherent", &diffuse),
+        ("shadow", &shadow),
+    ];
     if let Some(name) = &opts.count {
         let (_, rays) = sets
             .iter()
             .find(|(n, _)| n == name)
-            .ok_or_else(|| format!("--count {name}: expected coherent or incoherent"))?;
-        let packets = *name == "coherent" && Traverser::new().packets();
-        let found = counted_pass(bvh, rays, packets);
+            .ok_or_else(|| format!("--count {name}: expected coherent, incoherent or shadow"))?;
+        let mode = mode_of(name);
+        let packets = mode == Mode::Packets && Traverser::new().packets();
+        let found = counted_pass(bvh, rays, mode);
         println!(
             "{name}: {} rays, {found} hits, kernel {}, packets {}",
             rays.len(),
@@ -516,34 +631,44 @@ fn main() -> Result<()> {
         return Ok(());
     }
 
-    let dir = tempfile::Builder::new()
+    let temp = tempfile::Builder::new()
         .prefix("embree-compare")
         .tempdir()?;
+    // `--keep DIR`: the mesh, ray and hit files stay there, to run `embree_trace` on its own
+    // (under callgrind, for example).
+    let dir = match &opts.keep {
+        Some(keep) => {
+            std::fs::create_dir_all(keep)?;
+            keep.clone()
+        }
+        None => temp.path().to_path_buf(),
+    };
     let mesh: Vec<PackedTriangle> = bvh.triangles().collect();
     let mesh_ids: Vec<u64> = mesh.iter().map(PackedTriangle::id).collect();
-    write_mesh(&dir.path().join("mesh.bin"), &mesh)?;
+    write_mesh(&dir.join("mesh.bin"), &mesh)?;
     let ray_files: Vec<PathBuf> = sets
         .iter()
         .map(|(name, rays)| {
-            let path = dir.path().join(format!("{name}.rays"));
+            let path = dir.join(format!("{name}.rays"));
             write_rays(&path, rays).map(|()| path)
         })
         .collect::<Result<_>>()?;
 
     eprintln!(
-        "{} triangles; {} of {} camera rays enter the domain, {} diffuse rays; {} repetitions each",
+        "{} triangles; {} of {} camera rays enter the domain, {} diffuse rays, {} shadow rays; \
+         {} repetitions each",
         mesh.len(),
         camera.len(),
         opts.size * opts.size,
         diffuse.len(),
+        shadow.len(),
         opts.reps
     );
     let mut ours = Vec::new();
     for (name, rays) in &sets {
         let mut hits = Vec::new();
-        let packets = *name == "coherent";
         let seconds = (0..opts.reps)
-            .map(|_| trace_rayfarm(bvh, rays, packets, &mut hits))
+            .map(|_| trace_rayfarm(bvh, rays, mode_of(name), &mut hits))
             .collect();
         ours.push((Timing(seconds), hits));
     }
@@ -553,7 +678,7 @@ fn main() -> Result<()> {
         .zip(&ray_files)
         .map(|((name, _), path)| (*name, path.as_path()))
         .collect();
-    let report = run_embree(&opts, dir.path(), &named_files)?;
+    let report = run_embree(&opts, dir.as_path(), &named_files)?;
 
     // Which ISA each side may use, so a table made from this output can say so.
     println!(
@@ -570,11 +695,11 @@ fn main() -> Result<()> {
     for ((name, rays), (timing, hits)) in sets.iter().zip(&ours) {
         let n = rays.len();
         let theirs: Vec<EmbreeHit> =
-            bytemuck::pod_collect_to_vec(&std::fs::read(dir.path().join(format!("{name}.hits")))?);
+            bytemuck::pod_collect_to_vec(&std::fs::read(dir.join(format!("{name}.hits")))?);
         if theirs.len() != n {
             return Err(format!("embree_trace wrote {} hits for {n} rays", theirs.len()).into());
         }
-        let agreement = compare(hits, &theirs, &mesh_ids);
+        let agreement = compare(hits, &theirs, &mesh_ids, mode_of(name) == Mode::Any);
         let medium = embree_timing(&report, "medium", name).ok_or("no medium-quality timing")?;
         let high = embree_timing(&report, "high", name);
         let (rf, em) = (timing.median_mrays(n), medium.median_mrays(n));

@@ -29,8 +29,7 @@ pub use packet::PACKET;
 pub use select::{Kernel, packets_selected};
 pub use traverse::Traverser;
 use traverse::{
-    Entry, Isa, STACK_ENTRIES, Stack, any, any_from, descend, leaf_any, leaf_nearest, nearest,
-    prefetch_children,
+    Entry, Isa, STACK_ENTRIES, Stack, any, descend, leaf_nearest, nearest, prefetch_children,
 };
 
 /// Width of a node.

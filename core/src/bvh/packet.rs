@@ -14,8 +14,8 @@
 use std::mem::MaybeUninit;
 
 use super::{
-    Bvh, Entry, Hit, Isa, SLOT_INNER, STACK_ENTRIES, Stack, TraceRay, WIDTH, any_from, descend,
-    leaf_any, leaf_nearest, prefetch_children,
+    Bvh, Entry, Hit, Isa, SLOT_INNER, STACK_ENTRIES, Stack, TraceRay, WIDTH, descend, leaf_nearest,
+    prefetch_children,
 };
 
 /// Most rays in a packet.
@@ -214,117 +214,6 @@ pub(super) fn nearest_packet<K: Isa>(
     }
     for (o, b) in out.iter_mut().zip(&best) {
         *o = (b.block != u32::MAX).then_some(*b);
-    }
-}
-
-/// Whether each of `rays` (at most [`PACKET`]) is blocked within its own `[t0, t1]`, written to
-/// `out`; the same answers as [`super::Traverser::any_hit`] ray by ray (a blocker is any
-/// triangle hit in the interval, found by whichever visiting order). Unordered, as a single
-/// shadow ray: the rays' leaf children are tested at once and a ray that is blocked leaves the
-/// packet; inner children wait on the stack with the rays that entered them.
-#[inline(always)]
-pub(super) fn any_packet<K: Isa>(
-    stack: &mut PacketStack,
-    single: &mut Stack,
-    bvh: Bvh,
-    rays: &[TraceRay],
-    t0: &[f32],
-    t1: &[f32],
-    out: &mut [bool],
-) {
-    let n = rays.len();
-    assert!(
-        (1..=PACKET).contains(&n) && t0.len() == n && t1.len() == n && out.len() == n,
-        "a packet holds 1 to {PACKET} rays, each with an interval and a place for its answer"
-    );
-    let mut prepared: [MaybeUninit<K::Ray>; PACKET] = [const { MaybeUninit::uninit() }; PACKET];
-    for (p, ray) in prepared.iter_mut().zip(rays) {
-        p.write(K::prepare(ray));
-    }
-    // SAFETY: only the rays of a ray mask are read, and their lanes (below `n`) were written.
-    let ray = |r: usize| unsafe { prepared.get_unchecked(r).assume_init_ref() };
-    let t0: [f32; PACKET] = std::array::from_fn(|i| t0[i.min(n - 1)]);
-    let t1: [f32; PACKET] = std::array::from_fn(|i| t1[i.min(n - 1)]);
-    let all = (1u32 << n) - 1;
-    let mut blocked = 0u32;
-    stack.len = 0;
-    // Only inner nodes are ever visited: leaves are tested where they are entered.
-    let mut cur = PacketEntry {
-        child: 0,
-        meta: SLOT_INNER,
-        rays: all,
-        near: 0.0,
-    };
-    'visit: loop {
-        if cur.rays & (cur.rays - 1) == 0 {
-            // One ray left here: it finishes the subtree alone.
-            let r = cur.rays.trailing_zeros() as usize & (PACKET - 1);
-            if any_from::<K>(single, bvh, ray(r), t0[r], t1[r], cur.child) {
-                blocked |= 1 << r;
-            }
-        } else {
-            // SAFETY: the root or a child index of a validated tree.
-            let node = unsafe { bvh.node(cur.child) };
-            let mut per_ray = 0u64;
-            let mut entered = 0u32;
-            let mut rays = cur.rays;
-            while rays != 0 {
-                let r = rays.trailing_zeros() as usize & (PACKET - 1);
-                rays &= rays - 1;
-                let (_, mask) = K::slab(node, ray(r), t0[r], t1[r]);
-                per_ray |= (mask as u64) << (8 * r);
-                entered |= mask;
-            }
-            if entered & entered.wrapping_sub(1) != 0 {
-                prefetch_children(bvh, node, entered);
-            }
-            let per_child = transpose8(per_ray);
-            let mut mask = entered;
-            while mask != 0 {
-                let slot = mask.trailing_zeros() as usize;
-                mask &= mask - 1;
-                let mut rays = (per_child >> (8 * slot)) as u32 & 0xff & !blocked;
-                let (child, meta) = (node.child[slot], node.meta[slot]);
-                if meta == SLOT_INNER {
-                    if rays != 0 {
-                        // SAFETY: a validated tree's traversal holds fewer than STACK_ENTRIES.
-                        unsafe {
-                            stack.push(PacketEntry {
-                                child,
-                                meta,
-                                rays,
-                                near: 0.0,
-                            })
-                        };
-                    }
-                    continue;
-                }
-                // SAFETY: a leaf child's range of a validated tree.
-                let blocks = unsafe { bvh.leaf(child, meta) };
-                while rays != 0 {
-                    let r = rays.trailing_zeros() as usize & (PACKET - 1);
-                    rays &= rays - 1;
-                    if leaf_any::<K>(blocks, ray(r), t0[r], t1[r]) {
-                        blocked |= 1 << r;
-                    }
-                }
-                if blocked == all {
-                    break 'visit;
-                }
-            }
-        }
-        // The next entry with a ray not yet blocked.
-        while let Some(mut e) = stack.pop() {
-            e.rays &= !blocked;
-            if e.rays != 0 {
-                cur = e;
-                continue 'visit;
-            }
-        }
-        break;
-    }
-    for (i, o) in out.iter_mut().enumerate() {
-        *o = blocked >> i & 1 != 0;
     }
 }
 

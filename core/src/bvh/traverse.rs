@@ -2,7 +2,7 @@
 //! ([`Isa`]): ordered nearest-hit, shadow any-hit, and the [`Traverser`] that holds their
 //! stacks and dispatches to the selected kernel.
 
-use super::packet::{PacketStack, any_packet, nearest_packet};
+use super::packet::{PacketStack, nearest_packet};
 #[cfg(target_arch = "x86_64")]
 use super::x86;
 use super::{
@@ -135,48 +135,6 @@ impl Traverser {
             #[cfg(target_arch = "x86_64")]
             Kernel::Sse => any::<x86::Sse>(stack, bvh, ray, t0, t1),
             _ => any::<Scalar>(stack, bvh, ray, t0, t1),
-        }
-    }
-
-    /// Whether each of neighbouring, coherent shadow rays (a tile's rays towards one light) is
-    /// blocked within its own `t0[i] <= t <= t1[i]`, into `out`: traced as packets of
-    /// [`PACKET`] in lock step, or one at a time if packets are off. The same answers as
-    /// [`Traverser::any_hit`] per ray.
-    ///
-    /// # Panics
-    /// If the four slices differ in length.
-    pub fn any_hits(
-        &mut self,
-        bvh: Bvh,
-        rays: &[TraceRay],
-        t0: &[f32],
-        t1: &[f32],
-        out: &mut [bool],
-    ) {
-        let n = rays.len();
-        assert!(
-            t0.len() == n && t1.len() == n && out.len() == n,
-            "every ray needs an interval and a place for its answer"
-        );
-        if !self.packets || bvh.nodes.is_empty() || n < 2 {
-            for i in 0..n {
-                out[i] = self.any_hit(bvh, &rays[i], t0[i], t1[i]);
-            }
-            return;
-        }
-        let (stack, single) = (&mut self.packet_stack, &mut self.stack);
-        for start in (0..n).step_by(PACKET) {
-            let at = start..(start + PACKET).min(n);
-            let (r, a, b) = (&rays[at.clone()], &t0[at.clone()], &t1[at.clone()]);
-            let o = &mut out[at];
-            match self.kernel {
-                #[cfg(target_arch = "x86_64")]
-                // SAFETY: a traverser holds only a kernel this CPU supports (`with_kernel`).
-                Kernel::Avx2 => unsafe { x86::any_packet_avx2(stack, single, bvh, r, a, b, o) },
-                #[cfg(target_arch = "x86_64")]
-                Kernel::Sse => any_packet::<x86::Sse>(stack, single, bvh, r, a, b, o),
-                _ => any_packet::<Scalar>(stack, single, bvh, r, a, b, o),
-            }
         }
     }
 }
@@ -393,38 +351,41 @@ pub(super) fn descend<K: Isa>(
             let node = unsafe { bvh.node(cur.child) };
             let (near, mut mask) = K::slab(node, r, t0, best.t);
             if mask != 0 {
-                let slot = mask.trailing_zeros() as usize;
+                let first_slot = mask.trailing_zeros() as usize;
                 mask &= mask - 1;
                 let first = Entry {
-                    child: node.child[slot],
-                    meta: node.meta[slot],
-                    near: near[slot],
+                    child: node.child[first_slot],
+                    meta: node.meta[first_slot],
+                    near: near[first_slot],
                 };
                 if mask == 0 {
                     cur = first;
                     continue;
                 }
-                // Every entered child's memory is asked for now, so the cache misses of the
-                // siblings overlap with the work on the nearest.
-                prefetch_children(bvh, node, mask | 1 << slot);
                 if mask & (mask - 1) == 0 {
-                    // Two entered children, the commonest case: one comparison orders them.
+                    // Two entered children, the commonest case: one comparison orders them,
+                    // and the farther one's memory is asked for now, so its cache misses
+                    // overlap with the work on the nearer (which is loaded at once anyway).
                     let slot = mask.trailing_zeros() as usize;
                     let second = Entry {
                         child: node.child[slot],
                         meta: node.meta[slot],
                         near: near[slot],
                     };
-                    let (nearer, farther) = if second.near < first.near {
-                        (second, first)
+                    let (nearer, farther, far_slot) = if second.near < first.near {
+                        (second, first, first_slot)
                     } else {
-                        (first, second)
+                        (first, second, slot)
                     };
+                    prefetch_children(bvh, node, 1 << far_slot);
                     // SAFETY: a validated tree's traversal holds fewer than STACK_ENTRIES.
                     unsafe { stack.push(farther) };
                     cur = nearer;
                     continue;
                 }
+                // Every entered child's memory is asked for now, so the cache misses of the
+                // siblings overlap with the work on the nearest.
+                prefetch_children(bvh, node, mask | 1 << first_slot);
                 // Insert the entered children so the stack stays sorted within this node's
                 // run, farthest deepest; the nearest becomes `cur`.
                 let base = stack.len;
@@ -488,8 +449,7 @@ pub(super) fn any<K: Isa>(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, 
     any_from::<K>(stack, bvh, &r, t0, t1, 0)
 }
 
-/// [`any`] of the subtree under inner node `node` (the root for a whole ray; a packet's ray that
-/// is left alone, from where it was left).
+/// [`any`] of the subtree under inner node `node` (the root, for a whole ray).
 #[inline(always)]
 pub(super) fn any_from<K: Isa>(
     stack: &mut Stack,

@@ -3,7 +3,7 @@
 
 use std::arch::x86_64::*;
 
-use super::packet::{PacketStack, any_packet, nearest_packet};
+use super::packet::{PacketStack, nearest_packet};
 use super::{Bvh, BvhNode, Hit, Isa, Stack, TraceRay, WIDTH, any, nearest};
 use crate::geometry::{BLOCK, ShearedSse, TriangleBlock};
 
@@ -195,19 +195,4 @@ pub unsafe fn nearest_packet_avx2(
 #[target_feature(enable = "avx2,fma")]
 pub unsafe fn any_avx2(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32) -> bool {
     any::<Avx2>(stack, bvh, ray, t0, t1)
-}
-
-/// # Safety
-/// The CPU must support AVX2 and FMA.
-#[target_feature(enable = "avx2,fma")]
-pub unsafe fn any_packet_avx2(
-    stack: &mut PacketStack,
-    single: &mut Stack,
-    bvh: Bvh,
-    rays: &[TraceRay],
-    t0: &[f32],
-    t1: &[f32],
-    out: &mut [bool],
-) {
-    any_packet::<Avx2>(stack, single, bvh, rays, t0, t1, out)
 }
