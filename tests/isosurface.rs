@@ -42,9 +42,27 @@ fn prepare_blobs(dir: &Path, domains: &str, extra: &[&str]) -> PathBuf {
         "blobs-{domains}{}",
         extra.join("").replace('/', "_")
     ));
+    let domains = ["--domains", domains];
+    rayfarm_ok(&blobs_args(&raw, &out, &[&domains[..], extra].concat()));
+    out
+}
+
+/// The error of preparing the blobs' volume (already written into `dir`) as an isosurface
+/// with `extra` options that must be refused.
+fn refused_blobs(dir: &Path, extra: &[&str]) -> String {
+    rayfarm_err(&blobs_args(
+        &dir.join("blobs.raw"),
+        &dir.join("refused"),
+        extra,
+    ))
+}
+
+/// `prepare`'s arguments for the blobs' volume `raw` as the isosurface at 500 at `out`, with
+/// `extra` options.
+fn blobs_args<'a>(raw: &'a Path, out: &'a Path, extra: &[&'a str]) -> Vec<&'a str> {
     let mut args = vec![
         "prepare",
-        s(&raw),
+        s(raw),
         "--dims",
         "40,36,24",
         "--dtype",
@@ -53,35 +71,11 @@ fn prepare_blobs(dir: &Path, domains: &str, extra: &[&str]) -> PathBuf {
         "1,1,1.5",
         "--iso",
         "500",
-        "--domains",
-        domains,
         "--out",
-        s(&out),
+        s(out),
     ];
     args.extend_from_slice(extra);
-    rayfarm_ok(&args);
-    out
-}
-
-/// The error of preparing the blobs' volume (already written into `dir`) as an isosurface
-/// with `extra` options that must be refused.
-fn refused_blobs(dir: &Path, extra: &[&str]) -> String {
-    let raw = dir.join("blobs.raw");
-    let out = dir.join("refused");
-    let mut args = vec![
-        "prepare",
-        s(&raw),
-        "--dims",
-        "40,36,24",
-        "--dtype",
-        "i16",
-        "--iso",
-        "500",
-        "--out",
-        s(&out),
-    ];
-    args.extend_from_slice(extra);
-    rayfarm_err(&args)
+    args
 }
 
 /// An isosurface shaded with the volume's gradient (the default for `--iso`): the same bits
