@@ -1,12 +1,36 @@
 //! Volumes for direct volume rendering, end to end through the real CLI: `rayfarm prepare
 //! --volume` cuts a raw volume (or the generator's density field) into bricks, refusing bad
-//! input with errors that name the file; `--spacing` keeps a volume's proportions.
+//! input with errors that name the file; `--spacing` keeps a volume's proportions; the image
+//! is the same bits at any bricking, cache, threads and placement, and on clusters under every
+//! schedule. Isosurfaces of raw volumes are in `isosurface.rs`.
+
+use std::path::{Path, PathBuf};
 
 use rayfarm_core::scene::Manifest;
-use rayfarm_tests::{file_hash, rayfarm_err, rayfarm_ok, s, stats_field};
+use rayfarm_tests::identical::{DVR_RUNS, on_a_cluster, same_image_every_way};
+use rayfarm_tests::{rayfarm_err, rayfarm_ok, s, stats_field};
+
+/// The generator's density field as a 48^3 volume cut into `bricks` bricks, looking as `look`
+/// says (`prepare --volume` options), at `scene`.
+fn prepare_density(scene: &Path, bricks: &str, look: &[&str]) {
+    let mut prepare = vec![
+        "prepare",
+        "--generate",
+        "nbody",
+        "--volume",
+        "--dims",
+        "48,48,48",
+        "--bricks",
+        bricks,
+        "--out",
+        s(scene),
+    ];
+    prepare.extend_from_slice(look);
+    rayfarm_ok(&prepare);
+}
 
 /// A 20x16x12 i16 volume: a ball of "bone" (1000) in "soft tissue" (0).
-fn ball_volume(path: &std::path::Path) {
+fn ball_volume(path: &Path) {
     let mut bytes = Vec::new();
     for k in 0..12i32 {
         for j in 0..16i32 {
@@ -265,83 +289,27 @@ fn volumes_with_surfaces_are_identical_at_1_8_and_64_bricks_any_cache_and_thread
 /// Renders the generator's density volume prepared with `look` at 1, 8 and 64 bricks under
 /// several caches, threads and placements; asserts every image and shadow-ray count is the
 /// same and returns the image's hash and the shadow rays.
-fn identical_at_any_bricking(dir: &std::path::Path, look: &[&str]) -> (String, u64) {
-    let mut hashes = Vec::new();
-    let mut shadow_rays = Vec::new();
+fn identical_at_any_bricking(dir: &Path, look: &[&str]) -> (String, u64) {
     let name = look.join(" ");
-    for bricks in ["1", "8", "64"] {
-        let scene = dir.join(format!("nbody-{bricks}-{name}"));
-        let mut prepare = vec![
-            "prepare",
-            "--generate",
-            "nbody",
-            "--volume",
-            "--dims",
-            "48,48,48",
-            "--bricks",
-            bricks,
-            "--out",
-            s(&scene),
-        ];
-        prepare.extend_from_slice(look);
-        rayfarm_ok(&prepare);
-        let bytes: u64 = Manifest::load(&scene)
-            .unwrap()
-            .domains
-            .iter()
-            .map(|d| d.bytes)
-            .sum();
-        let small = (bytes / 6).max(1).to_string();
-        for (cache, threads, placement) in [
-            ("4GiB", "1", "chained"),
-            (small.as_str(), "2", "chained"),
-            ("4GiB", "2", "chained"),
-            ("4GiB", "1", "speculative"),
-            (small.as_str(), "2", "speculative"),
-        ] {
-            let img = dir.join(format!("{bricks}-{threads}-{}.exr", hashes.len()));
-            let stats = dir.join("stats.json");
-            let mut args = vec![
-                "render",
-                "--local",
-                "--scene",
-                s(&scene),
-                "--width",
-                "96",
-                "--height",
-                "72",
-                "--spp",
-                "2",
-                "--threads",
-                threads,
-                "--cache-bytes",
-                cache,
-                "-o",
-                s(&img),
-                "--stats-json",
-                s(&stats),
-                "--quiet",
-            ];
-            if placement == "speculative" {
-                args.push("--speculate");
-            }
-            rayfarm_ok(&args);
-            hashes.push((
-                format!("{name}: {bricks} bricks, cache {cache}, {threads} threads, {placement}"),
-                file_hash(&img),
-            ));
-            shadow_rays.push(stats_field(&stats, "/rays/shadow_rays").as_u64().unwrap());
-        }
-    }
-    for (what, h) in &hashes {
-        assert_eq!(h, &hashes[0].1, "{what} differs from {}", hashes[0].0);
-    }
+    let scenes: Vec<PathBuf> = ["1", "8", "64"]
+        .iter()
+        .map(|bricks| {
+            let scene = dir.join(format!("nbody-{bricks}-{name}"));
+            prepare_density(&scene, bricks, look);
+            scene
+        })
+        .collect();
+    let (hash, stats) = same_image_every_way(dir, &scenes, &DVR_RUNS, &[]);
+    let shadow_rays: Vec<u64> = stats
+        .iter()
+        .map(|f| stats_field(f, "/rays/shadow_rays").as_u64().unwrap())
+        .collect();
     // As many shadow rays whatever the bricking and placement.
     assert!(
         shadow_rays.iter().all(|&n| n == shadow_rays[0]),
         "{name}: {shadow_rays:?}"
     );
-    (hashes[0].1.clone(), shadow_rays[0])
+    (hash, shadow_rays[0])
 }
 
 /// On a real cluster of 1, 2 and 4 workers, every schedule gives the image of `render --local`
@@ -368,213 +336,6 @@ fn volumes_with_surfaces_on_a_cluster_match_the_local_image_under_every_schedule
 
 fn dvr_on_a_cluster(look: &[&str]) {
     let root = tempfile::tempdir().unwrap();
-    let scene = root.path().join("vol");
-    let mut prepare = vec![
-        "prepare",
-        "--generate",
-        "nbody",
-        "--volume",
-        "--dims",
-        "48,48,48",
-        "--bricks",
-        "8",
-        "--out",
-        s(&scene),
-    ];
-    prepare.extend_from_slice(look);
-    rayfarm_ok(&prepare);
+    prepare_density(&root.path().join("vol"), "8", look);
     on_a_cluster(root.path(), "vol");
-}
-
-/// Renders the scene `name` in `root` on 1, 2 and 4 workers with two-domain caches under
-/// every schedule; every image must be `render --local`'s.
-fn on_a_cluster(root: &std::path::Path, name: &str) {
-    use rayfarm_tests::{Cluster, WorkerOpts, domain_bytes, hash_of, local_hash, submit_wait};
-    let scene = root.join(name);
-    let frame = ["--width", "96", "--height", "72", "--spp", "2"];
-    let expected = local_hash(&scene, &frame);
-    let (_, largest) = domain_bytes(&scene);
-    for n in [1, 2, 4] {
-        // Two-brick caches: bricks page in and out.
-        let cluster = Cluster::start(root, Some(name), &vec![WorkerOpts::cache(2 * largest); n]);
-        cluster.wait_for_workers(n, rayfarm_tests::START_TIMEOUT);
-        for schedule in ["image-plane", "domain", "dynamic", "hybrid", "predictive"] {
-            let mut f = frame.to_vec();
-            f.extend(["--schedule", schedule, "--cold-cache"]);
-            let stats = submit_wait(&cluster, &f, &format!("{schedule}-{n}"));
-            assert_eq!(hash_of(&stats), expected, "{schedule} with {n} workers");
-        }
-    }
-}
-
-/// A 40x36x24 i16 volume at 1 x 1 x 1.5 spacing: two overlapping smooth blobs (their sum
-/// falls off with distance), so the isosurface at 500 is one curved surface with a saddle.
-fn blobs_volume(path: &std::path::Path) {
-    let mut bytes = Vec::new();
-    for k in 0..24i32 {
-        for j in 0..36i32 {
-            for i in 0..40i32 {
-                let blob = |cx: f32, cy: f32, cz: f32, r: f32| {
-                    let d2 = (i as f32 - cx).powi(2)
-                        + (j as f32 - cy).powi(2)
-                        + (1.5 * (k as f32 - cz)).powi(2);
-                    1000.0 * (-d2 / (r * r)).exp()
-                };
-                let v = blob(15.0, 17.0, 11.0, 9.0) + blob(25.0, 19.0, 13.0, 7.0);
-                bytes.extend_from_slice(&(v as i16).to_le_bytes());
-            }
-        }
-    }
-    std::fs::write(path, bytes).unwrap();
-}
-
-fn prepare_blobs(dir: &std::path::Path, domains: &str, extra: &[&str]) -> std::path::PathBuf {
-    let raw = dir.join("blobs.raw");
-    if !raw.exists() {
-        blobs_volume(&raw);
-    }
-    let out = dir.join(format!("blobs-{domains}{}", extra.join("")));
-    let mut args = vec![
-        "prepare",
-        s(&raw),
-        "--dims",
-        "40,36,24",
-        "--dtype",
-        "i16",
-        "--spacing",
-        "1,1,1.5",
-        "--iso",
-        "500",
-        "--domains",
-        domains,
-        "--out",
-        s(&out),
-    ];
-    args.extend_from_slice(extra);
-    rayfarm_ok(&args);
-    out
-}
-
-/// An isosurface shaded with the volume's gradient (the default for `--iso`): the same bits
-/// at 1, 8 and 64 domains (a vertex cut across domains gets its normal from the whole
-/// volume's gradient, the same in each), any cache, 1-2 threads, chained or speculative
-/// (a copy sends the shading normal home); and not the flat-shaded image.
-#[test]
-fn smooth_isosurfaces_are_identical_at_1_8_and_64_domains_any_cache_and_threads() {
-    let tmp = tempfile::tempdir().unwrap();
-    let mut hashes = Vec::new();
-    for domains in ["1", "8", "64"] {
-        let scene = prepare_blobs(tmp.path(), domains, &[]);
-        let m = Manifest::load(&scene).unwrap();
-        assert_eq!(m.domains.len(), domains.parse::<usize>().unwrap());
-        let bytes: u64 = m.domains.iter().map(|d| d.bytes).sum();
-        let small = (bytes / 6).max(1).to_string();
-        for (cache, threads, speculate) in [
-            ("4GiB", "1", false),
-            (small.as_str(), "2", false),
-            ("4GiB", "1", true),
-            (small.as_str(), "2", true),
-        ] {
-            let img = tmp.path().join(format!("{domains}-{}.exr", hashes.len()));
-            let mut args = vec![
-                "render",
-                "--local",
-                "--scene",
-                s(&scene),
-                "--width",
-                "96",
-                "--height",
-                "72",
-                "--spp",
-                "2",
-                "--depth",
-                "2",
-                "--threads",
-                threads,
-                "--cache-bytes",
-                cache,
-                "-o",
-                s(&img),
-                "--quiet",
-            ];
-            if speculate {
-                args.push("--speculate");
-            }
-            rayfarm_ok(&args);
-            hashes.push((
-                format!(
-                    "{domains} domains, cache {cache}, {threads} threads, speculate {speculate}"
-                ),
-                file_hash(&img),
-            ));
-        }
-    }
-    for (what, h) in &hashes {
-        assert_eq!(h, &hashes[0].1, "{what} differs from {}", hashes[0].0);
-    }
-    // Flat normals and a colour map give other images (so the smooth ones were used).
-    let render = |scene: &std::path::Path, name: &str| {
-        let img = tmp.path().join(name);
-        rayfarm_ok(&[
-            "render",
-            "--local",
-            "--scene",
-            s(scene),
-            "--width",
-            "96",
-            "--height",
-            "72",
-            "--spp",
-            "2",
-            "--depth",
-            "2",
-            "-o",
-            s(&img),
-            "--quiet",
-        ]);
-        file_hash(&img)
-    };
-    let flat = render(
-        &prepare_blobs(tmp.path(), "8", &["--normals", "flat"]),
-        "flat.exr",
-    );
-    assert_ne!(flat, hashes[0].1, "smooth normals change the image");
-    let mapped = prepare_blobs(tmp.path(), "8", &["--colour-map", "viridis"]);
-    let m = Manifest::load(&mapped).unwrap();
-    assert!(matches!(
-        m.materials[0],
-        rayfarm_core::scene::Material::Mapped { axis: 2, .. }
-    ));
-    assert_ne!(
-        render(&mapped, "mapped.exr"),
-        hashes[0].1,
-        "the colour map shows"
-    );
-    // A colour map that does not exist is refused naming the presets.
-    let raw = tmp.path().join("blobs.raw");
-    let err = rayfarm_err(&[
-        "prepare",
-        s(&raw),
-        "--dims",
-        "40,36,24",
-        "--dtype",
-        "i16",
-        "--iso",
-        "500",
-        "--colour-map",
-        "rainbow",
-        "--out",
-        s(&tmp.path().join("x")),
-    ]);
-    assert!(err.contains("rainbow") && err.contains("viridis"), "{err}");
-}
-
-/// The smooth isosurface on a real cluster of 1, 2 and 4 workers: every schedule gives the
-/// image of `render --local` to the bit, predictive included (copies send the shading normal).
-#[test]
-fn smooth_isosurfaces_on_a_cluster_match_the_local_image_under_every_schedule() {
-    let root = tempfile::tempdir().unwrap();
-    let scene = prepare_blobs(root.path(), "8", &["--colour-map", "bone"]);
-    let name = scene.file_name().unwrap().to_str().unwrap().to_string();
-    on_a_cluster(root.path(), &name);
 }

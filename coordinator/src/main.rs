@@ -152,18 +152,15 @@ async fn run(args: Args) -> anyhow::Result<()> {
     let tls = args.tls.server_config()?;
     let secret = ClusterSecret::load(args.cluster_secret_file.as_deref())?;
     let tokens = UserTokens::load(args.user_tokens_file.as_deref())?;
-    let missing: Vec<&str> = [
-        (tls.is_none(), "TLS (--tls-cert, --tls-key)"),
-        (secret.is_none(), "a cluster secret (--cluster-secret-file)"),
-        (tokens.is_none(), "user tokens (--user-tokens-file)"),
-    ]
-    .into_iter()
-    .filter_map(|(missing, what)| missing.then_some(what))
-    .collect();
-    rayfarm_node::security::check_exposure(args.listen, &missing, args.insecure)?;
-    if let Some(http) = args.http.http {
-        rayfarm_node::security::check_exposure(http, &missing, args.insecure)?;
-    }
+    rayfarm_node::security::check_listeners(
+        std::iter::once(args.listen).chain(args.http.http),
+        &[
+            (tls.is_some(), "TLS (--tls-cert, --tls-key)"),
+            (secret.is_some(), "a cluster secret (--cluster-secret-file)"),
+            (tokens.is_some(), "user tokens (--user-tokens-file)"),
+        ],
+        args.insecure,
+    )?;
     let http_tls = args.tls.http_server_config()?;
     std::fs::create_dir_all(&args.data_dir)
         .with_context(|| format!("creating data directory {}", args.data_dir.display()))?;

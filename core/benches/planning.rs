@@ -1,8 +1,9 @@
 //! The coordinator's planning at the papers' scale: one round of the dynamic schedule
 //! (`schedule::rounds`) for 1024 and 4096 workers over 8192 and 32768 domains.
 //!
-//! Three cases, each from the same synthetic reports (every worker holds two domains and has
-//! rays queued for sixteen, drawn from a fixed hash (`sampling::mix64`) so every run plans the same cluster):
+//! Four cases, each from the same synthetic reports (`schedule::synthetic`: every worker holds
+//! two domains and has rays queued for sixteen, drawn from a fixed hash, the cluster
+//! `rayfarm sim calibrate` times too):
 //! - `barrier`: every member has reported, the whole cluster is planned at once;
 //! - `async_one_dry`: asynchronous rounds, one member ran dry while the rest are busy (the
 //!   common event: the coordinator handles one of these per report);
@@ -16,49 +17,13 @@
 //!
 //! `cargo bench -p rayfarm-core --bench planning`
 
-use std::collections::{BTreeMap, BTreeSet};
 use std::hint::black_box;
 
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
-use rayfarm_core::sampling::mix64;
 use rayfarm_core::schedule::dynamic::Options;
 use rayfarm_core::schedule::round_index::RoundIndex;
-use rayfarm_core::schedule::rounds::{Cluster, Member, Queues};
-
-/// Domains each worker's cache holds.
-const RESIDENT: usize = 2;
-/// Domains each worker has rays queued for.
-const QUEUED: usize = 16;
-/// Bytes of every domain (the cache holds `RESIDENT` of them).
-const DOMAIN_BYTES: u64 = 64 << 20;
-
-/// `workers` members over `domains` domains; the first `dry` of them have run dry.
-fn members(workers: u32, domains: u32, dry: u32) -> BTreeMap<u32, Member> {
-    (0..workers)
-        .map(|w| {
-            let pick =
-                |i: usize| (mix64(u64::from(w) << 20 | i as u64) % u64::from(domains)) as u32;
-            let resident: Vec<u32> = (0..RESIDENT).map(pick).collect();
-            let queued: BTreeMap<u32, u64> = (RESIDENT..RESIDENT + QUEUED)
-                .map(|i| (pick(i), 1 + mix64(i as u64 ^ u64::from(w)) % 10_000))
-                .collect();
-            let report = Queues {
-                round: 1,
-                resident: resident.clone(),
-                queued,
-                ..Queues::default()
-            };
-            let member = Member {
-                cache_bytes: RESIDENT as u64 * DOMAIN_BYTES,
-                report: Some(report),
-                plan: resident.into_iter().collect::<BTreeSet<u32>>(),
-                // A plan of a later round than the report means the member is still busy.
-                planned_round: if w < dry { 1 } else { 2 },
-            };
-            (w, member)
-        })
-        .collect()
-}
+use rayfarm_core::schedule::rounds::Cluster;
+use rayfarm_core::schedule::synthetic::{DOMAIN_BYTES, members};
 
 fn planning(c: &mut Criterion) {
     let mut group = c.benchmark_group("planning");

@@ -12,19 +12,17 @@
 //!
 //! Planning: one asynchronous round of the dynamic schedule (one member dry, the rest busy,
 //! free cache slots filled, as the coordinator plans by default) over synthetic clusters of
-//! several sizes, as the coordinator makes it (`round_index::RoundIndex`: the dry member's
+//! several sizes (`schedule::synthetic`, the planning benchmark's cluster), as the coordinator makes it (`round_index::RoundIndex`: the dry member's
 //! report taken in, the dry member planned, the plan adopted and queued counts moved), timed
 //! on the thread's clock (the fastest of a few repeats), fitted as
 //! `round + member x M + domain x D`.
 
-use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
 use std::time::Duration;
 
-use rayfarm_core::sampling::mix64;
 use rayfarm_core::schedule::dynamic::Options;
 use rayfarm_core::schedule::round_index::RoundIndex;
-use rayfarm_core::schedule::rounds::{Member, Queues};
+use rayfarm_core::schedule::synthetic::{DOMAIN_BYTES, members};
 
 use crate::cost::ComputeCost;
 use crate::faults::FaultPlan;
@@ -245,7 +243,8 @@ fn time_rounds() -> Vec<(usize, usize, f64)> {
         .iter()
         .map(|&(workers, domains)| {
             let sizes = vec![DOMAIN_BYTES; domains as usize];
-            let fresh = members(workers, domains);
+            // One member dry, the rest busy: the common event, one of these per report.
+            let fresh = members(workers, domains, 1);
             let best = (0..5)
                 .map(|_| {
                     let mut members = fresh.clone();
@@ -269,39 +268,6 @@ fn time_rounds() -> Vec<(usize, usize, f64)> {
                 .min()
                 .unwrap_or(0);
             (workers as usize, domains as usize, best as f64)
-        })
-        .collect()
-}
-
-/// Domains each synthetic member holds, and has rays queued for.
-const RESIDENT: usize = 2;
-const QUEUED: usize = 16;
-const DOMAIN_BYTES: u64 = 64 << 20;
-
-/// `workers` synthetic members over `domains` domains, the first dry and the rest busy (the
-/// common event: the coordinator plans one of these per report), drawn from a fixed hash.
-fn members(workers: u32, domains: u32) -> BTreeMap<u32, Member> {
-    (0..workers)
-        .map(|w| {
-            let pick =
-                |i: usize| (mix64(u64::from(w) << 20 | i as u64) % u64::from(domains)) as u32;
-            let resident: Vec<u32> = (0..RESIDENT).map(pick).collect();
-            let queued: BTreeMap<u32, u64> = (RESIDENT..RESIDENT + QUEUED)
-                .map(|i| (pick(i), 1 + mix64(i as u64 ^ u64::from(w)) % 10_000))
-                .collect();
-            let member = Member {
-                cache_bytes: RESIDENT as u64 * DOMAIN_BYTES,
-                report: Some(Queues {
-                    round: 1,
-                    resident: resident.clone(),
-                    queued,
-                    ..Queues::default()
-                }),
-                plan: resident.into_iter().collect::<BTreeSet<u32>>(),
-                // A plan of a later round than the report: still busy.
-                planned_round: if w == 0 { 1 } else { 2 },
-            };
-            (w, member)
         })
         .collect()
 }

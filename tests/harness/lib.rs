@@ -5,7 +5,8 @@
 //!
 //! The parts: [`cli`] runs the `rayfarm` command, [`scenes`] prepares scenes and reads image
 //! hashes, [`process`] starts, signals and waits on processes, [`cluster`] runs a coordinator
-//! and its workers, [`http`] speaks plain HTTP/1.1 to their dashboards and metrics, [`hostile`] is an attacker's
+//! and its workers, [`identical`] renders a scene every way that must give the same image,
+//! [`http`] speaks plain HTTP/1.1 to their dashboards and metrics, [`hostile`] is an attacker's
 //! raw connections and HTTP/2 frames.
 
 use std::path::Path;
@@ -15,6 +16,7 @@ pub mod cluster;
 pub mod hostile;
 pub mod hosts;
 pub mod http;
+pub mod identical;
 pub mod process;
 pub mod scenes;
 

@@ -163,17 +163,14 @@ async fn run(args: Args) -> anyhow::Result<()> {
         tls: args.connect_tls.client_config(args.serve_tls.identity()?)?,
         credential: Credential::secret(secret.as_ref()),
     };
-    let missing: Vec<&str> = [
-        (serve_tls.is_none(), "TLS (--tls-cert, --tls-key)"),
-        (secret.is_none(), "a cluster secret (--cluster-secret-file)"),
-    ]
-    .into_iter()
-    .filter_map(|(missing, what)| missing.then_some(what))
-    .collect();
-    rayfarm_node::security::check_exposure(args.listen, &missing, args.insecure)?;
-    if let Some(http) = args.http.http {
-        rayfarm_node::security::check_exposure(http, &missing, args.insecure)?;
-    }
+    rayfarm_node::security::check_listeners(
+        std::iter::once(args.listen).chain(args.http.http),
+        &[
+            (serve_tls.is_some(), "TLS (--tls-cert, --tls-key)"),
+            (secret.is_some(), "a cluster secret (--cluster-secret-file)"),
+        ],
+        args.insecure,
+    )?;
     let http_tls = args.serve_tls.http_server_config()?;
     let worker_id = match own_name(&args)? {
         // Under mutual TLS the coordinator and peers take this node for the name in its

@@ -81,6 +81,8 @@ pub fn run(a: DemoArgs) -> anyhow::Result<()> {
             normals: None,
             colour_map: None,
             colour_axis: None,
+            colour_by: None,
+            colour_volume: None,
         })?;
     }
     let manifest = Manifest::load(&scene)?;

@@ -12,7 +12,7 @@ use rayfarm_core::prepare::generate::{
 };
 use rayfarm_core::prepare::mesh_scene::MAX_DOMAINS;
 use rayfarm_core::prepare::prepare_mesh;
-use rayfarm_core::prepare::volume_scene::{IsoLook, prepare_raw_bricks, prepare_volume};
+use rayfarm_core::prepare::volume_scene::{ColourBy, IsoLook, prepare_raw_bricks, prepare_volume};
 use rayfarm_core::scene::Manifest;
 use rayfarm_core::transfer::TransferFunction;
 
@@ -108,6 +108,27 @@ pub struct PrepareArgs {
     /// --colour-map: the axis heights run along (default z for a volume, y for the generator).
     #[arg(long, value_enum, requires = "colour_map")]
     pub colour_axis: Option<Axis>,
+    /// --colour-map of a raw volume's --iso: what picks the colour, `height` (along
+    /// --colour-axis; the default), `gradient` (the volume's gradient magnitude at the
+    /// vertices: how sharp the boundary is) or `volume` (the value at the vertices of a second
+    /// raw volume, --colour-volume, of the same --dims and --dtype); the last two colour each
+    /// triangle from a 256-colour table of the map.
+    #[arg(long, value_enum, requires = "colour_map")]
+    pub colour_by: Option<ColourSource>,
+    /// --colour-by volume: the second raw volume.
+    #[arg(long)]
+    pub colour_volume: Option<PathBuf>,
+}
+
+/// What picks an isosurface's colour from its colour map.
+#[derive(ValueEnum, Clone, Copy, Debug, PartialEq)]
+pub enum ColourSource {
+    /// The height of the point shaded.
+    Height,
+    /// The volume's gradient magnitude at the vertices.
+    Gradient,
+    /// A second volume's value at the vertices (--colour-volume).
+    Volume,
 }
 
 /// Shading normals of an isosurface.
@@ -159,6 +180,9 @@ pub fn run(a: PrepareArgs) -> anyhow::Result<()> {
              surfaces are always smooth)"
         );
     }
+    if a.colour_volume.is_some() != (a.colour_by == Some(ColourSource::Volume)) {
+        bail!("--colour-volume FILE goes with --colour-by volume, and only with it");
+    }
     let bricks = a.bricks.unwrap_or(a.domains);
     let nbody = |domains| NbodyOptions {
         name: a.name.clone().unwrap_or_else(|| "nbody".into()),
@@ -178,7 +202,9 @@ pub fn run(a: PrepareArgs) -> anyhow::Result<()> {
             prepare_nbody_volume(&a.out, &nbody(bricks), n, transfer()?)?
         }
         (Some(Generator::Nbody), None, None) => {
-            if !matches!(a.colour_axis, None | Some(Axis::Y)) {
+            if !matches!(a.colour_axis, None | Some(Axis::Y))
+                || !matches!(a.colour_by, None | Some(ColourSource::Height))
+            {
                 bail!("the generator colours by height along y, its up");
             }
             let look = NbodyLook {
@@ -217,11 +243,7 @@ pub fn run(a: PrepareArgs) -> anyhow::Result<()> {
                 IsoLook {
                     smooth: a.normals != Some(Normals::Flat),
                     colour_map,
-                    colour_axis: match a.colour_axis {
-                        Some(Axis::X) => 0,
-                        Some(Axis::Y) => 1,
-                        Some(Axis::Z) | None => 2,
-                    },
+                    colour_by: colour_by(&a)?,
                 },
                 &name_of(&a),
                 &a.out,
@@ -300,4 +322,28 @@ fn print_summary(out: &std::path::Path, m: &Manifest) {
     // The kernel's own high-water mark (what `/usr/bin/time -v` reports), for scripts and tests.
     let peak = rayfarm_core::render::stats::peak_rss_bytes();
     println!("peak RSS: {} ({peak} bytes)", units::human(peak));
+}
+
+/// What colours a raw volume's isosurface, from `--colour-by`, `--colour-axis` and
+/// `--colour-volume`.
+fn colour_by(a: &PrepareArgs) -> anyhow::Result<ColourBy> {
+    let by_height = matches!(a.colour_by, None | Some(ColourSource::Height));
+    if !by_height && a.colour_axis.is_some() {
+        bail!("--colour-axis is for --colour-by height");
+    }
+    Ok(match a.colour_by {
+        None | Some(ColourSource::Height) => ColourBy::Height {
+            axis: match a.colour_axis {
+                Some(Axis::X) => 0,
+                Some(Axis::Y) => 1,
+                Some(Axis::Z) | None => 2,
+            },
+        },
+        Some(ColourSource::Gradient) => ColourBy::Gradient,
+        Some(ColourSource::Volume) => ColourBy::Volume(
+            a.colour_volume
+                .clone()
+                .context("--colour-by volume needs --colour-volume FILE")?,
+        ),
+    })
 }

@@ -1,3 +1,4 @@
+use super::config::{KIB, MIB};
 use super::*;
 
 const MS: Duration = Duration::from_millis(1);

@@ -1,4 +1,7 @@
+use super::particles::apportion;
+use super::resolution::{count_triangles, exp2, log2};
 use super::*;
+use crate::isosurface::march;
 
 fn field() -> NbodyField {
     NbodyField::new(7, 200_000)

@@ -48,9 +48,10 @@ pub fn prepare_mesh(
         })
         .collect::<Result<_, _>>()?;
     let look = SurfaceLook {
-        material: Material::Diffuse {
+        materials: vec![Material::Diffuse {
             albedo: [0.75, 0.72, 0.68],
-        },
+        }],
+        material_of: None,
         normals: None,
     };
     prepare_triangles(&tris, look, name, out, domains, force)
@@ -58,8 +59,11 @@ pub fn prepare_mesh(
 
 /// How a mesh scene's triangles are shaded.
 pub(crate) struct SurfaceLook<'a> {
-    /// The one material of every triangle.
-    pub material: Material,
+    /// The scene's materials.
+    pub materials: Vec<Material>,
+    /// Each triangle's material, an index into `materials` (a colour from a lookup table);
+    /// `None`: the first material for every triangle.
+    pub material_of: Option<&'a [u32]>,
     /// Corner shading normals, one triple per triangle (a smooth surface), or facet normals.
     pub normals: Option<&'a [[[f32; 3]; 3]]>,
 }
@@ -77,6 +81,11 @@ pub(crate) fn prepare_triangles(
     if tris.is_empty() {
         return Err(PrepareError::Invalid(
             "the mesh has no triangles (an empty file, or only points and lines)".into(),
+        ));
+    }
+    if look.material_of.is_some_and(|m| m.len() != tris.len()) {
+        return Err(PrepareError::Invalid(
+            "a material for every triangle, or none".into(),
         ));
     }
     let mut bounds = Aabb::EMPTY;
@@ -111,7 +120,7 @@ pub(crate) fn prepare_triangles(
         tree: tree.clone(),
         camera,
         sky,
-        materials: vec![look.material],
+        materials: look.materials.clone(),
         lights,
     };
     write_scene(out, spec, force, |d, _| {
@@ -120,7 +129,7 @@ pub(crate) fn prepare_triangles(
             .map(|&i| SourceTriangle {
                 vertices: tris[i as usize],
                 id: i as u64,
-                material: 0,
+                material: look.material_of.map_or(0, |m| m[i as usize]),
                 normals: look.normals.map(|n| n[i as usize]),
             })
             .collect();

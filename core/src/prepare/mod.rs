@@ -5,6 +5,7 @@
 pub mod brick_scene;
 pub mod generate;
 pub mod mesh_scene;
+pub mod scalar_colour;
 pub mod volume_scene;
 
 use std::path::{Path, PathBuf};

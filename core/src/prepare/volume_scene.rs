@@ -2,30 +2,48 @@
 //! domains like any mesh, with the volume's voxel spacing and scaled so its longest side is 1;
 //! or (`prepare_raw_bricks`) the volume itself cut into bricks for direct volume rendering.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use glam::Vec3;
 
 use super::PrepareError;
 use super::mesh_scene::{SurfaceLook, prepare_triangles};
+use super::scalar_colour;
 use crate::colour_map::ColourMap;
-use crate::isosurface::{Grid, IsoTriangle, march, march_smooth};
+use crate::isosurface::{GradientMagnitude, Grid, IsoTriangle, march, march_smooth};
 use crate::scene::{Manifest, Material};
 
 use super::brick_scene::{BrickOptions, VolumeLook, prepare_bricks};
 use crate::volume::{RawVolume, VoxelType};
 
 /// How an isosurface is shaded and coloured.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct IsoLook {
     /// Shade with the volume's gradient at the vertices (`isosurface::march_smooth`), not the
     /// facets' normals.
     pub smooth: bool,
-    /// Colour by height with this map along `colour_axis` (over the surface's extent along
-    /// it), instead of one plain colour.
+    /// Colour with this map by what `colour_by` says, instead of one plain colour.
     pub colour_map: Option<ColourMap>,
-    /// The axis heights are measured along: 0, 1 or 2.
-    pub colour_axis: u8,
+    /// What picks a point's colour from the map.
+    pub colour_by: ColourBy,
+}
+
+/// What picks an isosurface's colour from its colour map.
+#[derive(Clone, Debug, PartialEq)]
+pub enum ColourBy {
+    /// The height of the point shaded along `axis` (0, 1 or 2), over the surface's extent
+    /// along it (`Material::Mapped`, read where a ray hits).
+    Height {
+        /// The axis heights run along.
+        axis: u8,
+    },
+    /// The volume's gradient magnitude at the vertices (`isosurface::GradientMagnitude`): how
+    /// sharp the boundary is there; a lookup table entry per triangle (`scalar_colour`).
+    Gradient,
+    /// The value at the vertices of a second raw volume in this file, of the same dimensions
+    /// and voxel type (a temperature on a density's surface, say); a lookup table entry per
+    /// triangle (`scalar_colour`).
+    Volume(PathBuf),
 }
 
 impl Default for IsoLook {
@@ -34,29 +52,59 @@ impl Default for IsoLook {
         IsoLook {
             smooth: true,
             colour_map: None,
-            colour_axis: 2,
+            colour_by: ColourBy::Height { axis: 2 },
         }
     }
 }
 
-impl IsoLook {
-    /// The material of a surface whose extent along the colour axis is `low..high`.
-    pub fn material(&self, low: f32, high: f32) -> Material {
-        match self.colour_map {
-            Some(map) => Material::Mapped {
-                map,
-                axis: self.colour_axis.min(2),
-                range: if low < high {
-                    [low, high]
-                } else {
-                    [low, low + 1.0]
-                },
-            },
-            None => Material::Diffuse {
-                albedo: [0.75, 0.72, 0.68],
-            },
+/// A plain surface's colour.
+const PLAIN: Material = Material::Diffuse {
+    albedo: [0.75, 0.72, 0.68],
+};
+
+/// The materials of the isosurface `tris` of `volume` (placed by `grid`) as `look` colours
+/// it, and each triangle's material when they differ (a lookup table's entries).
+fn materials(
+    look: &IsoLook,
+    tris: &[[[f32; 3]; 3]],
+    volume: &RawVolume,
+    grid: &Grid,
+    dtype: VoxelType,
+) -> Result<(Vec<Material>, Option<Vec<u32>>), PrepareError> {
+    let Some(map) = look.colour_map else {
+        return Ok((vec![PLAIN], None));
+    };
+    let (entries, range) = match &look.colour_by {
+        ColourBy::Height { axis } => {
+            let axis = (*axis).min(2);
+            let (low, high) = tris
+                .iter()
+                .flatten()
+                .fold((f32::MAX, f32::MIN), |(lo, hi), v| {
+                    (lo.min(v[usize::from(axis)]), hi.max(v[usize::from(axis)]))
+                });
+            let range = if low < high {
+                [low, high]
+            } else {
+                [low, low + 1.0]
+            };
+            return Ok((vec![Material::Mapped { map, axis, range }], None));
         }
-    }
+        ColourBy::Gradient => {
+            let gradient = GradientMagnitude {
+                grid,
+                lattice: volume,
+            };
+            scalar_colour::entries(tris, |v| grid.interpolate(&gradient, Vec3::from(v)))
+        }
+        ColourBy::Volume(path) => {
+            let second = RawVolume::open(path, grid.dims, dtype)
+                .map_err(|e| PrepareError::Invalid(e.to_string()))?;
+            scalar_colour::entries(tris, |v| grid.interpolate(&second, Vec3::from(v)))
+        }
+    };
+    tracing::info!(low = range[0], high = range[1], "colour map range");
+    Ok((scalar_colour::lookup_table(map), Some(entries)))
 }
 
 /// Extracts the isosurface of the volume in `input` (voxels `spacing` apart) and writes it as
@@ -105,15 +153,10 @@ pub fn prepare_volume(
             input.display()
         )));
     }
-    let axis = usize::from(look.colour_axis.min(2));
-    let (low, high) = tris
-        .iter()
-        .flatten()
-        .fold((f32::MAX, f32::MIN), |(lo, hi), v| {
-            (lo.min(v[axis]), hi.max(v[axis]))
-        });
+    let (materials, material_of) = materials(&look, &tris, &volume, &grid, dtype)?;
     let surface = SurfaceLook {
-        material: look.material(low, high),
+        materials,
+        material_of: material_of.as_deref(),
         normals: look.smooth.then_some(normals.as_slice()),
     };
     prepare_triangles(&tris, surface, name, out, domains, force)

@@ -40,10 +40,11 @@
 //! served first; among unwanted resident domains the lower id is evicted first
 //! (the coordinator has no recency information to do better).
 
+use std::borrow::Cow;
 use std::cmp::Ordering;
 use std::collections::{BTreeMap, BTreeSet, BinaryHeap};
 
-use super::{ClusterState, DomainId, WorkerId, WorkerState};
+use super::{ClusterState, DomainId, WorkerId};
 
 /// Knobs that extend the paper's algorithm; the default is Fig. 5 as written.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -152,27 +153,31 @@ pub fn next_round_with(state: &ClusterState, options: Options) -> RoundPlan {
     let mut drafts: Vec<Draft<'_>> = state
         .workers()
         .iter()
-        .map(|w| Draft::keeping_wanted(w, state))
+        .map(|w| {
+            Draft::keeping_wanted(w.id, Cow::Borrowed(&w.resident), w.capacity, |d| {
+                state.queued(d) > 0
+            })
+        })
         .collect();
     let to_assign = unheld_fullest_first(state, &drafts);
-    pair_with_free_slots(&mut drafts, &to_assign);
+    pair_with_free_slots(&mut drafts, to_assign, |_, _| {});
     if options.replicate_onto_idle || options.fill_free_slots {
         let mut hot = HotDomains::new(state, &drafts);
-        if options.replicate_onto_idle {
-            replicate_onto_idle(&mut hot, &mut drafts);
-        }
-        if options.fill_free_slots {
-            fill_free_slots(&mut hot, &mut drafts);
-        }
+        extend_plans(&mut hot, &mut drafts, options);
     }
     RoundPlan {
         workers: drafts.into_iter().map(Draft::finish).collect(),
     }
 }
 
-/// A worker's plan while it is being built.
-struct Draft<'a> {
-    worker: &'a WorkerState,
+/// A worker's plan while it is being built: the one drafting of Fig. 5, shared by
+/// [`next_round_with`] (from a whole [`ClusterState`]) and `round_index` (from its figures).
+pub(super) struct Draft<'a> {
+    worker: WorkerId,
+    /// Domains in the worker's cache (borrowed from a state, or gathered by the caller).
+    resident: Cow<'a, BTreeSet<DomainId>>,
+    /// Domains the cache holds at once.
+    capacity: usize,
     keep: BTreeSet<DomainId>,
     load: BTreeSet<DomainId>,
 }
@@ -180,45 +185,49 @@ struct Draft<'a> {
 impl<'a> Draft<'a> {
     /// Fig. 5, first loop over `to_schedule`: a loaded domain that some ray
     /// wants stays with the worker that has it.
-    fn keeping_wanted(worker: &'a WorkerState, state: &ClusterState) -> Self {
-        let keep = worker
-            .resident
-            .iter()
-            .copied()
-            .filter(|&d| state.queued(d) > 0)
-            .collect();
+    pub(super) fn keeping_wanted(
+        worker: WorkerId,
+        resident: Cow<'a, BTreeSet<DomainId>>,
+        capacity: usize,
+        wanted: impl Fn(DomainId) -> bool,
+    ) -> Self {
+        let keep = resident.iter().copied().filter(|&d| wanted(d)).collect();
         Draft {
             worker,
+            resident,
+            capacity,
             keep,
             load: BTreeSet::new(),
         }
     }
 
+    /// Domains planned so far (kept and loaded).
     fn planned(&self) -> usize {
         self.keep.len() + self.load.len()
     }
 
     /// Slots not holding wanted data: each is one `to_evict` entry of Fig. 5.
     fn free_slots(&self) -> usize {
-        self.worker.capacity - self.planned()
+        self.capacity - self.planned()
     }
 
+    /// Whether the plan so far traces rays for `domain`.
     fn works_on(&self, domain: DomainId) -> bool {
         self.keep.contains(&domain) || self.load.contains(&domain)
     }
 
     /// Evicts just enough unwanted data to fit the loads (lower id first).
-    fn finish(self) -> WorkerPlan {
-        let resident = &self.worker.resident;
-        let overflow = (resident.len() + self.load.len()).saturating_sub(self.worker.capacity);
-        let evict = resident
+    pub(super) fn finish(self) -> WorkerPlan {
+        let overflow = (self.resident.len() + self.load.len()).saturating_sub(self.capacity);
+        let evict = self
+            .resident
             .iter()
             .copied()
             .filter(|d| !self.keep.contains(d))
             .take(overflow)
             .collect();
         WorkerPlan {
-            worker: self.worker.id,
+            worker: self.worker,
             keep: self.keep,
             load: self.load,
             evict,
@@ -227,20 +236,25 @@ impl<'a> Draft<'a> {
 }
 
 /// Fig. 5's `to_assign`, ordered as its `top()` pops it: wanted domains no
-/// worker holds, fullest queue first, lower domain id on ties.
-fn unheld_fullest_first(state: &ClusterState, drafts: &[Draft<'_>]) -> Vec<DomainId> {
+/// worker holds with their rays, fullest queue first, lower domain id on ties.
+fn unheld_fullest_first(state: &ClusterState, drafts: &[Draft<'_>]) -> Vec<(DomainId, u64)> {
     // Before any load is planned, a domain is worked on exactly where it is kept.
     let held: BTreeSet<DomainId> = drafts.iter().flat_map(|w| w.keep.iter().copied()).collect();
     let mut unheld: Vec<(DomainId, u64)> =
         state.wanted().filter(|(d, _)| !held.contains(d)).collect();
     unheld.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
-    unheld.into_iter().map(|(d, _)| d).collect()
+    unheld
 }
 
-/// Fig. 5's `while` loop: pair `to_assign` with `to_evict` until either runs
-/// out. A domain goes to the worker with a free slot and the fewest planned
-/// domains (lower id on ties), so idle workers are served before busy ones.
-fn pair_with_free_slots(drafts: &mut [Draft<'_>], to_assign: &[DomainId]) {
+/// Fig. 5's `while` loop: pair `to_assign` (domains with their rays, in `top()` order) with
+/// `to_evict` until either runs out. A domain goes to the worker with a free slot and the
+/// fewest planned domains (lower index on ties), so idle workers are served before busy
+/// ones. `placed` hears of each domain given to a worker, with its rays.
+pub(super) fn pair_with_free_slots(
+    drafts: &mut [Draft<'_>],
+    to_assign: impl IntoIterator<Item = (DomainId, u64)>,
+    mut placed: impl FnMut(DomainId, u64),
+) {
     // Workers with a free slot by (planned domains, index); drafts are sorted by id, so the
     // first entry is the least busy worker with the lowest id.
     let mut open: BTreeSet<(usize, usize)> = drafts
@@ -249,7 +263,7 @@ fn pair_with_free_slots(drafts: &mut [Draft<'_>], to_assign: &[DomainId]) {
         .filter(|(_, d)| d.free_slots() > 0)
         .map(|(i, d)| (d.planned(), i))
         .collect();
-    for &domain in to_assign {
+    for (domain, rays) in to_assign {
         let Some((_, i)) = open.pop_first() else {
             return;
         };
@@ -258,13 +272,31 @@ fn pair_with_free_slots(drafts: &mut [Draft<'_>], to_assign: &[DomainId]) {
         if draft.free_slots() > 0 {
             open.insert((draft.planned(), i));
         }
+        placed(domain, rays);
+    }
+}
+
+/// Where the extensions find the domain with the most rays per holder: a heap built for one
+/// round here, the index's ordered set with this round's copies laid over it in `round_index`.
+pub(super) trait Hottest {
+    /// The hottest domain among `eligible` ones, counted as having one more holder.
+    fn take_hottest(&mut self, eligible: impl Fn(DomainId) -> bool) -> Option<DomainId>;
+}
+
+/// The extensions [`Options`] turns on, after Fig. 5's pairing.
+pub(super) fn extend_plans(hot: &mut impl Hottest, drafts: &mut [Draft<'_>], options: Options) {
+    if options.replicate_onto_idle {
+        replicate_onto_idle(hot, drafts);
+    }
+    if options.fill_free_slots {
+        fill_free_slots(hot, drafts);
     }
 }
 
 /// Extension (off by default): each worker still idle after Fig. 5 loads a
 /// copy of the domain with the most rays per holder, provided the split still
 /// leaves every holder at least one ray.
-fn replicate_onto_idle(hot: &mut HotDomains, drafts: &mut [Draft<'_>]) {
+fn replicate_onto_idle(hot: &mut impl Hottest, drafts: &mut [Draft<'_>]) {
     for draft in drafts.iter_mut().filter(|d| d.planned() == 0) {
         if let Some(domain) = hot.take_hottest(|_| true) {
             draft.load.insert(domain);
@@ -274,7 +306,7 @@ fn replicate_onto_idle(hot: &mut HotDomains, drafts: &mut [Draft<'_>]) {
 
 /// Extension (off by default): free slots take copies of wanted domains, hottest per
 /// holder first, a slot at a time across workers (lower id first) so copies spread.
-fn fill_free_slots(hot: &mut HotDomains, drafts: &mut [Draft<'_>]) {
+fn fill_free_slots(hot: &mut impl Hottest, drafts: &mut [Draft<'_>]) {
     loop {
         let mut placed = false;
         for draft in drafts.iter_mut().filter(|d| d.free_slots() > 0) {
@@ -295,6 +327,7 @@ struct HotDomains {
 }
 
 impl HotDomains {
+    /// Every wanted domain that splits, with its holders as the drafts plan them.
     fn new(state: &ClusterState, drafts: &[Draft<'_>]) -> Self {
         let mut copies: BTreeMap<DomainId, u64> = BTreeMap::new();
         for draft in drafts {
@@ -313,8 +346,9 @@ impl HotDomains {
             .collect();
         HotDomains { heap }
     }
+}
 
-    /// The hottest domain among `eligible` ones, counted as having one more holder.
+impl Hottest for HotDomains {
     fn take_hottest(&mut self, eligible: impl Fn(DomainId) -> bool) -> Option<DomainId> {
         let mut passed = Vec::new();
         let found = loop {

@@ -5,7 +5,8 @@
 
 use std::collections::BTreeSet;
 
-use super::{ClusterState, DomainId, Options, RoundPlan, WorkerPlan, WorkerState};
+use super::{ClusterState, DomainId, Options, RoundPlan, WorkerPlan};
+use crate::schedule::WorkerState;
 
 struct Draft<'a> {
     worker: &'a WorkerState,

@@ -2,6 +2,7 @@
 //! implementation (`dynamic_reference.rs`).
 
 use super::*;
+use crate::schedule::WorkerState;
 use proptest::prelude::*;
 
 fn d(id: u32) -> DomainId {

@@ -13,7 +13,8 @@
 //! - [`rounds`]: when members are planned (barrier or asynchronous rounds) and from what;
 //! - [`round_index`]: the same asynchronous rounds planned incrementally, from figures kept
 //!   up to date report by report;
-//! - [`tiles`]: dealing tiles to workers, in fixed shares or on demand.
+//! - [`tiles`]: dealing tiles to workers, in fixed shares or on demand;
+//! - [`synthetic`]: a synthetic cluster at the papers' scale, for measuring planning.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::fmt;
@@ -24,6 +25,7 @@ pub mod rounds;
 pub mod speculation_depth;
 pub mod speculative;
 pub mod static_plans;
+pub mod synthetic;
 pub mod tiles;
 
 /// Identifies one spatial domain (a brick of scene data loaded as a unit).

@@ -13,12 +13,15 @@
 //! changes; nothing else is read from the members between updates except their cache sizes,
 //! reports and plans of the members that ran dry.
 
+use std::borrow::Cow;
 use std::cmp::Reverse;
 use std::collections::{BTreeMap, BTreeSet};
 
-use super::DomainId;
-use super::dynamic::{Heat, Options, WorkerPlan};
+use super::dynamic::{
+    Draft, Heat, Hottest, Options, WorkerPlan, extend_plans, pair_with_free_slots,
+};
 use super::rounds::{Cluster, Member, deposit_moved, set_plans};
+use super::{DomainId, WorkerId};
 
 /// What one member adds to the cluster's figures, kept so it can be taken out again.
 #[derive(Debug, Default)]
@@ -378,53 +381,21 @@ impl RoundIndex {
             return Vec::new();
         }
         let largest = domain_bytes.iter().copied().max().unwrap_or(1).max(1);
-        let mut drafts: Vec<Draft> = self
+        let mut drafts: Vec<Draft<'_>> = self
             .dry
             .iter()
             .filter_map(|k| Some((*k, members.get(k)?.as_ref())))
-            .map(|(key, m)| Draft::keeping_wanted(key, m, largest, self))
+            .map(|(key, m)| self.draft(key, m, largest))
             .collect();
         let mut hot = HotOverlay::new(&mut self.hot);
-        // Fig. 5's pairing: the fullest unheld domain to the dry member with a free slot and
-        // the fewest planned domains (lower key on ties).
-        let mut open: BTreeSet<(usize, usize)> = drafts
+        let to_assign = self
+            .unheld
             .iter()
-            .enumerate()
-            .filter(|(_, d)| d.free_slots() > 0)
-            .map(|(i, d)| (d.planned(), i))
-            .collect();
-        for &(Reverse(rays), domain) in &self.unheld {
-            let Some((_, i)) = open.pop_first() else {
-                break;
-            };
-            let draft = &mut drafts[i];
-            draft.load.insert(domain);
-            if draft.free_slots() > 0 {
-                open.insert((draft.planned(), i));
-            }
-            hot.add_copy(domain, rays, 0);
-        }
-        if options.replicate_onto_idle {
-            for draft in drafts.iter_mut().filter(|d| d.planned() == 0) {
-                if let Some(domain) = hot.take_hottest(|_| true) {
-                    draft.load.insert(domain.0);
-                }
-            }
-        }
-        if options.fill_free_slots {
-            loop {
-                let mut placed = false;
-                for draft in drafts.iter_mut().filter(|d| d.free_slots() > 0) {
-                    if let Some(domain) = hot.take_hottest(|d| !draft.works_on(d)) {
-                        draft.load.insert(domain.0);
-                        placed = true;
-                    }
-                }
-                if !placed {
-                    break;
-                }
-            }
-        }
+            .map(|&(Reverse(rays), d)| (DomainId(d), rays));
+        pair_with_free_slots(&mut drafts, to_assign, |domain, rays| {
+            hot.add_copy(domain.0, rays, 0)
+        });
+        extend_plans(&mut hot, &mut drafts, options);
         hot.undo(&self.shown);
         drafts
             .into_iter()
@@ -435,72 +406,24 @@ impl RoundIndex {
             })
             .collect()
     }
-}
 
-/// A dry member's plan while it is being built (as `dynamic::Draft`).
-struct Draft {
-    key: u32,
-    resident: BTreeSet<u32>,
-    capacity: usize,
-    keep: BTreeSet<u32>,
-    load: BTreeSet<u32>,
-}
-
-impl Draft {
-    fn keeping_wanted(key: u32, m: &Member, largest: u64, index: &RoundIndex) -> Draft {
-        let resident: BTreeSet<u32> = m
+    /// A dry member's draft (Fig. 5's first loop): its resident domains in the scene, slots
+    /// counted by the largest domain (never fewer than it holds), keeping those with rays
+    /// that count.
+    fn draft(&self, key: u32, m: &Member, largest: u64) -> Draft<'static> {
+        let resident: BTreeSet<DomainId> = m
             .report
             .iter()
             .flat_map(|r| r.resident.iter().copied())
-            .filter(|&d| d < index.domains)
+            .filter(|&d| d < self.domains)
+            .map(DomainId)
             .collect();
-        // Domains differ in size: slots counted by the largest, never fewer than it holds.
         let capacity = ((m.cache_bytes / largest) as usize)
             .max(1)
             .max(resident.len());
-        let keep = resident
-            .iter()
-            .copied()
-            .filter(|&d| index.shown[d as usize].0 > 0)
-            .collect();
-        Draft {
-            key,
-            resident,
-            capacity,
-            keep,
-            load: BTreeSet::new(),
-        }
-    }
-
-    fn planned(&self) -> usize {
-        self.keep.len() + self.load.len()
-    }
-
-    fn free_slots(&self) -> usize {
-        self.capacity - self.planned()
-    }
-
-    fn works_on(&self, d: DomainId) -> bool {
-        self.keep.contains(&d.0) || self.load.contains(&d.0)
-    }
-
-    /// Evicts just enough unwanted data to fit the loads (lower id first).
-    fn finish(self) -> WorkerPlan {
-        let overflow = (self.resident.len() + self.load.len()).saturating_sub(self.capacity);
-        let evict = self
-            .resident
-            .iter()
-            .copied()
-            .filter(|d| !self.keep.contains(d))
-            .take(overflow)
-            .map(DomainId)
-            .collect();
-        WorkerPlan {
-            worker: super::WorkerId(self.key),
-            keep: self.keep.into_iter().map(DomainId).collect(),
-            load: self.load.into_iter().map(DomainId).collect(),
-            evict,
-        }
+        Draft::keeping_wanted(WorkerId(key), Cow::Owned(resident), capacity, |d| {
+            self.shown[d.0 as usize].0 > 0
+        })
     }
 }
 
@@ -540,14 +463,6 @@ impl<'a> HotOverlay<'a> {
         self.changed.insert(heat.domain.0, now);
     }
 
-    /// The hottest domain among `eligible` ones, counted as having one more holder.
-    fn take_hottest(&mut self, eligible: impl Fn(DomainId) -> bool) -> Option<DomainId> {
-        let heat = *self.hot.iter().rev().find(|h| eligible(h.domain))?;
-        self.hot.remove(&heat);
-        self.replace(heat);
-        Some(heat.domain)
-    }
-
     /// Puts every changed entry back as the figures show it.
     fn undo(self, shown: &[(u64, u32)]) {
         for (d, now) in self.changed {
@@ -564,6 +479,15 @@ impl<'a> HotOverlay<'a> {
                 self.hot.insert(heat);
             }
         }
+    }
+}
+
+impl Hottest for HotOverlay<'_> {
+    fn take_hottest(&mut self, eligible: impl Fn(DomainId) -> bool) -> Option<DomainId> {
+        let heat = *self.hot.iter().rev().find(|h| eligible(h.domain))?;
+        self.hot.remove(&heat);
+        self.replace(heat);
+        Some(heat.domain)
     }
 }
 

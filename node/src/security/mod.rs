@@ -28,7 +28,7 @@ pub use credentials::{
 };
 pub use serve::{
     Exposed, MAX_HEADER_LIST_BYTES, MAX_STREAMS_PER_CONNECTION, REQUEST_TIMEOUT, check_exposure,
-    server_builder,
+    check_listeners, server_builder,
 };
 pub use tls::{ConnectTlsArgs, ServeTlsArgs};
 

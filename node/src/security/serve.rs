@@ -51,6 +51,23 @@ pub struct Exposed {
     pub missing: String,
 }
 
+/// [`check_exposure`] of every address a server listens on (its gRPC listener and its HTTP
+/// one, if any), with the protections marked absent in `protections` (`(present, "TLS
+/// (--tls-cert, --tls-key)")`, ...) as missing: the one check both servers make at start.
+pub fn check_listeners(
+    listeners: impl IntoIterator<Item = std::net::SocketAddr>,
+    protections: &[(bool, &str)],
+    insecure: bool,
+) -> Result<(), Exposed> {
+    let missing: Vec<&str> = protections
+        .iter()
+        .filter_map(|&(present, what)| (!present).then_some(what))
+        .collect();
+    listeners
+        .into_iter()
+        .try_for_each(|listen| check_exposure(listen, &missing, insecure))
+}
+
 /// Checks that a server listening on `listen` is not reachable from other machines without
 /// the protections it lacks (`missing`, each like "TLS"): a loopback address is always fine;
 /// any other needs `insecure`, and then a warning is logged.

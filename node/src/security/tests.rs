@@ -137,6 +137,12 @@ fn only_loopback_may_go_without_protection() {
         e.contains("without TLS, the cluster secret and user tokens") && e.contains("--insecure"),
         "{e}"
     );
+    // Every listener is checked, each with the protections marked absent as missing.
+    assert!(check_listeners([lo, any], &[(true, "TLS"), (true, "a secret")], false).is_ok());
+    assert!(check_listeners([lo], &[(false, "TLS")], false).is_ok());
+    let e = check_listeners([lo, any], &[(true, "TLS"), (false, "a secret")], false);
+    let e = e.unwrap_err().to_string();
+    assert!(e.contains("serve 0.0.0.0:1 without a secret:"), "{e}");
 }
 
 #[test]

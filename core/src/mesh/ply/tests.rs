@@ -1,4 +1,4 @@
-use super::super::{MeshError, parse_mesh};
+use super::super::{Location, MeshError, ParseErrorKind, parse_mesh};
 use super::*;
 
 fn error(name: &str, bytes: &[u8]) -> String {
