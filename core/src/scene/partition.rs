@@ -493,10 +493,10 @@ mod tests {
         sorted.sort_unstable();
         assert_eq!(sorted, (0..27).collect::<Vec<u32>>(), "each place once");
         for d in [
-            [0.1, 1.0, 0.0],
-            [0.3, 1.0, -0.4],
-            [-0.2, 0.8, 0.1],
-            [0.0, 1.0, 0.3],
+            [0.0, 1.0, 0.0],
+            [0.1, 1.0, -0.1],
+            [-0.05, 1.0, 0.1],
+            [0.2, 1.0, 0.05],
         ] {
             let mut seen = Vec::new();
             t.walk(
