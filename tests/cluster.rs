@@ -182,7 +182,10 @@ fn predictive_speculation_renders_the_local_image_at_every_setting_with_one_to_f
         // in either order, so the lower target is the one compared.
         let seg = |s: &str| traced.iter().find(|t| t.0 == s).unwrap().1;
         assert_eq!(seg("ahead:1"), seg("none"), "{n} workers: {traced:?}");
-        assert!(seg("predicted:0.5") < seg("full"), "{n} workers: {traced:?}");
+        assert!(
+            seg("predicted:0.5") < seg("full"),
+            "{n} workers: {traced:?}"
+        );
         assert!(seg("predicted") >= seg("none"), "{n} workers: {traced:?}");
         assert!(seg("full") > seg("none"), "{n} workers: {traced:?}");
     }
