@@ -175,12 +175,19 @@ fn predictive_speculation_renders_the_local_image_at_every_setting_with_one_to_f
             }
             traced.push((setting, segments(&stats)));
         }
-        // Copies beyond a hit are what full speculation pays; one domain at a time pays none
-        // (the chained trace's segments exactly), prediction some.
+        // Copies beyond a hit are what full speculation pays (less those skipped once a
+        // nearer domain ended the ray); one domain at a time pays none (the chained trace's
+        // segments exactly), prediction some. At the default target prediction and full
+        // speculation with skipping come within a fraction of a percent of each other here,
+        // in either order, so the lower target is the one compared.
         let seg = |s: &str| traced.iter().find(|t| t.0 == s).unwrap().1;
         assert_eq!(seg("ahead:1"), seg("none"), "{n} workers: {traced:?}");
-        assert!(seg("predicted") < seg("full"), "{n} workers: {traced:?}");
+        assert!(
+            seg("predicted:0.5") < seg("full"),
+            "{n} workers: {traced:?}"
+        );
         assert!(seg("predicted") >= seg("none"), "{n} workers: {traced:?}");
+        assert!(seg("full") > seg("none"), "{n} workers: {traced:?}");
     }
 }
 

@@ -236,8 +236,9 @@ fn check_verdict(v: &VerdictRecord, l: &BatchLimits) -> Result<(), &'static str>
         return Err("padding is not zero");
     }
     match v.kind {
+        // A clear verdict names its copy's domain (`order`, checked against the frame's).
         VerdictRecord::CLEAR => {
-            if v.order != 0 || v.t != 0.0 || v.normal != [0.0; 3] || v.material != 0 {
+            if v.t != 0.0 || v.normal != [0.0; 3] || v.material != 0 {
                 return Err("a verdict without a hit carries hit fields");
             }
         }
@@ -353,6 +354,9 @@ fn check_verdict_range(v: &VerdictRecord, l: &BatchLimits) -> Result<(), &'stati
     if matches!(v.kind, VerdictRecord::HIT | VerdictRecord::VOLUME_HIT) && v.material >= l.materials
     {
         return Err("material out of range");
+    }
+    if v.kind == VerdictRecord::CLEAR && v.order >= l.domains {
+        return Err("domain out of range");
     }
     Ok(())
 }

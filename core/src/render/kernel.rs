@@ -188,6 +188,12 @@ impl SceneView {
         }
     }
 
+    /// Each domain's place in the order rays from `point` meet domains (the camera's eye:
+    /// camera rays), by domain id (`DomainTree::front_to_back`).
+    pub fn front_to_back(&self, point: [f32; 3]) -> Vec<u32> {
+        self.tree.front_to_back(point, self.domain_count())
+    }
+
     /// Number of domains.
     pub fn domain_count(&self) -> usize {
         self.has_triangles.len()

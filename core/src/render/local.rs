@@ -207,6 +207,10 @@ fn render_in_pool(
         view.domain_count(),
         options.speculate.then_some(options.depth),
     );
+    if options.speculate {
+        let eye = frame.camera.as_ref().unwrap_or(&manifest.camera).eye;
+        queues.from_eye = view.front_to_back(eye);
+    }
     let mut counters = KernelCounters::default();
     let total_primary = frame.width as u64 * frame.height as u64 * frame.spp as u64;
     let mut issued = 0u64;
@@ -231,8 +235,19 @@ fn render_in_pool(
         let Some(d) = queues.next(&cache.resident()) else {
             break;
         };
+        let mut rays = queues.take(d);
+        if let Some(groups) = &mut queues.groups {
+            // Copies of rays that a nearer domain already ended need no tracing: when they
+            // are all such, the domain need not even be loaded.
+            for segment in &mut rays {
+                segment.retain(|copy| !groups.skip(copy));
+            }
+            rays.retain(|segment| !segment.is_empty());
+            if rays.is_empty() {
+                continue;
+            }
+        }
         let data = cache.get(d)?;
-        let rays = queues.take(d);
         let count: usize = rays.iter().map(Vec::len).sum();
         let _pass = info_span!("trace_queue", domain = d, rays = count).entered();
         let new_sink = sinks(&open, &returned, &pool);
@@ -293,6 +308,8 @@ fn render_in_pool(
         loads = stats.cache.loads,
         copies = queues.groups.as_ref().map_or(0, |g| g.copies),
         windows_after_the_first = queues.groups.as_ref().map_or(0, |g| g.extensions),
+        copies_skipped = queues.groups.as_ref().map_or(0, |g| g.skipped),
+        concluded_early = queues.groups.as_ref().map_or(0, |g| g.early),
         "frame done"
     );
     Ok((film, stats))

@@ -25,167 +25,16 @@
 //! sends its nearest hit too ([`Verdict::VolumeHit`], counted with the segments, which stop
 //! at it), or a shadow ray's [`Verdict::Blocked`] alone.
 
+mod verdict;
+
+pub use verdict::{MAX_SEGMENTS, SegmentLight, SurfaceHit, Verdict};
+
 use super::dvr::Segment;
 use crate::ray::RayKind;
 use crate::ray::RayRecord;
 use crate::schedule::speculation_depth::{Depth, Windows};
 use crate::schedule::speculative::Generations;
 use crate::wire::VerdictRecord;
-
-/// What a radiance ray's copy found in its domain: enough to shade the hit later, without
-/// the domain's data.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct SurfaceHit {
-    /// The domain's place along the ray among those with geometry (0 is the nearest); the
-    /// hit of the nearest such domain wins, as domains cut a ray into ordered intervals.
-    pub order: u32,
-    /// Distance of the hit along the ray.
-    pub t: f32,
-    /// The normal to shade the hit with, on the side the ray came from
-    /// (`SceneView::surface_at`: the facet normal, or a smooth surface's shading normal).
-    pub normal: [f32; 3],
-    /// Material of the triangle hit.
-    pub material: u32,
-}
-
-/// What one copy found.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum Verdict {
-    /// Nothing in this domain's stretch of the ray.
-    Clear,
-    /// A shadow ray's occluder, in the domain at this place along the ray (see
-    /// [`SurfaceHit::order`]).
-    Blocked(u32),
-    /// A radiance ray's nearest hit in this domain.
-    Hit(SurfaceHit),
-    /// One segment a volume ray's copy composited in its brick (not the copy's last verdict).
-    Segment(Segment),
-    /// The light one segment reflects of one light, to be sent on in a shadow ray.
-    Light(SegmentLight),
-    /// A radiance ray's nearest hit on the surfaces in a brick (not the copy's last verdict:
-    /// the brick's segments in front of it come with it).
-    VolumeHit(SurfaceHit),
-    /// A volume ray's copy is done: it sent this many [`Verdict::Segment`]s,
-    /// [`Verdict::Light`]s and [`Verdict::VolumeHit`]s before.
-    VolumeEnd(u32),
-}
-
-/// What a shadowed segment reflects of one light (`render::volume_light`).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct SegmentLight {
-    /// The segment's first sample: which segment this belongs to.
-    pub first: u32,
-    /// The light's index.
-    pub light: u32,
-    /// The segment's depth along the ray, where the shadow ray leaves.
-    pub depth: f32,
-    /// Premultiplied colour reflected of this light.
-    pub rgb: [f32; 3],
-}
-
-/// Most segments one ray may collect from all its copies: a bound on what a peer can make a
-/// group hold (far above a ray's crossings of block faces in any volume a brick can hold).
-pub const MAX_SEGMENTS: u32 = 1 << 16;
-
-impl VerdictRecord {
-    /// Kind of a verdict that found nothing.
-    pub const CLEAR: u8 = 0;
-    /// Kind of a verdict that found an occluder: `order` is the domain's place along the ray.
-    pub const BLOCKED: u8 = 1;
-    /// Kind of a verdict that found a hit.
-    pub const HIT: u8 = 2;
-    /// Kind of a volume segment: `order` its first sample, `normal` its premultiplied colour,
-    /// `t` its opacity.
-    pub const SEGMENT: u8 = 3;
-    /// Kind of a volume copy's closing verdict: `material` counts its segments and lights.
-    pub const VOLUME_END: u8 = 4;
-    /// Kind of a segment's light: `order` the segment's first sample, `material` the light,
-    /// `t` the segment's depth, `normal` the premultiplied colour reflected.
-    pub const LIGHT: u8 = 5;
-    /// Kind of a hit on the surfaces in a brick: the fields of [`VerdictRecord::HIT`].
-    pub const VOLUME_HIT: u8 = 6;
-
-    /// `verdict` on `copy`, to go back to the copy's group.
-    pub fn new(copy: &RayRecord, verdict: Verdict) -> Self {
-        let mut r = VerdictRecord {
-            group: copy.group,
-            tile: copy.tile,
-            epoch: copy.epoch,
-            pixel: copy.pixel,
-            sample: copy.sample,
-            kind: Self::CLEAR,
-            _pad: [0; 3],
-            order: 0,
-            t: 0.0,
-            normal: [0.0; 3],
-            material: 0,
-        };
-        match verdict {
-            Verdict::Clear => {}
-            Verdict::Blocked(order) => {
-                r.kind = Self::BLOCKED;
-                r.order = order;
-            }
-            Verdict::Hit(hit) | Verdict::VolumeHit(hit) => {
-                r.kind = if matches!(verdict, Verdict::Hit(_)) {
-                    Self::HIT
-                } else {
-                    Self::VOLUME_HIT
-                };
-                r.order = hit.order;
-                r.t = hit.t;
-                r.normal = hit.normal;
-                r.material = hit.material;
-            }
-            Verdict::Segment(seg) => {
-                r.kind = Self::SEGMENT;
-                r.order = seg.first;
-                r.t = seg.alpha;
-                r.normal = seg.rgb;
-            }
-            Verdict::Light(light) => {
-                r.kind = Self::LIGHT;
-                r.order = light.first;
-                r.material = light.light;
-                r.t = light.depth;
-                r.normal = light.rgb;
-            }
-            Verdict::VolumeEnd(segments) => {
-                r.kind = Self::VOLUME_END;
-                r.material = segments;
-            }
-        }
-        r
-    }
-
-    /// The verdict carried (an unknown kind, refused by the wire checks, reads as clear).
-    pub fn verdict(&self) -> Verdict {
-        match self.kind {
-            Self::BLOCKED => Verdict::Blocked(self.order),
-            Self::HIT => Verdict::Hit(SurfaceHit {
-                order: self.order,
-                t: self.t,
-                normal: self.normal,
-                material: self.material,
-            }),
-            Self::VOLUME_HIT => Verdict::VolumeHit(SurfaceHit {
-                order: self.order,
-                t: self.t,
-                normal: self.normal,
-                material: self.material,
-            }),
-            Self::SEGMENT => Verdict::Segment(Segment::plain(self.order, self.normal, self.t)),
-            Self::LIGHT => Verdict::Light(SegmentLight {
-                first: self.order,
-                light: self.material,
-                depth: self.t,
-                rgb: self.normal,
-            }),
-            Self::VOLUME_END => Verdict::VolumeEnd(self.material),
-            _ => Verdict::Clear,
-        }
-    }
-}
 
 /// All verdicts of a ray combined.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -244,7 +93,43 @@ struct Group {
     /// Segments announced by closing verdicts minus segments received: a copy's segments
     /// may arrive before or after its closing verdict, so this dips below zero meanwhile.
     segments_due: i64,
+    /// Which places along `path` have answered (empty until a verdict comes).
+    answered: Vec<bool>,
+    /// A volume verdict came: the ray concludes only once every copy has answered.
+    volume: bool,
+    /// The ray has concluded before all its copies answered (see [`Groups::skip`]): the
+    /// group only counts the copies still out, so that their verdicts find it and the id is
+    /// not reused while they may come.
+    spent: bool,
     outcome: Outcome,
+}
+
+impl Group {
+    /// Whether the verdicts so far decide the ray as the chained trace would, though copies
+    /// farther along it have not answered: a shadow ray's occluder anywhere, or a radiance
+    /// ray's hit with every nearer domain answered clear. Volume rays wait for all.
+    fn decided_early(&self) -> bool {
+        if self.volume {
+            return false;
+        }
+        match self.ray.kind() {
+            RayKind::Shadow => self.outcome.blocked,
+            RayKind::Radiance => self.outcome.nearest.is_some_and(|h| {
+                let nearer = &self.answered[..(h.order as usize).min(self.answered.len())];
+                (h.order as usize) < self.path.len() && nearer.iter().all(|&a| a)
+            }),
+        }
+    }
+
+    /// Notes that the copy at `place` along the path answered.
+    fn answer(&mut self, place: Option<usize>) {
+        if let Some(p) = place.filter(|&p| p < self.path.len()) {
+            if self.answered.is_empty() {
+                self.answered = vec![false; self.path.len()];
+            }
+            self.answered[p] = true;
+        }
+    }
 }
 
 /// Why a verdict could not be taken.
@@ -273,6 +158,10 @@ pub struct Groups {
     pub copies: u64,
     /// Windows sent after a ray's first (each a round trip of verdicts).
     pub extensions: u64,
+    /// Copies dropped untraced because their ray had concluded ([`Groups::skip`]).
+    pub skipped: u64,
+    /// Rays concluded before all their copies answered.
+    pub early: u64,
 }
 
 impl Default for Groups {
@@ -291,6 +180,8 @@ impl Groups {
             windows: Windows::new(depth),
             copies: 0,
             extensions: 0,
+            skipped: 0,
+            early: 0,
         }
     }
 
@@ -318,6 +209,9 @@ impl Groups {
             resolver,
             waiting: 0,
             segments_due: 0,
+            answered: Vec::new(),
+            volume: false,
+            spent: false,
             outcome: Outcome::default(),
         };
         self.by_generation.add(ray.generation());
@@ -354,9 +248,11 @@ impl Groups {
         }));
     }
 
-    /// Takes one copy's verdict; returns the ray and its outcome when it was the last. When
-    /// it was the last of a window that did not end the ray, the copies of the next window
-    /// go to `more` instead.
+    /// Takes one copy's verdict; returns the ray and its outcome once they decide it: when
+    /// every copy has answered, or earlier when the answers so far decide it as the chained
+    /// trace would (a shadow ray's occluder, a radiance ray's hit with every nearer domain
+    /// clear). When the last copy of a window that did not end the ray answers, the copies of
+    /// the next window go to `more` instead.
     pub fn settle(
         &mut self,
         record: &VerdictRecord,
@@ -375,8 +271,23 @@ impl Groups {
             return Err(GroupError::Mismatch(id));
         }
         let verdict = record.verdict();
+        if group.spent {
+            // The ray concluded already: only count the copies still out.
+            if !matches!(
+                verdict,
+                Verdict::Segment(_) | Verdict::Light(_) | Verdict::VolumeHit(_)
+            ) {
+                group.waiting = group.waiting.saturating_sub(1);
+                if group.waiting == 0 {
+                    *slot = None;
+                    self.free.push(id);
+                }
+            }
+            return Ok(None);
+        }
         match verdict {
             Verdict::Segment(_) | Verdict::Light(_) | Verdict::VolumeHit(_) => {
+                group.volume = true;
                 let held = (group.outcome.segments.len() + group.outcome.lights.len()) as u32;
                 if held >= MAX_SEGMENTS || (group.waiting == 0 && group.segments_due <= 0) {
                     return Err(GroupError::TooManySegments(id));
@@ -384,13 +295,25 @@ impl Groups {
                 group.segments_due -= 1;
             }
             Verdict::VolumeEnd(n) => {
+                group.volume = true;
                 if n > MAX_SEGMENTS {
                     return Err(GroupError::TooManySegments(id));
                 }
                 group.segments_due += i64::from(n);
-                group.waiting -= 1;
+                group.waiting = group.waiting.saturating_sub(1);
             }
-            _ => group.waiting -= 1,
+            Verdict::Clear => {
+                // A clear verdict names its copy's domain; hits and occluders their place.
+                let place = group.path[..group.copied]
+                    .iter()
+                    .position(|&d| d == record.order);
+                group.answer(place);
+                group.waiting = group.waiting.saturating_sub(1);
+            }
+            Verdict::Blocked(order) | Verdict::Hit(SurfaceHit { order, .. }) => {
+                group.answer(Some(order as usize));
+                group.waiting = group.waiting.saturating_sub(1);
+            }
         }
         group.outcome.add(verdict);
         if group.waiting > 0 || group.segments_due != 0 {
@@ -400,6 +323,19 @@ impl Groups {
                 let dropped = slot.take().map(|g| g.ray);
                 self.release(id, &dropped);
                 return Err(GroupError::TooManySegments(id));
+            }
+            if group.decided_early() {
+                // Farther copies still out cannot change the answer: conclude now, and keep
+                // the id until they are in (or skipped) so no later ray takes it meanwhile.
+                self.early += 1;
+                group.spent = true;
+                let ray = group.ray;
+                let outcome = std::mem::take(&mut group.outcome);
+                let ended = outcome.ended(&ray).map(|e| e as usize);
+                let path = std::mem::take(&mut group.path);
+                self.windows.learn(&ray, &path, ended);
+                self.by_generation.remove(ray.generation());
+                return Ok(Some((ray, outcome)));
             }
             return Ok(None);
         }
@@ -423,6 +359,42 @@ impl Groups {
         Ok(done)
     }
 
+    /// Whether `copy`, of a ray born here, may be dropped untraced because its ray has
+    /// concluded without it (a nearer domain ended it); if so the copy counts as answered.
+    /// The answer the ray concluded with stays the chained trace's, so skipping copies
+    /// changes no bit of the image, only the segments traced (and, on a cluster, the copies
+    /// moved).
+    pub fn skip(&mut self, copy: &RayRecord) -> bool {
+        let id = copy.group;
+        let Some(slot) = self.slots.get_mut(id as usize) else {
+            return false;
+        };
+        let Some(group) = slot.as_mut().filter(|g| g.spent) else {
+            return false;
+        };
+        let r = &group.ray;
+        if (r.tile, r.epoch, r.pixel, r.sample, r.depth, r.kind)
+            != (
+                copy.tile,
+                copy.epoch,
+                copy.pixel,
+                copy.sample,
+                copy.depth,
+                copy.kind,
+            )
+            || group.waiting == 0
+        {
+            return false;
+        }
+        group.waiting -= 1;
+        self.skipped += 1;
+        if group.waiting == 0 {
+            *slot = None;
+            self.free.push(id);
+        }
+        true
+    }
+
     fn release(&mut self, id: u32, ray: &Option<RayRecord>) {
         self.free.push(id);
         if let Some(r) = ray {
@@ -430,7 +402,7 @@ impl Groups {
         }
     }
 
-    /// Rays waiting.
+    /// Rays waiting, and rays concluded early whose copies are still out (both hold memory).
     pub fn waiting(&self) -> usize {
         self.slots.len() - self.free.len()
     }
@@ -444,7 +416,8 @@ impl Groups {
     pub fn retain(&mut self, mut keep: impl FnMut(&RayRecord) -> bool) {
         for id in 0..self.slots.len() {
             if self.slots[id].as_ref().is_some_and(|g| !keep(&g.ray)) {
-                let dropped = self.slots[id].take().map(|g| g.ray);
+                // A spent group's ray was counted out of its generation when it concluded.
+                let dropped = self.slots[id].take().filter(|g| !g.spent).map(|g| g.ray);
                 self.release(id as u32, &dropped);
             }
         }
@@ -452,300 +425,4 @@ impl Groups {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use bytemuck::Zeroable;
-
-    fn hit(order: u32, t: f32) -> Verdict {
-        Verdict::Hit(SurfaceHit {
-            order,
-            t,
-            normal: [0.0, 1.0, 0.0],
-            material: 0,
-        })
-    }
-
-    fn ray(credit: u64) -> RayRecord {
-        RayRecord {
-            credit,
-            pixel: 5,
-            ..RayRecord::zeroed()
-        }
-    }
-
-    fn copies(groups: &mut Groups, r: RayRecord, domains: &[u32]) -> Vec<RayRecord> {
-        let mut out = Vec::new();
-        groups.spread(r, domains.to_vec(), 3, &mut out);
-        out
-    }
-
-    fn spread(groups: &mut Groups, r: RayRecord, domains: &[u32]) -> RayRecord {
-        copies(groups, r, domains)[0]
-    }
-
-    fn settle(groups: &mut Groups, copy: &RayRecord, v: Verdict) -> Option<(RayRecord, Outcome)> {
-        groups
-            .settle(&VerdictRecord::new(copy, v), &mut Vec::new())
-            .unwrap()
-    }
-
-    #[test]
-    fn copies_go_to_every_domain_without_credit() {
-        let mut groups = Groups::default();
-        let copies = copies(&mut groups, ray(7), &[4, 9, 2]);
-        assert_eq!(
-            copies.iter().map(|c| c.domain).collect::<Vec<_>>(),
-            [4, 9, 2]
-        );
-        assert!(
-            copies
-                .iter()
-                .all(|c| c.credit == 0 && c.group == copies[0].group)
-        );
-        assert!(copies.iter().all(|c| c.resolver == 3));
-        assert_eq!(groups.waiting(), 1);
-        assert_eq!(groups.oldest_waiting(), Some(0));
-        let shadow = RayRecord {
-            depth: 2,
-            kind: crate::ray::RayKind::Shadow as u8,
-            ..ray(1)
-        };
-        let copy = spread(&mut groups, shadow, &[1]);
-        assert_eq!(groups.oldest_waiting(), Some(0));
-        groups.retain(|r| r.depth > 0);
-        assert_eq!(groups.oldest_waiting(), Some(3));
-        groups
-            .settle(&VerdictRecord::new(&copy, Verdict::Clear), &mut Vec::new())
-            .unwrap();
-        assert_eq!(groups.oldest_waiting(), None);
-    }
-
-    #[test]
-    fn the_nearest_domain_with_a_hit_wins_whatever_the_order_verdicts_arrive_in() {
-        let mut groups = Groups::default();
-        let copy = spread(&mut groups, ray(7), &[1, 2, 3]);
-        assert_eq!(settle(&mut groups, &copy, hit(2, 0.5)), None);
-        assert_eq!(settle(&mut groups, &copy, Verdict::Clear), None);
-        let (r, outcome) = settle(&mut groups, &copy, hit(1, 9.0)).unwrap();
-        assert_eq!(r.credit, 7, "the concluded ray keeps its credit");
-        assert_eq!(outcome.nearest.map(|h| h.order), Some(1));
-        assert!(!outcome.blocked);
-        assert_eq!(groups.waiting(), 0);
-    }
-
-    #[test]
-    fn windows_go_out_one_after_another_until_one_ends_the_ray() {
-        // One domain at a time: a hit in the second domain ends the ray there, the third is
-        // never copied.
-        let mut groups = Groups::new(Depth::Ahead(1));
-        let first = copies(&mut groups, ray(7), &[5, 6, 7]);
-        assert_eq!(first.iter().map(|c| c.domain).collect::<Vec<_>>(), [5]);
-        let mut more = Vec::new();
-        let settled = groups.settle(&VerdictRecord::new(&first[0], Verdict::Clear), &mut more);
-        assert_eq!(settled, Ok(None));
-        assert_eq!(more.iter().map(|c| c.domain).collect::<Vec<_>>(), [6]);
-        assert!(
-            more.iter()
-                .all(|c| c.group == first[0].group && c.credit == 0)
-        );
-        let (r, outcome) = settle(&mut groups, &more[0], hit(1, 2.0)).unwrap();
-        assert_eq!((r.credit, outcome.nearest.map(|h| h.order)), (7, Some(1)));
-        assert_eq!((groups.copies, groups.extensions), (2, 1));
-
-        // Two at a time: a shadow ray blocked in the first window ends; one that goes through
-        // every window concludes clear after the last.
-        let mut groups = Groups::new(Depth::Ahead(2));
-        let shadow = RayRecord {
-            kind: crate::ray::RayKind::Shadow as u8,
-            ..ray(1)
-        };
-        let w = copies(&mut groups, shadow, &[1, 2, 3]);
-        assert_eq!(w.len(), 2);
-        assert_eq!(settle(&mut groups, &w[1], Verdict::Blocked(1)), None);
-        let (_, outcome) = settle(&mut groups, &w[0], Verdict::Clear).unwrap();
-        assert_eq!((outcome.blocked, outcome.blocker), (true, Some(1)));
-        let w = copies(&mut groups, shadow, &[1, 2, 3]);
-        let mut more = Vec::new();
-        for c in &w {
-            let v = VerdictRecord::new(c, Verdict::Clear);
-            assert_eq!(groups.settle(&v, &mut more), Ok(None));
-        }
-        assert_eq!(more.iter().map(|c| c.domain).collect::<Vec<_>>(), [3]);
-        let (_, outcome) = settle(&mut groups, &more[0], Verdict::Clear).unwrap();
-        assert!(!outcome.blocked);
-        assert_eq!(groups.waiting(), 0);
-    }
-
-    #[test]
-    fn one_blocking_copy_blocks_the_shadow_ray() {
-        let mut groups = Groups::default();
-        let copy = spread(&mut groups, ray(1), &[1, 2]);
-        settle(&mut groups, &copy, Verdict::Blocked(1));
-        let (_, outcome) = settle(&mut groups, &copy, Verdict::Clear).unwrap();
-        assert!(outcome.blocked);
-    }
-
-    #[test]
-    fn verdicts_survive_the_wire_form() {
-        let copy = spread(&mut Groups::default(), ray(1), &[1]);
-        for v in [
-            Verdict::Clear,
-            Verdict::Blocked(1),
-            hit(4, 2.5),
-            segment(9, 0.25),
-            Verdict::Light(SegmentLight {
-                first: 9,
-                light: 1,
-                depth: 2.5,
-                rgb: [0.1, 0.2, 0.3],
-            }),
-            Verdict::VolumeEnd(3),
-        ] {
-            assert_eq!(VerdictRecord::new(&copy, v).verdict(), v);
-        }
-    }
-
-    fn segment(first: u32, alpha: f32) -> Verdict {
-        Verdict::Segment(Segment::plain(first, [alpha * 0.5; 3], alpha))
-    }
-
-    #[test]
-    fn volume_segments_conclude_once_all_copies_closed_in_order_along_the_ray() {
-        // Two bricks: the far one's segments (and its closing count) arrive first, the near
-        // one's closing verdict before its segments.
-        let mut groups = Groups::default();
-        let copy = spread(&mut groups, ray(7), &[1, 2]);
-        assert_eq!(settle(&mut groups, &copy, segment(40, 0.2)), None);
-        assert_eq!(settle(&mut groups, &copy, segment(30, 0.1)), None);
-        assert_eq!(settle(&mut groups, &copy, Verdict::VolumeEnd(2)), None);
-        assert_eq!(settle(&mut groups, &copy, Verdict::VolumeEnd(2)), None);
-        assert_eq!(settle(&mut groups, &copy, segment(12, 0.3)), None);
-        let (r, outcome) = settle(&mut groups, &copy, segment(3, 0.4)).unwrap();
-        assert_eq!(r.credit, 7);
-        let firsts: Vec<u32> = outcome.segments.iter().map(|s| s.first).collect();
-        assert_eq!(firsts, [3, 12, 30, 40]);
-        assert_eq!(groups.waiting(), 0);
-
-        // A copy that sends nothing closes with a count of zero; an empty copy off the path
-        // closes with Clear.
-        let copy = spread(&mut groups, ray(1), &[1, 2]);
-        assert_eq!(settle(&mut groups, &copy, Verdict::VolumeEnd(0)), None);
-        let (_, outcome) = settle(&mut groups, &copy, Verdict::Clear).unwrap();
-        assert!(outcome.segments.is_empty());
-    }
-
-    #[test]
-    fn a_hit_on_a_bricks_surfaces_comes_with_its_segments_and_the_nearest_wins() {
-        // The near brick's hit arrives after its closing count, which counts it; the far
-        // brick's hit is farther along the ray and loses.
-        let mut groups = Groups::default();
-        let copy = spread(&mut groups, ray(7), &[1, 2]);
-        let volume_hit = |order, t| {
-            Verdict::VolumeHit(SurfaceHit {
-                order,
-                t,
-                normal: [0.0, 0.0, 1.0],
-                material: 0,
-            })
-        };
-        assert_eq!(settle(&mut groups, &copy, segment(3, 0.1)), None);
-        assert_eq!(settle(&mut groups, &copy, Verdict::VolumeEnd(2)), None);
-        assert_eq!(settle(&mut groups, &copy, volume_hit(1, 9.0)), None);
-        assert_eq!(settle(&mut groups, &copy, volume_hit(0, 2.5)), None);
-        let (_, outcome) = settle(&mut groups, &copy, Verdict::VolumeEnd(1)).unwrap();
-        assert_eq!(outcome.nearest.map(|h| (h.order, h.t)), Some((0, 2.5)));
-        assert_eq!(outcome.segments.len(), 1);
-        // Through the wire and back, a brick's hit stays one.
-        let back = VerdictRecord::new(&copy, volume_hit(0, 2.5)).verdict();
-        assert_eq!(back, volume_hit(0, 2.5));
-    }
-
-    fn light(first: u32, light: u32) -> Verdict {
-        Verdict::Light(SegmentLight {
-            first,
-            light,
-            depth: first as f32,
-            rgb: [0.25; 3],
-        })
-    }
-
-    #[test]
-    fn segment_lights_are_counted_and_sorted_by_segment_then_light() {
-        let mut groups = Groups::default();
-        let copy = spread(&mut groups, ray(7), &[1, 2]);
-        // The far brick: one segment lit by lights 1 and 0, in that order; then the near one,
-        // its lights before its segment.
-        assert_eq!(settle(&mut groups, &copy, segment(40, 0.2)), None);
-        assert_eq!(settle(&mut groups, &copy, light(40, 1)), None);
-        assert_eq!(settle(&mut groups, &copy, light(40, 0)), None);
-        assert_eq!(settle(&mut groups, &copy, Verdict::VolumeEnd(3)), None);
-        assert_eq!(settle(&mut groups, &copy, light(3, 2)), None);
-        assert_eq!(settle(&mut groups, &copy, Verdict::VolumeEnd(2)), None);
-        let (_, outcome) = settle(&mut groups, &copy, segment(3, 0.4)).unwrap();
-        let lights: Vec<(u32, u32)> = outcome.lights.iter().map(|l| (l.first, l.light)).collect();
-        assert_eq!(lights, [(3, 2), (40, 0), (40, 1)]);
-        // A light beyond the count is one verdict too many.
-        let copy = spread(&mut groups, ray(1), &[1]);
-        settle(&mut groups, &copy, segment(1, 0.5));
-        groups
-            .settle(&VerdictRecord::new(&copy, light(1, 0)), &mut Vec::new())
-            .unwrap();
-        let end = VerdictRecord::new(&copy, Verdict::VolumeEnd(1));
-        assert_eq!(
-            groups.settle(&end, &mut Vec::new()),
-            Err(GroupError::TooManySegments(copy.group))
-        );
-    }
-
-    #[test]
-    fn segments_beyond_what_the_copies_announce_are_refused() {
-        let mut groups = Groups::default();
-        let copy = spread(&mut groups, ray(1), &[1]);
-        settle(&mut groups, &copy, segment(1, 0.5));
-        let extra = VerdictRecord::new(&copy, segment(2, 0.5));
-        groups.settle(&extra, &mut Vec::new()).unwrap();
-        let end = VerdictRecord::new(&copy, Verdict::VolumeEnd(1));
-        assert_eq!(
-            groups.settle(&end, &mut Vec::new()),
-            Err(GroupError::TooManySegments(copy.group)),
-            "two segments, one announced: the group is dropped"
-        );
-        assert_eq!(groups.waiting(), 0);
-        let copy = spread(&mut groups, ray(1), &[1]);
-        let huge = VerdictRecord::new(&copy, Verdict::VolumeEnd(MAX_SEGMENTS + 1));
-        assert_eq!(
-            groups.settle(&huge, &mut Vec::new()),
-            Err(GroupError::TooManySegments(copy.group))
-        );
-    }
-
-    #[test]
-    fn ids_are_reused_and_stale_verdicts_are_refused() {
-        let mut groups = Groups::default();
-        let a = spread(&mut groups, ray(1), &[1]);
-        settle(&mut groups, &a, Verdict::Clear).unwrap();
-        let stale = VerdictRecord::new(&a, Verdict::Clear);
-        assert_eq!(
-            groups.settle(&stale, &mut Vec::new()),
-            Err(GroupError::Unknown(a.group))
-        );
-        let far = VerdictRecord { group: 99, ..stale };
-        assert_eq!(
-            groups.settle(&far, &mut Vec::new()),
-            Err(GroupError::Unknown(99))
-        );
-        let b = spread(&mut groups, RayRecord { epoch: 1, ..ray(2) }, &[1, 2]);
-        assert_eq!(a.group, b.group);
-        assert_eq!(
-            groups.settle(&stale, &mut Vec::new()),
-            Err(GroupError::Mismatch(b.group))
-        );
-        groups.retain(|r| r.credit != 2);
-        assert_eq!(groups.waiting(), 0);
-        let late = VerdictRecord::new(&b, Verdict::Clear);
-        assert_eq!(
-            groups.settle(&late, &mut Vec::new()),
-            Err(GroupError::Unknown(b.group))
-        );
-    }
-}
+mod tests;

@@ -114,6 +114,42 @@ impl DomainTree {
         boxes
     }
 
+    /// Each domain's place (by domain id) in the order a ray from `point` meets domains: at
+    /// every split the half holding `point` comes first, and a ray crosses a plane at most
+    /// once, from that half to the other, so every ray leaving `point` meets domains in
+    /// increasing place.
+    pub fn front_to_back(&self, point: [f32; 3], domains: usize) -> Vec<u32> {
+        let mut place = vec![u32::MAX; domains];
+        let mut next = 0u32;
+        let mut todo = vec![0usize];
+        while let Some(i) = todo.pop() {
+            match self.nodes[i] {
+                KdNode::Split {
+                    axis,
+                    position,
+                    below,
+                    above,
+                } => {
+                    let (near, far) = if point[axis as usize] < position {
+                        (below, above)
+                    } else {
+                        (above, below)
+                    };
+                    // Last pushed, first visited.
+                    todo.push(far as usize);
+                    todo.push(near as usize);
+                }
+                KdNode::Leaf { domain } => {
+                    if let Some(p) = place.get_mut(domain as usize) {
+                        *p = next;
+                        next += 1;
+                    }
+                }
+            }
+        }
+        place
+    }
+
     /// Every domain whose closed box overlaps `b`.
     pub fn overlapping(&self, b: &Aabb, mut out: impl FnMut(u32)) {
         let mut todo = vec![0usize];
@@ -444,6 +480,37 @@ mod tests {
                 ControlFlow::Continue(())
             });
             assert!(count >= 3);
+        }
+    }
+
+    #[test]
+    fn rays_from_a_point_meet_domains_in_its_front_to_back_order() {
+        let mut pts = grid_points(6);
+        let t = DomainTree::balanced(unit(), &mut pts, 27);
+        let eye = [0.2, -1.5, 0.7];
+        let place = t.front_to_back(eye, 27);
+        let mut sorted = place.clone();
+        sorted.sort_unstable();
+        assert_eq!(sorted, (0..27).collect::<Vec<u32>>(), "each place once");
+        for d in [
+            [0.0, 1.0, 0.0],
+            [0.1, 1.0, -0.1],
+            [-0.05, 1.0, 0.1],
+            [0.2, 1.0, 0.05],
+        ] {
+            let mut seen = Vec::new();
+            t.walk(
+                Vec3::from(eye),
+                Vec3::from(d),
+                0.0,
+                f32::INFINITY,
+                |dom, _, _| {
+                    seen.push(place[dom as usize]);
+                    ControlFlow::Continue(())
+                },
+            );
+            assert!(seen.len() >= 3, "{d:?}");
+            assert!(seen.windows(2).all(|w| w[0] < w[1]), "{d:?}: {seen:?}");
         }
     }
 

@@ -5,7 +5,10 @@
 //! speculatively a generation needs each domain only once. So the oldest generation goes
 //! first: each domain is then loaded about once per generation, not once per trip of a ray
 //! through it. Among the queues holding that generation a domain already in memory goes
-//! first (it costs no load), then the fullest; ties go to the lowest domain id.
+//! first (it costs no load); then, for camera rays (generation 0), the domain nearest the
+//! eye, so a camera ray's nearer copies are traced before its farther ones, which are skipped
+//! once a nearer domain has ended the ray (`Groups::skip`); then the fullest; ties go to the
+//! lowest domain id.
 
 /// The oldest of `generations`: the one the rule puts first, on a worker (which queue to
 /// trace, `next_queue`) and on the coordinator (which queues a round plans for,
@@ -25,6 +28,9 @@ pub struct QueueView {
     pub oldest: u16,
     /// Whether the domain is in memory.
     pub resident: bool,
+    /// The domain's place in the order camera rays meet domains (`DomainTree::front_to_back`
+    /// from the eye); 0 for every domain where it is not known.
+    pub from_eye: u32,
 }
 
 /// The domain to trace next, or `None` when no rays are queued.
@@ -34,7 +40,15 @@ pub fn next_queue(queues: impl IntoIterator<Item = QueueView>) -> Option<u32> {
     queues
         .iter()
         .filter(|q| q.oldest == oldest)
-        .max_by_key(|q| (q.resident, q.rays, std::cmp::Reverse(q.domain)))
+        .max_by_key(|q| {
+            let from_eye = if oldest == 0 { q.from_eye } else { 0 };
+            (
+                q.resident,
+                std::cmp::Reverse(from_eye),
+                q.rays,
+                std::cmp::Reverse(q.domain),
+            )
+        })
         .map(|q| q.domain)
 }
 
@@ -118,7 +132,28 @@ mod tests {
             rays,
             oldest,
             resident,
+            from_eye: 0,
         }
+    }
+
+    #[test]
+    fn camera_rays_go_front_to_back_after_what_is_in_memory() {
+        let near = |domain, from_eye, oldest, resident| QueueView {
+            from_eye,
+            ..q(domain, 10 * u64::from(domain), oldest, resident)
+        };
+        // Generation 0: the domain nearest the eye before the fullest.
+        let pick = next_queue([near(1, 0, 0, false), near(2, 5, 0, false)]);
+        assert_eq!(pick, Some(1));
+        assert_eq!(
+            next_queue([near(1, 0, 0, false), near(2, 5, 0, true)]),
+            Some(2)
+        );
+        // Later generations leave from surfaces everywhere: the fullest.
+        assert_eq!(
+            next_queue([near(1, 0, 1, false), near(2, 5, 1, false)]),
+            Some(2)
+        );
     }
 
     #[test]

@@ -105,6 +105,20 @@ fn verdicts_round_trip_and_bad_ones_are_refused() {
         refused(|v| v.kind = VerdictRecord::CLEAR),
         reason("a verdict without a hit carries hit fields")
     );
+    // A clear verdict names its copy's domain, one of the frame's.
+    let clear = |v: &mut VerdictRecord| {
+        (v.kind, v.order, v.t, v.normal, v.material) = (VerdictRecord::CLEAR, 3, 0.0, [0.0; 3], 0);
+    };
+    let mut ok = vs.clone();
+    clear(&mut ok[5]);
+    assert_eq!(decode_verdicts(&encode_verdicts(&ok), &LIMITS).unwrap(), ok);
+    assert_eq!(
+        refused(|v| {
+            (v.kind, v.order, v.t, v.normal, v.material) =
+                (VerdictRecord::CLEAR, 1 << 20, 0.0, [0.0; 3], 0);
+        }),
+        reason("domain out of range")
+    );
     // Volume segments: colour non-negative, opacity a fraction; a closing verdict only
     // counts, and within bounds.
     let segment = |v: &mut VerdictRecord| {

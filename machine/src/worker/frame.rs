@@ -356,6 +356,10 @@ impl<S: RaySpill> Frame<S> {
             queued.extend(self.queues.take(d, len)?);
             self.generations.clear(d);
         }
+        // Copies of rays born here that a nearer domain already ended need not travel.
+        if let Some(spec) = self.speculation.as_mut() {
+            queued.retain(|copy| !spec.skip(copy));
+        }
         // The coordinator counted these rays here: it must hear they left. Those this worker
         // still keeps go back to its queues.
         self.route(queued)
@@ -365,6 +369,22 @@ impl<S: RaySpill> Frame<S> {
     /// the fullest (ties: the lower domain id), or under the predictive schedule
     /// `speculative::next_queue`.
     pub fn take_work(&mut self, max: usize) -> Result<Option<(u32, Vec<RayRecord>)>, QueueError> {
+        loop {
+            let Some((d, mut rays)) = self.take_queue(max)? else {
+                return Ok(None);
+            };
+            // Copies of rays born here that a nearer domain already ended need no tracing.
+            if let Some(spec) = self.speculation.as_mut() {
+                rays.retain(|copy| !spec.skip(copy));
+            }
+            if !rays.is_empty() {
+                return Ok(Some((d, rays)));
+            }
+        }
+    }
+
+    /// [`Frame::take_work`]'s choice of queue, the rays taken as they are.
+    fn take_queue(&mut self, max: usize) -> Result<Option<(u32, Vec<RayRecord>)>, QueueError> {
         // Hybrid traces its own domains' (data-parallel) queues before demand-driven work.
         let first = |d: u32| {
             matches!(self.plan.mode, Mode::Hybrid { .. }) && self.plan.work_on().contains(&d)
@@ -379,6 +399,7 @@ impl<S: RaySpill> Frame<S> {
                 rays,
                 oldest: self.generations.oldest(domain).unwrap_or(0),
                 resident: self.plan.resident().contains(&domain),
+                from_eye: 0,
             }))
         } else {
             queues

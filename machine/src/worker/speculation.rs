@@ -75,6 +75,17 @@ impl Speculation {
         copies
     }
 
+    /// Whether `copy` may be dropped untraced: it is a copy of a ray born here that a nearer
+    /// domain already ended (`Groups::skip`; copies of other workers' rays are traced).
+    pub fn skip(&mut self, copy: &RayRecord) -> bool {
+        copy.resolver == self.me && self.groups.skip(copy)
+    }
+
+    /// Copies dropped untraced, and rays concluded before all their copies answered.
+    pub fn skipped_and_early(&self) -> (u64, u64) {
+        (self.groups.skipped, self.groups.early)
+    }
+
     /// Copies sent in all windows, and windows sent after a ray's first.
     pub fn copies_and_extensions(&self) -> (u64, u64) {
         (self.groups.copies, self.groups.extensions)

@@ -112,6 +112,9 @@ pub(super) struct Queues {
     /// Speculating: the rays waiting for their copies, and the generations queued.
     pub(super) groups: Option<Groups>,
     generations: GenerationCounts,
+    /// Speculating: each domain's place in the order camera rays meet domains
+    /// (`SceneView::front_to_back` from the eye), so camera rays are traced front to back.
+    pub(super) from_eye: Vec<u32>,
 }
 
 impl Queues {
@@ -121,6 +124,7 @@ impl Queues {
             rays: (0..domains).map(|_| DomainQueue::default()).collect(),
             groups: depth.map(Groups::new),
             generations: GenerationCounts::new(domains),
+            from_eye: Vec::new(),
         }
     }
 
@@ -186,6 +190,7 @@ impl Queues {
                 rays: len as u64,
                 oldest: self.generations.oldest(domain)?,
                 resident: resident.contains(&domain),
+                from_eye: self.from_eye.get(domain as usize).copied().unwrap_or(0),
             })
         }))
     }
