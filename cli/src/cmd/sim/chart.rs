@@ -107,12 +107,16 @@ fn split(line: &str) -> Vec<String> {
         match (ch, quoted) {
             ('"', true) if chars.peek() == Some(&'"') => {
                 chars.next();
-                fields.last_mut().map(|f| f.push('"'));
+                if let Some(f) = fields.last_mut() {
+                    f.push('"');
+                }
             }
             ('"', _) => quoted = !quoted,
             (',', false) => fields.push(String::new()),
             (ch, _) => {
-                fields.last_mut().map(|f| f.push(ch));
+                if let Some(f) = fields.last_mut() {
+                    f.push(ch);
+                }
             }
         }
     }
