@@ -7,8 +7,11 @@ use std::collections::{BTreeMap, VecDeque};
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
+use rayfarm_core::progressive::Samples;
 use rayfarm_core::render::cache::DomainCache;
+use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::scene::Manifest;
+use rayfarm_core::wire::BatchLimits;
 use rayfarm_machine::Time;
 use rayfarm_machine::pass::{self, FrameView, PassInput};
 use rayfarm_machine::worker::{
@@ -21,10 +24,53 @@ use crate::cost::CostModel;
 use crate::net::NodeId;
 use crate::storage::SharedStorage;
 
-/// The scene every simulated worker reads: one directory, one manifest.
+/// The scene every simulated worker reads: one directory, one manifest, and what every
+/// worker derives from them alike, shared so that the simulator's memory does not grow with
+/// workers x domains.
 pub struct Scene {
     pub dir: PathBuf,
-    pub manifest: Manifest,
+    pub manifest: Arc<Manifest>,
+    /// Bytes of every domain file, by domain id.
+    pub domain_bytes: Arc<[u64]>,
+    /// The view of the frame opened last (its job, tile size and samples): every worker of a
+    /// frame opens the same one.
+    frame_view: Mutex<Option<(FrameKey, Arc<FrameView>, BatchLimits)>>,
+}
+
+/// What a frame's view depends on besides the scene (a job's spec is fixed).
+type FrameKey = (String, u32, Samples);
+
+impl Scene {
+    /// The scene of `manifest`, read from `dir`.
+    pub fn new(dir: PathBuf, manifest: Manifest) -> Self {
+        Scene {
+            dir,
+            domain_bytes: manifest.domains.iter().map(|d| d.bytes).collect(),
+            manifest: Arc::new(manifest),
+            frame_view: Mutex::new(None),
+        }
+    }
+
+    /// The view of `frame` of job `job_id`, opened once for all workers that open it.
+    fn frame_view(
+        &self,
+        job_id: &str,
+        frame: &FrameSpec,
+        tile_size: u32,
+        samples: Samples,
+    ) -> Result<(Arc<FrameView>, BatchLimits), String> {
+        let key = (job_id.to_string(), tile_size, samples);
+        let mut held = self.frame_view.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some((k, view, limits)) = held.as_ref()
+            && *k == key
+        {
+            return Ok((view.clone(), *limits));
+        }
+        let (view, limits) = FrameView::open(&self.manifest, frame, tile_size, samples)?;
+        let view = Arc::new(view);
+        *held = Some((key, view.clone(), limits));
+        Ok((view, limits))
+    }
 }
 
 /// How big a worker's queues may grow (the caps the invariants check).
@@ -90,7 +136,7 @@ impl SimWorker {
         scene: Arc<Scene>,
         caps: QueueCaps,
     ) -> Result<Self, String> {
-        let cache = DomainCache::new(&scene.dir, &scene.manifest, config.cache_bytes);
+        let cache = DomainCache::shared(&scene.dir, scene.manifest.clone(), config.cache_bytes);
         Ok(SimWorker {
             node,
             id: config.worker_id.clone(),
@@ -122,24 +168,22 @@ impl SimWorker {
     /// queues (in memory).
     pub fn open(&mut self, s: &proto::StartFrame) -> Result<OpenedScene<MemorySpill>, String> {
         let spec = s.spec.as_ref().ok_or("StartFrame without a job spec")?;
-        let manifest = &self.scene.manifest;
-        let frame = rayfarm_node::job::frame_spec(spec, &manifest.camera)?;
+        let scene = self.scene.clone();
+        let frame = rayfarm_node::job::frame_spec(spec, &scene.manifest.camera)?;
         let samples = rayfarm_node::job::start_samples(s, frame.spp)?;
-        let (view, limits) = FrameView::open(manifest, &frame, s.tile_size, samples)?;
+        let (view, limits) = scene.frame_view(&s.job_id, &frame, s.tile_size, samples)?;
         let grid = view.grid;
         let spp = samples.count;
-        self.frame = Some((s.job_id.clone(), Arc::new(view)));
-        let cache = self.lock();
-        let (domain_bytes, resident) = (cache.domain_bytes(), cache.resident());
-        drop(cache);
+        self.frame = Some((s.job_id.clone(), view));
+        let resident = self.lock().resident();
         Ok(OpenedScene {
             grid,
             spp,
             limits,
-            domain_bytes,
+            domain_bytes: scene.domain_bytes.clone(),
             resident,
             queues: DomainQueues::new(
-                manifest.domains.len(),
+                scene.domain_bytes.len(),
                 self.caps.queue_bytes,
                 self.caps.spill_bytes,
                 MemorySpill::default(),

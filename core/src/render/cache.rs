@@ -4,6 +4,7 @@
 //! storage. Slower shared storage can be emulated ([`StorageModel`]) to study schedules in
 //! the regime where loading dominates.
 
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -64,33 +65,44 @@ fn drop_page_cache(path: &std::path::Path) -> std::io::Result<()> {
     Ok(())
 }
 
-/// Domains of one scene, loaded on demand.
+/// A mapped domain and when it was last asked for.
+struct Resident {
+    data: Arc<DomainData>,
+    last_use: u64,
+}
+
+/// Domains of one scene, loaded on demand. It keeps state only for the domains it holds or
+/// has verified, so many caches over one shared manifest (the simulator's workers) cost
+/// memory for what they hold, not for the scene's domain count.
 pub struct DomainCache {
     dir: PathBuf,
-    manifest: Manifest,
+    manifest: Arc<Manifest>,
     budget: u64,
-    resident: Vec<Option<Arc<DomainData>>>,
-    last_use: Vec<u64>,
-    verified: Vec<bool>,
+    resident: BTreeMap<u32, Resident>,
+    /// Domains whose checksum was verified (on their first load).
+    verified: BTreeSet<u32>,
     clock: u64,
     resident_bytes: u64,
     counters: CacheCounters,
     storage: StorageModel,
     /// Domains the least-recently-used rule must not evict (a schedule's owned data).
-    pinned: std::collections::BTreeSet<u32>,
+    pinned: BTreeSet<u32>,
 }
 
 impl DomainCache {
     /// A cache for the scene in `dir` holding at most `budget` bytes of domains.
     pub fn new(dir: impl Into<PathBuf>, manifest: &Manifest, budget: u64) -> Self {
-        let n = manifest.domains.len();
+        Self::shared(dir, Arc::new(manifest.clone()), budget)
+    }
+
+    /// A cache like [`DomainCache::new`]'s over a manifest shared with others.
+    pub fn shared(dir: impl Into<PathBuf>, manifest: Arc<Manifest>, budget: u64) -> Self {
         DomainCache {
             dir: dir.into(),
-            manifest: manifest.clone(),
+            manifest,
             budget,
-            resident: vec![None; n],
-            last_use: vec![0; n],
-            verified: vec![false; n],
+            resident: BTreeMap::new(),
+            verified: BTreeSet::new(),
             clock: 0,
             resident_bytes: 0,
             counters: CacheCounters::default(),
@@ -116,21 +128,21 @@ impl DomainCache {
     pub fn get(&mut self, domain: u32) -> Result<Arc<DomainData>, SceneError> {
         let i = domain as usize;
         self.clock += 1;
-        self.last_use[i] = self.clock;
-        if let Some(d) = &self.resident[i] {
-            return Ok(d.clone());
+        if let Some(d) = self.resident.get_mut(&domain) {
+            d.last_use = self.clock;
+            return Ok(d.data.clone());
         }
         let _span =
             info_span!("load_domain", domain, file = %self.manifest.domains[i].file).entered();
         debug!("loading domain");
         let started = Instant::now();
-        let data = self
-            .manifest
-            .open_domain(&self.dir, domain, !self.verified[i])?;
+        let data =
+            self.manifest
+                .open_domain(&self.dir, domain, !self.verified.contains(&domain))?;
         if self.storage.is_active() {
             std::thread::sleep(self.storage.delay(data.bytes()));
         }
-        self.verified[i] = true;
+        self.verified.insert(domain);
         let bytes = data.bytes();
         self.evict_for(bytes, domain);
         self.resident_bytes += bytes;
@@ -141,16 +153,25 @@ impl DomainCache {
         self.counters.load_nanos += started.elapsed().as_nanos() as u64;
         debug!(bytes, resident = self.resident_bytes, "domain loaded");
         let data = Arc::new(data);
-        self.resident[i] = Some(data.clone());
+        let last_use = self.clock;
+        self.resident.insert(
+            domain,
+            Resident {
+                data: data.clone(),
+                last_use,
+            },
+        );
         Ok(data)
     }
 
     fn evict_for(&mut self, incoming: u64, keep: u32) {
         while self.resident_bytes + incoming > self.budget {
-            let victim = (0..self.resident.len())
-                .filter(|&j| j != keep as usize && self.resident[j].is_some())
-                .filter(|&j| !self.pinned.contains(&(j as u32)))
-                .min_by_key(|&j| self.last_use[j]);
+            let victim = self
+                .resident
+                .iter()
+                .filter(|&(&j, _)| j != keep && !self.pinned.contains(&j))
+                .min_by_key(|(_, r)| r.last_use)
+                .map(|(&j, _)| j);
             let Some(j) = victim else { break };
             self.drop_domain(j);
         }
@@ -158,13 +179,14 @@ impl DomainCache {
 
     /// Unmaps a resident domain and asks the kernel to drop its pages from the page cache,
     /// so that a later load costs a read from storage, as it would on a cluster.
-    fn drop_domain(&mut self, i: usize) {
-        let Some(d) = self.resident[i].take() else {
+    fn drop_domain(&mut self, domain: u32) {
+        let Some(d) = self.resident.remove(&domain) else {
             return;
         };
-        self.resident_bytes -= d.bytes();
+        self.resident_bytes -= d.data.bytes();
         self.counters.evictions += 1;
         drop(d);
+        let i = domain as usize;
         let path = self.dir.join(&self.manifest.domains[i].file);
         if let Err(e) = drop_page_cache(&path) {
             debug!(domain = i, error = %e, "page cache not dropped");
@@ -174,30 +196,25 @@ impl DomainCache {
 
     /// Unmaps every domain (a frame that must pay for all its loads).
     pub fn clear(&mut self) {
-        for i in 0..self.resident.len() {
-            self.drop_domain(i);
+        let all: Vec<u32> = self.resident.keys().copied().collect();
+        for d in all {
+            self.drop_domain(d);
         }
     }
 
     /// Drops `domain` from the cache if it is resident (the schedule asked for its slot).
     pub fn evict(&mut self, domain: u32) {
-        if (domain as usize) < self.resident.len() {
-            self.drop_domain(domain as usize);
-        }
+        self.drop_domain(domain);
     }
 
     /// Size of every domain file of the scene, by domain id.
-    pub fn domain_bytes(&self) -> Vec<u64> {
+    pub fn domain_bytes(&self) -> Arc<[u64]> {
         self.manifest.domains.iter().map(|d| d.bytes).collect()
     }
 
     /// Domains mapped now, ascending.
     pub fn resident(&self) -> Vec<u32> {
-        (0..)
-            .zip(&self.resident)
-            .filter(|(_, d)| d.is_some())
-            .map(|(i, _)| i)
-            .collect()
+        self.resident.keys().copied().collect()
     }
 
     /// The counters so far.

@@ -10,6 +10,8 @@
 //! once a nearer domain has ended the ray (`Groups::skip`); then the fullest; ties go to the
 //! lowest domain id.
 
+use std::collections::BTreeMap;
+
 /// The oldest of `generations`: the one the rule puts first, on a worker (which queue to
 /// trace, `next_queue`) and on the coordinator (which queues a round plans for,
 /// `rounds::Cluster::state`).
@@ -87,38 +89,34 @@ impl Generations {
 }
 
 /// Rays queued per domain and generation, kept alongside the queues so the policy needs no
-/// scan of the rays.
+/// scan of the rays. Only domains with rays counted have an entry: a worker's counts grow
+/// with its queues, not with the scene's domain count.
 #[derive(Clone, Debug, Default)]
 pub struct GenerationCounts {
-    counts: Vec<Generations>,
+    counts: BTreeMap<u32, Generations>,
 }
 
 impl GenerationCounts {
-    /// Empty counts for `domains` domains.
-    pub fn new(domains: usize) -> Self {
-        GenerationCounts {
-            counts: vec![Generations::default(); domains],
-        }
-    }
-
-    /// One more ray of `generation` queued for `domain` (below the domain count).
+    /// One more ray of `generation` queued for `domain`.
     pub fn add(&mut self, domain: u32, generation: u16) {
-        self.counts[domain as usize].add(generation);
+        self.counts.entry(domain).or_default().add(generation);
     }
 
     /// One ray of `generation` taken from `domain`'s queue.
     pub fn remove(&mut self, domain: u32, generation: u16) {
-        self.counts[domain as usize].remove(generation);
+        if let Some(g) = self.counts.get_mut(&domain) {
+            g.remove(generation);
+        }
     }
 
     /// `domain`'s queue was emptied.
     pub fn clear(&mut self, domain: u32) {
-        self.counts[domain as usize].clear();
+        self.counts.remove(&domain);
     }
 
     /// The oldest generation queued for `domain`, if any.
     pub fn oldest(&self, domain: u32) -> Option<u16> {
-        self.counts[domain as usize].oldest()
+        self.counts.get(&domain)?.oldest()
     }
 }
 
@@ -177,7 +175,7 @@ mod tests {
 
     #[test]
     fn counts_track_the_oldest_generation_per_domain() {
-        let mut c = GenerationCounts::new(2);
+        let mut c = GenerationCounts::default();
         assert_eq!(c.oldest(0), None);
         c.add(0, 3);
         c.add(0, 1);

@@ -90,7 +90,7 @@ pub struct OpenedScene<S> {
     pub spp: u32,
     pub limits: BatchLimits,
     /// Bytes of every domain file, by domain id.
-    pub domain_bytes: Vec<u64>,
+    pub domain_bytes: std::sync::Arc<[u64]>,
     /// Domains mapped in the cache now.
     pub resident: Vec<u32>,
     /// The frame's (empty) ray queues, over the shell's spill store.

@@ -43,7 +43,7 @@ pub struct Frame<S> {
     pub spp: u32,
     pub limits: BatchLimits,
     /// Bytes of every domain file, by domain id.
-    pub domain_bytes: Vec<u64>,
+    pub domain_bytes: std::sync::Arc<[u64]>,
     /// Tiles whose camera rays this worker issues, in order, not yet issued.
     to_issue: VecDeque<u32>,
     /// The schedule, this round's plan, the tiles' epochs: where each ray goes.
@@ -96,7 +96,7 @@ pub struct FrameParts<S> {
     pub grid: TileGrid,
     pub spp: u32,
     pub limits: BatchLimits,
-    pub domain_bytes: Vec<u64>,
+    pub domain_bytes: std::sync::Arc<[u64]>,
     /// Tiles whose camera rays this worker issues, in order.
     pub to_issue: Vec<u32>,
     pub queues: DomainQueues<S>,
@@ -150,7 +150,7 @@ impl<S: RaySpill> Frame<S> {
             domain_bytes,
             to_issue: to_issue.into(),
             plan,
-            generations: GenerationCounts::new(queues.domains() as usize),
+            generations: GenerationCounts::default(),
             speculation: speculation.map(|(me, roster, depth)| Speculation::new(me, roster, depth)),
             queues,
             report: Report::Due,
@@ -389,10 +389,11 @@ impl<S: RaySpill> Frame<S> {
         let first = |d: u32| {
             matches!(self.plan.mode, Mode::Hybrid { .. }) && self.plan.work_on().contains(&d)
         };
-        let queues = (0..self.queues.domains())
+        let queues = self
+            .queues
+            .non_empty()
             .filter(|&d| self.plan.traces(d))
-            .map(|d| (d, self.queues.len(d)))
-            .filter(|&(_, len)| len > 0);
+            .map(|d| (d, self.queues.len(d)));
         let next = if self.plan.mode == Mode::Predictive {
             next_queue(queues.map(|(domain, rays)| QueueView {
                 domain,
@@ -422,8 +423,8 @@ impl<S: RaySpill> Frame<S> {
 
     /// The oldest generation queued per non-empty queue.
     pub fn oldest_generations(&self) -> BTreeMap<u32, u32> {
-        (0..self.queues.domains())
-            .filter(|&d| self.queues.len(d) > 0)
+        self.queues
+            .non_empty()
             .filter_map(|d| Some((d, u32::from(self.generations.oldest(d)?))))
             .collect()
     }
@@ -435,9 +436,9 @@ impl<S: RaySpill> Frame<S> {
 
     /// Rays queued per domain, non-empty queues only.
     pub fn queue_sizes(&self) -> BTreeMap<u32, u64> {
-        (0..self.queues.domains())
+        self.queues
+            .non_empty()
             .map(|d| (d, self.queues.len(d)))
-            .filter(|&(_, n)| n > 0)
             .collect()
     }
 

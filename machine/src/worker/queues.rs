@@ -5,7 +5,7 @@
 //! The store is a trait so that the machine touches no file: the worker binary spills to
 //! local files, tests and the simulator to memory ([`MemorySpill`]).
 
-use std::collections::VecDeque;
+use std::collections::{BTreeMap, VecDeque};
 use std::fmt;
 
 use rayfarm_core::ray::RayRecord;
@@ -23,28 +23,31 @@ pub trait RaySpill {
 }
 
 /// A [`RaySpill`] in memory: for tests and the simulator, where only the accounting matters.
+/// Only domains with rays spilled have an entry.
 #[derive(Default)]
 pub struct MemorySpill {
-    domains: Vec<VecDeque<RayRecord>>,
+    domains: BTreeMap<u32, VecDeque<RayRecord>>,
 }
 
 impl RaySpill for MemorySpill {
     fn append(&mut self, domain: u32, rays: &[RayRecord]) -> Result<(), String> {
-        let d = domain as usize;
-        if self.domains.len() <= d {
-            self.domains.resize_with(d + 1, VecDeque::new);
+        if !rays.is_empty() {
+            self.domains.entry(domain).or_default().extend(rays);
         }
-        self.domains[d].extend(rays);
         Ok(())
     }
 
     fn take_front(&mut self, domain: u32, n: usize) -> Result<Vec<RayRecord>, String> {
         let q = self
             .domains
-            .get_mut(domain as usize)
+            .get_mut(&domain)
             .filter(|q| q.len() >= n)
             .ok_or_else(|| format!("domain {domain}: fewer than {n} rays spilled"))?;
-        Ok(q.drain(..n).collect())
+        let taken = q.drain(..n).collect();
+        if q.is_empty() {
+            self.domains.remove(&domain);
+        }
+        Ok(taken)
     }
 }
 
@@ -73,11 +76,15 @@ impl fmt::Display for QueueError {
 
 impl std::error::Error for QueueError {}
 
-/// See the module documentation.
+/// See the module documentation. Only domains with rays queued have an entry, so a worker's
+/// queues take memory for its rays, not for the scene's domain count.
 pub struct DomainQueues<S> {
-    mem: Vec<Vec<RayRecord>>,
-    /// Rays of each domain in the spill store.
-    spilled: Vec<u64>,
+    /// Number of domains of the scene.
+    domains: u32,
+    /// Rays of each domain in memory (no empty entry).
+    mem: BTreeMap<u32, Vec<RayRecord>>,
+    /// Rays of each domain in the spill store (no zero entry).
+    spilled: BTreeMap<u32, u64>,
     spill: S,
     mem_rays: u64,
     mem_cap_rays: u64,
@@ -92,8 +99,9 @@ impl<S: RaySpill> DomainQueues<S> {
     /// `spill_cap` bytes in `spill`.
     pub fn new(domains: usize, mem_cap: u64, spill_cap: u64, spill: S) -> Self {
         DomainQueues {
-            mem: vec![Vec::new(); domains],
-            spilled: vec![0; domains],
+            domains: domains as u32,
+            mem: BTreeMap::new(),
+            spilled: BTreeMap::new(),
             spill,
             mem_rays: 0,
             mem_cap_rays: (mem_cap / RAY_BYTES).max(1),
@@ -110,15 +118,19 @@ impl<S: RaySpill> DomainQueues<S> {
 
     /// Queues `rays`, each for its `domain` (which must be below the domain count).
     pub fn push(&mut self, domain: u32, rays: &[RayRecord]) -> Result<(), QueueError> {
-        let d = domain as usize;
         let room = self.mem_cap_rays.saturating_sub(self.mem_rays) as usize;
         // Rays already spilled for this domain keep their place in line.
-        let in_memory = if self.spilled[d] > 0 {
+        let in_memory = if self.spilled.contains_key(&domain) {
             0
         } else {
             room.min(rays.len())
         };
-        self.mem[d].extend_from_slice(&rays[..in_memory]);
+        if in_memory > 0 {
+            self.mem
+                .entry(domain)
+                .or_default()
+                .extend_from_slice(&rays[..in_memory]);
+        }
         self.mem_rays += in_memory as u64;
         let rest = &rays[in_memory..];
         if rest.is_empty() {
@@ -132,7 +144,7 @@ impl<S: RaySpill> DomainQueues<S> {
             });
         }
         self.spill.append(domain, rest).map_err(QueueError::Spill)?;
-        self.spilled[d] += n;
+        *self.spilled.entry(domain).or_default() += n;
         self.spill_rays += n;
         self.spilled_total += n;
         Ok(())
@@ -140,21 +152,24 @@ impl<S: RaySpill> DomainQueues<S> {
 
     /// Takes up to `max` rays of `domain`: from memory first, then back from the spill store.
     pub fn take(&mut self, domain: u32, max: usize) -> Result<Vec<RayRecord>, QueueError> {
-        let d = domain as usize;
-        let q = &mut self.mem[d];
-        let mut out = if q.len() > max {
-            q.split_off(q.len() - max)
-        } else {
-            std::mem::take(q)
+        let mut out = match self.mem.get_mut(&domain) {
+            Some(q) if q.len() > max => q.split_off(q.len() - max),
+            Some(_) => self.mem.remove(&domain).unwrap_or_default(),
+            None => Vec::new(),
         };
         self.mem_rays -= out.len() as u64;
-        let n = ((max - out.len()) as u64).min(self.spilled[d]);
+        let spilled = self.spilled.get(&domain).copied().unwrap_or(0);
+        let n = ((max - out.len()) as u64).min(spilled);
         if n > 0 {
             let back = self
                 .spill
                 .take_front(domain, n as usize)
                 .map_err(QueueError::Spill)?;
-            self.spilled[d] -= n;
+            if n == spilled {
+                self.spilled.remove(&domain);
+            } else {
+                self.spilled.insert(domain, spilled - n);
+            }
             self.spill_rays -= n;
             out.extend(back);
         }
@@ -163,13 +178,35 @@ impl<S: RaySpill> DomainQueues<S> {
 
     /// Rays queued for `domain`, in memory and spilled.
     pub fn len(&self, domain: u32) -> u64 {
-        let d = domain as usize;
-        self.mem[d].len() as u64 + self.spilled[d]
+        self.mem.get(&domain).map_or(0, |q| q.len() as u64)
+            + self.spilled.get(&domain).copied().unwrap_or(0)
+    }
+
+    /// Domains with rays queued (in memory or spilled), ascending.
+    pub fn non_empty(&self) -> impl Iterator<Item = u32> + '_ {
+        let mut mem = self.mem.keys().copied().peekable();
+        let mut spilled = self.spilled.keys().copied().peekable();
+        // A merge of two ascending key lists, each domain once.
+        std::iter::from_fn(
+            move || match (mem.peek().copied(), spilled.peek().copied()) {
+                (Some(a), Some(b)) => {
+                    if a <= b {
+                        mem.next();
+                    }
+                    if b <= a {
+                        spilled.next();
+                    }
+                    Some(a.min(b))
+                }
+                (Some(_), None) => mem.next(),
+                (None, _) => spilled.next(),
+            },
+        )
     }
 
     /// Number of domains.
     pub fn domains(&self) -> u32 {
-        self.mem.len() as u32
+        self.domains
     }
 
     /// Rays queued over all domains.
@@ -179,7 +216,8 @@ impl<S: RaySpill> DomainQueues<S> {
 
     /// Keeps only the rays `keep` accepts (in memory and spilled).
     pub fn retain(&mut self, keep: impl Fn(&RayRecord) -> bool) -> Result<(), QueueError> {
-        for d in 0..self.domains() {
+        let domains: Vec<u32> = self.non_empty().collect();
+        for d in domains {
             let len = self.len(d) as usize;
             let rays = self.take(d, len)?;
             let kept: Vec<RayRecord> = rays.into_iter().filter(|r| keep(r)).collect();
@@ -234,6 +272,29 @@ mod tests {
             err.contains("--queue-bytes") && err.contains(&memory),
             "{err}"
         );
+    }
+
+    #[test]
+    fn only_domains_with_rays_are_listed_in_memory_or_spilled() {
+        let mut q = queues(1000, 3, 100);
+        let rays: Vec<RayRecord> = (0..4).map(ray).collect();
+        q.push(700, &rays[..2]).unwrap();
+        // One more fits in memory, the rest of domain 5 spills; domain 9 spills whole.
+        q.push(5, &rays).unwrap();
+        q.push(9, &rays[..1]).unwrap();
+        assert_eq!(q.non_empty().collect::<Vec<_>>(), [5, 9, 700]);
+        assert_eq!((q.mem.len(), q.spilled.len()), (2, 2));
+        q.take(5, 10).unwrap();
+        q.take(700, 1).unwrap();
+        assert_eq!(q.non_empty().collect::<Vec<_>>(), [9, 700]);
+        q.take(9, 1).unwrap();
+        q.take(700, 1).unwrap();
+        assert_eq!(q.non_empty().count(), 0);
+        assert!(
+            q.mem.is_empty() && q.spilled.is_empty(),
+            "no empty entries kept"
+        );
+        assert_eq!((q.domains(), q.total()), (1000, 0));
     }
 
     #[test]

@@ -48,7 +48,7 @@ fn scene() -> OpenedScene<MemorySpill> {
         grid: TileGrid::new(8, 8, 4).unwrap(),
         spp: 1,
         limits,
-        domain_bytes: vec![1000; DOMAINS],
+        domain_bytes: vec![1000; DOMAINS].into(),
         resident: Vec::new(),
         queues: DomainQueues::new(DOMAINS, 1 << 20, 1 << 20, MemorySpill::default()),
     }

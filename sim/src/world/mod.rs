@@ -124,10 +124,7 @@ struct World<'a> {
 /// Opens the scene a simulation reads (once for many runs).
 pub fn open_scene(dir: &std::path::Path) -> Result<Arc<Scene>, String> {
     let manifest = Manifest::load(dir).map_err(|e| e.to_string())?;
-    Ok(Arc::new(Scene {
-        dir: dir.to_path_buf(),
-        manifest,
-    }))
+    Ok(Arc::new(Scene::new(dir.to_path_buf(), manifest)))
 }
 
 /// Runs one simulation of `config` over `scene` with the faults of `plan`, ending at `bound`
@@ -166,7 +163,7 @@ pub fn simulate(
     let coord = SimCoordinator::new(CoordConfig {
         specs,
         frame,
-        domain_bytes: scene.manifest.domains.iter().map(|d| d.bytes).collect(),
+        domain_bytes: scene.domain_bytes.to_vec(),
         workers: config.workers,
         heartbeat: config.heartbeat,
         worker_timeout: config.worker_timeout,

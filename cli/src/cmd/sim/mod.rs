@@ -27,10 +27,13 @@ use crate::units;
 use crate::view::FrameArgs;
 
 mod calibrate;
+mod chart;
 mod report;
 
 pub use calibrate::CalibrateArgs;
 use calibrate::run_calibrate;
+pub use chart::ChartArgs;
+use chart::run_chart;
 use report::{Summary, print_row, write_csv};
 
 /// Options of `rayfarm sim`.
@@ -80,6 +83,9 @@ pub enum SimCommand {
     /// shadow apart, per camera and volume sample, per pass, per planning round) and write
     /// them to the file `rayfarm sim --cost` reads.
     Calibrate(CalibrateArgs),
+    /// Draw domain loads and simulated frame time against the worker count, a line per
+    /// schedule, from the CSV files of earlier runs.
+    Chart(ChartArgs),
 }
 
 /// The simulated frame, the workers' settings and the cost model (every price and bandwidth a
@@ -324,8 +330,10 @@ fn bound(clean: Duration) -> Duration {
 const CLEAN_BOUND: Duration = Duration::from_secs(24 * 3600);
 
 pub fn run(a: SimArgs) -> anyhow::Result<()> {
-    if let Some(SimCommand::Calibrate(c)) = a.command {
-        return run_calibrate(c);
+    match a.command.clone() {
+        Some(SimCommand::Calibrate(c)) => return run_calibrate(c),
+        Some(SimCommand::Chart(c)) => return run_chart(c),
+        None => {}
     }
     let Some(scene_dir) = a.scene.clone() else {
         bail!("--scene is required");

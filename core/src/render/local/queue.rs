@@ -123,7 +123,7 @@ impl Queues {
         Queues {
             rays: (0..domains).map(|_| DomainQueue::default()).collect(),
             groups: depth.map(Groups::new),
-            generations: GenerationCounts::new(domains),
+            generations: GenerationCounts::default(),
             from_eye: Vec::new(),
         }
     }
