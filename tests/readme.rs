@@ -86,8 +86,14 @@ fn plan(command: &str) -> Option<Plan> {
         ("rayfarm sim", || {
             Plan::Run(&[
                 ("--seeds 0..100000", "--seeds 0..20"),
-                // The 64-worker run takes ten minutes: the same command on two.
+                // The runs at scale take minutes: the same commands on two and three workers,
+                // a small frame.
+                ("--workers 64,256", "--workers 2,3"),
                 ("--workers 64", "--workers 2"),
+                (
+                    "--width 256 --height 256 --spp 1",
+                    "--width 32 --height 32 --spp 1",
+                ),
             ])
         }),
         ("rayfarm-coordinator", || {
@@ -308,7 +314,7 @@ fn every_readme_command_runs_or_is_skipped_with_its_reason() {
     }
     // The simulator's section names its scene from the working directory, and calibrates into
     // sim/.
-    for name in ["b32", "s2048"] {
+    for name in ["b32", "s2048", "s8192"] {
         prepare_nbody(dir, name, 20_000, 4);
     }
     std::fs::create_dir_all(dir.join("sim")).expect("sim");

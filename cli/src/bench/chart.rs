@@ -195,7 +195,7 @@ fn panel<DB: DrawingBackend>(
 }
 
 /// A plotters error (generic over the backend) as an anyhow error.
-fn plot_error(e: impl std::fmt::Display) -> anyhow::Error {
+pub(crate) fn plot_error(e: impl std::fmt::Display) -> anyhow::Error {
     anyhow!("drawing the chart: {e}")
 }
 

@@ -10,7 +10,7 @@ use clap::Args;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 
-use crate::bench::chart::{FAMILY, register_font};
+use crate::bench::chart::{FAMILY, plot_error, register_font};
 
 /// Size of the whole image, pixels.
 const SIZE: (u32, u32) = (1200, 540);
@@ -212,11 +212,6 @@ fn panel<DB: DrawingBackend>(
         .draw()
         .map_err(plot_error)?;
     Ok(())
-}
-
-/// A plotters error (generic over the backend) as an anyhow error.
-fn plot_error(e: impl std::fmt::Display) -> anyhow::Error {
-    anyhow!("drawing the chart: {e}")
 }
 
 #[cfg(test)]
