@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # rayfarm's BVH traversal against Embree 3 on one core: builds the Embree side, makes the
 # one-domain benchmark scene if it is missing or older than `rayfarm`, and runs
-# core/examples/embree_compare.rs. Extra arguments go to the example (--size N, --reps N, --high,
+# core/examples/embree_compare/. Extra arguments go to the example (--size N, --reps N, --high,
 # --keep DIR to keep the mesh, ray and hit files).
 #
 # Environment: CARGO_TARGET_DIR (default ./target; the scene and the C++ binary live there too),
