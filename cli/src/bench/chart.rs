@@ -37,31 +37,44 @@ pub(crate) fn register_font() -> anyhow::Result<()> {
         .ok_or_else(|| anyhow!("the embedded chart font could not be read"))
 }
 
-/// Draws the chart of `summaries` under `title` and writes it to `path` as PNG.
-pub fn write_chart(path: &Path, title: &str, summaries: &[ScheduleSummary]) -> anyhow::Result<()> {
-    let rgb = draw(title, summaries)?;
+/// Two panels side by side under `title`, in an image of `size` pixels, drawn by `draw`
+/// (left, right) and written to `path` as PNG: the frame both the bench chart and
+/// `rayfarm sim chart` draw into.
+pub(crate) fn write_side_by_side(
+    path: &Path,
+    size: (u32, u32),
+    title: &str,
+    draw: impl for<'b> FnOnce(
+        &DrawingArea<BitMapBackend<'b>, Shift>,
+        &DrawingArea<BitMapBackend<'b>, Shift>,
+    ) -> anyhow::Result<()>,
+) -> anyhow::Result<()> {
+    register_font()?;
+    let mut rgb = vec![0u8; size.0 as usize * size.1 as usize * 3];
+    {
+        let root = BitMapBackend::with_buffer(&mut rgb, size).into_drawing_area();
+        root.fill(&WHITE).map_err(plot_error)?;
+        let root = root
+            .titled(title, (FAMILY, 22).into_font())
+            .map_err(plot_error)?;
+        let (left, right) = root.split_horizontally(size.0 / 2);
+        draw(&left, &right)?;
+        root.present().map_err(plot_error)?;
+    }
     image::save_buffer_with_format(
         path,
         &rgb,
-        SIZE.0,
-        SIZE.1,
+        size.0,
+        size.1,
         image::ColorType::Rgb8,
         image::ImageFormat::Png,
     )
     .with_context(|| format!("writing the chart {}", path.display()))
 }
 
-/// The chart as RGB pixels, `SIZE` large.
-fn draw(title: &str, summaries: &[ScheduleSummary]) -> anyhow::Result<Vec<u8>> {
-    register_font()?;
-    let mut rgb = vec![0u8; SIZE.0 as usize * SIZE.1 as usize * 3];
-    {
-        let root = BitMapBackend::with_buffer(&mut rgb, SIZE).into_drawing_area();
-        root.fill(&WHITE).map_err(plot_error)?;
-        let root = root
-            .titled(title, (FAMILY, 22).into_font())
-            .map_err(plot_error)?;
-        let (left, right) = root.split_horizontally(SIZE.0 / 2);
+/// Draws the chart of `summaries` under `title` and writes it to `path` as PNG.
+pub fn write_chart(path: &Path, title: &str, summaries: &[ScheduleSummary]) -> anyhow::Result<()> {
+    write_side_by_side(path, SIZE, title, |left, right| {
         let names: Vec<String> = summaries.iter().map(|s| s.schedule.clone()).collect();
         let times: Vec<Option<Bar>> = summaries
             .iter()
@@ -84,19 +97,17 @@ fn draw(title: &str, summaries: &[ScheduleSummary]) -> anyhow::Result<Vec<u8>> {
             })
             .collect();
         panel(
-            &left,
+            left,
             "median wall time, s (whisker: min-max)",
             &names,
             &times,
             &BLUE,
             &|v| format!("{v:.2}"),
         )?;
-        panel(&right, "median domain loads", &names, &loads, &RED, &|v| {
+        panel(right, "median domain loads", &names, &loads, &RED, &|v| {
             super::report::count(v.round())
-        })?;
-        root.present().map_err(plot_error)?;
-    }
-    Ok(rgb)
+        })
+    })
 }
 
 /// One bar: its height, an optional whisker (low, high) and the text above it.

@@ -10,7 +10,7 @@ use clap::Args;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 
-use crate::bench::chart::{FAMILY, plot_error, register_font};
+use crate::bench::chart::{FAMILY, plot_error, write_side_by_side};
 
 /// Size of the whole image, pixels.
 const SIZE: (u32, u32) = (1200, 540);
@@ -125,28 +125,10 @@ fn split(line: &str) -> Vec<String> {
 
 /// Draws the two panels and writes the PNG.
 fn write(path: &Path, title: &str, series: &BTreeMap<String, Vec<Point>>) -> anyhow::Result<()> {
-    register_font()?;
-    let mut rgb = vec![0u8; SIZE.0 as usize * SIZE.1 as usize * 3];
-    {
-        let root = BitMapBackend::with_buffer(&mut rgb, SIZE).into_drawing_area();
-        root.fill(&WHITE).map_err(plot_error)?;
-        let root = root
-            .titled(title, (FAMILY, 22).into_font())
-            .map_err(plot_error)?;
-        let (left, right) = root.split_horizontally(SIZE.0 / 2);
-        panel(&left, "domain loads", series, |p| p.1)?;
-        panel(&right, "simulated frame time, ms", series, |p| p.2)?;
-        root.present().map_err(plot_error)?;
-    }
-    image::save_buffer_with_format(
-        path,
-        &rgb,
-        SIZE.0,
-        SIZE.1,
-        image::ColorType::Rgb8,
-        image::ImageFormat::Png,
-    )
-    .with_context(|| format!("writing the chart {}", path.display()))
+    write_side_by_side(path, SIZE, title, |left, right| {
+        panel(left, "domain loads", series, |p| p.1)?;
+        panel(right, "simulated frame time, ms", series, |p| p.2)
+    })
 }
 
 /// One log-log panel: `value` of every run against its workers, a line per schedule.
