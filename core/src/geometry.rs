@@ -229,6 +229,15 @@ pub fn within_interval(t: f32, t0: f32, t1: f32) -> bool {
     t >= t0 && t <= t1 && t != f32::INFINITY
 }
 
+/// Where a ray leaving a surface at `p` along the normal `n` (on the side it leaves to)
+/// starts: a scene-relative margin `epsilon` plus a few ulps of the hit's magnitude, so the
+/// child does not hit the surface it starts on. The render kernel's children and the Embree
+/// comparison's rays both start here.
+#[inline(always)]
+pub fn leave_surface(p: Vec3, n: Vec3, epsilon: f32) -> Vec3 {
+    p + n * (epsilon + p.abs().max_element() * 1e-6)
+}
+
 /// Shading normals at the corners of a [`TriangleBlock`]'s four triangles, `n[vertex][axis]
 /// [lane]` as the block's vertices: a domain file of a smooth surface (an isosurface's
 /// gradient normals) stores one per block, in block order. A lane of all zeros has none (the

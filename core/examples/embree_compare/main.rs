@@ -33,7 +33,7 @@ use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
 use rayfarm_core::bvh::{Bvh, BvhNode, Hit, PACKET, SLOT_EMPTY, SLOT_INNER, TraceRay, Traverser};
 use rayfarm_core::camera::PinholeCamera;
-use rayfarm_core::geometry::{PackedTriangle, TriangleBlock};
+use rayfarm_core::geometry::{PackedTriangle, TriangleBlock, leave_surface};
 use rayfarm_core::sampling::{Purpose, uniform};
 use rayfarm_core::scene::{DomainData, DomainTree, Light, Manifest};
 use serde_json::{Value, json};

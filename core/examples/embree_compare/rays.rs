@@ -59,23 +59,27 @@ pub(crate) fn diffuse_rays(
     let mut rays = Vec::with_capacity(camera.len());
     for ((ray, &pixel), hit) in camera.iter().zip(pixels).zip(hits) {
         let Some(hit) = hit else { continue };
-        let dir = Vec3::from(ray.dir);
-        let p = Vec3::from(ray.origin) + dir * hit.t;
-        let normal = bvh.triangle(hit).normal();
-        // The geometric normal on the side the ray arrived from.
-        let n = if normal.dot(dir) > 0.0 {
-            -normal
-        } else {
-            normal
-        };
-        // Leave the surface the way the render kernel does (scene epsilon plus a margin
-        // relative to the position), so these are the rays a render would trace.
-        let origin = p + n * (epsilon + p.abs().max_element() * 1e-6);
+        let (origin, n) = leaving(ray, hit, bvh, epsilon);
         let u = uniform(pixel, 0, 0, Purpose::BounceU, 0);
         let v = uniform(pixel, 0, 0, Purpose::BounceV, 0);
         rays.extend(in_domain(tree, origin, cosine_about(n, u, v)));
     }
     rays
+}
+
+/// Where rays leaving camera ray `ray`'s hit start, and the geometric normal on the side the
+/// ray arrived from: the surface left as the render kernel leaves it, so these are the rays a
+/// render would trace.
+fn leaving(ray: &BenchRay, hit: &Hit, bvh: Bvh, epsilon: f32) -> (Vec3, Vec3) {
+    let dir = Vec3::from(ray.dir);
+    let p = Vec3::from(ray.origin) + dir * hit.t;
+    let normal = bvh.triangle(hit).normal();
+    let n = if normal.dot(dir) > 0.0 {
+        -normal
+    } else {
+        normal
+    };
+    (leave_surface(p, n, epsilon), n)
 }
 
 /// Shadow rays from every camera ray that hit towards each of `lights` (a quad light's centre,
@@ -91,15 +95,7 @@ pub(crate) fn shadow_rays(
     let mut rays = Vec::with_capacity(camera.len() * lights.len());
     for (ray, hit) in camera.iter().zip(hits) {
         let Some(hit) = hit else { continue };
-        let dir = Vec3::from(ray.dir);
-        let p = Vec3::from(ray.origin) + dir * hit.t;
-        let normal = bvh.triangle(hit).normal();
-        let n = if normal.dot(dir) > 0.0 {
-            -normal
-        } else {
-            normal
-        };
-        let origin = p + n * (epsilon + p.abs().max_element() * 1e-6);
+        let (origin, n) = leaving(ray, hit, bvh, epsilon);
         for light in lights {
             let (l, end) = match *light {
                 Light::Directional { direction, .. } => {

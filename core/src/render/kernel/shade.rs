@@ -5,6 +5,7 @@ use glam::Vec3;
 
 use super::{KernelCounters, RaySink, SceneView};
 use crate::bvh::{Bvh, Hit};
+use crate::geometry::leave_surface;
 use crate::ray::{RayKind, RayRecord};
 use crate::sampling::{Purpose, uniform};
 use crate::scene::{Light, Material};
@@ -99,8 +100,7 @@ impl SceneView {
     ) {
         let dir = Vec3::from(ray.dir);
         let (n, material) = surface;
-        // Leave the surface by a scene-relative margin plus a few ulps of the hit's magnitude.
-        let origin = p + n * (self.epsilon + p.abs().max_element() * 1e-6);
+        let origin = leave_surface(p, n, self.epsilon);
         let throughput = Vec3::from(ray.throughput);
         let u = |purpose| uniform(ray.pixel, ray.sample, ray.depth as u32, purpose, 0);
         let can_bounce = ray.depth < self.max_depth;
