@@ -8,6 +8,7 @@ use std::time::{Duration, Instant};
 
 use crate::cli::bin;
 use crate::hosts::{Host, Net};
+use crate::http::http_get;
 use crate::process::{
     LOG_TAIL_LINES, Proc, START_TIMEOUT, command_on, listen_args, log_tail, signal_pid,
 };
@@ -255,6 +256,23 @@ impl Cluster {
     /// Worker `i`'s HTTP address (host:port), when it was started with `--http`.
     pub fn worker_http(&self, i: usize) -> Option<&str> {
         self.workers[i].http.as_deref()
+    }
+
+    /// The allocator's bytes in use in the coordinator (`rayfarm_heap_in_use_bytes` of its
+    /// `/metrics`), when it was started with `--http` on its loopback.
+    pub fn coordinator_heap_in_use(&self) -> u64 {
+        let addr = self
+            .coordinator_http()
+            .expect("the coordinator serves --http");
+        let host = self.net.as_ref().map(|_| self.coordinator_host());
+        heap_in_use(host, addr)
+    }
+
+    /// The same for worker `i`.
+    pub fn worker_heap_in_use(&self, i: usize) -> u64 {
+        let addr = self.worker_http(i).expect("the worker serves --http");
+        let host = self.net.as_ref().map(|_| self.worker_host(i));
+        heap_in_use(host, addr)
     }
 
     /// The coordinator's URL, `http://127.0.0.1:PORT` (`https://` with TLS).
@@ -596,4 +614,18 @@ pub fn job<'a>(jobs: &'a [serde_json::Value], id: &str) -> &'a serde_json::Value
     jobs.iter()
         .find(|j| j["job_id"] == id)
         .unwrap_or_else(|| panic!("job {id} not listed in {jobs:?}"))
+}
+
+/// `rayfarm_heap_in_use_bytes` from the `/metrics` at `addr`, on `host`'s network if given.
+fn heap_in_use(host: Option<&Host>, addr: &str) -> u64 {
+    let get = || http_get(addr, "/metrics");
+    let metrics = match host {
+        Some(host) => host.within(get),
+        None => get(),
+    };
+    metrics
+        .lines()
+        .find_map(|l| l.strip_prefix("rayfarm_heap_in_use_bytes "))
+        .and_then(|v| v.trim().parse::<f64>().ok())
+        .unwrap_or_else(|| panic!("no rayfarm_heap_in_use_bytes at {addr}: {metrics}")) as u64
 }

@@ -12,6 +12,7 @@
 //! tests run in parallel. They are removed when the [`Net`] is dropped (also while a test
 //! panics); ones left by a test process that died are removed by the next [`Net::new`].
 
+use std::os::fd::AsRawFd;
 use std::path::Path;
 use std::process::{Command, Output};
 use std::sync::Once;
@@ -35,6 +36,34 @@ pub struct Host {
     pub addr: String,
     /// Its interface's peer on the switch (where traffic towards the host is shaped).
     switch_port: String,
+}
+
+impl Host {
+    /// Runs `f` on a thread inside this host's network namespace, so its sockets are the
+    /// host's: it reaches what listens on the host's own loopback. (A namespace is a thread's,
+    /// so the test's other threads stay where they are.)
+    pub fn within<T: Send>(&self, f: impl FnOnce() -> T + Send) -> T {
+        let path = format!("/var/run/netns/{}", self.ns);
+        std::thread::scope(|scope| {
+            scope
+                .spawn(|| {
+                    let ns =
+                        std::fs::File::open(&path).unwrap_or_else(|e| panic!("open {path}: {e}"));
+                    // SAFETY: setns on a namespace file this thread holds open; it changes
+                    // only this thread's network namespace.
+                    let entered = unsafe { libc::setns(ns.as_raw_fd(), libc::CLONE_NEWNET) };
+                    assert_eq!(
+                        entered,
+                        0,
+                        "setns {path}: {}",
+                        std::io::Error::last_os_error()
+                    );
+                    f()
+                })
+                .join()
+                .unwrap_or_else(|e| std::panic::resume_unwind(e))
+        })
+    }
 }
 
 /// A private network of [`Host`]s on one bridge.

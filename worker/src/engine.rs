@@ -150,8 +150,14 @@ impl Engine {
                 _ = sleep_until(deadline), if deadline.is_some() => machine::Event::Tick,
             };
             let now = Time::from_duration(self.clock.elapsed());
+            let had_frame = self.machine.frame().is_some();
             for action in self.machine.handle(now, event) {
                 self.execute(action);
+            }
+            if had_frame && self.machine.frame().is_none() {
+                // What the frame freed goes back to the system, however it went: ended,
+                // failed, declined, or dropped with the coordinator's stream.
+                tokio::task::spawn_blocking(rayfarm_node::heap::release_free_memory);
             }
             let (queued, spilled) = self.machine.frame().map_or((0, 0), |f| f.queue_bytes());
             let m = metrics::worker();
@@ -258,8 +264,6 @@ impl Engine {
                         },
                     )),
                 });
-                // What the frame freed goes back to the system.
-                tokio::task::spawn_blocking(rayfarm_node::heap::release_free_memory);
             }
         }
     }
