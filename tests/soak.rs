@@ -394,7 +394,7 @@ fn jobs_stream_through_chaos_none_lost_every_image_the_local_one() {
             mib(peak(w, of))
         )
     };
-    let measures: [(&str, fn(&Sample) -> u64); 4] = [
+    let measures: [(&str, Measure); 4] = [
         ("coordinator heap in use", |s| s.coordinator_memory.in_use),
         ("coordinator RssAnon", |s| s.coordinator_memory.anon),
         ("worker 0 heap in use", |s| s.worker0.in_use),
@@ -455,6 +455,9 @@ fn jobs_stream_through_chaos_none_lost_every_image_the_local_one() {
         );
     }
 }
+
+/// One figure of a quiet point.
+type Measure = fn(&Sample) -> u64;
 
 /// Where the stream is on its way to the next quiet point.
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
