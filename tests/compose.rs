@@ -101,8 +101,15 @@ fn the_compose_cluster_renders_the_local_image_even_when_a_worker_is_killed() {
         return;
     };
     let tag = "rayfarm:compose-test";
+    // The binaries under test, as built: a cargo build from inside `cargo test` sees another
+    // environment and rebuilt the workspace (minutes of CI).
+    let binaries = bin("rayfarm");
     let built = Command::new(repo().join("deploy/build-image.sh"))
         .arg(tag)
+        .env(
+            "RAYFARM_BINARIES",
+            binaries.parent().expect("the binaries' directory"),
+        )
         .output()
         .expect("run deploy/build-image.sh");
     assert!(
