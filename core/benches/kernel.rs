@@ -213,12 +213,18 @@ fn build_and_load(c: &mut Criterion) {
     let mut g = c.benchmark_group("domain_1m");
     g.sample_size(10);
     g.throughput(Throughput::Elements(tris.len() as u64));
-    g.bench_function("bvh_build", |bch| {
-        bch.iter(|| {
-            let mut t = tris.clone();
-            black_box(bvh::build(&mut t).nodes.len())
-        })
-    });
+    for builder in bvh::Builder::ALL {
+        g.bench_with_input(
+            BenchmarkId::new("bvh_build", builder.name()),
+            &builder,
+            |bch, &builder| {
+                bch.iter(|| {
+                    let mut t = tris.clone();
+                    black_box(bvh::build_with(builder, &mut t).nodes.len())
+                })
+            },
+        );
+    }
     for verify in [false, true] {
         let name = if verify {
             "map_and_verify_checksum"

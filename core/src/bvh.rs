@@ -19,12 +19,13 @@ use crate::geometry::{BLOCK, NormalBlock, PackedTriangle, ShearedRay, TriangleBl
 
 mod build;
 mod packet;
+mod sah;
 mod select;
 mod traverse;
 #[cfg(target_arch = "x86_64")]
 mod x86;
 
-pub use build::{Built, build};
+pub use build::{Builder, Built, build, build_with};
 pub use packet::PACKET;
 pub use select::{Kernel, packets_selected};
 pub use traverse::Traverser;

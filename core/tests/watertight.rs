@@ -2,7 +2,7 @@
 //! always hits one of the triangles that share it, so surfaces have no pinholes.
 
 use glam::Vec3;
-use rayfarm_core::bvh::{self, Bvh, Kernel, TraceRay, Traverser};
+use rayfarm_core::bvh::{self, Builder, Bvh, Kernel, TraceRay, Traverser};
 use rayfarm_core::geometry::{PackedTriangle, nearer};
 
 /// A closed, subdivided octahedron: every edge is shared by two triangles with identical bits.
@@ -75,8 +75,9 @@ fn rays_through_vertices_and_edges_of_a_closed_mesh_never_escape() {
     );
 }
 
-/// The same rays through the BVH on every traversal kernel: each finds a hit, any-hit agrees,
-/// and the hit is the brute-force nearest (ties to the lower id) to the bit.
+/// The same rays through the BVH of every builder on every traversal kernel: each finds a hit,
+/// any-hit agrees, and the hit is the brute-force nearest (ties to the lower id) to the bit,
+/// whichever tree holds the triangles.
 #[test]
 fn every_kernel_finds_the_brute_force_nearest_hit_through_vertices_and_edges() {
     let mesh = closed_mesh(4);
@@ -85,43 +86,47 @@ fn every_kernel_finds_the_brute_force_nearest_hit_through_vertices_and_edges() {
         .enumerate()
         .map(|(i, t)| PackedTriangle::new(t, i as u64, 0))
         .collect();
-    let mut packed = original.clone();
-    let built = bvh::build(&mut packed);
-    let tree = Bvh::new(&built.nodes, &built.blocks).unwrap();
+    let trees = Builder::ALL.map(|builder| {
+        let mut packed = original.clone();
+        (builder, bvh::build_with(builder, &mut packed))
+    });
     let origins = [
         Vec3::ZERO,
         Vec3::new(0.1, -0.05, 0.02),
         Vec3::new(-0.3, 0.2, 0.1),
     ];
     let mut checked = 0;
-    for kernel in Kernel::ALL.into_iter().filter(|k| k.supported()) {
-        let mut traverser = Traverser::with_kernel(kernel).unwrap();
-        for o in origins {
-            for t in &mesh {
-                let [a, b, c] = t.map(Vec3::from);
-                for target in [a, b, c, (a + b) * 0.5, (b + c) * 0.5, (c + a) * 0.5] {
-                    let d = (target - o).normalize();
-                    let mut expect: Option<(f32, u64)> = None;
-                    for tri in &original {
-                        if let Some(t) = tri.intersect(o, d) {
-                            let (bt, bid) = expect.unwrap_or((f32::INFINITY, u64::MAX));
-                            if nearer(t, tri.id(), bt, bid) {
-                                expect = Some((t, tri.id()));
+    for (builder, built) in &trees {
+        let tree = Bvh::new(&built.nodes, &built.blocks).unwrap();
+        for kernel in Kernel::ALL.into_iter().filter(|k| k.supported()) {
+            let mut traverser = Traverser::with_kernel(kernel).unwrap();
+            for o in origins {
+                for t in &mesh {
+                    let [a, b, c] = t.map(Vec3::from);
+                    for target in [a, b, c, (a + b) * 0.5, (b + c) * 0.5, (c + a) * 0.5] {
+                        let d = (target - o).normalize();
+                        let mut expect: Option<(f32, u64)> = None;
+                        for tri in &original {
+                            if let Some(t) = tri.intersect(o, d) {
+                                let (bt, bid) = expect.unwrap_or((f32::INFINITY, u64::MAX));
+                                if nearer(t, tri.id(), bt, bid) {
+                                    expect = Some((t, tri.id()));
+                                }
                             }
                         }
+                        let ray = TraceRay::new(o, d);
+                        let got = traverser
+                            .nearest_hit(tree, &ray, 0.0, f32::INFINITY)
+                            .map(|h| (h.t.to_bits(), h.id));
+                        assert_eq!(
+                            got,
+                            expect.map(|(t, id)| (t.to_bits(), id)),
+                            "{builder:?} {kernel:?} o={o:?} d={d:?}"
+                        );
+                        assert!(got.is_some(), "{kernel:?}: o={o:?} d={d:?} escaped");
+                        assert!(traverser.any_hit(tree, &ray, 0.0, f32::INFINITY));
+                        checked += 1;
                     }
-                    let ray = TraceRay::new(o, d);
-                    let got = traverser
-                        .nearest_hit(tree, &ray, 0.0, f32::INFINITY)
-                        .map(|h| (h.t.to_bits(), h.id));
-                    assert_eq!(
-                        got,
-                        expect.map(|(t, id)| (t.to_bits(), id)),
-                        "{kernel:?} o={o:?} d={d:?}"
-                    );
-                    assert!(got.is_some(), "{kernel:?}: o={o:?} d={d:?} escaped");
-                    assert!(traverser.any_hit(tree, &ray, 0.0, f32::INFINITY));
-                    checked += 1;
                 }
             }
         }

@@ -1,6 +1,8 @@
-//! Building a domain's tree: `obvhs` builds a binary tree over the triangles, which is
-//! collapsed here into the 8-wide tree of [`BvhNode`]s over [`TriangleBlock`] leaves.
+//! Building a domain's tree, by one of two [`Builder`]s: `obvhs` builds a binary tree over the
+//! triangles, which is collapsed here into the 8-wide tree of [`BvhNode`]s over
+//! [`TriangleBlock`] leaves; or `bvh::sah` builds the 8-wide tree directly.
 
+use std::sync::OnceLock;
 use std::time::Duration;
 
 use glam::{Vec3, Vec3A};
@@ -20,9 +22,70 @@ pub struct Built {
     pub blocks: Vec<TriangleBlock>,
 }
 
-/// Builds the BVH over `triangles` and reorders them into leaf order (blocks hold them in
-/// runs of that order).
+/// Builds the BVH over `triangles` with [`Builder::selected`] and reorders them into leaf
+/// order (blocks hold them in runs of that order).
 pub fn build(triangles: &mut Vec<PackedTriangle>) -> Built {
+    build_with(Builder::selected(), triangles)
+}
+
+/// Builds the BVH over `triangles` with `builder` and reorders them into leaf order.
+pub fn build_with(builder: Builder, triangles: &mut Vec<PackedTriangle>) -> Built {
+    match builder {
+        Builder::Ploc => build_ploc(triangles),
+        Builder::Sah => super::sah::build(triangles),
+    }
+}
+
+/// Which algorithm builds a domain's tree. Hits do not depend on it (ties go to the lower
+/// triangle id, and boxes are padded), only the work per ray does.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Builder {
+    /// `obvhs`'s PLOC binary tree, collapsed into 8-wide nodes.
+    Ploc,
+    /// Binned SAH, top-down, straight into 8-wide nodes (`bvh::sah`).
+    Sah,
+}
+
+impl Builder {
+    /// Every builder.
+    pub const ALL: [Builder; 2] = [Builder::Ploc, Builder::Sah];
+
+    /// The name `RAYFARM_BUILDER` takes.
+    pub fn name(self) -> &'static str {
+        match self {
+            Builder::Ploc => "ploc",
+            Builder::Sah => "sah",
+        }
+    }
+
+    /// The builder named `name` (as `RAYFARM_BUILDER` spells it).
+    pub fn parse(name: &str) -> Result<Builder, String> {
+        Builder::ALL
+            .into_iter()
+            .find(|b| b.name() == name.trim().to_ascii_lowercase())
+            .ok_or_else(|| format!("RAYFARM_BUILDER={name:?}: expected ploc or sah"))
+    }
+
+    /// The default builder: the one that measured fewer instructions per ray (README,
+    /// "Benchmarks").
+    pub const DEFAULT: Builder = Builder::Sah;
+
+    /// The process's builder: `RAYFARM_BUILDER` if set (an unknown name is reported once and
+    /// the default used), else [`Builder::DEFAULT`].
+    pub fn selected() -> Builder {
+        static CHOSEN: OnceLock<Builder> = OnceLock::new();
+        *CHOSEN.get_or_init(|| match std::env::var("RAYFARM_BUILDER") {
+            Ok(name) => Builder::parse(&name).unwrap_or_else(|e| {
+                tracing::warn!("{e}; building with {}", Builder::DEFAULT.name());
+                Builder::DEFAULT
+            }),
+            Err(_) => Builder::DEFAULT,
+        })
+    }
+}
+
+/// `obvhs`'s PLOC binary tree collapsed into 8-wide nodes.
+fn build_ploc(triangles: &mut Vec<PackedTriangle>) -> Built {
     if triangles.is_empty() {
         return Built {
             nodes: Vec::new(),
@@ -63,7 +126,7 @@ pub fn build(triangles: &mut Vec<PackedTriangle>) -> Built {
     widen(&bvh.nodes, triangles)
 }
 
-const EMPTY_NODE: BvhNode = BvhNode {
+pub(super) const EMPTY_NODE: BvhNode = BvhNode {
     bounds: [
         [f32::INFINITY; WIDTH],
         [f32::INFINITY; WIDTH],
@@ -200,7 +263,7 @@ fn half_area(b: &Aabb) -> f32 {
     e.x * e.y + e.y * e.z + e.z * e.x
 }
 
-fn set_slot(node: &mut BvhNode, slot: usize, b: &Aabb, child: u32, meta: u32) {
+pub(super) fn set_slot(node: &mut BvhNode, slot: usize, b: &Aabb, child: u32, meta: u32) {
     let min = Vec3::from(b.min);
     let max = Vec3::from(b.max);
     let pad = (min.abs().max(max.abs()) * BOX_PAD).max(Vec3::splat(1e-30));

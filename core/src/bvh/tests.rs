@@ -11,3 +11,47 @@ fn kernel_names_parse_and_unknown_ones_are_refused() {
     assert!(Kernel::Scalar.supported());
     assert!(Kernel::detect().supported());
 }
+
+/// Triangles whose boxes and centres coincide, or line up on one axis, give the binned SAH
+/// nothing to choose from: the SAH builder must still split them (by medians), stay within
+/// the depth a file may have, and hold every triangle once.
+#[test]
+fn the_sah_builder_splits_coincident_and_collinear_triangles() {
+    use crate::geometry::PackedTriangle;
+    let same = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
+    let cases: [Vec<[[f32; 3]; 3]>; 2] = [
+        vec![same; 1000],
+        (0..1000)
+            .map(|i| {
+                // Boxes growing geometrically along x: the SAH's best cut is one triangle off.
+                let x = 1.01f32.powi(i);
+                [[x, 0.0, 0.0], [x * 1.001, 0.0, 0.0], [x, 1.0, 0.0]]
+            })
+            .collect(),
+    ];
+    for tris in cases {
+        let mut packed: Vec<PackedTriangle> = tris
+            .iter()
+            .enumerate()
+            .map(|(i, v)| PackedTriangle::new(v, i as u64, 0))
+            .collect();
+        let built = build_with(Builder::Sah, &mut packed);
+        let depth = validate(&built.nodes, &built.blocks).unwrap();
+        assert!(depth <= MAX_DEPTH);
+        let bvh = Bvh::new(&built.nodes, &built.blocks).unwrap();
+        let mut ids: Vec<u64> = bvh.triangles().map(|t| t.id()).collect();
+        ids.sort_unstable();
+        assert_eq!(ids, (0..tris.len() as u64).collect::<Vec<_>>());
+        let leaf: Vec<u64> = packed.iter().map(PackedTriangle::id).collect();
+        let listed: Vec<u64> = bvh.triangles().map(|t| t.id()).collect();
+        assert_eq!(leaf, listed, "the input is reordered into leaf order");
+    }
+}
+
+#[test]
+fn builder_names_parse_and_unknown_ones_are_refused() {
+    for b in Builder::ALL {
+        assert_eq!(Builder::parse(b.name()), Ok(b));
+    }
+    assert!(Builder::parse("lbvh").unwrap_err().contains("ploc or sah"));
+}
