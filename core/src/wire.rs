@@ -1,10 +1,17 @@
-//! Batches on the wire: a 16-byte header, then fixed-size records as raw little-endian bytes,
-//! carried in one protobuf `bytes` field (never one protobuf message per ray). Ray batches
-//! carry rays; verdict batches carry what speculative copies found back to their rays' groups.
-//! Decoding checks every record, because the bytes come from another process that may be
-//! broken or hostile.
+//! Batches on the wire: a 16-byte header, then records as little-endian bytes, carried in one
+//! protobuf `bytes` field (never one protobuf message per ray). Ray batches carry rays as
+//! fixed-size raw records, in the full layout or, when no record has light, credit or volume
+//! colour to carry (speculative copies), the short one (`copy`); verdict batches carry what
+//! speculative copies found back to their rays' groups, each verdict as a kind byte and
+//! varints (`varint`), its hit fields only when it has a hit: most verdicts say "clear" and
+//! take about a quarter of a fixed record. Decoding checks every record, because the bytes
+//! come from another process that may be broken or hostile.
+
+mod copy;
+mod varint;
 
 use crate::ray::{RayKind, RayRecord};
+use copy::CopyRecord;
 
 #[cfg(not(target_endian = "little"))]
 compile_error!(
@@ -13,18 +20,26 @@ compile_error!(
 
 /// First bytes of every ray batch.
 pub const MAGIC: [u8; 4] = *b"RFRB";
+/// First bytes of every ray batch in the short layout (records with no light, credit or
+/// volume colour: speculative copies).
+pub const COPY_MAGIC: [u8; 4] = *b"RFCB";
 /// First bytes of every verdict batch.
 pub const VERDICT_MAGIC: [u8; 4] = *b"RFVB";
-/// Layout version of both kinds of batch. 3: rays carry their volume colour and opacity
-/// (104-byte records; 2 had 88).
+/// Layout version of ray batches, full and short. 3: rays carry their volume colour and
+/// opacity (104-byte records; 2 had 88).
 pub const VERSION: u16 = 3;
+/// Layout version of verdict batches. 4: variable-length records (3 had 48 bytes each).
+pub const VERDICT_VERSION: u16 = 4;
 /// Bytes before the first record.
 pub const HEADER_BYTES: usize = 16;
 const RECORD_BYTES: usize = std::mem::size_of::<RayRecord>();
+const COPY_BYTES: usize = std::mem::size_of::<CopyRecord>();
+/// The in-memory verdict's size (its wire form is shorter, see [`encode_verdicts`]).
 const VERDICT_BYTES: usize = std::mem::size_of::<VerdictRecord>();
 
 /// What a speculative copy found, on its way back to the ray's group
-/// (`render::speculation`). 48 bytes, no padding holes.
+/// (`render::speculation`). 48 bytes in memory, no padding holes; on the wire a kind byte,
+/// varints, and the hit fields only for the kinds that have them ([`encode_verdicts`]).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
 pub struct VerdictRecord {
@@ -80,6 +95,10 @@ pub enum WireError {
     /// Header bytes this version leaves unused are not zero.
     #[error("batch header has non-zero reserved bytes")]
     Reserved,
+    /// A ray batch in the full layout whose records all fit the short one: the sender must
+    /// send it short, so that an accepted batch has exactly one encoding.
+    #[error("ray batch in the full layout holds only records of the short layout")]
+    Layout,
     /// The header's count disagrees with the records present.
     #[error("batch says {said} records, holds {held}")]
     Count {
@@ -120,22 +139,42 @@ impl BatchLimits {
     }
 }
 
-/// Encodes rays as one batch.
+/// Encodes rays as one batch: in the short layout if no record has light, credit or volume
+/// colour to carry (see `copy`), else in the full one.
 pub fn encode_batch(rays: &[RayRecord]) -> Vec<u8> {
-    encode(MAGIC, rays)
+    if !rays.iter().all(|r| CopyRecord::of(r).is_some()) {
+        return encode(MAGIC, VERSION, rays);
+    }
+    let mut out = header(COPY_MAGIC, VERSION, rays.len(), COPY_BYTES * rays.len());
+    for copy in rays.iter().filter_map(CopyRecord::of) {
+        out.extend_from_slice(bytemuck::bytes_of(&copy));
+    }
+    out
 }
 
 /// The rays a batch this process encoded carries (0 for a verdict batch or anything else):
 /// a count for the metrics, from the length alone, with no check.
 pub fn ray_count(bytes: &[u8]) -> u64 {
-    if bytes.len() < HEADER_BYTES || bytes[..4] != MAGIC {
-        return 0;
-    }
-    ((bytes.len() - HEADER_BYTES) / RECORD_BYTES) as u64
+    let record = match bytes.get(..4) {
+        Some(m) if m == MAGIC => RECORD_BYTES,
+        Some(m) if m == COPY_MAGIC => COPY_BYTES,
+        _ => return 0,
+    };
+    (bytes.len().saturating_sub(HEADER_BYTES) / record) as u64
 }
 
 /// Decodes and checks a batch.
 pub fn decode_batch(bytes: &[u8], limits: &BatchLimits) -> Result<Vec<RayRecord>, WireError> {
+    if bytes.get(..4) == Some(&COPY_MAGIC[..]) {
+        check_header(bytes, COPY_MAGIC, VERSION, COPY_BYTES, limits.max_records)?;
+        let mut rays = Vec::with_capacity((bytes.len() - HEADER_BYTES) / COPY_BYTES);
+        for (index, raw) in bytes[HEADER_BYTES..].chunks_exact(COPY_BYTES).enumerate() {
+            let r = bytemuck::pod_read_unaligned::<CopyRecord>(raw).ray();
+            check_record(&r, limits).map_err(|reason| WireError::Record { index, reason })?;
+            rays.push(r);
+        }
+        return Ok(rays);
+    }
     check_batch(bytes, limits)?;
     // The payload is not aligned for RayRecord; copying also detaches it from the message.
     Ok(bytemuck::pod_collect_to_vec(&bytes[HEADER_BYTES..]))
@@ -143,10 +182,18 @@ pub fn decode_batch(bytes: &[u8], limits: &BatchLimits) -> Result<Vec<RayRecord>
 
 /// Checks a batch without copying it; returns its number of records.
 pub fn check_batch(bytes: &[u8], limits: &BatchLimits) -> Result<usize, WireError> {
-    let held = check_header(bytes, MAGIC, RECORD_BYTES, limits.max_records)?;
+    if bytes.get(..4) == Some(&COPY_MAGIC[..]) {
+        return decode_batch(bytes, limits).map(|rays| rays.len());
+    }
+    let held = check_header(bytes, MAGIC, VERSION, RECORD_BYTES, limits.max_records)?;
+    let mut short = true;
     for (index, raw) in bytes[HEADER_BYTES..].chunks_exact(RECORD_BYTES).enumerate() {
         let r: RayRecord = bytemuck::pod_read_unaligned(raw);
         check_record(&r, limits).map_err(|reason| WireError::Record { index, reason })?;
+        short &= CopyRecord::of(&r).is_some();
+    }
+    if short {
+        return Err(WireError::Layout);
     }
     Ok(held)
 }
@@ -156,30 +203,15 @@ pub fn check_batch(bytes: &[u8], limits: &BatchLimits) -> Result<usize, WireErro
 fn check_header(
     bytes: &[u8],
     magic: [u8; 4],
+    version: u16,
     record_bytes: usize,
     max_records: usize,
 ) -> Result<usize, WireError> {
+    let said = check_prefix(bytes, magic, version)?;
     let len = bytes.len();
-    // Identity before size, so that garbage is called garbage rather than a truncated batch.
-    match bytes.get(0..4) {
-        Some(m) if m != magic => return Err(WireError::Magic),
-        Some(_) => {}
-        None => return Err(WireError::Length(len)),
-    }
-    if let Some(&[lo, hi]) = bytes.get(4..6) {
-        let version = u16::from_le_bytes([lo, hi]);
-        if version != VERSION {
-            return Err(WireError::Version(version));
-        }
-    }
     if len < HEADER_BYTES || !(len - HEADER_BYTES).is_multiple_of(record_bytes) {
         return Err(WireError::Length(len));
     }
-    // Zero, as in records, so that an accepted batch has exactly one encoding.
-    if bytes[6..8] != [0; 2] || bytes[12..16] != [0; 4] {
-        return Err(WireError::Reserved);
-    }
-    let said = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
     let held = (len - HEADER_BYTES) / record_bytes;
     if held > max_records {
         return Err(WireError::TooMany {
@@ -193,20 +225,144 @@ fn check_header(
     Ok(held)
 }
 
-fn encode<T: bytemuck::Pod>(magic: [u8; 4], records: &[T]) -> Vec<u8> {
-    let mut out = Vec::with_capacity(HEADER_BYTES + std::mem::size_of_val(records));
+/// Checks a batch's header (magic, version, reserved bytes); returns the count it states.
+fn check_prefix(bytes: &[u8], magic: [u8; 4], version: u16) -> Result<u32, WireError> {
+    let len = bytes.len();
+    // Identity before size, so that garbage is called garbage rather than a truncated batch.
+    match bytes.get(0..4) {
+        Some(m) if m != magic => return Err(WireError::Magic),
+        Some(_) => {}
+        None => return Err(WireError::Length(len)),
+    }
+    if let Some(&[lo, hi]) = bytes.get(4..6) {
+        let found = u16::from_le_bytes([lo, hi]);
+        if found != version {
+            return Err(WireError::Version(found));
+        }
+    }
+    if len < HEADER_BYTES {
+        return Err(WireError::Length(len));
+    }
+    // Zero, as in records, so that an accepted batch has exactly one encoding.
+    if bytes[6..8] != [0; 2] || bytes[12..16] != [0; 4] {
+        return Err(WireError::Reserved);
+    }
+    Ok(u32::from_le_bytes([
+        bytes[8], bytes[9], bytes[10], bytes[11],
+    ]))
+}
+
+fn header(magic: [u8; 4], version: u16, count: usize, capacity: usize) -> Vec<u8> {
+    let mut out = Vec::with_capacity(HEADER_BYTES + capacity);
     out.extend_from_slice(&magic);
-    out.extend_from_slice(&VERSION.to_le_bytes());
+    out.extend_from_slice(&version.to_le_bytes());
     out.extend_from_slice(&0u16.to_le_bytes());
-    out.extend_from_slice(&(records.len() as u32).to_le_bytes());
+    out.extend_from_slice(&(count as u32).to_le_bytes());
     out.extend_from_slice(&0u32.to_le_bytes());
+    out
+}
+
+fn encode<T: bytemuck::Pod>(magic: [u8; 4], version: u16, records: &[T]) -> Vec<u8> {
+    let mut out = header(
+        magic,
+        version,
+        records.len(),
+        std::mem::size_of_val(records),
+    );
     out.extend_from_slice(bytemuck::cast_slice(records));
     out
 }
 
-/// Encodes verdicts as one batch (the bundler's results tier carries them).
+/// Whether a verdict of this kind carries a hit's or a segment's fields (`t`, `normal`,
+/// `material`) on the wire; a closing volume verdict carries its count (`material`) alone,
+/// clear and blocked verdicts none.
+fn has_hit_fields(kind: u8) -> bool {
+    matches!(
+        kind,
+        VerdictRecord::HIT
+            | VerdictRecord::VOLUME_HIT
+            | VerdictRecord::SEGMENT
+            | VerdictRecord::LIGHT
+    )
+}
+
+/// Encodes verdicts as one batch (the bundler's results tier carries them). Each is its
+/// kind byte, then `group`, `tile`, `epoch`, `pixel`, `sample` and `order` as varints, then
+/// for hits, segments and lights `t` and `normal` as raw floats and `material` as a varint,
+/// for a closing volume verdict `material` alone. The fields a kind does not carry must be
+/// zero (the kernel makes them so; [`decode_verdicts`] gives them back as zero).
 pub fn encode_verdicts(verdicts: &[VerdictRecord]) -> Vec<u8> {
-    encode(VERDICT_MAGIC, verdicts)
+    // Clear verdicts, the most common, take about 12 bytes.
+    let mut out = header(
+        VERDICT_MAGIC,
+        VERDICT_VERSION,
+        verdicts.len(),
+        12 * verdicts.len(),
+    );
+    for v in verdicts {
+        out.push(v.kind);
+        for field in [v.group, v.tile, v.epoch, v.pixel, v.sample, v.order] {
+            varint::put(&mut out, field);
+        }
+        if has_hit_fields(v.kind) {
+            out.extend_from_slice(&v.t.to_le_bytes());
+            for n in v.normal {
+                out.extend_from_slice(&n.to_le_bytes());
+            }
+            varint::put(&mut out, v.material);
+        } else if v.kind == VerdictRecord::VOLUME_END {
+            varint::put(&mut out, v.material);
+        }
+    }
+    out
+}
+
+/// Reads one verdict of the variable layout from the front of `bytes`.
+fn take_verdict(bytes: &mut &[u8], index: usize, len: usize) -> Result<VerdictRecord, WireError> {
+    let bad = |e| match e {
+        varint::VarintError::Truncated => WireError::Length(len),
+        varint::VarintError::NotCanonical => WireError::Record {
+            index,
+            reason: "varint not in its shortest form or above 32 bits",
+        },
+    };
+    let (&kind, rest) = bytes.split_first().ok_or(WireError::Length(len))?;
+    *bytes = rest;
+    if kind > VerdictRecord::VOLUME_HIT {
+        return Err(WireError::Record {
+            index,
+            reason: "unknown verdict kind",
+        });
+    }
+    let mut v = VerdictRecord {
+        kind,
+        ..bytemuck::Zeroable::zeroed()
+    };
+    for field in [
+        &mut v.group,
+        &mut v.tile,
+        &mut v.epoch,
+        &mut v.pixel,
+        &mut v.sample,
+        &mut v.order,
+    ] {
+        *field = varint::take(bytes).map_err(bad)?;
+    }
+    if has_hit_fields(kind) {
+        let mut float = || -> Result<f32, WireError> {
+            let (raw, rest) = bytes
+                .split_first_chunk::<4>()
+                .ok_or(WireError::Length(len))?;
+            *bytes = rest;
+            Ok(f32::from_le_bytes(*raw))
+        };
+        v.t = float()?;
+        v.normal = [float()?, float()?, float()?];
+        v.material = varint::take(bytes).map_err(bad)?;
+    } else if kind == VerdictRecord::VOLUME_END {
+        v.material = varint::take(bytes).map_err(bad)?;
+    }
+    Ok(v)
 }
 
 /// Decodes and checks a batch of verdicts.
@@ -214,21 +370,32 @@ pub fn decode_verdicts(
     bytes: &[u8],
     limits: &BatchLimits,
 ) -> Result<Vec<VerdictRecord>, WireError> {
-    check_verdicts(bytes, limits)?;
-    Ok(bytemuck::pod_collect_to_vec(&bytes[HEADER_BYTES..]))
+    let said = check_prefix(bytes, VERDICT_MAGIC, VERDICT_VERSION)? as usize;
+    if said > limits.max_records {
+        return Err(WireError::TooMany {
+            held: said,
+            limit: limits.max_records,
+        });
+    }
+    let len = bytes.len();
+    let mut rest = &bytes[HEADER_BYTES..];
+    // Every record takes at least seven bytes: no count can make this allocate more than
+    // the batch's own size.
+    let mut verdicts = Vec::with_capacity(said.min(rest.len() / 7));
+    for index in 0..said {
+        let v = take_verdict(&mut rest, index, len)?;
+        check_verdict(&v, limits).map_err(|reason| WireError::Record { index, reason })?;
+        verdicts.push(v);
+    }
+    if !rest.is_empty() {
+        return Err(WireError::Length(len));
+    }
+    Ok(verdicts)
 }
 
-/// Checks a batch of verdicts without copying it; returns its number of records.
+/// Checks a batch of verdicts; returns its number of records.
 pub fn check_verdicts(bytes: &[u8], limits: &BatchLimits) -> Result<usize, WireError> {
-    let held = check_header(bytes, VERDICT_MAGIC, VERDICT_BYTES, limits.max_records)?;
-    for (index, raw) in bytes[HEADER_BYTES..]
-        .chunks_exact(VERDICT_BYTES)
-        .enumerate()
-    {
-        let v: VerdictRecord = bytemuck::pod_read_unaligned(raw);
-        check_verdict(&v, limits).map_err(|reason| WireError::Record { index, reason })?;
-    }
-    Ok(held)
+    decode_verdicts(bytes, limits).map(|v| v.len())
 }
 
 fn check_verdict(v: &VerdictRecord, l: &BatchLimits) -> Result<(), &'static str> {

@@ -136,9 +136,10 @@ fn apply(bytes: &mut Vec<u8>, m: &Mutation) {
 /// The properties every input must satisfy, valid or not.
 fn check_any(bytes: &[u8]) -> Result<(), TestCaseError> {
     let (decoded, peak) = fuzz_support::peak_bytes(|| decode_batch(bytes, &LIMITS));
-    // The only allocation is the decoded copy of records that are really there.
+    // The only allocation is the decoded copy of records that are really there (a 64-byte
+    // record of the short layout decodes to a full 104-byte one).
     prop_assert!(
-        peak <= bytes.len() + 256,
+        peak <= bytes.len() * RECORD / 64 + 256,
         "{peak} bytes for a {}-byte input",
         bytes.len()
     );
@@ -270,10 +271,11 @@ fn lying_and_oversized_counts_are_refused_cheaply() {
             ..bytemuck::Zeroable::zeroed()
         })
         .collect();
-    let (result, peak) = fuzz_support::peak_bytes(|| decode_batch(&encode_batch(&rays), &small));
+    let bytes = encode_batch(&rays);
+    let (result, peak) = fuzz_support::peak_bytes(|| decode_batch(&bytes, &small));
     assert_eq!(result, Err(WireError::TooMany { held: 4, limit: 3 }));
-    // Only the encoded input itself was allocated.
-    assert!(peak <= HEADER_BYTES + 4 * RECORD, "{peak}");
+    // Nothing was allocated for the records refused.
+    assert_eq!(peak, 0);
 }
 
 /// Garbage is named as such rather than as a truncated batch: the identity is checked first.

@@ -370,9 +370,10 @@ fn decode_bundle(bundle: &proto::PeerBundle) -> Result<machine::Payload, Status>
     let refused = |i: usize, e: WireError| {
         let msg = format!("bundle {} batch {i}: {e}", bundle.sequence);
         match e {
-            WireError::Magic | WireError::Reserved | WireError::Record { .. } => {
-                Status::invalid_argument(msg)
-            }
+            WireError::Magic
+            | WireError::Reserved
+            | WireError::Layout
+            | WireError::Record { .. } => Status::invalid_argument(msg),
             WireError::Version(_) => Status::failed_precondition(msg),
             WireError::Length(_) | WireError::Count { .. } => Status::data_loss(msg),
             WireError::TooMany { .. } => Status::resource_exhausted(msg),

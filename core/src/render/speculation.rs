@@ -239,11 +239,18 @@ impl Groups {
         group.copied += window.len();
         self.copies += window.len() as u64;
         let (ray, resolver) = (group.ray, group.resolver);
+        // A copy carries only what tracing it reads: the group keeps the ray's weight and
+        // credit, and a volume copy composites from nothing. So copies travel in the wire's
+        // short layout (`wire::encode_batch`), and a copy traced here is the same as one
+        // traced elsewhere.
         out.extend(window.iter().map(|&domain| RayRecord {
             domain,
             group: id,
             resolver,
             credit: 0,
+            throughput: [0.0; 3],
+            volume_rgb: [0.0; 3],
+            volume_alpha: 0.0,
             ..ray
         }));
     }

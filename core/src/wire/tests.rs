@@ -101,9 +101,13 @@ fn verdicts_round_trip_and_bad_ones_are_refused() {
         reason("non-finite or negative hit")
     );
     assert_eq!(refused(|v| v.pixel = 1000), reason("pixel out of range"));
+    // A clear verdict has no hit fields on the wire: they come back zero.
+    let mut cleared = vs.clone();
+    cleared[5].kind = VerdictRecord::CLEAR;
+    let back = decode_verdicts(&encode_verdicts(&cleared), &LIMITS).unwrap();
     assert_eq!(
-        refused(|v| v.kind = VerdictRecord::CLEAR),
-        reason("a verdict without a hit carries hit fields")
+        (back[5].t, back[5].normal, back[5].material),
+        (0.0, [0.0; 3], 0)
     );
     // A clear verdict names its copy's domain, one of the frame's.
     let clear = |v: &mut VerdictRecord| {
@@ -247,4 +251,136 @@ proptest! {
             }
         }
     }
+}
+
+/// A copy: no light, credit or volume colour (`render::speculation` makes them so).
+fn copy(i: u32) -> RayRecord {
+    RayRecord {
+        throughput: [0.0; 3],
+        credit: 0,
+        group: i * 3,
+        resolver: i % 4,
+        ..ray(i)
+    }
+}
+
+#[test]
+fn copies_travel_short_and_mixed_batches_full() {
+    let copies: Vec<RayRecord> = (0..50).map(copy).collect();
+    let short = encode_batch(&copies);
+    assert_eq!(short[..4], COPY_MAGIC);
+    assert_eq!(short.len(), HEADER_BYTES + 50 * 64);
+    assert_eq!(ray_count(&short), 50);
+    assert_eq!(decode_batch(&short, &LIMITS).unwrap(), copies);
+    assert_eq!(check_batch(&short, &LIMITS), Ok(50));
+    // One record with light makes the whole batch full, and it round-trips as it was.
+    let mut mixed = copies.clone();
+    mixed[9] = ray(9);
+    let full = encode_batch(&mixed);
+    assert_eq!(full[..4], MAGIC);
+    assert_eq!(full.len(), HEADER_BYTES + 50 * 104);
+    assert_eq!(decode_batch(&full, &LIMITS).unwrap(), mixed);
+    // A negative zero is not zero: the short layout would lose its sign.
+    let mut signed = copies.clone();
+    signed[3].volume_alpha = -0.0;
+    assert_eq!(encode_batch(&signed)[..4], MAGIC);
+    // Bare records sent in the full layout are refused: one encoding per batch.
+    let mut forced = encode_batch(&mixed);
+    let at = HEADER_BYTES + 9 * 104;
+    forced[at..at + 104].copy_from_slice(bytemuck::bytes_of(&copy(9)));
+    assert_eq!(decode_batch(&forced, &LIMITS), Err(WireError::Layout));
+    // A short record is checked like a full one.
+    let mut bad = copies.clone();
+    bad[7].domain = 8;
+    assert_eq!(
+        decode_batch(&encode_batch(&bad), &LIMITS),
+        Err(WireError::Record {
+            index: 7,
+            reason: "domain out of range"
+        })
+    );
+}
+
+#[test]
+fn verdicts_take_a_kind_byte_varints_and_hit_fields_only_with_a_hit() {
+    let clear = VerdictRecord {
+        kind: VerdictRecord::CLEAR,
+        group: 70_000,
+        tile: 12,
+        epoch: 0,
+        pixel: 65_000,
+        sample: 3,
+        order: 40,
+        ..bytemuck::Zeroable::zeroed()
+    };
+    let hit = VerdictRecord {
+        kind: VerdictRecord::HIT,
+        t: 2.5,
+        normal: [0.0, 1.0, 0.0],
+        material: 3,
+        order: 2,
+        ..clear
+    };
+    let limits = BatchLimits {
+        domains: 48,
+        pixels: 65_536,
+        ..LIMITS
+    };
+    // Kind, group (3 bytes), tile, epoch, pixel (3), sample, order: 11 bytes.
+    assert_eq!(encode_verdicts(&[clear]).len(), HEADER_BYTES + 11);
+    // A hit adds its distance and normal (16 bytes) and its material.
+    assert_eq!(encode_verdicts(&[hit]).len(), HEADER_BYTES + 11 + 17);
+    let both = encode_verdicts(&[clear, hit, clear]);
+    assert_eq!(
+        decode_verdicts(&both, &limits).unwrap(),
+        vec![clear, hit, clear]
+    );
+    assert_eq!(check_verdicts(&both, &limits), Ok(3));
+    // Bytes past the stated count, a count past the bytes, and truncation are refused.
+    let mut longer = both.clone();
+    longer.push(0);
+    assert_eq!(
+        decode_verdicts(&longer, &limits),
+        Err(WireError::Length(longer.len()))
+    );
+    let mut lying = both.clone();
+    lying[8..12].copy_from_slice(&4u32.to_le_bytes());
+    assert_eq!(
+        decode_verdicts(&lying, &limits),
+        Err(WireError::Length(lying.len()))
+    );
+    let cut = &both[..both.len() - 1];
+    assert_eq!(
+        decode_verdicts(cut, &limits),
+        Err(WireError::Length(cut.len()))
+    );
+    let mut huge = both.clone();
+    huge[8..12].copy_from_slice(&u32::MAX.to_le_bytes());
+    assert!(matches!(
+        decode_verdicts(&huge, &limits),
+        Err(WireError::TooMany { .. })
+    ));
+    // A varint in a longer form than it needs would make two encodings of one batch.
+    let mut long_form = encode_verdicts(&[VerdictRecord { tile: 0, ..clear }]);
+    let tile_at = HEADER_BYTES + 1 + 3;
+    assert_eq!(long_form[tile_at], 0);
+    long_form[tile_at] = 0x80;
+    long_form.insert(tile_at + 1, 0);
+    assert_eq!(
+        decode_verdicts(&long_form, &limits),
+        Err(WireError::Record {
+            index: 0,
+            reason: "varint not in its shortest form or above 32 bits"
+        })
+    );
+    // An unknown kind cannot be read past: the batch stops there.
+    let mut unknown = encode_verdicts(&[clear]);
+    unknown[HEADER_BYTES] = 9;
+    assert_eq!(
+        decode_verdicts(&unknown, &limits),
+        Err(WireError::Record {
+            index: 0,
+            reason: "unknown verdict kind"
+        })
+    );
 }
