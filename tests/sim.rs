@@ -151,3 +151,57 @@ fn domain_schedule_after_a_warm_up_frame_keeps_every_invariant() {
     assert_eq!(hash_of_row(&out, "domain"), expected, "{out}");
     assert!(out.contains("200 runs, 0 failed"), "{out}");
 }
+
+#[test]
+fn prefetching_workers_make_the_local_image_and_count_their_prefetches() {
+    let root = tempfile::tempdir().unwrap();
+    let scene = prepare_nbody(root.path(), "nb", 20_000, 8);
+    let expected = local_hash(&scene, &FRAME);
+    // Caches of two domains of eight: domains come and go, so there is a next one to load.
+    let manifest = std::fs::read_to_string(scene.join("scene.toml")).unwrap();
+    let largest: u64 = manifest
+        .lines()
+        .filter_map(|l| l.trim().strip_prefix("bytes = ")?.parse().ok())
+        .max()
+        .unwrap();
+    let cache = (2 * largest + 1024).to_string();
+    let mut args = vec![
+        "sim",
+        "--scene",
+        s(&scene),
+        "--workers",
+        "3",
+        "--cache-bytes",
+        &cache,
+        "--schedule",
+        "dynamic,predictive",
+        "--prefetch",
+    ];
+    args.extend_from_slice(&FRAME);
+    let out = rayfarm_ok(&args);
+    let (stdout, stderr) = (
+        String::from_utf8(out.stdout).unwrap(),
+        String::from_utf8(out.stderr).unwrap(),
+    );
+    for schedule in ["dynamic", "predictive"] {
+        assert_eq!(
+            hash_of_row(&stdout, schedule),
+            expected,
+            "{schedule}:\n{stdout}"
+        );
+    }
+    // "of its N loads, P prefetched: U used, W wasted", one line per schedule.
+    let used: Vec<u64> = stderr
+        .lines()
+        .filter_map(|l| {
+            l.split(" prefetched: ")
+                .nth(1)?
+                .split(' ')
+                .next()?
+                .parse()
+                .ok()
+        })
+        .collect();
+    assert_eq!(used.len(), 2, "{stderr}");
+    assert!(used.iter().all(|&u| u > 0), "prefetches used: {stderr}");
+}

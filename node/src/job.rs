@@ -174,6 +174,7 @@ mod tests {
             cold_cache: false,
             progressive: None,
             speculation: String::new(),
+            prefetch: false,
         }
     }
 

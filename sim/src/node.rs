@@ -3,12 +3,13 @@
 //! bundles), and none of its I/O. The world (`world`) delivers its events and carries its
 //! actions over the simulated network.
 
-use std::collections::{BTreeMap, VecDeque};
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
+use std::time::Duration;
 
 use rayfarm_core::progressive::Samples;
-use rayfarm_core::render::cache::DomainCache;
+use rayfarm_core::render::cache::{DomainCache, PendingLoad};
 use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::scene::Manifest;
 use rayfarm_core::wire::BatchLimits;
@@ -120,6 +121,9 @@ pub struct SimWorker {
     pub pass_until: Option<(Time, Time)>,
     /// When a Tick is due.
     pub tick_at: Option<Time>,
+    /// When its line to the storage is free: its loads, a pass's and a prefetch's, are read
+    /// one after another.
+    io_free_at: Time,
     pub links: BTreeMap<String, PeerLink>,
     pub next_bundle: u64,
     scene: Arc<Scene>,
@@ -150,6 +154,7 @@ impl SimWorker {
             conn: 0,
             pass_until: None,
             tick_at: None,
+            io_free_at: Time(0),
             links: BTreeMap::new(),
             next_bundle: 0,
             scene,
@@ -222,7 +227,12 @@ impl SimWorker {
         let cpu_ns = started.map(|s| thread_cpu_ns().saturating_sub(s));
         let after = self.lock().counters();
         let loads = after.loads - before.loads;
-        let load_time = storage.read(now, loads, after.bytes_loaded - before.bytes_loaded);
+        let load_time = self.read(
+            now,
+            loads,
+            after.bytes_loaded - before.bytes_loaded,
+            storage,
+        );
         let took = load_time
             + result
                 .as_ref()
@@ -238,6 +248,53 @@ impl SimWorker {
             load_time,
             cpu_ns,
         }
+    }
+
+    /// Reads `loads` domains of `bytes` from `storage` at `now` after the loads already on
+    /// this node's line: how long until they are in.
+    fn read(&mut self, now: Time, loads: u64, bytes: u64, storage: &mut SharedStorage) -> Duration {
+        if loads == 0 {
+            return Duration::ZERO;
+        }
+        let start = now.max(self.io_free_at);
+        let done = start + storage.read(start, loads, bytes);
+        self.io_free_at = done;
+        done.since(now)
+    }
+
+    /// Starts a prefetch of `domain` at `now` if it fits without evicting `keep` (as the
+    /// shell's cache decides): the load to finish with [`SimWorker::finish_prefetch`], and
+    /// when its bytes are in (at once when there is nothing to load).
+    pub fn begin_prefetch(
+        &mut self,
+        now: Time,
+        domain: u32,
+        keep: &BTreeSet<u32>,
+        storage: &mut SharedStorage,
+    ) -> (Option<PendingLoad>, Duration) {
+        let pending = self.lock().begin_prefetch(domain, keep);
+        let bytes = self.scene.domain_bytes.get(domain as usize).copied();
+        match (pending, bytes) {
+            (Some(p), Some(bytes)) => {
+                let took = self.read(now, 1, bytes, storage);
+                (Some(p), took)
+            }
+            _ => (None, Duration::ZERO),
+        }
+    }
+
+    /// Maps a prefetched domain whose bytes are in: `Ok(true)` if it was kept (see
+    /// `DomainCache::finish_prefetch`), `Ok(false)` if there was nothing to load.
+    pub fn finish_prefetch(
+        &mut self,
+        pending: Option<PendingLoad>,
+        keep: &BTreeSet<u32>,
+    ) -> Result<bool, String> {
+        let Some(pending) = pending else {
+            return Ok(false);
+        };
+        let loaded = pending.read().map_err(|e| e.to_string())?;
+        Ok(self.lock().finish_prefetch(loaded, keep))
     }
 
     /// Domains mapped now.

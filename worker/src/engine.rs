@@ -64,6 +64,13 @@ pub enum Event {
         job_id: String,
         result: Result<PassOutput, PassFailed>,
     },
+    /// A prefetch of the frame of `job_id` ended (the machine hears it with the domains
+    /// mapped now).
+    PrefetchDone {
+        job_id: String,
+        domain: u32,
+        result: Result<bool, String>,
+    },
     /// Anything else, for the machine as it is: the control stream ended, a peer's bundle, a
     /// peer that stopped acknowledging.
     Machine(Box<machine::Event<FileSpill>>),
@@ -204,6 +211,19 @@ impl Engine {
                     resident: self.with_cache(|c| c.resident()).unwrap_or_default(),
                 }
             }
+            Event::PrefetchDone {
+                job_id,
+                domain,
+                result,
+            } => {
+                self.count_cache();
+                machine::Event::PrefetchDone {
+                    job_id,
+                    domain,
+                    result,
+                    resident: self.with_cache(|c| c.resident()).unwrap_or_default(),
+                }
+            }
         }
     }
 
@@ -234,6 +254,11 @@ impl Engine {
                 self.peers.drop_peers(&peers)
             }
             Action::StartPass { job_id, work } => self.start_pass(job_id, work),
+            Action::Prefetch {
+                job_id,
+                domain,
+                keep,
+            } => self.prefetch(job_id, domain, keep),
             Action::Evict(domains) => {
                 self.with_cache(|c| domains.iter().for_each(|&d| c.evict(d)));
             }
@@ -248,7 +273,7 @@ impl Engine {
                     .map(|f| f.cache_at_start)
                     .unwrap_or_default();
                 let cache = self
-                    .with_cache(|c| since(&start, &c.counters()))
+                    .with_cache(|c| c.counters().since(&start))
                     .unwrap_or_default();
                 stats.cache = cache;
                 stats.load_seconds = cache.load_nanos as f64 / 1e9;
@@ -295,13 +320,44 @@ impl Engine {
         });
     }
 
+    /// Loads `domain` ahead of need on a blocking thread, beside any pass: the cache decides
+    /// under its lock whether it fits without evicting `keep`, the read (mapping, checksum,
+    /// emulated storage) runs off the lock, so passes go on using the cache meanwhile.
+    fn prefetch(&mut self, job_id: String, domain: u32, keep: Vec<u32>) {
+        let events = self.events.clone();
+        let Some((_, cache)) = &self.cache else {
+            let result = Err("no scene open for the prefetch".to_string());
+            let _ = events.send(Event::PrefetchDone {
+                job_id,
+                domain,
+                result,
+            });
+            return;
+        };
+        let cache = cache.clone();
+        let keep: std::collections::BTreeSet<u32> = keep.into_iter().collect();
+        tokio::task::spawn_blocking(move || {
+            let pending = lock(&cache).begin_prefetch(domain, &keep);
+            let result = match pending.map(|p| p.read()) {
+                None => Ok(false),
+                Some(Ok(loaded)) => Ok(lock(&cache).finish_prefetch(loaded, &keep)),
+                Some(Err(e)) => Err(e.to_string()),
+            };
+            let _ = events.send(Event::PrefetchDone {
+                job_id,
+                domain,
+                result,
+            });
+        });
+    }
+
     /// Adds what the cache did since the last call to the metrics (after each pass and at
     /// a frame's end: loads and evictions happen in passes and on the machine's orders).
     fn count_cache(&mut self) {
         let Some(now) = self.with_cache(|c| c.counters()) else {
             return;
         };
-        let d = since(&self.cache_counted, &now);
+        let d = now.since(&self.cache_counted);
         let m = metrics::worker();
         m.domain_loads.inc_by(d.loads);
         m.domain_load_bytes.inc_by(d.bytes_loaded);
@@ -457,17 +513,6 @@ fn count_pass(output: &PassOutput) {
         c.reflection_rays,
     ]) {
         counter.inc_by(n);
-    }
-}
-
-/// Cache counters of a frame: what changed since its start (the peak is the process's).
-fn since(start: &CacheCounters, now: &CacheCounters) -> CacheCounters {
-    CacheCounters {
-        loads: now.loads - start.loads,
-        bytes_loaded: now.bytes_loaded - start.bytes_loaded,
-        evictions: now.evictions - start.evictions,
-        peak_resident_bytes: now.peak_resident_bytes,
-        load_nanos: now.load_nanos - start.load_nanos,
     }
 }
 

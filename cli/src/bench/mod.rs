@@ -151,6 +151,10 @@ pub struct Measured {
     pub wall: Spread,
     pub domain_loads: f64,
     pub bytes_loaded: f64,
+    /// Of the loads, prefetches; of those, used by a pass and wasted (left unused).
+    pub prefetches: f64,
+    pub prefetches_used: f64,
+    pub prefetches_wasted: f64,
     /// Ray segments traced.
     pub segments: f64,
     pub rays_migrated: f64,
@@ -227,6 +231,9 @@ fn measure(ok: &[&ClusterStats]) -> Option<Measured> {
         wall,
         domain_loads: med(&|s| s.cache.loads as f64)?,
         bytes_loaded: med(&|s| s.cache.bytes_loaded as f64)?,
+        prefetches: med(&|s| s.cache.prefetches as f64)?,
+        prefetches_used: med(&|s| s.cache.prefetches_used as f64)?,
+        prefetches_wasted: med(&|s| s.cache.prefetches_wasted as f64)?,
         segments: med(&|s| s.rays.segments() as f64)?,
         rays_migrated: med(&|s| s.rays_migrated as f64)?,
         bytes_migrated: med(&|s| s.bytes_migrated as f64)?,

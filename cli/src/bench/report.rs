@@ -26,6 +26,7 @@ pub fn bench_table(summaries: &[ScheduleSummary], bound: Option<&Bound>) -> Tabl
             "domain loads".into(),
             format!("loads vs {REFERENCE_SCHEDULE}"),
             "bytes loaded".into(),
+            "of the loads prefetched (used / wasted)".into(),
             "rays traced (segments)".into(),
             "rays migrated".into(),
             "bytes between workers".into(),
@@ -43,7 +44,7 @@ pub fn bench_table(summaries: &[ScheduleSummary], bound: Option<&Bound>) -> Tabl
                 ok,
                 format!("failed: {}", s.errors.join("; ")),
             ];
-            row.extend(std::iter::repeat_n("-".to_string(), 12));
+            row.extend(std::iter::repeat_n("-".to_string(), 13));
             t.add_row(row);
             continue;
         };
@@ -58,6 +59,7 @@ pub fn bench_table(summaries: &[ScheduleSummary], bound: Option<&Bound>) -> Tabl
             count(m.domain_loads),
             times(reference.and_then(|r| ratio(m.domain_loads, r))),
             human(m.bytes_loaded.round() as u64),
+            prefetched(m),
             count(m.segments),
             count(m.rays_migrated),
             human(m.bytes_migrated.round() as u64),
@@ -69,6 +71,19 @@ pub fn bench_table(summaries: &[ScheduleSummary], bound: Option<&Bound>) -> Tabl
         ]);
     }
     t
+}
+
+/// A row's prefetches: "-" when it made none, else "N (used / wasted)".
+fn prefetched(m: &super::Measured) -> String {
+    if m.prefetches == 0.0 {
+        return "-".into();
+    }
+    format!(
+        "{} ({} / {})",
+        count(m.prefetches),
+        count(m.prefetches_used),
+        count(m.prefetches_wasted)
+    )
 }
 
 /// The footnote under the table: what the bound is, with its numbers, and what the other

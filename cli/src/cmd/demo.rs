@@ -139,6 +139,7 @@ fn run_cluster(a: &DemoArgs, scene: &Path, cache_bytes: u64) -> anyhow::Result<(
         cold_cache: false,
         progressive: None,
         speculation: String::new(),
+        prefetch: false,
     };
     let wait = WaitOptions {
         output: Some(a.dir.join("demo.png")),

@@ -56,6 +56,11 @@ pub struct SubmitArgs {
     /// default; Park et al.). The image is the same whatever the setting [default: full].
     #[arg(long, env = "RAYFARM_SPECULATION")]
     pub speculation: Option<String>,
+    /// With --schedule dynamic or predictive: each worker loads its next domains (the rest
+    /// of its plan, then the coordinator's guess of the one it gets next) while it traces,
+    /// when its cache has room beside the domains its plan needs. The image is the same.
+    #[arg(long, env = "RAYFARM_PREFETCH", value_parser = BoolishValueParser::new())]
+    pub prefetch: bool,
     #[command(flatten)]
     pub camera: CameraArgs,
     /// Follow the job to its end, then save the image and print the statistics.
@@ -95,6 +100,7 @@ impl SubmitArgs {
                 .and_then(Progressive::field)
                 .map(|subframe_spp| proto::Progressive { subframe_spp }),
             speculation: self.speculation.clone().unwrap_or_default(),
+            prefetch: self.prefetch,
         }
     }
 }
@@ -239,6 +245,7 @@ mod tests {
                 cold_cache: false,
                 progressive: None,
                 speculation: String::new(),
+                prefetch: false,
             }
         );
         let doubling = parse(&["--progressive", "doubling"]).job_spec();

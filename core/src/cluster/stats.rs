@@ -104,14 +104,7 @@ impl WorkerFrameStats {
     fn add(&mut self, o: &WorkerFrameStats) {
         self.threads = self.threads.max(o.threads);
         self.rays.add(&o.rays);
-        self.cache.loads += o.cache.loads;
-        self.cache.bytes_loaded += o.cache.bytes_loaded;
-        self.cache.evictions += o.cache.evictions;
-        self.cache.load_nanos += o.cache.load_nanos;
-        self.cache.peak_resident_bytes = self
-            .cache
-            .peak_resident_bytes
-            .max(o.cache.peak_resident_bytes);
+        self.cache.add(&o.cache);
         self.rays_sent += o.rays_sent;
         self.bytes_sent += o.bytes_sent;
         self.rays_received += o.rays_received;
@@ -215,13 +208,7 @@ impl ClusterStats {
         for w in &workers {
             self.threads += w.threads;
             self.rays.add(&w.rays);
-            self.cache.loads += w.cache.loads;
-            self.cache.bytes_loaded += w.cache.bytes_loaded;
-            self.cache.evictions += w.cache.evictions;
-            self.cache.peak_resident_bytes = self
-                .cache
-                .peak_resident_bytes
-                .max(w.cache.peak_resident_bytes);
+            self.cache.add(&w.cache);
             self.rays_migrated += w.rays_sent;
             self.bytes_migrated += w.bytes_sent;
             self.peak_rss_bytes = self.peak_rss_bytes.max(w.peak_rss_bytes);

@@ -3,6 +3,12 @@
 //! gone: unmapped, and its pages dropped from the page cache, so loading it again reads
 //! storage. Slower shared storage can be emulated ([`StorageModel`]) to study schedules in
 //! the regime where loading dominates.
+//!
+//! A domain may also be loaded ahead of need (a prefetch): [`DomainCache::begin_prefetch`]
+//! decides under the cache's lock whether it fits without evicting what must stay, the I/O
+//! ([`PendingLoad::read`]) runs without the lock while passes go on tracing, and
+//! [`DomainCache::finish_prefetch`] adds it. Prefetches count as loads, and separately as used
+//! (a pass asked for the domain before it left) or wasted (it left unused).
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::PathBuf;
@@ -24,9 +30,53 @@ pub struct CacheCounters {
     pub evictions: u64,
     /// Largest number of bytes resident at once.
     pub peak_resident_bytes: u64,
-    /// Time spent loading (mapping, checking, emulated storage delay), nanoseconds.
+    /// Time passes spent loading (mapping, checking, emulated storage delay), nanoseconds;
+    /// prefetches' time is apart (`prefetch_nanos`): it overlaps tracing.
     #[serde(default)]
     pub load_nanos: u64,
+    /// Of `loads`, those made ahead of need (prefetches), kept or not.
+    #[serde(default)]
+    pub prefetches: u64,
+    /// Prefetched domains a pass then asked for while they were mapped.
+    #[serde(default)]
+    pub prefetches_used: u64,
+    /// Prefetched domains that left the cache unused, or found no room when they arrived.
+    #[serde(default)]
+    pub prefetches_wasted: u64,
+    /// Time prefetches spent loading, nanoseconds (beside tracing, not in a pass's time).
+    #[serde(default)]
+    pub prefetch_nanos: u64,
+}
+
+impl CacheCounters {
+    /// Adds `other`'s counts to these; the peak is the larger of the two.
+    pub fn add(&mut self, other: &CacheCounters) {
+        self.loads += other.loads;
+        self.bytes_loaded += other.bytes_loaded;
+        self.evictions += other.evictions;
+        self.peak_resident_bytes = self.peak_resident_bytes.max(other.peak_resident_bytes);
+        self.load_nanos += other.load_nanos;
+        self.prefetches += other.prefetches;
+        self.prefetches_used += other.prefetches_used;
+        self.prefetches_wasted += other.prefetches_wasted;
+        self.prefetch_nanos += other.prefetch_nanos;
+    }
+
+    /// What changed from `start` to these (a frame's share of a process's counters); the
+    /// peak is these counters' own.
+    pub fn since(&self, start: &CacheCounters) -> CacheCounters {
+        CacheCounters {
+            loads: self.loads - start.loads,
+            bytes_loaded: self.bytes_loaded - start.bytes_loaded,
+            evictions: self.evictions - start.evictions,
+            peak_resident_bytes: self.peak_resident_bytes,
+            load_nanos: self.load_nanos - start.load_nanos,
+            prefetches: self.prefetches - start.prefetches,
+            prefetches_used: self.prefetches_used - start.prefetches_used,
+            prefetches_wasted: self.prefetches_wasted - start.prefetches_wasted,
+            prefetch_nanos: self.prefetch_nanos - start.prefetch_nanos,
+        }
+    }
 }
 
 /// An emulation of slower shared storage, charged on every load: `latency` plus the file's
@@ -58,6 +108,81 @@ impl StorageModel {
     }
 }
 
+/// One worker's line to the emulated storage: its loads are served one after another, so a
+/// prefetch beside a pass's load does not double the bandwidth. Shared by the cache and its
+/// pending prefetches (they wait off the cache's lock).
+#[derive(Clone, Debug, Default)]
+struct StorageLine {
+    model: StorageModel,
+    /// When the last load reserved on the line is delivered.
+    free_at: Arc<std::sync::Mutex<Option<Instant>>>,
+}
+
+impl StorageLine {
+    /// Waits until `bytes` are delivered after the loads reserved before them.
+    fn deliver(&self, bytes: u64) {
+        if !self.model.is_active() {
+            return;
+        }
+        let now = Instant::now();
+        let done = {
+            let mut free = self.free_at.lock().unwrap_or_else(|p| p.into_inner());
+            let start = free.map_or(now, |f| f.max(now));
+            let done = start + self.model.delay(bytes);
+            *free = Some(done);
+            done
+        };
+        std::thread::sleep(done.saturating_duration_since(now));
+    }
+}
+
+/// A prefetch under way: what [`PendingLoad::read`] needs to load the domain without the
+/// cache.
+pub struct PendingLoad {
+    domain: u32,
+    dir: PathBuf,
+    manifest: Arc<Manifest>,
+    verify: bool,
+    storage: StorageLine,
+}
+
+/// A prefetched domain read from storage, for [`DomainCache::finish_prefetch`].
+pub struct LoadedDomain {
+    domain: u32,
+    data: DomainData,
+    nanos: u64,
+}
+
+impl PendingLoad {
+    /// The domain being loaded.
+    pub fn domain(&self) -> u32 {
+        self.domain
+    }
+
+    /// Maps and checks the domain and waits for the emulated storage: the prefetch's I/O,
+    /// run off the cache's lock.
+    pub fn read(self) -> Result<LoadedDomain, SceneError> {
+        let _span = info_span!("prefetch_domain", domain = self.domain).entered();
+        let started = Instant::now();
+        let data = self
+            .manifest
+            .open_domain(&self.dir, self.domain, self.verify)?;
+        self.storage.deliver(data.bytes());
+        Ok(LoadedDomain {
+            domain: self.domain,
+            data,
+            nanos: started.elapsed().as_nanos() as u64,
+        })
+    }
+}
+
+impl LoadedDomain {
+    /// The domain loaded.
+    pub fn domain(&self) -> u32 {
+        self.domain
+    }
+}
+
 /// `posix_fadvise(DONTNEED)` on a whole file: clean pages leave the page cache.
 fn drop_page_cache(path: &std::path::Path) -> std::io::Result<()> {
     let file = std::fs::File::open(path)?;
@@ -69,6 +194,8 @@ fn drop_page_cache(path: &std::path::Path) -> std::io::Result<()> {
 struct Resident {
     data: Arc<DomainData>,
     last_use: u64,
+    /// Loaded by a prefetch and not asked for since.
+    prefetched: bool,
 }
 
 /// Domains of one scene, loaded on demand. It keeps state only for the domains it holds or
@@ -84,7 +211,7 @@ pub struct DomainCache {
     clock: u64,
     resident_bytes: u64,
     counters: CacheCounters,
-    storage: StorageModel,
+    storage: StorageLine,
     /// Domains the least-recently-used rule must not evict (a schedule's owned data).
     pinned: BTreeSet<u32>,
 }
@@ -106,7 +233,7 @@ impl DomainCache {
             clock: 0,
             resident_bytes: 0,
             counters: CacheCounters::default(),
-            storage: StorageModel::default(),
+            storage: StorageLine::default(),
             pinned: Default::default(),
         }
     }
@@ -119,7 +246,10 @@ impl DomainCache {
 
     /// The cache with loads charged as on `storage`.
     pub fn with_storage(mut self, storage: StorageModel) -> Self {
-        self.storage = storage;
+        self.storage = StorageLine {
+            model: storage,
+            ..StorageLine::default()
+        };
         self
     }
 
@@ -130,6 +260,9 @@ impl DomainCache {
         self.clock += 1;
         if let Some(d) = self.resident.get_mut(&domain) {
             d.last_use = self.clock;
+            if std::mem::take(&mut d.prefetched) {
+                self.counters.prefetches_used += 1;
+            }
             return Ok(d.data.clone());
         }
         let _span =
@@ -139,19 +272,28 @@ impl DomainCache {
         let data =
             self.manifest
                 .open_domain(&self.dir, domain, !self.verified.contains(&domain))?;
-        if self.storage.is_active() {
-            std::thread::sleep(self.storage.delay(data.bytes()));
-        }
+        self.storage.deliver(data.bytes());
         self.verified.insert(domain);
         let bytes = data.bytes();
-        self.evict_for(bytes, domain);
+        self.evict_for(bytes, |j| j == domain);
+        self.counters.load_nanos += started.elapsed().as_nanos() as u64;
+        Ok(self.insert(domain, data, false))
+    }
+
+    /// Maps `data` as `domain`, counted as a load.
+    fn insert(&mut self, domain: u32, data: DomainData, prefetched: bool) -> Arc<DomainData> {
+        let bytes = data.bytes();
         self.resident_bytes += bytes;
         self.counters.loads += 1;
         self.counters.bytes_loaded += bytes;
         self.counters.peak_resident_bytes =
             self.counters.peak_resident_bytes.max(self.resident_bytes);
-        self.counters.load_nanos += started.elapsed().as_nanos() as u64;
-        debug!(bytes, resident = self.resident_bytes, "domain loaded");
+        debug!(
+            bytes,
+            resident = self.resident_bytes,
+            prefetched,
+            "domain loaded"
+        );
         let data = Arc::new(data);
         let last_use = self.clock;
         self.resident.insert(
@@ -159,17 +301,81 @@ impl DomainCache {
             Resident {
                 data: data.clone(),
                 last_use,
+                prefetched,
             },
         );
-        Ok(data)
+        data
     }
 
-    fn evict_for(&mut self, incoming: u64, keep: u32) {
+    /// Starts loading `domain` ahead of need, if it is not mapped and fits in the budget
+    /// once domains outside `keep` (and not pinned) are counted as free: a prefetch never
+    /// pushes out what the current plan needs. The load itself is [`PendingLoad::read`], off
+    /// this cache's lock; [`DomainCache::finish_prefetch`] adds it.
+    pub fn begin_prefetch(&self, domain: u32, keep: &BTreeSet<u32>) -> Option<PendingLoad> {
+        let entry = self.manifest.domains.get(domain as usize)?;
+        if self.resident.contains_key(&domain) {
+            return None;
+        }
+        let staying: u64 = self
+            .resident
+            .iter()
+            .filter(|&(j, _)| keep.contains(j) || self.pinned.contains(j))
+            .map(|(_, r)| r.data.bytes())
+            .sum();
+        if staying + entry.bytes > self.budget {
+            return None;
+        }
+        Some(PendingLoad {
+            domain,
+            dir: self.dir.clone(),
+            manifest: self.manifest.clone(),
+            verify: !self.verified.contains(&domain),
+            storage: self.storage.clone(),
+        })
+    }
+
+    /// Adds a prefetched domain, evicting least recently used domains outside `keep` (and
+    /// not pinned) to make room. Returns false if it was not kept: a pass mapped it
+    /// meanwhile, or what must stay leaves no room for it now (it counts as wasted).
+    pub fn finish_prefetch(&mut self, loaded: LoadedDomain, keep: &BTreeSet<u32>) -> bool {
+        let LoadedDomain {
+            domain,
+            data,
+            nanos,
+        } = loaded;
+        self.counters.prefetches += 1;
+        self.counters.prefetch_nanos += nanos;
+        self.verified.insert(domain);
+        let bytes = data.bytes();
+        let fits = |c: &Self| c.resident_bytes + bytes <= c.budget;
+        if self.resident.contains_key(&domain) {
+            // Read twice: the prefetch's copy is the one wasted.
+            self.counters.loads += 1;
+            self.counters.bytes_loaded += bytes;
+            self.counters.prefetches_wasted += 1;
+            return false;
+        }
+        self.evict_for(bytes, |j| keep.contains(&j));
+        if !fits(self) {
+            self.counters.loads += 1;
+            self.counters.bytes_loaded += bytes;
+            self.counters.prefetches_wasted += 1;
+            debug!(domain, "prefetched domain found no room");
+            return false;
+        }
+        self.clock += 1;
+        self.insert(domain, data, true);
+        true
+    }
+
+    /// Evicts least recently used domains, other than pinned ones and those `stays` names,
+    /// until `incoming` bytes fit (or nothing more may go).
+    fn evict_for(&mut self, incoming: u64, stays: impl Fn(u32) -> bool) {
         while self.resident_bytes + incoming > self.budget {
             let victim = self
                 .resident
                 .iter()
-                .filter(|&(&j, _)| j != keep && !self.pinned.contains(&j))
+                .filter(|&(&j, _)| !stays(j) && !self.pinned.contains(&j))
                 .min_by_key(|(_, r)| r.last_use)
                 .map(|(&j, _)| j);
             let Some(j) = victim else { break };
@@ -185,6 +391,9 @@ impl DomainCache {
         };
         self.resident_bytes -= d.data.bytes();
         self.counters.evictions += 1;
+        if d.prefetched {
+            self.counters.prefetches_wasted += 1;
+        }
         drop(d);
         let i = domain as usize;
         let path = self.dir.join(&self.manifest.domains[i].file);

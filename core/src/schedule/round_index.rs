@@ -311,6 +311,13 @@ impl RoundIndex {
         changed
     }
 
+    /// Wanted domains nobody holds, fullest first (Fig. 5's `to_assign` as it stands now):
+    /// after a round's plans are adopted, the domains the next members to run dry will be
+    /// given, in that order.
+    pub fn unheld(&self) -> impl Iterator<Item = u32> + '_ {
+        self.unheld.iter().map(|&(_, d)| d)
+    }
+
     /// Rays queued for `d` that count: under the oldest-generation rule only queues whose
     /// oldest rays are of the oldest generation, unless `d` is in memory somewhere.
     fn counted(&self, d: u32) -> u64 {

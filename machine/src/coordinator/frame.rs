@@ -292,6 +292,7 @@ impl RunningFrame {
                     work_on: (0..domains).filter(|&d| owner(d) == key).collect(),
                     evict: Vec::new(),
                     holders: holders.clone(),
+                    next: Vec::new(),
                 });
                 (key, msg(body))
             })
@@ -435,21 +436,49 @@ impl RunningFrame {
         );
         plan.workers()
             .iter()
-            .map(|p| self.plan_message(p, &holders))
+            .map(|p| self.plan_message(p, &holders, Vec::new()))
             .collect()
     }
 
-    /// `p` as this round's message to its worker.
-    fn plan_message(&self, p: &WorkerPlan, holders: &[proto::DomainHolders]) -> Outgoing {
-        debug!(worker = p.worker.0, keep = ?p.keep, load = ?p.load, evict = ?p.evict, "plan");
+    /// `p` as this round's message to its worker, with the domains it will most likely be
+    /// given next (`next`, for its prefetch).
+    fn plan_message(
+        &self,
+        p: &WorkerPlan,
+        holders: &[proto::DomainHolders],
+        next: Vec<u32>,
+    ) -> Outgoing {
+        debug!(worker = p.worker.0, keep = ?p.keep, load = ?p.load, evict = ?p.evict, ?next, "plan");
         let body = Body::RoundPlan(proto::RoundPlan {
             job_id: self.frame_id(),
             round: self.round,
             work_on: p.work().map(|d| d.0).collect(),
             evict: p.evict.iter().map(|d| d.0).collect(),
             holders: holders.to_vec(),
+            next,
         });
         (p.worker.0, msg(body))
+    }
+
+    /// Planning one step ahead, for jobs that prefetch: for each of `plans` in turn, the
+    /// domain its worker will most likely be given when it runs dry, from the same
+    /// ray-weighted planning: the fullest wanted domain nobody holds once these plans are
+    /// adopted (what Fig. 5 would hand out next), each guessed for one worker only.
+    fn next_domains(&self, plans: &[WorkerPlan]) -> Vec<Vec<u32>> {
+        if !self.spec.prefetch {
+            return vec![Vec::new(); plans.len()];
+        }
+        let mut unheld = self.index.unheld();
+        plans
+            .iter()
+            .map(|p| {
+                unheld
+                    .by_ref()
+                    .find(|&d| !p.works_on(DomainId(d)))
+                    .into_iter()
+                    .collect()
+            })
+            .collect()
     }
 
     /// Asynchronous rounds: plans every member that has run dry, from the latest reports of
@@ -484,9 +513,11 @@ impl RunningFrame {
             planned = changed.len(),
             "dry workers planned"
         );
+        let next = self.next_domains(&changed);
         let mut out: Vec<Outgoing> = changed
             .iter()
-            .map(|p| self.plan_message(p, &holders))
+            .zip(next)
+            .map(|(p, next)| self.plan_message(p, &holders, next))
             .collect();
         let planned: BTreeSet<u32> = changed.iter().map(|p| p.worker.0).collect();
         for &key in self.members.keys().filter(|k| !planned.contains(k)) {

@@ -41,6 +41,15 @@ pub enum Event<S> {
         result: Result<PassOutput, PassFailed>,
         resident: Vec<u32>,
     },
+    /// A prefetch of `domain` for the frame of `job_id` ended: `Ok(true)` it is mapped now,
+    /// `Ok(false)` it was loaded but found no room (or was mapped already), `Err` it could
+    /// not be loaded (a pass loading it will say so); `resident` are the domains mapped now.
+    PrefetchDone {
+        job_id: String,
+        domain: u32,
+        result: Result<bool, String>,
+        resident: Vec<u32>,
+    },
     /// Nothing happened but time passed (the deadline of [`super::Worker::next_timeout`]).
     Tick,
 }
@@ -143,6 +152,14 @@ pub enum Action {
     /// Run a pass of the frame of `job_id`; answer with [`Event::PassFinished`]. The machine
     /// asks for one pass at a time.
     StartPass { job_id: String, work: PassWork },
+    /// Load `domain` into the cache ahead of need, beside any pass, unless it is mapped or
+    /// does not fit without evicting a domain of `keep` (the plan's and the one being
+    /// traced); answer with [`Event::PrefetchDone`]. The machine asks for one at a time.
+    Prefetch {
+        job_id: String,
+        domain: u32,
+        keep: Vec<u32>,
+    },
     /// Unmap these domains from the cache.
     Evict(Vec<u32>),
     /// Keep these domains mapped (none: pin nothing).

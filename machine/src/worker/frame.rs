@@ -7,7 +7,7 @@
 //! counted here, makes one due, and only [`Frame::take_report`] sends it, so no handler can
 //! forget either.
 
-use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
 use std::time::Duration;
 use tracing::debug;
 
@@ -59,6 +59,11 @@ pub struct Frame<S> {
     ahead: Vec<RayRecord>,
     pub counters: FrameCounters,
     pub started: Time,
+    /// Whether domains are loaded ahead of need (see [`Frame::next_prefetch`]).
+    prefetch: bool,
+    /// Domains a prefetch was asked for since the last plan: not asked for again before the
+    /// next one (a load the cache had no room for would otherwise be asked for forever).
+    prefetched: BTreeSet<u32>,
 }
 
 /// More bytes of rays of unannounced epochs than a worker holds: it leaves the frame, since
@@ -112,6 +117,9 @@ pub struct FrameParts<S> {
     /// Predictive schedule placing rays speculatively: this worker's key, the roster of the
     /// frame's workers and how far ahead rays are copied.
     pub speculation: Option<(u32, HashMap<u32, String>, Depth)>,
+    /// Load domains ahead of need (`JobSpec.prefetch`; only the dynamic and predictive
+    /// schedules plan one step ahead).
+    pub prefetch: bool,
 }
 
 impl<S: RaySpill> Frame<S> {
@@ -132,6 +140,7 @@ impl<S: RaySpill> Frame<S> {
             epochs,
             resident,
             speculation,
+            prefetch,
         } = parts;
         let tiles = grid.count() as usize;
         let mut plan = Plan::new(mode, tiles, queues.domains(), me);
@@ -157,6 +166,8 @@ impl<S: RaySpill> Frame<S> {
             ahead: Vec::new(),
             counters: FrameCounters::default(),
             started,
+            prefetch: prefetch && matches!(mode, Mode::Dynamic | Mode::Predictive),
+            prefetched: BTreeSet::new(),
         }
     }
 
@@ -189,7 +200,58 @@ impl<S: RaySpill> Frame<S> {
         holders: impl IntoIterator<Item = (u32, Vec<String>)>,
     ) {
         self.plan.set_round(round, work_on, holders);
+        self.prefetched.clear();
         self.report = Report::Due;
+    }
+
+    /// Records the coordinator's guess of this worker's next domains.
+    pub fn set_next(&mut self, next: impl IntoIterator<Item = u32>) {
+        self.plan.set_next(next);
+    }
+
+    /// Whether this frame loads domains ahead of need.
+    pub fn prefetches(&self) -> bool {
+        self.prefetch
+    }
+
+    /// The domain to load ahead of need now, if any, with the domains the load must not push
+    /// out of the cache (the plan's and the one `tracing` now). First the plan's domains not
+    /// mapped yet, fullest queue here first (a pass would load them one at a time between
+    /// traces), then the coordinator's guesses of this worker's next domains that no one
+    /// else holds now (a guess another worker took meanwhile would be a wasted load).
+    /// Each domain is asked for once per plan.
+    pub fn next_prefetch(&mut self, tracing: Option<u32>) -> Option<(u32, Vec<u32>)> {
+        if !self.prefetch {
+            return None;
+        }
+        let plan = &self.plan;
+        let tried = &self.prefetched;
+        let wanted =
+            |d: &u32| Some(*d) != tracing && !plan.resident().contains(d) && !tried.contains(d);
+        let planned = plan
+            .work_on()
+            .iter()
+            .copied()
+            .filter(wanted)
+            .max_by_key(|&d| (self.queues.len(d), std::cmp::Reverse(d)));
+        let guess = || {
+            plan.next()
+                .iter()
+                .copied()
+                .filter(wanted)
+                .find(|&d| !plan.is_held_elsewhere(d) && !plan.work_on().contains(&d))
+        };
+        let domain = planned.or_else(guess)?;
+        let keep: BTreeSet<u32> = plan.work_on().iter().copied().chain(tracing).collect();
+        self.prefetched.insert(domain);
+        let keep = keep.into_iter().collect();
+        Some((domain, keep))
+    }
+
+    /// Whether rays queued here for `domain` are this worker's to trace now (a pass waits
+    /// for a prefetch of it rather than load it a second time).
+    pub fn has_work_for(&self, domain: u32) -> bool {
+        self.plan.traces(domain) && self.queues.len(domain) > 0
     }
 
     /// The schedule, this round's plan, the tiles' epochs.
@@ -365,12 +427,17 @@ impl<S: RaySpill> Frame<S> {
         self.route(queued)
     }
 
-    /// Takes up to `max` rays of the queue to trace next among those this worker traces now:
-    /// the fullest (ties: the lower domain id), or under the predictive schedule
-    /// `speculative::next_queue`.
-    pub fn take_work(&mut self, max: usize) -> Result<Option<(u32, Vec<RayRecord>)>, QueueError> {
+    /// Takes up to `max` rays of the queue to trace next among those this worker traces now,
+    /// other than `loading` (a prefetch is loading it): the fullest (ties: the lower domain
+    /// id; prefetching, mapped domains first, so the others load meanwhile), or under the
+    /// predictive schedule `speculative::next_queue`.
+    pub fn take_work(
+        &mut self,
+        max: usize,
+        loading: Option<u32>,
+    ) -> Result<Option<(u32, Vec<RayRecord>)>, QueueError> {
         loop {
-            let Some((d, mut rays)) = self.take_queue(max)? else {
+            let Some((d, mut rays)) = self.take_queue(max, loading)? else {
                 return Ok(None);
             };
             // Copies of rays born here that a nearer domain already ended need no tracing.
@@ -384,15 +451,21 @@ impl<S: RaySpill> Frame<S> {
     }
 
     /// [`Frame::take_work`]'s choice of queue, the rays taken as they are.
-    fn take_queue(&mut self, max: usize) -> Result<Option<(u32, Vec<RayRecord>)>, QueueError> {
+    fn take_queue(
+        &mut self,
+        max: usize,
+        loading: Option<u32>,
+    ) -> Result<Option<(u32, Vec<RayRecord>)>, QueueError> {
         // Hybrid traces its own domains' (data-parallel) queues before demand-driven work.
         let first = |d: u32| {
             matches!(self.plan.mode, Mode::Hybrid { .. }) && self.plan.work_on().contains(&d)
         };
+        // Prefetching, a mapped domain is traced while the next one loads.
+        let mapped = |d: u32| self.prefetch && self.plan.resident().contains(&d);
         let queues = self
             .queues
             .non_empty()
-            .filter(|&d| self.plan.traces(d))
+            .filter(|&d| self.plan.traces(d) && Some(d) != loading)
             .map(|d| (d, self.queues.len(d)));
         let next = if self.plan.mode == Mode::Predictive {
             next_queue(queues.map(|(domain, rays)| QueueView {
@@ -404,7 +477,7 @@ impl<S: RaySpill> Frame<S> {
             }))
         } else {
             queues
-                .max_by_key(|&(d, len)| (first(d), len, std::cmp::Reverse(d)))
+                .max_by_key(|&(d, len)| (first(d), mapped(d), len, std::cmp::Reverse(d)))
                 .map(|(d, _)| d)
         };
         let Some(d) = next else {

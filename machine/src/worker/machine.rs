@@ -72,6 +72,10 @@ pub struct Worker<S> {
     pub(super) bundler: Bundler<String>,
     pub(super) frame: Option<Frame<S>>,
     pub(super) pass_running: bool,
+    /// The domain the running pass traces, if it traces one.
+    pub(super) tracing: Option<u32>,
+    /// The domain a prefetch is loading, if one is under way.
+    pub(super) prefetching: Option<u32>,
     pub(super) early: EarlyBundles,
     /// Recently ended jobs: their late bundles are dropped.
     pub(super) ended: Vec<String>,
@@ -88,6 +92,8 @@ impl<S: RaySpill> Worker<S> {
             config,
             frame: None,
             pass_running: false,
+            tracing: None,
+            prefetching: None,
             ended: Vec::new(),
             now: Time::default(),
             actions: Vec::new(),
@@ -141,6 +147,7 @@ impl<S: RaySpill> Worker<S> {
                 resident,
             } => {
                 self.pass_running = false;
+                self.tracing = None;
                 // A pass of a frame that has ended since is of no use.
                 if self.frame.as_ref().is_some_and(|f| f.job_id == job_id) {
                     match result {
@@ -148,6 +155,21 @@ impl<S: RaySpill> Worker<S> {
                         Err(PassFailed::Load(e)) => self.decline_frame(e),
                         Err(PassFailed::SceneReplaced(e)) => self.fail_frame(e),
                     }
+                }
+            }
+            Event::PrefetchDone {
+                job_id,
+                domain,
+                result,
+                resident,
+            } => {
+                self.prefetching = None;
+                if let Some(f) = self.frame.as_mut().filter(|f| f.job_id == job_id) {
+                    match result {
+                        Ok(kept) => debug!(domain, kept, "prefetch done"),
+                        Err(e) => warn!(domain, error = %e, "prefetch failed"),
+                    }
+                    f.set_resident(resident);
                 }
             }
             Event::Tick => self.send_due_bundles(),
@@ -263,6 +285,7 @@ impl<S: RaySpill> Worker<S> {
             limits: scene.limits,
             domain_bytes: scene.domain_bytes,
             to_issue: s.primary_tiles.clone(),
+            prefetch: spec.prefetch,
             queues: scene.queues,
             me: self.config.advertise.clone(),
             started: self.now,
@@ -299,6 +322,7 @@ impl<S: RaySpill> Worker<S> {
             .filter(|d| !p.evict.contains(d))
             .collect();
         frame.set_resident(resident);
+        frame.set_next(p.next.iter().copied());
         let pinned = frame.decide_demand_loads(self.config.cache_bytes);
         debug!(work_on = ?p.work_on, evict = ?p.evict, "round plan");
         self.actions.push(Action::Evict(p.evict));
@@ -452,26 +476,58 @@ impl<S: RaySpill> Worker<S> {
     }
 
     /// Starts the next pass, or, with nothing to do, sends everything pending and tells the
-    /// coordinator this worker's queues (the end of its round).
+    /// coordinator this worker's queues (the end of its round); then starts loading the next
+    /// domain ahead of need, if the frame prefetches.
     fn pump(&mut self) {
-        if self.pass_running {
+        self.pump_pass();
+        self.prefetch();
+    }
+
+    /// Asks the shell to load the frame's next domain ahead of need, unless a prefetch is
+    /// under way.
+    fn prefetch(&mut self) {
+        if self.prefetching.is_some() {
             return;
         }
         let Some(frame) = self.frame.as_mut() else {
             return;
         };
+        let Some((domain, keep)) = frame.next_prefetch(self.tracing) else {
+            return;
+        };
+        debug!(domain, "prefetching");
+        self.prefetching = Some(domain);
+        self.actions.push(Action::Prefetch {
+            job_id: frame.job_id.clone(),
+            domain,
+            keep,
+        });
+    }
+
+    fn pump_pass(&mut self) {
+        if self.pass_running {
+            return;
+        }
+        let loading = self.prefetching;
+        let Some(frame) = self.frame.as_mut() else {
+            return;
+        };
         let primaries = frame.next_primaries(self.config.wave_rays);
-        let trace = match frame.take_work(self.config.pass_rays) {
+        let trace = match frame.take_work(self.config.pass_rays, loading) {
             Ok(t) => t,
             Err(e) => return self.queue_failed(e),
         };
         let speculative = frame.take_to_conclude();
         let concluding = speculative.as_ref().is_some_and(|c| !c.is_empty());
         if primaries.is_empty() && trace.is_none() && !concluding {
-            self.report_idle();
+            // The domain being prefetched has work here: its load ends this wait.
+            if !loading.is_some_and(|d| frame.has_work_for(d)) {
+                self.report_idle();
+            }
             return;
         }
         self.pass_running = true;
+        self.tracing = trace.as_ref().map(|(d, _)| *d);
         let job_id = frame.job_id.clone();
         self.actions.push(Action::StartPass {
             job_id,

@@ -66,6 +66,9 @@ pub struct Plan {
     resident: BTreeSet<u32>,
     /// Other workers holding each domain this round.
     holders: BTreeMap<u32, Vec<String>>,
+    /// Domains the coordinator expects to give this worker next, most likely first (what
+    /// it may prefetch once its own plan is loaded).
+    next: Vec<u32>,
 }
 
 impl Plan {
@@ -80,6 +83,7 @@ impl Plan {
             work_on: BTreeSet::new(),
             resident: BTreeSet::new(),
             holders: BTreeMap::new(),
+            next: Vec::new(),
         }
     }
 
@@ -91,6 +95,21 @@ impl Plan {
     /// Domains mapped here.
     pub fn resident(&self) -> &BTreeSet<u32> {
         &self.resident
+    }
+
+    /// Domains the coordinator expects to give this worker next, most likely first.
+    pub fn next(&self) -> &[u32] {
+        &self.next
+    }
+
+    /// Records the coordinator's guess of this worker's next domains (with each plan).
+    pub fn set_next(&mut self, next: impl IntoIterator<Item = u32>) {
+        self.next = next.into_iter().filter(|&d| d < self.domains).collect();
+    }
+
+    /// Whether another worker holds `domain` this round.
+    pub fn is_held_elsewhere(&self, domain: u32) -> bool {
+        self.holders.contains_key(&domain)
     }
 
     /// Domains some other worker holds this round.

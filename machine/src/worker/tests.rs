@@ -606,3 +606,84 @@ fn hybrid_pins_its_own_domains_only_while_demand_loads_fit_the_cache() {
         assert_eq!(sent.contains_key("b:1"), pinned.is_empty());
     }
 }
+
+fn prefetch_asked(actions: &[Action]) -> Option<(u32, Vec<u32>)> {
+    actions.iter().find_map(|a| match a {
+        Action::Prefetch { domain, keep, .. } => Some((*domain, keep.clone())),
+        _ => None,
+    })
+}
+
+#[test]
+fn a_prefetching_worker_loads_its_next_domain_while_it_traces_the_mapped_one() {
+    let mut w = worker();
+    let mut start = start(JOB, Schedule::Dynamic, &[]);
+    start.spec.as_mut().unwrap().prefetch = true;
+    let mut scene = scene();
+    scene.resident = vec![0];
+    w.handle(
+        Time(0),
+        Event::FrameOpened {
+            start,
+            opened: Ok(scene),
+        },
+    );
+    let mut next = plan(1, &[0, 1], &[]);
+    if let Event::Control(proto::CoordinatorMessage {
+        body: Some(FromCoordinator::RoundPlan(p)),
+    }) = &mut next
+    {
+        p.next = vec![2];
+    }
+    // The planned domain not mapped yet loads at once, keeping the plan's domains.
+    let actions = w.handle(Time(1), next);
+    assert_eq!(
+        prefetch_asked(&actions),
+        Some((1, vec![0, 1])),
+        "{actions:?}"
+    );
+    // Domain 1 has more rays, but it is loading: 0, mapped, is traced meanwhile.
+    let mut rays = vec![ray(0, 0, 0, 1)];
+    rays.extend((0..5).map(|p| ray(0, 0, 1, p)));
+    let actions = w.handle(Time(2), bundle(JOB, &rays));
+    let traced = pass_started(&actions).and_then(|p| p.trace.as_ref().map(|t| t.0));
+    assert_eq!(traced, Some(0), "{actions:?}");
+    assert_eq!(prefetch_asked(&actions), None, "one prefetch at a time");
+    // The pass ends first: domain 1 is loading, so nothing is traced and no report goes.
+    let actions = w.handle(Time(3), finished(PassOutput::default()));
+    assert!(pass_started(&actions).is_none(), "{actions:?}");
+    assert!(queue_reports(&actions).is_empty(), "{actions:?}");
+    // Loaded: domain 1 is traced, and the coordinator's guess, 2, loads meanwhile.
+    let done = Event::PrefetchDone {
+        job_id: JOB.into(),
+        domain: 1,
+        result: Ok(true),
+        resident: vec![0, 1],
+    };
+    let actions = w.handle(Time(4), done);
+    let traced = pass_started(&actions).and_then(|p| p.trace.as_ref().map(|t| t.0));
+    assert_eq!(traced, Some(1), "{actions:?}");
+    assert_eq!(
+        prefetch_asked(&actions),
+        Some((2, vec![0, 1])),
+        "{actions:?}"
+    );
+    // No room for it: it is not asked for again under this plan.
+    let refused = Event::PrefetchDone {
+        job_id: JOB.into(),
+        domain: 2,
+        result: Ok(false),
+        resident: vec![0, 1],
+    };
+    assert_eq!(prefetch_asked(&w.handle(Time(5), refused)), None);
+}
+
+#[test]
+fn a_frame_without_prefetch_asks_for_none() {
+    let mut w = worker();
+    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    w.handle(Time(1), plan(1, &[0, 1], &[]));
+    let actions = w.handle(Time(2), bundle(JOB, &[ray(0, 0, 1, 1)]));
+    assert!(pass_started(&actions).is_some());
+    assert_eq!(prefetch_asked(&actions), None, "{actions:?}");
+}

@@ -75,6 +75,14 @@ enum Ev {
         job_id: String,
         run: PassRun,
     },
+    /// A prefetch's bytes have arrived from the storage: the domain is mapped now.
+    PrefetchDone {
+        node: NodeId,
+        job_id: String,
+        domain: u32,
+        keep: std::collections::BTreeSet<u32>,
+        pending: Option<rayfarm_core::render::cache::PendingLoad>,
+    },
     Tick {
         node: NodeId,
     },
@@ -149,6 +157,7 @@ pub fn simulate(
             max_depth: config.depth,
             schedule: schedule as i32,
             speculation: config.speculation.clone(),
+            prefetch: config.prefetch,
             ..Default::default()
         })
         .collect();
@@ -343,6 +352,28 @@ impl World<'_> {
                     },
                 );
             }
+            Ev::PrefetchDone {
+                node,
+                job_id,
+                domain,
+                keep,
+                pending,
+            } => {
+                let Some(w) = self.worker_mut(node) else {
+                    return;
+                };
+                let result = w.finish_prefetch(pending, &keep);
+                let resident = w.resident();
+                self.feed(
+                    node,
+                    machine::Event::PrefetchDone {
+                        job_id,
+                        domain,
+                        result,
+                        resident,
+                    },
+                );
+            }
             Ev::Tick { node } => {
                 let now = self.now;
                 let Some(w) = self.worker_mut(node) else {
@@ -458,6 +489,12 @@ impl World<'_> {
         o.frames = self.coord.frames;
         o.coordinator_busy = self.coord.busy;
         o.storage_bytes = self.storage.bytes;
+        for w in self.workers.iter().flatten() {
+            let c = w.cache_counters();
+            o.prefetches += c.prefetches;
+            o.prefetches_used += c.prefetches_used;
+            o.prefetches_wasted += c.prefetches_wasted;
+        }
         for p in &self.coord.problems {
             self.checks.violation("worker error", p.clone());
         }

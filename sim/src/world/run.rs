@@ -46,6 +46,8 @@ pub struct SimConfig {
     pub worker_timeout: Duration,
     /// The predictive schedule's speculation setting (`JobSpec.speculation`; empty: full).
     pub speculation: String,
+    /// Workers load their next domains while they trace (`JobSpec.prefetch`).
+    pub prefetch: bool,
 }
 
 /// Kills by what the killed worker was doing.
@@ -64,8 +66,12 @@ pub struct Outcome {
     /// Virtual time from the start to the last tile committed (of the last job).
     pub frame_time: Option<Duration>,
     pub image_hash: Option<String>,
-    /// Domain loads of every worker.
+    /// Domain loads of every worker (prefetches included).
     pub loads: u64,
+    /// Of the loads, prefetches; of those, used by a pass and wasted (left unused).
+    pub prefetches: u64,
+    pub prefetches_used: u64,
+    pub prefetches_wasted: u64,
     /// Ray segments traced, in every pass that finished.
     pub segments: u64,
     /// Bytes of peer bundles sent.

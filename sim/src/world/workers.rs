@@ -182,6 +182,29 @@ impl World<'_> {
                 self.outcome.loads += run.loads;
                 self.heap.push(until, Ev::PassDone { node, job_id, run });
             }
+            Action::Prefetch {
+                job_id,
+                domain,
+                keep,
+            } => {
+                let keep = keep.into_iter().collect();
+                let Some(w) = self.workers.get_mut(node).and_then(Option::as_mut) else {
+                    return;
+                };
+                // Its bytes come over the node's line to the storage, after its other loads.
+                let (pending, took) = w.begin_prefetch(now, domain, &keep, &mut self.storage);
+                self.outcome.loads += u64::from(pending.is_some());
+                self.heap.push(
+                    now + took,
+                    super::Ev::PrefetchDone {
+                        node,
+                        job_id,
+                        domain,
+                        keep,
+                        pending,
+                    },
+                );
+            }
             Action::Evict(domains) => w.evict(&domains),
             Action::Pin(domains) => w.pin(domains),
             Action::FrameEnded { job_id, mut stats } => {

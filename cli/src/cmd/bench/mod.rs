@@ -91,6 +91,11 @@ pub struct BenchArgs {
     /// same.
     #[arg(long, env = "RAYFARM_BENCH_PROGRESSIVE", value_parser = Progressive::parse)]
     pub progressive: Option<Progressive>,
+    /// Also render the dynamic and predictive schedules with prefetch (`submit
+    /// --prefetch`: workers load their next domains while they trace): each then has a
+    /// `SCHEDULE+prefetch` row beside its row without.
+    #[arg(long, env = "RAYFARM_BENCH_PREFETCH", value_parser = clap::builder::BoolishValueParser::new())]
+    pub prefetch: bool,
     /// Also write one row per run (every measure; failed runs with their error) to this CSV
     /// file.
     #[arg(long, env = "RAYFARM_BENCH_CSV")]

@@ -15,13 +15,17 @@ use crate::local_cluster::scene_root_and_name;
 use super::*;
 
 /// What one row of the bench runs: a schedule, in one pass or subframes, with its
-/// speculation setting.
+/// speculation setting, prefetching or not.
 #[derive(Clone, Debug)]
 pub(super) struct Run {
     pub(super) schedule: proto::Schedule,
     pub(super) progressive: Option<proto::Progressive>,
     pub(super) speculation: String,
+    pub(super) prefetch: bool,
 }
+
+/// The name suffix of a row that prefetches (`--prefetch`).
+pub(super) const PREFETCH_SUFFIX: &str = "+prefetch";
 
 /// Everything the bench needs, checked before any process starts.
 pub(super) struct Plan {
@@ -54,8 +58,17 @@ impl Plan {
                 schedule: *s,
                 progressive: None,
                 speculation: speculation.clone(),
+                prefetch: false,
             };
             schedules.push((name.clone(), run.clone()));
+            // Only the dynamic schedules plan one step ahead.
+            if a.prefetch && matches!(s, proto::Schedule::Dynamic | proto::Schedule::Predictive) {
+                let run = Run {
+                    prefetch: true,
+                    ..run.clone()
+                };
+                schedules.push((format!("{name}{PREFETCH_SUFFIX}"), run));
+            }
             if let Some(field) = a.progressive.and_then(Progressive::field) {
                 let progressive = proto::Progressive {
                     subframe_spp: field,
@@ -111,6 +124,7 @@ impl Plan {
                 cold_cache: true,
                 progressive: None,
                 speculation: String::new(),
+                prefetch: false,
             },
             scene_dir: a.scene.clone(),
             scene_name,

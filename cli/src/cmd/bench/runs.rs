@@ -80,6 +80,7 @@ pub(super) async fn bench(
             schedule: run.schedule as i32,
             progressive: run.progressive,
             speculation: run.speculation.clone(),
+            prefetch: run.prefetch,
             ..plan.spec.clone()
         };
         let started = Instant::now();

@@ -137,6 +137,10 @@ pub struct ModelArgs {
     /// ahead:N, predicted, predicted:P); other schedules ignore it [default: full].
     #[arg(long, value_parser = check_speculation)]
     pub speculation: Option<String>,
+    /// Workers load their next domains while they trace (as `submit --prefetch`; the dynamic
+    /// and predictive schedules): a prefetch's bytes come over the node's storage line.
+    #[arg(long)]
+    pub prefetch: bool,
 }
 
 fn check_speculation(s: &str) -> Result<String, String> {
@@ -193,6 +197,9 @@ impl ModelArgs {
         if let Some(s) = &self.speculation {
             f.push_str(&format!(" --speculation {s}"));
         }
+        if self.prefetch {
+            f.push_str(" --prefetch");
+        }
         f
     }
 
@@ -233,6 +240,7 @@ impl ModelArgs {
                 Schedule::Predictive => self.speculation.clone().unwrap_or_default(),
                 _ => String::new(),
             },
+            prefetch: self.prefetch,
         })
     }
 }

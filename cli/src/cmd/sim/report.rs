@@ -16,6 +16,12 @@ pub(super) fn print_row(schedule: Schedule, workers: usize, o: &Outcome, wall: f
         "{} at {workers} workers: {wall:.1} s of wall time",
         schedule_name(schedule)
     );
+    if o.prefetches > 0 {
+        eprintln!(
+            "  of its {} loads, {} prefetched: {} used, {} wasted",
+            o.loads, o.prefetches, o.prefetches_used, o.prefetches_wasted
+        );
+    }
     println!(
         "{:<12} {:>7} {:>12.3} {:>7} {:>12} {:>10} {:>10} {:>12} {:>9} {:>7} {:>8.2}  {}",
         schedule_name(schedule),
