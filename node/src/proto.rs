@@ -25,6 +25,7 @@ mod tests {
                     domain: 3,
                     workers: vec!["10.0.0.2:7000".into()],
                 }],
+                holders_delta: true,
             })),
         };
         let bytes = msg.encode_to_vec();

@@ -187,8 +187,9 @@ impl<S: RaySpill> Frame<S> {
         round: u64,
         work_on: impl IntoIterator<Item = u32>,
         holders: impl IntoIterator<Item = (u32, Vec<String>)>,
+        delta: bool,
     ) {
-        self.plan.set_round(round, work_on, holders);
+        self.plan.set_round(round, work_on, holders, delta);
         self.report = Report::Due;
     }
 
@@ -197,10 +198,14 @@ impl<S: RaySpill> Frame<S> {
         &self.plan
     }
 
-    /// Adopts new holders of the domains (another worker's plan changed); the rays that
-    /// leave for them are [`Frame::take_for_peers`]'s.
-    pub fn set_holders(&mut self, holders: impl IntoIterator<Item = (u32, Vec<String>)>) {
-        self.plan.set_holders(holders);
+    /// Adopts new holders of the domains (another worker's plan changed; `delta` as
+    /// [`Plan::set_holders`]); the rays that leave for them are [`Frame::take_for_peers`]'s.
+    pub fn set_holders(
+        &mut self,
+        holders: impl IntoIterator<Item = (u32, Vec<String>)>,
+        delta: bool,
+    ) {
+        self.plan.set_holders(holders, delta);
     }
 
     /// Records which domains are mapped here now.

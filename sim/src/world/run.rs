@@ -46,6 +46,8 @@ pub struct SimConfig {
     pub worker_timeout: Duration,
     /// The predictive schedule's speculation setting (`JobSpec.speculation`; empty: full).
     pub speculation: String,
+    /// Most events the run may take before it stops unfinished (`default_max_events`).
+    pub max_events: u64,
 }
 
 /// Kills by what the killed worker was doing.

@@ -19,7 +19,8 @@ use rayfarm_sim::net::LinkModel;
 use rayfarm_sim::node::QueueCaps;
 use rayfarm_sim::world::open_scene;
 use rayfarm_sim::{
-    ComputeCost, CostModel, FaultPlan, Outcome, RECONNECT, SimConfig, StorageModel, simulate,
+    ComputeCost, CostModel, FaultPlan, Outcome, RECONNECT, SimConfig, StorageModel,
+    default_max_events, simulate,
 };
 use rayon::prelude::*;
 
@@ -137,6 +138,10 @@ pub struct ModelArgs {
     /// ahead:N, predicted, predicted:P); other schedules ignore it [default: full].
     #[arg(long, value_parser = check_speculation)]
     pub speculation: Option<String>,
+    /// Most events one run may take before it stops unfinished [default: 1,000,000 a worker,
+    /// at least 20,000,000].
+    #[arg(long)]
+    pub max_events: Option<u64>,
 }
 
 fn check_speculation(s: &str) -> Result<String, String> {
@@ -193,6 +198,9 @@ impl ModelArgs {
         if let Some(s) = &self.speculation {
             f.push_str(&format!(" --speculation {s}"));
         }
+        if let Some(n) = self.max_events {
+            f.push_str(&format!(" --max-events {n}"));
+        }
         f
     }
 
@@ -233,6 +241,9 @@ impl ModelArgs {
                 Schedule::Predictive => self.speculation.clone().unwrap_or_default(),
                 _ => String::new(),
             },
+            max_events: self
+                .max_events
+                .unwrap_or_else(|| default_max_events(workers)),
         })
     }
 }
