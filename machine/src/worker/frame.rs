@@ -348,12 +348,15 @@ impl<S: RaySpill> Frame<S> {
         Ok(sorted.peers)
     }
 
-    /// Takes every queued ray that now has a holder elsewhere, grouped by peer.
+    /// Takes every queued ray that now has a holder elsewhere, grouped by peer. It looks at
+    /// the domains with rays queued here, not at every domain held elsewhere: this runs on
+    /// every plan and holders message, and at 1,024 workers over 8,192 domains walking the
+    /// held ones took two thirds of a simulated predictive frame's time (perf, README).
     pub fn take_for_peers(&mut self) -> Result<BTreeMap<String, Vec<RayRecord>>, QueueError> {
         let domains: Vec<u32> = self
-            .plan
-            .held_elsewhere()
-            .filter(|&d| self.plan.forwards(d) && d < self.queues.domains())
+            .queues
+            .non_empty()
+            .filter(|&d| self.plan.is_held_elsewhere(d) && self.plan.forwards(d))
             .collect();
         let mut queued = Vec::new();
         for d in domains {

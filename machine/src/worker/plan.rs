@@ -98,6 +98,11 @@ impl Plan {
         self.holders.keys().copied()
     }
 
+    /// Whether some other worker holds `domain` this round.
+    pub fn is_held_elsewhere(&self, domain: u32) -> bool {
+        self.holders.contains_key(&domain)
+    }
+
     /// Adopts a round's plan (its holders as [`Plan::set_holders`] takes them).
     pub fn set_round(
         &mut self,
