@@ -26,6 +26,7 @@ mod tests {
                     workers: vec!["10.0.0.2:7000".into()],
                 }],
                 next: vec![4],
+                holders_delta: true,
             })),
         };
         let bytes = msg.encode_to_vec();

@@ -33,4 +33,4 @@ pub use check::Violation;
 pub use cost::{ComputeCost, CostModel};
 pub use faults::{Fault, FaultPlan};
 pub use storage::StorageModel;
-pub use world::{Outcome, RECONNECT, SimConfig, simulate};
+pub use world::{Outcome, RECONNECT, SimConfig, default_max_events, simulate};

@@ -8,6 +8,7 @@ use std::collections::{BTreeMap, BTreeSet};
 
 use super::accusations::Accusations;
 use super::grants::Grants;
+use super::holders::{HolderMap, SentHolders};
 use crate::Time;
 
 use rayfarm_core::cluster::tile_sums;
@@ -123,6 +124,8 @@ pub struct RunningFrame {
     pub accusations: Accusations,
     /// Which member may send results of which tile.
     grants: Grants,
+    /// The holders the members were last told, so a round sends only what changed.
+    sent_holders: SentHolders,
     /// Tile results refused as impossible (each dropped its sender).
     pub refused_results: u64,
     /// The job's samples as subframes (one for a one-pass job), and the one being rendered:
@@ -188,6 +191,7 @@ impl RunningFrame {
             declined: Vec::new(),
             accusations: Accusations::default(),
             grants: Grants::new(tiles),
+            sent_holders: SentHolders::default(),
             refused_results: 0,
             subframes,
             subframe: 0,
@@ -283,6 +287,11 @@ impl RunningFrame {
                 workers: vec![self.members[&owner(d)].peer_address.clone()],
             })
             .collect();
+        // Every member gets the whole map; no asynchronous round follows these schedules'
+        // one plan, but the record stays true.
+        self.sent_holders
+            .update((0..domains).map(|d| (d, vec![owner(d)])).collect());
+        self.sent_holders.synced_only(keys.iter().copied());
         self.round = 1;
         keys.iter()
             .map(|&key| {
@@ -293,6 +302,7 @@ impl RunningFrame {
                     evict: Vec::new(),
                     holders: holders.clone(),
                     next: Vec::new(),
+                    holders_delta: false,
                 });
                 (key, msg(body))
             })
@@ -303,6 +313,7 @@ impl RunningFrame {
     /// learn its key and address.
     pub fn join(&mut self, key: u32, member: Member) -> Vec<Outgoing> {
         self.members.insert(key, member);
+        self.sent_holders.forget(key);
         self.touch(key);
         let roster = Body::Roster(proto::Roster {
             job_id: self.frame_id(),
@@ -335,6 +346,7 @@ impl RunningFrame {
     /// part, and no messages if no member is left (the caller decides the job's fate).
     pub fn lose(&mut self, key: u32) -> Option<Vec<Outgoing>> {
         let lost = self.members.remove(&key)?;
+        self.sent_holders.forget(key);
         self.touch(key);
         if self.members.is_empty() {
             return Some(Vec::new());
@@ -423,11 +435,16 @@ impl RunningFrame {
         };
         self.round += 1;
         self.planned_loads += plan.load_count() as u64;
-        let holders = self.holders(
-            plan.routes()
-                .into_iter()
-                .map(|(d, ws)| (d.0, ws.into_iter().map(|w| w.0).collect())),
-        );
+        let map: HolderMap = plan
+            .routes()
+            .into_iter()
+            .map(|(d, ws)| (d.0, ws.into_iter().map(|w| w.0).collect()))
+            .collect();
+        let holders = self.holders(map.clone());
+        // Only the planned members get this map, whole.
+        self.sent_holders.update(map);
+        self.sent_holders
+            .synced_only(plan.workers().iter().map(|p| p.worker.0));
         info!(
             round = self.round,
             loads = plan.load_count(),
@@ -436,17 +453,18 @@ impl RunningFrame {
         );
         plan.workers()
             .iter()
-            .map(|p| self.plan_message(p, &holders, Vec::new()))
+            .map(|p| self.plan_message(p, &holders, Vec::new(), false))
             .collect()
     }
 
-    /// `p` as this round's message to its worker, with the domains it will most likely be
-    /// given next (`next`, for its prefetch).
+    /// `p` as this round's message to its worker, with `holders` (only the changed ones if
+    /// `delta`) and the domains it will most likely be given next (`next`, for its prefetch).
     fn plan_message(
         &self,
         p: &WorkerPlan,
         holders: &[proto::DomainHolders],
         next: Vec<u32>,
+        delta: bool,
     ) -> Outgoing {
         debug!(worker = p.worker.0, keep = ?p.keep, load = ?p.load, evict = ?p.evict, ?next, "plan");
         let body = Body::RoundPlan(proto::RoundPlan {
@@ -456,6 +474,7 @@ impl RunningFrame {
             evict: p.evict.iter().map(|d| d.0).collect(),
             holders: holders.to_vec(),
             next,
+            holders_delta: delta,
         });
         (p.worker.0, msg(body))
     }
@@ -483,7 +502,9 @@ impl RunningFrame {
 
     /// Asynchronous rounds: plans every member that has run dry, from the latest reports of
     /// all, kept in `index` (the plans of `rounds::Cluster::dry_plans`, at the cost of the
-    /// dry members' plans); members whose plan did not change learn the new holders.
+    /// dry members' plans); members whose plan did not change learn the new holders. A member
+    /// that holds the last map sent gets only the domains whose holders changed
+    /// (`SentHolders`), so a round costs what it changed, not members x held domains.
     fn plan_dry_members(&mut self) -> Vec<Outgoing> {
         // In a subframe after the first, its first plan waits until every member has reported
         // once: the members hold what they loaded for the subframe before, but a member that
@@ -507,26 +528,48 @@ impl RunningFrame {
         self.round += 1;
         let (loads, _) = self.index.adopt(&mut self.members, &changed, self.round);
         self.planned_loads += loads;
-        let holders = self.holders(rounds::current_holders(&self.members));
+        let changes = self
+            .sent_holders
+            .update(rounds::current_holders(&self.members));
+        // Every holder in the map is named in `Grants`: those of changed domains here, the
+        // others when the map that first listed them was sent.
+        let delta = self.holders(changes);
+        let whole = if self.members.keys().all(|&k| self.sent_holders.is_synced(k)) {
+            Vec::new()
+        } else {
+            self.holders(self.sent_holders.sent().clone())
+        };
         debug!(
             round = self.round,
             planned = changed.len(),
+            changed_domains = delta.len(),
             "dry workers planned"
         );
         let next = self.next_domains(&changed);
         let mut out: Vec<Outgoing> = changed
             .iter()
             .zip(next)
-            .map(|(p, next)| self.plan_message(p, &holders, next))
+            .map(|(p, next)| {
+                let synced = self.sent_holders.is_synced(p.worker.0);
+                let holders = if synced { &delta } else { &whole };
+                self.plan_message(p, holders, next, synced)
+            })
             .collect();
         let planned: BTreeSet<u32> = changed.iter().map(|p| p.worker.0).collect();
         for &key in self.members.keys().filter(|k| !planned.contains(k)) {
+            let synced = self.sent_holders.is_synced(key);
+            if synced && delta.is_empty() {
+                continue;
+            }
             let body = Body::Holders(proto::Holders {
                 job_id: self.frame_id(),
-                holders: holders.clone(),
+                holders: if synced { delta.clone() } else { whole.clone() },
+                delta: synced,
             });
             out.push((key, msg(body)));
         }
+        self.sent_holders
+            .synced_only(self.members.keys().copied().collect::<Vec<_>>());
         out
     }
 

@@ -5,13 +5,15 @@
 //! members, their reports, the rounds of the dynamic schedule, tile dealing, losses and the
 //! tile ledger), its life around the rounds (`frame::lifecycle`: admission, restart epochs,
 //! judging accusations, the end), the judgement of workers' reports of unreachable peers
-//! (`accusations`), and which worker may send results of which tile (`grants`). The process
+//! (`accusations`), which worker may send results of which tile (`grants`), and what the
+//! members were last told of the domains' holders (`holders`). The process
 //! shell (`rayfarm-coordinator`) and the simulator feed it events and carry out its actions.
 
 pub mod accusations;
 pub mod cluster;
 pub mod frame;
 pub mod grants;
+pub mod holders;
 pub mod queue;
 
 pub use accusations::{Accusations, Verdict};

@@ -90,6 +90,8 @@ impl RunningFrame {
         self.grants = Grants::new(grid.count());
         self.hand_outs = HandOuts::default();
         self.accusations = Accusations::default();
+        // The workers open the next subframe as a new frame, with no holders yet.
+        self.sent_holders.reset();
         self.index = RoundIndex::new(
             self.domain_bytes.len() as u32,
             self.schedule == proto::Schedule::Predictive,

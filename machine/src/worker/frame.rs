@@ -198,8 +198,9 @@ impl<S: RaySpill> Frame<S> {
         round: u64,
         work_on: impl IntoIterator<Item = u32>,
         holders: impl IntoIterator<Item = (u32, Vec<String>)>,
+        delta: bool,
     ) {
-        self.plan.set_round(round, work_on, holders);
+        self.plan.set_round(round, work_on, holders, delta);
         self.prefetched.clear();
         self.report = Report::Due;
     }
@@ -259,10 +260,14 @@ impl<S: RaySpill> Frame<S> {
         &self.plan
     }
 
-    /// Adopts new holders of the domains (another worker's plan changed); the rays that
-    /// leave for them are [`Frame::take_for_peers`]'s.
-    pub fn set_holders(&mut self, holders: impl IntoIterator<Item = (u32, Vec<String>)>) {
-        self.plan.set_holders(holders);
+    /// Adopts new holders of the domains (another worker's plan changed; `delta` as
+    /// [`Plan::set_holders`]); the rays that leave for them are [`Frame::take_for_peers`]'s.
+    pub fn set_holders(
+        &mut self,
+        holders: impl IntoIterator<Item = (u32, Vec<String>)>,
+        delta: bool,
+    ) {
+        self.plan.set_holders(holders, delta);
     }
 
     /// Records which domains are mapped here now.
@@ -405,12 +410,15 @@ impl<S: RaySpill> Frame<S> {
         Ok(sorted.peers)
     }
 
-    /// Takes every queued ray that now has a holder elsewhere, grouped by peer.
+    /// Takes every queued ray that now has a holder elsewhere, grouped by peer. It looks at
+    /// the domains with rays queued here, not at every domain held elsewhere: this runs on
+    /// every plan and holders message, and at 1,024 workers over 8,192 domains walking the
+    /// held ones took two thirds of a simulated predictive frame's time (perf, README).
     pub fn take_for_peers(&mut self) -> Result<BTreeMap<String, Vec<RayRecord>>, QueueError> {
         let domains: Vec<u32> = self
-            .plan
-            .held_elsewhere()
-            .filter(|&d| self.plan.forwards(d) && d < self.queues.domains())
+            .queues
+            .non_empty()
+            .filter(|&d| self.plan.is_held_elsewhere(d) && self.plan.forwards(d))
             .collect();
         let mut queued = Vec::new();
         for d in domains {

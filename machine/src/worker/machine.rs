@@ -310,6 +310,7 @@ impl<S: RaySpill> Worker<S> {
             p.round,
             p.work_on.iter().copied(),
             p.holders.into_iter().map(|h| (h.domain, h.workers)),
+            p.holders_delta,
         );
         // The cache as the machine knows it: mapped at the last pass's end, less what this plan
         // evicts (the cache changes only in passes and by these actions). A pass running now
@@ -335,7 +336,10 @@ impl<S: RaySpill> Worker<S> {
         let Some(frame) = self.frame.as_mut().filter(|f| f.job_id == h.job_id) else {
             return;
         };
-        frame.set_holders(h.holders.into_iter().map(|h| (h.domain, h.workers)));
+        frame.set_holders(
+            h.holders.into_iter().map(|h| (h.domain, h.workers)),
+            h.delta,
+        );
         self.send_to_holders();
     }
 

@@ -107,40 +107,50 @@ impl Plan {
         self.next = next.into_iter().filter(|&d| d < self.domains).collect();
     }
 
-    /// Whether another worker holds `domain` this round.
-    pub fn is_held_elsewhere(&self, domain: u32) -> bool {
-        self.holders.contains_key(&domain)
-    }
-
     /// Domains some other worker holds this round.
     pub fn held_elsewhere(&self) -> impl Iterator<Item = u32> + '_ {
         self.holders.keys().copied()
     }
 
-    /// Adopts a round's plan.
+    /// Whether some other worker holds `domain` this round.
+    pub fn is_held_elsewhere(&self, domain: u32) -> bool {
+        self.holders.contains_key(&domain)
+    }
+
+    /// Adopts a round's plan (its holders as [`Plan::set_holders`] takes them).
     pub fn set_round(
         &mut self,
         round: u64,
         work_on: impl IntoIterator<Item = u32>,
         holders: impl IntoIterator<Item = (u32, Vec<String>)>,
+        delta: bool,
     ) {
         self.round = round;
         self.work_on = work_on.into_iter().collect();
-        self.set_holders(holders);
+        self.set_holders(holders, delta);
     }
 
     /// Adopts new holders of the domains, keeping this worker's own plan; this worker's own
-    /// address is left out.
-    pub fn set_holders(&mut self, holders: impl IntoIterator<Item = (u32, Vec<String>)>) {
-        let me = &self.me;
-        self.holders = holders
-            .into_iter()
-            .map(|(d, mut ws)| {
-                ws.retain(|w| w != me);
-                (d, ws)
-            })
-            .filter(|(_, ws)| !ws.is_empty())
-            .collect();
+    /// address is left out. `delta`: only the domains listed changed (one listed with no
+    /// holder left has none now), the others keep theirs; otherwise the list is the whole map.
+    /// Deltas keep the coordinator's broadcast of a round to what changed, where the whole
+    /// map to every member grew with workers x held domains (README "Simulator").
+    pub fn set_holders(
+        &mut self,
+        holders: impl IntoIterator<Item = (u32, Vec<String>)>,
+        delta: bool,
+    ) {
+        if !delta {
+            self.holders.clear();
+        }
+        for (d, mut ws) in holders {
+            ws.retain(|w| *w != self.me);
+            if ws.is_empty() {
+                self.holders.remove(&d);
+            } else {
+                self.holders.insert(d, ws);
+            }
+        }
     }
 
     /// Records which domains are mapped here now.
@@ -256,6 +266,7 @@ mod tests {
             1,
             [0],
             holders(&[(0, &["me:1"]), (1, &["a:1"]), (2, &["b:1"])]),
+            false,
         );
         let rays = vec![ray(0, 0, 0, 0), ray(0, 0, 1, 1), ray(1, 0, 2, 2)];
         let first = plan.sort(rays.clone());
@@ -263,11 +274,38 @@ mod tests {
         assert_eq!(first.peers["a:1"].len(), 1);
         assert_eq!(first.peers["b:1"].len(), 1);
         // The next plan moves domain 1 to c and gives domain 2 to no one else.
-        plan.set_holders(holders(&[(1, &["c:1"])]));
+        plan.set_holders(holders(&[(1, &["c:1"])]), false);
         let second = plan.sort(rays);
         assert_eq!(second.peers.keys().collect::<Vec<_>>(), ["c:1"]);
         assert_eq!(second.local[&2].len(), 1, "unheld domains wait here");
         assert_eq!(second.dropped, 0);
+    }
+
+    #[test]
+    fn a_delta_changes_only_the_domains_it_lists() {
+        let mut plan = Plan::new(Mode::Dynamic, 1, 4, "me:1".into());
+        plan.set_round(
+            1,
+            [],
+            holders(&[(0, &["a:1"]), (1, &["b:1"]), (2, &["c:1"])]),
+            false,
+        );
+        // Domain 0 moves to d, domain 1 has no holder now (listed empty, or only this worker),
+        // domain 2 is not listed and stays c's; domain 3 is new.
+        plan.set_holders(
+            holders(&[(0, &["d:1"]), (1, &["me:1"]), (3, &["a:1", "me:1"])]),
+            true,
+        );
+        let to = |d| plan.destination(&ray(0, 0, d, 0));
+        assert_eq!(to(0), Destination::Peer("d:1".into()));
+        assert_eq!(to(1), Destination::Local);
+        assert_eq!(to(2), Destination::Peer("c:1".into()));
+        assert_eq!(to(3), Destination::Peer("a:1".into()));
+        plan.set_holders(holders(&[(2, &[])]), true);
+        assert_eq!(plan.held_elsewhere().collect::<Vec<_>>(), [0, 3]);
+        // A whole map replaces everything.
+        plan.set_holders(holders(&[(1, &["b:1"])]), false);
+        assert_eq!(plan.held_elsewhere().collect::<Vec<_>>(), [1]);
     }
 
     #[test]
@@ -287,7 +325,7 @@ mod tests {
     #[test]
     fn holders_spread_by_pixel_and_lost_peers_are_forgotten() {
         let mut plan = Plan::new(Mode::Domain, 1, 1, "me:1".into());
-        plan.set_round(2, [], holders(&[(0, &["a:1", "b:1"])]));
+        plan.set_round(2, [], holders(&[(0, &["a:1", "b:1"])]), false);
         let to = |p| plan.destination(&ray(0, 0, 0, p));
         assert_eq!(to(0), Destination::Peer("a:1".into()));
         assert_eq!(to(1), Destination::Peer("b:1".into()));
@@ -304,7 +342,7 @@ mod tests {
     #[test]
     fn hybrid_keeps_camera_rays_only_while_demand_loads_are_on() {
         let mut plan = Plan::new(Mode::Hybrid { demand_loads: true }, 1, 2, "me:1".into());
-        plan.set_round(1, [0], holders(&[(1, &["a:1"])]));
+        plan.set_round(1, [0], holders(&[(1, &["a:1"])]), false);
         let camera = ray(0, 0, 1, 0);
         let bounce = RayRecord { depth: 1, ..camera };
         assert_eq!(plan.destination(&camera), Destination::Local);

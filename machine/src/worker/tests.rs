@@ -166,6 +166,7 @@ fn a_batch_goes_to_the_holder_the_latest_plan_names() {
         control(FromCoordinator::Holders(proto::Holders {
             job_id: JOB.into(),
             holders: holders_of(&[(1, "d:1")]),
+            delta: false,
         })),
     );
     let sent = rays_sent(&w.handle(Time(4), bundle(JOB, &rays)));
@@ -440,6 +441,7 @@ fn rays_leaving_for_a_new_holder_make_a_report_due_and_an_empty_move_does_not() 
         control(FromCoordinator::Holders(proto::Holders {
             job_id: JOB.into(),
             holders: holders_of(&[(2, w)]),
+            delta: false,
         }))
     };
     let actions = w.handle(Time(3), holders("b:1"));

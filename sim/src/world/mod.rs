@@ -36,9 +36,14 @@ pub use run::{Kills, MeasuredPass, Outcome, SimConfig};
 /// worker shell backs off from 100 ms to 5 s; one second stands for it here).
 pub const RECONNECT: Duration = Duration::from_secs(1);
 
-/// Most events one run may take (a machine that asks for a timer in the past forever would
-/// otherwise spin at one virtual instant).
-const MAX_EVENTS: u64 = 20_000_000;
+/// Most events a run of `workers` workers may take unless told (`SimConfig::max_events`): a
+/// machine that asks for a timer in the past forever would otherwise spin at one virtual
+/// instant. A frame's events grow with its workers (each runs its own passes, loads, reports
+/// and heartbeats), so a fixed cap stopped image-plane at 64 and 256 workers mid-frame
+/// (README "Simulator"): a million a worker, at least twenty million.
+pub fn default_max_events(workers: usize) -> u64 {
+    (workers as u64).saturating_mul(1_000_000).max(20_000_000)
+}
 
 /// What travels between nodes. Control-stream messages name their stream (`conn`): each
 /// registration opens a new one, and what was sent on a stream that has ended (the worker was
@@ -203,7 +208,7 @@ pub fn simulate(
     let bound = Time(0) + bound;
     let mut ended = false;
     while let Some((t, ev)) = world.heap.pop() {
-        if t > bound || world.heap.scheduled() > MAX_EVENTS {
+        if t > bound || world.heap.scheduled() > config.max_events {
             break;
         }
         world.now = t;
@@ -505,8 +510,11 @@ impl World<'_> {
         if o.frame_time.is_none() || !self.coord.all_written() {
             let why = if ended {
                 "the job ended without its image".to_string()
-            } else if o.events > MAX_EVENTS {
-                format!("more than {MAX_EVENTS} events without completing")
+            } else if o.events > self.config.max_events {
+                format!(
+                    "more than {} events without completing (--max-events)",
+                    self.config.max_events
+                )
             } else {
                 format!(
                     "not complete at the bound of {:.3} s virtual",

@@ -48,6 +48,8 @@ pub struct SimConfig {
     pub speculation: String,
     /// Workers load their next domains while they trace (`JobSpec.prefetch`).
     pub prefetch: bool,
+    /// Most events the run may take before it stops unfinished (`default_max_events`).
+    pub max_events: u64,
 }
 
 /// Kills by what the killed worker was doing.

@@ -19,7 +19,8 @@ use rayfarm_sim::net::LinkModel;
 use rayfarm_sim::node::QueueCaps;
 use rayfarm_sim::world::open_scene;
 use rayfarm_sim::{
-    ComputeCost, CostModel, FaultPlan, Outcome, RECONNECT, SimConfig, StorageModel, simulate,
+    ComputeCost, CostModel, FaultPlan, Outcome, RECONNECT, SimConfig, StorageModel,
+    default_max_events, simulate,
 };
 use rayon::prelude::*;
 
@@ -141,6 +142,10 @@ pub struct ModelArgs {
     /// and predictive schedules): a prefetch's bytes come over the node's storage line.
     #[arg(long)]
     pub prefetch: bool,
+    /// Most events one run may take before it stops unfinished [default: 1,000,000 a worker,
+    /// at least 20,000,000].
+    #[arg(long)]
+    pub max_events: Option<u64>,
 }
 
 fn check_speculation(s: &str) -> Result<String, String> {
@@ -200,6 +205,9 @@ impl ModelArgs {
         if self.prefetch {
             f.push_str(" --prefetch");
         }
+        if let Some(n) = self.max_events {
+            f.push_str(&format!(" --max-events {n}"));
+        }
         f
     }
 
@@ -241,6 +249,9 @@ impl ModelArgs {
                 _ => String::new(),
             },
             prefetch: self.prefetch,
+            max_events: self
+                .max_events
+                .unwrap_or_else(|| default_max_events(workers)),
         })
     }
 }
