@@ -72,11 +72,11 @@ const MEMORY_SLACK: f64 = 0.10;
 const STORE_CACHE_BYTES: u64 = 1 << 20;
 
 /// The allowance for a worker's heap in use in a soak shorter than [`WARM_SECS`], with
-/// [`WORKER_BYTES_SHORT`]: a worker's live objects between jobs swing with what its last
-/// frames left in per-peer and connection state, and with bundles it holds for frames it has
-/// not started or was left out of (kept up to 30 s): 3.0-4.4 MiB at the quiet points of one
-/// 150 s soak with no trend over 377 jobs; in another (seed 7) 3.15 MiB from halfway and 4.82
-/// over the last window, where a second run of the same seed passed. A leak of the
+/// [`WORKER_BYTES_SHORT`]: a worker's live objects between jobs swing (per-peer and
+/// connection state, bundles held up to 30 s for frames it has not started or was left out
+/// of): 3.0-4.4 MiB at the quiet points of one 150 s soak with no trend over 377 jobs. Under
+/// seed 7 they rose 3.15 -> 4.82 and 3.05 -> 3.89 MiB over the second half in two runs; what
+/// holds that is not yet found, and the long soak checks 10%. A leak of the
 /// coordinator's old kind (17 KiB a job, over 4 MiB in a short soak's second half) would
 /// still show. Its RssAnon is not checked in short soaks: at the quiet points of three 150 s
 /// soaks it went 11.3 -> 12.9 MiB, 11.6 -> 14.2 and 12.8 -> 16.0 over the second half while
