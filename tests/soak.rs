@@ -72,16 +72,23 @@ const MEMORY_SLACK: f64 = 0.10;
 const STORE_CACHE_BYTES: u64 = 1 << 20;
 
 /// The allowance for a worker's heap in use in a soak shorter than [`WARM_SECS`], with
-/// [`WORKER_BYTES_SHORT`]: a worker's live objects between jobs swing (per-peer and
-/// connection state, bundles held up to 30 s for frames it has not started or was left out
-/// of): 3.0-4.4 MiB at the quiet points of one 150 s soak with no trend over 377 jobs. Under
-/// seed 7 they rose 3.15 -> 4.82 and 3.05 -> 3.89 MiB over the second half in two runs; what
-/// holds that is not yet found, and the long soak checks 10%. A leak of the
+/// [`WORKER_BYTES_SHORT`]: a worker's live objects between jobs swing: 3.0-4.4 MiB at the quiet
+/// points of one 150 s soak with no trend over 377 jobs; under seed 7 the floor rose 3.15 ->
+/// 4.82 and 3.05 -> 3.89 MiB over the second half in two runs and held (3.26 -> 3.21) in a
+/// third. What swings: heaptrack attached to worker 0 over the second half of seed 7 found,
+/// of what was still held at the end, 0.8 MiB in the decode buffers of 11 inbound peer streams
+/// and 0.7 MiB in the encode buffers of outbound ones (tonic keeps each stream's buffer at the
+/// largest bundle it carried, up to the bundler's 256 KiB migrated and 1 MiB tasks bundles),
+/// (and 1.2 MiB in decoded verdicts and pass outputs, which a frame holds while it runs: the
+/// worker was killed as the last job ended, so this run does not show whether they outlive a
+/// frame; the quiet points say they do not grow). Streams come and go with replaced workers
+/// (a dead peer's connection is closed by the keepalive within 30 s), so the sum moves by a
+/// MiB or two from one quiet point to the next, bounded by peers x bundle size. A leak of the
 /// coordinator's old kind (17 KiB a job, over 4 MiB in a short soak's second half) would
-/// still show. Its RssAnon is not checked in short soaks: at the quiet points of three 150 s
-/// soaks it went 11.3 -> 12.9 MiB, 11.6 -> 14.2 and 12.8 -> 16.0 over the second half while
-/// its heap in use went 3.56 -> 2.97 MiB in the last: pages the allocator holds, not objects
-/// kept.
+/// still show, and the long soak checks 10%. Its RssAnon is not checked in short soaks: at
+/// the quiet points of three 150 s soaks it went 11.3 -> 12.9 MiB, 11.6 -> 14.2 and 12.8 ->
+/// 16.0 over the second half while its heap in use went 3.56 -> 2.97 MiB in the last: pages
+/// the allocator holds, not objects kept.
 const WORKER_SLACK_SHORT: f64 = 0.25;
 
 /// See [`WORKER_SLACK_SHORT`].
