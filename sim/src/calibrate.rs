@@ -24,6 +24,10 @@
 use std::sync::Arc;
 use std::time::Duration;
 
+use bytes::Bytes;
+use rayfarm_core::bundler::Tier;
+use rayfarm_core::wire::{self, BatchLimits};
+
 use rayfarm_core::schedule::dynamic::Options;
 use rayfarm_core::schedule::round_index::RoundIndex;
 use rayfarm_core::schedule::rounds::current_holders;
@@ -64,6 +68,16 @@ pub struct Calibration {
     /// planned from the whole cluster.
     pub round_fit_error: f64,
     pub whole_round_fit_error: f64,
+    /// Peer bundles received in the run, and the fit of their receiving (decoding and the
+    /// worker machine's handling) as `bundle + byte x B`: coefficients and error.
+    pub bundles_received: usize,
+    pub receive: ([f64; 2], f64),
+    /// The fit of encoding a bundle's batches (what the sending worker's bundler does), over
+    /// the bundles that kept their batches.
+    pub encode: ([f64; 2], f64),
+    /// Those bundles, (tier as the protocol numbers it, batches), for timing their transport
+    /// over gRPC (the CLI's `transport`).
+    pub bundles: Vec<(i32, Vec<Bytes>)>,
 }
 
 /// Least squares with non-negative coefficients: `rows` of (features, value); a feature
@@ -191,6 +205,26 @@ pub fn calibrate(
     let volumes = passes.iter().any(|p| p.counters.volume_samples > 0);
     let rounds = time_rounds();
     let (round_coef, round_fit_error, whole_coef, whole_round_fit_error) = fit_rounds(&rounds);
+    let received = &outcome.measured_bundles;
+    let receive = fit_per_byte(
+        &received
+            .iter()
+            .map(|b| (b.bytes, b.cpu_ns as f64))
+            .collect::<Vec<_>>(),
+    );
+    let kept: Vec<(Tier, Vec<Bytes>)> = received
+        .iter()
+        .filter_map(|b| Some((b.tier, b.batches.clone()?)))
+        .collect();
+    let encode = fit_per_byte(
+        &kept
+            .iter()
+            .filter_map(|(tier, batches)| {
+                let bytes = batches.iter().map(Bytes::len).sum();
+                Some((bytes, time_encode(*tier, batches)?))
+            })
+            .collect::<Vec<_>>(),
+    );
     Ok(Calibration {
         cost: ComputeCost {
             pass_ns: pass_coef[0],
@@ -209,6 +243,13 @@ pub fn calibrate(
             whole_round_ns: whole_coef[0],
             whole_round_member_ns: whole_coef[1],
             whole_round_domain_ns: whole_coef[2],
+            // What this run timed: encoding on the sender, decoding and the machine on the
+            // receiver; the gRPC stream between them is the caller's to add (it needs a
+            // runtime and sockets: the CLI's `transport`).
+            bundle_send_ns: encode.0[0],
+            bundle_send_byte_ns: encode.0[1],
+            bundle_receive_ns: receive.0[0],
+            bundle_receive_byte_ns: receive.0[1],
         },
         passes: passes.len(),
         pass_cpu: Duration::from_nanos(passes.iter().map(|p| p.cpu_ns).sum()),
@@ -216,7 +257,75 @@ pub fn calibrate(
         rounds,
         round_fit_error,
         whole_round_fit_error,
+        bundles_received: received.len(),
+        receive,
+        encode,
+        bundles: kept
+            .into_iter()
+            .map(|(tier, b)| (proto_tier(tier), b))
+            .collect(),
     })
+}
+
+/// Fits `ns = bundle + byte x bytes` to (bytes, ns) rows: the coefficients and the fit's
+/// error; zeros with fewer than two rows (a run with no peer traffic).
+fn fit_per_byte(rows: &[(usize, f64)]) -> ([f64; 2], f64) {
+    if rows.len() < 2 {
+        return ([0.0; 2], 0.0);
+    }
+    let (c, e) = fit(&rows
+        .iter()
+        .map(|&(bytes, ns)| (vec![1.0, bytes as f64], ns))
+        .collect::<Vec<_>>());
+    ([c[0], c[1]], e)
+}
+
+/// CPU time here of encoding `batches` again as the sending worker's bundler encodes them
+/// (`wire::encode_batch`, `wire::encode_verdicts`), the fastest of three; `None` if they do
+/// not decode.
+fn time_encode(tier: Tier, batches: &[Bytes]) -> Option<f64> {
+    let limits = BatchLimits::any_frame(1 << 20);
+    let best = if tier == Tier::Results {
+        let verdicts: Vec<_> = batches
+            .iter()
+            .map(|b| wire::decode_verdicts(b, &limits).ok())
+            .collect::<Option<_>>()?;
+        (0..3)
+            .map(|_| {
+                let start = thread_cpu_ns();
+                for v in &verdicts {
+                    std::hint::black_box(wire::encode_verdicts(v));
+                }
+                thread_cpu_ns().saturating_sub(start)
+            })
+            .min()
+    } else {
+        let rays: Vec<_> = batches
+            .iter()
+            .map(|b| wire::decode_batch(b, &limits).ok())
+            .collect::<Option<_>>()?;
+        (0..3)
+            .map(|_| {
+                let start = thread_cpu_ns();
+                for r in &rays {
+                    std::hint::black_box(wire::encode_batch(r));
+                }
+                thread_cpu_ns().saturating_sub(start)
+            })
+            .min()
+    };
+    best.map(|ns| ns as f64)
+}
+
+/// `tier` as the peer protocol numbers it.
+fn proto_tier(tier: Tier) -> i32 {
+    let t = match tier {
+        Tier::Control => rayfarm_proto::Tier::Control,
+        Tier::Results => rayfarm_proto::Tier::Results,
+        Tier::Migrated => rayfarm_proto::Tier::Migrated,
+        Tier::Tasks => rayfarm_proto::Tier::Tasks,
+    };
+    t as i32
 }
 
 fn pass_row(p: &MeasuredPass) -> (Vec<f64>, f64) {

@@ -46,6 +46,16 @@ pub struct ComputeCost {
     pub whole_round_member_ns: f64,
     /// A whole-cluster round's cost per domain.
     pub whole_round_domain_ns: f64,
+    /// Sending one peer bundle, per bundle: the sender encoding its rays and its half of the
+    /// gRPC stream (protobuf, HTTP/2, the socket).
+    pub bundle_send_ns: f64,
+    /// Sending a peer bundle, per byte of its batches.
+    pub bundle_send_byte_ns: f64,
+    /// Receiving one peer bundle, per bundle: the receiver's half of the gRPC stream,
+    /// decoding its batches, the worker machine queueing them, the acknowledgement.
+    pub bundle_receive_ns: f64,
+    /// Receiving a peer bundle, per byte of its batches.
+    pub bundle_receive_byte_ns: f64,
 }
 
 impl Default for ComputeCost {
@@ -55,18 +65,22 @@ impl Default for ComputeCost {
     /// "Benchmarks", unlit, skipping on).
     fn default() -> Self {
         ComputeCost {
-            pass_ns: 28_000.0,
-            radiance_segment_ns: 224.2,
-            shadow_segment_ns: 249.5,
-            camera_sample_ns: 149.0,
+            pass_ns: 24_300.0,
+            radiance_segment_ns: 234.4,
+            shadow_segment_ns: 264.2,
+            camera_sample_ns: 144.2,
             volume_sample_ns: 71.0,
             round_ns: 0.0,
-            round_planned_ns: 4_187.0,
-            round_member_ns: 326.8,
-            round_domain_ns: 43.1,
+            round_planned_ns: 3_395.0,
+            round_member_ns: 323.8,
+            round_domain_ns: 49.7,
             whole_round_ns: 0.0,
-            whole_round_member_ns: 14_168.0,
-            whole_round_domain_ns: 1_696.0,
+            whole_round_member_ns: 12_519.0,
+            whole_round_domain_ns: 1_443.0,
+            bundle_send_ns: 3_717.0,
+            bundle_send_byte_ns: 0.759,
+            bundle_receive_ns: 10_534.0,
+            bundle_receive_byte_ns: 1.809,
         }
     }
 }
@@ -102,6 +116,10 @@ impl ComputeCost {
             ("whole_round_ns", self.whole_round_ns),
             ("whole_round_member_ns", self.whole_round_member_ns),
             ("whole_round_domain_ns", self.whole_round_domain_ns),
+            ("bundle_send_ns", self.bundle_send_ns),
+            ("bundle_send_byte_ns", self.bundle_send_byte_ns),
+            ("bundle_receive_ns", self.bundle_receive_ns),
+            ("bundle_receive_byte_ns", self.bundle_receive_byte_ns),
         ];
         for (name, v) in all {
             if !(0.0..=1e9).contains(&v) {
@@ -118,6 +136,10 @@ pub struct CostModel {
     pub compute: ComputeCost,
     /// Tracing threads per worker.
     pub threads: u32,
+    /// Cores shared by every simulated worker (`--cores`): passes' computing and bundles'
+    /// handling wait for one of them, as on one machine running the whole cluster (the
+    /// validation's `rayfarm bench`); `None`, every worker on machines of its own.
+    pub cores: Option<u32>,
 }
 
 impl Default for CostModel {
@@ -125,6 +147,7 @@ impl Default for CostModel {
         CostModel {
             compute: ComputeCost::default(),
             threads: 1,
+            cores: None,
         }
     }
 }
@@ -151,6 +174,18 @@ impl CostModel {
         nanos(self.pass_work_ns(c) / f64::from(self.threads.max(1)))
     }
 
+    /// Virtual time the sender spends on a peer bundle of `bytes` bytes of batches.
+    pub fn bundle_send(&self, bytes: usize) -> Duration {
+        let p = &self.compute;
+        nanos(p.bundle_send_ns + p.bundle_send_byte_ns * bytes as f64)
+    }
+
+    /// Virtual time the receiver spends on a peer bundle of `bytes` bytes of batches.
+    pub fn bundle_receive(&self, bytes: usize) -> Duration {
+        let p = &self.compute;
+        nanos(p.bundle_receive_ns + p.bundle_receive_byte_ns * bytes as f64)
+    }
+
     /// Virtual time of the planning rounds `work` counts, over a scene of `domains` domains.
     pub fn planning(&self, work: &PlanningWork, domains: usize) -> Duration {
         let p = &self.compute;
@@ -174,6 +209,7 @@ mod tests {
     fn a_pass_costs_its_work_over_its_threads_and_a_round_what_it_planned() {
         let m = CostModel {
             threads: 2,
+            cores: None,
             compute: ComputeCost {
                 pass_ns: 1000.0,
                 radiance_segment_ns: 500.0,
@@ -187,6 +223,10 @@ mod tests {
                 whole_round_ns: 5000.0,
                 whole_round_member_ns: 1000.0,
                 whole_round_domain_ns: 50.0,
+                bundle_send_ns: 2000.0,
+                bundle_send_byte_ns: 0.5,
+                bundle_receive_ns: 3000.0,
+                bundle_receive_byte_ns: 0.25,
             },
         };
         let c = KernelCounters {
@@ -211,6 +251,9 @@ mod tests {
             m.planning(&work, 512),
             Duration::from_nanos(4304 + 400 + 94_600)
         );
+        // A bundle of 4,000 bytes: 2000 + 2000 ns to send, 3000 + 1000 ns to receive.
+        assert_eq!(m.bundle_send(4000), Duration::from_nanos(4000));
+        assert_eq!(m.bundle_receive(4000), Duration::from_nanos(4000));
         // What the rounds planned moves the price, not the cluster's size alone.
         let one = PlanningWork {
             rounds: 1,
