@@ -50,7 +50,8 @@ pub enum Rounds {
 /// from the whole cluster (its cost follows the cluster's members and domains).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct PlanningWork {
-    /// Rounds planned, of both kinds.
+    /// Rounds planned, of every kind (the static schedules' one plan, the owner map, counts
+    /// as a round that drafted no member: its cost follows the domains).
     pub rounds: u64,
     /// Of them, the rounds planned from the whole cluster.
     pub whole_rounds: u64,
@@ -79,6 +80,12 @@ impl PlanningWork {
         self.rounds += 1;
         self.whole_rounds += 1;
         self.whole_members += members as u64;
+    }
+
+    /// The static schedules' one plan: every domain to its owner by a hash, drafting no
+    /// member (its cost follows the domains only).
+    fn owner_map(&mut self) {
+        self.rounds += 1;
     }
 
     /// One incremental round that planned `planned` of `members` members.
@@ -343,6 +350,7 @@ impl RunningFrame {
             .update((0..domains).map(|d| (d, vec![owner(d)])).collect());
         self.sent_holders.synced_only(keys.iter().copied());
         self.round = 1;
+        self.planning.owner_map();
         keys.iter()
             .map(|&key| {
                 let body = Body::RoundPlan(proto::RoundPlan {
