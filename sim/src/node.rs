@@ -124,6 +124,9 @@ pub struct SimWorker {
     /// When its line to the storage is free: its loads, a pass's and a prefetch's, are read
     /// one after another.
     io_free_at: Time,
+    /// When its shell is done with the bundles it sent and received so far: a worker's
+    /// messages are handled one after another, beside its passes.
+    pub msg_free_at: Time,
     pub links: BTreeMap<String, PeerLink>,
     pub next_bundle: u64,
     scene: Arc<Scene>,
@@ -155,6 +158,7 @@ impl SimWorker {
             pass_until: None,
             tick_at: None,
             io_free_at: Time(0),
+            msg_free_at: Time(0),
             links: BTreeMap::new(),
             next_bundle: 0,
             scene,

@@ -30,7 +30,7 @@ use crate::storage::SharedStorage;
 mod run;
 mod workers;
 
-pub use run::{Kills, MeasuredPass, Outcome, SimConfig};
+pub use run::{KEPT_BUNDLES, Kills, MeasuredBundle, MeasuredPass, Outcome, SimConfig};
 
 /// How long a worker whose control stream ended waits before it registers again (the
 /// worker shell backs off from 100 ms to 5 s; one second stands for it here).
@@ -71,6 +71,13 @@ enum Msg {
 
 enum Ev {
     Deliver {
+        from: NodeId,
+        to: NodeId,
+        msg: Msg,
+    },
+    /// A bundle whose handling on the receiver's shell is done (it waited for the shell and
+    /// took its receiving price).
+    Received {
         from: NodeId,
         to: NodeId,
         msg: Msg,
@@ -132,6 +139,11 @@ struct World<'a> {
     disk_at: Option<Time>,
     /// Control streams opened so far.
     conns: u64,
+    /// When each of the cores every worker shares is free (`CostModel::cores`); empty when
+    /// every worker has its own.
+    cores: Vec<Time>,
+    /// CPU time of the machine's handling of the last bundle fed, when measured.
+    handled_ns: Option<u64>,
 }
 
 /// Opens the scene a simulation reads (once for many runs).
@@ -197,6 +209,8 @@ pub fn simulate(
         outcome: Outcome::default(),
         disk_at: None,
         conns: 0,
+        cores: vec![Time(0); config.cost.cores.unwrap_or(0) as usize],
+        handled_ns: None,
     };
     for _ in 0..config.workers {
         world.spawn()?;
@@ -305,6 +319,29 @@ impl World<'_> {
             .position(|w| w.as_ref().is_some_and(|w| w.address == address))
     }
 
+    /// When computing `work` that can start at `ready` ends: at once on the worker's own
+    /// cores, or on the earliest free of the cores every worker shares (`--cores`), which it
+    /// holds until then (first come, first served, no preemption).
+    fn compute(&mut self, ready: Time, work: Duration) -> Time {
+        let Some(core) = self.cores.iter_mut().min() else {
+            return ready + work;
+        };
+        let start = ready.max(*core);
+        *core = start + work;
+        *core
+    }
+
+    /// When handling a message, `work` that can start at `ready`, ends: it never waits for a
+    /// shared core (the operating system slices a short task in beside the passes), but it
+    /// takes its time from the earliest free one, so the computing that starts there next
+    /// starts that much later.
+    fn steal(&mut self, ready: Time, work: Duration) -> Time {
+        if let Some(core) = self.cores.iter_mut().min() {
+            *core = (*core).max(ready) + work;
+        }
+        ready + work
+    }
+
     fn send(&mut self, from: NodeId, to: NodeId, msg: Msg) {
         self.send_at(self.now, from, to, msg);
     }
@@ -332,6 +369,7 @@ impl World<'_> {
         match ev {
             Ev::Deliver { from, to, msg } if to == COORDINATOR => self.at_coordinator(from, msg),
             Ev::Deliver { from, to, msg } => self.at_worker(from, to, msg),
+            Ev::Received { from, to, msg } => self.take_bundle(from, to, msg),
             Ev::PassDone { node, job_id, run } => {
                 let Some(w) = self.worker_mut(node) else {
                     return;

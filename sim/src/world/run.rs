@@ -98,7 +98,25 @@ pub struct Outcome {
     pub storage_bytes: u64,
     /// Every pass that loaded nothing, with the CPU time it took here, when measured.
     pub measured: Vec<MeasuredPass>,
+    /// Every peer bundle received, with the CPU time its decoding and the machine's handling
+    /// took here, when measured.
+    pub measured_bundles: Vec<MeasuredBundle>,
 }
+
+/// A peer bundle received and what decoding it and handing it to the worker machine cost on
+/// this machine (`calibrate` fits the receiving prices to these); the first
+/// [`KEPT_BUNDLES`] keep their batches, which `calibrate` times encoding and sending with.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MeasuredBundle {
+    pub tier: rayfarm_core::bundler::Tier,
+    /// Bytes of its batches.
+    pub bytes: usize,
+    pub cpu_ns: u64,
+    pub batches: Option<Vec<bytes::Bytes>>,
+}
+
+/// Measured bundles that keep their batches.
+pub const KEPT_BUNDLES: usize = 2000;
 
 /// A pass's work and what it cost on this machine (`calibrate` fits the prices to these).
 #[derive(Clone, Debug, PartialEq)]

@@ -8,9 +8,10 @@ use rayfarm_core::wire::{self, BatchLimits};
 use rayfarm_machine::worker::{self as machine, Action, Payload};
 use rayfarm_proto::{self as proto, coordinator_message::Body, worker_message::Body as FromWorker};
 
+use crate::calibrate::thread_cpu_ns;
 use crate::net::{COORDINATOR, NodeId};
 
-use super::{Ev, Msg, RECONNECT, World};
+use super::{Ev, KEPT_BUNDLES, MeasuredBundle, Msg, RECONNECT, World};
 
 impl World<'_> {
     pub(super) fn kill(&mut self, node: NodeId) {
@@ -34,6 +35,23 @@ impl World<'_> {
 
     pub(super) fn at_worker(&mut self, from: NodeId, to: NodeId, msg: Msg) {
         let now = self.now;
+        if let Msg::Bundle { batches, .. } = &msg {
+            // The shell takes it in after the bundles before it, for its receiving price.
+            let bytes = batches.iter().map(Bytes::len).sum();
+            let cost = self.config.cost.bundle_receive(bytes);
+            let Some(free) = self.worker(to).map(|w| w.msg_free_at) else {
+                return;
+            };
+            if !cost.is_zero() {
+                let done = self.steal(now.max(free), cost);
+                if let Some(w) = self.worker_mut(to) {
+                    w.msg_free_at = done;
+                }
+                self.heap.push(done, Ev::Received { from, to, msg });
+                return;
+            }
+            return self.take_bundle(from, to, msg);
+        }
         let Some(w) = self.worker_mut(to) else { return };
         match msg {
             // What was sent on an older stream than the worker's is for nobody.
@@ -54,32 +72,6 @@ impl World<'_> {
                 // The shell reconnects; a worker sidelined for this frame sits it out.
                 self.heap.push(now + RECONNECT, Ev::Reregister { node: to });
             }
-            Msg::Bundle {
-                sender,
-                job_id,
-                tier,
-                batches,
-                seq,
-            } => {
-                if w.is_stuck(now) {
-                    return;
-                }
-                let me = w.address.clone();
-                match decode(tier, &batches) {
-                    Ok(payload) => self.feed(
-                        to,
-                        machine::Event::PeerBundle {
-                            sender,
-                            job_id,
-                            payload,
-                        },
-                    ),
-                    Err(e) => self
-                        .checks
-                        .violation("bundle", format!("undecodable bundle: {e}")),
-                }
-                self.send(to, from, Msg::Ack { from: me, seq });
-            }
             Msg::Ack { from: peer, seq } => {
                 if let Some(link) = w.links.get_mut(&peer) {
                     while link.owed.front().is_some_and(|&(s, _)| s <= seq) {
@@ -87,19 +79,76 @@ impl World<'_> {
                     }
                 }
             }
-            Msg::Register(..) | Msg::ToCoordinator(..) | Msg::StreamEnded(_) => {}
+            Msg::Register(..)
+            | Msg::ToCoordinator(..)
+            | Msg::StreamEnded(_)
+            | Msg::Bundle { .. } => {}
         }
+    }
+
+    /// A peer bundle the shell of `to` has taken in: decoded, handed to the machine and
+    /// acknowledged (with `measure`, the decoding's and the machine's CPU time recorded).
+    pub(super) fn take_bundle(&mut self, from: NodeId, to: NodeId, msg: Msg) {
+        let now = self.now;
+        let Msg::Bundle {
+            sender,
+            job_id,
+            tier,
+            batches,
+            seq,
+        } = msg
+        else {
+            return;
+        };
+        let Some(w) = self.worker_mut(to) else { return };
+        if w.is_stuck(now) {
+            return;
+        }
+        let me = w.address.clone();
+        let measure = self.config.measure;
+        let started = measure.then(thread_cpu_ns);
+        let decoded = decode(tier, &batches);
+        let decode_ns = started.map(|s| thread_cpu_ns().saturating_sub(s));
+        match decoded {
+            Ok(payload) => self.feed(
+                to,
+                machine::Event::PeerBundle {
+                    sender,
+                    job_id,
+                    payload,
+                },
+            ),
+            Err(e) => self
+                .checks
+                .violation("bundle", format!("undecodable bundle: {e}")),
+        }
+        if let (Some(decode_ns), Some(handled_ns)) = (decode_ns, self.handled_ns.take()) {
+            let kept = self.outcome.measured_bundles.len() < KEPT_BUNDLES;
+            self.outcome.measured_bundles.push(MeasuredBundle {
+                tier,
+                bytes: batches.iter().map(Bytes::len).sum(),
+                cpu_ns: decode_ns + handled_ns,
+                batches: kept.then_some(batches),
+            });
+        }
+        self.send(to, from, Msg::Ack { from: me, seq });
     }
 
     /// Hands `event` to the machine of `node` and carries out its actions.
     pub(super) fn feed(&mut self, node: NodeId, event: machine::Event<machine::MemorySpill>) {
         let now = self.now;
+        // Only the machine's own handling is timed: the actions it asks for (a pass among
+        // them) are carried out below.
+        let timed = self.config.measure && matches!(event, machine::Event::PeerBundle { .. });
         let Some(w) = self.worker_mut(node) else {
             return;
         };
+        let started = timed.then(thread_cpu_ns);
         let actions = w.machine.handle(now, event);
+        let handled = started.map(|s| thread_cpu_ns().saturating_sub(s));
         let (queued, cap) = w.queued_bytes();
         let (early, early_cap) = (w.machine.early_bytes(), w.early_cap);
+        self.handled_ns = handled;
         self.checks.caps(queued, cap, early, early_cap);
         for a in actions {
             self.action(node, a);
@@ -137,6 +186,9 @@ impl World<'_> {
                 tier,
                 batches,
             } => {
+                let bytes: usize = batches.iter().map(Bytes::len).sum();
+                let send_cost = cost.bundle_send(bytes);
+                let free = w.msg_free_at;
                 let seq = w.next_bundle;
                 w.next_bundle += 1;
                 w.links
@@ -153,8 +205,19 @@ impl World<'_> {
                         seq,
                     },
                 );
+                // It leaves once the sender's shell has handled it, after the bundles before it.
+                let depart = if send_cost.is_zero() {
+                    now
+                } else {
+                    let done = self.steal(now.max(free), send_cost);
+                    if let Some(w) = self.worker_mut(node) {
+                        w.msg_free_at = done;
+                    }
+                    done
+                };
                 if let Some(to) = self.node_of(&peer) {
-                    self.send(
+                    self.send_at(
+                        depart,
                         node,
                         to,
                         Msg::Bundle {
@@ -177,8 +240,12 @@ impl World<'_> {
                     return;
                 };
                 let run = w.run_pass(now, &job_id, work, &cost, &mut self.storage, measure);
-                let until = now + run.took;
-                w.pass_until = Some((until, now + run.load_time));
+                // Its loads on the node's line, then its computing on a core.
+                let loaded_at = now + run.load_time;
+                let until = self.compute(loaded_at, run.took.saturating_sub(run.load_time));
+                if let Some(w) = self.worker_mut(node) {
+                    w.pass_until = Some((until, loaded_at));
+                }
                 self.outcome.loads += run.loads;
                 self.heap.push(until, Ev::PassDone { node, job_id, run });
             }

@@ -9,7 +9,7 @@ use rayfarm_node::job::parse_schedule;
 use rayfarm_sim::calibrate::calibrate;
 use rayfarm_sim::world::open_scene;
 
-use super::ModelArgs;
+use super::{ModelArgs, transport};
 
 /// Options of `rayfarm sim calibrate`.
 #[derive(Args, Clone, Debug)]
@@ -30,6 +30,20 @@ pub struct CalibrateArgs {
     pub model: ModelArgs,
 }
 
+/// Fits `ns = bundle + byte x bytes` to the transport's timings: coefficients and error.
+fn fit_transport(samples: &[transport::TransportSample]) -> ([f64; 2], f64) {
+    if samples.len() < 2 {
+        return ([0.0; 2], 0.0);
+    }
+    let (c, e) = rayfarm_sim::calibrate::fit(
+        &samples
+            .iter()
+            .map(|t| (vec![1.0, t.bytes as f64], t.ns))
+            .collect::<Vec<_>>(),
+    );
+    ([c[0], c[1]], e)
+}
+
 /// `rayfarm sim calibrate`: measures, prints and writes the prices.
 pub(super) fn run_calibrate(c: CalibrateArgs) -> anyhow::Result<()> {
     let schedule = parse_schedule(c.schedule.trim()).map_err(anyhow::Error::msg)?;
@@ -38,7 +52,23 @@ pub(super) fn run_calibrate(c: CalibrateArgs) -> anyhow::Result<()> {
         .with_context(|| format!("scene {}", c.scene.display()))?;
     let config = c.model.config(&c.scene, c.workers.max(1), schedule)?;
     let defaults = config.cost.compute;
-    let cal = calibrate(&config, scene, defaults).map_err(anyhow::Error::msg)?;
+    let mut cal = calibrate(&config, scene, defaults).map_err(anyhow::Error::msg)?;
+    // Peer bundles: the sender's encoding and the receiver's decoding and handling timed in
+    // the run, the gRPC stream between them over loopback; its cost split evenly between the
+    // two ends.
+    let threads = std::thread::available_parallelism().map_or(2, |n| n.get());
+    let transport = if cal.bundles.len() >= 2 {
+        transport::measure(&cal.bundles, threads)?
+    } else {
+        Vec::new()
+    };
+    let transport_fit = fit_transport(&transport);
+    let (send, receive, (tr, tr_err)) = (cal.encode.0, cal.receive.0, transport_fit);
+    cal.cost.bundle_send_ns = send[0] + tr[0] / 2.0;
+    cal.cost.bundle_send_byte_ns = send[1] + tr[1] / 2.0;
+    cal.cost.bundle_receive_ns = receive[0] + tr[0] / 2.0;
+    cal.cost.bundle_receive_byte_ns = receive[1] + tr[1] / 2.0;
+    cal.cost.check().map_err(anyhow::Error::msg)?;
     let p = &cal.cost;
     println!(
         "passes: {} without loads, {:.3} s of CPU; fit error {:.1}% (rms over the mean pass)",
@@ -60,22 +90,73 @@ pub(super) fn run_calibrate(c: CalibrateArgs) -> anyhow::Result<()> {
             ""
         }
     );
-    for (w, d, ns) in &cal.rounds {
+    for r in &cal.rounds {
+        let planned = if r.whole {
+            "every member (whole cluster)".to_string()
+        } else {
+            format!("{} dry", r.planned)
+        };
         println!(
-            "planning round, {w} members x {d} domains: {:.3} ms",
-            ns / 1e6
+            "planning round, {} members x {} domains, {planned}: {:.3} ms",
+            r.members,
+            r.domains,
+            r.ns / 1e6
         );
     }
     println!(
-        "  per round {:.0} ns + {:.1} ns a member + {:.1} ns a domain; fit error {:.1}%",
+        "  incremental: {:.0} ns a round + {:.1} ns a member planned + {:.2} ns a member + {:.2} \
+         ns a domain; fit error {:.1}%",
         p.round_ns,
+        p.round_planned_ns,
         p.round_member_ns,
         p.round_domain_ns,
         cal.round_fit_error * 100.0
     );
+    println!(
+        "  whole cluster: {:.0} ns a round + {:.1} ns a member + {:.1} ns a domain; fit error \
+         {:.1}%",
+        p.whole_round_ns,
+        p.whole_round_member_ns,
+        p.whole_round_domain_ns,
+        cal.whole_round_fit_error * 100.0
+    );
+    println!(
+        "peer bundles: {} received; receiving (decode, machine) {:.0} ns + {:.3} ns a byte, fit \
+         error {:.1}%; encoding {:.0} ns + {:.3} ns a byte over {} bundles, fit error {:.1}%",
+        cal.bundles_received,
+        cal.receive.0[0],
+        cal.receive.0[1],
+        cal.receive.1 * 100.0,
+        cal.encode.0[0],
+        cal.encode.0[1],
+        cal.bundles.len(),
+        cal.encode.1 * 100.0
+    );
+    for t in &transport {
+        println!(
+            "gRPC loopback, {} bytes a bundle, {} sends: {:.1} us a bundle (both ends, process \
+             CPU)",
+            t.bytes,
+            t.sends,
+            t.ns / 1e3
+        );
+    }
+    println!(
+        "  transport {:.0} ns + {:.3} ns a byte, fit error {:.1}%; priced: sending {:.0} ns + \
+         {:.3} ns a byte, receiving {:.0} ns + {:.3} ns a byte",
+        tr[0],
+        tr[1],
+        tr_err * 100.0,
+        p.bundle_send_ns,
+        p.bundle_send_byte_ns,
+        p.bundle_receive_ns,
+        p.bundle_receive_byte_ns
+    );
     let text = format!(
         "# rayfarm sim calibrate --scene {} --workers {} --schedule {} {}\n# {} passes (fit \
-         error {:.1}%), planning at {} sizes (fit error {:.1}%)\n{}",
+         error {:.1}%), {} planning rounds (fit error {:.1}% incremental, {:.1}% whole \
+         cluster)\n# {} bundles received (receiving fit error {:.1}%, encoding {:.1}%, gRPC \
+         transport {:.1}%)\n{}",
         c.scene.display(),
         c.workers,
         c.schedule,
@@ -84,6 +165,11 @@ pub(super) fn run_calibrate(c: CalibrateArgs) -> anyhow::Result<()> {
         cal.pass_fit_error * 100.0,
         cal.rounds.len(),
         cal.round_fit_error * 100.0,
+        cal.whole_round_fit_error * 100.0,
+        cal.bundles_received,
+        cal.receive.1 * 100.0,
+        cal.encode.1 * 100.0,
+        tr_err * 100.0,
         p.to_toml()
     );
     std::fs::write(&c.out, text).with_context(|| format!("writing {}", c.out.display()))?;

@@ -30,6 +30,7 @@ use crate::view::FrameArgs;
 mod calibrate;
 mod chart;
 mod report;
+mod transport;
 
 pub use calibrate::CalibrateArgs;
 use calibrate::run_calibrate;
@@ -109,6 +110,11 @@ pub struct ModelArgs {
     /// Tracing threads each worker is costed with (the cost model's divisor).
     #[arg(long, default_value_t = 1)]
     pub threads: u32,
+    /// Cores shared by all simulated workers: every pass's computing and every bundle's
+    /// handling waits for one (as when the whole cluster runs on one machine, like
+    /// `rayfarm bench`'s); off by default, each worker on machines of its own.
+    #[arg(long)]
+    pub cores: Option<u32>,
     /// Prices of computing, from `rayfarm sim calibrate` [default: the ones measured on this
     /// project's VM, README "Simulator"].
     #[arg(long)]
@@ -161,6 +167,7 @@ impl ModelArgs {
         Ok(CostModel {
             compute,
             threads: self.threads.max(1),
+            cores: self.cores.map(|c| c.max(1)),
         })
     }
 
@@ -195,6 +202,9 @@ impl ModelArgs {
         );
         if let Some(b) = self.charge_domain_bytes {
             f.push_str(&format!(" --charge-domain-bytes {b}"));
+        }
+        if let Some(c) = self.cores {
+            f.push_str(&format!(" --cores {c}"));
         }
         if let Some(p) = &self.cost {
             f.push_str(&format!(" --cost {}", p.display()));
