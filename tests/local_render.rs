@@ -155,6 +155,24 @@ fn every_traversal_kernel_renders_the_hash_of_the_4_wide_tree() {
     }
 }
 
+/// Domain files mapped and copied into huge pages (`RAYFARM_HUGEPAGES`), with a cache that
+/// holds them all and one that reloads them: the same image.
+#[test]
+fn domains_in_huge_pages_or_mapped_render_the_same_hash() {
+    let tmp = tempfile::tempdir().unwrap();
+    for domains in [1, 8] {
+        let scene = generate(tmp.path(), domains);
+        for hugepages in ["1", "0"] {
+            for cache in ["1", "1GiB"] {
+                let tag = format!("huge{hugepages}-{domains}-c{cache}");
+                let env = [("RAYFARM_HUGEPAGES", hugepages)];
+                let r = render_env(&scene, tmp.path(), 2, cache, &tag, &[], &env);
+                assert_eq!(r.hash, HASH_BEFORE_8_WIDE, "{tag}");
+            }
+        }
+    }
+}
+
 #[test]
 fn a_scene_of_an_older_domain_format_is_refused_with_re_run_prepare() {
     let tmp = tempfile::tempdir().unwrap();

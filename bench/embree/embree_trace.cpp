@@ -256,6 +256,16 @@ int main(int argc, char** argv) {
         rtcCommitScene(scene);
         const double build_s =
             std::chrono::duration<double>(std::chrono::steady_clock::now() - build_start).count();
+        // How much of the process the kernel backs with huge pages once the BVH is built
+        // (Embree's allocator asks for them with madvise; rayfarm's side prints the same).
+        if (std::FILE* smaps = std::fopen("/proc/self/smaps_rollup", "r")) {
+            char line[256];
+            while (std::fgets(line, sizeof line, smaps))
+                if (std::strstr(line, "AnonHugePages"))
+                    std::fprintf(stderr, "embree_trace: %s BVH built, %s", quality_name(quality),
+                                 line);
+            std::fclose(smaps);
+        }
 
         json += std::string(qi ? "," : "") + "{\"quality\":\"" + quality_name(quality) +
                 "\",\"build_seconds\":" + num(build_s) + ",\"sets\":[";

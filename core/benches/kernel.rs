@@ -1,6 +1,8 @@
 //! Kernel throughput (coherent primary and incoherent diffuse rays, one core, each ray over
 //! the interval the kernel gives it), BVH build time,
-//! and domain load time (map vs rebuild), on the built-in scene at 1M triangles in one domain.
+//! and domain load time (mapped or copied into huge pages, vs rebuild), on the built-in scene at
+//! 1M triangles in one domain. The traced domain is held as the process chooses (huge pages
+//! unless `RAYFARM_HUGEPAGES=0`); the `_mapped` rows trace the same file mapped, for comparison.
 //!
 //! `cargo bench -p rayfarm-core --bench kernel`
 
@@ -17,7 +19,7 @@ use rayfarm_core::ray::RayRecord;
 use rayfarm_core::render::kernel::{KernelCounters, RaySink, SceneView};
 use rayfarm_core::sampling::{Purpose, uniform};
 use rayfarm_core::scene::partition::clip_to_box;
-use rayfarm_core::scene::{DomainData, Manifest};
+use rayfarm_core::scene::{DomainData, Manifest, Residence};
 
 const TRIANGLES: u64 = 1_000_000;
 /// Camera rays per side: 1024x1024, as in `bench/embree`.
@@ -58,6 +60,11 @@ fn scene() -> Bench {
 
 fn open(dir: &std::path::Path, m: &Manifest, verify: bool) -> DomainData {
     m.open_domain(dir, 0, verify).expect("benchmark domain")
+}
+
+fn open_as(dir: &std::path::Path, m: &Manifest, verify: bool, r: Residence) -> DomainData {
+    m.open_domain_as(dir, 0, verify, Some(r))
+        .expect("benchmark domain")
 }
 
 /// A ray with the interval the kernel traces it over: its span inside the (only) domain.
@@ -101,8 +108,8 @@ fn diffuse_rays(b: &Bench, primary: &[Segment]) -> Vec<Segment> {
         .collect()
 }
 
-fn trace_all(b: &Bench, rays: &[Segment], kernel: Kernel) -> usize {
-    let bvh = b.data.bvh();
+fn trace_all(data: &DomainData, rays: &[Segment], kernel: Kernel) -> usize {
+    let bvh = data.bvh();
     // One traverser for the whole set, as the kernel keeps one per batch.
     let mut traverser = Traverser::with_kernel(kernel).expect("supported kernel");
     rays.iter()
@@ -170,19 +177,34 @@ fn kernel(c: &mut Criterion) {
         g.bench_with_input(
             BenchmarkId::new("coherent_primary", kernel.name()),
             &kernel,
-            |bch, &k| bch.iter(|| black_box(trace_all(&b, &primary, k))),
+            |bch, &k| bch.iter(|| black_box(trace_all(&b.data, &primary, k))),
         );
         g.throughput(Throughput::Elements(diffuse.len() as u64));
         g.bench_with_input(
             BenchmarkId::new("incoherent_diffuse", kernel.name()),
             &kernel,
-            |bch, &k| bch.iter(|| black_box(trace_all(&b, &diffuse, k))),
+            |bch, &k| bch.iter(|| black_box(trace_all(&b.data, &diffuse, k))),
         );
         g.throughput(Throughput::Elements(shadow.len() as u64));
         g.bench_with_input(
             BenchmarkId::new("shadow_any_hit", kernel.name()),
             &kernel,
             |bch, &k| bch.iter(|| black_box(shadow_all(&b, &shadow, k))),
+        );
+    }
+    // The same file mapped from the page cache in 4 KiB pages, on the widest kernel: what
+    // huge pages change (README, "Benchmarks").
+    let mapped = open_as(&b.dir, &b.manifest, false, Residence::Mapped);
+    let widest = Kernel::detect();
+    for (name, rays) in [
+        ("coherent_primary", &primary),
+        ("incoherent_diffuse", &diffuse),
+    ] {
+        g.throughput(Throughput::Elements(rays.len() as u64));
+        g.bench_with_input(
+            BenchmarkId::new(format!("{name}_mapped"), widest.name()),
+            &widest,
+            |bch, &k| bch.iter(|| black_box(trace_all(&mapped, rays, k))),
         );
     }
     // The whole kernel on camera rays: traversal plus shading and spawning children.
@@ -225,15 +247,20 @@ fn build_and_load(c: &mut Criterion) {
             },
         );
     }
-    for verify in [false, true] {
-        let name = if verify {
-            "map_and_verify_checksum"
-        } else {
-            "map"
-        };
-        g.bench_with_input(BenchmarkId::new("load", name), &verify, |bch, &v| {
-            bch.iter(|| black_box(open(&b.dir, &b.manifest, v).nodes().len()))
-        });
+    for (residence, how) in [
+        (Residence::Mapped, "map"),
+        (Residence::HugePages, "copy_huge"),
+    ] {
+        for verify in [false, true] {
+            let name = if verify {
+                format!("{how}_and_verify_checksum")
+            } else {
+                how.to_string()
+            };
+            g.bench_with_input(BenchmarkId::new("load", name), &verify, |bch, &v| {
+                bch.iter(|| black_box(open_as(&b.dir, &b.manifest, v, residence).nodes().len()))
+            });
+        }
     }
     g.bench_with_input(
         BenchmarkId::new("load", "read_triangles_and_rebuild"),

@@ -3,6 +3,7 @@
 
 use proptest::prelude::*;
 use rayfarm_core::scene::domain_file::{SourceTriangle, parse_domain_bytes, write_domain};
+use rayfarm_core::scene::{DomainData, Residence};
 
 /// Bytes of the format-6 header.
 const HEADER: usize = 104;
@@ -105,6 +106,43 @@ fn a_file_of_an_older_format_is_refused_with_its_version_and_what_to_do() {
                 && e.contains("re-run `rayfarm prepare`"),
             "{e}"
         );
+    }
+}
+
+/// A file opened mapped and copied into huge pages holds the same bytes, is checked the same
+/// way (a flipped bit is refused either way), and says how it is held.
+#[test]
+fn a_file_reads_the_same_mapped_or_copied_into_huge_pages() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("d.rfd");
+    let file = valid_file();
+    std::fs::write(&path, &file).unwrap();
+    let checksum = u64::from_le_bytes(file[72..80].try_into().unwrap());
+    let open = |r| DomainData::open_as(&path, checksum, true, 2, Some(r));
+    let mapped = open(Residence::Mapped).unwrap();
+    let copied = open(Residence::HugePages).unwrap();
+    assert_eq!(mapped.residence(), Residence::Mapped);
+    assert_eq!(copied.residence(), Residence::HugePages);
+    let bytes = |d: &DomainData| {
+        let nodes: &[u8] = bytemuck::cast_slice(d.nodes());
+        let blocks: &[u8] = bytemuck::cast_slice(d.blocks());
+        let normals: &[u8] = bytemuck::cast_slice(d.normals());
+        [nodes.to_vec(), blocks.to_vec(), normals.to_vec()]
+    };
+    assert_eq!(bytes(&mapped), bytes(&copied));
+    assert_eq!(mapped.bytes(), copied.bytes());
+    assert_eq!(mapped.bytes(), file.len() as u64);
+    // The copy starts on a huge page's boundary, so the kernel can back it with huge pages.
+    assert_eq!(
+        copied.nodes().as_ptr() as usize % (2 << 20),
+        104usize.next_multiple_of(64)
+    );
+    let mut flipped = file.clone();
+    flipped[file.len() - 1] ^= 1;
+    std::fs::write(&path, &flipped).unwrap();
+    for r in [Residence::Mapped, Residence::HugePages] {
+        let e = open(r).unwrap_err().to_string();
+        assert!(e.contains("corrupt"), "{r:?}: {e}");
     }
 }
 

@@ -102,6 +102,19 @@ fn parse_args() -> Result<Options> {
     })
 }
 
+/// The huge-page lines of `/proc/self/smaps_rollup` (anonymous and file-backed), or why not.
+fn huge_pages_in_use() -> String {
+    match std::fs::read_to_string("/proc/self/smaps_rollup") {
+        Ok(text) => text
+            .lines()
+            .filter(|l| l.contains("HugePages") || l.contains("PmdMapped"))
+            .map(|l| l.split_whitespace().collect::<Vec<_>>().join(" "))
+            .collect::<Vec<_>>()
+            .join(", "),
+        Err(e) => format!("no smaps_rollup ({e})"),
+    }
+}
+
 /// Seconds per repetition of one tracer over one ray set.
 struct Timing(Vec<f64>);
 
@@ -293,6 +306,14 @@ fn main() -> Result<()> {
     let materials = manifest.materials.len() as u32;
     // Verifying the checksum also reads the whole file, so no timed pass pays for page faults.
     let domain = DomainData::open(&opts.scene.join(&entry.file), checksum, true, materials)?;
+    // Huge pages or not is most of the difference on incoherent rays (README, "Benchmarks"):
+    // say how the domain is held, and how much of the process the kernel gave huge pages.
+    eprintln!(
+        "domain held as {:?} ({} bytes); process: {}",
+        domain.residence(),
+        domain.bytes(),
+        huge_pages_in_use()
+    );
 
     // `--rebuild`: this build's BVH settings on the scene's triangles, without preparing again.
     let rebuilt = opts.rebuild.then(|| {

@@ -18,7 +18,7 @@ use std::ops::Range;
 use std::path::{Path, PathBuf};
 
 use bytemuck::{Pod, Zeroable};
-use memmap2::Mmap;
+use memmap2::{Mmap, MmapOptions};
 
 use super::{SceneError, check_domain_checksum, domain_checksum, write_domain_file};
 use crate::bvh::{self, BvhNode};
@@ -184,7 +184,7 @@ fn normal_blocks(triangles: &[SourceTriangle], blocks: &[TriangleBlock]) -> Vec<
 /// mesh sections are then empty; a brick of a scene with surfaces in its volume carries its
 /// surfaces' mesh domain beside it ([`DomainData::surfaces`]).
 pub struct DomainData {
-    map: Mmap,
+    map: Held,
     path: PathBuf,
     domain: u32,
     bounds: Aabb,
@@ -200,6 +200,7 @@ impl std::fmt::Debug for DomainData {
             .field("path", &self.path)
             .field("domain", &self.domain)
             .field("bytes", &self.map.len())
+            .field("residence", &self.residence())
             .finish()
     }
 }
@@ -213,15 +214,36 @@ impl DomainData {
         verify_checksum: bool,
         materials: u32,
     ) -> Result<DomainData, SceneError> {
-        let (file, _) = super::open_regular(path, u64::MAX, "domain file")?;
-        // SAFETY: domain files are written once, then renamed into place and never modified;
-        // a file changed under us is a broken deployment, and every value read is bounds-checked.
-        let map = unsafe { Mmap::map(&file) }.map_err(|e| SceneError::io(path, e))?;
+        Self::open_as(path, expected_checksum, verify_checksum, materials, None)
+    }
+
+    /// [`DomainData::open`], held in memory the way `residence` says, or as the process
+    /// chooses ([`Residence::selected`]) if `None`. The same bytes, so the same images, either
+    /// way; tests and benchmarks compare the two.
+    pub fn open_as(
+        path: &Path,
+        expected_checksum: u64,
+        verify_checksum: bool,
+        materials: u32,
+        residence: Option<Residence>,
+    ) -> Result<DomainData, SceneError> {
+        let (file, len) = super::open_regular(path, u64::MAX, "domain file")?;
+        let residence = residence.unwrap_or_else(|| Residence::selected(len));
+        let map = Held::load(file, len, residence).map_err(|e| SceneError::io(path, e))?;
         Self::from_map(map, path, expected_checksum, verify_checksum, materials)
     }
 
+    /// How this domain's bytes are held: copied into huge pages, or mapped from the file.
+    pub fn residence(&self) -> Residence {
+        if self.map.start.is_some() {
+            Residence::HugePages
+        } else {
+            Residence::Mapped
+        }
+    }
+
     fn from_map(
-        map: Mmap,
+        map: Held,
         path: &Path,
         expected_checksum: u64,
         verify_checksum: bool,
@@ -417,6 +439,113 @@ impl DomainData {
     }
 }
 
+/// Where a domain's bytes live while it is loaded.
+///
+/// Incoherent rays are bound by memory: each one touches a few dozen nodes and blocks spread
+/// over the whole tree, and with 4 KiB pages most of those touches also miss the TLB (a
+/// 61 MiB domain is 15,000 pages, far beyond the TLB's reach; 31 huge pages are within it).
+/// A file mapping is made of the page cache's pages, which the program cannot ask to be huge,
+/// so the default copies the file into anonymous memory that the kernel is asked
+/// (`madvise(MADV_HUGEPAGE)`) to back with 2 MiB pages. The load reads every byte anyway (the
+/// checksum, the tree's validation, the material check), so the copy adds one pass over
+/// memory; the cache counts the same bytes as before (the file's size).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Residence {
+    /// Mapped from the file (`mmap`), in the page cache's pages.
+    Mapped,
+    /// Copied into anonymous memory aligned to, and advised to use, 2 MiB pages.
+    HugePages,
+}
+
+/// Files smaller than this stay mapped: they would not fill one huge page.
+const HUGE_PAGE: usize = 2 << 20;
+
+impl Residence {
+    /// The process's choice for a file of `bytes`: `RAYFARM_HUGEPAGES=0` (or `off`) maps
+    /// every domain file, `RAYFARM_HUGEPAGES=1` (or `on`) copies every one whatever its size;
+    /// unset, files of at least one huge page (2 MiB) are copied and smaller ones mapped. The
+    /// variable is read once.
+    pub fn selected(bytes: u64) -> Residence {
+        static CHOICE: std::sync::OnceLock<Option<Residence>> = std::sync::OnceLock::new();
+        let forced = *CHOICE.get_or_init(|| match std::env::var("RAYFARM_HUGEPAGES") {
+            Ok(v) if matches!(v.trim(), "0" | "off" | "false" | "no") => {
+                tracing::info!("domain files mapped, not copied into huge pages");
+                Some(Residence::Mapped)
+            }
+            Ok(v) if matches!(v.trim(), "1" | "on" | "true" | "yes") => {
+                tracing::info!("every domain file copied into huge pages");
+                Some(Residence::HugePages)
+            }
+            _ => None,
+        });
+        forced.unwrap_or(if bytes >= HUGE_PAGE as u64 {
+            Residence::HugePages
+        } else {
+            Residence::Mapped
+        })
+    }
+}
+
+/// A domain file's bytes: a mapping of the file, or a copy at an offset in an anonymous
+/// region (`start`), aligned to a huge page.
+struct Held {
+    map: Mmap,
+    start: Option<usize>,
+    len: usize,
+}
+
+impl Held {
+    /// Holds `file` (`len` bytes long) as `residence` says.
+    fn load(mut file: std::fs::File, len: u64, residence: Residence) -> std::io::Result<Held> {
+        let len = usize::try_from(len).map_err(|_| std::io::ErrorKind::FileTooLarge)?;
+        if residence == Residence::Mapped || len == 0 {
+            // SAFETY: domain files are written once, then renamed into place and never
+            // modified; a file changed under us is a broken deployment, and every value read
+            // is bounds-checked.
+            let map = unsafe { Mmap::map(&file) }?;
+            let len = map.len();
+            return Ok(Held {
+                map,
+                start: None,
+                len,
+            });
+        }
+        // One huge page more than the file, so that the copy can start on a 2 MiB boundary
+        // (pages of the slack that are never touched are never allocated).
+        let region = len
+            .checked_add(HUGE_PAGE)
+            .ok_or(std::io::ErrorKind::FileTooLarge)?;
+        let mut anon = MmapOptions::new().len(region).map_anon()?;
+        // Best effort: without transparent huge pages (`never`) the copy is still correct.
+        #[cfg(target_os = "linux")]
+        if let Err(e) = anon.advise(memmap2::Advice::HugePage) {
+            tracing::debug!("madvise(MADV_HUGEPAGE) refused: {e}");
+        }
+        let start = anon.as_ptr().align_offset(HUGE_PAGE).min(HUGE_PAGE);
+        std::io::Read::read_exact(&mut file, &mut anon[start..start + len])?;
+        // A file that grew since its size was read is a file changed under us: refused, as
+        // its checksum would be.
+        let mut probe = [0u8; 1];
+        if std::io::Read::read(&mut file, &mut probe)? != 0 {
+            return Err(std::io::Error::other("the file grew while it was read"));
+        }
+        Ok(Held {
+            map: anon.make_read_only()?,
+            start: Some(start),
+            len,
+        })
+    }
+}
+
+impl std::ops::Deref for Held {
+    type Target = [u8];
+
+    fn deref(&self) -> &[u8] {
+        let start = self.start.unwrap_or(0);
+        &self.map[start..start + self.len]
+    }
+}
+
 /// Triangles the blocks hold: every lane that is not a repeat of the lane before it.
 fn distinct_triangles(blocks: &[TriangleBlock]) -> u64 {
     blocks
@@ -467,9 +596,13 @@ pub fn parse_domain_bytes(bytes: &[u8], materials: u32) -> Result<DomainData, Sc
     let mut map = memmap2::MmapMut::map_anon(bytes.len().max(1))
         .map_err(|e| SceneError::io("<memory>", e))?;
     map[..bytes.len()].copy_from_slice(bytes);
-    let map = map
-        .make_read_only()
-        .map_err(|e| SceneError::io("<memory>", e))?;
+    let map = Held {
+        map: map
+            .make_read_only()
+            .map_err(|e| SceneError::io("<memory>", e))?,
+        start: None,
+        len: bytes.len(),
+    };
     // The checksum is still verified against the contents; only the manifest is absent.
     let checksum = match crate::brick::recorded_checksum(bytes) {
         Some(c) if crate::brick::is_brick(bytes) => c,

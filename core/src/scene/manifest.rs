@@ -5,7 +5,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use super::partition::{DomainTree, KdNode};
-use super::{DomainData, MANIFEST_FILE, SceneError, write_atomically};
+use super::{DomainData, MANIFEST_FILE, Residence, SceneError, write_atomically};
 use crate::geometry::Aabb;
 
 /// Version of the manifest and domain file layout this build reads and writes.
@@ -353,6 +353,18 @@ impl Manifest {
         domain: u32,
         verify_checksum: bool,
     ) -> Result<DomainData, SceneError> {
+        self.open_domain_as(dir, domain, verify_checksum, None)
+    }
+
+    /// [`Manifest::open_domain`], its files held in memory as `residence` says (`None`: as the
+    /// process chooses, [`Residence::selected`]).
+    pub fn open_domain_as(
+        &self,
+        dir: &Path,
+        domain: u32,
+        verify_checksum: bool,
+        residence: Option<Residence>,
+    ) -> Result<DomainData, SceneError> {
         let entry = self
             .domains
             .get(domain as usize)
@@ -364,11 +376,12 @@ impl Manifest {
         let checksum = u64::from_str_radix(&entry.checksum, 16).unwrap_or_default();
         let path = dir.join(&entry.file);
         let materials = self.materials.len() as u32;
-        let mut data = DomainData::open(&path, checksum, verify_checksum, materials)?;
+        let mut data = DomainData::open_as(&path, checksum, verify_checksum, materials, residence)?;
         if let Some(s) = &entry.surfaces {
             let checksum = u64::from_str_radix(&s.checksum, 16).unwrap_or_default();
+            let file = dir.join(&s.file);
             let surfaces =
-                DomainData::open(&dir.join(&s.file), checksum, verify_checksum, materials)?;
+                DomainData::open_as(&file, checksum, verify_checksum, materials, residence)?;
             data.attach_surfaces(surfaces)?;
         }
         let mismatch = if data.domain() != domain {
@@ -411,7 +424,8 @@ impl Manifest {
     /// `verify_checksums` also hashes every byte.
     pub fn check_domains(&self, dir: &Path, verify_checksums: bool) -> Result<(), SceneError> {
         for d in 0..self.domains.len() as u32 {
-            self.open_domain(dir, d, verify_checksums)?;
+            // Mapped: the check keeps nothing, so a copy into huge pages would be wasted.
+            self.open_domain_as(dir, d, verify_checksums, Some(Residence::Mapped))?;
         }
         Ok(())
     }
