@@ -759,6 +759,8 @@ pub(crate) mod tests {
             idle_queued_seconds: 1.0,
             idle_verdicts_seconds: 1.5,
             idle_empty_seconds: 0.5,
+            pass_wait_seconds: 0.25,
+            cpu_seconds: 4.0,
             ..Default::default()
         };
         let s = TimeSplit::of(&w);
@@ -767,7 +769,7 @@ pub(crate) mod tests {
             (s.idle_queued, s.idle_verdicts, s.idle_empty),
             (1.0, 1.5, 0.5)
         );
-        assert_eq!(s.other, 1.0);
+        assert_eq!((s.pass_wait, s.other, s.other_cpu), (0.25, 0.75, 1.0));
         let parts = s.trace_cpu
             + s.trace_wait
             + s.load
