@@ -3,6 +3,7 @@
 //! frame as the user API carries it, and the checksum of a fetched result file.
 
 pub mod bounds;
+pub mod cpu;
 pub mod fault;
 pub mod heap;
 pub mod http;

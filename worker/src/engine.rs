@@ -19,6 +19,7 @@ use rayfarm_machine::worker::{
     self as machine, Action, DomainQueues, OpenedScene, PassFailed, PassOutput, Worker,
     WorkerConfig,
 };
+use rayfarm_node::cpu::{ThreadClocks, process_cpu_seconds};
 use rayfarm_node::proto::{self, coordinator_message::Body as FromCoordinator};
 use rayfarm_node::{job, metrics};
 use tokio::sync::mpsc;
@@ -63,6 +64,8 @@ pub enum Event {
     PassDone {
         job_id: String,
         result: Result<PassOutput, PassFailed>,
+        /// When the pass ended (the time it then waits for the engine is counted).
+        finished: Instant,
     },
     /// A prefetch of the frame of `job_id` ended (the machine hears it with the domains
     /// mapped now).
@@ -88,13 +91,23 @@ struct OpenFrame {
     job_id: String,
     view: Arc<FrameView>,
     cache_at_start: CacheCounters,
+    /// The tracing pool's and the process's CPU seconds when the frame opened.
+    cpu_at_start: (f64, f64),
+    /// How long finished passes of the frame waited for the engine to take them up.
+    pass_waits: std::time::Duration,
 }
 
 /// The engine. See the module documentation.
 pub struct Engine {
     config: EngineConfig,
     pool: Arc<rayon::ThreadPool>,
-    events: mpsc::UnboundedSender<Event>,
+    /// The CPU clocks of the pool's threads (the frame statistics' tracing CPU).
+    trace_clocks: ThreadClocks,
+    /// Finished passes and prefetches: the engine takes these before anything else queued,
+    /// so a worker's next pass does not wait behind a backlog of peers' bundles (the
+    /// predictive schedule's verdicts and copies arrive by the thousand).
+    done: mpsc::UnboundedSender<Event>,
+    done_rx: Option<mpsc::UnboundedReceiver<Event>>,
     to_coordinator: mpsc::UnboundedSender<proto::WorkerMessage>,
     peers: PeerLinks,
     machine: Worker<FileSpill>,
@@ -110,13 +123,15 @@ pub struct Engine {
 impl Engine {
     pub fn new(
         config: EngineConfig,
-        events: mpsc::UnboundedSender<Event>,
         to_coordinator: mpsc::UnboundedSender<proto::WorkerMessage>,
         peers: PeerLinks,
     ) -> anyhow::Result<Self> {
+        let trace_clocks = ThreadClocks::new();
+        let register = trace_clocks.clone();
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(config.threads.max(1))
             .thread_name(|i| format!("trace-{i}"))
+            .start_handler(move |_| register.register_current())
             .build()?;
         let machine = Worker::new(WorkerConfig {
             wave_rays: config.wave_rays,
@@ -128,10 +143,13 @@ impl Engine {
                 config.cache_bytes,
             )
         })?;
+        let (done, done_rx) = mpsc::unbounded_channel();
         Ok(Engine {
             config,
             pool: Arc::new(pool),
-            events,
+            trace_clocks,
+            done,
+            done_rx: Some(done_rx),
             to_coordinator,
             peers,
             machine,
@@ -144,12 +162,18 @@ impl Engine {
 
     /// Runs until the event channel closes.
     pub async fn run(mut self, mut events: mpsc::UnboundedReceiver<Event>) {
+        let Some(mut done) = self.done_rx.take() else {
+            return;
+        };
         loop {
             let deadline = self
                 .machine
                 .next_timeout()
                 .map(|t| self.clock + t.since(Time(0)));
             let event = tokio::select! {
+                biased;
+                // Never closed while the engine holds its sender.
+                Some(event) = done.recv() => self.translate(event).await,
                 event = events.recv() => match event {
                     Some(event) => self.translate(event).await,
                     None => break,
@@ -200,7 +224,14 @@ impl Engine {
                 }
                 *event
             }
-            Event::PassDone { job_id, result } => {
+            Event::PassDone {
+                job_id,
+                result,
+                finished,
+            } => {
+                if let Some(f) = self.frame.as_mut().filter(|f| f.job_id == job_id) {
+                    f.pass_waits += finished.elapsed();
+                }
                 if let Ok(output) = &result {
                     count_pass(output);
                 }
@@ -267,11 +298,15 @@ impl Engine {
             }
             Action::FrameEnded { job_id, mut stats } => {
                 self.count_cache();
-                let start = self
+                let (start, cpu_at_start, pass_waits) = self
                     .frame
                     .take_if(|f| f.job_id == job_id)
-                    .map(|f| f.cache_at_start)
+                    .map(|f| (f.cache_at_start, f.cpu_at_start, f.pass_waits))
                     .unwrap_or_default();
+                stats.pass_wait_seconds = pass_waits.as_secs_f64();
+                let cpu_now = self.cpu_now();
+                stats.trace_cpu_seconds = (cpu_now.0 - cpu_at_start.0).max(0.0);
+                stats.cpu_seconds = (cpu_now.1 - cpu_at_start.1).max(0.0);
                 let cache = self
                     .with_cache(|c| c.counters().since(&start))
                     .unwrap_or_default();
@@ -294,14 +329,19 @@ impl Engine {
     }
 
     fn start_pass(&mut self, job_id: String, work: machine::PassWork) {
-        let events = self.events.clone();
+        let events = self.done.clone();
         let (Some(frame), Some((scene, cache))) = (
             self.frame.as_ref().filter(|f| f.job_id == job_id),
             &self.cache,
         ) else {
             // Never: the machine runs passes only of the frame opened last.
             let result = Err(PassFailed::Load("no scene open for the pass".to_string()));
-            let _ = events.send(Event::PassDone { job_id, result });
+            let finished = Instant::now();
+            let _ = events.send(Event::PassDone {
+                job_id,
+                result,
+                finished,
+            });
             return;
         };
         let input = PassInput {
@@ -309,22 +349,39 @@ impl Engine {
             work,
             cache: cache.clone(),
         };
-        let pool = self.pool.clone();
         let scene = scene.clone();
-        tokio::task::spawn_blocking(move || {
-            let result = pool
-                .install(|| pass::run(input))
-                .map_err(|e| pass_failed(&scene, e.to_string()));
+        // Straight onto the tracing pool: one thread hand-over per pass, not two (a blocking
+        // thread waiting in `install`), which on a machine with fewer cores than busy threads
+        // costs a scheduler slice each.
+        self.pool.spawn(move || {
+            // A panicking pass must not abort the process (rayon's default for a spawned
+            // job) nor leave the machine waiting for it: it declines the frame like a pass
+            // that could not load its domain.
+            let result =
+                match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| pass::run(input))) {
+                    Ok(r) => r.map_err(|e| pass_failed(&scene, e.to_string())),
+                    Err(_) => Err(PassFailed::Load("the pass panicked".to_string())),
+                };
             // The engine may be gone at shutdown; nothing is left to do then.
-            let _ = events.send(Event::PassDone { job_id, result });
+            let finished = Instant::now();
+            let _ = events.send(Event::PassDone {
+                job_id,
+                result,
+                finished,
+            });
         });
+    }
+
+    /// The tracing pool's and the whole process's CPU seconds so far.
+    fn cpu_now(&self) -> (f64, f64) {
+        (self.trace_clocks.seconds(), process_cpu_seconds())
     }
 
     /// Loads `domain` ahead of need on a blocking thread, beside any pass: the cache decides
     /// under its lock whether it fits without evicting `keep`, the read (mapping, checksum,
     /// emulated storage) runs off the lock, so passes go on using the cache meanwhile.
     fn prefetch(&mut self, job_id: String, domain: u32, keep: Vec<u32>) {
-        let events = self.events.clone();
+        let events = self.done.clone();
         let Some((_, cache)) = &self.cache else {
             let result = Err("no scene open for the prefetch".to_string());
             let _ = events.send(Event::PrefetchDone {
@@ -462,6 +519,8 @@ impl Engine {
             job_id: s.job_id.clone(),
             view: Arc::new(view),
             cache_at_start,
+            cpu_at_start: self.cpu_now(),
+            pass_waits: std::time::Duration::ZERO,
         });
         Ok(OpenedScene {
             grid,

@@ -257,7 +257,6 @@ async fn run(args: Args) -> anyhow::Result<()> {
             spill_bytes: args.spill_bytes,
             spill_dir: args.spill_dir.clone().unwrap_or_else(std::env::temp_dir),
         },
-        events_tx.clone(),
         to_coordinator,
         PeerLinks::new(
             worker_id.clone(),

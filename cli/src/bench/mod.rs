@@ -89,29 +89,110 @@ pub fn ratio(value: f64, reference: f64) -> Option<f64> {
 /// Ray work of one frame in seconds per thread: the time its workers spent in passes, less
 /// the time spent loading domains, summed over workers and divided by the threads that traced
 /// (the frame's time if that work were spread perfectly over the threads, nothing else to do).
+/// Wall time: on a machine with fewer cores than threads it includes waiting for a core.
 pub fn ray_work_seconds(stats: &ClusterStats) -> f64 {
     let work: f64 = stats
         .per_worker
         .iter()
         .map(|w| (w.busy_seconds - w.load_seconds).max(0.0))
         .sum();
-    let threads = if stats.threads > 0 {
+    work / total_threads(stats).max(1) as f64
+}
+
+/// The threads that traced the frame, all workers together.
+fn total_threads(stats: &ClusterStats) -> usize {
+    if stats.threads > 0 {
         stats.threads
     } else {
         stats.per_worker.iter().map(|w| w.threads).sum()
+    }
+}
+
+/// CPU seconds the frame's tracing threads used, summed over workers: the ray work without
+/// the waiting for a core. `None` unless every worker measured it (older workers report 0).
+pub fn ray_work_cpu_seconds(stats: &ClusterStats) -> Option<f64> {
+    (!stats.per_worker.is_empty() && stats.per_worker.iter().all(|w| w.trace_cpu_seconds > 0.0))
+        .then(|| stats.per_worker.iter().map(|w| w.trace_cpu_seconds).sum())
+}
+
+/// The least time the frame's ray work can take: its CPU seconds spread over the cores that
+/// can run them, `min(threads, cores)` (`cores`: `None` when not known, e.g. a cluster on
+/// other machines; then the threads). Without CPU figures, the wall-time ray work per thread
+/// ([`ray_work_seconds`]).
+pub fn compute_seconds(stats: &ClusterStats, cores: Option<usize>) -> f64 {
+    let threads = total_threads(stats).max(1);
+    match ray_work_cpu_seconds(stats) {
+        Some(cpu) => cpu / cores.map_or(threads, |c| threads.min(c.max(1))) as f64,
+        None => ray_work_seconds(stats),
+    }
+}
+
+/// Domain bytes no schedule can avoid loading in a frame of `generations` ray generations on
+/// `workers` workers with `cache_bytes` each (`None`: unbounded caches), every generation
+/// needing every domain: each domain once, and for each later generation again whatever the
+/// cluster's caches could not keep across the step (a generation's rays exist only once the
+/// one before it has been traced, so a domain evicted meanwhile is read again). The caches
+/// keep at most `workers * cache_bytes`, and only of domains that fit one cache. A model: a
+/// schedule that works on several generations at once could keep fewer domains apart, which
+/// is why [`bound`] never takes more than the fewest bytes a run really loaded.
+pub fn unavoidable_load_bytes(
+    domain_bytes: &[u64],
+    workers: usize,
+    cache_bytes: Option<u64>,
+    generations: u32,
+) -> u64 {
+    let scene: u64 = domain_bytes.iter().sum();
+    let Some(cache) = cache_bytes else {
+        return scene;
     };
-    work / threads.max(1) as f64
+    let fitting: u64 = domain_bytes.iter().filter(|&&b| b <= cache).sum();
+    let kept = fitting.min(cache.saturating_mul(workers as u64));
+    let again = scene - kept;
+    scene.saturating_add(again.saturating_mul(u64::from(generations.saturating_sub(1))))
+}
+
+/// Ray generations of a frame of bounce depth `max_depth`: radiance rays of depth 0 to
+/// `max_depth` and the shadow rays of the last hits (`RayRecord::generation`).
+pub fn generations(max_depth: u32) -> u32 {
+    max_depth.saturating_add(2)
+}
+
+/// What the bound knows of the scene, the cluster and the frame.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BoundInputs {
+    /// Bytes of each domain file of the scene.
+    pub domain_bytes: Vec<u64>,
+    /// Workers loading domains; 0: as many as the runs report.
+    pub workers: usize,
+    /// Cache of each worker, bytes; `None`: not known (a cluster the bench did not start).
+    pub cache_bytes: Option<u64>,
+    /// Storage bandwidth of each worker, bytes per second (each reads at this rate beside
+    /// the others, as `--storage-bandwidth` emulates); `None`: loads cost nothing.
+    pub bandwidth: Option<f64>,
+    /// Bounce depth of the frame.
+    pub max_depth: u32,
+    /// Cores the workers share; `None`: not known (then every thread counts as a core).
+    pub cores: Option<usize>,
 }
 
 /// The yardstick of the bench: no frame can take less than the larger of its two terms.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Bound {
-    /// The least ray work per thread over all successful runs of the bench (one bound for
-    /// every schedule, so a schedule is not rewarded for wasting less of its own time).
+    /// The least ray work over all successful runs of the bench, spread over the cores that
+    /// can trace it ([`compute_seconds`]; one bound for every schedule, so a schedule is not
+    /// rewarded for wasting less of its own time).
     pub compute_seconds: f64,
-    /// Reading every domain of the scene once at the storage bandwidth (0 when no bandwidth
+    /// Whether `compute_seconds` is CPU time (every worker measured it) or wall time.
+    pub compute_is_cpu: bool,
+    /// Reading `load_bytes` at all workers' storage bandwidth together (0 when no bandwidth
     /// was given).
     pub load_seconds: f64,
+    /// The unavoidable bytes ([`unavoidable_load_bytes`]), at most the fewest any run loaded.
+    pub load_bytes: u64,
+    /// [`unavoidable_load_bytes`] before that cap.
+    pub model_bytes: u64,
+    /// The workers reading them.
+    pub workers: usize,
 }
 
 impl Bound {
@@ -121,21 +202,46 @@ impl Bound {
     }
 }
 
-/// The bound of a bench: `None` when no run succeeded. `scene_bytes` is the size of all the
-/// scene's domain files, `bandwidth` the storage bandwidth in bytes per second.
-pub fn bound(runs: &[RunOutcome], scene_bytes: u64, bandwidth: Option<f64>) -> Option<Bound> {
-    let compute_seconds = runs
+/// The bound of a bench: `None` when no run succeeded.
+pub fn bound(runs: &[RunOutcome], inputs: &BoundInputs) -> Option<Bound> {
+    let ok: Vec<&ClusterStats> = runs.iter().filter_map(RunOutcome::stats).collect();
+    let least = ok
         .iter()
-        .filter_map(RunOutcome::stats)
-        .map(ray_work_seconds)
-        .min_by(f64::total_cmp)?;
-    let load_seconds = match bandwidth {
-        Some(b) if b > 0.0 => scene_bytes as f64 / b,
+        .map(|s| {
+            (
+                compute_seconds(s, inputs.cores),
+                ray_work_cpu_seconds(s).is_some(),
+            )
+        })
+        .min_by(|a, b| a.0.total_cmp(&b.0))?;
+    let workers = match inputs.workers {
+        0 => ok.iter().map(|s| s.workers).max().unwrap_or(0),
+        w => w,
+    }
+    .max(1);
+    let model_bytes = unavoidable_load_bytes(
+        &inputs.domain_bytes,
+        workers,
+        inputs.cache_bytes,
+        generations(inputs.max_depth),
+    );
+    let load_bytes = ok
+        .iter()
+        .map(|s| s.cache.bytes_loaded)
+        .chain([model_bytes])
+        .min()
+        .unwrap_or(model_bytes);
+    let load_seconds = match inputs.bandwidth {
+        Some(b) if b > 0.0 => load_bytes as f64 / (b * workers as f64),
         _ => 0.0,
     };
     Some(Bound {
-        compute_seconds,
+        compute_seconds: least.0,
+        compute_is_cpu: least.1,
         load_seconds,
+        load_bytes,
+        model_bytes,
+        workers,
     })
 }
 
@@ -166,6 +272,79 @@ pub struct Measured {
     pub idle_fraction: f64,
     /// Largest over all workers of all runs, bytes.
     pub peak_rss_bytes: u64,
+    /// Where a worker's frame went, the mean over all workers of all runs.
+    pub split: TimeSplit,
+}
+
+/// Where a worker's frame time went, seconds: the parts add up to `frame`.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct TimeSplit {
+    /// From the frame's start to its end on the worker.
+    pub frame: f64,
+    /// In passes, tracing on a core (the tracing threads' CPU time; 0 when not measured,
+    /// then all of the passes' ray work is in `trace_wait`).
+    pub trace_cpu: f64,
+    /// In passes, ray work waiting for a core (wall less CPU time).
+    pub trace_wait: f64,
+    /// In passes, loading domains (mapping, checking, the emulated storage).
+    pub load: f64,
+    /// No pass to run: rays queued for domains the plan did not give it.
+    pub idle_queued: f64,
+    /// No pass to run: nothing queued, own rays waiting for verdicts.
+    pub idle_verdicts: f64,
+    /// No pass to run: nothing queued or waiting.
+    pub idle_empty: f64,
+    /// A finished pass waiting for the worker's event loop to take it up.
+    pub pass_wait: f64,
+    /// The rest: before the first pass, and from taking up a finished pass to the next
+    /// pass's start (the event loop handling it, the hand-over to the tracing thread, a core
+    /// not had meanwhile).
+    pub other: f64,
+    /// Not a part: CPU seconds the worker process used outside its tracing threads (event
+    /// loop, network, bundling, prefetches), overlapping the parts above.
+    pub other_cpu: f64,
+}
+
+impl TimeSplit {
+    /// One worker's frame.
+    pub fn of(w: &rayfarm_core::cluster::stats::WorkerFrameStats) -> Self {
+        let work = (w.busy_seconds - w.load_seconds).max(0.0);
+        let trace_cpu = w.trace_cpu_seconds.min(work);
+        let idle = w.idle_queued_seconds
+            + w.idle_verdicts_seconds
+            + w.idle_empty_seconds
+            + w.pass_wait_seconds;
+        TimeSplit {
+            frame: w.frame_seconds,
+            trace_cpu,
+            trace_wait: work - trace_cpu,
+            load: w.load_seconds,
+            idle_queued: w.idle_queued_seconds,
+            idle_verdicts: w.idle_verdicts_seconds,
+            idle_empty: w.idle_empty_seconds,
+            pass_wait: w.pass_wait_seconds,
+            other: (w.frame_seconds - w.busy_seconds - idle).max(0.0),
+            other_cpu: (w.cpu_seconds - w.trace_cpu_seconds).max(0.0),
+        }
+    }
+
+    /// The mean of some splits; the default when there are none.
+    pub fn mean(splits: &[TimeSplit]) -> Self {
+        let n = splits.len().max(1) as f64;
+        let sum = |f: fn(&TimeSplit) -> f64| splits.iter().map(f).sum::<f64>() / n;
+        TimeSplit {
+            frame: sum(|s| s.frame),
+            trace_cpu: sum(|s| s.trace_cpu),
+            trace_wait: sum(|s| s.trace_wait),
+            load: sum(|s| s.load),
+            idle_queued: sum(|s| s.idle_queued),
+            idle_verdicts: sum(|s| s.idle_verdicts),
+            idle_empty: sum(|s| s.idle_empty),
+            pass_wait: sum(|s| s.pass_wait),
+            other: sum(|s| s.other),
+            other_cpu: sum(|s| s.other_cpu),
+        }
+    }
 }
 
 /// One schedule's row: how many runs succeeded, the errors of the others, and the measures.
@@ -254,6 +433,11 @@ fn measure(ok: &[&ClusterStats]) -> Option<Measured> {
             })
             .max()
             .unwrap_or(0),
+        split: TimeSplit::mean(
+            &ok.iter()
+                .flat_map(|s| s.per_worker.iter().map(TimeSplit::of))
+                .collect::<Vec<_>>(),
+        ),
     })
 }
 
@@ -440,6 +624,18 @@ pub(crate) mod tests {
         assert_eq!(ray_work_seconds(&stats(5.0, 4, 3.0, 0.0, "h")), 3.0);
     }
 
+    /// Inputs for two workers of unbounded cache and no storage cost: only compute counts.
+    pub(crate) fn inputs(domain_bytes: Vec<u64>, bandwidth: Option<f64>) -> BoundInputs {
+        BoundInputs {
+            domain_bytes,
+            workers: 0,
+            cache_bytes: None,
+            bandwidth,
+            max_depth: 3,
+            cores: None,
+        }
+    }
+
     #[test]
     fn the_bound_takes_the_least_work_and_the_scene_at_storage_speed() {
         let runs = vec![
@@ -447,15 +643,145 @@ pub(crate) mod tests {
             outcome(2, "domain", Ok(stats(9.0, 40, 4.0, 0.5, "h"))),
             outcome(3, "image-plane", Err("UNIMPLEMENTED".into())),
         ];
-        let b = bound(&runs, 100 << 20, None).unwrap();
+        let b = bound(&runs, &inputs(vec![100 << 20], None)).unwrap();
         assert_eq!(b.compute_seconds, 2.0);
+        assert!(!b.compute_is_cpu);
         assert_eq!(b.load_seconds, 0.0);
         assert_eq!(b.seconds(), 2.0);
-        // 100 MiB at 20 MiB/s: 5 s, more than the compute term.
-        let b = bound(&runs, 100 << 20, Some(20.0 * 1048576.0)).unwrap();
-        assert_eq!(b.load_seconds, 5.0);
-        assert_eq!(b.seconds(), 5.0);
-        assert_eq!(bound(&runs[2..], 1, None), None);
+        assert_eq!(b.workers, 2);
+        // Unbounded caches: each domain once, 100 MiB. The runs loaded less (4 and 40 KiB),
+        // so the bound takes the fewest bytes a run loaded: 4 KiB over two workers at
+        // 512 B/s each = 4 s.
+        assert_eq!(b.model_bytes, 100 << 20);
+        assert_eq!(b.load_bytes, 4 * 1024);
+        let b = bound(&runs, &inputs(vec![100 << 20], Some(512.0))).unwrap();
+        assert_eq!(b.load_seconds, 4.0);
+        assert_eq!(b.seconds(), 4.0);
+        // A scene smaller than what the runs loaded: its bytes at both workers' bandwidth.
+        let b = bound(&runs, &inputs(vec![2048], Some(512.0))).unwrap();
+        assert_eq!((b.load_bytes, b.load_seconds), (2048, 2.0));
+        assert_eq!(bound(&runs[2..], &inputs(vec![1], None)), None);
+    }
+
+    #[test]
+    fn unavoidable_loads_are_each_domain_once_and_per_generation_what_the_caches_cannot_keep() {
+        let d = [100, 100, 100, 100];
+        // Unbounded caches or caches holding the scene: every domain once.
+        assert_eq!(unavoidable_load_bytes(&d, 4, None, 5), 400);
+        assert_eq!(unavoidable_load_bytes(&d, 2, Some(200), 5), 400);
+        assert_eq!(unavoidable_load_bytes(&d, 4, Some(1000), 5), 400);
+        // Two workers of one domain each keep 200 of 400 bytes across each of 4 steps.
+        assert_eq!(unavoidable_load_bytes(&d, 2, Some(100), 5), 400 + 4 * 200);
+        // A cache smaller than every domain keeps nothing: the scene once per generation.
+        assert_eq!(unavoidable_load_bytes(&d, 8, Some(99), 5), 5 * 400);
+        // Only domains that fit a cache can be kept: 300 fits nowhere.
+        assert_eq!(
+            unavoidable_load_bytes(&[300, 50, 50], 4, Some(100), 2),
+            400 + 300
+        );
+        // One generation: each domain once, whatever the caches.
+        assert_eq!(unavoidable_load_bytes(&d, 1, Some(1), 1), 400);
+        assert_eq!(generations(3), 5);
+        assert_eq!(generations(0), 2);
+    }
+
+    #[test]
+    fn the_compute_term_counts_cpu_over_the_cores_there_are() {
+        let cpu = |s: &mut ClusterStats, secs: &[f64]| {
+            for (w, &c) in s.per_worker.iter_mut().zip(secs) {
+                w.trace_cpu_seconds = c;
+            }
+        };
+        // Two workers of one thread busy 3 s (1 s loading) each in wall time; 1.5 s of CPU
+        // each: they shared one core.
+        let mut s = stats(5.0, 4, 3.0, 1.0, "h");
+        assert_eq!(ray_work_cpu_seconds(&s), None);
+        assert_eq!(compute_seconds(&s, Some(1)), 2.0);
+        cpu(&mut s, &[1.5, 1.5]);
+        assert_eq!(ray_work_cpu_seconds(&s), Some(3.0));
+        // Two threads on one core: 3 s; on two (or more) cores: 1.5 s.
+        assert_eq!(compute_seconds(&s, Some(1)), 3.0);
+        assert_eq!(compute_seconds(&s, Some(2)), 1.5);
+        assert_eq!(compute_seconds(&s, Some(16)), 1.5);
+        assert_eq!(compute_seconds(&s, None), 1.5);
+        // A worker that did not measure: back to wall time per thread.
+        cpu(&mut s, &[1.5, 0.0]);
+        assert_eq!(compute_seconds(&s, Some(1)), 2.0);
+        // The bound takes the least over runs and says which kind it is.
+        let mut t = stats(5.0, 4, 3.0, 1.0, "h");
+        cpu(&mut t, &[0.5, 0.5]);
+        let runs = vec![outcome(1, "dynamic", Ok(s)), outcome(2, "domain", Ok(t))];
+        let b = bound(
+            &runs,
+            &BoundInputs {
+                cores: Some(1),
+                ..inputs(vec![1], None)
+            },
+        )
+        .unwrap();
+        assert_eq!(b.compute_seconds, 1.0);
+        assert!(b.compute_is_cpu);
+    }
+
+    #[test]
+    fn the_load_term_reads_the_unavoidable_bytes_at_every_workers_bandwidth() {
+        // Four workers, 48 domains of 1 KiB, caches of 2 KiB, depth 3 (5 generations): the
+        // scene once (48 KiB) and 4 x (48 - 8) KiB again = 208 KiB, at 4 x 1 KiB/s = 52 s;
+        // the run loaded more (1000 KiB), so the model stands.
+        let mut s = stats(100.0, 1000, 3.0, 1.0, "h");
+        s.workers = 4;
+        let runs = vec![outcome(1, "predictive", Ok(s))];
+        let b = bound(
+            &runs,
+            &BoundInputs {
+                domain_bytes: vec![1024; 48],
+                workers: 4,
+                cache_bytes: Some(2048),
+                bandwidth: Some(1024.0),
+                max_depth: 3,
+                cores: Some(2),
+            },
+        )
+        .unwrap();
+        assert_eq!(b.model_bytes, 208 * 1024);
+        assert_eq!(b.load_bytes, 208 * 1024);
+        assert_eq!(b.load_seconds, 52.0);
+        assert_eq!(b.seconds(), 52.0);
+    }
+
+    #[test]
+    fn a_workers_frame_splits_into_parts_that_add_up() {
+        let w = WorkerFrameStats {
+            frame_seconds: 10.0,
+            busy_seconds: 6.0,
+            load_seconds: 2.0,
+            trace_cpu_seconds: 3.0,
+            idle_queued_seconds: 1.0,
+            idle_verdicts_seconds: 1.5,
+            idle_empty_seconds: 0.5,
+            pass_wait_seconds: 0.25,
+            cpu_seconds: 4.0,
+            ..Default::default()
+        };
+        let s = TimeSplit::of(&w);
+        assert_eq!((s.trace_cpu, s.trace_wait, s.load), (3.0, 1.0, 2.0));
+        assert_eq!(
+            (s.idle_queued, s.idle_verdicts, s.idle_empty),
+            (1.0, 1.5, 0.5)
+        );
+        assert_eq!((s.pass_wait, s.other, s.other_cpu), (0.25, 0.75, 1.0));
+        let parts = s.trace_cpu
+            + s.trace_wait
+            + s.load
+            + s.idle_queued
+            + s.idle_verdicts
+            + s.idle_empty
+            + s.pass_wait
+            + s.other;
+        assert_eq!(parts, s.frame);
+        let m = TimeSplit::mean(&[s, TimeSplit::default()]);
+        assert_eq!((m.frame, m.trace_cpu, m.other), (5.0, 1.5, 0.375));
+        assert_eq!(TimeSplit::mean(&[]), TimeSplit::default());
     }
 
     #[test]

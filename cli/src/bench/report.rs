@@ -5,8 +5,8 @@
 use comfy_table::{ContentArrangement, Table, presets::UTF8_FULL_CONDENSED};
 
 use super::{
-    Bound, HashCheck, REFERENCE_SCHEDULE, ScheduleSummary, TIERS, best_median, efficiency, ratio,
-    reference_loads,
+    Bound, BoundInputs, HashCheck, REFERENCE_SCHEDULE, ScheduleSummary, TIERS, best_median,
+    efficiency, generations, ratio, reference_loads,
 };
 use crate::units::human;
 
@@ -73,6 +73,45 @@ pub fn bench_table(summaries: &[ScheduleSummary], bound: Option<&Bound>) -> Tabl
     t
 }
 
+/// Where the workers' frames went: one row per schedule, the mean per worker over its runs.
+pub fn split_table(summaries: &[ScheduleSummary]) -> Table {
+    let mut t = Table::new();
+    t.load_preset(UTF8_FULL_CONDENSED)
+        .set_content_arrangement(ContentArrangement::Dynamic)
+        .set_header(vec![
+            "schedule",
+            "frame",
+            "tracing (CPU)",
+            "tracing, waiting for a core",
+            "loading",
+            "idle: rays queued, not planned",
+            "idle: waiting for verdicts",
+            "idle: nothing queued",
+            "finished pass waiting for the event loop",
+            "other",
+            "worker CPU outside tracing (overlaps)",
+        ]);
+    for s in summaries {
+        let Some(m) = &s.measured else { continue };
+        let p = &m.split;
+        let part = |v: f64| format!("{v:.2} s ({:.0} %)", 100.0 * v / p.frame.max(1e-9));
+        t.add_row(vec![
+            s.schedule.clone(),
+            format!("{:.2} s", p.frame),
+            part(p.trace_cpu),
+            part(p.trace_wait),
+            part(p.load),
+            part(p.idle_queued),
+            part(p.idle_verdicts),
+            part(p.idle_empty),
+            part(p.pass_wait),
+            part(p.other),
+            format!("{:.2} s", p.other_cpu),
+        ]);
+    }
+    t
+}
+
 /// A row's prefetches: "-" when it made none, else "N (used / wasted)".
 fn prefetched(m: &super::Measured) -> String {
     if m.prefetches == 0.0 {
@@ -87,11 +126,11 @@ fn prefetched(m: &super::Measured) -> String {
 }
 
 /// The footnote under the table: what the bound is, with its numbers, and what the other
-/// columns mean.
+/// columns mean. `bandwidth`: the storage bandwidth as typed.
 pub fn bound_footnote(
     bound: Option<&Bound>,
     successful_runs: usize,
-    scene_bytes: u64,
+    inputs: &BoundInputs,
     bandwidth: Option<&str>,
 ) -> String {
     let legend = "wall times are the coordinator's (frame start to last tile); other columns \
@@ -102,18 +141,47 @@ pub fn bound_footnote(
     let Some(b) = bound else {
         return format!("no run succeeded, so there is no bound; {legend}");
     };
+    let scene: u64 = inputs.domain_bytes.iter().sum();
+    let caches = match inputs.cache_bytes {
+        Some(c) => format!("caches of {} x {}", b.workers, human(c)),
+        None => "caches unknown (taken as unbounded)".into(),
+    };
+    let capped = if b.load_bytes < b.model_bytes {
+        format!(
+            ", capped at the fewest bytes a run loaded ({})",
+            human(b.load_bytes)
+        )
+    } else {
+        String::new()
+    };
     let load = match bandwidth {
         Some(rate) => format!(
-            "the scene's domain bytes ({}) / storage bandwidth ({rate}) = {:.3} s",
-            human(scene_bytes),
+            "unavoidable domain bytes {} (the scene, {}, once, and again in each of {} later \
+             ray generations what {caches} cannot keep{capped}) / ({} workers x {rate}) = \
+             {:.3} s",
+            human(b.model_bytes),
+            human(scene),
+            generations(inputs.max_depth).saturating_sub(1),
+            b.workers,
             b.load_seconds
         ),
         None => "0 (no --storage-bandwidth given)".into(),
     };
+    let compute = if b.compute_is_cpu {
+        let cores = inputs
+            .cores
+            .map_or("cores unknown".to_string(), |c| format!("{c} cores here"));
+        format!(
+            "the sum over workers of their tracing threads' CPU seconds / min(threads, \
+             available cores: {cores})"
+        )
+    } else {
+        "the sum over workers of (busy - load) wall seconds / total threads".into()
+    };
     format!(
         "efficiency = bound / median wall time, where bound = max(compute, loads) = {:.3} s:\n  \
-         compute = the least ray work of the {successful_runs} successful runs: the sum over \
-         workers of (busy - load seconds) / total threads = {:.3} s\n  \
+         compute = the least ray work of the {successful_runs} successful runs: {compute} = \
+         {:.3} s\n  \
          loads = {load}\n\
          {legend}",
         b.seconds(),
@@ -185,6 +253,7 @@ pub fn bundles(per_tier: &[f64; 4]) -> String {
 
 #[cfg(test)]
 mod tests {
+    use super::super::tests::inputs;
     use super::super::tests::{outcome, stats};
     use super::super::{bound, summarize};
     use super::*;
@@ -221,7 +290,7 @@ mod tests {
             .map(String::from)
             .into();
         let summaries = summarize(&names, &runs);
-        let b = bound(&runs, 1 << 20, None);
+        let b = bound(&runs, &inputs(vec![1 << 20], None));
         let text = bench_table(&summaries, b.as_ref()).to_string();
         let dynamic = row(&text, "│ dynamic ");
         for want in ["1/1", "2.00 s (2.00-2.00)", "1.00x", "c0 r0 m6 t0", "50 %"] {
@@ -234,18 +303,27 @@ mod tests {
         let failed = row(&text, "image-plane");
         assert!(failed.contains("0/1") && failed.contains("failed: UNIMPLEMENTED"));
 
-        let note = bound_footnote(b.as_ref(), 2, 1 << 20, None);
+        let note = bound_footnote(b.as_ref(), 2, &inputs(vec![1 << 20], None), None);
         assert!(
             note.contains("bound = max(compute, loads) = 1.000 s"),
             "{note}"
         );
         assert!(note.contains("no --storage-bandwidth"), "{note}");
-        let b = bound(&runs, 1 << 20, Some(1024.0 * 1024.0));
-        let note = bound_footnote(b.as_ref(), 2, 1 << 20, Some("1MiB/s"));
+        let mut with_caches = inputs(vec![1 << 19; 2], Some(1024.0 * 1024.0));
+        with_caches.cache_bytes = Some(1 << 19);
+        let b = bound(&runs, &with_caches);
+        let note = bound_footnote(b.as_ref(), 2, &with_caches, Some("1MiB/s"));
+        // 1 MiB once; each of 4 later generations again nothing (2 x 512 KiB kept); the
+        // runs loaded 4 and 40 KiB, so the fewest, 4 KiB, at 2 x 1 MiB/s.
         assert!(
-            note.contains("(1.0 MiB) / storage bandwidth (1MiB/s) = 1.000 s"),
+            note.contains("bytes 1.0 MiB (the scene, 1.0 MiB, once, and again in each of 4"),
             "{note}"
         );
+        assert!(
+            note.contains("capped at the fewest bytes a run loaded (4.0 KiB)) / (2 workers x 1MiB/s) = 0.002 s"),
+            "{note}"
+        );
+        assert!(note.contains("(busy - load) wall seconds"), "{note}");
     }
 
     #[test]

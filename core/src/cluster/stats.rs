@@ -73,6 +73,31 @@ pub struct WorkerFrameStats {
     pub frame_seconds: f64,
     /// Fraction of the frame spent not tracing.
     pub idle_fraction: f64,
+    /// CPU seconds its tracing threads used during the frame (passes: tracing, issuing
+    /// camera rays, checking loaded domains). Below `busy_seconds - load_seconds` when the
+    /// threads waited for a core; 0 when not measured (older workers, other systems).
+    #[serde(default)]
+    pub trace_cpu_seconds: f64,
+    /// CPU seconds the whole worker process used during the frame (tracing, the network,
+    /// bundling, prefetches); 0 when not measured.
+    #[serde(default)]
+    pub cpu_seconds: f64,
+    /// Seconds with no pass to run while rays were queued here for domains the round's plan
+    /// did not let it trace (waiting for the next plan, or for a prefetch to land).
+    #[serde(default)]
+    pub idle_queued_seconds: f64,
+    /// Seconds with no pass to run, nothing queued, and rays of its own waiting for their
+    /// copies' verdicts (predictive).
+    #[serde(default)]
+    pub idle_verdicts_seconds: f64,
+    /// Seconds with no pass to run and nothing queued or waiting: waiting for peers' rays
+    /// or the frame's end.
+    #[serde(default)]
+    pub idle_empty_seconds: f64,
+    /// Seconds finished passes waited for the worker's event loop to take them up (part of
+    /// neither busy nor idle time).
+    #[serde(default)]
+    pub pass_wait_seconds: f64,
     /// Peak resident memory of the process, bytes.
     pub peak_rss_bytes: u64,
 }
@@ -118,6 +143,12 @@ impl WorkerFrameStats {
         }
         self.busy_seconds += o.busy_seconds;
         self.load_seconds += o.load_seconds;
+        self.trace_cpu_seconds += o.trace_cpu_seconds;
+        self.cpu_seconds += o.cpu_seconds;
+        self.idle_queued_seconds += o.idle_queued_seconds;
+        self.idle_verdicts_seconds += o.idle_verdicts_seconds;
+        self.idle_empty_seconds += o.idle_empty_seconds;
+        self.pass_wait_seconds += o.pass_wait_seconds;
         self.frame_seconds += o.frame_seconds;
         self.idle_fraction =
             (1.0 - self.busy_seconds / self.frame_seconds.max(1e-9)).clamp(0.0, 1.0);

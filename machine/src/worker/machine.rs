@@ -381,9 +381,10 @@ impl<S: RaySpill> Worker<S> {
 
     fn end_frame(&mut self, job_id: &str) {
         self.mark_ended(job_id);
-        let Some(frame) = self.frame.take_if(|f| f.job_id == job_id) else {
+        let Some(mut frame) = self.frame.take_if(|f| f.job_id == job_id) else {
             return;
         };
+        frame.counters.close_idle(self.now);
         let c = &frame.counters;
         let frame_seconds = self.now.since(frame.started).as_secs_f64();
         let busy_seconds = c.busy.as_secs_f64();
@@ -399,6 +400,9 @@ impl<S: RaySpill> Worker<S> {
             busy_seconds,
             frame_seconds,
             idle_fraction: (1.0 - busy_seconds / frame_seconds.max(1e-9)).clamp(0.0, 1.0),
+            idle_queued_seconds: c.idle[0].as_secs_f64(),
+            idle_verdicts_seconds: c.idle[1].as_secs_f64(),
+            idle_empty_seconds: c.idle[2].as_secs_f64(),
             ..WorkerFrameStats::default()
         };
         info!(job = %job_id, segments = c.rays.segments(), busy_seconds, "frame ended");
@@ -524,12 +528,15 @@ impl<S: RaySpill> Worker<S> {
         let speculative = frame.take_to_conclude();
         let concluding = speculative.as_ref().is_some_and(|c| !c.is_empty());
         if primaries.is_empty() && trace.is_none() && !concluding {
+            let (now, kind) = (self.now, frame.idle_kind());
+            frame.counters.open_idle(now, kind);
             // The domain being prefetched has work here: its load ends this wait.
             if !loading.is_some_and(|d| frame.has_work_for(d)) {
                 self.report_idle();
             }
             return;
         }
+        frame.counters.close_idle(self.now);
         self.pass_running = true;
         self.tracing = trace.as_ref().map(|(d, _)| *d);
         let job_id = frame.job_id.clone();

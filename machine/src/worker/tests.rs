@@ -689,3 +689,29 @@ fn a_frame_without_prefetch_asks_for_none() {
     assert!(pass_started(&actions).is_some());
     assert_eq!(prefetch_asked(&actions), None, "{actions:?}");
 }
+
+#[test]
+fn idle_time_is_counted_by_why_the_worker_has_no_pass() {
+    let mut w = worker();
+    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    w.handle(Time(0), plan(1, &[0], &[(1, "b:1")]));
+    // Nothing queued from 0 to 1000 ns; then a ray for domain 2, which no one holds and the
+    // plan does not give this worker: it waits here, queued, until the frame ends at 3000.
+    w.handle(Time(1000), bundle(JOB, &[ray(0, 0, 2, 6)]));
+    assert_eq!(w.frame().unwrap().queue_sizes(), BTreeMap::from([(2, 1)]));
+    let end = control(FromCoordinator::EndFrame(proto::EndFrame {
+        job_id: JOB.into(),
+    }));
+    let actions = w.handle(Time(3000), end);
+    let stats = actions
+        .iter()
+        .find_map(|a| match a {
+            Action::FrameEnded { stats, .. } => Some(stats),
+            _ => None,
+        })
+        .expect("the frame's statistics");
+    assert_eq!(stats.idle_empty_seconds, 1e-6);
+    assert_eq!(stats.idle_queued_seconds, 2e-6);
+    assert_eq!(stats.idle_verdicts_seconds, 0.0);
+    assert_eq!(stats.busy_seconds, 0.0);
+}

@@ -5,8 +5,8 @@ use anyhow::bail;
 
 use crate::bench::csv_out::{Setup, write_runs_file};
 use crate::bench::progressive::{compare, progressive_table};
-use crate::bench::report::{bench_table, bound_footnote, hash_verdict};
-use crate::bench::{HashCheck, RunOutcome, bound, check_hashes, summarize};
+use crate::bench::report::{bench_table, bound_footnote, hash_verdict, split_table};
+use crate::bench::{BoundInputs, HashCheck, RunOutcome, bound, check_hashes, summarize};
 use crate::units::human;
 
 use super::*;
@@ -24,7 +24,19 @@ pub(super) fn report(
         .storage_bandwidth
         .as_ref()
         .map(|r| r.bytes_per_second as f64);
-    let bound = bound(runs, plan.scene_bytes, bandwidth);
+    let inputs = BoundInputs {
+        domain_bytes: plan.domain_bytes.clone(),
+        workers: setup.workers.unwrap_or(0),
+        cache_bytes: setup.cache_bytes_per_worker,
+        bandwidth,
+        max_depth: setup.depth,
+        // The cores this machine gives the bench (affinity and cgroup quotas counted): those
+        // of a cluster the bench started itself; another cluster's are not known.
+        cores: setup
+            .workers
+            .map(|_| std::thread::available_parallelism().map_or(1, |n| n.get())),
+    };
+    let bound = bound(runs, &inputs);
     let ok = runs.iter().filter(|r| r.result.is_ok()).count();
     println!("{}", describe(plan, setup, runs));
     println!("{}", bench_table(&summaries, bound.as_ref()));
@@ -33,10 +45,15 @@ pub(super) fn report(
         bound_footnote(
             bound.as_ref(),
             ok,
-            plan.scene_bytes,
+            &inputs,
             a.storage_bandwidth.as_ref().map(|r| r.text.as_str())
         )
     );
+    println!(
+        "where a worker's frame went (mean per worker over the runs; tracing CPU is the \
+         tracing threads' CPU time, the rest of the passes' ray work waited for a core):"
+    );
+    println!("{}", split_table(&summaries));
     for s in summaries
         .iter()
         .filter(|s| s.ok > 0 && !s.errors.is_empty())

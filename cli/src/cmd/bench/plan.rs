@@ -38,6 +38,8 @@ pub(super) struct Plan {
     pub(super) scene_dir: PathBuf,
     pub(super) scene_name: String,
     pub(super) scene_bytes: u64,
+    /// Bytes of each domain file (the bound's unavoidable loads).
+    pub(super) domain_bytes: Vec<u64>,
     pub(super) domains: usize,
     pub(super) csv: Option<PathBuf>,
     pub(super) chart: Option<PathBuf>,
@@ -129,6 +131,7 @@ impl Plan {
             scene_dir: a.scene.clone(),
             scene_name,
             scene_bytes: manifest.domains.iter().map(|d| d.bytes).sum(),
+            domain_bytes: manifest.domains.iter().map(|d| d.bytes).collect(),
             domains: manifest.domains.len(),
             csv: a.csv.clone(),
             chart,

@@ -1,0 +1,132 @@
+//! CPU time, as opposed to wall time: how much of a core a process or a group of threads
+//! really got. On a machine with fewer cores than busy threads, a pass's wall time counts
+//! the time its thread waited for a core; its CPU time does not. The bench's bound and the
+//! workers' frame statistics use both to tell tracing from waiting for a core.
+//!
+//! Unix (`getrusage`) and Linux (`pthread_getcpuclockid`, thread clocks); elsewhere every
+//! figure is zero, which the readers treat as "not measured".
+
+use std::sync::{Arc, Mutex};
+
+/// CPU seconds (user and system) the whole process has used since it started; 0 where
+/// unsupported or on error.
+pub fn process_cpu_seconds() -> f64 {
+    #[cfg(unix)]
+    {
+        // SAFETY: getrusage writes only into the struct it is given.
+        let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
+        if unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut usage) } != 0 {
+            return 0.0;
+        }
+        let secs = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 / 1e6;
+        secs(usage.ru_utime) + secs(usage.ru_stime)
+    }
+    #[cfg(not(unix))]
+    {
+        0.0
+    }
+}
+
+/// The CPU clocks of a set of threads (a tracing pool's), summed on demand: threads register
+/// themselves when they start ([`ThreadClocks::register_current`]), and any thread may read
+/// the total ([`ThreadClocks::seconds`]). Bounded by the threads registered, which the caller
+/// bounds (a pool's size).
+#[derive(Clone, Debug, Default)]
+pub struct ThreadClocks {
+    #[cfg(target_os = "linux")]
+    clocks: Arc<Mutex<Vec<libc::clockid_t>>>,
+    #[cfg(not(target_os = "linux"))]
+    clocks: Arc<Mutex<Vec<()>>>,
+}
+
+impl ThreadClocks {
+    /// No threads yet.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Adds the calling thread's CPU clock (call it on the thread, e.g. from a pool's start
+    /// handler). A thread whose clock cannot be had is left out.
+    pub fn register_current(&self) {
+        #[cfg(target_os = "linux")]
+        {
+            let mut clock: libc::clockid_t = 0;
+            // SAFETY: pthread_self is the calling thread; the call writes only `clock`.
+            if unsafe { libc::pthread_getcpuclockid(libc::pthread_self(), &mut clock) } == 0 {
+                self.clocks
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .push(clock);
+            }
+        }
+    }
+
+    /// How many threads are counted.
+    pub fn threads(&self) -> usize {
+        self.clocks.lock().unwrap_or_else(|p| p.into_inner()).len()
+    }
+
+    /// CPU seconds the registered threads have used since each started (a thread that has
+    /// exited no longer counts: its clock cannot be read).
+    pub fn seconds(&self) -> f64 {
+        #[cfg(target_os = "linux")]
+        {
+            let clocks = self.clocks.lock().unwrap_or_else(|p| p.into_inner());
+            clocks
+                .iter()
+                .map(|&c| {
+                    // SAFETY: clock_gettime writes only into the timespec it is given.
+                    let mut ts: libc::timespec = unsafe { std::mem::zeroed() };
+                    if unsafe { libc::clock_gettime(c, &mut ts) } == 0 {
+                        ts.tv_sec as f64 + ts.tv_nsec as f64 / 1e9
+                    } else {
+                        0.0
+                    }
+                })
+                .sum()
+        }
+        #[cfg(not(target_os = "linux"))]
+        {
+            0.0
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Spins until the calling thread has used about `seconds` of CPU.
+    fn spin(seconds: f64) -> u64 {
+        let start = std::time::Instant::now();
+        let mut x = 0u64;
+        while start.elapsed().as_secs_f64() < seconds {
+            x = x.wrapping_mul(6364136223846793005).wrapping_add(1);
+            std::hint::black_box(x);
+        }
+        x
+    }
+
+    #[test]
+    #[cfg(target_os = "linux")]
+    fn registered_threads_count_their_own_cpu_and_sleeping_costs_none() {
+        let clocks = ThreadClocks::new();
+        let c = clocks.clone();
+        let worker = std::thread::spawn(move || {
+            c.register_current();
+            let before = c.seconds();
+            std::thread::sleep(std::time::Duration::from_millis(100));
+            let slept = c.seconds() - before;
+            spin(0.05);
+            (slept, c.seconds() - before)
+        });
+        let (slept, total) = worker.join().unwrap();
+        assert_eq!(clocks.threads(), 1);
+        // Sleeping 100 ms uses (almost) no CPU; spinning 50 ms of wall uses some, at most
+        // the wall time it spun plus the sleep.
+        assert!(slept < 0.02, "slept {slept}");
+        assert!(total > slept && total < 0.2, "total {total}");
+        // The process's CPU covers at least that thread's.
+        assert!(process_cpu_seconds() >= total);
+    }
+}
