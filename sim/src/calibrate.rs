@@ -10,11 +10,15 @@
 //! volume x V` tell the prices apart. A price the fit makes negative is dropped to zero and
 //! the rest fitted again (non-negative least squares by elimination).
 //!
-//! Planning: one asynchronous round of the dynamic schedule (one member dry, the rest busy,
-//! free cache slots filled, as the coordinator plans by default) over synthetic clusters of
-//! several sizes (`schedule::synthetic`, the planning benchmark's cluster), as the coordinator makes it (`round_index::RoundIndex`: the dry member's
-//! report taken in, the dry member planned, the plan adopted and queued counts moved), timed
-//! on the thread's clock (the fastest of a few repeats), fitted as
+//! Planning: asynchronous rounds of the dynamic schedule (free cache slots filled, as the
+//! coordinator plans by default) over synthetic clusters of several sizes
+//! (`schedule::synthetic`, the planning benchmark's cluster), as the coordinator makes them
+//! (`round_index::RoundIndex`: the dry members' reports taken in, the dry members planned,
+//! the plans adopted and queued counts moved, the holders map rebuilt and diffed), timed on
+//! the thread's clock (the fastest of five). Incremental rounds (1, 8 or 64 members dry, the
+//! rest busy) are fitted as `round + planned x P + member x M + domain x D`: the incremental
+//! planner's cost follows the members it plans, not the cluster's size. Rounds with every
+//! member dry are planned from the whole cluster and fitted apart as
 //! `round + member x M + domain x D`.
 
 use std::sync::Arc;
@@ -22,7 +26,9 @@ use std::time::Duration;
 
 use rayfarm_core::schedule::dynamic::Options;
 use rayfarm_core::schedule::round_index::RoundIndex;
+use rayfarm_core::schedule::rounds::current_holders;
 use rayfarm_core::schedule::synthetic::{DOMAIN_BYTES, members};
+use rayfarm_machine::coordinator::holders::SentHolders;
 
 use crate::cost::ComputeCost;
 use crate::faults::FaultPlan;
@@ -52,9 +58,12 @@ pub struct Calibration {
     /// Their CPU time in all, and the root-mean-square error of the fit over the mean pass.
     pub pass_cpu: Duration,
     pub pass_fit_error: f64,
-    /// Cluster sizes the planning prices were fitted to: (members, domains, ns of a round).
-    pub rounds: Vec<(usize, usize, f64)>,
+    /// The planning rounds the planning prices were fitted to.
+    pub rounds: Vec<TimedRound>,
+    /// The fit's root-mean-square error over the mean round: incremental rounds, and rounds
+    /// planned from the whole cluster.
     pub round_fit_error: f64,
+    pub whole_round_fit_error: f64,
 }
 
 /// Least squares with non-negative coefficients: `rows` of (features, value); a feature
@@ -181,10 +190,7 @@ pub fn calibrate(
     let (pass_coef, pass_fit_error) = fit(&passes.iter().map(pass_row).collect::<Vec<_>>());
     let volumes = passes.iter().any(|p| p.counters.volume_samples > 0);
     let rounds = time_rounds();
-    let (round_coef, round_fit_error) = fit(&rounds
-        .iter()
-        .map(|&(w, d, ns)| (vec![1.0, w as f64, d as f64], ns))
-        .collect::<Vec<_>>());
+    let (round_coef, round_fit_error, whole_coef, whole_round_fit_error) = fit_rounds(&rounds);
     Ok(Calibration {
         cost: ComputeCost {
             pass_ns: pass_coef[0],
@@ -197,14 +203,19 @@ pub fn calibrate(
                 defaults.volume_sample_ns
             },
             round_ns: round_coef[0],
-            round_member_ns: round_coef[1],
-            round_domain_ns: round_coef[2],
+            round_planned_ns: round_coef[1],
+            round_member_ns: round_coef[2],
+            round_domain_ns: round_coef[3],
+            whole_round_ns: whole_coef[0],
+            whole_round_member_ns: whole_coef[1],
+            whole_round_domain_ns: whole_coef[2],
         },
         passes: passes.len(),
         pass_cpu: Duration::from_nanos(passes.iter().map(|p| p.cpu_ns).sum()),
         pass_fit_error,
         rounds,
         round_fit_error,
+        whole_round_fit_error,
     })
 }
 
@@ -233,43 +244,113 @@ const ROUND_SIZES: [(u32, u32); 6] = [
     (4096, 32768),
 ];
 
-/// One asynchronous round per size, the fastest of five: (members, domains, ns).
-fn time_rounds() -> Vec<(usize, usize, f64)> {
+/// Members dry at once in the timed incremental rounds (a round plans those that ran dry
+/// since the last one: one in the common case, more when reports arrive together).
+const DRY_COUNTS: [u32; 3] = [1, 8, 64];
+
+/// One timed planning round: the cluster's size, how many members it planned, and its
+/// thread CPU time (the fastest of five).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TimedRound {
+    pub members: usize,
+    pub domains: usize,
+    /// Members planned: the dry ones, or every member in a whole-cluster round.
+    pub planned: usize,
+    /// Whether every member was dry, so the round was planned from the whole cluster.
+    pub whole: bool,
+    pub ns: f64,
+}
+
+/// Rounds at every size: incremental ones with each of [`DRY_COUNTS`] members dry, and one
+/// whole-cluster round (every member dry).
+fn time_rounds() -> Vec<TimedRound> {
+    let mut out = Vec::new();
+    for &(workers, domains) in &ROUND_SIZES {
+        for dry in DRY_COUNTS.into_iter().filter(|&k| k < workers) {
+            out.push(time_round(workers, domains, dry));
+        }
+        out.push(time_round(workers, domains, workers));
+    }
+    out
+}
+
+/// The fastest of five rounds of `workers` members over `domains` domains with `dry` of them
+/// dry, planned as the coordinator plans an asynchronous round of the dynamic schedule
+/// (`RunningFrame::plan_dry_members`): the dry members' reports taken into the index, their
+/// plans drafted, adopted (queued rays moved to their holders), and the holders map rebuilt
+/// from every member's plan and diffed against the last one sent. Building and sending the
+/// messages is left out (the network prices those bytes).
+fn time_round(workers: u32, domains: u32, dry: u32) -> TimedRound {
     let options = Options {
         fill_free_slots: true,
         ..Options::default()
     };
-    ROUND_SIZES
-        .iter()
-        .map(|&(workers, domains)| {
-            let sizes = vec![DOMAIN_BYTES; domains as usize];
-            // One member dry, the rest busy: the common event, one of these per report.
-            let fresh = members(workers, domains, 1);
-            let best = (0..5)
-                .map(|_| {
-                    let mut members = fresh.clone();
-                    let mut index = RoundIndex::new(domains, false);
-                    for (&k, m) in &members {
-                        index.update(k, Some(m));
-                    }
-                    // One round untimed: the index's first adoption looks at every queue
-                    // (all are new to it); from then on a round looks at what changed.
-                    let plans = index.dry_plans(&members, &sizes, options);
-                    index.adopt(&mut members, &plans, 2);
-                    if let Some(r) = members.get_mut(&0).and_then(|m| m.report.as_mut()) {
-                        r.round = 2;
-                    }
-                    let start = thread_cpu_ns();
-                    index.update(0, members.get(&0));
-                    let plans = index.dry_plans(&members, &sizes, options);
-                    std::hint::black_box(index.adopt(&mut members, &plans, 3));
-                    thread_cpu_ns().saturating_sub(start)
-                })
-                .min()
-                .unwrap_or(0);
-            (workers as usize, domains as usize, best as f64)
+    let sizes = vec![DOMAIN_BYTES; domains as usize];
+    let whole = dry >= workers;
+    let fresh = members(workers, domains, if whole { 0 } else { dry });
+    let best = (0..5)
+        .map(|_| {
+            let mut members = fresh.clone();
+            let mut index = RoundIndex::new(domains, false);
+            let mut sent = SentHolders::default();
+            for (&k, m) in &members {
+                index.update(k, Some(m));
+            }
+            // One round untimed: the index's first adoption looks at every queue (all are new
+            // to it); from then on a round looks at what changed. With nobody dry it plans
+            // nothing and only the holders map is made.
+            let plans = index.dry_plans(&members, &sizes, options);
+            index.adopt(&mut members, &plans, 2);
+            sent.update(current_holders(&members));
+            // The members to time run dry now: their reports are of the latest round.
+            let planned: Vec<u32> = members.keys().copied().take(dry as usize).collect();
+            for k in &planned {
+                if let Some(r) = members.get_mut(k).and_then(|m| m.report.as_mut()) {
+                    r.round = 2;
+                }
+            }
+            let start = thread_cpu_ns();
+            for &k in &planned {
+                index.update(k, members.get(&k));
+            }
+            let plans = index.dry_plans(&members, &sizes, options);
+            std::hint::black_box(index.adopt(&mut members, &plans, 3));
+            std::hint::black_box(sent.update(current_holders(&members)));
+            thread_cpu_ns().saturating_sub(start)
         })
-        .collect()
+        .min()
+        .unwrap_or(0);
+    TimedRound {
+        members: workers as usize,
+        domains: domains as usize,
+        planned: dry.min(workers) as usize,
+        whole,
+        ns: best as f64,
+    }
+}
+
+/// Fits the incremental rounds as `round + planned x P + members x M + domains x D`, and the
+/// whole-cluster rounds as `round + members x M + domains x D`: (the incremental prices, their
+/// fit error, the whole-cluster prices, their fit error).
+fn fit_rounds(rounds: &[TimedRound]) -> ([f64; 4], f64, [f64; 3], f64) {
+    let incremental: Vec<(Vec<f64>, f64)> = rounds
+        .iter()
+        .filter(|r| !r.whole)
+        .map(|r| {
+            (
+                vec![1.0, r.planned as f64, r.members as f64, r.domains as f64],
+                r.ns,
+            )
+        })
+        .collect();
+    let whole: Vec<(Vec<f64>, f64)> = rounds
+        .iter()
+        .filter(|r| r.whole)
+        .map(|r| (vec![1.0, r.members as f64, r.domains as f64], r.ns))
+        .collect();
+    let (i, ie) = fit(&incremental);
+    let (w, we) = fit(&whole);
+    ([i[0], i[1], i[2], i[3]], ie, [w[0], w[1], w[2]], we)
 }
 
 #[cfg(test)]

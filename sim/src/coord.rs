@@ -423,12 +423,12 @@ impl SimCoordinator {
                     self.completed_at = Some(now);
                     None
                 }
-                Action::Tally(Tally::Rounds(n)) => {
-                    self.rounds += n;
-                    let took =
-                        self.config
-                            .cost
-                            .planning(n, p.nodes.len(), self.config.domain_bytes.len());
+                Action::Tally(Tally::Rounds(work)) => {
+                    self.rounds += work.rounds;
+                    let took = self
+                        .config
+                        .cost
+                        .planning(&work, self.config.domain_bytes.len());
                     self.busy += took;
                     self.free_at = self.free_at.max(now) + took;
                     None

@@ -1,7 +1,10 @@
 //! How long computing takes in virtual time: a pass costs a fixed overhead plus its radiance
 //! segments, shadow segments, camera samples and volume samples, each at its own price, over
-//! the worker's threads; a planning round of the coordinator costs a fixed part plus a part
-//! per member and per domain. The prices are measured on a machine by `rayfarm sim calibrate`
+//! the worker's threads; a planning round of the coordinator costs what its kind follows
+//! (`rayfarm_machine::coordinator::PlanningWork`): an incremental round (someone busy) a fixed
+//! part plus a part per member planned, per member of the cluster and per domain; a round
+//! planned from the whole cluster (barrier rounds, or nobody busy) a part per member and per
+//! domain at the whole-cluster planner's prices. The prices are measured on a machine by `rayfarm sim calibrate`
 //! (`calibrate`) and kept in a TOML file ([`ComputeCost::load`]); the defaults are one such
 //! measurement. Loads are priced by the shared storage (`storage`), messages by the network
 //! (`net`).
@@ -10,6 +13,7 @@ use std::path::Path;
 use std::time::Duration;
 
 use rayfarm_core::render::KernelCounters;
+use rayfarm_machine::coordinator::PlanningWork;
 use serde::{Deserialize, Serialize};
 
 /// Prices of computing, in nanoseconds of one core. See the module documentation.
@@ -25,12 +29,23 @@ pub struct ComputeCost {
     pub camera_sample_ns: f64,
     /// One volume sample interpolated and composited.
     pub volume_sample_ns: f64,
-    /// Fixed cost of one planning round of the coordinator.
+    /// Fixed cost of one incremental planning round of the coordinator (someone busy: only
+    /// the members that ran dry are planned).
     pub round_ns: f64,
-    /// A planning round's cost per member of the cluster.
+    /// An incremental round's cost per member it plans (each ran dry).
+    pub round_planned_ns: f64,
+    /// An incremental round's cost per member of the cluster (the holders map is rebuilt from
+    /// every member's plan).
     pub round_member_ns: f64,
-    /// A planning round's cost per domain of the scene.
+    /// An incremental round's cost per domain of the scene.
     pub round_domain_ns: f64,
+    /// Fixed cost of a round planned from the whole cluster (a barrier round, or an
+    /// asynchronous one with nobody busy: every member planned).
+    pub whole_round_ns: f64,
+    /// A whole-cluster round's cost per member.
+    pub whole_round_member_ns: f64,
+    /// A whole-cluster round's cost per domain.
+    pub whole_round_domain_ns: f64,
 }
 
 impl Default for ComputeCost {
@@ -40,14 +55,18 @@ impl Default for ComputeCost {
     /// "Benchmarks", unlit, skipping on).
     fn default() -> Self {
         ComputeCost {
-            pass_ns: 44_700.0,
-            radiance_segment_ns: 223.0,
-            shadow_segment_ns: 229.5,
-            camera_sample_ns: 116.7,
+            pass_ns: 28_000.0,
+            radiance_segment_ns: 224.2,
+            shadow_segment_ns: 249.5,
+            camera_sample_ns: 149.0,
             volume_sample_ns: 71.0,
             round_ns: 0.0,
-            round_member_ns: 2_046.0,
-            round_domain_ns: 90.6,
+            round_planned_ns: 4_187.0,
+            round_member_ns: 326.8,
+            round_domain_ns: 43.1,
+            whole_round_ns: 0.0,
+            whole_round_member_ns: 14_168.0,
+            whole_round_domain_ns: 1_696.0,
         }
     }
 }
@@ -77,8 +96,12 @@ impl ComputeCost {
             ("camera_sample_ns", self.camera_sample_ns),
             ("volume_sample_ns", self.volume_sample_ns),
             ("round_ns", self.round_ns),
+            ("round_planned_ns", self.round_planned_ns),
             ("round_member_ns", self.round_member_ns),
             ("round_domain_ns", self.round_domain_ns),
+            ("whole_round_ns", self.whole_round_ns),
+            ("whole_round_member_ns", self.whole_round_member_ns),
+            ("whole_round_domain_ns", self.whole_round_domain_ns),
         ];
         for (name, v) in all {
             if !(0.0..=1e9).contains(&v) {
@@ -128,12 +151,18 @@ impl CostModel {
         nanos(self.pass_work_ns(c) / f64::from(self.threads.max(1)))
     }
 
-    /// Virtual time of `rounds` planning rounds over `members` workers and `domains` domains.
-    pub fn planning(&self, rounds: u64, members: usize, domains: usize) -> Duration {
+    /// Virtual time of the planning rounds `work` counts, over a scene of `domains` domains.
+    pub fn planning(&self, work: &PlanningWork, domains: usize) -> Duration {
         let p = &self.compute;
-        let one =
-            p.round_ns + p.round_member_ns * members as f64 + p.round_domain_ns * domains as f64;
-        nanos(one * rounds as f64)
+        let domains = domains as f64;
+        let whole = work.whole_rounds as f64;
+        let incremental = work.rounds.saturating_sub(work.whole_rounds) as f64;
+        let ns = incremental * (p.round_ns + p.round_domain_ns * domains)
+            + p.round_planned_ns * work.planned as f64
+            + p.round_member_ns * work.members as f64
+            + whole * (p.whole_round_ns + p.whole_round_domain_ns * domains)
+            + p.whole_round_member_ns * work.whole_members as f64;
+        nanos(ns)
     }
 }
 
@@ -142,7 +171,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn a_pass_costs_its_work_over_its_threads_and_a_round_its_size() {
+    fn a_pass_costs_its_work_over_its_threads_and_a_round_what_it_planned() {
         let m = CostModel {
             threads: 2,
             compute: ComputeCost {
@@ -152,8 +181,12 @@ mod tests {
                 camera_sample_ns: 100.0,
                 volume_sample_ns: 10.0,
                 round_ns: 1000.0,
+                round_planned_ns: 100.0,
                 round_member_ns: 10.0,
                 round_domain_ns: 1.0,
+                whole_round_ns: 5000.0,
+                whole_round_member_ns: 1000.0,
+                whole_round_domain_ns: 50.0,
             },
         };
         let c = KernelCounters {
@@ -165,8 +198,31 @@ mod tests {
         };
         // (1000 + 3000 x 500 + 1000 x 250 + 2000 x 100 + 100 x 10) ns / 2 threads.
         assert_eq!(m.pass(&c), Duration::from_nanos(976_000));
-        // Two rounds of (1000 + 64 x 10 + 512 x 1) ns.
-        assert_eq!(m.planning(2, 64, 512), Duration::from_nanos(4304));
+        // Two incremental rounds over 64 members planning 1 and 3 of them: 2 x (1000 + 64 x
+        // 10 + 512 x 1) + 4 x 100 ns; one whole round of 64: 5000 + 64 x 1000 + 512 x 50 ns.
+        let work = PlanningWork {
+            rounds: 3,
+            whole_rounds: 1,
+            whole_members: 64,
+            planned: 4,
+            members: 128,
+        };
+        assert_eq!(
+            m.planning(&work, 512),
+            Duration::from_nanos(4304 + 400 + 94_600)
+        );
+        // What the rounds planned moves the price, not the cluster's size alone.
+        let one = PlanningWork {
+            rounds: 1,
+            planned: 1,
+            members: 64,
+            ..PlanningWork::default()
+        };
+        let many = PlanningWork { planned: 32, ..one };
+        assert_eq!(
+            m.planning(&many, 512) - m.planning(&one, 512),
+            Duration::from_nanos(3100)
+        );
     }
 
     #[test]

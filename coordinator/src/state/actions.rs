@@ -267,8 +267,8 @@ fn publish_progress(st: &State, id: &str, progress: Progress) {
 fn count(tally: Tally, began: Instant) {
     let m = rayfarm_node::metrics::coordinator();
     match tally {
-        Tally::Rounds(n) => {
-            m.rounds.inc_by(n);
+        Tally::Rounds(work) => {
+            m.rounds.inc_by(work.rounds);
             m.planning_seconds.observe(began.elapsed().as_secs_f64());
         }
         Tally::TilesCommitted(n) => {

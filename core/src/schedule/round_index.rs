@@ -194,6 +194,11 @@ impl RoundIndex {
         }
     }
 
+    /// Members that ran dry since their last plan: those the next `dry_plans` drafts.
+    pub fn dry_count(&self) -> usize {
+        self.dry.len()
+    }
+
     /// Adds (or takes out) one member's part, noting the domains whose figures moved.
     fn count(&mut self, key: u32, part: &Part, add: bool, touched: &mut BTreeSet<u32>) {
         fn step<T: std::ops::AddAssign + std::ops::SubAssign>(x: &mut T, by: T, add: bool) {

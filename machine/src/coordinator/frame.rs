@@ -42,6 +42,53 @@ pub enum Rounds {
     Async,
 }
 
+/// What a frame's planning rounds did, counted since it started: what their cost follows, so
+/// the simulator can price them (`rayfarm_sim::cost`) and the metrics count them. An
+/// asynchronous round with someone busy plans only the members that ran dry from the figures
+/// `RoundIndex` keeps (its cost follows those members, plus the holders map rebuilt from every
+/// member's plan); a barrier round, or an asynchronous one with nobody busy, plans every member
+/// from the whole cluster (its cost follows the cluster's members and domains).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct PlanningWork {
+    /// Rounds planned, of both kinds.
+    pub rounds: u64,
+    /// Of them, the rounds planned from the whole cluster.
+    pub whole_rounds: u64,
+    /// Members of the cluster summed over the whole-cluster rounds.
+    pub whole_members: u64,
+    /// Members planned (ran dry, so drafted) summed over the incremental rounds.
+    pub planned: u64,
+    /// Members of the cluster summed over the incremental rounds.
+    pub members: u64,
+}
+
+impl PlanningWork {
+    /// What was planned since `before` (an earlier count of the same frame).
+    pub fn since(&self, before: &PlanningWork) -> PlanningWork {
+        PlanningWork {
+            rounds: self.rounds.saturating_sub(before.rounds),
+            whole_rounds: self.whole_rounds.saturating_sub(before.whole_rounds),
+            whole_members: self.whole_members.saturating_sub(before.whole_members),
+            planned: self.planned.saturating_sub(before.planned),
+            members: self.members.saturating_sub(before.members),
+        }
+    }
+
+    /// One round of `members` members planned from the whole cluster.
+    fn whole(&mut self, members: usize) {
+        self.rounds += 1;
+        self.whole_rounds += 1;
+        self.whole_members += members as u64;
+    }
+
+    /// One incremental round that planned `planned` of `members` members.
+    fn incremental(&mut self, planned: usize, members: usize) {
+        self.rounds += 1;
+        self.planned += planned as u64;
+        self.members += members as u64;
+    }
+}
+
 /// What the frame needs to know about a worker.
 #[derive(Clone, Debug)]
 pub struct Member {
@@ -101,6 +148,8 @@ pub struct RunningFrame {
     domain_bytes: Vec<u64>,
     pub ledger: TileLedger,
     pub round: u64,
+    /// What its planning rounds did, over all its subframes (`PlanningWork`).
+    pub planning: PlanningWork,
     members: BTreeMap<u32, Member>,
     /// The members' figures for asynchronous rounds, updated whenever a member's report, plan
     /// or presence changes (`touch`), so a dry member is planned without re-reading them all.
@@ -180,6 +229,7 @@ impl RunningFrame {
             domain_bytes,
             ledger: TileLedger::new(grid, TILE_CREDIT).with_samples(subframes[0].count),
             round: 0,
+            planning: PlanningWork::default(),
             members: BTreeMap::new(),
             index,
             started: now,
@@ -434,6 +484,7 @@ impl RunningFrame {
             return Vec::new();
         };
         self.round += 1;
+        self.planning.whole(self.members.len());
         self.planned_loads += plan.load_count() as u64;
         let map: HolderMap = plan
             .routes()
@@ -519,6 +570,7 @@ impl RunningFrame {
         if self.subframe > 0 && self.round == 0 && self.members.values().any(|m| !m.reported) {
             return Vec::new();
         }
+        let dry = self.index.dry_count();
         let changed = self
             .index
             .dry_plans(&self.members, &self.domain_bytes, self.options);
@@ -526,6 +578,12 @@ impl RunningFrame {
             return Vec::new();
         }
         self.round += 1;
+        // Nobody busy: `dry_plans` planned every member from the whole cluster.
+        if dry >= self.members.len() {
+            self.planning.whole(self.members.len());
+        } else {
+            self.planning.incremental(dry, self.members.len());
+        }
         let (loads, _) = self.index.adopt(&mut self.members, &changed, self.round);
         self.planned_loads += loads;
         let changes = self

@@ -60,22 +60,40 @@ pub(super) fn run_calibrate(c: CalibrateArgs) -> anyhow::Result<()> {
             ""
         }
     );
-    for (w, d, ns) in &cal.rounds {
+    for r in &cal.rounds {
+        let planned = if r.whole {
+            "every member (whole cluster)".to_string()
+        } else {
+            format!("{} dry", r.planned)
+        };
         println!(
-            "planning round, {w} members x {d} domains: {:.3} ms",
-            ns / 1e6
+            "planning round, {} members x {} domains, {planned}: {:.3} ms",
+            r.members,
+            r.domains,
+            r.ns / 1e6
         );
     }
     println!(
-        "  per round {:.0} ns + {:.1} ns a member + {:.1} ns a domain; fit error {:.1}%",
+        "  incremental: {:.0} ns a round + {:.1} ns a member planned + {:.2} ns a member + {:.2} \
+         ns a domain; fit error {:.1}%",
         p.round_ns,
+        p.round_planned_ns,
         p.round_member_ns,
         p.round_domain_ns,
         cal.round_fit_error * 100.0
     );
+    println!(
+        "  whole cluster: {:.0} ns a round + {:.1} ns a member + {:.1} ns a domain; fit error \
+         {:.1}%",
+        p.whole_round_ns,
+        p.whole_round_member_ns,
+        p.whole_round_domain_ns,
+        cal.whole_round_fit_error * 100.0
+    );
     let text = format!(
         "# rayfarm sim calibrate --scene {} --workers {} --schedule {} {}\n# {} passes (fit \
-         error {:.1}%), planning at {} sizes (fit error {:.1}%)\n{}",
+         error {:.1}%), {} planning rounds (fit error {:.1}% incremental, {:.1}% whole \
+         cluster)\n{}",
         c.scene.display(),
         c.workers,
         c.schedule,
@@ -84,6 +102,7 @@ pub(super) fn run_calibrate(c: CalibrateArgs) -> anyhow::Result<()> {
         cal.pass_fit_error * 100.0,
         cal.rounds.len(),
         cal.round_fit_error * 100.0,
+        cal.whole_round_fit_error * 100.0,
         p.to_toml()
     );
     std::fs::write(&c.out, text).with_context(|| format!("writing {}", c.out.display()))?;

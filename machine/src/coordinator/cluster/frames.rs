@@ -106,7 +106,7 @@ impl Coordinator {
             .map(|(&k, w)| (k, Member::new(w.peer_address.clone(), w.cache_bytes)))
             .collect();
         let messages = frame.start(members);
-        tally_rounds(&frame, 0, out);
+        tally_rounds(&frame, &PlanningWork::default(), out);
         info!(
             job = %id,
             workers = messages.len(),
@@ -252,8 +252,9 @@ impl Coordinator {
                 deadline: now + self.config.report_timeout,
             },
         );
+        let before = frame.planning;
         let messages = frame.next_subframe();
-        tally_rounds(frame, 0, out);
+        tally_rounds(frame, &before, out);
         self.send(messages, out);
         self.publish_progress(now, out);
     }

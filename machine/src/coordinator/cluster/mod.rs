@@ -21,6 +21,7 @@ use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::schedule::dynamic::Options;
 use rayfarm_proto::{self as proto, JobState, worker_message::Body as FromWorker};
 
+pub use super::frame::PlanningWork;
 use super::frame::{CommittedTile, Outgoing, Rounds, RunningFrame};
 use super::queue::JobQueue;
 use crate::Time;
@@ -182,8 +183,8 @@ pub struct OpenedFrame {
 /// Counts for the shell's metrics.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Tally {
-    /// Rounds planned (the time the event took is planning time).
-    Rounds(u64),
+    /// Rounds planned, with what they planned (the time the event took is planning time).
+    Rounds(PlanningWork),
     TilesCommitted(u64),
     /// A subframe of a frame committed (a one-pass frame is one subframe).
     SubframeCommitted,

@@ -133,9 +133,9 @@ impl Coordinator {
             FromWorker::QueueReport(r) => {
                 worker.last_report = Some(r.clone());
                 if let Some(f) = self.running.as_mut().filter(|f| f.frame_id() == r.job_id) {
-                    let round = f.round;
+                    let before = f.planning;
                     let plans = f.report(key, r);
-                    tally_rounds(f, round, out);
+                    tally_rounds(f, &before, out);
                     self.send(plans, out);
                     self.publish_progress(now, out);
                 }
@@ -242,9 +242,9 @@ impl Coordinator {
             return;
         };
         frame.declined.push(reason.to_string());
-        let round = frame.round;
+        let before = frame.planning;
         let lost = frame.lose(key);
-        tally_rounds(frame, round, out);
+        tally_rounds(frame, &before, out);
         let Some(rest) = lost else {
             return;
         };
@@ -291,9 +291,9 @@ impl Coordinator {
         let Some(frame) = self.running.as_mut() else {
             return;
         };
-        let round = frame.round;
+        let before = frame.planning;
         let lost = frame.lose(key);
-        tally_rounds(frame, round, out);
+        tally_rounds(frame, &before, out);
         let Some(rest) = lost else {
             return;
         };
@@ -369,9 +369,10 @@ impl Coordinator {
     }
 }
 
-/// Tallies the rounds `frame` planned since it was at `round`.
-pub(super) fn tally_rounds(frame: &RunningFrame, round: u64, out: &mut Vec<Action>) {
-    if frame.round > round {
-        out.push(Action::Tally(Tally::Rounds(frame.round - round)));
+/// Tallies the rounds `frame` planned since its planning was counted at `before`.
+pub(super) fn tally_rounds(frame: &RunningFrame, before: &PlanningWork, out: &mut Vec<Action>) {
+    let work = frame.planning.since(before);
+    if work.rounds > 0 {
+        out.push(Action::Tally(Tally::Rounds(work)));
     }
 }
