@@ -143,7 +143,9 @@ impl SimWorker {
         scene: Arc<Scene>,
         caps: QueueCaps,
     ) -> Result<Self, String> {
-        let cache = DomainCache::shared(&scene.dir, scene.manifest.clone(), config.cache_bytes);
+        // Loads are priced by the storage model: the disk's page cache stays warm.
+        let cache = DomainCache::shared(&scene.dir, scene.manifest.clone(), config.cache_bytes)
+            .keep_page_cache();
         Ok(SimWorker {
             node,
             id: config.worker_id.clone(),

@@ -16,6 +16,9 @@ use rayfarm_proto as proto;
 use super::queues::DomainQueues;
 
 /// Something the worker reacts to.
+// `FrameOpened` (its queues included) is the large variant and comes once a frame; events
+// are handled one at a time and never stored in bulk, so boxing it would save nothing.
+#[allow(clippy::large_enum_variant)]
 pub enum Event<S> {
     /// A message from the coordinator other than StartFrame (see [`Event::FrameOpened`]).
     Control(proto::CoordinatorMessage),

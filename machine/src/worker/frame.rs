@@ -501,13 +501,22 @@ impl<S: RaySpill> Frame<S> {
         };
         // Prefetching, a mapped domain is traced while the next one loads.
         let mapped = |d: u32| self.prefetch && self.plan.resident().contains(&d);
-        let queues = self
-            .queues
-            .non_empty()
-            .filter(|&d| self.plan.traces(d) && Some(d) != loading)
-            .map(|d| (d, self.queues.len(d)));
-        let next = if self.plan.mode == Mode::Predictive {
-            next_queue(queues.map(|(domain, rays)| QueueView {
+        let queues = || {
+            self.queues
+                .non_empty()
+                .filter(|&d| self.plan.traces(d) && Some(d) != loading)
+                .map(|d| (d, self.queues.len(d)))
+        };
+        let hybrid = matches!(self.plan.mode, Mode::Hybrid { .. });
+        let next = if self.plan.mode != Mode::Predictive && !hybrid && !self.prefetch {
+            // Neither rule above applies: the fullest traceable queue, the lower domain of
+            // equal ones, as the walk below would choose, without walking every queue.
+            self.queues
+                .fullest_first()
+                .find(|&(d, _)| self.plan.traces(d) && Some(d) != loading)
+                .map(|(d, _)| d)
+        } else if self.plan.mode == Mode::Predictive {
+            next_queue(queues().map(|(domain, rays)| QueueView {
                 domain,
                 rays,
                 oldest: self.generations.oldest(domain).unwrap_or(0),
@@ -515,7 +524,7 @@ impl<S: RaySpill> Frame<S> {
                 from_eye: 0,
             }))
         } else {
-            queues
+            queues()
                 .max_by_key(|&(d, len)| (first(d), mapped(d), len, std::cmp::Reverse(d)))
                 .map(|(d, _)| d)
         };

@@ -5,7 +5,8 @@
 //! The store is a trait so that the machine touches no file: the worker binary spills to
 //! local files, tests and the simulator to memory ([`MemorySpill`]).
 
-use std::collections::{BTreeMap, VecDeque};
+use std::cmp::Reverse;
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::fmt;
 
 use rayfarm_core::ray::RayRecord;
@@ -90,6 +91,10 @@ pub struct DomainQueues<S> {
     mem_cap_rays: u64,
     spill_rays: u64,
     spill_cap_rays: u64,
+    /// Every non-empty queue as (rays, Reverse(domain)): the fullest queue is the last, so a
+    /// pass's choice need not walk every queue (a worker of a 1,024-worker image-plane
+    /// simulation has rays for hundreds of domains, and the walk was 28% of the run).
+    by_len: BTreeSet<(u64, Reverse<u32>)>,
     /// Rays ever spilled, for the statistics.
     pub spilled_total: u64,
 }
@@ -107,8 +112,28 @@ impl<S: RaySpill> DomainQueues<S> {
             mem_cap_rays: (mem_cap / RAY_BYTES).max(1),
             spill_rays: 0,
             spill_cap_rays: spill_cap / RAY_BYTES,
+            by_len: BTreeSet::new(),
             spilled_total: 0,
         }
+    }
+
+    /// Moves `domain` in `by_len` from `before` rays to what it holds now.
+    fn reindex(&mut self, domain: u32, before: u64) {
+        let now = self.len(domain);
+        if now == before {
+            return;
+        }
+        if before > 0 {
+            self.by_len.remove(&(before, Reverse(domain)));
+        }
+        if now > 0 {
+            self.by_len.insert((now, Reverse(domain)));
+        }
+    }
+
+    /// Domains with rays queued, the fullest first (of equal ones the lower domain first).
+    pub fn fullest_first(&self) -> impl Iterator<Item = (u32, u64)> + '_ {
+        self.by_len.iter().rev().map(|&(n, Reverse(d))| (d, n))
     }
 
     /// Bytes of rays queued in memory and in the spill store now.
@@ -118,6 +143,13 @@ impl<S: RaySpill> DomainQueues<S> {
 
     /// Queues `rays`, each for its `domain` (which must be below the domain count).
     pub fn push(&mut self, domain: u32, rays: &[RayRecord]) -> Result<(), QueueError> {
+        let before = self.len(domain);
+        let pushed = self.push_unindexed(domain, rays);
+        self.reindex(domain, before);
+        pushed
+    }
+
+    fn push_unindexed(&mut self, domain: u32, rays: &[RayRecord]) -> Result<(), QueueError> {
         let room = self.mem_cap_rays.saturating_sub(self.mem_rays) as usize;
         // Rays already spilled for this domain keep their place in line.
         let in_memory = if self.spilled.contains_key(&domain) {
@@ -152,6 +184,13 @@ impl<S: RaySpill> DomainQueues<S> {
 
     /// Takes up to `max` rays of `domain`: from memory first, then back from the spill store.
     pub fn take(&mut self, domain: u32, max: usize) -> Result<Vec<RayRecord>, QueueError> {
+        let before = self.len(domain);
+        let taken = self.take_unindexed(domain, max);
+        self.reindex(domain, before);
+        taken
+    }
+
+    fn take_unindexed(&mut self, domain: u32, max: usize) -> Result<Vec<RayRecord>, QueueError> {
         let mut out = match self.mem.get_mut(&domain) {
             Some(q) if q.len() > max => q.split_off(q.len() - max),
             Some(_) => self.mem.remove(&domain).unwrap_or_default(),
@@ -241,6 +280,34 @@ mod tests {
     fn queues(domains: usize, mem_rays: u64, spill_rays: u64) -> DomainQueues<MemorySpill> {
         let spill = MemorySpill::default();
         DomainQueues::new(domains, mem_rays * RAY_BYTES, spill_rays * RAY_BYTES, spill)
+    }
+
+    /// The index of queues by length names the same fullest queue as a walk of every queue,
+    /// through pushes, spills and takes.
+    #[test]
+    fn the_fullest_queue_is_the_walks_choice() {
+        let mut q = queues(16, 40, 1000);
+        let mut x: u64 = 7;
+        for step in 0..500u32 {
+            x = x
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            let d = ((x >> 33) % 16) as u32;
+            let n = ((x >> 45) % 9) as usize;
+            if step % 3 == 2 {
+                q.take(d, n).unwrap();
+            } else {
+                let rays: Vec<RayRecord> = (0..n as u32).map(ray).collect();
+                q.push(d, &rays).unwrap();
+            }
+            let walk: Vec<(u32, u64)> = {
+                let mut v: Vec<(u32, u64)> = q.non_empty().map(|d| (d, q.len(d))).collect();
+                v.sort_by_key(|&(d, n)| (Reverse(n), d));
+                v
+            };
+            assert_eq!(q.fullest_first().collect::<Vec<_>>(), walk, "step {step}");
+        }
+        assert!(q.fullest_first().count() > 0);
     }
 
     #[test]

@@ -152,6 +152,13 @@ pub struct ModelArgs {
     /// at least 20,000,000].
     #[arg(long)]
     pub max_events: Option<u64>,
+    /// Heartbeat period of the simulated workers, milliseconds; the deadlines follow it: a
+    /// worker silent for ten periods is dropped, a peer that leaves a bundle unacknowledged
+    /// for half a period is reported. The default suits frames of milliseconds; a frame of
+    /// simulated minutes wants about a second, since every heartbeat is an event and a
+    /// message (1,024 workers at 20 ms are 51,200 a virtual second).
+    #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u64).range(4..=3_600_000))]
+    pub heartbeat_ms: u64,
 }
 
 fn check_speculation(s: &str) -> Result<String, String> {
@@ -218,7 +225,15 @@ impl ModelArgs {
         if let Some(n) = self.max_events {
             f.push_str(&format!(" --max-events {n}"));
         }
+        if self.heartbeat_ms != DEFAULT_HEARTBEAT_MS {
+            f.push_str(&format!(" --heartbeat-ms {}", self.heartbeat_ms));
+        }
         f
+    }
+
+    /// The deadlines of the simulated cluster, from the heartbeat period.
+    fn deadlines(&self) -> Deadlines {
+        Deadlines::from_heartbeat(Duration::from_millis(self.heartbeat_ms))
     }
 
     fn config(
@@ -250,9 +265,9 @@ impl ModelArgs {
                 queue_bytes: 512 << 20,
                 spill_bytes: 8 << 30,
             },
-            ack_deadline: ACK_DEADLINE,
-            heartbeat: HEARTBEAT,
-            worker_timeout: WORKER_TIMEOUT,
+            ack_deadline: self.deadlines().ack,
+            heartbeat: self.deadlines().heartbeat,
+            worker_timeout: self.deadlines().worker_timeout,
             disk_latency: DISK_LATENCY,
             speculation: match schedule {
                 Schedule::Predictive => self.speculation.clone().unwrap_or_default(),
@@ -308,12 +323,31 @@ fn parse_seeds(s: &str) -> Result<std::ops::Range<u64>, String> {
     }
 }
 
-/// Virtual deadlines of the simulated cluster: scaled to frames of milliseconds.
-const ACK_DEADLINE: Duration = Duration::from_millis(10);
+/// `--heartbeat-ms`'s default: deadlines scaled to frames of milliseconds (20 ms heartbeats,
+/// a worker dropped after 200 ms of silence, a peer reported after 10 ms without an
+/// acknowledgement), the ones every fault seed of `tests/sim.rs` was drawn with.
+const DEFAULT_HEARTBEAT_MS: u64 = 20;
 
-const HEARTBEAT: Duration = Duration::from_millis(20);
+/// Virtual deadlines of the simulated cluster, all following the heartbeat period so that a
+/// frame of simulated minutes need not carry millisecond heartbeats.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct Deadlines {
+    heartbeat: Duration,
+    /// A worker silent this long is dropped: ten heartbeats.
+    worker_timeout: Duration,
+    /// A peer that acknowledges nothing this long is reported: half a heartbeat.
+    ack: Duration,
+}
 
-const WORKER_TIMEOUT: Duration = Duration::from_millis(200);
+impl Deadlines {
+    fn from_heartbeat(heartbeat: Duration) -> Self {
+        Deadlines {
+            heartbeat,
+            worker_timeout: heartbeat * 10,
+            ack: heartbeat / 2,
+        }
+    }
+}
 
 /// A job record's write to the coordinator's store (a redb commit with its fsync).
 const DISK_LATENCY: Duration = Duration::from_millis(2);
@@ -349,8 +383,8 @@ impl SimArgs {
 /// for every deadline to expire twice (the accusation grace is 2 s), and for the workers to
 /// register again after a coordinator crash (their reconnect delay; the crashed coordinator
 /// is down less than a clean frame).
-fn bound(clean: Duration) -> Duration {
-    clean * 20 + (ACK_DEADLINE + WORKER_TIMEOUT + Duration::from_secs(2)) * 2 + RECONNECT
+fn bound(clean: Duration, d: Deadlines) -> Duration {
+    clean * 20 + (d.ack + d.worker_timeout + Duration::from_secs(2)) * 2 + RECONNECT
 }
 
 /// How long a clean run may take in virtual time: a day, since a domain charged at a stated
@@ -469,7 +503,9 @@ pub fn run(a: SimArgs) -> anyhow::Result<()> {
             }
             let span = clean.frame_time.unwrap_or_default();
             let hash = clean.image_hash.clone();
-            let bound = a.bound_us.map_or(bound(span), Duration::from_micros);
+            let bound = a
+                .bound_us
+                .map_or(bound(span, a.model.deadlines()), Duration::from_micros);
             let runs: Vec<(FaultPlan, Result<Outcome, String>)> = a
                 .seeds
                 .clone()
@@ -527,4 +563,26 @@ pub fn run(a: SimArgs) -> anyhow::Result<()> {
         bail!("invariants broken: {}", failed.join(", "));
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The default heartbeat keeps the deadlines every fault seed was drawn with, and a longer
+    /// one scales all of them.
+    #[test]
+    fn deadlines_follow_the_heartbeat() {
+        let d = Deadlines::from_heartbeat(Duration::from_millis(DEFAULT_HEARTBEAT_MS));
+        assert_eq!(d.heartbeat, Duration::from_millis(20));
+        assert_eq!(d.worker_timeout, Duration::from_millis(200));
+        assert_eq!(d.ack, Duration::from_millis(10));
+        let d = Deadlines::from_heartbeat(Duration::from_secs(1));
+        assert_eq!(d.worker_timeout, Duration::from_secs(10));
+        assert_eq!(d.ack, Duration::from_millis(500));
+        assert_eq!(
+            bound(Duration::from_secs(1), d),
+            Duration::from_secs(20) + Duration::from_millis(25_000) + RECONNECT
+        );
+    }
 }
