@@ -93,8 +93,8 @@ struct Group {
     /// Segments announced by closing verdicts minus segments received: a copy's segments
     /// may arrive before or after its closing verdict, so this dips below zero meanwhile.
     segments_due: i64,
-    /// Which places along `path` have answered (empty until a verdict comes).
-    answered: Vec<bool>,
+    /// Which places along `path` have answered.
+    answered: Answered,
     /// A volume verdict came: the ray concludes only once every copy has answered.
     volume: bool,
     /// The ray has concluded before all its copies answered (see [`Groups::skip`]): the
@@ -115,8 +115,8 @@ impl Group {
         match self.ray.kind() {
             RayKind::Shadow => self.outcome.blocked,
             RayKind::Radiance => self.outcome.nearest.is_some_and(|h| {
-                let nearer = &self.answered[..(h.order as usize).min(self.answered.len())];
-                (h.order as usize) < self.path.len() && nearer.iter().all(|&a| a)
+                (h.order as usize) < self.path.len()
+                    && self.answered.all_before(h.order as usize, self.path.len())
             }),
         }
     }
@@ -124,10 +124,40 @@ impl Group {
     /// Notes that the copy at `place` along the path answered.
     fn answer(&mut self, place: Option<usize>) {
         if let Some(p) = place.filter(|&p| p < self.path.len()) {
-            if self.answered.is_empty() {
-                self.answered = vec![false; self.path.len()];
+            self.answered.set(p, self.path.len());
+        }
+    }
+}
+
+/// Which places along a ray's path have answered: a bit each while the path has at most 64
+/// places (every ray born here has a group, so a flag vector per group was an allocation
+/// per ray on the worker's event loop), else a flag each.
+#[derive(Default)]
+struct Answered {
+    bits: u64,
+    long: Vec<bool>,
+}
+
+impl Answered {
+    /// Notes that place `p` of a path of `len` places answered (`p < len`).
+    fn set(&mut self, p: usize, len: usize) {
+        if len <= 64 {
+            self.bits |= 1 << p;
+        } else {
+            if self.long.is_empty() {
+                self.long = vec![false; len];
             }
-            self.answered[p] = true;
+            self.long[p] = true;
+        }
+    }
+
+    /// Whether every place before `n` (`n < len`) answered; true too while none has.
+    fn all_before(&self, n: usize, len: usize) -> bool {
+        if len <= 64 {
+            let mask = (1u64 << n) - 1;
+            self.bits == 0 || self.bits & mask == mask
+        } else {
+            self.long.is_empty() || self.long[..n].iter().all(|&a| a)
         }
     }
 }
@@ -209,7 +239,7 @@ impl Groups {
             resolver,
             waiting: 0,
             segments_due: 0,
-            answered: Vec::new(),
+            answered: Answered::default(),
             volume: false,
             spent: false,
             outcome: Outcome::default(),

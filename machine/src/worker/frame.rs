@@ -384,11 +384,16 @@ impl<S: RaySpill> Frame<S> {
             return (rays, BTreeMap::new());
         };
         let plan = &self.plan;
-        let (born, paths): (Vec<RayRecord>, Vec<Vec<u32>>) = rays
-            .into_iter()
-            .zip(paths)
-            .filter(|(r, _)| plan.is_current(r.tile, r.epoch))
-            .unzip();
+        // Nearly always every ray is current: then they are taken as they are, not copied.
+        let (born, paths): (Vec<RayRecord>, Vec<Vec<u32>>) =
+            if rays.iter().all(|r| plan.is_current(r.tile, r.epoch)) {
+                (rays, paths)
+            } else {
+                rays.into_iter()
+                    .zip(paths)
+                    .filter(|(r, _)| plan.is_current(r.tile, r.epoch))
+                    .unzip()
+            };
         let mut copies = spec.spread(&born, paths);
         let to_peers = spec.address(verdicts);
         // This pass's own verdicts may have ended windows here.
@@ -433,10 +438,10 @@ impl<S: RaySpill> Frame<S> {
         }
         let sorted = self.plan.sort(rays);
         for (d, rays) in sorted.local {
-            self.queues.push(d, &rays)?;
             for r in &rays {
                 self.generations.add(d, r.generation());
             }
+            self.queues.push_owned(d, rays)?;
         }
         Ok(sorted.peers)
     }

@@ -221,29 +221,95 @@ impl Plan {
     /// waits for a later round), else to one of its holders, chosen by pixel so that a hot
     /// domain's rays spread evenly over its holders.
     pub fn destination(&self, ray: &RayRecord) -> Destination {
-        if self.keeps(ray) {
-            return Destination::Local;
-        }
-        match self.holders.get(&ray.domain) {
-            Some(ws) => Destination::Peer(ws[ray.pixel as usize % ws.len()].clone()),
+        match self.peer_of(ray) {
+            Some(peer) => Destination::Peer(peer.to_string()),
             None => Destination::Local,
         }
     }
 
+    /// [`Plan::destination`] without the copy of the address: `None` is here.
+    fn peer_of(&self, ray: &RayRecord) -> Option<&str> {
+        if self.keeps(ray) {
+            return None;
+        }
+        let ws = self.holders.get(&ray.domain)?;
+        Some(ws[ray.pixel as usize % ws.len()].as_str())
+    }
+
     /// Sorts rays by destination, dropping those of an older epoch than their tile's and
     /// those for a domain the scene lacks.
+    ///
+    /// This runs on every ray a worker makes or receives (2.3 M a frame per predictive
+    /// worker on big48), so it allocates per destination, not per ray: each ray's
+    /// destination is found once, as a borrowed address (a copy of the address per ray was
+    /// one allocation per ray), the destinations' rays are counted first so that each list
+    /// is allocated once at its size (growing them was a tenth of the worker's event loop:
+    /// perf, README "Benchmarks"), and rays that all go to one place keep their vector.
     pub fn sort(&self, rays: Vec<RayRecord>) -> Sorted {
+        /// Where one ray goes: an index into the local or the peer lists.
+        #[derive(Clone, Copy)]
+        enum To {
+            Dropped,
+            Local(u32),
+            Peer(u32),
+        }
         let mut sorted = Sorted::default();
-        for ray in rays {
-            if !self.is_current(ray.tile, ray.epoch) || ray.domain >= self.domains {
-                sorted.dropped += 1;
-                continue;
+        let mut local_index: BTreeMap<u32, u32> = BTreeMap::new();
+        let mut peer_index: BTreeMap<&str, u32> = BTreeMap::new();
+        let mut local_counts: Vec<usize> = Vec::new();
+        let mut peer_counts: Vec<usize> = Vec::new();
+        fn count<K: Ord>(index: &mut BTreeMap<K, u32>, counts: &mut Vec<usize>, key: K) -> u32 {
+            let next = counts.len() as u32;
+            let i = *index.entry(key).or_insert(next);
+            if i == next {
+                counts.push(0);
             }
-            match self.destination(&ray) {
-                Destination::Peer(p) => sorted.peers.entry(p).or_default().push(ray),
-                Destination::Local => sorted.local.entry(ray.domain).or_default().push(ray),
+            counts[i as usize] += 1;
+            i
+        }
+        let to: Vec<To> = rays
+            .iter()
+            .map(|ray| {
+                if !self.is_current(ray.tile, ray.epoch) || ray.domain >= self.domains {
+                    sorted.dropped += 1;
+                    return To::Dropped;
+                }
+                match self.peer_of(ray) {
+                    Some(p) => To::Peer(count(&mut peer_index, &mut peer_counts, p)),
+                    None => To::Local(count(&mut local_index, &mut local_counts, ray.domain)),
+                }
+            })
+            .collect();
+        if sorted.dropped == 0 && local_counts.len() + peer_counts.len() == 1 {
+            // One destination: the rays go as they came, in order.
+            if let Some((&d, _)) = local_index.first_key_value() {
+                sorted.local.insert(d, rays);
+            } else if let Some((&p, _)) = peer_index.first_key_value() {
+                sorted.peers.insert(p.to_string(), rays);
+            }
+            return sorted;
+        }
+        let mut local: Vec<Vec<RayRecord>> = local_counts
+            .iter()
+            .map(|&n| Vec::with_capacity(n))
+            .collect();
+        let mut peers: Vec<Vec<RayRecord>> =
+            peer_counts.iter().map(|&n| Vec::with_capacity(n)).collect();
+        for (ray, to) in rays.into_iter().zip(to) {
+            match to {
+                To::Dropped => {}
+                To::Local(i) => local[i as usize].push(ray),
+                To::Peer(i) => peers[i as usize].push(ray),
             }
         }
+        sorted.local = local_index
+            .into_iter()
+            .map(|(d, i)| (d, std::mem::take(&mut local[i as usize])))
+            .collect();
+        sorted.peers = peer_index
+            .into_iter()
+            .map(|(p, i)| (p.to_string(), std::mem::take(&mut peers[i as usize])))
+            .collect();
         sorted
     }
 }
@@ -279,6 +345,23 @@ mod tests {
         assert_eq!(second.peers.keys().collect::<Vec<_>>(), ["c:1"]);
         assert_eq!(second.local[&2].len(), 1, "unheld domains wait here");
         assert_eq!(second.dropped, 0);
+    }
+
+    #[test]
+    fn rays_for_one_destination_keep_their_order_and_stale_ones_are_dropped() {
+        let mut plan = Plan::new(Mode::Dynamic, 2, 3, "me:1".into());
+        plan.set_round(1, [0], holders(&[(1, &["a:1", "b:1"])]), false);
+        let here: Vec<RayRecord> = (0..4).map(|p| ray(0, 0, 0, p)).collect();
+        assert_eq!(plan.sort(here.clone()).local[&0], here);
+        // Pixels 0 and 2 go to a, 1 and 3 to b; a ray of an older epoch goes nowhere.
+        plan.bump_epochs(&BTreeMap::from([(1, 1)]));
+        let mut mixed: Vec<RayRecord> = (0..4).map(|p| ray(0, 0, 1, p)).collect();
+        mixed.push(ray(1, 0, 1, 9));
+        let sorted = plan.sort(mixed.clone());
+        assert_eq!(sorted.peers["a:1"], [mixed[0], mixed[2]]);
+        assert_eq!(sorted.peers["b:1"], [mixed[1], mixed[3]]);
+        assert!(sorted.local.is_empty());
+        assert_eq!(sorted.dropped, 1);
     }
 
     #[test]

@@ -141,6 +141,23 @@ impl<S: RaySpill> DomainQueues<S> {
         (self.mem_rays * RAY_BYTES, self.spill_rays * RAY_BYTES)
     }
 
+    /// [`DomainQueues::push`] of a vector the caller gives up: when the domain's queue is
+    /// empty, nothing of it is spilled and it all fits in memory, the vector becomes the
+    /// queue as it is instead of being copied into a new one (routing hands every ray a
+    /// worker keeps to this, 2.3 M a frame on a predictive worker).
+    pub fn push_owned(&mut self, domain: u32, rays: Vec<RayRecord>) -> Result<(), QueueError> {
+        let room = self.mem_cap_rays.saturating_sub(self.mem_rays) as usize;
+        let empty = self.mem.get(&domain).is_none_or(Vec::is_empty);
+        if empty && !self.spilled.contains_key(&domain) && rays.len() <= room {
+            self.mem_rays += rays.len() as u64;
+            if !rays.is_empty() {
+                self.mem.insert(domain, rays);
+            }
+            return Ok(());
+        }
+        self.push(domain, &rays)
+    }
+
     /// Queues `rays`, each for its `domain` (which must be below the domain count).
     pub fn push(&mut self, domain: u32, rays: &[RayRecord]) -> Result<(), QueueError> {
         let before = self.len(domain);
@@ -362,6 +379,30 @@ mod tests {
             "no empty entries kept"
         );
         assert_eq!((q.domains(), q.total()), (1000, 0));
+    }
+
+    #[test]
+    fn an_owned_push_queues_as_a_copying_push_does() {
+        // Into an empty queue, behind queued rays, past the memory cap: the same lines.
+        let rays: Vec<RayRecord> = (0..6).map(ray).collect();
+        let (mut owned, mut copied) = (queues(2, 8, 100), queues(2, 8, 100));
+        for (d, range) in [(0, 0..3), (0, 3..6), (1, 0..6)] {
+            owned.push_owned(d, rays[range.clone()].to_vec()).unwrap();
+            copied.push(d, &rays[range]).unwrap();
+        }
+        assert_eq!(owned.bytes(), copied.bytes());
+        assert_eq!(owned.spilled_total, 4, "8 fit in memory");
+        for d in [0, 1] {
+            let pixels = |q: &mut DomainQueues<MemorySpill>| -> Vec<u32> {
+                let mut out = Vec::new();
+                while q.len(d) > 0 {
+                    out.extend(q.take(d, 4).unwrap().iter().map(|r| r.pixel));
+                }
+                out
+            };
+            assert_eq!(pixels(&mut owned), pixels(&mut copied), "domain {d}");
+        }
+        assert_eq!((owned.total(), owned.bytes()), (0, (0, 0)));
     }
 
     #[test]
