@@ -90,6 +90,12 @@ fn plan(command: &str) -> Option<Plan> {
                 // a small frame.
                 ("--workers 64,256", "--workers 2,3"),
                 ("--workers 64", "--workers 2"),
+                ("--workers 256", "--workers 3"),
+                ("--workers 1024", "--workers 3"),
+                (
+                    "--width 1024 --height 1024 --spp 1",
+                    "--width 32 --height 32 --spp 1",
+                ),
                 (
                     "--width 256 --height 256 --spp 1",
                     "--width 32 --height 32 --spp 1",
@@ -155,6 +161,9 @@ fn plan(command: &str) -> Option<Plan> {
             Plan::Skip("the compose cluster's client certificate (see the docker lines)")
         }),
         ("kubectl ", || Plan::Skip("needs a Kubernetes cluster")),
+        ("bench/larger-than-memory/run.sh", || {
+            Plan::Skip("a benchmark: a 32.8 GiB scene, about 50 GiB of disk and half an hour")
+        }),
         ("apt-get download invesalius-examples", || {
             Plan::Skip("fetches a Debian package; the test writes a small cranium.raw instead")
         }),
@@ -308,6 +317,13 @@ fn every_readme_command_runs_or_is_skipped_with_its_reason() {
     write_ball_raw(&dir.join("cranium.raw"), true);
     std::fs::create_dir_all(dir.join("docs/bench")).expect("docs/bench");
     std::fs::create_dir_all(dir.join("docs/cranium")).expect("docs/cranium");
+    // The simulator's chart is drawn from the runs' committed CSV files.
+    let runs = dir.join("docs/bench/sim-scale");
+    std::fs::create_dir_all(&runs).expect("docs/bench/sim-scale");
+    for entry in std::fs::read_dir(root.join("docs/bench/sim-scale")).expect("sim-scale runs") {
+        let path = entry.expect("entry").path();
+        std::fs::copy(&path, runs.join(path.file_name().expect("name"))).expect("copy CSV");
+    }
     let scenes = dir.join("scenes");
     for name in ["b48", "big48"] {
         prepare_nbody(&scenes, name, 20_000, 4);
