@@ -152,6 +152,8 @@ impl<S: RaySpill> DomainQueues<S> {
             self.mem_rays += rays.len() as u64;
             if !rays.is_empty() {
                 self.mem.insert(domain, rays);
+                // The queue was empty: from nothing to what it holds now.
+                self.reindex(domain, 0);
             }
             return Ok(());
         }
@@ -392,6 +394,12 @@ mod tests {
         }
         assert_eq!(owned.bytes(), copied.bytes());
         assert_eq!(owned.spilled_total, 4, "8 fit in memory");
+        // The index of queues by length, which picks the next queue to trace, sees them too.
+        assert_eq!(
+            owned.fullest_first().collect::<Vec<_>>(),
+            copied.fullest_first().collect::<Vec<_>>()
+        );
+        assert_eq!(owned.fullest_first().count(), 2);
         for d in [0, 1] {
             let pixels = |q: &mut DomainQueues<MemorySpill>| -> Vec<u32> {
                 let mut out = Vec::new();
