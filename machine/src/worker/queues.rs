@@ -146,18 +146,19 @@ impl<S: RaySpill> DomainQueues<S> {
     /// queue as it is instead of being copied into a new one (routing hands every ray a
     /// worker keeps to this, 2.3 M a frame on a predictive worker).
     pub fn push_owned(&mut self, domain: u32, rays: Vec<RayRecord>) -> Result<(), QueueError> {
+        let before = self.len(domain);
         let room = self.mem_cap_rays.saturating_sub(self.mem_rays) as usize;
-        let empty = self.mem.get(&domain).is_none_or(Vec::is_empty);
-        if empty && !self.spilled.contains_key(&domain) && rays.len() <= room {
+        let pushed = if before == 0 && rays.len() <= room {
             self.mem_rays += rays.len() as u64;
             if !rays.is_empty() {
                 self.mem.insert(domain, rays);
-                // The queue was empty: from nothing to what it holds now.
-                self.reindex(domain, 0);
             }
-            return Ok(());
-        }
-        self.push(domain, &rays)
+            Ok(())
+        } else {
+            self.push_unindexed(domain, &rays)
+        };
+        self.reindex(domain, before);
+        pushed
     }
 
     /// Queues `rays`, each for its `domain` (which must be below the domain count).
