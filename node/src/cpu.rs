@@ -8,6 +8,31 @@
 
 use std::sync::{Arc, Mutex};
 
+/// CPU time of the calling thread in nanoseconds (the simulator's calibration times passes,
+/// rounds and bundles by it, so other processes on the machine do not inflate them); 0 where
+/// unsupported or on error.
+pub fn thread_cpu_ns() -> u64 {
+    #[cfg(unix)]
+    {
+        clock_ns(libc::CLOCK_THREAD_CPUTIME_ID).unwrap_or(0)
+    }
+    #[cfg(not(unix))]
+    {
+        0
+    }
+}
+
+/// The time of CPU clock `clock` in nanoseconds, if it can be read.
+#[cfg(unix)]
+fn clock_ns(clock: libc::clockid_t) -> Option<u64> {
+    // SAFETY: clock_gettime writes only into the timespec it is given.
+    let mut ts: libc::timespec = unsafe { std::mem::zeroed() };
+    if unsafe { libc::clock_gettime(clock, &mut ts) } != 0 {
+        return None;
+    }
+    Some(ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64)
+}
+
 /// CPU seconds (user and system) the whole process has used since it started; 0 where
 /// unsupported or on error.
 pub fn process_cpu_seconds() -> f64 {
@@ -74,15 +99,7 @@ impl ThreadClocks {
             let clocks = self.clocks.lock().unwrap_or_else(|p| p.into_inner());
             clocks
                 .iter()
-                .map(|&c| {
-                    // SAFETY: clock_gettime writes only into the timespec it is given.
-                    let mut ts: libc::timespec = unsafe { std::mem::zeroed() };
-                    if unsafe { libc::clock_gettime(c, &mut ts) } == 0 {
-                        ts.tv_sec as f64 + ts.tv_nsec as f64 / 1e9
-                    } else {
-                        0.0
-                    }
-                })
+                .map(|&c| clock_ns(c).map_or(0.0, |ns| ns as f64 / 1e9))
                 .sum()
         }
         #[cfg(not(target_os = "linux"))]

@@ -39,19 +39,7 @@ use crate::faults::FaultPlan;
 use crate::node::Scene;
 use crate::world::{MeasuredPass, SimConfig, simulate};
 
-/// CPU time of the calling thread, in nanoseconds.
-pub fn thread_cpu_ns() -> u64 {
-    let mut t = libc::timespec {
-        tv_sec: 0,
-        tv_nsec: 0,
-    };
-    // SAFETY: `t` is a valid timespec to write into; the clock id is a libc constant.
-    let r = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut t) };
-    if r != 0 {
-        return 0;
-    }
-    t.tv_sec as u64 * 1_000_000_000 + t.tv_nsec as u64
-}
+pub use rayfarm_node::cpu::thread_cpu_ns;
 
 /// What a calibration measured, and how well the prices fit it.
 #[derive(Clone, Debug)]
