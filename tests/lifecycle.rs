@@ -205,3 +205,47 @@ fn bench_stopped_by_sigterm_leaves_no_process_and_no_temporary_directory() {
         entries(&tmp, "")
     );
 }
+
+#[test]
+fn a_prepare_killed_mid_write_leaves_its_staging_directory_to_the_next_prepare_of_that_scene() {
+    let root = tempfile::tempdir().expect("temp dir");
+    let out = root.path().join("big");
+    // Large enough to still be writing when the kill lands.
+    let (mut child, _lines) = spawn_rayfarm(
+        &[
+            "prepare",
+            "--generate",
+            "nbody",
+            "--triangles",
+            "1000000",
+            "--domains",
+            "64",
+            "--out",
+            s(&out),
+        ],
+        &[],
+    );
+    wait_until("prepare's staging directory", START_TIMEOUT, || {
+        !entries(root.path(), ".big.staging-").is_empty()
+    });
+    signal_pid(child.id(), "-KILL");
+    wait_exit(&mut child, STOP_WITHIN);
+    let abandoned = entries(root.path(), ".big.staging-");
+    assert_eq!(abandoned.len(), 1, "{abandoned:?}");
+    // A staging directory of a live process (a concurrent prepare) and a symlink named like an
+    // abandoned one stay.
+    let live = root
+        .path()
+        .join(format!(".big.staging-{}", std::process::id()));
+    std::fs::create_dir(&live).expect("live staging dir");
+    let target = root.path().join("kept");
+    std::fs::create_dir(&target).expect("kept dir");
+    let link = root.path().join(".big.staging-999999999");
+    std::os::unix::fs::symlink(&target, &link).expect("symlink");
+
+    prepare_nbody(root.path(), "big", 20_000, 4);
+    assert!(!abandoned[0].exists(), "{:?} still there", abandoned[0]);
+    assert!(live.is_dir());
+    assert!(link.symlink_metadata().is_ok() && target.is_dir());
+    assert!(out.join("scene.toml").is_file());
+}

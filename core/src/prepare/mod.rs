@@ -148,6 +148,7 @@ pub(crate) fn publish_staged(
     kind: &str,
     write: impl FnOnce(&Path) -> Result<Manifest, PrepareError>,
 ) -> Result<Manifest, PrepareError> {
+    remove_abandoned_staging(out);
     let staging = staging_dir(out);
     if staging.exists() {
         std::fs::remove_dir_all(&staging).map_err(|e| SceneError::io(&staging, e))?;
@@ -165,6 +166,58 @@ pub(crate) fn publish_staged(
         Err(e) => {
             let _ = std::fs::remove_dir_all(&staging);
             Err(e)
+        }
+    }
+}
+
+/// Removes the staging directories of earlier prepares of `out` whose process is gone (one
+/// killed mid-write leaves `.NAME.staging-PID` behind; nothing else would ever remove it).
+/// Only real directories named exactly so are touched, never through a symlink, and never one
+/// whose process still runs (a concurrent prepare of the same scene); where the running
+/// processes cannot be told (no `/proc`), nothing is removed. A failure is logged, not fatal:
+/// the new scene does not depend on it.
+fn remove_abandoned_staging(out: &Path) {
+    let (Some(parent), Some(name)) = (out.parent(), out.file_name()) else {
+        return;
+    };
+    let parent = if parent.as_os_str().is_empty() {
+        Path::new(".")
+    } else {
+        parent
+    };
+    if !Path::new("/proc/self").is_dir() {
+        return;
+    }
+    let mut prefix = std::ffi::OsString::from(".");
+    prefix.push(name);
+    prefix.push(".staging-");
+    let Some(prefix) = prefix.to_str() else {
+        return;
+    };
+    let Ok(entries) = std::fs::read_dir(parent) else {
+        return;
+    };
+    for entry in entries.flatten() {
+        let file_name = entry.file_name();
+        let Some(pid) = file_name
+            .to_str()
+            .and_then(|n| n.strip_prefix(prefix))
+            .filter(|pid| !pid.is_empty() && pid.bytes().all(|b| b.is_ascii_digit()))
+        else {
+            continue;
+        };
+        let is_dir = entry.file_type().is_ok_and(|t| t.is_dir());
+        if !is_dir || Path::new("/proc").join(pid).exists() {
+            continue;
+        }
+        let path = entry.path();
+        match std::fs::remove_dir_all(&path) {
+            Ok(()) => {
+                info!(dir = %path.display(), "removed an interrupted prepare's staging directory")
+            }
+            Err(e) => {
+                tracing::warn!(dir = %path.display(), error = %e, "could not remove an interrupted prepare's staging directory")
+            }
         }
     }
 }
