@@ -13,7 +13,7 @@
 //! visiting order, which differs between kernels, never decides the winner.
 
 use bytemuck::{Pod, Zeroable};
-use glam::Vec3;
+use glam::{Vec3, Vec3A};
 
 use crate::geometry::{BLOCK, NormalBlock, PackedTriangle, ShearedRay, TriangleBlock};
 
@@ -232,36 +232,31 @@ pub struct TraceRay {
 
 impl TraceRay {
     /// Prepares a ray; `dir` need not be normalised.
+    ///
+    /// The three axes at once in SSE lanes (glam's `Vec3A`): the same divisions and products
+    /// per axis as one at a time, so the same bits, in fewer instructions than the scalar
+    /// form with a branch per axis (this runs once per ray, and rays are short).
     #[inline]
     pub fn new(origin: Vec3, dir: Vec3) -> Self {
+        let d = Vec3A::from(dir);
         // A zero component would give 0 * inf = NaN in the slab test; a tiny stand-in keeps every
         // product finite and only moves the (padded) box test, never the triangle test.
-        let safe = |d: f32| {
-            if d.abs() < 1e-30 {
-                1e-30f32.copysign(d)
-            } else {
-                d
-            }
-        };
-        let inv = [
-            safe(dir.x).recip(),
-            safe(dir.y).recip(),
-            safe(dir.z).recip(),
-        ];
-        let o = origin.to_array();
+        let tiny = Vec3A::splat(1e-30);
+        let safe = Vec3A::select(d.abs().cmplt(tiny), tiny.copysign(d), d);
+        let inv = Vec3A::ONE / safe;
+        let origin_inv = Vec3A::from(origin) * inv;
         // Rows 0..3 are minima, 3..6 maxima: a ray travelling down an axis enters at the
-        // maximum. A select per axis rather than a branch: rays' signs are unpredictable.
-        let rows = |a: usize| {
-            let down = if inv[a] >= 0.0 { 0 } else { 3 };
-            (a + down, a + 3 - down)
-        };
-        let r = [rows(0), rows(1), rows(2)];
+        // maximum. Selects from one comparison's bits rather than a branch per axis: rays'
+        // signs are unpredictable.
+        let up = inv.cmpge(Vec3A::ZERO).bitmask();
+        let down = |a: usize| if up >> a & 1 != 0 { 0 } else { 3 };
+        let (d0, d1, d2) = (down(0), down(1), down(2));
         TraceRay {
             sheared: ShearedRay::new(origin, dir),
-            inv,
-            origin_inv: [o[0] * inv[0], o[1] * inv[1], o[2] * inv[2]],
-            near_row: [r[0].0, r[1].0, r[2].0],
-            far_row: [r[0].1, r[1].1, r[2].1],
+            inv: inv.to_array(),
+            origin_inv: origin_inv.to_array(),
+            near_row: [d0, 1 + d1, 2 + d2],
+            far_row: [3 - d0, 4 - d1, 5 - d2],
         }
     }
 }

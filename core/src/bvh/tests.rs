@@ -55,3 +55,52 @@ fn builder_names_parse_and_unknown_ones_are_refused() {
     }
     assert!(Builder::parse("lbvh").unwrap_err().contains("ploc or sah"));
 }
+
+/// `TraceRay::new` computes its three axes in SSE lanes; every field must equal the per-axis
+/// scalar form it replaced (the same division and product per axis, the same rows), including
+/// zero, negative zero, tiny, huge and infinite components.
+#[test]
+fn trace_ray_set_up_equals_the_per_axis_form() {
+    let values = [
+        0.0f32,
+        -0.0,
+        1e-31,
+        -1e-31,
+        1e-30,
+        -1e-30,
+        0.3,
+        -0.7,
+        1.0,
+        -1.0,
+        3.4e38,
+        -3.4e38,
+        f32::INFINITY,
+        f32::NEG_INFINITY,
+        1.17e-38,
+    ];
+    let origin = Vec3::new(0.25, -13.5, 1e6);
+    for &x in &values {
+        for &y in &values {
+            for &z in &values {
+                let dir = Vec3::new(x, y, z);
+                let r = TraceRay::new(origin, dir);
+                let d = dir.to_array();
+                let o = origin.to_array();
+                for a in 0..3 {
+                    let safe = if d[a].abs() < 1e-30 {
+                        1e-30f32.copysign(d[a])
+                    } else {
+                        d[a]
+                    };
+                    let inv = safe.recip();
+                    assert_eq!(r.inv[a].to_bits(), inv.to_bits(), "{dir:?} axis {a}");
+                    let oi = o[a] * inv;
+                    assert_eq!(r.origin_inv[a].to_bits(), oi.to_bits(), "{dir:?} axis {a}");
+                    let down = if inv >= 0.0 { 0 } else { 3 };
+                    assert_eq!(r.near_row[a], a + down, "{dir:?} axis {a}");
+                    assert_eq!(r.far_row[a], a + 3 - down, "{dir:?} axis {a}");
+                }
+            }
+        }
+    }
+}

@@ -66,6 +66,11 @@ impl Traverser {
     }
 
     /// Nearest hit with `t0 <= t <= t1`, ties broken by the lower scene-wide id.
+    ///
+    /// Only a dispatch, inlined into the caller: each kernel's loop is a function of its
+    /// own, so the call into the selected one is the only call a ray makes (with the loops
+    /// inlined here, this function had a large frame of its own to set up per ray).
+    #[inline]
     pub fn nearest_hit(&mut self, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32) -> Option<Hit> {
         if bvh.nodes.is_empty() {
             return None;
@@ -76,8 +81,8 @@ impl Traverser {
             // SAFETY: a traverser holds only a kernel this CPU supports (`with_kernel`).
             Kernel::Avx2 => unsafe { x86::nearest_avx2(stack, bvh, ray, t0, t1) },
             #[cfg(target_arch = "x86_64")]
-            Kernel::Sse => nearest::<x86::Sse>(stack, bvh, ray, t0, t1),
-            _ => nearest::<Scalar>(stack, bvh, ray, t0, t1),
+            Kernel::Sse => nearest_sse(stack, bvh, ray, t0, t1),
+            _ => nearest_scalar(stack, bvh, ray, t0, t1),
         }
     }
 
@@ -122,7 +127,9 @@ impl Traverser {
         }
     }
 
-    /// Whether anything is hit with `t0 <= t <= t1` (shadow rays).
+    /// Whether anything is hit with `t0 <= t <= t1` (shadow rays). A dispatch, inlined as
+    /// [`Traverser::nearest_hit`] is.
+    #[inline]
     pub fn any_hit(&mut self, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32) -> bool {
         if bvh.nodes.is_empty() {
             return false;
@@ -133,10 +140,36 @@ impl Traverser {
             // SAFETY: as in `nearest_hit`.
             Kernel::Avx2 => unsafe { x86::any_avx2(stack, bvh, ray, t0, t1) },
             #[cfg(target_arch = "x86_64")]
-            Kernel::Sse => any::<x86::Sse>(stack, bvh, ray, t0, t1),
-            _ => any::<Scalar>(stack, bvh, ray, t0, t1),
+            Kernel::Sse => any_sse(stack, bvh, ray, t0, t1),
+            _ => any_scalar(stack, bvh, ray, t0, t1),
         }
     }
+}
+
+/// [`nearest`] with the SSE tests, out of line (see [`Traverser::nearest_hit`]).
+#[cfg(target_arch = "x86_64")]
+#[inline(never)]
+fn nearest_sse(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32) -> Option<Hit> {
+    nearest::<x86::Sse>(stack, bvh, ray, t0, t1)
+}
+
+/// [`nearest`] with the scalar tests, out of line.
+#[inline(never)]
+fn nearest_scalar(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32) -> Option<Hit> {
+    nearest::<Scalar>(stack, bvh, ray, t0, t1)
+}
+
+/// [`any`] with the SSE tests, out of line.
+#[cfg(target_arch = "x86_64")]
+#[inline(never)]
+fn any_sse(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32) -> bool {
+    any::<x86::Sse>(stack, bvh, ray, t0, t1)
+}
+
+/// [`any`] with the scalar tests, out of line.
+#[inline(never)]
+fn any_scalar(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32) -> bool {
+    any::<Scalar>(stack, bvh, ray, t0, t1)
 }
 
 /// The box and triangle tests of one instruction set; the traversal loops are written once over it.
