@@ -137,8 +137,9 @@ pub struct CostModel {
     /// Tracing threads per worker.
     pub threads: u32,
     /// Cores shared by every simulated worker (`--cores`): passes' computing and bundles'
-    /// handling wait for one of them, as on one machine running the whole cluster (the
-    /// validation's `rayfarm bench`); `None`, every worker on machines of its own.
+    /// handling are sliced between them (`cores::SharedCores`), as on one machine running the
+    /// whole cluster (the validation's `rayfarm bench`); `None`, every worker on machines of
+    /// its own.
     pub cores: Option<u32>,
 }
 
