@@ -31,7 +31,9 @@ use crate::storage::SharedStorage;
 mod run;
 mod workers;
 
-pub use run::{KEPT_BUNDLES, Kills, MeasuredBundle, MeasuredPass, Outcome, SimConfig};
+pub use run::{
+    KEPT_BUNDLES, Kills, MeasuredBundle, MeasuredFinished, MeasuredPass, Outcome, SimConfig,
+};
 
 /// How long a worker whose control stream ended waits before it registers again (the
 /// worker shell backs off from 100 ms to 5 s; one second stands for it here).
@@ -106,6 +108,12 @@ enum Ev {
     /// The shared cores' check of `epoch`: computations may be done, or shares change.
     CoresCheck {
         epoch: u64,
+    },
+    /// A finished pass's output, taken in by the worker's shell (after its price).
+    PassTaken {
+        node: NodeId,
+        job_id: String,
+        result: Result<machine::PassOutput, machine::PassFailed>,
     },
     Tick {
         node: NodeId,
@@ -354,6 +362,41 @@ impl World<'_> {
         end
     }
 
+    /// Hands a finished pass to its worker's machine (timed, with `measure`).
+    fn take_pass(
+        &mut self,
+        node: NodeId,
+        job_id: String,
+        result: Result<machine::PassOutput, machine::PassFailed>,
+    ) {
+        let Some(w) = self.worker(node) else {
+            return;
+        };
+        let resident = w.resident();
+        let measured = match (&result, self.config.measure) {
+            (Ok(out), true) => Some(MeasuredFinished {
+                rays: out.rays.len(),
+                path_domains: out.paths.iter().map(Vec::len).sum(),
+                verdicts: out.verdicts.len(),
+                cpu_ns: 0,
+            }),
+            _ => None,
+        };
+        self.feed(
+            node,
+            machine::Event::PassFinished {
+                job_id,
+                result,
+                resident,
+            },
+        );
+        if let (Some(m), Some(cpu_ns)) = (measured, self.handled_ns.take()) {
+            self.outcome
+                .measured_finished
+                .push(MeasuredFinished { cpu_ns, ..m });
+        }
+    }
+
     /// Schedules the shared cores' next check (after every change to what they run).
     fn check_cores_again(&mut self) {
         if let Some((at, epoch)) = self.cores.as_ref().and_then(SharedCores::next_check) {
@@ -394,7 +437,7 @@ impl World<'_> {
                     return;
                 };
                 w.pass_until = None;
-                let resident = w.resident();
+                let free = w.msg_free_at;
                 if let Ok(out) = &run.result {
                     self.outcome.segments += out.counters.segments();
                     if let Some(cpu_ns) = run.cpu_ns.filter(|_| run.loads == 0) {
@@ -405,15 +448,36 @@ impl World<'_> {
                     }
                 }
                 let result = run.result.map_err(machine::PassFailed::Load);
-                self.feed(
-                    node,
-                    machine::Event::PassFinished {
+                // The shell takes the output in after what it is handling, for its price.
+                let price = match &result {
+                    Ok(out) => self.config.cost.finished_pass(
+                        out.rays.len(),
+                        out.paths.iter().map(Vec::len).sum(),
+                        out.verdicts.len(),
+                    ),
+                    Err(_) => Duration::ZERO,
+                };
+                if price.is_zero() {
+                    return self.take_pass(node, job_id, result);
+                }
+                let done = self.steal(self.now.max(free), price);
+                if let Some(w) = self.worker_mut(node) {
+                    w.msg_free_at = done;
+                }
+                self.heap.push(
+                    done,
+                    Ev::PassTaken {
+                        node,
                         job_id,
                         result,
-                        resident,
                     },
                 );
             }
+            Ev::PassTaken {
+                node,
+                job_id,
+                result,
+            } => self.take_pass(node, job_id, result),
             Ev::PrefetchDone {
                 node,
                 job_id,

@@ -144,7 +144,11 @@ impl World<'_> {
         let now = self.now;
         // Only the machine's own handling is timed: the actions it asks for (a pass among
         // them) are carried out below.
-        let timed = self.config.measure && matches!(event, machine::Event::PeerBundle { .. });
+        let timed = self.config.measure
+            && matches!(
+                event,
+                machine::Event::PeerBundle { .. } | machine::Event::PassFinished { .. }
+            );
         let Some(w) = self.worker_mut(node) else {
             return;
         };
