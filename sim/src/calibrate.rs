@@ -66,6 +66,9 @@ pub struct Calibration {
     /// Those bundles, (tier as the protocol numbers it, batches), for timing their transport
     /// over gRPC (the CLI's `transport`).
     pub bundles: Vec<(i32, Vec<Bytes>)>,
+    /// Finished passes whose output the machine took in the run, and the fit's error.
+    pub finished: usize,
+    pub finished_fit_error: f64,
 }
 
 /// Least squares with non-negative coefficients: `rows` of (features, value); a feature
@@ -213,6 +216,20 @@ pub fn calibrate(
             })
             .collect::<Vec<_>>(),
     );
+    let finished = &outcome.measured_finished;
+    let (finished_coef, finished_fit_error) = if finished.len() >= 4 {
+        fit(&finished
+            .iter()
+            .map(|f| {
+                (
+                    vec![1.0, f.rays as f64, f.path_domains as f64, f.verdicts as f64],
+                    f.cpu_ns as f64,
+                )
+            })
+            .collect::<Vec<_>>())
+    } else {
+        (vec![0.0; 4], 0.0)
+    };
     Ok(Calibration {
         cost: ComputeCost {
             pass_ns: pass_coef[0],
@@ -238,6 +255,10 @@ pub fn calibrate(
             bundle_send_byte_ns: encode.0[1],
             bundle_receive_ns: receive.0[0],
             bundle_receive_byte_ns: receive.0[1],
+            finished_pass_ns: finished_coef[0],
+            finished_ray_ns: finished_coef[1],
+            finished_path_domain_ns: finished_coef[2],
+            finished_verdict_ns: finished_coef[3],
         },
         passes: passes.len(),
         pass_cpu: Duration::from_nanos(passes.iter().map(|p| p.cpu_ns).sum()),
@@ -252,6 +273,8 @@ pub fn calibrate(
             .into_iter()
             .map(|(tier, b)| (proto_tier(tier), b))
             .collect(),
+        finished: finished.len(),
+        finished_fit_error,
     })
 }
 

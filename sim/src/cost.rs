@@ -56,6 +56,20 @@ pub struct ComputeCost {
     pub bundle_receive_ns: f64,
     /// Receiving a peer bundle, per byte of its batches.
     pub bundle_receive_byte_ns: f64,
+    /// A worker's shell taking a finished pass's output (the machine routing it), per pass.
+    /// Files calibrated before this price was measured read as zero.
+    #[serde(default)]
+    pub finished_pass_ns: f64,
+    /// Taking a finished pass's output, per ray sent on (queued here or bundled for a peer).
+    #[serde(default)]
+    pub finished_ray_ns: f64,
+    /// Taking a finished pass's output, per domain along the rays born in it (speculative:
+    /// the domains their copies go to, window by window).
+    #[serde(default)]
+    pub finished_path_domain_ns: f64,
+    /// Taking a finished pass's output, per verdict addressed.
+    #[serde(default)]
+    pub finished_verdict_ns: f64,
 }
 
 impl Default for ComputeCost {
@@ -81,6 +95,10 @@ impl Default for ComputeCost {
             bundle_send_byte_ns: 0.759,
             bundle_receive_ns: 10_534.0,
             bundle_receive_byte_ns: 1.809,
+            finished_pass_ns: 0.0,
+            finished_ray_ns: 0.0,
+            finished_path_domain_ns: 0.0,
+            finished_verdict_ns: 0.0,
         }
     }
 }
@@ -120,6 +138,10 @@ impl ComputeCost {
             ("bundle_send_byte_ns", self.bundle_send_byte_ns),
             ("bundle_receive_ns", self.bundle_receive_ns),
             ("bundle_receive_byte_ns", self.bundle_receive_byte_ns),
+            ("finished_pass_ns", self.finished_pass_ns),
+            ("finished_ray_ns", self.finished_ray_ns),
+            ("finished_path_domain_ns", self.finished_path_domain_ns),
+            ("finished_verdict_ns", self.finished_verdict_ns),
         ];
         for (name, v) in all {
             if !(0.0..=1e9).contains(&v) {
@@ -137,8 +159,9 @@ pub struct CostModel {
     /// Tracing threads per worker.
     pub threads: u32,
     /// Cores shared by every simulated worker (`--cores`): passes' computing and bundles'
-    /// handling wait for one of them, as on one machine running the whole cluster (the
-    /// validation's `rayfarm bench`); `None`, every worker on machines of its own.
+    /// handling are sliced between them (`cores::SharedCores`), as on one machine running the
+    /// whole cluster (the validation's `rayfarm bench`); `None`, every worker on machines of
+    /// its own.
     pub cores: Option<u32>,
 }
 
@@ -178,6 +201,18 @@ impl CostModel {
     pub fn bundle_send(&self, bytes: usize) -> Duration {
         let p = &self.compute;
         nanos(p.bundle_send_ns + p.bundle_send_byte_ns * bytes as f64)
+    }
+
+    /// Virtual time a worker's shell spends taking a finished pass's output: `rays` sent
+    /// on, `path_domains` along the rays born in it, `verdicts` addressed.
+    pub fn finished_pass(&self, rays: usize, path_domains: usize, verdicts: usize) -> Duration {
+        let p = &self.compute;
+        nanos(
+            p.finished_pass_ns
+                + p.finished_ray_ns * rays as f64
+                + p.finished_path_domain_ns * path_domains as f64
+                + p.finished_verdict_ns * verdicts as f64,
+        )
     }
 
     /// Virtual time the receiver spends on a peer bundle of `bytes` bytes of batches.
@@ -227,6 +262,10 @@ mod tests {
                 bundle_send_byte_ns: 0.5,
                 bundle_receive_ns: 3000.0,
                 bundle_receive_byte_ns: 0.25,
+                finished_pass_ns: 700.0,
+                finished_ray_ns: 10.0,
+                finished_path_domain_ns: 5.0,
+                finished_verdict_ns: 3.0,
             },
         };
         let c = KernelCounters {
@@ -254,6 +293,8 @@ mod tests {
         // A bundle of 4,000 bytes: 2000 + 2000 ns to send, 3000 + 1000 ns to receive.
         assert_eq!(m.bundle_send(4000), Duration::from_nanos(4000));
         assert_eq!(m.bundle_receive(4000), Duration::from_nanos(4000));
+        // A finished pass of 20 rays sent on, 40 path domains and 100 verdicts: 700 + 200 + 200 + 300.
+        assert_eq!(m.finished_pass(20, 40, 100), Duration::from_nanos(1400));
         // What the rounds planned moves the price, not the cluster's size alone.
         let one = PlanningWork {
             rounds: 1,

@@ -13,7 +13,7 @@
 //! ordered maps) and so repeats bit for bit.
 //!
 //! Modules: [`events`] (the heap), [`net`] (links: latency, NIC bandwidth, FIFO, partitions),
-//! [`cost`] (virtual time of passes and planning), [`storage`] (the shared storage loads read
+//! [`cost`] (virtual time of passes and planning), [`cores`] (cores shared by every worker, sliced), [`storage`] (the shared storage loads read
 //! from), [`calibrate`] (the cost model's prices measured here), [`faults`] (a seed's faults), [`node`] (a
 //! simulated worker shell), [`coord`] (the simulated coordinator process and its disk), [`world`] (the
 //! loop), [`check`] (the invariants after a run).
@@ -21,6 +21,7 @@
 pub mod calibrate;
 pub mod check;
 pub mod coord;
+pub mod cores;
 pub mod cost;
 pub mod events;
 pub mod faults;

@@ -21,6 +21,7 @@ use rayfarm_proto::{self as proto, worker_message::Body as FromWorker};
 
 use crate::check::Checks;
 use crate::coord::{CoordConfig, SimCoordinator, ToNode};
+use crate::cores::SharedCores;
 use crate::events::EventHeap;
 use crate::faults::{Fault, FaultPlan, Rng};
 use crate::net::{COORDINATOR, Network, NodeId};
@@ -30,7 +31,9 @@ use crate::storage::SharedStorage;
 mod run;
 mod workers;
 
-pub use run::{KEPT_BUNDLES, Kills, MeasuredBundle, MeasuredPass, Outcome, SimConfig};
+pub use run::{
+    KEPT_BUNDLES, Kills, MeasuredBundle, MeasuredFinished, MeasuredPass, Outcome, SimConfig,
+};
 
 /// How long a worker whose control stream ended waits before it registers again (the
 /// worker shell backs off from 100 ms to 5 s; one second stands for it here).
@@ -95,6 +98,23 @@ enum Ev {
         keep: std::collections::BTreeSet<u32>,
         pending: Option<rayfarm_core::render::cache::PendingLoad>,
     },
+    /// A computation of `node` is ready for the shared cores (`--cores`): `done` follows
+    /// when they have computed `work` for it.
+    Compute {
+        node: NodeId,
+        work: Duration,
+        done: Box<Ev>,
+    },
+    /// The shared cores' check of `epoch`: computations may be done, or shares change.
+    CoresCheck {
+        epoch: u64,
+    },
+    /// A finished pass's output, taken in by the worker's shell (after its price).
+    PassTaken {
+        node: NodeId,
+        job_id: String,
+        result: Result<machine::PassOutput, machine::PassFailed>,
+    },
     Tick {
         node: NodeId,
     },
@@ -139,9 +159,9 @@ struct World<'a> {
     disk_at: Option<Time>,
     /// Control streams opened so far.
     conns: u64,
-    /// When each of the cores every worker shares is free (`CostModel::cores`); empty when
+    /// The cores every worker shares (`CostModel::cores`), sliced between them; `None` when
     /// every worker has its own.
-    cores: Vec<Time>,
+    cores: Option<SharedCores<Ev>>,
     /// CPU time of the machine's handling of the last bundle fed, when measured.
     handled_ns: Option<u64>,
 }
@@ -209,7 +229,7 @@ pub fn simulate(
         outcome: Outcome::default(),
         disk_at: None,
         conns: 0,
-        cores: vec![Time(0); config.cost.cores.unwrap_or(0) as usize],
+        cores: config.cost.cores.map(SharedCores::new),
         handled_ns: None,
     };
     for _ in 0..config.workers {
@@ -319,27 +339,69 @@ impl World<'_> {
             .position(|w| w.as_ref().is_some_and(|w| w.address == address))
     }
 
-    /// When computing `work` that can start at `ready` ends: at once on the worker's own
-    /// cores, or on the earliest free of the cores every worker shares (`--cores`), which it
-    /// holds until then (first come, first served, no preemption).
-    fn compute(&mut self, ready: Time, work: Duration) -> Time {
-        let Some(core) = self.cores.iter_mut().min() else {
-            return ready + work;
-        };
-        let start = ready.max(*core);
-        *core = start + work;
-        *core
+    /// Computes `work` that can start at `ready` (not before now), then sets off `done`: at
+    /// once on the worker's own cores, or on the cores every worker shares (`--cores`),
+    /// sliced with whatever else wants them then (`cores::SharedCores`).
+    fn compute(&mut self, node: NodeId, ready: Time, work: Duration, done: Ev) {
+        if self.cores.is_none() {
+            return self.heap.push(ready + work, done);
+        }
+        let done = Box::new(done);
+        self.heap.push(ready, Ev::Compute { node, work, done });
     }
 
-    /// When handling a message, `work` that can start at `ready`, ends: it never waits for a
-    /// shared core (the operating system slices a short task in beside the passes), but it
-    /// takes its time from the earliest free one, so the computing that starts there next
-    /// starts that much later.
+    /// When handling a message, `work` that its shell takes up at `ready`, ends: it never
+    /// waits for a shared core (the operating system slices a short task in at once), but
+    /// while it runs it takes its share of them from the computations.
     fn steal(&mut self, ready: Time, work: Duration) -> Time {
-        if let Some(core) = self.cores.iter_mut().min() {
-            *core = (*core).max(ready) + work;
+        let Some(cores) = self.cores.as_mut() else {
+            return ready + work;
+        };
+        let end = cores.handle(self.now, ready, work);
+        self.check_cores_again();
+        end
+    }
+
+    /// Hands a finished pass to its worker's machine (timed, with `measure`).
+    fn take_pass(
+        &mut self,
+        node: NodeId,
+        job_id: String,
+        result: Result<machine::PassOutput, machine::PassFailed>,
+    ) {
+        let Some(w) = self.worker(node) else {
+            return;
+        };
+        let resident = w.resident();
+        let measured = match (&result, self.config.measure) {
+            (Ok(out), true) => Some(MeasuredFinished {
+                rays: out.rays.len(),
+                path_domains: out.paths.iter().map(Vec::len).sum(),
+                verdicts: out.verdicts.len(),
+                cpu_ns: 0,
+            }),
+            _ => None,
+        };
+        self.feed(
+            node,
+            machine::Event::PassFinished {
+                job_id,
+                result,
+                resident,
+            },
+        );
+        if let (Some(m), Some(cpu_ns)) = (measured, self.handled_ns.take()) {
+            self.outcome
+                .measured_finished
+                .push(MeasuredFinished { cpu_ns, ..m });
         }
-        ready + work
+    }
+
+    /// Schedules the shared cores' next check (after every change to what they run).
+    fn check_cores_again(&mut self) {
+        if let Some((at, epoch)) = self.cores.as_ref().and_then(SharedCores::next_check) {
+            self.heap.push(at, Ev::CoresCheck { epoch });
+        }
     }
 
     fn send(&mut self, from: NodeId, to: NodeId, msg: Msg) {
@@ -375,7 +437,7 @@ impl World<'_> {
                     return;
                 };
                 w.pass_until = None;
-                let resident = w.resident();
+                let free = w.msg_free_at;
                 if let Ok(out) = &run.result {
                     self.outcome.segments += out.counters.segments();
                     if let Some(cpu_ns) = run.cpu_ns.filter(|_| run.loads == 0) {
@@ -386,15 +448,36 @@ impl World<'_> {
                     }
                 }
                 let result = run.result.map_err(machine::PassFailed::Load);
-                self.feed(
-                    node,
-                    machine::Event::PassFinished {
+                // The shell takes the output in after what it is handling, for its price.
+                let price = match &result {
+                    Ok(out) => self.config.cost.finished_pass(
+                        out.rays.len(),
+                        out.paths.iter().map(Vec::len).sum(),
+                        out.verdicts.len(),
+                    ),
+                    Err(_) => Duration::ZERO,
+                };
+                if price.is_zero() {
+                    return self.take_pass(node, job_id, result);
+                }
+                let done = self.steal(self.now.max(free), price);
+                if let Some(w) = self.worker_mut(node) {
+                    w.msg_free_at = done;
+                }
+                self.heap.push(
+                    done,
+                    Ev::PassTaken {
+                        node,
                         job_id,
                         result,
-                        resident,
                     },
                 );
             }
+            Ev::PassTaken {
+                node,
+                job_id,
+                result,
+            } => self.take_pass(node, job_id, result),
             Ev::PrefetchDone {
                 node,
                 job_id,
@@ -416,6 +499,25 @@ impl World<'_> {
                         resident,
                     },
                 );
+            }
+            Ev::Compute { node, work, done } => {
+                if self.worker(node).is_none() {
+                    return;
+                }
+                if let Some(cores) = self.cores.as_mut() {
+                    cores.compute(self.now, node, work, *done);
+                }
+                self.check_cores_again();
+            }
+            Ev::CoresCheck { epoch } => {
+                let now = self.now;
+                let Some(done) = self.cores.as_mut().and_then(|c| c.check(now, epoch)) else {
+                    return;
+                };
+                for ev in done {
+                    self.heap.push(now, ev);
+                }
+                self.check_cores_again();
             }
             Ev::Tick { node } => {
                 let now = self.now;

@@ -101,6 +101,23 @@ pub struct Outcome {
     /// Every peer bundle received, with the CPU time its decoding and the machine's handling
     /// took here, when measured.
     pub measured_bundles: Vec<MeasuredBundle>,
+    /// Every finished pass whose output the machine took, with what it held and the CPU time
+    /// the machine's handling took here, when measured.
+    pub measured_finished: Vec<MeasuredFinished>,
+}
+
+/// A finished pass's output as a worker's shell hands it to the machine, and what the
+/// machine's handling of it cost on this machine (`calibrate` fits the `finished_*` prices).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct MeasuredFinished {
+    /// Rays sent on (queued here or bundled for peers).
+    pub rays: usize,
+    /// Domains along the rays born in the pass (speculative: where their copies go, window
+    /// by window).
+    pub path_domains: usize,
+    /// Verdicts addressed.
+    pub verdicts: usize,
+    pub cpu_ns: u64,
 }
 
 /// A peer bundle received and what decoding it and handing it to the worker machine cost on

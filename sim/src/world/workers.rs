@@ -22,6 +22,11 @@ impl World<'_> {
         let pass = w.pass_until;
         let in_flight = w.links.values().any(|l| !l.owed.is_empty());
         let conn = w.conn;
+        // Its pass stops computing.
+        if let Some(cores) = self.cores.as_mut() {
+            cores.forget(self.now, node);
+            self.check_cores_again();
+        }
         let k = &mut self.outcome.kills;
         k.total += 1;
         if let Some((_, loaded_at)) = pass {
@@ -139,7 +144,11 @@ impl World<'_> {
         let now = self.now;
         // Only the machine's own handling is timed: the actions it asks for (a pass among
         // them) are carried out below.
-        let timed = self.config.measure && matches!(event, machine::Event::PeerBundle { .. });
+        let timed = self.config.measure
+            && matches!(
+                event,
+                machine::Event::PeerBundle { .. } | machine::Event::PassFinished { .. }
+            );
         let Some(w) = self.worker_mut(node) else {
             return;
         };
@@ -242,12 +251,12 @@ impl World<'_> {
                 let run = w.run_pass(now, &job_id, work, &cost, &mut self.storage, measure);
                 // Its loads on the node's line, then its computing on a core.
                 let loaded_at = now + run.load_time;
-                let until = self.compute(loaded_at, run.took.saturating_sub(run.load_time));
+                let work = run.took.saturating_sub(run.load_time);
                 if let Some(w) = self.worker_mut(node) {
-                    w.pass_until = Some((until, loaded_at));
+                    w.pass_until = Some((loaded_at + work, loaded_at));
                 }
                 self.outcome.loads += run.loads;
-                self.heap.push(until, Ev::PassDone { node, job_id, run });
+                self.compute(node, loaded_at, work, Ev::PassDone { node, job_id, run });
             }
             Action::Prefetch {
                 job_id,

@@ -20,7 +20,9 @@ pub struct CalibrateArgs {
     /// Workers of the measured simulation (their passes are the samples).
     #[arg(long, default_value_t = 4)]
     pub workers: usize,
-    /// Schedule of the measured simulation.
+    /// Schedule of the measured simulation; several, separated by commas, run one job each
+    /// on the same workers and all their passes are measured (e.g. dynamic,predictive, so
+    /// speculative copies and verdicts are priced too).
     #[arg(long, default_value = "dynamic")]
     pub schedule: String,
     /// The calibration file to write.
@@ -46,11 +48,17 @@ fn fit_transport(samples: &[transport::TransportSample]) -> ([f64; 2], f64) {
 
 /// `rayfarm sim calibrate`: measures, prints and writes the prices.
 pub(super) fn run_calibrate(c: CalibrateArgs) -> anyhow::Result<()> {
-    let schedule = parse_schedule(c.schedule.trim()).map_err(anyhow::Error::msg)?;
+    let mut schedules = c
+        .schedule
+        .split(',')
+        .map(|s| parse_schedule(s.trim()).map_err(anyhow::Error::msg))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    let schedule = schedules.pop().context("no schedule")?;
     let scene = open_scene(&c.scene)
         .map_err(anyhow::Error::msg)
         .with_context(|| format!("scene {}", c.scene.display()))?;
-    let config = c.model.config(&c.scene, c.workers.max(1), schedule)?;
+    let mut config = c.model.config(&c.scene, c.workers.max(1), schedule)?;
+    config.warm_up = schedules;
     let defaults = config.cost.compute;
     let mut cal = calibrate(&config, scene, defaults).map_err(anyhow::Error::msg)?;
     // Peer bundles: the sender's encoding and the receiver's decoding and handling timed in
@@ -152,11 +160,21 @@ pub(super) fn run_calibrate(c: CalibrateArgs) -> anyhow::Result<()> {
         p.bundle_receive_ns,
         p.bundle_receive_byte_ns
     );
+    println!(
+        "finished passes taken in: {} ({:.0} ns a pass + {:.1} ns a ray sent on + {:.1} ns a \
+         domain along a born ray + {:.1} ns a verdict), fit error {:.1}%",
+        cal.finished,
+        p.finished_pass_ns,
+        p.finished_ray_ns,
+        p.finished_path_domain_ns,
+        p.finished_verdict_ns,
+        cal.finished_fit_error * 100.0
+    );
     let text = format!(
         "# rayfarm sim calibrate --scene {} --workers {} --schedule {} {}\n# {} passes (fit \
          error {:.1}%), {} planning rounds (fit error {:.1}% incremental, {:.1}% whole \
          cluster)\n# {} bundles received (receiving fit error {:.1}%, encoding {:.1}%, gRPC \
-         transport {:.1}%)\n{}",
+         transport {:.1}%)\n# {} finished passes taken in (fit error {:.1}%)\n{}",
         c.scene.display(),
         c.workers,
         c.schedule,
@@ -170,6 +188,8 @@ pub(super) fn run_calibrate(c: CalibrateArgs) -> anyhow::Result<()> {
         cal.receive.1 * 100.0,
         cal.encode.1 * 100.0,
         tr_err * 100.0,
+        cal.finished,
+        cal.finished_fit_error * 100.0,
         p.to_toml()
     );
     std::fs::write(&c.out, text).with_context(|| format!("writing {}", c.out.display()))?;

@@ -111,8 +111,9 @@ pub struct ModelArgs {
     #[arg(long, default_value_t = 1)]
     pub threads: u32,
     /// Cores shared by all simulated workers: every pass's computing and every bundle's
-    /// handling waits for one (as when the whole cluster runs on one machine, like
-    /// `rayfarm bench`'s); off by default, each worker on machines of its own.
+    /// handling are sliced between them, as the operating system slices them (as when the
+    /// whole cluster runs on one machine, like `rayfarm bench`'s); off by default, each worker
+    /// on machines of its own.
     #[arg(long)]
     pub cores: Option<u32>,
     /// Prices of computing, from `rayfarm sim calibrate` [default: the ones measured on this
