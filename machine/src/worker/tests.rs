@@ -715,3 +715,111 @@ fn idle_time_is_counted_by_why_the_worker_has_no_pass() {
     assert_eq!(stats.idle_verdicts_seconds, 0.0);
     assert_eq!(stats.busy_seconds, 0.0);
 }
+
+/// Rays sent in the tasks tier, by peer.
+fn tasks_sent(actions: &[Action]) -> BTreeMap<String, Vec<RayRecord>> {
+    let mut out: BTreeMap<String, Vec<RayRecord>> = BTreeMap::new();
+    for a in actions {
+        if let Action::ToPeer {
+            peer,
+            tier: Tier::Tasks,
+            batches,
+            ..
+        } = a
+        {
+            for b in batches {
+                let rays = wire::decode_batch(b, &BatchLimits::any_frame(1 << 20)).unwrap();
+                out.entry(peer.clone()).or_default().extend(rays);
+            }
+        }
+    }
+    out
+}
+
+fn share(to: &str, theirs: &[u32], max_rays: u32) -> Event<MemorySpill> {
+    control(FromCoordinator::ShareTasks(proto::ShareTasks {
+        job_id: JOB.into(),
+        to: to.into(),
+        receiver_domains: theirs.to_vec(),
+        max_rays,
+    }))
+}
+
+fn shared_answer(actions: &[Action]) -> Option<&proto::TasksShared> {
+    actions.iter().find_map(|a| match a {
+        Action::ToCoordinator(proto::worker_message::Body::TasksShared(t)) => Some(t),
+        _ => None,
+    })
+}
+
+#[test]
+fn a_busy_hybrid_worker_hands_an_idle_peer_what_costs_it_least_and_keeps_half() {
+    let mut w = worker();
+    w.handle(
+        Time(0),
+        Event::FrameOpened {
+            start: start(JOB, Schedule::Hybrid, &[]),
+            opened: Ok(OpenedScene {
+                resident: vec![2],
+                ..scene()
+            }),
+        },
+    );
+    // Owns domain 0; the cache holds it and more, so camera rays load on demand here.
+    w.handle(Time(1), plan(1, &[0], &[(1, "b:1"), (2, "c:1")]));
+    let own: Vec<RayRecord> = (0..10).map(|p| ray(0, 0, 0, p)).collect();
+    let camera: Vec<RayRecord> = (10..16).map(|p| ray(0, 0, 1, p)).collect();
+    let bounce: Vec<RayRecord> = (16..20)
+        .map(|p| RayRecord {
+            depth: 1,
+            ..ray(0, 0, 2, p)
+        })
+        .collect();
+    let rays: Vec<RayRecord> = own.iter().chain(&camera).chain(&bounce).copied().collect();
+    let actions = w.handle(Time(2), bundle(JOB, &rays));
+    // The pass traces its own domain 0; 6 camera rays (domain 1) and 4 bounces (domain 2,
+    // mapped here) wait.
+    assert_eq!(
+        pass_started(&actions)
+            .and_then(|p| p.trace.as_ref())
+            .map(|(d, _)| *d),
+        Some(0)
+    );
+    assert_eq!(w.frame().unwrap().queued_total(), 10);
+    // The idle peer has domain 2 mapped: its 4 rays go first, then one camera ray of domain
+    // 1 (which this worker would load itself), half of the 10 queued in all.
+    let actions = w.handle(Time(3), share("idle:1", &[2], 100));
+    let sent = tasks_sent(&actions);
+    assert_eq!(sent.keys().collect::<Vec<_>>(), ["idle:1"], "{actions:?}");
+    let mut pixels: Vec<u32> = sent["idle:1"].iter().map(|r| r.pixel).collect();
+    pixels.sort();
+    assert_eq!(pixels, [10, 16, 17, 18, 19]);
+    let answer = shared_answer(&actions).expect("answered");
+    assert_eq!(
+        (answer.rays, answer.queued, answer.to.as_str()),
+        (5, 5, "idle:1")
+    );
+    assert!(
+        rays_sent(&actions).is_empty(),
+        "tasks travel in the tasks tier only"
+    );
+    // Bounded by the request; to itself, nothing.
+    let actions = w.handle(Time(4), share("idle:1", &[], 1));
+    assert_eq!(tasks_sent(&actions)["idle:1"].len(), 1);
+    let actions = w.handle(Time(5), share("me:1", &[1], 100));
+    assert!(tasks_sent(&actions).is_empty());
+    assert_eq!(shared_answer(&actions).map(|a| a.rays), Some(0));
+    assert_eq!(w.frame().unwrap().counters.rays_shared, 6);
+}
+
+#[test]
+fn only_the_hybrid_schedule_shares_tasks() {
+    let mut w = worker();
+    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    w.handle(Time(1), plan(1, &[], &[]));
+    let rays: Vec<RayRecord> = (0..8).map(|p| ray(0, 0, 1, p)).collect();
+    w.handle(Time(2), bundle(JOB, &rays));
+    let actions = w.handle(Time(3), share("idle:1", &[1], 100));
+    assert!(tasks_sent(&actions).is_empty());
+    assert_eq!(shared_answer(&actions).map(|a| a.rays), Some(0));
+}
