@@ -132,6 +132,10 @@ impl TaskDirections {
 mod tests {
     use super::*;
 
+    fn dir(donor: u32, receiver: u32) -> Direction {
+        Direction { donor, receiver }
+    }
+
     fn members(n: u32) -> BTreeSet<u32> {
         (0..n).collect()
     }
@@ -141,46 +145,22 @@ mod tests {
         let m = members(4);
         let mut t = TaskDirections::default();
         // Nobody heard from: the lowest busy key is asked.
-        assert_eq!(
-            t.ran_dry(2, &m),
-            Some(Direction {
-                donor: 0,
-                receiver: 2
-            })
-        );
+        assert_eq!(t.ran_dry(2, &m), Some(dir(0, 2)));
         // 0 had nothing: the next busy worker is asked, never the receiver itself.
-        assert_eq!(
-            t.answered(0, 0, 10, &m),
-            vec![Direction {
-                donor: 1,
-                receiver: 2
-            }]
-        );
+        assert_eq!(t.answered(0, 0, 10, &m), vec![dir(1, 2)]);
         // 1 sent rays: the receiver is served; nobody else waits.
         assert_eq!(t.answered(1, 500, 90_000, &m), vec![]);
         assert_eq!((t.requests, t.rays_moved), (2, 500));
         // Dry again: 1 said it holds the most, 0 too little to be worth asking.
         t.busy(3, 4_000);
-        assert_eq!(
-            t.ran_dry(2, &m),
-            Some(Direction {
-                donor: 1,
-                receiver: 2
-            })
-        );
+        assert_eq!(t.ran_dry(2, &m), Some(dir(1, 2)));
     }
 
     #[test]
     fn one_request_per_donor_and_per_receiver_at_a_time() {
         let m = members(3);
         let mut t = TaskDirections::default();
-        assert_eq!(
-            t.ran_dry(1, &m),
-            Some(Direction {
-                donor: 0,
-                receiver: 1
-            })
-        );
+        assert_eq!(t.ran_dry(1, &m), Some(dir(0, 1)));
         // 2 runs dry while 0 is asked: 0 is taken, 1 is idle, so nobody is left to ask.
         assert_eq!(t.ran_dry(2, &m), None);
         // 1 reporting dry again does not ask a second donor while its request is out.
@@ -195,36 +175,18 @@ mod tests {
             vec![],
             "an answer nobody asked for directs nobody"
         );
-        assert_eq!(
-            t.ran_dry(2, &m),
-            Some(Direction {
-                donor: 0,
-                receiver: 2
-            })
-        );
+        assert_eq!(t.ran_dry(2, &m), Some(dir(0, 2)));
     }
 
     #[test]
     fn a_lost_worker_is_neither_asked_nor_served() {
         let m = members(3);
         let mut t = TaskDirections::default();
-        assert_eq!(
-            t.ran_dry(2, &m),
-            Some(Direction {
-                donor: 0,
-                receiver: 2
-            })
-        );
+        assert_eq!(t.ran_dry(2, &m), Some(dir(0, 2)));
         t.lose(0);
         let m: BTreeSet<u32> = [1, 2].into();
         // The request to 0 is void: 2 may be served by 1 when it runs dry again.
-        assert_eq!(
-            t.ran_dry(2, &m),
-            Some(Direction {
-                donor: 1,
-                receiver: 2
-            })
-        );
+        assert_eq!(t.ran_dry(2, &m), Some(dir(1, 2)));
         t.lose(2);
         assert_eq!(t.answered(1, 100, 100_000, &m), vec![]);
     }

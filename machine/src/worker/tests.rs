@@ -114,16 +114,22 @@ fn finished(out: PassOutput) -> Event<MemorySpill> {
     }
 }
 
-/// Rays sent to each peer by `actions`.
+/// Rays sent to each peer by `actions` in the migrated-ray tier.
 fn rays_sent(actions: &[Action]) -> BTreeMap<String, Vec<RayRecord>> {
+    sent_in(actions, Tier::Migrated)
+}
+
+/// Rays sent to each peer by `actions` in `tier`.
+fn sent_in(actions: &[Action], tier: Tier) -> BTreeMap<String, Vec<RayRecord>> {
     let mut out: BTreeMap<String, Vec<RayRecord>> = BTreeMap::new();
     for a in actions {
         if let Action::ToPeer {
             peer,
-            tier: Tier::Migrated,
+            tier: t,
             batches,
             ..
         } = a
+            && *t == tier
         {
             for b in batches {
                 let rays = wire::decode_batch(b, &BatchLimits::any_frame(1 << 20)).unwrap();
@@ -718,22 +724,7 @@ fn idle_time_is_counted_by_why_the_worker_has_no_pass() {
 
 /// Rays sent in the tasks tier, by peer.
 fn tasks_sent(actions: &[Action]) -> BTreeMap<String, Vec<RayRecord>> {
-    let mut out: BTreeMap<String, Vec<RayRecord>> = BTreeMap::new();
-    for a in actions {
-        if let Action::ToPeer {
-            peer,
-            tier: Tier::Tasks,
-            batches,
-            ..
-        } = a
-        {
-            for b in batches {
-                let rays = wire::decode_batch(b, &BatchLimits::any_frame(1 << 20)).unwrap();
-                out.entry(peer.clone()).or_default().extend(rays);
-            }
-        }
-    }
-    out
+    sent_in(actions, Tier::Tasks)
 }
 
 fn share(to: &str, theirs: &[u32], max_rays: u32) -> Event<MemorySpill> {
