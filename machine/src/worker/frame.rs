@@ -560,9 +560,9 @@ impl<S: RaySpill> Frame<S> {
     /// busy too, and never rays of the domain a pass traces now (`tracing`). First every ray
     /// of the domains mapped there, fullest queue first: they cost the peer no load. Then,
     /// while coherent rays may load domains here (`demand_loads`, which the peer decides
-    /// alike), camera rays and their first shadow rays (generation 0) of domains neither
-    /// planned nor mapped here: this worker would have to load those itself, so the peer's
-    /// load replaces one here rather than adding one. Rays carry their tile's credit, so where
+    /// alike), the queues of domains neither planned nor mapped here that hold only camera
+    /// rays and their first shadow rays (generation 0), whole: this worker would have to load
+    /// those itself, so the peer's load replaces one here rather than adding one. Rays carry their tile's credit, so where
     /// they are traced changes no sum.
     pub fn take_tasks(
         &mut self,
@@ -598,31 +598,20 @@ impl<S: RaySpill> Frame<S> {
             .filter(|&d| demand_loads && loads_here(d))
             .collect();
         for d in costly {
-            if budget == 0 {
-                break;
-            }
             let len = self.queues.len(d) as usize;
-            let (coherent, rest): (Vec<RayRecord>, Vec<RayRecord>) = self
-                .queues
-                .take(d, len)?
-                .into_iter()
-                .partition(|r| r.generation() == 0);
-            let (give, keep) = if coherent.len() > budget {
-                let mut coherent = coherent;
-                let keep = coherent.split_off(budget);
-                (coherent, keep)
-            } else {
-                (coherent, Vec::new())
-            };
-            for r in &give {
-                self.generations.remove(d, r.generation());
+            if len > budget {
+                continue;
             }
-            budget -= give.len();
-            given.extend(give);
-            let back: Vec<RayRecord> = rest.into_iter().chain(keep).collect();
-            if !back.is_empty() {
-                self.queues.push_owned(d, back)?;
+            // Handed over whole or not at all: a domain split between the two would be loaded
+            // by both (the simulator at 16 workers: 13% more loads when split).
+            let rays = self.queues.take(d, len)?;
+            if rays.iter().any(|r| r.generation() != 0) {
+                self.queues.push_owned(d, rays)?;
+                continue;
             }
+            self.generations.clear(d);
+            budget -= rays.len();
+            given.extend(rays);
         }
         if !given.is_empty() {
             self.report = Report::Due;

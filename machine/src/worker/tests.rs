@@ -759,8 +759,8 @@ fn a_busy_hybrid_worker_hands_an_idle_peer_what_costs_it_least_and_keeps_half() 
     // Owns domain 0; the cache holds it and more, so camera rays load on demand here.
     w.handle(Time(1), plan(1, &[0], &[(1, "b:1"), (2, "c:1")]));
     let own: Vec<RayRecord> = (0..10).map(|p| ray(0, 0, 0, p)).collect();
-    let camera: Vec<RayRecord> = (10..16).map(|p| ray(0, 0, 1, p)).collect();
-    let bounce: Vec<RayRecord> = (16..20)
+    let camera: Vec<RayRecord> = (10..12).map(|p| ray(0, 0, 1, p)).collect();
+    let bounce: Vec<RayRecord> = (12..20)
         .map(|p| RayRecord {
             depth: 1,
             ..ray(0, 0, 2, p)
@@ -768,8 +768,8 @@ fn a_busy_hybrid_worker_hands_an_idle_peer_what_costs_it_least_and_keeps_half() 
         .collect();
     let rays: Vec<RayRecord> = own.iter().chain(&camera).chain(&bounce).copied().collect();
     let actions = w.handle(Time(2), bundle(JOB, &rays));
-    // The pass traces its own domain 0; 6 camera rays (domain 1) and 4 bounces (domain 2,
-    // mapped here) wait.
+    // The pass traces its own domain 0; 2 camera rays (domain 1, not mapped here) and 8
+    // bounces (domain 2, mapped here) wait.
     assert_eq!(
         pass_started(&actions)
             .and_then(|p| p.trace.as_ref())
@@ -777,30 +777,61 @@ fn a_busy_hybrid_worker_hands_an_idle_peer_what_costs_it_least_and_keeps_half() 
         Some(0)
     );
     assert_eq!(w.frame().unwrap().queued_total(), 10);
-    // The idle peer has domain 2 mapped: its 4 rays go first, then one camera ray of domain
-    // 1 (which this worker would load itself), half of the 10 queued in all.
-    let actions = w.handle(Time(3), share("idle:1", &[2], 100));
-    let sent = tasks_sent(&actions);
-    assert_eq!(sent.keys().collect::<Vec<_>>(), ["idle:1"], "{actions:?}");
-    let mut pixels: Vec<u32> = sent["idle:1"].iter().map(|r| r.pixel).collect();
-    pixels.sort();
-    assert_eq!(pixels, [10, 16, 17, 18, 19]);
+    // A peer with nothing mapped gets the camera rays this worker would load domain 1 for.
+    let pixels = |actions: &[Action]| -> Vec<u32> {
+        let mut p: Vec<u32> = tasks_sent(actions)
+            .remove("idle:1")
+            .unwrap_or_default()
+            .iter()
+            .map(|r| r.pixel)
+            .collect();
+        p.sort();
+        p
+    };
+    let actions = w.handle(Time(3), share("idle:1", &[], 100));
+    assert_eq!(pixels(&actions), [10, 11], "{actions:?}");
     let answer = shared_answer(&actions).expect("answered");
     assert_eq!(
         (answer.rays, answer.queued, answer.to.as_str()),
-        (5, 5, "idle:1")
+        (2, 8, "idle:1")
     );
     assert!(
         rays_sent(&actions).is_empty(),
         "tasks travel in the tasks tier only"
     );
-    // Bounded by the request; to itself, nothing.
-    let actions = w.handle(Time(4), share("idle:1", &[], 1));
-    assert_eq!(tasks_sent(&actions)["idle:1"].len(), 1);
-    let actions = w.handle(Time(5), share("me:1", &[1], 100));
+    // A peer with domain 2 mapped gets its rays, half of what is queued here.
+    let actions = w.handle(Time(4), share("idle:1", &[2], 100));
+    let given = pixels(&actions);
+    assert_eq!(given.len(), 4);
+    assert!(given.iter().all(|p| (12..20).contains(p)), "{given:?}");
+    // Domain 2 is mapped here too, so it is not handed to a peer that would load it; nor is
+    // anything to this worker itself.
+    let actions = w.handle(Time(5), share("idle:1", &[], 100));
     assert!(tasks_sent(&actions).is_empty());
+    let actions = w.handle(Time(6), share("me:1", &[2], 100));
     assert_eq!(shared_answer(&actions).map(|a| a.rays), Some(0));
     assert_eq!(w.frame().unwrap().counters.rays_shared, 6);
+}
+
+#[test]
+fn a_domain_the_idle_peer_would_load_goes_whole_or_not_at_all() {
+    let mut w = worker();
+    w.handle(Time(0), opened(JOB, Schedule::Hybrid, &[]));
+    w.handle(Time(1), plan(1, &[0], &[(1, "b:1"), (2, "c:1")]));
+    let own: Vec<RayRecord> = (0..10).map(|p| ray(0, 0, 0, p)).collect();
+    let camera: Vec<RayRecord> = (10..16).map(|p| ray(0, 0, 1, p)).collect();
+    let camera2: Vec<RayRecord> = (16..20).map(|p| ray(0, 0, 2, p)).collect();
+    let rays: Vec<RayRecord> = own.iter().chain(&camera).chain(&camera2).copied().collect();
+    w.handle(Time(2), bundle(JOB, &rays));
+    // 10 queued, so at most 3 asked for: neither domain's 6 or 4 camera rays fit.
+    let actions = w.handle(Time(3), share("idle:1", &[], 3));
+    assert_eq!(shared_answer(&actions).map(|a| a.rays), Some(0));
+    // At most 5: domain 2's 4 go whole, domain 1's 6 stay.
+    let actions = w.handle(Time(4), share("idle:1", &[], 100));
+    let sent = tasks_sent(&actions);
+    assert_eq!(sent["idle:1"].len(), 4);
+    assert!(sent["idle:1"].iter().all(|r| r.domain == 2));
+    assert_eq!(w.frame().unwrap().queue_sizes(), BTreeMap::from([(1, 6)]));
 }
 
 #[test]
