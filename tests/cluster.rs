@@ -137,6 +137,33 @@ fn every_schedule_renders_the_local_image_with_one_to_four_workers() {
     }
 }
 
+#[test]
+fn hybrid_hands_a_slow_workers_queued_rays_to_idle_workers_as_tasks() {
+    let root = tempfile::tempdir().expect("temp dir");
+    let scene = prepare_nbody(root.path(), "nb", 30_000, 8);
+    let expected = local_hash(&scene, &MANY_ROUNDS);
+    // Caches hold the scene, so camera rays load what they need where they were issued (the
+    // hybrid schedule's demand-driven side); one worker's every load takes 300 ms, so it
+    // still holds queued rays when the others have run out of tiles.
+    let mut slow = WorkerOpts::cache(1 << 30);
+    slow.args = vec!["--storage-latency".into(), "300ms".into()];
+    let mut workers = vec![WorkerOpts::cache(1 << 30); 3];
+    workers.insert(0, slow);
+    let cluster = Cluster::start(root.path(), Some("nb"), &workers);
+    let mut frame = MANY_ROUNDS.to_vec();
+    frame.extend(["--schedule", "hybrid", "--cold-cache"]);
+    let stats = submit_wait(&cluster, &frame, "tasks");
+    assert_eq!(hash_of(&stats), expected);
+    let shared = stats_field(&stats, "/rays_shared").as_u64().unwrap_or(0);
+    let task_bundles = stats_field(&stats, "/tiers/3/bundles")
+        .as_u64()
+        .unwrap_or(0);
+    eprintln!("{shared} rays handed over as tasks in {task_bundles} bundles");
+    assert_eq!(stats_field(&stats, "/tiers/3/tier"), "tasks");
+    assert!(shared > 0, "no queued rays were handed to an idle worker");
+    assert!(task_bundles > 0, "tasks travel in the tasks tier");
+}
+
 /// Segments traced in a frame (radiance and shadow).
 fn segments(stats: &Path) -> u64 {
     ["/rays/radiance_segments", "/rays/shadow_segments"]

@@ -164,6 +164,9 @@ fn plan(command: &str) -> Option<Plan> {
         ("bench/larger-than-memory/run.sh", || {
             Plan::Skip("a benchmark: a 32.8 GiB scene, about 50 GiB of disk and half an hour")
         }),
+        ("bench/scanned-mesh/run.sh", || {
+            Plan::Skip("a benchmark: reads Debian's libcgal-demo, five schedules on 4 workers")
+        }),
         ("apt-get download invesalius-examples", || {
             Plan::Skip("fetches a Debian package; the test writes a small cranium.raw instead")
         }),

@@ -63,6 +63,10 @@ pub fn cluster_stats_table(s: &ClusterStats) -> Table {
     rows.push(("domains", s.domains.to_string()));
     rows.extend(cache_rows(&s.cache));
     rows.push(("rays migrated between workers", s.rays_migrated.to_string()));
+    // Only the hybrid schedule hands work to idle workers; elsewhere the row would be noise.
+    if s.rays_shared > 0 {
+        rows.push(("of them, tasks for idle workers", s.rays_shared.to_string()));
+    }
     rows.push(("bytes migrated between workers", human(s.bytes_migrated)));
     for (t, key) in s.tiers.iter().zip(&tier_keys) {
         rows.push((

@@ -62,6 +62,10 @@ pub struct WorkerFrameStats {
     /// not for a ray born here).
     #[serde(default)]
     pub verdicts_refused: u64,
+    /// Hybrid schedule: queued rays it handed to idle workers as demand-driven tasks (sent in
+    /// the tasks tier; also counted in `rays_sent`).
+    #[serde(default)]
+    pub rays_shared: u64,
     /// Bundles sent to peers, per tier.
     pub tiers: Vec<TierTraffic>,
     /// Seconds spent in passes (tracing, issuing camera rays, domain loads).
@@ -135,6 +139,7 @@ impl WorkerFrameStats {
         self.rays_received += o.rays_received;
         self.rays_spilled += o.rays_spilled;
         self.verdicts_refused += o.verdicts_refused;
+        self.rays_shared += o.rays_shared;
         for t in &o.tiers {
             match self.tiers.iter_mut().find(|x| x.tier == t.tier) {
                 Some(x) => x.sent.add(&t.sent),
@@ -221,6 +226,9 @@ pub struct ClusterStats {
     pub subframe_costs: Vec<SubframeCost>,
     /// Rays sent between workers.
     pub rays_migrated: u64,
+    /// Of them, rays handed from busy workers to idle ones as demand-driven tasks (hybrid).
+    #[serde(default)]
+    pub rays_shared: u64,
     /// Ray bytes sent between workers.
     pub bytes_migrated: u64,
     /// Bundles per tier, summed over workers.
@@ -241,6 +249,7 @@ impl ClusterStats {
             self.rays.add(&w.rays);
             self.cache.add(&w.cache);
             self.rays_migrated += w.rays_sent;
+            self.rays_shared += w.rays_shared;
             self.bytes_migrated += w.bytes_sent;
             self.peak_rss_bytes = self.peak_rss_bytes.max(w.peak_rss_bytes);
             for t in &w.tiers {

@@ -9,6 +9,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use super::accusations::Accusations;
 use super::grants::Grants;
 use super::holders::{HolderMap, SentHolders};
+use super::tasks::{Direction, TASK_RAYS, TaskDirections};
 use crate::Time;
 
 use rayfarm_core::cluster::tile_sums;
@@ -143,6 +144,23 @@ fn queues(r: proto::QueueReport) -> rounds::Queues {
     }
 }
 
+/// Whether the domain schedule's owner map (domain `d` to the `d mod n`-th worker) leaves
+/// every worker's cache room for its owned domains plus the largest other, the hybrid
+/// schedule's condition for tracing coherent rays where they were issued (the worker's
+/// `Frame::decide_demand_loads` is the same test) without pushing owned data out.
+pub fn owned_domains_fit(domain_bytes: &[u64], caches: &[u64]) -> bool {
+    let n = caches.len().max(1) as u32;
+    let largest = domain_bytes.iter().copied().max().unwrap_or(0);
+    let mut owned = vec![0u64; n as usize];
+    for (d, &bytes) in domain_bytes.iter().enumerate() {
+        owned[domain_owner(DomainId(d as u32), n) as usize] += bytes;
+    }
+    caches
+        .iter()
+        .zip(&owned)
+        .all(|(&cache, &own)| cache >= own + largest)
+}
+
 /// A tile the ledger committed, with its fixed-point sums for the film.
 pub type CommittedTile = (u32, Vec<[i64; 3]>);
 
@@ -169,6 +187,12 @@ pub struct RunningFrame {
     rounds: Rounds,
     /// Tiles not yet handed out (hybrid: demand-driven work for workers that run dry).
     hand_outs: HandOuts,
+    /// Hybrid: which busy worker is asked to hand work to which idle one, once every tile is
+    /// out (`tasks`).
+    tasks: TaskDirections,
+    /// Hybrid whose owned domains do not fit the caches: asynchronous rounds give each
+    /// worker what its cache holds instead of one owner map (decided at the start).
+    pub hybrid_rounds: bool,
     /// Ids of workers dropped because a peer could not reach them: they sit out the rest of
     /// this frame when they register again (they join the next one), or a worker that its
     /// peers cannot reach would be dropped, rejoin, get work and be dropped again, each time
@@ -244,6 +268,8 @@ impl RunningFrame {
             options,
             rounds,
             hand_outs: HandOuts::default(),
+            tasks: TaskDirections::default(),
+            hybrid_rounds: false,
             sidelined: Default::default(),
             declined: Vec::new(),
             accusations: Accusations::default(),
@@ -277,6 +303,7 @@ impl RunningFrame {
             spec: Some(spec),
             first_sample: samples.first,
             sample_count: samples.count,
+            hybrid_rounds: self.hybrid_rounds,
             tile_size: TILE_SIZE,
             primary_tiles: tiles,
             round: self.round,
@@ -311,6 +338,15 @@ impl RunningFrame {
             }
         };
         let keys: Vec<u32> = workers.iter().map(|&(k, _)| k).collect();
+        if self.schedule == Schedule::Hybrid {
+            let caches: Vec<u64> = workers.iter().map(|(_, m)| m.rounds.cache_bytes).collect();
+            self.hybrid_rounds = !owned_domains_fit(&self.domain_bytes, &caches);
+            if self.hybrid_rounds {
+                info!(
+                    "hybrid: the owned domains do not fit the caches; rounds give each worker what its cache holds"
+                );
+            }
+        }
         self.members.extend(workers);
         for &k in &keys {
             self.touch(k);
@@ -323,10 +359,20 @@ impl RunningFrame {
                 (key, self.start_message(key, tiles))
             })
             .collect();
-        if matches!(self.schedule, Schedule::Domain | Schedule::Hybrid) {
+        if self.owners_once() {
             out.extend(self.owner_plans());
         }
         out
+    }
+
+    /// Whether the frame's domains go to owners once (domain, and hybrid whose owned domains
+    /// fit the caches) rather than by rounds.
+    fn owners_once(&self) -> bool {
+        match self.schedule {
+            Schedule::Domain => true,
+            Schedule::Hybrid => !self.hybrid_rounds,
+            _ => false,
+        }
     }
 
     /// The static domain schedule: domain `d` belongs to the `d mod n`-th worker.
@@ -434,7 +480,8 @@ impl RunningFrame {
         // The new owners go out before the re-dealt tiles: a worker traces a hand-out as soon
         // as it arrives, and under the old plan the rays leaving its tiles would be routed to
         // the lost worker, whose link holds them until it gives up (the frame never ended).
-        if matches!(self.schedule, Schedule::Domain | Schedule::Hybrid) {
+        self.tasks.lose(key);
+        if self.owners_once() {
             out.extend(self.owner_plans());
         }
         let tiles: Vec<u32> = bumped.into_iter().map(|(t, _)| t).collect();
@@ -470,6 +517,7 @@ impl RunningFrame {
         let Some(member) = self.members.get_mut(&key) else {
             return Vec::new();
         };
+        let queued: u64 = report.queued_rays.values().sum();
         member.rounds.report = Some(queues(report));
         member.reported = true;
         self.touch(key);
@@ -478,13 +526,74 @@ impl RunningFrame {
                 Rounds::Barrier => self.plan_if_round_over(),
                 Rounds::Async => self.plan_dry_members(),
             },
-            // A worker reports when it has run dry: hand it more demand-driven work.
-            Schedule::Hybrid if !self.hand_outs.is_empty() => {
-                let tiles = self.hand_outs.next_batch();
-                vec![(key, self.hand_out(key, tiles))]
+            Schedule::Hybrid => {
+                let mut out = self.demand_driven(key, queued);
+                if self.hybrid_rounds {
+                    out.extend(self.plan_dry_members());
+                }
+                out
             }
             _ => Vec::new(),
         }
+    }
+
+    /// Hybrid: a worker that reports has run out of work it may trace. While tiles are left
+    /// it gets more; then, with nothing queued at all, a busy worker is asked to hand it part
+    /// of its queue (`tasks`).
+    fn demand_driven(&mut self, key: u32, queued: u64) -> Vec<Outgoing> {
+        if !self.hand_outs.is_empty() {
+            let tiles = self.hand_outs.next_batch();
+            return vec![(key, self.hand_out(key, tiles))];
+        }
+        if queued > 0 {
+            self.tasks.busy(key, queued);
+            return Vec::new();
+        }
+        let members: BTreeSet<u32> = self.members.keys().copied().collect();
+        let direction = self.tasks.ran_dry(key, &members);
+        direction.into_iter().map(|d| self.share(d)).collect()
+    }
+
+    /// Hybrid: a busy worker's answer to a `ShareTasks`: the next requests, if any.
+    pub fn tasks_shared(&mut self, key: u32, answer: &proto::TasksShared) -> Vec<Outgoing> {
+        if self.schedule != Schedule::Hybrid || !self.members.contains_key(&key) {
+            return Vec::new();
+        }
+        let members: BTreeSet<u32> = self.members.keys().copied().collect();
+        let directions = self
+            .tasks
+            .answered(key, answer.rays, answer.queued, &members);
+        directions.into_iter().map(|d| self.share(d)).collect()
+    }
+
+    /// Task requests made and rays the donors said they moved.
+    pub fn task_counts(&self) -> (u64, u64) {
+        (self.tasks.requests, self.tasks.rays_moved)
+    }
+
+    /// The `ShareTasks` for `d`, to its donor. The receiver may now be sent rays of any tile,
+    /// so it is named a holder (`Grants`).
+    fn share(&mut self, d: Direction) -> Outgoing {
+        self.grants.name_holder(d.receiver);
+        let receiver = &self.members[&d.receiver];
+        let receiver_domains = receiver
+            .rounds
+            .report
+            .as_ref()
+            .map(|r| r.resident.clone())
+            .unwrap_or_default();
+        debug!(
+            donor = d.donor,
+            receiver = d.receiver,
+            "asking a busy worker to share tasks"
+        );
+        let body = Body::ShareTasks(proto::ShareTasks {
+            job_id: self.frame_id(),
+            to: receiver.peer_address.clone(),
+            receiver_domains,
+            max_rays: TASK_RAYS,
+        });
+        (d.donor, msg(body))
     }
 
     fn plan_if_round_over(&mut self) -> Vec<Outgoing> {

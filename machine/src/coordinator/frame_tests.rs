@@ -330,3 +330,106 @@ fn a_worker_named_a_holder_may_send_results_of_any_tile() {
     let (_, refused) = f.results(0, results(vec![whole_tile(&f, theirs, 0, half)]));
     assert_eq!(refused, None);
 }
+
+/// A frame of `schedule` started on `n` members with caches of `cache` bytes each.
+fn started_with_caches(schedule: Schedule, n: u32, cache: u64) -> (RunningFrame, Vec<Outgoing>) {
+    let mut f = frame_of(schedule, Rounds::Async);
+    let out = f.start(
+        (0..n)
+            .map(|k| (k, Member::new(format!("w{k}"), cache)))
+            .collect(),
+    );
+    (f, out)
+}
+
+fn share_requests(out: &[Outgoing], key: u32) -> Vec<&proto::ShareTasks> {
+    to(out, key)
+        .into_iter()
+        .filter_map(|b| match b {
+            Body::ShareTasks(s) => Some(s),
+            _ => None,
+        })
+        .collect()
+}
+
+fn answer(rays: u64, queued: u64) -> proto::TasksShared {
+    proto::TasksShared {
+        job_id: "j".into(),
+        to: String::new(),
+        rays,
+        queued,
+    }
+}
+
+#[test]
+fn owned_domains_fit_when_each_cache_holds_its_share_and_the_largest_other() {
+    // Four domains of 100 bytes over two workers: each owns two.
+    assert!(owned_domains_fit(&[100; 4], &[300, 300]));
+    assert!(!owned_domains_fit(&[100; 4], &[299, 300]));
+    // Uneven sizes: worker 0 owns domains 0 and 2 (400 + 100), the largest is 400.
+    assert!(owned_domains_fit(&[400, 10, 100, 10], &[900, 420]));
+    assert!(!owned_domains_fit(&[400, 10, 100, 10], &[899, 420]));
+}
+
+#[test]
+fn hybrid_asks_a_busy_worker_to_feed_one_that_ran_dry_once_every_tile_is_out() {
+    // Caches hold the owned domains and one more: one owner map, no rounds.
+    let (mut f, start) = started_with_caches(Schedule::Hybrid, 2, 1000);
+    assert!(!f.hybrid_rounds);
+    assert!(matches!(to(&start, 0)[0], Body::StartFrame(s) if !s.hybrid_rounds));
+    assert_eq!((primary(&start, 0), primary(&start, 1)), (vec![0], vec![1]));
+    // While tiles are left, a dry worker gets tiles, not tasks.
+    let out = f.report(0, report(0, &[0, 2], &[]));
+    assert!(share_requests(&out, 1).is_empty());
+    assert!(matches!(to(&out, 0)[..], [Body::HandOutTiles(h)] if h.tiles == [2]));
+    f.report(1, report(0, &[1], &[]));
+    // Every tile is out: worker 0 runs dry, worker 1 is asked to feed it, with what 0 has mapped.
+    let out = f.report(0, report(0, &[0, 2], &[]));
+    let asked = share_requests(&out, 1);
+    assert_eq!(asked.len(), 1, "{out:?}");
+    assert_eq!(
+        (asked[0].to.as_str(), asked[0].receiver_domains.as_slice()),
+        ("w0", &[0, 2][..])
+    );
+    assert!(asked[0].max_rays > 0 && asked[0].max_rays <= TASK_RAYS);
+    // A second dry report while the request is out asks nobody again.
+    assert!(f.report(0, report(0, &[0, 2], &[])).is_empty());
+    // Worker 1 sent some: nothing more until worker 0 runs dry again.
+    assert!(f.tasks_shared(1, &answer(500, 40_000)).is_empty());
+    let out = f.report(0, report(0, &[0, 2], &[]));
+    assert_eq!(share_requests(&out, 1).len(), 1);
+    // Worker 1 had nothing worth sending: with no other busy worker, worker 0 waits.
+    assert!(f.tasks_shared(1, &answer(0, 100)).is_empty());
+    assert!(f.report(0, report(0, &[0, 2], &[])).is_empty());
+    assert_eq!(f.task_counts(), (2, 500));
+}
+
+#[test]
+fn hybrid_whose_owned_domains_do_not_fit_the_caches_plans_rounds_instead_of_owners() {
+    // Two workers own two domains of 100 bytes each; caches of 200 leave no room for a
+    // demand load, so the owners would thrash: rounds give each what its cache holds.
+    let (mut f, start) = started_with_caches(Schedule::Hybrid, 2, 200);
+    assert!(f.hybrid_rounds);
+    assert!(
+        to(&start, 0)
+            .iter()
+            .all(|b| !matches!(b, Body::RoundPlan(_))),
+        "no owner map: {start:?}"
+    );
+    assert!(matches!(to(&start, 0)[0], Body::StartFrame(s) if s.hybrid_rounds));
+    // A dry worker with rays queued for domain 3 gets tiles and a plan that holds them.
+    let out = f.report(0, report(0, &[], &[(3, 500, 0)]));
+    assert!(
+        to(&out, 0)
+            .iter()
+            .any(|b| matches!(b, Body::HandOutTiles(_)))
+    );
+    let planned = planned_domains(&out, 0);
+    assert!(planned.contains(&3) && planned.len() <= 2, "{planned:?}");
+    // Losing a member sends no owner map either.
+    let out = f.lose(1).expect("a member");
+    assert!(
+        out.iter()
+            .all(|(_, m)| !matches!(m.body, Some(Body::RoundPlan(_))))
+    );
+}

@@ -5,8 +5,9 @@
 //! members, their reports, the rounds of the dynamic schedule, tile dealing, losses and the
 //! tile ledger), its life around the rounds (`frame::lifecycle`: admission, restart epochs,
 //! judging accusations, the end), the judgement of workers' reports of unreachable peers
-//! (`accusations`), which worker may send results of which tile (`grants`), and what the
-//! members were last told of the domains' holders (`holders`). The process
+//! (`accusations`), which worker may send results of which tile (`grants`), what the
+//! members were last told of the domains' holders (`holders`), and the hybrid schedule's
+//! demand-driven tasks: which busy worker is asked to feed which idle one (`tasks`). The process
 //! shell (`rayfarm-coordinator`) and the simulator feed it events and carry out its actions.
 
 pub mod accusations;
@@ -15,6 +16,7 @@ pub mod frame;
 pub mod grants;
 pub mod holders;
 pub mod queue;
+pub mod tasks;
 
 pub use accusations::{Accusations, Verdict};
 pub use cluster::Coordinator;

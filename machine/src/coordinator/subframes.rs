@@ -89,6 +89,7 @@ impl RunningFrame {
         self.round = 0;
         self.grants = Grants::new(grid.count());
         self.hand_outs = HandOuts::default();
+        self.tasks = super::TaskDirections::default();
         self.accusations = Accusations::default();
         // The workers open the next subframe as a new frame, with no holders yet.
         self.sent_holders.reset();

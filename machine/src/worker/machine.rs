@@ -24,6 +24,10 @@ use crate::Time;
 /// Rays per encoded batch sent to a peer (160 KiB).
 const BATCH_RAYS: usize = 2048;
 
+/// Most rays handed to an idle peer for one `ShareTasks`, whatever the coordinator asks
+/// (about 6.5 MiB of records).
+const MAX_TASK_RAYS: usize = 1 << 16;
+
 /// Recently ended jobs remembered, so that their late bundles are dropped, not held.
 const ENDED_KEPT: usize = 16;
 
@@ -216,6 +220,7 @@ impl<S: RaySpill> Worker<S> {
             Some(FromCoordinator::EndFrame(e)) => self.end_frame(&e.job_id),
             Some(FromCoordinator::Holders(h)) => self.holders(h),
             Some(FromCoordinator::Roster(r)) => self.roster(r),
+            Some(FromCoordinator::ShareTasks(t)) => self.share_tasks(t),
             Some(FromCoordinator::HandOutTiles(h)) => {
                 if let Some(f) = self.frame.as_mut().filter(|f| f.job_id == h.job_id) {
                     f.hand_out(h.tiles);
@@ -271,9 +276,10 @@ impl<S: RaySpill> Worker<S> {
             Ok(Schedule::Domain) => Mode::Domain,
             Ok(Schedule::Dynamic | Schedule::Unspecified) => Mode::Dynamic,
             Ok(Schedule::Predictive) => Mode::Predictive,
-            // Decided again with each plan, once the owned domains are known.
+            // Demand loads are decided again with each plan, once the owned domains are known.
             Ok(Schedule::Hybrid) => Mode::Hybrid {
                 demand_loads: false,
+                rounds: s.hybrid_rounds,
             },
             Err(_) => return Err(format!("unknown schedule {}", spec.schedule)),
         };
@@ -359,6 +365,42 @@ impl<S: RaySpill> Worker<S> {
         }
     }
 
+    /// Hybrid: the coordinator asks this worker to hand part of its queue to an idle peer
+    /// (`Frame::take_tasks` chooses what); the rays go at once in the tasks tier, and the
+    /// coordinator hears how many went and how many are left here.
+    fn share_tasks(&mut self, t: proto::ShareTasks) {
+        let tracing = self.tracing;
+        let Some(frame) = self.frame.as_mut().filter(|f| f.job_id == t.job_id) else {
+            return;
+        };
+        let rays = if t.to == self.config.advertise {
+            warn!("asked to share tasks with itself: ignored");
+            Vec::new()
+        } else {
+            let theirs = t.receiver_domains.iter().copied().collect();
+            let max = (t.max_rays as usize).min(MAX_TASK_RAYS);
+            match frame.take_tasks(&theirs, max, tracing) {
+                Ok(rays) => rays,
+                Err(e) => return self.queue_failed(e),
+            }
+        };
+        frame.counters.rays_shared += rays.len() as u64;
+        let answer = proto::TasksShared {
+            job_id: t.job_id,
+            to: t.to.clone(),
+            rays: rays.len() as u64,
+            queued: frame.queued_total() as u64,
+        };
+        debug!(to = %t.to, rays = rays.len(), "shared tasks");
+        if !rays.is_empty() {
+            self.send_tasks(t.to.clone(), &rays);
+            // The receiver is idle: its work leaves now, not when the tier falls due.
+            let bundles = self.bundler.flush_peer(&t.to);
+            self.send_bundles(bundles);
+        }
+        self.send(proto::worker_message::Body::TasksShared(answer));
+    }
+
     /// A worker joined the frame: verdicts held for it can go.
     fn roster(&mut self, r: proto::Roster) {
         let Some(frame) = self.frame.as_mut().filter(|f| f.job_id == r.job_id) else {
@@ -396,6 +438,7 @@ impl<S: RaySpill> Worker<S> {
             rays_received: c.rays_received,
             rays_spilled: frame.spilled(),
             verdicts_refused: frame.speculation().map_or(0, |s| s.refused),
+            rays_shared: c.rays_shared,
             tiers: tier_traffic(self.bundler.stats()),
             busy_seconds,
             frame_seconds,
@@ -578,15 +621,20 @@ impl<S: RaySpill> Worker<S> {
 
     /// Queues rays for a peer in the bundler's migrated-ray tier.
     pub(super) fn send_rays(&mut self, peer: String, rays: &[RayRecord]) {
+        self.send_in_tier(peer, rays, Tier::Migrated);
+    }
+
+    /// Queues demand-driven tasks for an idle peer in the bundler's tasks tier.
+    fn send_tasks(&mut self, peer: String, rays: &[RayRecord]) {
+        self.send_in_tier(peer, rays, Tier::Tasks);
+    }
+
+    fn send_in_tier(&mut self, peer: String, rays: &[RayRecord], tier: Tier) {
         if let Some(frame) = self.frame.as_mut() {
             frame.counters.rays_sent += rays.len() as u64;
         }
         for chunk in rays.chunks(BATCH_RAYS) {
-            self.push_bundled(
-                &peer,
-                Tier::Migrated,
-                Bytes::from(wire::encode_batch(chunk)),
-            );
+            self.push_bundled(&peer, tier, Bytes::from(wire::encode_batch(chunk)));
         }
     }
 

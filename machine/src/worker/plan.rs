@@ -23,8 +23,11 @@ pub enum Mode {
     /// Hybrid (Reinhard et al.): camera rays and their shadow rays, coherent, are traced by
     /// the worker whose tile they are, loading what they need (`demand_loads`; off when the
     /// cache is too small, then they migrate too); incoherent rays migrate to the domains'
-    /// owners. Owned domains' queues go first (data-parallel first).
-    Hybrid { demand_loads: bool },
+    /// owners. Owned domains' queues go first (data-parallel first). `rounds`: the owned
+    /// domains did not fit the caches, so the coordinator gives each worker what its cache
+    /// holds in asynchronous rounds instead of one owner map, and this worker traces only
+    /// what it is planned or has mapped, as under the dynamic schedule.
+    Hybrid { demand_loads: bool, rounds: bool },
 }
 
 /// Where a routed ray goes.
@@ -195,8 +198,9 @@ impl Plan {
     /// Whether this worker may trace the queue of `domain` now.
     pub fn traces(&self, domain: u32) -> bool {
         match self.mode {
-            // Every ray queued under hybrid was kept here on purpose (see `keeps`).
-            Mode::ImagePlane | Mode::Hybrid { .. } => true,
+            // Every ray queued under hybrid with owners was kept here on purpose (see `keeps`).
+            Mode::ImagePlane | Mode::Hybrid { rounds: false, .. } => true,
+            Mode::Hybrid { rounds: true, .. } => self.planned_or_resident(domain),
             Mode::Domain => self.work_on.contains(&domain),
             Mode::Dynamic | Mode::Predictive => self.planned_or_resident(domain),
         }
@@ -205,7 +209,7 @@ impl Plan {
     /// Whether `ray` stays on this worker.
     fn keeps(&self, ray: &RayRecord) -> bool {
         match self.mode {
-            Mode::Hybrid { demand_loads } => {
+            Mode::Hybrid { demand_loads, .. } => {
                 self.planned_or_resident(ray.domain) || (demand_loads && ray.depth == 0)
             }
             _ => self.traces(ray.domain),
@@ -424,7 +428,15 @@ mod tests {
 
     #[test]
     fn hybrid_keeps_camera_rays_only_while_demand_loads_are_on() {
-        let mut plan = Plan::new(Mode::Hybrid { demand_loads: true }, 1, 2, "me:1".into());
+        let mut plan = Plan::new(
+            Mode::Hybrid {
+                demand_loads: true,
+                rounds: false,
+            },
+            1,
+            2,
+            "me:1".into(),
+        );
         plan.set_round(1, [0], holders(&[(1, &["a:1"])]), false);
         let camera = ray(0, 0, 1, 0);
         let bounce = RayRecord { depth: 1, ..camera };
@@ -432,7 +444,31 @@ mod tests {
         assert_eq!(plan.destination(&bounce), Destination::Peer("a:1".into()));
         plan.mode = Mode::Hybrid {
             demand_loads: false,
+            rounds: false,
         };
         assert_eq!(plan.destination(&camera), Destination::Peer("a:1".into()));
+        assert!(
+            plan.traces(1),
+            "with owners, whatever was kept here is traced here"
+        );
+    }
+
+    #[test]
+    fn hybrid_by_rounds_traces_only_what_it_is_planned_or_has_mapped() {
+        let mode = Mode::Hybrid {
+            demand_loads: false,
+            rounds: true,
+        };
+        let mut plan = Plan::new(mode, 1, 3, "me:1".into());
+        plan.set_round(1, [0], holders(&[(1, &["a:1"])]), false);
+        plan.set_resident([2]);
+        assert!(plan.traces(0) && plan.traces(2));
+        plan.set_resident([]);
+        assert!(!plan.traces(2), "a domain nobody holds waits for a plan");
+        assert_eq!(plan.destination(&ray(0, 0, 2, 0)), Destination::Local);
+        assert_eq!(
+            plan.destination(&ray(0, 0, 1, 0)),
+            Destination::Peer("a:1".into())
+        );
     }
 }

@@ -114,16 +114,22 @@ fn finished(out: PassOutput) -> Event<MemorySpill> {
     }
 }
 
-/// Rays sent to each peer by `actions`.
+/// Rays sent to each peer by `actions` in the migrated-ray tier.
 fn rays_sent(actions: &[Action]) -> BTreeMap<String, Vec<RayRecord>> {
+    sent_in(actions, Tier::Migrated)
+}
+
+/// Rays sent to each peer by `actions` in `tier`.
+fn sent_in(actions: &[Action], tier: Tier) -> BTreeMap<String, Vec<RayRecord>> {
     let mut out: BTreeMap<String, Vec<RayRecord>> = BTreeMap::new();
     for a in actions {
         if let Action::ToPeer {
             peer,
-            tier: Tier::Migrated,
+            tier: t,
             batches,
             ..
         } = a
+            && *t == tier
         {
             for b in batches {
                 let rays = wire::decode_batch(b, &BatchLimits::any_frame(1 << 20)).unwrap();
@@ -714,4 +720,128 @@ fn idle_time_is_counted_by_why_the_worker_has_no_pass() {
     assert_eq!(stats.idle_queued_seconds, 2e-6);
     assert_eq!(stats.idle_verdicts_seconds, 0.0);
     assert_eq!(stats.busy_seconds, 0.0);
+}
+
+/// Rays sent in the tasks tier, by peer.
+fn tasks_sent(actions: &[Action]) -> BTreeMap<String, Vec<RayRecord>> {
+    sent_in(actions, Tier::Tasks)
+}
+
+fn share(to: &str, theirs: &[u32], max_rays: u32) -> Event<MemorySpill> {
+    control(FromCoordinator::ShareTasks(proto::ShareTasks {
+        job_id: JOB.into(),
+        to: to.into(),
+        receiver_domains: theirs.to_vec(),
+        max_rays,
+    }))
+}
+
+fn shared_answer(actions: &[Action]) -> Option<&proto::TasksShared> {
+    actions.iter().find_map(|a| match a {
+        Action::ToCoordinator(proto::worker_message::Body::TasksShared(t)) => Some(t),
+        _ => None,
+    })
+}
+
+#[test]
+fn a_busy_hybrid_worker_hands_an_idle_peer_what_costs_it_least_and_keeps_half() {
+    let mut w = worker();
+    w.handle(
+        Time(0),
+        Event::FrameOpened {
+            start: start(JOB, Schedule::Hybrid, &[]),
+            opened: Ok(OpenedScene {
+                resident: vec![2],
+                ..scene()
+            }),
+        },
+    );
+    // Owns domain 0; the cache holds it and more, so camera rays load on demand here.
+    w.handle(Time(1), plan(1, &[0], &[(1, "b:1"), (2, "c:1")]));
+    let own: Vec<RayRecord> = (0..10).map(|p| ray(0, 0, 0, p)).collect();
+    let camera: Vec<RayRecord> = (10..12).map(|p| ray(0, 0, 1, p)).collect();
+    let bounce: Vec<RayRecord> = (12..20)
+        .map(|p| RayRecord {
+            depth: 1,
+            ..ray(0, 0, 2, p)
+        })
+        .collect();
+    let rays: Vec<RayRecord> = own.iter().chain(&camera).chain(&bounce).copied().collect();
+    let actions = w.handle(Time(2), bundle(JOB, &rays));
+    // The pass traces its own domain 0; 2 camera rays (domain 1, not mapped here) and 8
+    // bounces (domain 2, mapped here) wait.
+    assert_eq!(
+        pass_started(&actions)
+            .and_then(|p| p.trace.as_ref())
+            .map(|(d, _)| *d),
+        Some(0)
+    );
+    assert_eq!(w.frame().unwrap().queued_total(), 10);
+    // A peer with nothing mapped gets the camera rays this worker would load domain 1 for.
+    let pixels = |actions: &[Action]| -> Vec<u32> {
+        let mut p: Vec<u32> = tasks_sent(actions)
+            .remove("idle:1")
+            .unwrap_or_default()
+            .iter()
+            .map(|r| r.pixel)
+            .collect();
+        p.sort();
+        p
+    };
+    let actions = w.handle(Time(3), share("idle:1", &[], 100));
+    assert_eq!(pixels(&actions), [10, 11], "{actions:?}");
+    let answer = shared_answer(&actions).expect("answered");
+    assert_eq!(
+        (answer.rays, answer.queued, answer.to.as_str()),
+        (2, 8, "idle:1")
+    );
+    assert!(
+        rays_sent(&actions).is_empty(),
+        "tasks travel in the tasks tier only"
+    );
+    // A peer with domain 2 mapped gets its rays, half of what is queued here.
+    let actions = w.handle(Time(4), share("idle:1", &[2], 100));
+    let given = pixels(&actions);
+    assert_eq!(given.len(), 4);
+    assert!(given.iter().all(|p| (12..20).contains(p)), "{given:?}");
+    // Domain 2 is mapped here too, so it is not handed to a peer that would load it; nor is
+    // anything to this worker itself.
+    let actions = w.handle(Time(5), share("idle:1", &[], 100));
+    assert!(tasks_sent(&actions).is_empty());
+    let actions = w.handle(Time(6), share("me:1", &[2], 100));
+    assert_eq!(shared_answer(&actions).map(|a| a.rays), Some(0));
+    assert_eq!(w.frame().unwrap().counters.rays_shared, 6);
+}
+
+#[test]
+fn a_domain_the_idle_peer_would_load_goes_whole_or_not_at_all() {
+    let mut w = worker();
+    w.handle(Time(0), opened(JOB, Schedule::Hybrid, &[]));
+    w.handle(Time(1), plan(1, &[0], &[(1, "b:1"), (2, "c:1")]));
+    let own: Vec<RayRecord> = (0..10).map(|p| ray(0, 0, 0, p)).collect();
+    let camera: Vec<RayRecord> = (10..16).map(|p| ray(0, 0, 1, p)).collect();
+    let camera2: Vec<RayRecord> = (16..20).map(|p| ray(0, 0, 2, p)).collect();
+    let rays: Vec<RayRecord> = own.iter().chain(&camera).chain(&camera2).copied().collect();
+    w.handle(Time(2), bundle(JOB, &rays));
+    // 10 queued, so at most 3 asked for: neither domain's 6 or 4 camera rays fit.
+    let actions = w.handle(Time(3), share("idle:1", &[], 3));
+    assert_eq!(shared_answer(&actions).map(|a| a.rays), Some(0));
+    // At most 5: domain 2's 4 go whole, domain 1's 6 stay.
+    let actions = w.handle(Time(4), share("idle:1", &[], 100));
+    let sent = tasks_sent(&actions);
+    assert_eq!(sent["idle:1"].len(), 4);
+    assert!(sent["idle:1"].iter().all(|r| r.domain == 2));
+    assert_eq!(w.frame().unwrap().queue_sizes(), BTreeMap::from([(1, 6)]));
+}
+
+#[test]
+fn only_the_hybrid_schedule_shares_tasks() {
+    let mut w = worker();
+    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    w.handle(Time(1), plan(1, &[], &[]));
+    let rays: Vec<RayRecord> = (0..8).map(|p| ray(0, 0, 1, p)).collect();
+    w.handle(Time(2), bundle(JOB, &rays));
+    let actions = w.handle(Time(3), share("idle:1", &[1], 100));
+    assert!(tasks_sent(&actions).is_empty());
+    assert_eq!(shared_answer(&actions).map(|a| a.rays), Some(0));
 }

@@ -140,6 +140,12 @@ impl Coordinator {
                     self.publish_progress(now, out);
                 }
             }
+            FromWorker::TasksShared(t) => {
+                if let Some(f) = self.running.as_mut().filter(|f| f.frame_id() == t.job_id) {
+                    let requests = f.tasks_shared(key, &t);
+                    self.send(requests, out);
+                }
+            }
             FromWorker::TileResults(r) => self.tile_results(now, key, r, out),
             FromWorker::FrameReport(r) => self.frame_report(now, key, r, out),
             FromWorker::PeerUnresponsive(p) => {
