@@ -45,8 +45,8 @@ pub enum Rounds {
 /// What a frame's planning rounds did, counted since it started: what their cost follows, so
 /// the simulator can price them (`rayfarm_sim::cost`) and the metrics count them. An
 /// asynchronous round with someone busy plans only the members that ran dry from the figures
-/// `RoundIndex` keeps (its cost follows those members, plus the holders map rebuilt from every
-/// member's plan); a barrier round, or an asynchronous one with nobody busy, plans every member
+/// `RoundIndex` keeps, the holders map too (its cost follows those members and what their plans
+/// changed); a barrier round, or an asynchronous one with nobody busy, plans every member
 /// from the whole cluster (its cost follows the cluster's members and domains).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct PlanningWork {
@@ -594,9 +594,11 @@ impl RunningFrame {
         }
         let (loads, _) = self.index.adopt(&mut self.members, &changed, self.round);
         self.planned_loads += loads;
+        let holder_changes = self.index.take_holder_changes();
+        let members = &self.members;
         let changes = self
             .sent_holders
-            .update(rounds::current_holders(&self.members));
+            .update_from_index(holder_changes, || rounds::current_holders(members));
         // Every holder in the map is named in `Grants`: those of changed domains here, the
         // others when the map that first listed them was sent.
         let delta = self.holders(changes);
