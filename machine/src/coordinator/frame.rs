@@ -341,7 +341,7 @@ impl RunningFrame {
         let holders: Vec<proto::DomainHolders> = (0..domains)
             .map(|d| proto::DomainHolders {
                 domain: d,
-                workers: vec![self.members[&owner(d)].peer_address.clone()],
+                workers: vec![owner(d)],
             })
             .collect();
         // Every member gets the whole map; no asynchronous round follows these schedules'
@@ -658,8 +658,8 @@ impl RunningFrame {
         }
     }
 
-    /// Holders by member key as the peer addresses the workers route by.
-    /// Every key named is recorded as a holder (`Grants`).
+    /// Holders by member key, as the workers get them (they know every member's address
+    /// from the roster). Every key named is recorded as a holder (`Grants`).
     fn holders(
         &mut self,
         by_domain: impl IntoIterator<Item = (u32, Vec<u32>)>,
@@ -675,9 +675,8 @@ impl RunningFrame {
             .map(|(domain, keys)| proto::DomainHolders {
                 domain,
                 workers: keys
-                    .iter()
-                    .filter_map(|k| self.members.get(k))
-                    .map(|m| m.peer_address.clone())
+                    .into_iter()
+                    .filter(|k| self.members.contains_key(k))
                     .collect(),
             })
             .collect()
