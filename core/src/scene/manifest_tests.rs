@@ -168,9 +168,9 @@ fn the_longest_manifest_prepare_can_write_fits_the_cap() {
         MAX_DOMAINS as u64 * per_domain + head <= MAX_MANIFEST_BYTES,
         "every manifest of up to {MAX_DOMAINS} domains fits the cap"
     );
-    assert!(crate::prepare::brick_scene::MAX_BRICKS <= MAX_DOMAINS);
+    const { assert!(crate::prepare::brick_scene::MAX_BRICKS <= MAX_DOMAINS) };
     // The cap is not far above what it must hold.
-    assert!(MAX_MANIFEST_BYTES < 64 << 20);
+    const { assert!(MAX_MANIFEST_BYTES < 64 << 20) };
 }
 
 #[test]
