@@ -92,6 +92,7 @@ fn plan(command: &str) -> Option<Plan> {
                 ("--workers 64", "--workers 2"),
                 ("--workers 256", "--workers 3"),
                 ("--workers 1024", "--workers 3"),
+                ("--workers 4096", "--workers 3"),
                 (
                     "--width 1024 --height 1024 --spp 1",
                     "--width 32 --height 32 --spp 1",
@@ -333,7 +334,7 @@ fn every_readme_command_runs_or_is_skipped_with_its_reason() {
     }
     // The simulator's section names its scene from the working directory, and calibrates into
     // sim/.
-    for name in ["b32", "s2048", "s8192"] {
+    for name in ["b32", "s2048", "s8192", "s32768"] {
         prepare_nbody(dir, name, 20_000, 4);
     }
     std::fs::create_dir_all(dir.join("sim")).expect("sim");

@@ -23,7 +23,7 @@ mod tests {
                 evict: vec![1],
                 holders: vec![DomainHolders {
                     domain: 3,
-                    workers: vec!["10.0.0.2:7000".into()],
+                    workers: vec![2],
                 }],
                 next: vec![4],
                 holders_delta: true,

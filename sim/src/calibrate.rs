@@ -397,9 +397,9 @@ fn time_rounds() -> Vec<TimedRound> {
 /// The fastest of five rounds of `workers` members over `domains` domains with `dry` of them
 /// dry, planned as the coordinator plans an asynchronous round of the dynamic schedule
 /// (`RunningFrame::plan_dry_members`): the dry members' reports taken into the index, their
-/// plans drafted, adopted (queued rays moved to their holders), and the holders map rebuilt
-/// from every member's plan and diffed against the last one sent. Building and sending the
-/// messages is left out (the network prices those bytes).
+/// plans drafted, adopted (queued rays moved to their holders), and the holders the plans
+/// changed taken from the index into the map last sent (`SentHolders::update_from_index`).
+/// Building and sending the messages is left out (the network prices those bytes).
 fn time_round(workers: u32, domains: u32, dry: u32) -> TimedRound {
     let options = Options {
         fill_free_slots: true,
@@ -421,7 +421,7 @@ fn time_round(workers: u32, domains: u32, dry: u32) -> TimedRound {
             // nothing and only the holders map is made.
             let plans = index.dry_plans(&members, &sizes, options);
             index.adopt(&mut members, &plans, 2);
-            sent.update(current_holders(&members));
+            sent.update_from_index(index.take_holder_changes(), || current_holders(&members));
             // The members to time run dry now: their reports are of the latest round.
             let planned: Vec<u32> = members.keys().copied().take(dry as usize).collect();
             for k in &planned {
@@ -435,7 +435,8 @@ fn time_round(workers: u32, domains: u32, dry: u32) -> TimedRound {
             }
             let plans = index.dry_plans(&members, &sizes, options);
             std::hint::black_box(index.adopt(&mut members, &plans, 3));
-            std::hint::black_box(sent.update(current_holders(&members)));
+            let changes = index.take_holder_changes();
+            std::hint::black_box(sent.update_from_index(changes, || current_holders(&members)));
             thread_cpu_ns().saturating_sub(start)
         })
         .min()

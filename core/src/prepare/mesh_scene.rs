@@ -11,8 +11,7 @@ use crate::mesh::TriangleMesh;
 use crate::scene::domain_file::SourceTriangle;
 use crate::scene::{DomainTree, Manifest, Material};
 
-/// Most domains a scene may have.
-pub const MAX_DOMAINS: u32 = 1 << 16;
+pub use crate::scene::manifest::MAX_DOMAINS;
 
 /// Refuses a domain count outside 1..=[`MAX_DOMAINS`], the limit README states.
 pub fn check_domains(domains: u32) -> Result<(), PrepareError> {

@@ -264,8 +264,39 @@ pub struct SurfaceFile {
     pub checksum: String,
 }
 
-/// Largest manifest read (far above any real one: 16 domains take about 4 KiB).
-pub const MAX_MANIFEST_BYTES: u64 = 4 << 20;
+/// Most domains a scene may have (`prepare --domains`' limit, checked when a manifest is read).
+pub const MAX_DOMAINS: u32 = 1 << 16;
+
+/// Longest file name a domain entry may give (prepare writes 16 to 18 bytes); names are
+/// ASCII letters, digits, `.`, `-` and `_`, so TOML writes them unescaped and a domain's text
+/// stays within [`MAX_DOMAIN_TEXT_BYTES`].
+pub const MAX_FILE_NAME: usize = 32;
+
+/// Longest checksum text: 16 hex digits, a 64-bit hash.
+const MAX_CHECKSUM: usize = 16;
+
+/// Longest text TOML writes for an `f32`: `{}` never uses an exponent, so the longest are
+/// negative normals near the smallest, `-0.` then 37 zeros and up to 9 significant digits
+/// (the 9 digits that round-trip any `f32`); subnormals need no digit past the 45th place
+/// (their spacing is 1.4e-45), and numbers from 1 up print at most 39 integer digits and `.0`.
+/// Checked by `manifest::tests::no_f32_is_longer_than_its_bound`.
+pub const MAX_F32_TEXT: usize = 49;
+
+/// Most text one domain adds to a manifest: its entry (with a volume brick's value range and
+/// surfaces file) and its two k-d tree nodes (a leaf, and the split that a tree of n leaves
+/// has n - 1 of), every number and name at its longest (`manifest::tests`).
+pub const MAX_DOMAIN_TEXT_BYTES: u64 = 896;
+
+/// Room for everything but the domains and the k-d tree: name, camera, sky, materials (prepare
+/// writes up to 263), lights, a volume's transfer function (prepare reads up to
+/// `transfer::MAX_POINTS` points; `manifest::tests`).
+pub const MAX_MANIFEST_HEAD_BYTES: u64 = 2 << 20;
+
+/// Largest manifest read: every manifest prepare can write fits, [`MAX_DOMAINS`] domains at
+/// their longest after the longest head (`manifest::tests` checks the sum), and nothing larger
+/// is read. 58 MiB; a 65,536-domain scene prepare writes is about 23.4 MB (README "Scenes").
+pub const MAX_MANIFEST_BYTES: u64 =
+    MAX_MANIFEST_HEAD_BYTES + MAX_DOMAINS as u64 * MAX_DOMAIN_TEXT_BYTES;
 
 /// A TOML error as `line L, column C: what` without any of the text: toml's own message
 /// quotes the offending line, and serde's quote values (`invalid type: string "…"`) and
@@ -445,6 +476,20 @@ impl Manifest {
         if self.domains.is_empty() {
             return Err("no domains".into());
         }
+        if self.domains.len() > MAX_DOMAINS as usize {
+            return Err(format!(
+                "{} domains, more than the {MAX_DOMAINS} a scene may have",
+                self.domains.len()
+            ));
+        }
+        // A tree of n leaves has n - 1 splits: a longer list holds nodes outside the tree.
+        if self.kd_nodes.len() > 2 * self.domains.len() - 1 {
+            return Err(format!(
+                "{} k-d nodes for {} domains: a tree of n domains has 2n - 1",
+                self.kd_nodes.len(),
+                self.domains.len()
+            ));
+        }
         if self.materials.is_empty() {
             return Err("no materials".into());
         }
@@ -495,13 +540,16 @@ impl Manifest {
             let files = std::iter::once((&d.file, &d.checksum))
                 .chain(d.surfaces.as_ref().map(|s| (&s.file, &s.checksum)));
             for (file, checksum) in files {
-                if file.is_empty() || file.contains('/') || file.contains("..") {
+                if !plain_name(file) {
                     return Err(format!(
-                        "domain {i}: file name {file:?} must be a plain name"
+                        "domain {i}: file name {file:?} must be a plain name of at most \
+                         {MAX_FILE_NAME} ASCII letters, digits, '.', '-' or '_'"
                     ));
                 }
-                if u64::from_str_radix(checksum, 16).is_err() {
-                    return Err(format!("domain {i}: checksum {checksum:?} is not hex"));
+                if checksum.len() > MAX_CHECKSUM || u64::from_str_radix(checksum, 16).is_err() {
+                    return Err(format!(
+                        "domain {i}: checksum {checksum:?} is not {MAX_CHECKSUM} hex digits"
+                    ));
                 }
             }
             if d.surfaces.is_some() && self.volume.is_none() {
@@ -531,6 +579,20 @@ impl Manifest {
     }
 }
 
+/// A file name in the scene directory: short, no path, nothing TOML must escape.
+fn plain_name(file: &str) -> bool {
+    !file.is_empty()
+        && file.len() <= MAX_FILE_NAME
+        && !file.contains("..")
+        && file
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || matches!(b, b'.' | b'-' | b'_'))
+}
+
 fn finite(v: &[f32; 3]) -> bool {
     v.iter().all(|x| x.is_finite())
 }
+
+#[cfg(test)]
+#[path = "manifest_tests.rs"]
+mod tests;

@@ -24,7 +24,7 @@ use super::rounds::{Cluster, Member, deposit_moved, set_plans};
 use super::{DomainId, WorkerId};
 
 /// What one member adds to the cluster's figures, kept so it can be taken out again.
-#[derive(Debug, Default)]
+#[derive(Clone, Debug, Default)]
 struct Part {
     /// (domain, rays, oldest generation among them) of its report, domains in the scene only.
     queued: Vec<(u32, u64, Option<u32>)>,
@@ -39,6 +39,8 @@ struct Part {
     holding_plan: BTreeSet<u32>,
     /// Domains its report has a queue for, empty or not.
     queues: BTreeSet<u32>,
+    /// Its plan, whatever it names: the holders map lists it under each of these.
+    plan: BTreeSet<u32>,
 }
 
 impl Part {
@@ -53,6 +55,7 @@ impl Part {
             return Part {
                 in_memory: plan.collect(),
                 holding_plan,
+                plan: m.plan.clone(),
                 ..Part::default()
             };
         };
@@ -83,12 +86,13 @@ impl Part {
                 .copied()
                 .filter(|&d| d < domains)
                 .collect(),
+            plan: m.plan.clone(),
         }
     }
 }
 
 /// The cluster's figures for asynchronous rounds, kept up to date member by member.
-#[derive(Debug)]
+#[derive(Clone, Debug)]
 pub struct RoundIndex {
     domains: u32,
     oldest_first: bool,
@@ -123,6 +127,11 @@ pub struct RoundIndex {
     /// their queues can have a holder elsewhere (`adopt`).
     unmoved: BTreeSet<u32>,
     newly_held: BTreeSet<u32>,
+    /// Every domain in someone's plan, with the members whose plan it is in
+    /// (`rounds::current_holders`, kept member by member).
+    holders: BTreeMap<u32, BTreeSet<u32>>,
+    /// Domains whose holders changed since [`RoundIndex::take_holder_changes`] last ran.
+    holders_changed: BTreeSet<u32>,
 }
 
 impl RoundIndex {
@@ -152,6 +161,8 @@ impl RoundIndex {
             queuers: vec![BTreeSet::new(); n],
             unmoved: BTreeSet::new(),
             newly_held: BTreeSet::new(),
+            holders: BTreeMap::new(),
+            holders_changed: BTreeSet::new(),
         }
     }
 
@@ -172,10 +183,34 @@ impl RoundIndex {
             }
             let part = Part::of(m, dry, self.domains);
             self.count(key, &part, true, &mut touched);
-            let before = old.map(|o| o.holding_plan).unwrap_or_default();
-            self.newly_held
-                .extend(part.holding_plan.difference(&before).copied());
+            let before = old.as_ref().map(|o| &o.holding_plan);
+            self.newly_held.extend(
+                part.holding_plan
+                    .iter()
+                    .filter(|d| !before.is_some_and(|b| b.contains(d))),
+            );
             self.parts.insert(key, part);
+        }
+        let plan_now = self.parts.get(&key).map(|p| &p.plan);
+        let plan_before = old.as_ref().map(|o| &o.plan);
+        if plan_now != plan_before {
+            let empty = BTreeSet::new();
+            let (now, before) = (plan_now.unwrap_or(&empty), plan_before.unwrap_or(&empty));
+            let gained: Vec<u32> = now.difference(before).copied().collect();
+            let dropped: Vec<u32> = before.difference(now).copied().collect();
+            for d in gained {
+                self.holders.entry(d).or_default().insert(key);
+                self.holders_changed.insert(d);
+            }
+            for d in dropped {
+                if let Some(keys) = self.holders.get_mut(&d) {
+                    keys.remove(&key);
+                    if keys.is_empty() {
+                        self.holders.remove(&d);
+                    }
+                }
+                self.holders_changed.insert(d);
+            }
         }
         let oldest = if self.oldest_first {
             self.generations.keys().next().copied()
@@ -192,6 +227,25 @@ impl RoundIndex {
                 self.refresh(d);
             }
         }
+    }
+
+    /// Every domain someone's current plan includes, with the keys of its holders, in key
+    /// order: `rounds::current_holders` of the members this index was last updated with.
+    pub fn holders(&self) -> &BTreeMap<u32, BTreeSet<u32>> {
+        &self.holders
+    }
+
+    /// The domains whose holders changed since the last call (or since the index began), each
+    /// with its holders now (none if nobody holds it any more), by domain: what turns the
+    /// holders map of that time into [`RoundIndex::holders`]. Costs what changed, not the map.
+    pub fn take_holder_changes(&mut self) -> Vec<(u32, Vec<u32>)> {
+        std::mem::take(&mut self.holders_changed)
+            .into_iter()
+            .map(|d| {
+                let keys = self.holders.get(&d);
+                (d, keys.into_iter().flatten().copied().collect())
+            })
+            .collect()
     }
 
     /// Members that ran dry since their last plan: those the next `dry_plans` drafts.

@@ -1,5 +1,5 @@
 use super::*;
-use crate::schedule::rounds::{Queues, adopt_plans};
+use crate::schedule::rounds::{Queues, adopt_plans, current_holders};
 use proptest::prelude::*;
 
 const DOMAINS: u32 = 10;
@@ -57,7 +57,8 @@ fn change() -> impl Strategy<Value = Change> {
 const SIZE: u64 = 100;
 
 /// Applies `changes`, planning with the index and with `Cluster::dry_plans` at every `Plan`
-/// and checking they agree.
+/// and checking they agree; after every change, the index's holders map is the one rebuilt
+/// from every member's plan, and so is a map kept only from its changes.
 fn run(changes: &[Change], oldest_first: bool, options: Options) -> Result<(), TestCaseError> {
     let sizes = vec![SIZE; DOMAINS as usize];
     let mut members: BTreeMap<u32, Member> = (0..3).map(|k| (k, Member::new(2 * SIZE))).collect();
@@ -66,6 +67,8 @@ fn run(changes: &[Change], oldest_first: bool, options: Options) -> Result<(), T
         index.update(k, Some(m));
     }
     let mut round = 1;
+    // What a coordinator told its members, kept from the index's changes alone.
+    let mut told: BTreeMap<u32, Vec<u32>> = BTreeMap::new();
     for c in changes {
         match c {
             Change::Report {
@@ -137,6 +140,24 @@ fn run(changes: &[Change], oldest_first: bool, options: Options) -> Result<(), T
                     index.update(k, Some(m));
                 }
             }
+        }
+        let rebuilt = current_holders(&members);
+        let kept: BTreeMap<u32, Vec<u32>> = index
+            .holders()
+            .iter()
+            .map(|(&d, keys)| (d, keys.iter().copied().collect()))
+            .collect();
+        prop_assert_eq!(&kept, &rebuilt);
+        // Not every change is taken at once: a coordinator takes them when it plans.
+        if matches!(c, Change::Plan | Change::Leave { .. }) {
+            for (d, keys) in index.take_holder_changes() {
+                if keys.is_empty() {
+                    told.remove(&d);
+                } else {
+                    told.insert(d, keys);
+                }
+            }
+            prop_assert_eq!(&told, &rebuilt);
         }
     }
     Ok(())

@@ -46,8 +46,8 @@ pub enum Rounds {
 /// What a frame's planning rounds did, counted since it started: what their cost follows, so
 /// the simulator can price them (`rayfarm_sim::cost`) and the metrics count them. An
 /// asynchronous round with someone busy plans only the members that ran dry from the figures
-/// `RoundIndex` keeps (its cost follows those members, plus the holders map rebuilt from every
-/// member's plan); a barrier round, or an asynchronous one with nobody busy, plans every member
+/// `RoundIndex` keeps, the holders map too (its cost follows those members and what their plans
+/// changed); a barrier round, or an asynchronous one with nobody busy, plans every member
 /// from the whole cluster (its cost follows the cluster's members and domains).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct PlanningWork {
@@ -387,7 +387,7 @@ impl RunningFrame {
         let holders: Vec<proto::DomainHolders> = (0..domains)
             .map(|d| proto::DomainHolders {
                 domain: d,
-                workers: vec![self.members[&owner(d)].peer_address.clone()],
+                workers: vec![owner(d)],
             })
             .collect();
         // Every member gets the whole map; no asynchronous round follows these schedules'
@@ -703,9 +703,11 @@ impl RunningFrame {
         }
         let (loads, _) = self.index.adopt(&mut self.members, &changed, self.round);
         self.planned_loads += loads;
+        let holder_changes = self.index.take_holder_changes();
+        let members = &self.members;
         let changes = self
             .sent_holders
-            .update(rounds::current_holders(&self.members));
+            .update_from_index(holder_changes, || rounds::current_holders(members));
         // Every holder in the map is named in `Grants`: those of changed domains here, the
         // others when the map that first listed them was sent.
         let delta = self.holders(changes);
@@ -765,8 +767,8 @@ impl RunningFrame {
         }
     }
 
-    /// Holders by member key as the peer addresses the workers route by.
-    /// Every key named is recorded as a holder (`Grants`).
+    /// Holders by member key, as the workers get them (they know every member's address
+    /// from the roster). Every key named is recorded as a holder (`Grants`).
     fn holders(
         &mut self,
         by_domain: impl IntoIterator<Item = (u32, Vec<u32>)>,
@@ -782,9 +784,8 @@ impl RunningFrame {
             .map(|(domain, keys)| proto::DomainHolders {
                 domain,
                 workers: keys
-                    .iter()
-                    .filter_map(|k| self.members.get(k))
-                    .map(|m| m.peer_address.clone())
+                    .into_iter()
+                    .filter(|k| self.members.contains_key(k))
                     .collect(),
             })
             .collect()

@@ -132,7 +132,7 @@ fn a_dry_worker_is_planned_at_once_under_asynchronous_rounds() {
     match to(&out, 1)[..] {
         [Body::Holders(h)] => {
             let one = h.holders.iter().find(|h| h.domain == 1).expect("domain 1");
-            assert_eq!(one.workers, ["w0"]);
+            assert_eq!(one.workers, [0], "worker 0, by its key");
         }
         ref other => panic!("{other:?}"),
     }

@@ -9,6 +9,13 @@
 //! changes the holders of the few domains the planned members gained or dropped, so members
 //! that already hold the last map sent get only those domains (`holders_delta`).
 //!
+//! Asynchronous rounds send the holders map of every member's plan, which the frame's
+//! `RoundIndex` keeps member by member with the domains whose holders changed since it was last
+//! asked (`RoundIndex::take_holder_changes`): once the last map sent is that map, a round
+//! applies those changes only (`SentHolders::update_from_index`), so it costs what the round
+//! changed, not a rebuild and a comparison of the whole map (at 1,024 workers that was about a
+//! tenth of a simulated frame, README "Simulator").
+//!
 //! The one map kept is the last one sent, with the members known to hold it; a member that
 //! joined, or that missed a map (a barrier round plans only some members), gets the whole
 //! map once. Control streams are ordered, so a member that got every message since holds
@@ -27,6 +34,9 @@ pub struct SentHolders {
     sent: HolderMap,
     /// Members that hold `sent`.
     synced: BTreeSet<u32>,
+    /// Whether `sent` is the map of every member's plan as of the index's last taken changes
+    /// (else it is a barrier round's map, the owner map, or none yet).
+    in_step: bool,
 }
 
 impl SentHolders {
@@ -43,6 +53,7 @@ impl SentHolders {
     /// `map` becomes the last map sent; returns the domains whose holders changed since the
     /// one before, a domain no one holds any more listed with none.
     pub fn update(&mut self, map: HolderMap) -> Vec<(u32, Vec<u32>)> {
+        self.in_step = false;
         let mut delta: Vec<(u32, Vec<u32>)> = map
             .iter()
             .filter(|(d, keys)| self.sent.get(d) != Some(keys))
@@ -56,6 +67,41 @@ impl SentHolders {
         );
         delta.sort_unstable_by_key(|&(d, _)| d);
         self.sent = map;
+        delta
+    }
+
+    /// The holders map of every member's plan becomes the last map sent, as
+    /// [`SentHolders::update`] would make it from the whole map, and the same delta is
+    /// returned. `changes` are the domains whose holders changed since the index's changes were
+    /// last taken, with their holders now (`RoundIndex::take_holder_changes`); if the last map
+    /// sent is not the one those changes apply to, `whole` makes the whole map instead.
+    pub fn update_from_index(
+        &mut self,
+        changes: Vec<(u32, Vec<u32>)>,
+        whole: impl FnOnce() -> HolderMap,
+    ) -> Vec<(u32, Vec<u32>)> {
+        if !self.in_step {
+            let delta = self.update(whole());
+            self.in_step = true;
+            return delta;
+        }
+        let mut delta = Vec::with_capacity(changes.len());
+        for (d, keys) in changes {
+            let unchanged = match self.sent.get(&d) {
+                Some(sent) => *sent == keys,
+                None => keys.is_empty(),
+            };
+            if unchanged {
+                continue;
+            }
+            if keys.is_empty() {
+                self.sent.remove(&d);
+            } else {
+                self.sent.insert(d, keys.clone());
+            }
+            delta.push((d, keys));
+        }
+        delta.sort_unstable_by_key(|&(d, _)| d);
         delta
     }
 
@@ -101,6 +147,33 @@ mod tests {
         );
         assert_eq!(s.sent(), &map(&[(0, &[1]), (1, &[2, 4]), (3, &[5])]));
         assert!(s.update(s.sent().clone()).is_empty());
+    }
+
+    #[test]
+    fn changes_from_the_index_give_the_whole_maps_delta() {
+        let mut whole = SentHolders::default();
+        let mut kept = SentHolders::default();
+        let first = map(&[(0, &[1]), (1, &[2]), (2, &[3])]);
+        assert_eq!(
+            kept.update_from_index(vec![(9, vec![9])], || first.clone()),
+            whole.update(first.clone()),
+            "out of step: the whole map is taken, the changes ignored"
+        );
+        let next = map(&[(0, &[1]), (1, &[2, 4]), (3, &[5])]);
+        // 0 changed and changed back; 1 gained a holder; 2 lost its last; 3 is new.
+        let changes = vec![(0, vec![1]), (1, vec![2, 4]), (2, vec![]), (3, vec![5])];
+        let want = whole.update(next.clone());
+        assert_eq!(
+            kept.update_from_index(changes, || unreachable!("in step")),
+            want
+        );
+        assert_eq!(kept.sent(), &next);
+        // A map sent from elsewhere (a barrier round's) puts it out of step again.
+        kept.update(map(&[(7, &[7])]));
+        assert_eq!(
+            kept.update_from_index(Vec::new(), || next.clone()),
+            vec![(0, vec![1]), (1, vec![2, 4]), (3, vec![5]), (7, vec![])]
+        );
     }
 
     #[test]

@@ -139,7 +139,10 @@ pub struct FrameParts<S> {
     pub to_issue: Vec<u32>,
     pub queues: DomainQueues<S>,
     /// This worker's peer address (never a destination).
-    pub me: String,
+    /// This worker's key in `roster`.
+    pub me: u32,
+    /// Every worker of the frame's peer address, by key.
+    pub roster: HashMap<u32, String>,
     pub started: Time,
     /// The round in progress (a worker joining mid-frame reports for it at once).
     pub round: u64,
@@ -147,9 +150,8 @@ pub struct FrameParts<S> {
     pub epochs: HashMap<u32, u32>,
     /// Domains mapped here now.
     pub resident: Vec<u32>,
-    /// Predictive schedule placing rays speculatively: this worker's key, the roster of the
-    /// frame's workers and how far ahead rays are copied.
-    pub speculation: Option<(u32, HashMap<u32, String>, Depth)>,
+    /// Predictive schedule placing rays speculatively: how far ahead rays are copied.
+    pub speculation: Option<Depth>,
     /// Load domains ahead of need (`JobSpec.prefetch`; only the dynamic and predictive
     /// schedules plan one step ahead).
     pub prefetch: bool,
@@ -168,6 +170,7 @@ impl<S: RaySpill> Frame<S> {
             to_issue,
             queues,
             me,
+            roster,
             started,
             round,
             epochs,
@@ -176,7 +179,8 @@ impl<S: RaySpill> Frame<S> {
             prefetch,
         } = parts;
         let tiles = grid.count() as usize;
-        let mut plan = Plan::new(mode, tiles, queues.domains(), me);
+        let roster = std::sync::Arc::new(roster);
+        let mut plan = Plan::new(mode, tiles, queues.domains(), me, roster.clone());
         plan.round = round;
         plan.set_resident(resident);
         for (tile, epoch) in epochs {
@@ -193,7 +197,7 @@ impl<S: RaySpill> Frame<S> {
             to_issue: to_issue.into(),
             plan,
             generations: GenerationCounts::default(),
-            speculation: speculation.map(|(me, roster, depth)| Speculation::new(me, roster, depth)),
+            speculation: speculation.map(|depth| Speculation::new(me, roster, depth)),
             queues,
             report: Report::Due,
             ahead: Vec::new(),
@@ -236,7 +240,7 @@ impl<S: RaySpill> Frame<S> {
         &mut self,
         round: u64,
         work_on: impl IntoIterator<Item = u32>,
-        holders: impl IntoIterator<Item = (u32, Vec<String>)>,
+        holders: impl IntoIterator<Item = (u32, Vec<u32>)>,
         delta: bool,
     ) {
         self.plan.set_round(round, work_on, holders, delta);
@@ -301,11 +305,7 @@ impl<S: RaySpill> Frame<S> {
 
     /// Adopts new holders of the domains (another worker's plan changed; `delta` as
     /// [`Plan::set_holders`]); the rays that leave for them are [`Frame::take_for_peers`]'s.
-    pub fn set_holders(
-        &mut self,
-        holders: impl IntoIterator<Item = (u32, Vec<String>)>,
-        delta: bool,
-    ) {
+    pub fn set_holders(&mut self, holders: impl IntoIterator<Item = (u32, Vec<u32>)>, delta: bool) {
         self.plan.set_holders(holders, delta);
     }
 
@@ -349,11 +349,14 @@ impl<S: RaySpill> Frame<S> {
         Some(std::mem::take(&mut spec.to_conclude))
     }
 
-    /// Predictive: adopts a new roster; returns the held verdicts that now have an address.
+    /// Adopts a new roster (a worker joined: holders may name it); predictive: returns the
+    /// held verdicts that now have an address.
     pub fn set_roster(
         &mut self,
         roster: HashMap<u32, String>,
     ) -> Vec<(String, Vec<VerdictRecord>)> {
+        let roster = std::sync::Arc::new(roster);
+        self.plan.set_roster(roster.clone());
         self.speculation
             .as_mut()
             .map(|s| s.set_roster(roster))

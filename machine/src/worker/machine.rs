@@ -293,14 +293,14 @@ impl<S: RaySpill> Worker<S> {
             to_issue: s.primary_tiles.clone(),
             prefetch: spec.prefetch,
             queues: scene.queues,
-            me: self.config.advertise.clone(),
+            me: s.worker_key,
+            roster: s.roster.clone(),
             started: self.now,
             round: s.round,
             epochs: s.epochs.clone(),
             resident: scene.resident,
             speculation: match mode {
-                Mode::Predictive => parse_setting(&spec.speculation)?
-                    .map(|depth| (s.worker_key, s.roster.clone(), depth)),
+                Mode::Predictive => parse_setting(&spec.speculation)?,
                 _ => None,
             },
         }))

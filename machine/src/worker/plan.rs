@@ -3,7 +3,8 @@
 //! follows where each ray goes (here, to a peer, or nowhere when its tile restarted), so the
 //! routing rule lives here once, without queues or sockets.
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::sync::Arc;
 
 use rayfarm_core::ray::RayRecord;
 
@@ -60,29 +61,43 @@ pub struct Plan {
     pub epochs: Vec<u32>,
     /// Domains of the scene.
     domains: u32,
-    /// This worker's peer address: never a destination.
-    me: String,
+    /// This worker's key: never a destination.
+    me: u32,
+    /// Every worker's peer address by key (the frame's roster, shared with the frame's
+    /// speculation): holders are kept as keys and turned into an address only when rays are
+    /// sent to one.
+    roster: Arc<HashMap<u32, String>>,
     work_on: BTreeSet<u32>,
     /// Domains mapped here now. Rays for them are traced here even when the plan gave the
     /// domain to no one or to another worker: any worker may trace any ray of a domain it
     /// has, and doing so costs neither a load nor a transfer.
     resident: BTreeSet<u32>,
-    /// Other workers holding each domain this round.
-    holders: BTreeMap<u32, Vec<String>>,
+    /// Other workers holding each domain this round, by key. Keys, not addresses: at 256
+    /// workers under the dynamic schedule the addresses, in every member's copy of the map and
+    /// in every round's messages, held gigabytes (README "Simulator").
+    holders: BTreeMap<u32, Vec<u32>>,
     /// Domains the coordinator expects to give this worker next, most likely first (what
     /// it may prefetch once its own plan is loaded).
     next: Vec<u32>,
 }
 
 impl Plan {
-    /// The plan before the first round: nothing traced, nothing held, every epoch zero.
-    pub fn new(mode: Mode, tiles: usize, domains: u32, me: String) -> Self {
+    /// The plan before the first round: nothing traced, nothing held, every epoch zero; `me`
+    /// is this worker's key in `roster`.
+    pub fn new(
+        mode: Mode,
+        tiles: usize,
+        domains: u32,
+        me: u32,
+        roster: Arc<HashMap<u32, String>>,
+    ) -> Self {
         Plan {
             mode,
             round: 0,
             epochs: vec![0; tiles],
             domains,
             me,
+            roster,
             work_on: BTreeSet::new(),
             resident: BTreeSet::new(),
             holders: BTreeMap::new(),
@@ -125,7 +140,7 @@ impl Plan {
         &mut self,
         round: u64,
         work_on: impl IntoIterator<Item = u32>,
-        holders: impl IntoIterator<Item = (u32, Vec<String>)>,
+        holders: impl IntoIterator<Item = (u32, Vec<u32>)>,
         delta: bool,
     ) {
         self.round = round;
@@ -133,16 +148,12 @@ impl Plan {
         self.set_holders(holders, delta);
     }
 
-    /// Adopts new holders of the domains, keeping this worker's own plan; this worker's own
-    /// address is left out. `delta`: only the domains listed changed (one listed with no
+    /// Adopts new holders of the domains (worker keys), keeping this worker's own plan; this
+    /// worker is left out. `delta`: only the domains listed changed (one listed with no
     /// holder left has none now), the others keep theirs; otherwise the list is the whole map.
     /// Deltas keep the coordinator's broadcast of a round to what changed, where the whole
     /// map to every member grew with workers x held domains (README "Simulator").
-    pub fn set_holders(
-        &mut self,
-        holders: impl IntoIterator<Item = (u32, Vec<String>)>,
-        delta: bool,
-    ) {
+    pub fn set_holders(&mut self, holders: impl IntoIterator<Item = (u32, Vec<u32>)>, delta: bool) {
         if !delta {
             self.holders.clear();
         }
@@ -161,11 +172,27 @@ impl Plan {
         self.resident = resident.into_iter().collect();
     }
 
-    /// Sends nothing more to `peers` (they are gone); their domains' rays wait here for the
-    /// next plan.
+    /// The frame's roster changed (a worker joined): keys now name these addresses.
+    pub fn set_roster(&mut self, roster: Arc<HashMap<u32, String>>) {
+        self.roster = roster;
+    }
+
+    /// The frame's roster: every worker's peer address by key.
+    pub fn roster(&self) -> &Arc<HashMap<u32, String>> {
+        &self.roster
+    }
+
+    /// Sends nothing more to `peers` (their addresses: they are gone); their domains' rays
+    /// wait here for the next plan.
     pub fn forget_peers(&mut self, peers: &[String]) {
+        let gone: BTreeSet<u32> = self
+            .roster
+            .iter()
+            .filter(|(_, address)| peers.contains(address))
+            .map(|(&k, _)| k)
+            .collect();
         for holders in self.holders.values_mut() {
-            holders.retain(|h| !peers.contains(h));
+            holders.retain(|h| !gone.contains(h));
         }
         self.holders.retain(|_, hs| !hs.is_empty());
     }
@@ -231,13 +258,16 @@ impl Plan {
         }
     }
 
-    /// [`Plan::destination`] without the copy of the address: `None` is here.
+    /// [`Plan::destination`] without the copy of the address: `None` is here (also for a
+    /// holder the roster does not name, which the coordinator never sends: it sends the
+    /// roster with a new worker before naming it a holder).
     fn peer_of(&self, ray: &RayRecord) -> Option<&str> {
         if self.keeps(ray) {
             return None;
         }
         let ws = self.holders.get(&ray.domain)?;
-        Some(ws[ray.pixel as usize % ws.len()].as_str())
+        let key = ws[ray.pixel as usize % ws.len()];
+        self.roster.get(&key).map(String::as_str)
     }
 
     /// Sorts rays by destination, dropping those of an older epoch than their tile's and
@@ -323,15 +353,35 @@ mod tests {
     use super::*;
     use crate::worker::tests::ray;
 
-    fn holders(list: &[(u32, &[&str])]) -> Vec<(u32, Vec<String>)> {
+    /// Workers by address: `me:1` is key 0, `a:1` 1, `b:1` 2, `c:1` 3, `d:1` 4.
+    const NAMES: [&str; 5] = ["me:1", "a:1", "b:1", "c:1", "d:1"];
+
+    fn key(address: &str) -> u32 {
+        NAMES
+            .iter()
+            .position(|n| *n == address)
+            .expect("a known worker") as u32
+    }
+
+    fn holders(list: &[(u32, &[&str])]) -> Vec<(u32, Vec<u32>)> {
         list.iter()
-            .map(|(d, ws)| (*d, ws.iter().map(|w| w.to_string()).collect()))
+            .map(|(d, ws)| (*d, ws.iter().map(|w| key(w)).collect()))
             .collect()
+    }
+
+    /// A plan of worker `me:1` (key 0) in a frame of the workers of [`NAMES`].
+    fn new_plan(mode: Mode, tiles: usize, domains: u32) -> Plan {
+        let roster = NAMES
+            .iter()
+            .enumerate()
+            .map(|(k, n)| (k as u32, n.to_string()))
+            .collect();
+        Plan::new(mode, tiles, domains, 0, Arc::new(roster))
     }
 
     #[test]
     fn a_batch_goes_to_the_holder_the_latest_plan_names() {
-        let mut plan = Plan::new(Mode::Dynamic, 4, 3, "me:1".into());
+        let mut plan = new_plan(Mode::Dynamic, 4, 3);
         plan.set_round(
             1,
             [0],
@@ -353,7 +403,7 @@ mod tests {
 
     #[test]
     fn rays_for_one_destination_keep_their_order_and_stale_ones_are_dropped() {
-        let mut plan = Plan::new(Mode::Dynamic, 2, 3, "me:1".into());
+        let mut plan = new_plan(Mode::Dynamic, 2, 3);
         plan.set_round(1, [0], holders(&[(1, &["a:1", "b:1"])]), false);
         let here: Vec<RayRecord> = (0..4).map(|p| ray(0, 0, 0, p)).collect();
         assert_eq!(plan.sort(here.clone()).local[&0], here);
@@ -370,7 +420,7 @@ mod tests {
 
     #[test]
     fn a_delta_changes_only_the_domains_it_lists() {
-        let mut plan = Plan::new(Mode::Dynamic, 1, 4, "me:1".into());
+        let mut plan = new_plan(Mode::Dynamic, 1, 4);
         plan.set_round(
             1,
             [],
@@ -397,7 +447,7 @@ mod tests {
 
     #[test]
     fn a_stale_epochs_rays_are_dropped() {
-        let mut plan = Plan::new(Mode::ImagePlane, 2, 2, "me:1".into());
+        let mut plan = new_plan(Mode::ImagePlane, 2, 2);
         plan.bump_epochs(&BTreeMap::from([(1, 3)]));
         plan.bump_epochs(&BTreeMap::from([(1, 2)]));
         assert_eq!(plan.epochs, [0, 3], "epochs never go back");
@@ -411,7 +461,7 @@ mod tests {
 
     #[test]
     fn holders_spread_by_pixel_and_lost_peers_are_forgotten() {
-        let mut plan = Plan::new(Mode::Domain, 1, 1, "me:1".into());
+        let mut plan = new_plan(Mode::Domain, 1, 1);
         plan.set_round(2, [], holders(&[(0, &["a:1", "b:1"])]), false);
         let to = |p| plan.destination(&ray(0, 0, 0, p));
         assert_eq!(to(0), Destination::Peer("a:1".into()));
@@ -428,14 +478,13 @@ mod tests {
 
     #[test]
     fn hybrid_keeps_camera_rays_only_while_demand_loads_are_on() {
-        let mut plan = Plan::new(
+        let mut plan = new_plan(
             Mode::Hybrid {
                 demand_loads: true,
                 rounds: false,
             },
             1,
             2,
-            "me:1".into(),
         );
         plan.set_round(1, [0], holders(&[(1, &["a:1"])]), false);
         let camera = ray(0, 0, 1, 0);
@@ -459,7 +508,7 @@ mod tests {
             demand_loads: false,
             rounds: true,
         };
-        let mut plan = Plan::new(mode, 1, 3, "me:1".into());
+        let mut plan = new_plan(mode, 1, 3);
         plan.set_round(1, [0], holders(&[(1, &["a:1"])]), false);
         plan.set_resident([2]);
         assert!(plan.traces(0) && plan.traces(2));

@@ -4,6 +4,7 @@
 //! tier to the worker named in the copy, looked up in the frame's roster.
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::sync::Arc;
 
 use rayfarm_core::ray::RayRecord;
 use rayfarm_core::render::speculation::{GroupError, Groups, Outcome};
@@ -15,8 +16,8 @@ use tracing::{debug, warn};
 pub struct Speculation {
     /// This worker's key: the resolver named in the copies of rays born here.
     pub me: u32,
-    /// Peer address of every worker of the frame, by key.
-    roster: HashMap<u32, String>,
+    /// Peer address of every worker of the frame, by key (shared with the frame's plan).
+    roster: Arc<HashMap<u32, String>>,
     groups: Groups,
     /// Rays whose verdicts are all in, for the next pass to conclude.
     pub to_conclude: Vec<(RayRecord, Outcome)>,
@@ -34,7 +35,7 @@ pub struct Speculation {
 impl Speculation {
     /// Groups for rays born at worker `me`, copied `depth` domains ahead, their verdicts
     /// sent to the workers of `roster`.
-    pub fn new(me: u32, roster: HashMap<u32, String>, depth: Depth) -> Self {
+    pub fn new(me: u32, roster: Arc<HashMap<u32, String>>, depth: Depth) -> Self {
         Speculation {
             me,
             roster,
@@ -50,7 +51,7 @@ impl Speculation {
     /// Adopts a new roster; returns the held verdicts that now have an address.
     pub fn set_roster(
         &mut self,
-        roster: HashMap<u32, String>,
+        roster: Arc<HashMap<u32, String>>,
     ) -> Vec<(String, Vec<VerdictRecord>)> {
         self.roster = roster;
         let known: Vec<u32> = self
@@ -163,7 +164,7 @@ impl Speculation {
             .map(|(&k, _)| k)
             .collect();
         for k in gone {
-            self.roster.remove(&k);
+            Arc::make_mut(&mut self.roster).remove(&k);
             self.gone.insert(k);
             if let Some(held) = self.unaddressed.remove(&k) {
                 warn!(

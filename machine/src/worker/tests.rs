@@ -31,7 +31,11 @@ fn start(job: &str, schedule: Schedule, tiles: &[u32]) -> proto::StartFrame {
         }),
         tile_size: 4,
         primary_tiles: tiles.to_vec(),
-        roster: HashMap::from([(0, "me:1".to_string())]),
+        roster: NAMES
+            .iter()
+            .enumerate()
+            .map(|(k, n)| (k as u32, n.to_string()))
+            .collect(),
         ..Default::default()
     }
 }
@@ -75,12 +79,16 @@ fn plan(round: u64, work_on: &[u32], holders: &[(u32, &str)]) -> Event<MemorySpi
     }))
 }
 
+/// The frame's workers by key (its roster): this one (`me:1`) is key 0.
+const NAMES: [&str; 6] = ["me:1", "a:1", "b:1", "c:1", "d:1", "gone:1"];
+
+/// Holders by address, as the coordinator names them: by key.
 fn holders_of(holders: &[(u32, &str)]) -> Vec<proto::DomainHolders> {
     holders
         .iter()
         .map(|&(domain, w)| proto::DomainHolders {
             domain,
-            workers: vec![w.to_string()],
+            workers: vec![NAMES.iter().position(|n| *n == w).expect("in the roster") as u32],
         })
         .collect()
 }
