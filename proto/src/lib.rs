@@ -7,5 +7,7 @@
 
 include!(concat!(env!("OUT_DIR"), "/rayfarm.v1.rs"));
 
-/// Version of the worker and peer protocols; a peer of another version is refused.
-pub const PROTOCOL_VERSION: u32 = 3;
+/// Version of the worker and peer protocols; a peer of another version is refused. 4: holders
+/// named by worker key (`DomainHolders.workers`), demand-driven tasks (`ShareTasks`,
+/// `TasksShared`, `StartFrame.hybrid_rounds`).
+pub const PROTOCOL_VERSION: u32 = 4;
