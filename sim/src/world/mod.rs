@@ -589,3 +589,6 @@ impl World<'_> {
         o
     }
 }
+
+#[cfg(test)]
+mod tests;
