@@ -133,6 +133,8 @@ struct World<'a> {
     coord: SimCoordinator,
     /// Index 0 is the coordinator's place; workers from 1.
     workers: Vec<Option<SimWorker>>,
+    /// Workers' nodes by peer address (every bundle sent looks its receiver up).
+    by_address: std::collections::HashMap<String, NodeId>,
     checks: Checks,
     outcome: Outcome,
     /// When an `Ev::Disk` is due.
@@ -205,6 +207,7 @@ pub fn simulate(
         storage: SharedStorage::new(config.storage),
         coord,
         workers: vec![None],
+        by_address: Default::default(),
         checks: Checks::default(),
         outcome: Outcome::default(),
         disk_at: None,
@@ -248,6 +251,7 @@ impl World<'_> {
             ..WorkerConfig::new(id, address, self.config.cache_bytes)
         };
         let w = SimWorker::new(node, config, self.scene.clone(), self.config.caps)?;
+        self.by_address.insert(w.address.clone(), node);
         self.workers.push(Some(w));
         self.register(node);
         self.heap
@@ -314,9 +318,7 @@ impl World<'_> {
     }
 
     fn node_of(&self, address: &str) -> Option<NodeId> {
-        self.workers
-            .iter()
-            .position(|w| w.as_ref().is_some_and(|w| w.address == address))
+        self.by_address.get(address).copied()
     }
 
     /// When computing `work` that can start at `ready` ends: at once on the worker's own
