@@ -9,7 +9,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use rayfarm_core::progressive::Samples;
-use rayfarm_core::render::cache::{DomainCache, PendingLoad};
+use rayfarm_core::render::cache::{DomainCache, PendingLoad, SharedMappings};
 use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::scene::Manifest;
 use rayfarm_core::wire::BatchLimits;
@@ -33,6 +33,11 @@ pub struct Scene {
     pub manifest: Arc<Manifest>,
     /// Bytes of every domain file, by domain id.
     pub domain_bytes: Arc<[u64]>,
+    /// One mapping of a domain for every worker's cache that holds it, so the process's
+    /// mappings follow domains, not workers x domains (1,024 workers of a hundred domains
+    /// each are over Linux's 65,530 mappings a process). `None`: each cache maps its own, as
+    /// a real worker does (the figures are the same either way; a test compares them).
+    pub mappings: Option<Arc<SharedMappings>>,
     /// The view of the frame opened last (its job, tile size and samples): every worker of a
     /// frame opens the same one.
     frame_view: Mutex<Option<(FrameKey, Arc<FrameView>, BatchLimits)>>,
@@ -48,6 +53,7 @@ impl Scene {
             dir,
             domain_bytes: manifest.domains.iter().map(|d| d.bytes).collect(),
             manifest: Arc::new(manifest),
+            mappings: Some(Arc::new(SharedMappings::new())),
             frame_view: Mutex::new(None),
         }
     }
@@ -144,8 +150,11 @@ impl SimWorker {
         caps: QueueCaps,
     ) -> Result<Self, String> {
         // Loads are priced by the storage model: the disk's page cache stays warm.
-        let cache = DomainCache::shared(&scene.dir, scene.manifest.clone(), config.cache_bytes)
+        let mut cache = DomainCache::shared(&scene.dir, scene.manifest.clone(), config.cache_bytes)
             .keep_page_cache();
+        if let Some(m) = &scene.mappings {
+            cache = cache.with_shared_mappings(m.clone());
+        }
         Ok(SimWorker {
             node,
             id: config.worker_id.clone(),

@@ -19,6 +19,10 @@ use tracing::{debug, info_span};
 
 use crate::scene::{DomainData, Manifest, SceneError};
 
+mod shared;
+
+pub use shared::SharedMappings;
+
 /// Loads, evictions and bytes, for the statistics.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct CacheCounters {
@@ -144,13 +148,28 @@ pub struct PendingLoad {
     manifest: Arc<Manifest>,
     verify: bool,
     storage: StorageLine,
+    mappings: Option<Arc<SharedMappings>>,
 }
 
 /// A prefetched domain read from storage, for [`DomainCache::finish_prefetch`].
 pub struct LoadedDomain {
     domain: u32,
-    data: DomainData,
+    data: Arc<DomainData>,
     nanos: u64,
+}
+
+/// Maps `domain` for a cache: its own mapping, or the one `mappings` shares.
+fn open(
+    manifest: &Manifest,
+    dir: &std::path::Path,
+    domain: u32,
+    verify: bool,
+    mappings: Option<&SharedMappings>,
+) -> Result<Arc<DomainData>, SceneError> {
+    match mappings {
+        Some(m) => m.open(manifest, dir, domain, verify),
+        None => manifest.open_domain(dir, domain, verify).map(Arc::new),
+    }
 }
 
 impl PendingLoad {
@@ -164,9 +183,13 @@ impl PendingLoad {
     pub fn read(self) -> Result<LoadedDomain, SceneError> {
         let _span = info_span!("prefetch_domain", domain = self.domain).entered();
         let started = Instant::now();
-        let data = self
-            .manifest
-            .open_domain(&self.dir, self.domain, self.verify)?;
+        let data = open(
+            &self.manifest,
+            &self.dir,
+            self.domain,
+            self.verify,
+            self.mappings.as_deref(),
+        )?;
         self.storage.deliver(data.bytes());
         Ok(LoadedDomain {
             domain: self.domain,
@@ -216,6 +239,8 @@ pub struct DomainCache {
     pinned: BTreeSet<u32>,
     /// Leave the operating system's page cache alone when a domain is evicted.
     keep_page_cache: bool,
+    /// Where other caches of this process share their mappings, if they do.
+    mappings: Option<Arc<SharedMappings>>,
 }
 
 impl DomainCache {
@@ -238,6 +263,7 @@ impl DomainCache {
             storage: StorageLine::default(),
             pinned: Default::default(),
             keep_page_cache: false,
+            mappings: None,
         }
     }
 
@@ -249,6 +275,14 @@ impl DomainCache {
     /// (19% of a 1,024-worker image-plane simulation's time).
     pub fn keep_page_cache(mut self) -> Self {
         self.keep_page_cache = true;
+        self
+    }
+
+    /// The cache mapping its domains through `mappings`, shared with other caches of this
+    /// process over the same scene: one mapping of a domain for all of them (the simulator's
+    /// workers). Its loads, evictions and counters are its own, as without it.
+    pub fn with_shared_mappings(mut self, mappings: Arc<SharedMappings>) -> Self {
+        self.mappings = Some(mappings);
         self
     }
 
@@ -283,9 +317,13 @@ impl DomainCache {
             info_span!("load_domain", domain, file = %self.manifest.domains[i].file).entered();
         debug!("loading domain");
         let started = Instant::now();
-        let data =
-            self.manifest
-                .open_domain(&self.dir, domain, !self.verified.contains(&domain))?;
+        let data = open(
+            &self.manifest,
+            &self.dir,
+            domain,
+            !self.verified.contains(&domain),
+            self.mappings.as_deref(),
+        )?;
         self.storage.deliver(data.bytes());
         self.verified.insert(domain);
         let bytes = data.bytes();
@@ -295,7 +333,7 @@ impl DomainCache {
     }
 
     /// Maps `data` as `domain`, counted as a load.
-    fn insert(&mut self, domain: u32, data: DomainData, prefetched: bool) -> Arc<DomainData> {
+    fn insert(&mut self, domain: u32, data: Arc<DomainData>, prefetched: bool) -> Arc<DomainData> {
         let bytes = data.bytes();
         self.resident_bytes += bytes;
         self.counters.loads += 1;
@@ -308,7 +346,6 @@ impl DomainCache {
             prefetched,
             "domain loaded"
         );
-        let data = Arc::new(data);
         let last_use = self.clock;
         self.resident.insert(
             domain,
@@ -345,6 +382,7 @@ impl DomainCache {
             manifest: self.manifest.clone(),
             verify: !self.verified.contains(&domain),
             storage: self.storage.clone(),
+            mappings: self.mappings.clone(),
         })
     }
 

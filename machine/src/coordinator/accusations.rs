@@ -62,6 +62,11 @@ impl Accusations {
         }
     }
 
+    /// Whether no report waits for judgement.
+    pub fn is_empty(&self) -> bool {
+        self.pending.is_empty()
+    }
+
     /// Forgets every report by or about `key` (it left the frame).
     pub fn forget(&mut self, key: u32) {
         self.pending

@@ -153,6 +153,8 @@ struct World<'a> {
     coord: SimCoordinator,
     /// Index 0 is the coordinator's place; workers from 1.
     workers: Vec<Option<SimWorker>>,
+    /// Workers' nodes by peer address (every bundle sent looks its receiver up).
+    by_address: std::collections::HashMap<String, NodeId>,
     checks: Checks,
     outcome: Outcome,
     /// When an `Ev::Disk` is due.
@@ -225,6 +227,7 @@ pub fn simulate(
         storage: SharedStorage::new(config.storage),
         coord,
         workers: vec![None],
+        by_address: Default::default(),
         checks: Checks::default(),
         outcome: Outcome::default(),
         disk_at: None,
@@ -268,6 +271,7 @@ impl World<'_> {
             ..WorkerConfig::new(id, address, self.config.cache_bytes)
         };
         let w = SimWorker::new(node, config, self.scene.clone(), self.config.caps)?;
+        self.by_address.insert(w.address.clone(), node);
         self.workers.push(Some(w));
         self.register(node);
         self.heap
@@ -334,9 +338,7 @@ impl World<'_> {
     }
 
     fn node_of(&self, address: &str) -> Option<NodeId> {
-        self.workers
-            .iter()
-            .position(|w| w.as_ref().is_some_and(|w| w.address == address))
+        self.by_address.get(address).copied()
     }
 
     /// Computes `work` that can start at `ready` (not before now), then sets off `done`: at
@@ -691,3 +693,6 @@ impl World<'_> {
         o
     }
 }
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,106 @@
+//! The simulator's workers sharing one mapping of a domain give the figures of workers that
+//! each map their own, to the digit, under every schedule.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use rayfarm_core::prepare::generate::{NbodyOptions, prepare_nbody};
+use rayfarm_core::scene::Manifest;
+use rayfarm_proto::Schedule;
+
+use super::{Outcome, SimConfig, simulate};
+use crate::faults::FaultPlan;
+use crate::node::{QueueCaps, Scene};
+
+/// A clean run of `schedule` on four workers whose caches hold about three domains of the
+/// scene in `dir`, so they load, evict and load again.
+fn run(dir: &std::path::Path, schedule: Schedule, shared: bool) -> (Outcome, Arc<Scene>) {
+    let manifest = Manifest::load(dir).unwrap();
+    let largest = manifest.domains.iter().map(|d| d.bytes).max().unwrap();
+    let mut scene = Scene::new(dir.to_path_buf(), manifest);
+    if !shared {
+        scene.mappings = None;
+    }
+    let scene = Arc::new(scene);
+    let config = SimConfig {
+        scene: dir.to_path_buf(),
+        workers: 4,
+        schedule,
+        warm_up: Vec::new(),
+        width: 48,
+        height: 32,
+        spp: 1,
+        depth: 3,
+        cache_bytes: largest * 3,
+        wave_rays: 1 << 20,
+        pass_rays: 512,
+        links: Default::default(),
+        cost: Default::default(),
+        storage: Default::default(),
+        measure: false,
+        caps: QueueCaps {
+            queue_bytes: 512 << 20,
+            spill_bytes: 8 << 30,
+        },
+        ack_deadline: Duration::from_millis(10),
+        disk_latency: Duration::from_millis(2),
+        heartbeat: Duration::from_millis(20),
+        worker_timeout: Duration::from_millis(200),
+        speculation: String::new(),
+        prefetch: schedule == Schedule::Dynamic,
+        max_events: super::default_max_events(4),
+    };
+    let hour = Duration::from_secs(3600);
+    let outcome = simulate(&config, scene.clone(), &FaultPlan::clean(), hour, None).unwrap();
+    (outcome, scene)
+}
+
+#[test]
+fn shared_mappings_change_no_figure_and_map_each_domain_once_for_all_workers() {
+    let root = tempfile::tempdir().unwrap();
+    let dir = root.path().join("nb");
+    let options = NbodyOptions {
+        name: "nb".into(),
+        triangles: 6000,
+        seed: 5,
+        domains: 16,
+        max_memory: None,
+        force: false,
+    };
+    prepare_nbody(&dir, &options).unwrap();
+    for schedule in [
+        Schedule::ImagePlane,
+        Schedule::Domain,
+        Schedule::Dynamic,
+        Schedule::Hybrid,
+        Schedule::Predictive,
+    ] {
+        let (own, _) = run(&dir, schedule, false);
+        let (shared, scene) = run(&dir, schedule, true);
+        assert!(
+            own.violations.is_empty(),
+            "{schedule:?}: {:?}",
+            own.violations
+        );
+        assert!(own.image_hash.is_some(), "{schedule:?} finished");
+        assert!(
+            own.loads > 16,
+            "{schedule:?}: the caches reload ({})",
+            own.loads
+        );
+        assert_eq!(own, shared, "{schedule:?}");
+        // Never more maps than loads; under image-plane every worker reads the same domains,
+        // and one a worker holds is not mapped again for another.
+        let maps = scene.mappings.as_ref().unwrap().maps();
+        let most = if schedule == Schedule::ImagePlane {
+            shared.loads - 1
+        } else {
+            shared.loads
+        };
+        assert!(
+            maps <= most,
+            "{schedule:?}: {maps} maps for {} loads",
+            shared.loads
+        );
+    }
+}
