@@ -47,6 +47,9 @@ pub struct Sorted {
     pub dropped: u64,
 }
 
+/// Former holders remembered per domain.
+const FORMER_HOLDERS: usize = 2;
+
 /// See the module documentation.
 #[derive(Clone, Debug)]
 pub struct Plan {
@@ -66,6 +69,9 @@ pub struct Plan {
     resident: BTreeSet<u32>,
     /// Other workers holding each domain this round.
     holders: BTreeMap<u32, Vec<String>>,
+    /// Other workers that held each domain in an earlier round, latest first (at most
+    /// [`FORMER_HOLDERS`]): they may still have it loaded, so a load may ask them for it.
+    former: BTreeMap<u32, Vec<String>>,
     /// Domains the coordinator expects to give this worker next, most likely first (what
     /// it may prefetch once its own plan is loaded).
     next: Vec<u32>,
@@ -83,6 +89,7 @@ impl Plan {
             work_on: BTreeSet::new(),
             resident: BTreeSet::new(),
             holders: BTreeMap::new(),
+            former: BTreeMap::new(),
             next: Vec::new(),
         }
     }
@@ -110,6 +117,30 @@ impl Plan {
     /// Domains some other worker holds this round.
     pub fn held_elsewhere(&self) -> impl Iterator<Item = u32> + '_ {
         self.holders.keys().copied()
+    }
+
+    /// Where a load of `domain` may take its bytes from: the other workers holding it this
+    /// round, then those that held it before, latest first (they may still have it loaded).
+    pub fn holders_of(&self, domain: u32) -> Vec<String> {
+        let now = self.holders.get(&domain).into_iter().flatten();
+        let before = self.former.get(&domain).into_iter().flatten();
+        let mut all: Vec<String> = Vec::new();
+        for w in now.chain(before) {
+            if !all.contains(w) {
+                all.push(w.clone());
+            }
+        }
+        all
+    }
+
+    /// Records that `gone` no longer hold `domain` (they may still have it loaded).
+    fn note_former(&mut self, domain: u32, gone: impl IntoIterator<Item = String>) {
+        let former = self.former.entry(domain).or_default();
+        for w in gone {
+            former.retain(|f| *f != w);
+            former.insert(0, w);
+        }
+        former.truncate(FORMER_HOLDERS);
     }
 
     /// Whether some other worker holds `domain` this round.
@@ -140,16 +171,27 @@ impl Plan {
         holders: impl IntoIterator<Item = (u32, Vec<String>)>,
         delta: bool,
     ) {
-        if !delta {
-            self.holders.clear();
-        }
+        let mut before = if delta {
+            BTreeMap::new()
+        } else {
+            std::mem::take(&mut self.holders)
+        };
         for (d, mut ws) in holders {
             ws.retain(|w| *w != self.me);
-            if ws.is_empty() {
-                self.holders.remove(&d);
-            } else {
+            let old = match before.remove(&d) {
+                Some(old) => Some(old),
+                None => self.holders.remove(&d),
+            };
+            if let Some(old) = old {
+                self.note_former(d, old.into_iter().filter(|w| !ws.contains(w)));
+            }
+            if !ws.is_empty() {
                 self.holders.insert(d, ws);
             }
+        }
+        // A whole map leaves out the domains nobody holds now.
+        for (d, old) in before {
+            self.note_former(d, old);
         }
     }
 
@@ -161,10 +203,11 @@ impl Plan {
     /// Sends nothing more to `peers` (they are gone); their domains' rays wait here for the
     /// next plan.
     pub fn forget_peers(&mut self, peers: &[String]) {
-        for holders in self.holders.values_mut() {
+        for holders in self.holders.values_mut().chain(self.former.values_mut()) {
             holders.retain(|h| !peers.contains(h));
         }
         self.holders.retain(|_, hs| !hs.is_empty());
+        self.former.retain(|_, hs| !hs.is_empty());
     }
 
     /// Raises tiles' epochs (never lowers them).
@@ -403,6 +446,27 @@ mod tests {
             "an old epoch and a domain past the scene's"
         );
         assert_eq!(sorted.local[&0], [ray(1, 3, 0, 0)]);
+    }
+
+    #[test]
+    fn a_load_may_ask_current_then_former_holders_but_never_lost_ones() {
+        let mut plan = Plan::new(Mode::Dynamic, 4, 4, "me:1".into());
+        plan.set_round(1, [], holders(&[(0, &["a:1"]), (1, &["b:1"])]), false);
+        assert_eq!(plan.holders_of(0), ["a:1"]);
+        // Domain 0 moves to c, domain 1 to this worker: their holders before are asked after.
+        plan.set_holders(holders(&[(0, &["c:1"]), (1, &["me:1"])]), true);
+        assert_eq!(plan.holders_of(0), ["c:1", "a:1"]);
+        assert_eq!(plan.holders_of(1), ["b:1"]);
+        // A whole map without domain 0: c held it last.
+        plan.set_holders(holders(&[(1, &["d:1"])]), false);
+        assert_eq!(plan.holders_of(0), ["c:1", "a:1"]);
+        assert_eq!(plan.holders_of(1), ["d:1", "b:1"]);
+        assert!(plan.holders_of(2).is_empty());
+        plan.forget_peers(&["a:1".into(), "d:1".into()]);
+        assert_eq!(plan.holders_of(0), ["c:1"]);
+        assert_eq!(plan.holders_of(1), ["b:1"]);
+        // Routing still follows current holders only.
+        assert!(!plan.is_held_elsewhere(0));
     }
 
     #[test]
