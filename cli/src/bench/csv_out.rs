@@ -47,6 +47,9 @@ struct Row<'a> {
     /// Of the loads, those whose bytes came from peers, and those bytes.
     peer_loads: Option<u64>,
     bytes_from_peers: Option<u64>,
+    /// Loads that asked peers, which refused at once or failed (then storage).
+    peer_refusals: Option<u64>,
+    peer_failures: Option<u64>,
     /// Of the loads, those made ahead of need, and of those the used and the wasted ones.
     prefetches: Option<u64>,
     prefetches_used: Option<u64>,
@@ -104,6 +107,8 @@ fn row<'a>(r: &'a RunOutcome, setup: &'a Setup) -> Row<'a> {
         bytes_loaded: s.map(|s| s.cache.bytes_loaded),
         peer_loads: s.map(|s| s.cache.peer_loads),
         bytes_from_peers: s.map(|s| s.cache.bytes_from_peers),
+        peer_refusals: s.map(|s| s.cache.peer_refusals),
+        peer_failures: s.map(|s| s.cache.peer_failures),
         prefetches: s.map(|s| s.cache.prefetches),
         prefetches_used: s.map(|s| s.cache.prefetches_used),
         prefetches_wasted: s.map(|s| s.cache.prefetches_wasted),
