@@ -63,22 +63,20 @@ fn peers_serve_domains_and_the_image_is_the_local_one() {
         .map(|w| w.arg("--http", "127.0.0.1:0"))
         .collect();
     let cluster = Cluster::start(root.path(), Some("nb"), &opts);
-    let mut from_peers_total = 0;
-    for schedule in ["dynamic"] {
-        let json = render(&cluster, schedule, schedule);
-        assert_eq!(hash_of(&json), expected, "{schedule}");
-        let (from_peers, loaded) = (
-            counter(&json, "bytes_from_peers"),
-            counter(&json, "bytes_loaded"),
-        );
-        assert!(
-            from_peers > 0 && from_peers < loaded,
-            "{schedule}: {from_peers} of {loaded} bytes from peers: {}",
-            stats_field(&json, "/cache")
-        );
-        assert_eq!(counter(&json, "peer_failures"), 0, "{schedule}");
-        from_peers_total += from_peers;
-    }
+    // Dynamic rounds hand domains from worker to worker, whose former holders still have them
+    // (the predictive schedule's plans rarely do here: its loads find no holder).
+    let json = render(&cluster, "dynamic", "dynamic");
+    assert_eq!(hash_of(&json), expected);
+    let (from_peers_total, loaded) = (
+        counter(&json, "bytes_from_peers"),
+        counter(&json, "bytes_loaded"),
+    );
+    assert!(
+        from_peers_total > 0 && from_peers_total < loaded,
+        "{from_peers_total} of {loaded} bytes from peers: {}",
+        stats_field(&json, "/cache")
+    );
+    assert_eq!(counter(&json, "peer_failures"), 0);
     // The same frame without the option loads everything from storage.
     let json = submit_wait(
         &cluster,
