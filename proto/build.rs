@@ -18,6 +18,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .build_server(false)
         .bytes(".rayfarm.v1.PeerBundle.batches")
         .bytes(".rayfarm.v1.FetchResultResponse.image")
+        .bytes(".rayfarm.v1.DomainChunk.data")
         .compile_fds(fds)?;
     Ok(())
 }

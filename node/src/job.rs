@@ -175,6 +175,7 @@ mod tests {
             progressive: None,
             speculation: String::new(),
             prefetch: false,
+            peer_domains: false,
         }
     }
 

@@ -248,6 +248,12 @@ pub struct WorkerMetrics {
     pub domain_load_seconds: SecondsCounter,
     /// Domains evicted from the cache.
     pub domain_evictions: Counter,
+    /// Of the bytes of domains loaded, those that came from peers (the rest from storage).
+    pub domain_load_bytes_from_peers: Counter,
+    /// Domain loads that asked a peer, which failed (then storage).
+    pub domain_peer_failures: Counter,
+    /// Bytes of domains this worker served to its peers.
+    pub domain_bytes_served: Counter,
     /// Radiance-ray segments traced.
     pub radiance_segments: Counter,
     /// Shadow-ray segments traced.
@@ -299,6 +305,27 @@ impl WorkerMetrics {
             "domain_evictions",
             "Domains evicted from the cache",
             domain_evictions.clone(),
+        );
+        let domain_load_bytes_from_peers = Counter::default();
+        r.register_with_unit(
+            "domain_load_from_peers",
+            "Bytes of domains loaded into the cache from peers rather than storage",
+            Unit::Bytes,
+            domain_load_bytes_from_peers.clone(),
+        );
+        let domain_peer_failures = Counter::default();
+        r.register(
+            "domain_peer_failures",
+            "Domain loads from a peer that failed (unreachable, stalled, bad bytes) and went \
+             to storage",
+            domain_peer_failures.clone(),
+        );
+        let domain_bytes_served = Counter::default();
+        r.register_with_unit(
+            "domain_served",
+            "Bytes of loaded domains served to peers",
+            Unit::Bytes,
+            domain_bytes_served.clone(),
         );
         let traced = Family::<Label, Counter>::default();
         r.register(
@@ -373,6 +400,9 @@ impl WorkerMetrics {
             domain_load_bytes,
             domain_load_seconds,
             domain_evictions,
+            domain_load_bytes_from_peers,
+            domain_peer_failures,
+            domain_bytes_served,
             radiance_segments: child(&traced, "kind", "radiance"),
             shadow_segments: child(&traced, "kind", "shadow"),
             rays_created: ["primary", "shadow", "bounce", "reflection"]

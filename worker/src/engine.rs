@@ -25,6 +25,7 @@ use rayfarm_node::{job, metrics};
 use tokio::sync::mpsc;
 use tracing::info;
 
+use crate::domains::PeerDomains;
 use crate::pass;
 use crate::peers::PeerLinks;
 use crate::queues::FileSpill;
@@ -118,6 +119,9 @@ pub struct Engine {
     cache: Option<(SceneKey, Arc<Mutex<DomainCache>>)>,
     /// The cache's counters when last added to the metrics.
     cache_counted: CacheCounters,
+    /// Domains from and to peers: what loads use when a frame asks for it, the holders
+    /// they may ask, and what this worker serves.
+    domains: PeerDomains,
 }
 
 impl Engine {
@@ -125,6 +129,7 @@ impl Engine {
         config: EngineConfig,
         to_coordinator: mpsc::UnboundedSender<proto::WorkerMessage>,
         peers: PeerLinks,
+        domains: PeerDomains,
     ) -> anyhow::Result<Self> {
         let trace_clocks = ThreadClocks::new();
         let register = trace_clocks.clone();
@@ -157,6 +162,7 @@ impl Engine {
             frame: None,
             cache: None,
             cache_counted: CacheCounters::default(),
+            domains,
         })
     }
 
@@ -189,6 +195,8 @@ impl Engine {
                 // What the frame freed goes back to the system, however it went: ended,
                 // failed, declined, or dropped with the coordinator's stream.
                 tokio::task::spawn_blocking(rayfarm_node::heap::release_free_memory);
+                // Peers asking for its domains from now on are refused.
+                self.domains.serving.set(None);
             }
             let (queued, spilled) = self.machine.frame().map_or((0, 0), |f| f.queue_bytes());
             let m = metrics::worker();
@@ -328,7 +336,19 @@ impl Engine {
         }
     }
 
+    /// Tells the fetcher who holds `domain` now, before a load of it may ask them.
+    fn offer_holders(&self, domain: u32) {
+        if let Some(frame) = self.machine.frame() {
+            self.domains
+                .hints
+                .set_holders(domain, &frame.plan().holders_of(domain));
+        }
+    }
+
     fn start_pass(&mut self, job_id: String, work: machine::PassWork) {
+        if let Some((domain, _)) = &work.trace {
+            self.offer_holders(*domain);
+        }
         let events = self.done.clone();
         let (Some(frame), Some((scene, cache))) = (
             self.frame.as_ref().filter(|f| f.job_id == job_id),
@@ -381,6 +401,7 @@ impl Engine {
     /// under its lock whether it fits without evicting `keep`, the read (mapping, checksum,
     /// emulated storage) runs off the lock, so passes go on using the cache meanwhile.
     fn prefetch(&mut self, job_id: String, domain: u32, keep: Vec<u32>) {
+        self.offer_holders(domain);
         let events = self.done.clone();
         let Some((_, cache)) = &self.cache else {
             let result = Err("no scene open for the prefetch".to_string());
@@ -420,6 +441,8 @@ impl Engine {
         m.domain_load_bytes.inc_by(d.bytes_loaded);
         m.domain_evictions.inc_by(d.evictions);
         m.domain_load_seconds.inc_by(d.load_nanos as f64 / 1e9);
+        m.domain_load_bytes_from_peers.inc_by(d.bytes_from_peers);
+        m.domain_peer_failures.inc_by(d.peer_failures);
         self.cache_counted = now;
     }
 
@@ -504,6 +527,19 @@ impl Engine {
                 }
             });
         }
+        // Loading from peers is the job's choice; this worker serves its loaded domains to
+        // the frame's other workers only when the job asks for it.
+        let from_peers = spec.peer_domains.then(|| self.domains.loads.clone());
+        self.domains.hints.set_frame(&s.job_id);
+        let shelf = self.with_cache(|cache| {
+            cache.set_peers(from_peers);
+            cache.shelf()
+        });
+        self.domains.serving.set(
+            shelf
+                .filter(|_| spec.peer_domains)
+                .map(|sh| (s.job_id.clone(), sh)),
+        );
         let spill = FileSpill::new(&self.config.spill_dir)
             .with_context(|| format!("spill directory {}", self.config.spill_dir.display()))?;
         let queues = DomainQueues::new(

@@ -3,6 +3,7 @@
 //! streams rays that leave its domains to the workers holding the next ones.
 
 mod control;
+mod domains;
 mod engine;
 mod pass;
 mod peers;
@@ -10,12 +11,14 @@ mod queues;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::Context;
 use clap::Parser;
 use rayfarm_core::bundler::BundlerConfig;
 use rayfarm_core::render::cache::StorageModel;
+use rayfarm_core::render::cache::peers::PeerLoads;
 use rayfarm_core::units::{parse_bytes, parse_rate};
 use rayfarm_node::proto::peer_service_server::PeerServiceServer;
 use rayfarm_node::security::{
@@ -25,6 +28,7 @@ use tokio::sync::mpsc;
 use tonic::service::interceptor::InterceptedService;
 use tracing::{info, warn};
 
+use crate::domains::{Fetcher, PeerDomains, ServeFault, Serving};
 use crate::engine::{Engine, EngineConfig};
 use crate::peers::{LinkLimits, MAX_MESSAGE_BYTES, PeerLinks, PeerServer};
 use rayfarm_node::fault::Faults;
@@ -106,6 +110,11 @@ struct Args {
     /// EMULATION for benchmarks: a fixed delay added to every domain load (e.g. 5ms).
     #[arg(long, env = "RAYFARM_STORAGE_LATENCY", value_parser = parse_duration)]
     storage_latency: Option<Duration>,
+    /// Bandwidth of the links to peers (e.g. 1GiB/s), for jobs that load domains from peers
+    /// (`submit --peer-domains`): a load asks a peer holding the domain when that is cheaper
+    /// than storage. Default: measured from completed transfers.
+    #[arg(long, env = "RAYFARM_PEER_LINK_BANDWIDTH", value_parser = parse_rate)]
+    peer_link_bandwidth: Option<u64>,
     #[command(flatten)]
     serve_tls: ServeTlsArgs,
     #[command(flatten)]
@@ -238,6 +247,18 @@ async fn run(args: Args) -> anyhow::Result<()> {
     }
     let (events_tx, events_rx) = mpsc::unbounded_channel();
     let (to_coordinator, outbound) = mpsc::unbounded_channel();
+    let (fetcher, hints) = Fetcher::new(
+        worker_id.clone(),
+        security.clone(),
+        tokio::runtime::Handle::current(),
+        args.peer_link_bandwidth,
+    );
+    let serving = Serving::new(ServeFault::from_env());
+    let domains = PeerDomains {
+        loads: Arc::new(PeerLoads::new(Box::new(fetcher))),
+        hints,
+        serving: serving.clone(),
+    };
     let engine = Engine::new(
         EngineConfig {
             worker_id: worker_id.clone(),
@@ -268,8 +289,9 @@ async fn run(args: Args) -> anyhow::Result<()> {
             },
             events_tx.clone(),
         ),
+        domains,
     )?;
-    let peer_service = PeerServiceServer::new(PeerServer::new(events_tx.clone()))
+    let peer_service = PeerServiceServer::new(PeerServer::new(events_tx.clone(), serving))
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
     let peer_service = InterceptedService::new(peer_service, RequireSecret(secret));

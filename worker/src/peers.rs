@@ -18,6 +18,7 @@ use tokio_stream::wrappers::{ReceiverStream, UnboundedReceiverStream};
 use tonic::{Request, Response, Status, Streaming};
 use tracing::{debug, error, warn};
 
+use crate::domains::{ChunkStream, Serving};
 use crate::engine::Event;
 use rayfarm_machine::worker as machine;
 use rayfarm_node::fault::Faults;
@@ -252,14 +253,15 @@ async fn run_link(
 }
 
 /// The `PeerService` of this worker: decodes each bundle once (`decode_bundle`) and hands it
-/// to the engine.
+/// to the engine; serves loaded domains (`crate::domains`).
 pub struct PeerServer {
     events: mpsc::UnboundedSender<Event>,
+    domains: Serving,
 }
 
 impl PeerServer {
-    pub fn new(events: mpsc::UnboundedSender<Event>) -> Self {
-        PeerServer { events }
+    pub fn new(events: mpsc::UnboundedSender<Event>, domains: Serving) -> Self {
+        PeerServer { events, domains }
     }
 }
 
@@ -268,6 +270,14 @@ type AckStream = Pin<Box<dyn Stream<Item = Result<proto::PeerAck, Status>> + Sen
 #[tonic::async_trait]
 impl PeerService for PeerServer {
     type ExchangeBundlesStream = AckStream;
+    type FetchDomainStream = ChunkStream;
+
+    async fn fetch_domain(
+        &self,
+        request: Request<proto::DomainRequest>,
+    ) -> Result<Response<ChunkStream>, Status> {
+        self.domains.serve(request).map(Response::new)
+    }
 
     async fn exchange_bundles(
         &self,

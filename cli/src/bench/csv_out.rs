@@ -44,6 +44,12 @@ struct Row<'a> {
     client_seconds: f64,
     domain_loads: Option<u64>,
     bytes_loaded: Option<u64>,
+    /// Of the loads, those whose bytes came from peers, and those bytes.
+    peer_loads: Option<u64>,
+    bytes_from_peers: Option<u64>,
+    /// Loads that asked peers, which refused at once or failed (then storage).
+    peer_refusals: Option<u64>,
+    peer_failures: Option<u64>,
     /// Of the loads, those made ahead of need, and of those the used and the wasted ones.
     prefetches: Option<u64>,
     prefetches_used: Option<u64>,
@@ -99,6 +105,10 @@ fn row<'a>(r: &'a RunOutcome, setup: &'a Setup) -> Row<'a> {
         client_seconds: r.client_seconds,
         domain_loads: s.map(|s| s.cache.loads),
         bytes_loaded: s.map(|s| s.cache.bytes_loaded),
+        peer_loads: s.map(|s| s.cache.peer_loads),
+        bytes_from_peers: s.map(|s| s.cache.bytes_from_peers),
+        peer_refusals: s.map(|s| s.cache.peer_refusals),
+        peer_failures: s.map(|s| s.cache.peer_failures),
         prefetches: s.map(|s| s.cache.prefetches),
         prefetches_used: s.map(|s| s.cache.prefetches_used),
         prefetches_wasted: s.map(|s| s.cache.prefetches_wasted),

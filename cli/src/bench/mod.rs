@@ -257,6 +257,9 @@ pub struct Measured {
     pub wall: Spread,
     pub domain_loads: f64,
     pub bytes_loaded: f64,
+    /// Of the loads, those whose bytes came from peers, and those bytes.
+    pub peer_loads: f64,
+    pub bytes_from_peers: f64,
     /// Of the loads, prefetches; of those, used by a pass and wasted (left unused).
     pub prefetches: f64,
     pub prefetches_used: f64,
@@ -410,6 +413,8 @@ fn measure(ok: &[&ClusterStats]) -> Option<Measured> {
         wall,
         domain_loads: med(&|s| s.cache.loads as f64)?,
         bytes_loaded: med(&|s| s.cache.bytes_loaded as f64)?,
+        peer_loads: med(&|s| s.cache.peer_loads as f64)?,
+        bytes_from_peers: med(&|s| s.cache.bytes_from_peers as f64)?,
         prefetches: med(&|s| s.cache.prefetches as f64)?,
         prefetches_used: med(&|s| s.cache.prefetches_used as f64)?,
         prefetches_wasted: med(&|s| s.cache.prefetches_wasted as f64)?,

@@ -26,6 +26,7 @@ pub fn bench_table(summaries: &[ScheduleSummary], bound: Option<&Bound>) -> Tabl
             "domain loads".into(),
             format!("loads vs {REFERENCE_SCHEDULE}"),
             "bytes loaded".into(),
+            "of them from peers (loads)".into(),
             "of the loads prefetched (used / wasted)".into(),
             "rays traced (segments)".into(),
             "rays migrated".into(),
@@ -44,7 +45,7 @@ pub fn bench_table(summaries: &[ScheduleSummary], bound: Option<&Bound>) -> Tabl
                 ok,
                 format!("failed: {}", s.errors.join("; ")),
             ];
-            row.extend(std::iter::repeat_n("-".to_string(), 13));
+            row.extend(std::iter::repeat_n("-".to_string(), 14));
             t.add_row(row);
             continue;
         };
@@ -59,6 +60,7 @@ pub fn bench_table(summaries: &[ScheduleSummary], bound: Option<&Bound>) -> Tabl
             count(m.domain_loads),
             times(reference.and_then(|r| ratio(m.domain_loads, r))),
             human(m.bytes_loaded.round() as u64),
+            from_peers(m),
             prefetched(m),
             count(m.segments),
             count(m.rays_migrated),
@@ -110,6 +112,18 @@ pub fn split_table(summaries: &[ScheduleSummary]) -> Table {
         ]);
     }
     t
+}
+
+/// A row's bytes loaded from peers: "-" when none, else "BYTES (N)".
+fn from_peers(m: &super::Measured) -> String {
+    if m.peer_loads == 0.0 {
+        return "-".into();
+    }
+    format!(
+        "{} ({})",
+        human(m.bytes_from_peers.round() as u64),
+        count(m.peer_loads)
+    )
 }
 
 /// A row's prefetches: "-" when it made none, else "N (used / wasted)".

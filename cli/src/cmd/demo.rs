@@ -140,6 +140,7 @@ fn run_cluster(a: &DemoArgs, scene: &Path, cache_bytes: u64) -> anyhow::Result<(
         progressive: None,
         speculation: String::new(),
         prefetch: false,
+        peer_domains: false,
     };
     let wait = WaitOptions {
         output: Some(a.dir.join("demo.png")),

@@ -61,6 +61,14 @@ pub struct SubmitArgs {
     /// when its cache has room beside the domains its plan needs. The image is the same.
     #[arg(long, env = "RAYFARM_PREFETCH", value_parser = BoolishValueParser::new())]
     pub prefetch: bool,
+    /// A worker about to load a domain takes its bytes from a peer that has it loaded when
+    /// that is cheaper than shared storage (by the storage and peer-link bandwidths measured
+    /// or configured: `rayfarm-worker --peer-link-bandwidth`), checked like a file from
+    /// storage, falling back to storage if the peer fails. Off by default: it pays where
+    /// storage is slower than the workers' links and the schedule gives one domain to
+    /// several workers (dynamic, predictive). The image is the same.
+    #[arg(long, env = "RAYFARM_PEER_DOMAINS", value_parser = BoolishValueParser::new())]
+    pub peer_domains: bool,
     #[command(flatten)]
     pub camera: CameraArgs,
     /// Follow the job to its end, then save the image and print the statistics.
@@ -101,6 +109,7 @@ impl SubmitArgs {
                 .map(|subframe_spp| proto::Progressive { subframe_spp }),
             speculation: self.speculation.clone().unwrap_or_default(),
             prefetch: self.prefetch,
+            peer_domains: self.peer_domains,
         }
     }
 }
@@ -246,6 +255,7 @@ mod tests {
                 progressive: None,
                 speculation: String::new(),
                 prefetch: false,
+                peer_domains: false,
             }
         );
         let doubling = parse(&["--progressive", "doubling"]).job_spec();

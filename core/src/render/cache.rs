@@ -9,6 +9,14 @@
 //! ([`PendingLoad::read`]) runs without the lock while passes go on tracing, and
 //! [`DomainCache::finish_prefetch`] adds it. Prefetches count as loads, and separately as used
 //! (a pass asked for the domain before it left) or wasted (it left unused).
+//!
+//! A load may take the domain's bytes from a peer that has it loaded instead of storage
+//! ([`peers`]: when that is cheaper, checked like a file from storage, falling back to
+//! storage); such loads count as loads like any other, and apart (`bytes_from_peers`). The
+//! domains resident here are also on a [`Shelf`] that this worker's peer service reads
+//! without the cache's lock (a pass may hold it through a slow load).
+
+pub mod peers;
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::PathBuf;
@@ -18,6 +26,7 @@ use std::time::{Duration, Instant};
 use tracing::{debug, info_span};
 
 use crate::scene::{DomainData, Manifest, SceneError};
+use peers::{Origin, PeerError, PeerLoads};
 
 mod shared;
 
@@ -50,6 +59,18 @@ pub struct CacheCounters {
     /// Time prefetches spent loading, nanoseconds (beside tracing, not in a pass's time).
     #[serde(default)]
     pub prefetch_nanos: u64,
+    /// Of `loads`, those whose bytes came from a peer.
+    #[serde(default)]
+    pub peer_loads: u64,
+    /// Of `bytes_loaded`, the bytes that came from peers (the rest came from storage).
+    #[serde(default)]
+    pub bytes_from_peers: u64,
+    /// Loads that asked a peer, which failed (unreachable, stalled, bad bytes): then storage.
+    #[serde(default)]
+    pub peer_failures: u64,
+    /// Loads that asked a peer, which refused at once (not loaded there, busy): then storage.
+    #[serde(default)]
+    pub peer_refusals: u64,
 }
 
 impl CacheCounters {
@@ -64,6 +85,15 @@ impl CacheCounters {
         self.prefetches_used += other.prefetches_used;
         self.prefetches_wasted += other.prefetches_wasted;
         self.prefetch_nanos += other.prefetch_nanos;
+        self.peer_loads += other.peer_loads;
+        self.bytes_from_peers += other.bytes_from_peers;
+        self.peer_failures += other.peer_failures;
+        self.peer_refusals += other.peer_refusals;
+    }
+
+    /// Bytes loaded from storage (the rest came from peers).
+    pub fn bytes_from_storage(&self) -> u64 {
+        self.bytes_loaded.saturating_sub(self.bytes_from_peers)
     }
 
     /// What changed from `start` to these (a frame's share of a process's counters); the
@@ -79,6 +109,10 @@ impl CacheCounters {
             prefetches_used: self.prefetches_used - start.prefetches_used,
             prefetches_wasted: self.prefetches_wasted - start.prefetches_wasted,
             prefetch_nanos: self.prefetch_nanos - start.prefetch_nanos,
+            peer_loads: self.peer_loads - start.peer_loads,
+            bytes_from_peers: self.bytes_from_peers - start.bytes_from_peers,
+            peer_failures: self.peer_failures - start.peer_failures,
+            peer_refusals: self.peer_refusals - start.peer_refusals,
         }
     }
 }
@@ -123,6 +157,12 @@ struct StorageLine {
 }
 
 impl StorageLine {
+    /// The emulated transfer time of `bytes` when storage is emulated (the estimate of a
+    /// load's cost until loads have been measured).
+    fn estimate(&self, bytes: u64) -> Option<Duration> {
+        self.model.is_active().then(|| self.model.delay(bytes))
+    }
+
     /// Waits until `bytes` are delivered after the loads reserved before them.
     fn deliver(&self, bytes: u64) {
         if !self.model.is_active() {
@@ -144,18 +184,82 @@ impl StorageLine {
 /// cache.
 pub struct PendingLoad {
     domain: u32,
-    dir: PathBuf,
-    manifest: Arc<Manifest>,
+    source: Source,
     verify: bool,
-    storage: StorageLine,
-    mappings: Option<Arc<SharedMappings>>,
 }
 
-/// A prefetched domain read from storage, for [`DomainCache::finish_prefetch`].
+/// A prefetched domain read from storage or a peer, for [`DomainCache::finish_prefetch`].
 pub struct LoadedDomain {
     domain: u32,
     data: Arc<DomainData>,
     nanos: u64,
+    origin: Origin,
+}
+
+/// Where a cache reads domains from: the scene's directory on storage and, when loading
+/// from peers is on, its peers. Cloned into prefetches, which read off the cache's lock.
+#[derive(Clone)]
+struct Source {
+    dir: PathBuf,
+    manifest: Arc<Manifest>,
+    storage: StorageLine,
+    peers: Option<Arc<PeerLoads>>,
+    /// Where other caches of this process share their mappings, if they do.
+    mappings: Option<Arc<SharedMappings>>,
+}
+
+impl Source {
+    /// Reads `domain`: from a peer when [`peers`] decides so and the peer delivers (its
+    /// checksum always verified), else from storage (verified if `verify`).
+    fn read(&self, domain: u32, verify: bool) -> Result<(Arc<DomainData>, Origin), SceneError> {
+        let mut origin = Origin::default();
+        if let Some(peers) = &self.peers {
+            let bytes = self
+                .manifest
+                .domains
+                .get(domain as usize)
+                .map_or(0, |d| d.bytes);
+            match peers.fetch(&self.manifest, domain, self.storage.estimate(bytes)) {
+                Ok(Some(data)) => {
+                    origin.from_peer = true;
+                    return Ok((Arc::new(data), origin));
+                }
+                Ok(None) => {}
+                Err(PeerError::Refused(_)) => origin.peer_refused = true,
+                Err(PeerError::Failed(_)) => origin.peer_failed = true,
+            }
+        }
+        let started = Instant::now();
+        let data = open(
+            &self.manifest,
+            &self.dir,
+            domain,
+            verify,
+            self.mappings.as_deref(),
+        )?;
+        self.storage.deliver(data.bytes());
+        if let Some(peers) = &self.peers {
+            peers.note_storage(data.bytes(), started.elapsed());
+        }
+        Ok((data, origin))
+    }
+}
+
+/// The domains resident in a cache, readable without the cache's lock: what this worker's
+/// peer service serves. A transfer holds its domain until it ends, even if the cache evicts
+/// it meanwhile (the server bounds how many run at once).
+#[derive(Clone, Default)]
+pub struct Shelf(Arc<std::sync::Mutex<BTreeMap<u32, Arc<DomainData>>>>);
+
+impl Shelf {
+    /// The domain if it is resident now.
+    pub fn get(&self, domain: u32) -> Option<Arc<DomainData>> {
+        self.lock().get(&domain).cloned()
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, BTreeMap<u32, Arc<DomainData>>> {
+        self.0.lock().unwrap_or_else(|p| p.into_inner())
+    }
 }
 
 /// Maps `domain` for a cache: its own mapping, or the one `mappings` shares.
@@ -183,18 +287,12 @@ impl PendingLoad {
     pub fn read(self) -> Result<LoadedDomain, SceneError> {
         let _span = info_span!("prefetch_domain", domain = self.domain).entered();
         let started = Instant::now();
-        let data = open(
-            &self.manifest,
-            &self.dir,
-            self.domain,
-            self.verify,
-            self.mappings.as_deref(),
-        )?;
-        self.storage.deliver(data.bytes());
+        let (data, origin) = self.source.read(self.domain, self.verify)?;
         Ok(LoadedDomain {
             domain: self.domain,
             data,
             nanos: started.elapsed().as_nanos() as u64,
+            origin,
         })
     }
 }
@@ -227,6 +325,10 @@ struct Resident {
 pub struct DomainCache {
     dir: PathBuf,
     manifest: Arc<Manifest>,
+    /// Loading from peers, when on.
+    peers: Option<Arc<PeerLoads>>,
+    /// The resident domains again, for the peer service.
+    shelf: Shelf,
     budget: u64,
     resident: BTreeMap<u32, Resident>,
     /// Domains whose checksum was verified (on their first load).
@@ -254,6 +356,8 @@ impl DomainCache {
         DomainCache {
             dir: dir.into(),
             manifest,
+            peers: None,
+            shelf: Shelf::default(),
             budget,
             resident: BTreeMap::new(),
             verified: BTreeSet::new(),
@@ -301,8 +405,43 @@ impl DomainCache {
         self
     }
 
+    /// Loads take domains from peers through `peers` when that is cheaper (`None`: storage
+    /// only). Set per frame: it is a job's option.
+    pub fn set_peers(&mut self, peers: Option<Arc<PeerLoads>>) {
+        self.peers = peers;
+    }
+
+    /// The resident domains, for the peer service to read without this cache's lock.
+    pub fn shelf(&self) -> Shelf {
+        self.shelf.clone()
+    }
+
+    fn source(&self) -> Source {
+        Source {
+            dir: self.dir.clone(),
+            manifest: self.manifest.clone(),
+            storage: self.storage.clone(),
+            peers: self.peers.clone(),
+            mappings: self.mappings.clone(),
+        }
+    }
+
+    /// Adds one load's origin to the counters.
+    fn count_origin(&mut self, origin: Origin, bytes: u64) {
+        if origin.from_peer {
+            self.counters.peer_loads += 1;
+            self.counters.bytes_from_peers += bytes;
+        }
+        if origin.peer_failed {
+            self.counters.peer_failures += 1;
+        }
+        if origin.peer_refused {
+            self.counters.peer_refusals += 1;
+        }
+    }
+
     /// The domain, mapping it (and evicting others) if needed. Its checksum is verified the
-    /// first time it is loaded.
+    /// first time it is loaded (and always when its bytes come from a peer).
     pub fn get(&mut self, domain: u32) -> Result<Arc<DomainData>, SceneError> {
         let i = domain as usize;
         self.clock += 1;
@@ -317,16 +456,15 @@ impl DomainCache {
             info_span!("load_domain", domain, file = %self.manifest.domains[i].file).entered();
         debug!("loading domain");
         let started = Instant::now();
-        let data = open(
-            &self.manifest,
-            &self.dir,
-            domain,
-            !self.verified.contains(&domain),
-            self.mappings.as_deref(),
-        )?;
-        self.storage.deliver(data.bytes());
-        self.verified.insert(domain);
+        let (data, origin) = self
+            .source()
+            .read(domain, !self.verified.contains(&domain))?;
+        // A peer's bytes were verified, the file on storage was not.
+        if !origin.from_peer {
+            self.verified.insert(domain);
+        }
         let bytes = data.bytes();
+        self.count_origin(origin, bytes);
         self.evict_for(bytes, |j| j == domain);
         self.counters.load_nanos += started.elapsed().as_nanos() as u64;
         Ok(self.insert(domain, data, false))
@@ -346,6 +484,7 @@ impl DomainCache {
             prefetched,
             "domain loaded"
         );
+        self.shelf.lock().insert(domain, data.clone());
         let last_use = self.clock;
         self.resident.insert(
             domain,
@@ -378,11 +517,8 @@ impl DomainCache {
         }
         Some(PendingLoad {
             domain,
-            dir: self.dir.clone(),
-            manifest: self.manifest.clone(),
+            source: self.source(),
             verify: !self.verified.contains(&domain),
-            storage: self.storage.clone(),
-            mappings: self.mappings.clone(),
         })
     }
 
@@ -394,10 +530,14 @@ impl DomainCache {
             domain,
             data,
             nanos,
+            origin,
         } = loaded;
+        self.count_origin(origin, data.bytes());
         self.counters.prefetches += 1;
         self.counters.prefetch_nanos += nanos;
-        self.verified.insert(domain);
+        if !origin.from_peer {
+            self.verified.insert(domain);
+        }
         let bytes = data.bytes();
         let fits = |c: &Self| c.resident_bytes + bytes <= c.budget;
         if self.resident.contains_key(&domain) {
@@ -441,6 +581,7 @@ impl DomainCache {
         let Some(d) = self.resident.remove(&domain) else {
             return;
         };
+        self.shelf.lock().remove(&domain);
         self.resident_bytes -= d.data.bytes();
         self.counters.evictions += 1;
         if d.prefetched {

@@ -242,6 +242,28 @@ impl DomainData {
         }
     }
 
+    /// A domain file's bytes that arrived from elsewhere (a peer that had it loaded), checked
+    /// exactly as a file opened from storage is, checksum always included: the same bytes
+    /// give the same domain, anything else is refused. `origin` names where they came from
+    /// in errors (never opened as a path).
+    pub fn from_received(
+        received: Received,
+        origin: &Path,
+        expected_checksum: u64,
+        materials: u32,
+    ) -> Result<DomainData, SceneError> {
+        let map = received
+            .into_held()
+            .map_err(|e| SceneError::io(origin, e))?;
+        Self::from_map(map, origin, expected_checksum, true, materials)
+    }
+
+    /// The bytes of this domain's own file (not its surfaces'), as read from storage: what
+    /// a peer serves.
+    pub fn file_bytes(&self) -> &[u8] {
+        &self.map
+    }
+
     fn from_map(
         map: Held,
         path: &Path,
@@ -533,6 +555,95 @@ impl Held {
             map: anon.make_read_only()?,
             start: Some(start),
             len,
+        })
+    }
+}
+
+/// A domain file's bytes arriving in order from elsewhere (a peer), written straight into
+/// memory held as a load from storage would hold them ([`Residence`]: a file of a huge page
+/// or more into 2 MiB-aligned memory advised `MADV_HUGEPAGE`), so a domain from a peer
+/// traces exactly like one from storage. Never holds more than the length it was made for.
+pub struct Received {
+    map: memmap2::MmapMut,
+    start: usize,
+    len: usize,
+    written: usize,
+    huge: bool,
+}
+
+impl Received {
+    /// Room for a file of `len` bytes, held as `residence` says (`None`: as the process
+    /// chooses for that size, [`Residence::selected`]).
+    pub fn new(len: u64, residence: Option<Residence>) -> std::io::Result<Received> {
+        let residence = residence.unwrap_or_else(|| Residence::selected(len));
+        let len = usize::try_from(len).map_err(|_| std::io::ErrorKind::FileTooLarge)?;
+        let huge = residence == Residence::HugePages && len > 0;
+        let region = if huge {
+            len.checked_add(HUGE_PAGE)
+                .ok_or(std::io::ErrorKind::FileTooLarge)?
+        } else {
+            len.max(1)
+        };
+        let map = MmapOptions::new().len(region).map_anon()?;
+        #[cfg(target_os = "linux")]
+        if huge && let Err(e) = map.advise(memmap2::Advice::HugePage) {
+            tracing::debug!("madvise(MADV_HUGEPAGE) refused: {e}");
+        }
+        let start = if huge {
+            map.as_ptr().align_offset(HUGE_PAGE).min(HUGE_PAGE)
+        } else {
+            0
+        };
+        Ok(Received {
+            map,
+            start,
+            len,
+            written: 0,
+            huge,
+        })
+    }
+
+    /// Appends `chunk`; refused if it would run past the length.
+    pub fn push(&mut self, chunk: &[u8]) -> Result<(), String> {
+        let end = self
+            .written
+            .checked_add(chunk.len())
+            .filter(|&e| e <= self.len)
+            .ok_or_else(|| {
+                format!(
+                    "{} more bytes after {} of a {} byte file",
+                    chunk.len(),
+                    self.written,
+                    self.len
+                )
+            })?;
+        self.map[self.start + self.written..self.start + end].copy_from_slice(chunk);
+        self.written = end;
+        Ok(())
+    }
+
+    /// Bytes written so far.
+    pub fn written(&self) -> u64 {
+        self.written as u64
+    }
+
+    /// Bytes still missing.
+    pub fn missing(&self) -> u64 {
+        (self.len - self.written) as u64
+    }
+
+    fn into_held(self) -> std::io::Result<Held> {
+        if self.written != self.len {
+            return Err(std::io::Error::new(
+                std::io::ErrorKind::UnexpectedEof,
+                format!("{} of {} bytes arrived", self.written, self.len),
+            ));
+        }
+        Ok(Held {
+            map: self.map.make_read_only()?,
+            // Reported as huge-page resident only when it was copied into such memory.
+            start: self.huge.then_some(self.start),
+            len: self.len,
         })
     }
 }

@@ -1,9 +1,10 @@
 //! The scene manifest: camera, lights, materials and the domain table, as TOML.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
+use super::domain_file::Received;
 use super::partition::{DomainTree, KdNode};
 use super::{DomainData, MANIFEST_FILE, Residence, SceneError, write_atomically};
 use crate::geometry::Aabb;
@@ -415,6 +416,59 @@ impl Manifest {
                 DomainData::open_as(&file, checksum, verify_checksum, materials, residence)?;
             data.attach_surfaces(surfaces)?;
         }
+        self.check_domain(entry, domain, path, data)
+    }
+
+    /// The domain `domain` from bytes that arrived from a peer (`origin` names it in errors):
+    /// its file and, for a brick with surfaces, its surfaces' file, each checked against its
+    /// own checksum in the manifest, then against the manifest's entry exactly as
+    /// [`Manifest::open_domain`] checks a file from storage. Nothing here trusts the sender.
+    pub fn received_domain(
+        &self,
+        origin: &Path,
+        domain: u32,
+        file: Received,
+        surfaces: Option<Received>,
+    ) -> Result<DomainData, SceneError> {
+        let entry = self
+            .domains
+            .get(domain as usize)
+            .ok_or_else(|| SceneError::Domain {
+                path: origin.into(),
+                reason: format!("no domain {domain} of {}", self.domains.len()),
+            })?;
+        let materials = self.materials.len() as u32;
+        let checksum = u64::from_str_radix(&entry.checksum, 16).unwrap_or_default();
+        let mut data = DomainData::from_received(file, origin, checksum, materials)?;
+        match (&entry.surfaces, surfaces) {
+            (Some(s), Some(received)) => {
+                let checksum = u64::from_str_radix(&s.checksum, 16).unwrap_or_default();
+                let surfaces = DomainData::from_received(received, origin, checksum, materials)?;
+                data.attach_surfaces(surfaces)?;
+            }
+            (None, None) => {}
+            (expected, _) => {
+                return Err(SceneError::Domain {
+                    path: origin.into(),
+                    reason: format!(
+                        "sent {} surfaces file where the manifest has {}",
+                        if expected.is_some() { "no" } else { "a" },
+                        if expected.is_some() { "one" } else { "none" }
+                    ),
+                });
+            }
+        }
+        self.check_domain(entry, domain, origin.into(), data)
+    }
+
+    /// `data` if it is what the manifest's `entry` for `domain` describes.
+    fn check_domain(
+        &self,
+        entry: &DomainEntry,
+        domain: u32,
+        path: PathBuf,
+        data: DomainData,
+    ) -> Result<DomainData, SceneError> {
         let mismatch = if data.domain() != domain {
             Some(format!(
                 "holds domain {}, the manifest says {domain}",

@@ -7,7 +7,7 @@ pub mod partition;
 use std::fs::File;
 use std::path::{Path, PathBuf};
 
-pub use domain_file::{DomainData, DomainSummary, Residence, write_domain};
+pub use domain_file::{DomainData, DomainSummary, Received, Residence, write_domain};
 pub use manifest::{Camera, DomainEntry, Light, Manifest, Material, Sky, SurfaceFile, VolumeSpec};
 pub use partition::{DomainTree, KdNode};
 

@@ -171,6 +171,6 @@ pub enum Action {
     /// threads, memory), then send the coordinator its FrameReport.
     FrameEnded {
         job_id: String,
-        stats: WorkerFrameStats,
+        stats: Box<WorkerFrameStats>,
     },
 }

@@ -451,7 +451,8 @@ impl<S: RaySpill> Worker<S> {
         info!(job = %job_id, segments = c.rays.segments(), busy_seconds, "frame ended");
         self.actions.push(Action::FrameEnded {
             job_id: job_id.to_string(),
-            stats,
+            // Boxed: the statistics are many times the size of every other action.
+            stats: Box::new(stats),
         });
     }
 

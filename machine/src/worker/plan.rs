@@ -51,6 +51,9 @@ pub struct Sorted {
     pub dropped: u64,
 }
 
+/// Former holders remembered per domain.
+const FORMER_HOLDERS: usize = 2;
+
 /// See the module documentation.
 #[derive(Clone, Debug)]
 pub struct Plan {
@@ -76,6 +79,9 @@ pub struct Plan {
     /// workers under the dynamic schedule the addresses, in every member's copy of the map and
     /// in every round's messages, held gigabytes (README "Simulator").
     holders: BTreeMap<u32, Vec<u32>>,
+    /// Other workers that held each domain in an earlier round, by key, latest first (at most
+    /// [`FORMER_HOLDERS`]): they may still have it loaded, so a load may ask them for it.
+    former: BTreeMap<u32, Vec<u32>>,
     /// Domains the coordinator expects to give this worker next, most likely first (what
     /// it may prefetch once its own plan is loaded).
     next: Vec<u32>,
@@ -101,6 +107,7 @@ impl Plan {
             work_on: BTreeSet::new(),
             resident: BTreeSet::new(),
             holders: BTreeMap::new(),
+            former: BTreeMap::new(),
             next: Vec::new(),
         }
     }
@@ -130,6 +137,32 @@ impl Plan {
         self.holders.keys().copied()
     }
 
+    /// Where a load of `domain` may take its bytes from: the other workers holding it this
+    /// round, then those that held it before, latest first (they may still have it loaded).
+    pub fn holders_of(&self, domain: u32) -> Vec<String> {
+        let now = self.holders.get(&domain).into_iter().flatten();
+        let before = self.former.get(&domain).into_iter().flatten();
+        let mut keys: Vec<u32> = Vec::new();
+        for &w in now.chain(before) {
+            if !keys.contains(&w) {
+                keys.push(w);
+            }
+        }
+        keys.iter()
+            .filter_map(|k| self.roster.get(k).cloned())
+            .collect()
+    }
+
+    /// Records that `gone` no longer hold `domain` (they may still have it loaded).
+    fn note_former(&mut self, domain: u32, gone: impl IntoIterator<Item = u32>) {
+        let former = self.former.entry(domain).or_default();
+        for w in gone {
+            former.retain(|&f| f != w);
+            former.insert(0, w);
+        }
+        former.truncate(FORMER_HOLDERS);
+    }
+
     /// Whether some other worker holds `domain` this round.
     pub fn is_held_elsewhere(&self, domain: u32) -> bool {
         self.holders.contains_key(&domain)
@@ -154,16 +187,27 @@ impl Plan {
     /// Deltas keep the coordinator's broadcast of a round to what changed, where the whole
     /// map to every member grew with workers x held domains (README "Simulator").
     pub fn set_holders(&mut self, holders: impl IntoIterator<Item = (u32, Vec<u32>)>, delta: bool) {
-        if !delta {
-            self.holders.clear();
-        }
+        let mut before = if delta {
+            BTreeMap::new()
+        } else {
+            std::mem::take(&mut self.holders)
+        };
         for (d, mut ws) in holders {
             ws.retain(|w| *w != self.me);
-            if ws.is_empty() {
-                self.holders.remove(&d);
-            } else {
+            let old = match before.remove(&d) {
+                Some(old) => Some(old),
+                None => self.holders.remove(&d),
+            };
+            if let Some(old) = old {
+                self.note_former(d, old.into_iter().filter(|w| !ws.contains(w)));
+            }
+            if !ws.is_empty() {
                 self.holders.insert(d, ws);
             }
+        }
+        // A whole map leaves out the domains nobody holds now.
+        for (d, old) in before {
+            self.note_former(d, old);
         }
     }
 
@@ -191,10 +235,11 @@ impl Plan {
             .filter(|(_, address)| peers.contains(address))
             .map(|(&k, _)| k)
             .collect();
-        for holders in self.holders.values_mut() {
+        for holders in self.holders.values_mut().chain(self.former.values_mut()) {
             holders.retain(|h| !gone.contains(h));
         }
         self.holders.retain(|_, hs| !hs.is_empty());
+        self.former.retain(|_, hs| !hs.is_empty());
     }
 
     /// Raises tiles' epochs (never lowers them).
@@ -457,6 +502,27 @@ mod tests {
             "an old epoch and a domain past the scene's"
         );
         assert_eq!(sorted.local[&0], [ray(1, 3, 0, 0)]);
+    }
+
+    #[test]
+    fn a_load_may_ask_current_then_former_holders_but_never_lost_ones() {
+        let mut plan = new_plan(Mode::Dynamic, 4, 4);
+        plan.set_round(1, [], holders(&[(0, &["a:1"]), (1, &["b:1"])]), false);
+        assert_eq!(plan.holders_of(0), ["a:1"]);
+        // Domain 0 moves to c, domain 1 to this worker: their holders before are asked after.
+        plan.set_holders(holders(&[(0, &["c:1"]), (1, &["me:1"])]), true);
+        assert_eq!(plan.holders_of(0), ["c:1", "a:1"]);
+        assert_eq!(plan.holders_of(1), ["b:1"]);
+        // A whole map without domain 0: c held it last.
+        plan.set_holders(holders(&[(1, &["d:1"])]), false);
+        assert_eq!(plan.holders_of(0), ["c:1", "a:1"]);
+        assert_eq!(plan.holders_of(1), ["d:1", "b:1"]);
+        assert!(plan.holders_of(2).is_empty());
+        plan.forget_peers(&["a:1".into(), "d:1".into()]);
+        assert_eq!(plan.holders_of(0), ["c:1"]);
+        assert_eq!(plan.holders_of(1), ["b:1"]);
+        // Routing still follows current holders only.
+        assert!(!plan.is_held_elsewhere(0));
     }
 
     #[test]

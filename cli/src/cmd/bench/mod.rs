@@ -96,6 +96,10 @@ pub struct BenchArgs {
     /// `SCHEDULE+prefetch` row beside its row without.
     #[arg(long, env = "RAYFARM_BENCH_PREFETCH", value_parser = clap::builder::BoolishValueParser::new())]
     pub prefetch: bool,
+    /// Also render every schedule loading domains from peers (`submit --peer-domains`): each
+    /// then has a `SCHEDULE+peers` row beside its row without (and its prefetch row's).
+    #[arg(long, env = "RAYFARM_BENCH_PEER_DOMAINS", value_parser = clap::builder::BoolishValueParser::new())]
+    pub peer_domains: bool,
     /// Also write one row per run (every measure; failed runs with their error) to this CSV
     /// file.
     #[arg(long, env = "RAYFARM_BENCH_CSV")]

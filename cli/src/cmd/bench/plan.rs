@@ -15,17 +15,21 @@ use crate::local_cluster::scene_root_and_name;
 use super::*;
 
 /// What one row of the bench runs: a schedule, in one pass or subframes, with its
-/// speculation setting, prefetching or not.
+/// speculation setting, prefetching or not, loading domains from peers or not.
 #[derive(Clone, Debug)]
 pub(super) struct Run {
     pub(super) schedule: proto::Schedule,
     pub(super) progressive: Option<proto::Progressive>,
     pub(super) speculation: String,
     pub(super) prefetch: bool,
+    pub(super) peer_domains: bool,
 }
 
 /// The name suffix of a row that prefetches (`--prefetch`).
 pub(super) const PREFETCH_SUFFIX: &str = "+prefetch";
+
+/// The name suffix of a row that loads domains from peers (`--peer-domains`).
+pub(super) const PEERS_SUFFIX: &str = "+peers";
 
 /// Everything the bench needs, checked before any process starts.
 pub(super) struct Plan {
@@ -61,15 +65,30 @@ impl Plan {
                 progressive: None,
                 speculation: speculation.clone(),
                 prefetch: false,
+                peer_domains: false,
             };
             schedules.push((name.clone(), run.clone()));
+            if a.peer_domains {
+                let run = Run {
+                    peer_domains: true,
+                    ..run.clone()
+                };
+                schedules.push((format!("{name}{PEERS_SUFFIX}"), run));
+            }
             // Only the dynamic schedules plan one step ahead.
             if a.prefetch && matches!(s, proto::Schedule::Dynamic | proto::Schedule::Predictive) {
                 let run = Run {
                     prefetch: true,
                     ..run.clone()
                 };
-                schedules.push((format!("{name}{PREFETCH_SUFFIX}"), run));
+                schedules.push((format!("{name}{PREFETCH_SUFFIX}"), run.clone()));
+                if a.peer_domains {
+                    let run = Run {
+                        peer_domains: true,
+                        ..run
+                    };
+                    schedules.push((format!("{name}{PREFETCH_SUFFIX}{PEERS_SUFFIX}"), run));
+                }
             }
             if let Some(field) = a.progressive.and_then(Progressive::field) {
                 let progressive = proto::Progressive {
@@ -127,6 +146,7 @@ impl Plan {
                 progressive: None,
                 speculation: String::new(),
                 prefetch: false,
+                peer_domains: false,
             },
             scene_dir: a.scene.clone(),
             scene_name,

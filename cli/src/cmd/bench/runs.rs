@@ -81,6 +81,7 @@ pub(super) async fn bench(
             progressive: run.progressive,
             speculation: run.speculation.clone(),
             prefetch: run.prefetch,
+            peer_domains: run.peer_domains,
             ..plan.spec.clone()
         };
         let started = Instant::now();

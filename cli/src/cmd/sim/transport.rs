@@ -49,6 +49,17 @@ type AckStream = Pin<Box<dyn Stream<Item = Result<proto::PeerAck, Status>> + Sen
 #[tonic::async_trait]
 impl PeerService for Sink {
     type ExchangeBundlesStream = AckStream;
+    type FetchDomainStream = Pin<Box<dyn Stream<Item = Result<proto::DomainChunk, Status>> + Send>>;
+
+    /// Not timed: the calibration prices bundles only.
+    async fn fetch_domain(
+        &self,
+        _: Request<proto::DomainRequest>,
+    ) -> Result<Response<Self::FetchDomainStream>, Status> {
+        Err(Status::unimplemented(
+            "the calibration sink serves no domains",
+        ))
+    }
 
     async fn exchange_bundles(
         &self,
