@@ -371,7 +371,17 @@ impl<S: RaySpill> Worker<S> {
     fn share_tasks(&mut self, t: proto::ShareTasks) {
         let tracing = self.tracing;
         let Some(frame) = self.frame.as_mut().filter(|f| f.job_id == t.job_id) else {
-            return;
+            // Not running that frame (it ended here, or this worker sits it out): say it holds
+            // nothing, so the coordinator asks another worker for the idle one at once rather
+            // than leaving it unfed until its next report.
+            debug!(job = %t.job_id, to = %t.to, "asked to share tasks of a frame not running here");
+            let answer = proto::TasksShared {
+                job_id: t.job_id,
+                to: t.to,
+                rays: 0,
+                queued: 0,
+            };
+            return self.send(proto::worker_message::Body::TasksShared(answer));
         };
         let rays = if t.to == self.config.advertise {
             warn!("asked to share tasks with itself: ignored");

@@ -853,3 +853,27 @@ fn only_the_hybrid_schedule_shares_tasks() {
     assert!(tasks_sent(&actions).is_empty());
     assert_eq!(shared_answer(&actions).map(|a| a.rays), Some(0));
 }
+
+#[test]
+fn a_worker_asked_to_share_tasks_of_a_frame_it_does_not_run_says_it_holds_none() {
+    let mut w = worker();
+    // No frame at all, then another job's frame: each time an answer of nothing, for the job
+    // asked about, so the coordinator turns to another donor.
+    for opened_job in [None, Some("other")] {
+        if let Some(job) = opened_job {
+            w.handle(Time(0), opened(job, Schedule::Hybrid, &[]));
+        }
+        let actions = w.handle(Time(1), share("idle:1", &[], 100));
+        let answer = shared_answer(&actions).expect("answered");
+        assert_eq!(
+            (
+                answer.job_id.as_str(),
+                answer.to.as_str(),
+                answer.rays,
+                answer.queued
+            ),
+            (JOB, "idle:1", 0, 0)
+        );
+        assert!(tasks_sent(&actions).is_empty());
+    }
+}
