@@ -516,6 +516,23 @@ struct Held {
     len: usize,
 }
 
+/// Anonymous memory for `len` bytes advised `MADV_HUGEPAGE`, and the offset in it of a 2 MiB
+/// boundary where they start: one huge page more than `len`, so that the bytes can start on
+/// the boundary (pages of the slack that are never touched are never allocated).
+fn huge_page_region(len: usize) -> std::io::Result<(memmap2::MmapMut, usize)> {
+    let region = len
+        .checked_add(HUGE_PAGE)
+        .ok_or(std::io::ErrorKind::FileTooLarge)?;
+    let map = MmapOptions::new().len(region).map_anon()?;
+    // Best effort: without transparent huge pages (`never`) the bytes are still correct.
+    #[cfg(target_os = "linux")]
+    if let Err(e) = map.advise(memmap2::Advice::HugePage) {
+        tracing::debug!("madvise(MADV_HUGEPAGE) refused: {e}");
+    }
+    let start = map.as_ptr().align_offset(HUGE_PAGE).min(HUGE_PAGE);
+    Ok((map, start))
+}
+
 impl Held {
     /// Holds `file` (`len` bytes long) as `residence` says.
     fn load(mut file: std::fs::File, len: u64, residence: Residence) -> std::io::Result<Held> {
@@ -532,18 +549,7 @@ impl Held {
                 len,
             });
         }
-        // One huge page more than the file, so that the copy can start on a 2 MiB boundary
-        // (pages of the slack that are never touched are never allocated).
-        let region = len
-            .checked_add(HUGE_PAGE)
-            .ok_or(std::io::ErrorKind::FileTooLarge)?;
-        let mut anon = MmapOptions::new().len(region).map_anon()?;
-        // Best effort: without transparent huge pages (`never`) the copy is still correct.
-        #[cfg(target_os = "linux")]
-        if let Err(e) = anon.advise(memmap2::Advice::HugePage) {
-            tracing::debug!("madvise(MADV_HUGEPAGE) refused: {e}");
-        }
-        let start = anon.as_ptr().align_offset(HUGE_PAGE).min(HUGE_PAGE);
+        let (mut anon, start) = huge_page_region(len)?;
         std::io::Read::read_exact(&mut file, &mut anon[start..start + len])?;
         // A file that grew since its size was read is a file changed under us: refused, as
         // its checksum would be.
@@ -578,21 +584,10 @@ impl Received {
         let residence = residence.unwrap_or_else(|| Residence::selected(len));
         let len = usize::try_from(len).map_err(|_| std::io::ErrorKind::FileTooLarge)?;
         let huge = residence == Residence::HugePages && len > 0;
-        let region = if huge {
-            len.checked_add(HUGE_PAGE)
-                .ok_or(std::io::ErrorKind::FileTooLarge)?
+        let (map, start) = if huge {
+            huge_page_region(len)?
         } else {
-            len.max(1)
-        };
-        let map = MmapOptions::new().len(region).map_anon()?;
-        #[cfg(target_os = "linux")]
-        if huge && let Err(e) = map.advise(memmap2::Advice::HugePage) {
-            tracing::debug!("madvise(MADV_HUGEPAGE) refused: {e}");
-        }
-        let start = if huge {
-            map.as_ptr().align_offset(HUGE_PAGE).min(HUGE_PAGE)
-        } else {
-            0
+            (MmapOptions::new().len(len.max(1)).map_anon()?, 0)
         };
         Ok(Received {
             map,
