@@ -404,13 +404,12 @@ impl Manifest {
                 path: dir.join(MANIFEST_FILE),
                 reason: format!("no domain {domain} of {}", self.domains.len()),
             })?;
-        // Hex was checked when the manifest was parsed.
-        let checksum = u64::from_str_radix(&entry.checksum, 16).unwrap_or_default();
+        let checksum = checksum_value(&entry.checksum);
         let path = dir.join(&entry.file);
         let materials = self.materials.len() as u32;
         let mut data = DomainData::open_as(&path, checksum, verify_checksum, materials, residence)?;
         if let Some(s) = &entry.surfaces {
-            let checksum = u64::from_str_radix(&s.checksum, 16).unwrap_or_default();
+            let checksum = checksum_value(&s.checksum);
             let file = dir.join(&s.file);
             let surfaces =
                 DomainData::open_as(&file, checksum, verify_checksum, materials, residence)?;
@@ -438,11 +437,11 @@ impl Manifest {
                 reason: format!("no domain {domain} of {}", self.domains.len()),
             })?;
         let materials = self.materials.len() as u32;
-        let checksum = u64::from_str_radix(&entry.checksum, 16).unwrap_or_default();
+        let checksum = checksum_value(&entry.checksum);
         let mut data = DomainData::from_received(file, origin, checksum, materials)?;
         match (&entry.surfaces, surfaces) {
             (Some(s), Some(received)) => {
-                let checksum = u64::from_str_radix(&s.checksum, 16).unwrap_or_default();
+                let checksum = checksum_value(&s.checksum);
                 let surfaces = DomainData::from_received(received, origin, checksum, materials)?;
                 data.attach_surfaces(surfaces)?;
             }
@@ -631,6 +630,12 @@ impl Manifest {
         }
         DomainTree::check(&self.kd_nodes, self.domains.len())
     }
+}
+
+/// A checksum of the domain table as a number (its hex was checked when the manifest was
+/// read).
+fn checksum_value(hex: &str) -> u64 {
+    u64::from_str_radix(hex, 16).unwrap_or_default()
 }
 
 /// A file name in the scene directory: short, no path, nothing TOML must escape.
