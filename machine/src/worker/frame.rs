@@ -548,13 +548,7 @@ impl<S: RaySpill> Frame<S> {
             return Ok(None);
         };
         let rays = self.queues.take(d, max)?;
-        if self.queues.len(d) == 0 {
-            self.generations.clear(d);
-        } else {
-            for r in &rays {
-                self.generations.remove(d, r.generation());
-            }
-        }
+        self.forget_generations(d, &rays);
         Ok(Some((d, rays)))
     }
 

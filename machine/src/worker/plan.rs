@@ -194,11 +194,7 @@ impl Plan {
         };
         for (d, mut ws) in holders {
             ws.retain(|w| *w != self.me);
-            let old = match before.remove(&d) {
-                Some(old) => Some(old),
-                None => self.holders.remove(&d),
-            };
-            if let Some(old) = old {
+            if let Some(old) = before.remove(&d).or_else(|| self.holders.remove(&d)) {
                 self.note_former(d, old.into_iter().filter(|w| !ws.contains(w)));
             }
             if !ws.is_empty() {
