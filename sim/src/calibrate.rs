@@ -222,7 +222,12 @@ pub fn calibrate(
             .iter()
             .map(|f| {
                 (
-                    vec![1.0, f.rays as f64, f.path_domains as f64, f.verdicts as f64],
+                    vec![
+                        1.0,
+                        f.work.rays as f64,
+                        f.work.path_domains as f64,
+                        f.work.verdicts as f64,
+                    ],
                     f.cpu_ns as f64,
                 )
             })

@@ -152,6 +152,30 @@ impl ComputeCost {
     }
 }
 
+/// What a worker's shell hands the machine in a finished pass's output: the `finished_*`
+/// prices' measures.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct FinishedWork {
+    /// Rays sent on (queued here or bundled for peers).
+    pub rays: usize,
+    /// Domains along the rays born in the pass (speculative: where their copies go, window
+    /// by window).
+    pub path_domains: usize,
+    /// Verdicts addressed.
+    pub verdicts: usize,
+}
+
+impl FinishedWork {
+    /// The measures of `out`.
+    pub fn of(out: &rayfarm_machine::worker::PassOutput) -> Self {
+        FinishedWork {
+            rays: out.rays.len(),
+            path_domains: out.paths.iter().map(Vec::len).sum(),
+            verdicts: out.verdicts.len(),
+        }
+    }
+}
+
 /// The cost model of computing: the prices and the threads of every worker.
 #[derive(Clone, Copy, Debug)]
 pub struct CostModel {
@@ -203,15 +227,14 @@ impl CostModel {
         nanos(p.bundle_send_ns + p.bundle_send_byte_ns * bytes as f64)
     }
 
-    /// Virtual time a worker's shell spends taking a finished pass's output: `rays` sent
-    /// on, `path_domains` along the rays born in it, `verdicts` addressed.
-    pub fn finished_pass(&self, rays: usize, path_domains: usize, verdicts: usize) -> Duration {
+    /// Virtual time a worker's shell spends taking a finished pass's output of `work`.
+    pub fn finished_pass(&self, work: &FinishedWork) -> Duration {
         let p = &self.compute;
         nanos(
             p.finished_pass_ns
-                + p.finished_ray_ns * rays as f64
-                + p.finished_path_domain_ns * path_domains as f64
-                + p.finished_verdict_ns * verdicts as f64,
+                + p.finished_ray_ns * work.rays as f64
+                + p.finished_path_domain_ns * work.path_domains as f64
+                + p.finished_verdict_ns * work.verdicts as f64,
         )
     }
 
@@ -294,7 +317,12 @@ mod tests {
         assert_eq!(m.bundle_send(4000), Duration::from_nanos(4000));
         assert_eq!(m.bundle_receive(4000), Duration::from_nanos(4000));
         // A finished pass of 20 rays sent on, 40 path domains and 100 verdicts: 700 + 200 + 200 + 300.
-        assert_eq!(m.finished_pass(20, 40, 100), Duration::from_nanos(1400));
+        let work = FinishedWork {
+            rays: 20,
+            path_domains: 40,
+            verdicts: 100,
+        };
+        assert_eq!(m.finished_pass(&work), Duration::from_nanos(1400));
         // What the rounds planned moves the price, not the cluster's size alone.
         let one = PlanningWork {
             rounds: 1,

@@ -22,6 +22,7 @@ use rayfarm_proto::{self as proto, worker_message::Body as FromWorker};
 use crate::check::Checks;
 use crate::coord::{CoordConfig, SimCoordinator, ToNode};
 use crate::cores::SharedCores;
+use crate::cost::FinishedWork;
 use crate::events::EventHeap;
 use crate::faults::{Fault, FaultPlan, Rng};
 use crate::net::{COORDINATOR, Network, NodeId};
@@ -376,12 +377,7 @@ impl World<'_> {
         };
         let resident = w.resident();
         let measured = match (&result, self.config.measure) {
-            (Ok(out), true) => Some(MeasuredFinished {
-                rays: out.rays.len(),
-                path_domains: out.paths.iter().map(Vec::len).sum(),
-                verdicts: out.verdicts.len(),
-                cpu_ns: 0,
-            }),
+            (Ok(out), true) => Some(FinishedWork::of(out)),
             _ => None,
         };
         self.feed(
@@ -392,10 +388,10 @@ impl World<'_> {
                 resident,
             },
         );
-        if let (Some(m), Some(cpu_ns)) = (measured, self.handled_ns.take()) {
+        if let (Some(work), Some(cpu_ns)) = (measured, self.handled_ns.take()) {
             self.outcome
                 .measured_finished
-                .push(MeasuredFinished { cpu_ns, ..m });
+                .push(MeasuredFinished { work, cpu_ns });
         }
     }
 
@@ -452,11 +448,7 @@ impl World<'_> {
                 let result = run.result.map_err(machine::PassFailed::Load);
                 // The shell takes the output in after what it is handling, for its price.
                 let price = match &result {
-                    Ok(out) => self.config.cost.finished_pass(
-                        out.rays.len(),
-                        out.paths.iter().map(Vec::len).sum(),
-                        out.verdicts.len(),
-                    ),
+                    Ok(out) => self.config.cost.finished_pass(&FinishedWork::of(out)),
                     Err(_) => Duration::ZERO,
                 };
                 if price.is_zero() {

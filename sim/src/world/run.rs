@@ -110,13 +110,7 @@ pub struct Outcome {
 /// machine's handling of it cost on this machine (`calibrate` fits the `finished_*` prices).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct MeasuredFinished {
-    /// Rays sent on (queued here or bundled for peers).
-    pub rays: usize,
-    /// Domains along the rays born in the pass (speculative: where their copies go, window
-    /// by window).
-    pub path_domains: usize,
-    /// Verdicts addressed.
-    pub verdicts: usize,
+    pub work: crate::cost::FinishedWork,
     pub cpu_ns: u64,
 }
 
