@@ -77,9 +77,10 @@ impl<E> SharedCores<E> {
     /// `start + work`, returned, and shares the cores with the computations meanwhile.
     pub fn handle(&mut self, now: Time, start: Time, work: Duration) -> Time {
         self.advance(now);
-        let end = start.max(now) + work;
-        if end > start.max(now) {
-            self.handling.push((start.max(now), end));
+        let start = start.max(now);
+        let end = start + work;
+        if end > start {
+            self.handling.push((start, end));
             self.epoch += 1;
         }
         end
