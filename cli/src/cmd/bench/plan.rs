@@ -67,28 +67,27 @@ impl Plan {
                 prefetch: false,
                 peer_domains: false,
             };
-            schedules.push((name.clone(), run.clone()));
-            if a.peer_domains {
-                let run = Run {
-                    peer_domains: true,
-                    ..run.clone()
-                };
-                schedules.push((format!("{name}{PEERS_SUFFIX}"), run));
-            }
+            // A row, and with --peer-domains its twin loading from peers.
+            let mut push = |name: String, run: Run| {
+                if a.peer_domains {
+                    let peers = Run {
+                        peer_domains: true,
+                        ..run.clone()
+                    };
+                    schedules.push((name.clone(), run));
+                    schedules.push((format!("{name}{PEERS_SUFFIX}"), peers));
+                } else {
+                    schedules.push((name, run));
+                }
+            };
+            push(name.clone(), run.clone());
             // Only the dynamic schedules plan one step ahead.
             if a.prefetch && matches!(s, proto::Schedule::Dynamic | proto::Schedule::Predictive) {
                 let run = Run {
                     prefetch: true,
                     ..run.clone()
                 };
-                schedules.push((format!("{name}{PREFETCH_SUFFIX}"), run.clone()));
-                if a.peer_domains {
-                    let run = Run {
-                        peer_domains: true,
-                        ..run
-                    };
-                    schedules.push((format!("{name}{PREFETCH_SUFFIX}{PEERS_SUFFIX}"), run));
-                }
+                push(format!("{name}{PREFETCH_SUFFIX}"), run);
             }
             if let Some(field) = a.progressive.and_then(Progressive::field) {
                 let progressive = proto::Progressive {
