@@ -26,13 +26,20 @@ fn sim(scene: &std::path::Path, extra: &[&str]) -> String {
     String::from_utf8(rayfarm_ok(&args).stdout).expect("utf-8 output")
 }
 
+/// A schedule's row of the table.
+fn row<'a>(out: &'a str, schedule: &str) -> &'a str {
+    out.lines()
+        .find(|l| l.split_whitespace().next() == Some(schedule))
+        .unwrap_or_else(|| panic!("no row for {schedule} in:\n{out}"))
+}
+
 /// The image hash of a schedule's row.
 fn hash_of_row(out: &str, schedule: &str) -> String {
-    let row = out
-        .lines()
-        .find(|l| l.split_whitespace().next() == Some(schedule))
-        .unwrap_or_else(|| panic!("no row for {schedule} in:\n{out}"));
-    row.split_whitespace().last().unwrap().to_string()
+    row(out, schedule)
+        .split_whitespace()
+        .last()
+        .unwrap()
+        .to_string()
 }
 
 #[test]
@@ -78,11 +85,12 @@ fn a_thousand_fault_seeds_keep_every_invariant_and_a_seed_repeats_exactly() {
 
 /// The virtual milliseconds of a schedule's row.
 fn virtual_ms_of_row(out: &str, schedule: &str) -> f64 {
-    let row = out
-        .lines()
-        .find(|l| l.split_whitespace().next() == Some(schedule))
-        .unwrap_or_else(|| panic!("no row for {schedule} in:\n{out}"));
-    row.split_whitespace().nth(2).unwrap().parse().unwrap()
+    row(out, schedule)
+        .split_whitespace()
+        .nth(2)
+        .unwrap()
+        .parse()
+        .unwrap()
 }
 
 #[test]
