@@ -187,6 +187,13 @@ pub struct CostModel {
     /// whole cluster (the validation's `rayfarm bench`); `None`, every worker on machines of
     /// its own.
     pub cores: Option<u32>,
+    /// How long a pass waits, after the worker's shell hands it over, for a tracing thread
+    /// to start it (`--pass-start-us`): no core time, only delay. Zero by default: a node
+    /// with cores of its own wakes its thread in microseconds. Where the whole cluster shares
+    /// a few cores (the validation's `rayfarm bench`: nine processes on two), the woken
+    /// thread waits for the operating system to give it a core, about a millisecond a pass
+    /// (the bench's "pass waiting for a tracing thread").
+    pub pass_start: Duration,
 }
 
 impl Default for CostModel {
@@ -195,6 +202,7 @@ impl Default for CostModel {
             compute: ComputeCost::default(),
             threads: 1,
             cores: None,
+            pass_start: Duration::ZERO,
         }
     }
 }
@@ -268,6 +276,7 @@ mod tests {
         let m = CostModel {
             threads: 2,
             cores: None,
+            pass_start: Duration::ZERO,
             compute: ComputeCost {
                 pass_ns: 1000.0,
                 radiance_segment_ns: 500.0,

@@ -67,6 +67,8 @@ pub enum Event {
         result: Result<PassOutput, PassFailed>,
         /// When the pass ended (the time it then waits for the engine is counted).
         finished: Instant,
+        /// How long it waited for a tracing thread after the engine handed it over.
+        start_wait: std::time::Duration,
     },
     /// A prefetch of the frame of `job_id` ended (the machine hears it with the domains
     /// mapped now).
@@ -96,6 +98,10 @@ struct OpenFrame {
     cpu_at_start: (f64, f64),
     /// How long finished passes of the frame waited for the engine to take them up.
     pass_waits: std::time::Duration,
+    /// How long passes of the frame waited for a tracing thread to start them.
+    pass_start_waits: std::time::Duration,
+    /// Passes of the frame that finished.
+    passes: u64,
 }
 
 /// The engine. See the module documentation.
@@ -236,9 +242,12 @@ impl Engine {
                 job_id,
                 result,
                 finished,
+                start_wait,
             } => {
                 if let Some(f) = self.frame.as_mut().filter(|f| f.job_id == job_id) {
                     f.pass_waits += finished.elapsed();
+                    f.pass_start_waits += start_wait;
+                    f.passes += 1;
                 }
                 if let Ok(output) = &result {
                     count_pass(output);
@@ -306,12 +315,14 @@ impl Engine {
             }
             Action::FrameEnded { job_id, mut stats } => {
                 self.count_cache();
-                let (start, cpu_at_start, pass_waits) = self
-                    .frame
-                    .take_if(|f| f.job_id == job_id)
-                    .map(|f| (f.cache_at_start, f.cpu_at_start, f.pass_waits))
-                    .unwrap_or_default();
-                stats.pass_wait_seconds = pass_waits.as_secs_f64();
+                let mut start = CacheCounters::default();
+                let mut cpu_at_start = (0.0, 0.0);
+                if let Some(f) = self.frame.take_if(|f| f.job_id == job_id) {
+                    (start, cpu_at_start) = (f.cache_at_start, f.cpu_at_start);
+                    stats.pass_wait_seconds = f.pass_waits.as_secs_f64();
+                    stats.pass_start_wait_seconds = f.pass_start_waits.as_secs_f64();
+                    stats.passes = f.passes;
+                }
                 let cpu_now = self.cpu_now();
                 stats.trace_cpu_seconds = (cpu_now.0 - cpu_at_start.0).max(0.0);
                 stats.cpu_seconds = (cpu_now.1 - cpu_at_start.1).max(0.0);
@@ -361,6 +372,7 @@ impl Engine {
                 job_id,
                 result,
                 finished,
+                start_wait: std::time::Duration::ZERO,
             });
             return;
         };
@@ -373,7 +385,9 @@ impl Engine {
         // Straight onto the tracing pool: one thread hand-over per pass, not two (a blocking
         // thread waiting in `install`), which on a machine with fewer cores than busy threads
         // costs a scheduler slice each.
+        let handed = Instant::now();
         self.pool.spawn(move || {
+            let start_wait = handed.elapsed();
             // A panicking pass must not abort the process (rayon's default for a spawned
             // job) nor leave the machine waiting for it: it declines the frame like a pass
             // that could not load its domain.
@@ -388,6 +402,7 @@ impl Engine {
                 job_id,
                 result,
                 finished,
+                start_wait,
             });
         });
     }
@@ -557,6 +572,8 @@ impl Engine {
             cache_at_start,
             cpu_at_start: self.cpu_now(),
             pass_waits: std::time::Duration::ZERO,
+            pass_start_waits: std::time::Duration::ZERO,
+            passes: 0,
         });
         Ok(OpenedScene {
             grid,

@@ -299,13 +299,16 @@ pub struct TimeSplit {
     pub idle_empty: f64,
     /// A finished pass waiting for the worker's event loop to take it up.
     pub pass_wait: f64,
-    /// The rest: before the first pass, and from taking up a finished pass to the next
-    /// pass's start (the event loop handling it, the hand-over to the tracing thread, a core
-    /// not had meanwhile).
+    /// A pass handed to the tracing pool waiting for a tracing thread to start it.
+    pub start_wait: f64,
+    /// The rest: before the first pass, and from taking up a finished pass to handing the
+    /// next to the tracing pool (the event loop handling it, a core not had meanwhile).
     pub other: f64,
     /// Not a part: CPU seconds the worker process used outside its tracing threads (event
     /// loop, network, bundling, prefetches), overlapping the parts above.
     pub other_cpu: f64,
+    /// Not a part: the passes the worker ran.
+    pub passes: f64,
 }
 
 impl TimeSplit {
@@ -316,7 +319,8 @@ impl TimeSplit {
         let idle = w.idle_queued_seconds
             + w.idle_verdicts_seconds
             + w.idle_empty_seconds
-            + w.pass_wait_seconds;
+            + w.pass_wait_seconds
+            + w.pass_start_wait_seconds;
         TimeSplit {
             frame: w.frame_seconds,
             trace_cpu,
@@ -326,8 +330,10 @@ impl TimeSplit {
             idle_verdicts: w.idle_verdicts_seconds,
             idle_empty: w.idle_empty_seconds,
             pass_wait: w.pass_wait_seconds,
+            start_wait: w.pass_start_wait_seconds,
             other: (w.frame_seconds - w.busy_seconds - idle).max(0.0),
             other_cpu: (w.cpu_seconds - w.trace_cpu_seconds).max(0.0),
+            passes: w.passes as f64,
         }
     }
 
@@ -344,8 +350,10 @@ impl TimeSplit {
             idle_verdicts: sum(|s| s.idle_verdicts),
             idle_empty: sum(|s| s.idle_empty),
             pass_wait: sum(|s| s.pass_wait),
+            start_wait: sum(|s| s.start_wait),
             other: sum(|s| s.other),
             other_cpu: sum(|s| s.other_cpu),
+            passes: sum(|s| s.passes),
         }
     }
 }
@@ -765,6 +773,8 @@ pub(crate) mod tests {
             idle_verdicts_seconds: 1.5,
             idle_empty_seconds: 0.5,
             pass_wait_seconds: 0.25,
+            pass_start_wait_seconds: 0.125,
+            passes: 7,
             cpu_seconds: 4.0,
             ..Default::default()
         };
@@ -774,7 +784,10 @@ pub(crate) mod tests {
             (s.idle_queued, s.idle_verdicts, s.idle_empty),
             (1.0, 1.5, 0.5)
         );
-        assert_eq!((s.pass_wait, s.other, s.other_cpu), (0.25, 0.75, 1.0));
+        assert_eq!(
+            (s.pass_wait, s.start_wait, s.other, s.other_cpu, s.passes),
+            (0.25, 0.125, 0.625, 1.0, 7.0)
+        );
         let parts = s.trace_cpu
             + s.trace_wait
             + s.load
@@ -782,10 +795,11 @@ pub(crate) mod tests {
             + s.idle_verdicts
             + s.idle_empty
             + s.pass_wait
+            + s.start_wait
             + s.other;
         assert_eq!(parts, s.frame);
         let m = TimeSplit::mean(&[s, TimeSplit::default()]);
-        assert_eq!((m.frame, m.trace_cpu, m.other), (5.0, 1.5, 0.375));
+        assert_eq!((m.frame, m.trace_cpu, m.other), (5.0, 1.5, 0.3125));
         assert_eq!(TimeSplit::mean(&[]), TimeSplit::default());
     }
 

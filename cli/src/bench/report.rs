@@ -90,8 +90,10 @@ pub fn split_table(summaries: &[ScheduleSummary]) -> Table {
             "idle: waiting for verdicts",
             "idle: nothing queued",
             "finished pass waiting for the event loop",
+            "pass waiting for a tracing thread",
             "other",
             "worker CPU outside tracing (overlaps)",
+            "passes",
         ]);
     for s in summaries {
         let Some(m) = &s.measured else { continue };
@@ -107,8 +109,10 @@ pub fn split_table(summaries: &[ScheduleSummary]) -> Table {
             part(p.idle_verdicts),
             part(p.idle_empty),
             part(p.pass_wait),
+            part(p.start_wait),
             part(p.other),
             format!("{:.2} s", p.other_cpu),
+            format!("{:.0}", p.passes),
         ]);
     }
     t

@@ -102,6 +102,14 @@ pub struct WorkerFrameStats {
     /// neither busy nor idle time).
     #[serde(default)]
     pub pass_wait_seconds: f64,
+    /// Seconds passes handed to the tracing pool waited for a tracing thread to start them
+    /// (part of neither busy nor idle time; on a machine with fewer cores than busy threads,
+    /// the operating system's wake-up of the thread).
+    #[serde(default)]
+    pub pass_start_wait_seconds: f64,
+    /// Passes the worker ran in the frame.
+    #[serde(default)]
+    pub passes: u64,
     /// Peak resident memory of the process, bytes.
     pub peak_rss_bytes: u64,
 }
@@ -154,6 +162,8 @@ impl WorkerFrameStats {
         self.idle_verdicts_seconds += o.idle_verdicts_seconds;
         self.idle_empty_seconds += o.idle_empty_seconds;
         self.pass_wait_seconds += o.pass_wait_seconds;
+        self.pass_start_wait_seconds += o.pass_start_wait_seconds;
+        self.passes += o.passes;
         self.frame_seconds += o.frame_seconds;
         self.idle_fraction =
             (1.0 - self.busy_seconds / self.frame_seconds.max(1e-9)).clamp(0.0, 1.0);

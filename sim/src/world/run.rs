@@ -76,6 +76,8 @@ pub struct Outcome {
     pub prefetches_wasted: u64,
     /// Ray segments traced, in every pass that finished.
     pub segments: u64,
+    /// Passes every worker started.
+    pub passes: u64,
     /// Bytes of peer bundles sent.
     pub peer_bytes: u64,
     /// Rays sent to another worker, as the workers' frame reports count them.

@@ -248,14 +248,17 @@ impl World<'_> {
                 let Some(w) = self.workers.get_mut(node).and_then(Option::as_mut) else {
                     return;
                 };
-                let run = w.run_pass(now, &job_id, work, &cost, &mut self.storage, measure);
-                // Its loads on the node's line, then its computing on a core.
-                let loaded_at = now + run.load_time;
+                // A tracing thread takes it up, then its loads go on the node's line, then
+                // its computing on a core.
+                let start = now + cost.pass_start;
+                let run = w.run_pass(start, &job_id, work, &cost, &mut self.storage, measure);
+                let loaded_at = start + run.load_time;
                 let work = run.took.saturating_sub(run.load_time);
                 if let Some(w) = self.worker_mut(node) {
                     w.pass_until = Some((loaded_at + work, loaded_at));
                 }
                 self.outcome.loads += run.loads;
+                self.outcome.passes += 1;
                 self.compute(node, loaded_at, work, Ev::PassDone { node, job_id, run });
             }
             Action::Prefetch {

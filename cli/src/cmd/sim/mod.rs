@@ -116,6 +116,12 @@ pub struct ModelArgs {
     /// on machines of its own.
     #[arg(long)]
     pub cores: Option<u32>,
+    /// Microseconds a pass waits after the worker hands it over before a tracing thread
+    /// starts it (delay, no core time): 0 for workers with cores of their own; where the
+    /// whole cluster shares a few cores, what `rayfarm bench` measures as "pass waiting for
+    /// a tracing thread" over its passes (about 1,000 with 8 workers on 2 cores).
+    #[arg(long, default_value_t = 0)]
+    pub pass_start_us: u64,
     /// Prices of computing, from `rayfarm sim calibrate` [default: the ones measured on this
     /// project's VM, README "Simulator"].
     #[arg(long)]
@@ -176,6 +182,7 @@ impl ModelArgs {
             compute,
             threads: self.threads.max(1),
             cores: self.cores.map(|c| c.max(1)),
+            pass_start: Duration::from_micros(self.pass_start_us),
         })
     }
 
@@ -213,6 +220,9 @@ impl ModelArgs {
         }
         if let Some(c) = self.cores {
             f.push_str(&format!(" --cores {c}"));
+        }
+        if self.pass_start_us > 0 {
+            f.push_str(&format!(" --pass-start-us {}", self.pass_start_us));
         }
         if let Some(p) = &self.cost {
             f.push_str(&format!(" --cost {}", p.display()));

@@ -13,8 +13,9 @@ use crate::units;
 pub(super) fn print_row(schedule: Schedule, workers: usize, o: &Outcome, wall: f64) {
     let t = o.frame_time.map_or(f64::NAN, |t| t.as_secs_f64());
     eprintln!(
-        "{} at {workers} workers: {wall:.1} s of wall time",
-        schedule_name(schedule)
+        "{} at {workers} workers: {wall:.1} s of wall time, {:.1} passes a worker",
+        schedule_name(schedule),
+        o.passes as f64 / workers.max(1) as f64
     );
     if o.prefetches > 0 {
         eprintln!(
