@@ -729,9 +729,8 @@ impl RunningFrame {
         for &key in self.members.keys() {
             if !self.sent_holders.is_synced(key) {
                 let class = class_of(key, classes);
-                if !wholes.contains_key(&class) {
-                    let whole = self.whole_view(class, classes);
-                    wholes.insert(class, whole);
+                if let std::collections::btree_map::Entry::Vacant(e) = wholes.entry(class) {
+                    e.insert(self.whole_view(class, classes));
                 }
             }
         }
