@@ -24,6 +24,7 @@ mod tests {
                 holders: vec![DomainHolders {
                     domain: 3,
                     workers: vec![2],
+                    lost: vec![5],
                 }],
                 next: vec![4],
                 holders_delta: true,

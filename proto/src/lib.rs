@@ -9,5 +9,6 @@ include!(concat!(env!("OUT_DIR"), "/rayfarm.v1.rs"));
 
 /// Version of the worker and peer protocols; a peer of another version is refused. 4: holders
 /// named by worker key (`DomainHolders.workers`), demand-driven tasks (`ShareTasks`,
-/// `TasksShared`, `StartFrame.hybrid_rounds`).
-pub const PROTOCOL_VERSION: u32 = 4;
+/// `TasksShared`, `StartFrame.hybrid_rounds`). 5: a holders delta names each changed domain's
+/// gained and lost keys (`DomainHolders.workers`, `DomainHolders.lost`), not its whole list.
+pub const PROTOCOL_VERSION: u32 = 5;

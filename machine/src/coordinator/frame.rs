@@ -8,7 +8,7 @@ use std::collections::{BTreeMap, BTreeSet};
 
 use super::accusations::Accusations;
 use super::grants::Grants;
-use super::holders::{HolderMap, SentHolders};
+use super::holders::{HolderChange, HolderMap, SentHolders, class_of, view, view_classes};
 use super::tasks::{Direction, TASK_RAYS, TaskDirections};
 use crate::Time;
 
@@ -206,6 +206,9 @@ pub struct RunningFrame {
     grants: Grants,
     /// The holders the members were last told, so a round sends only what changed.
     sent_holders: SentHolders,
+    /// View classes of the holders' deltas (`holders::view`), fixed at the first asynchronous
+    /// round from the members then.
+    view_classes: Option<u32>,
     /// Tile results refused as impossible (each dropped its sender).
     pub refused_results: u64,
     /// The job's samples as subframes (one for a one-pass job), and the one being rendered:
@@ -275,6 +278,7 @@ impl RunningFrame {
             accusations: Accusations::default(),
             grants: Grants::new(tiles),
             sent_holders: SentHolders::default(),
+            view_classes: None,
             refused_results: 0,
             subframes,
             subframe: 0,
@@ -388,6 +392,7 @@ impl RunningFrame {
             .map(|d| proto::DomainHolders {
                 domain: d,
                 workers: vec![owner(d)],
+                lost: Vec::new(),
             })
             .collect();
         // Every member gets the whole map; no asynchronous round follows these schedules'
@@ -705,21 +710,42 @@ impl RunningFrame {
         self.planned_loads += loads;
         let holder_changes = self.index.take_holder_changes();
         let members = &self.members;
+        let was_in_step = self.sent_holders.in_step();
         let changes = self
             .sent_holders
             .update_from_index(holder_changes, || rounds::current_holders(members));
-        // Every holder in the map is named in `Grants`: those of changed domains here, the
-        // others when the map that first listed them was sent.
-        let delta = self.holders(changes);
-        let whole = if self.members.keys().all(|&k| self.sent_holders.is_synced(k)) {
-            Vec::new()
-        } else {
-            self.holders(self.sent_holders.sent().clone())
+        if !was_in_step {
+            // The map before was another kind's (a barrier round's, the owner map's): its
+            // lists were whole, not views, so every member starts from the whole view.
+            self.sent_holders.synced_only(std::iter::empty());
+        }
+        let classes = *self
+            .view_classes
+            .get_or_insert_with(|| view_classes(self.members.len()));
+        // Every holder in the map is named in `Grants`: those a domain gained here, the others
+        // when the map that first listed them was sent.
+        let deltas = self.holder_changes(&changes, classes);
+        let mut wholes: BTreeMap<u32, Vec<proto::DomainHolders>> = BTreeMap::new();
+        for &key in self.members.keys() {
+            if !self.sent_holders.is_synced(key) {
+                let class = class_of(key, classes);
+                if let std::collections::btree_map::Entry::Vacant(e) = wholes.entry(class) {
+                    e.insert(self.whole_view(class, classes));
+                }
+            }
+        }
+        let lines = |key: u32, synced: bool| {
+            let class = class_of(key, classes);
+            if synced {
+                &deltas[class as usize]
+            } else {
+                &wholes[&class]
+            }
         };
         debug!(
             round = self.round,
             planned = changed.len(),
-            changed_domains = delta.len(),
+            changed_domains = changes.len(),
             "dry workers planned"
         );
         let next = self.next_domains(&changed);
@@ -728,19 +754,19 @@ impl RunningFrame {
             .zip(next)
             .map(|(p, next)| {
                 let synced = self.sent_holders.is_synced(p.worker.0);
-                let holders = if synced { &delta } else { &whole };
-                self.plan_message(p, holders, next, synced)
+                self.plan_message(p, lines(p.worker.0, synced), next, synced)
             })
             .collect();
         let planned: BTreeSet<u32> = changed.iter().map(|p| p.worker.0).collect();
         for &key in self.members.keys().filter(|k| !planned.contains(k)) {
             let synced = self.sent_holders.is_synced(key);
-            if synced && delta.is_empty() {
+            let holders = lines(key, synced);
+            if synced && holders.is_empty() {
                 continue;
             }
             let body = Body::Holders(proto::Holders {
                 job_id: self.frame_id(),
-                holders: if synced { delta.clone() } else { whole.clone() },
+                holders: holders.clone(),
                 delta: synced,
             });
             out.push((key, msg(body)));
@@ -787,6 +813,66 @@ impl RunningFrame {
                     .into_iter()
                     .filter(|k| self.members.contains_key(k))
                     .collect(),
+                lost: Vec::new(),
+            })
+            .collect()
+    }
+
+    /// The deltas the members get, by view class (`holders::view`): each changed domain's
+    /// keys gained and lost in that class's view, the classes' lines found once for every
+    /// class. Every key gained is recorded as a holder (`Grants`); one no longer a member is
+    /// left out (a lost member's domains are listed with it as lost, and the workers forgot it
+    /// already).
+    fn holder_changes(
+        &mut self,
+        changes: &[HolderChange],
+        classes: u32,
+    ) -> Vec<Vec<proto::DomainHolders>> {
+        for c in changes {
+            for k in c.whole().gained {
+                if self.members.contains_key(&k) {
+                    self.grants.name_holder(k);
+                }
+            }
+        }
+        let members = &self.members;
+        let line = |domain: u32, l: &super::holders::ViewChange| proto::DomainHolders {
+            domain,
+            workers: l
+                .gained
+                .iter()
+                .copied()
+                .filter(|k| members.contains_key(k))
+                .collect(),
+            lost: l.lost.clone(),
+        };
+        let mut by_class: Vec<Vec<proto::DomainHolders>> = vec![Vec::new(); classes as usize];
+        for c in changes {
+            let (rest, own) = c.lines(classes);
+            let rest = rest.map(|l| line(c.domain, &l));
+            for (class, lines) in by_class.iter_mut().enumerate() {
+                match own.get(&(class as u32)) {
+                    Some(Some(l)) => lines.push(line(c.domain, l)),
+                    Some(None) => {}
+                    None => lines.extend(rest.clone()),
+                }
+            }
+        }
+        by_class
+    }
+
+    /// The last map sent as a member of view `class` sees it, whole.
+    fn whole_view(&self, class: u32, classes: u32) -> Vec<proto::DomainHolders> {
+        self.sent_holders
+            .sent()
+            .iter()
+            .map(|(&domain, keys)| proto::DomainHolders {
+                domain,
+                workers: view(keys, class, classes)
+                    .into_iter()
+                    .filter(|k| self.members.contains_key(k))
+                    .collect(),
+                lost: Vec::new(),
             })
             .collect()
     }

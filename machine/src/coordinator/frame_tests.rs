@@ -433,3 +433,34 @@ fn hybrid_whose_owned_domains_do_not_fit_the_caches_plans_rounds_instead_of_owne
             .all(|(_, m)| !matches!(m.body, Some(Body::RoundPlan(_))))
     );
 }
+
+#[test]
+fn a_hot_domains_change_is_news_to_the_view_classes_of_the_keys_it_gained_and_lost() {
+    let (mut f, _) = started(Schedule::Dynamic, Rounds::Async, 256);
+    let classes = view_classes(f.members.len());
+    assert_eq!(classes, 4);
+    // Domain 1 is held by 200 members (every class) and gains 203 and loses 4; domain 2,
+    // held by member 5 alone, gains member 6: a short list, news to every class.
+    let hot: Vec<u32> = (0..200).collect();
+    let mut now: Vec<u32> = hot.iter().copied().filter(|&k| k != 4).collect();
+    now.push(203);
+    let changes = [
+        HolderChange::between(1, Some(&hot), &now).unwrap(),
+        HolderChange::between(2, Some(&vec![5]), &[5, 6]).unwrap(),
+    ];
+    let deltas = f.holder_changes(&changes, classes);
+    let line = |domain: u32, gained: &[u32], lost: &[u32]| proto::DomainHolders {
+        domain,
+        workers: gained.to_vec(),
+        lost: lost.to_vec(),
+    };
+    // Class 0 loses its 4 and sees every holder of domain 2 (it has none of its own).
+    assert_eq!(deltas[0], [line(1, &[], &[4]), line(2, &[6], &[])]);
+    assert!(
+        deltas[1].is_empty(),
+        "class 1 sees its own 5 before and after"
+    );
+    // Class 2 saw every holder of domain 2 and now sees its own 6 only.
+    assert_eq!(deltas[2], [line(2, &[6], &[5])]);
+    assert_eq!(deltas[3], [line(1, &[203], &[]), line(2, &[6], &[])]);
+}

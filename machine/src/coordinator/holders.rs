@@ -16,6 +16,13 @@
 //! changed, not a rebuild and a comparison of the whole map (at 1,024 workers that was about a
 //! tenth of a simulated frame, README "Simulator").
 //!
+//! A delta names each changed domain's gained and lost keys (`HolderChange`), not its whole
+//! list: under the dynamic schedule every dry member's free cache slots get copies of the
+//! hottest domains, so a hot domain's holders are hundreds of keys long and change by one or
+//! two every round. Sending the whole list of every changed domain to every member cost the
+//! coordinator 7.2 GB of queued messages at 4,096 workers x 32,768 domains (heaptrack, README
+//! "Simulator"); what changed is a few keys a domain.
+//!
 //! The one map kept is the last one sent, with the members known to hold it; a member that
 //! joined, or that missed a map (a barrier round plans only some members), gets the whole
 //! map once. Control streams are ordered, so a member that got every message since holds
@@ -26,6 +33,124 @@ use std::collections::{BTreeMap, BTreeSet};
 
 /// Holders by domain, as member keys.
 pub type HolderMap = BTreeMap<u32, Vec<u32>>;
+
+/// Members per view class: how many members share one view of the holders (see
+/// [`view`]). Up to twice this many members, there is one class and every member sees every
+/// holder.
+pub const MEMBERS_PER_CLASS: usize = 64;
+
+/// View classes for a frame of `members` members.
+pub fn view_classes(members: usize) -> u32 {
+    (members / MEMBERS_PER_CLASS).max(1) as u32
+}
+
+/// The class of member `key` among `classes` view classes.
+pub fn class_of(key: u32, classes: u32) -> u32 {
+    key % classes.max(1)
+}
+
+/// What a member of view class `class` is told of a domain held by `holders` (ascending):
+/// the holders of its own class if there are any, else every holder. A member routes a ray
+/// to one holder of the domain anyway (by pixel), so it needs no more than a few of them;
+/// members of different classes send to different holders, so the rays still spread over all
+/// of them. Under the dynamic schedule a hot domain has hundreds of holders and gains or loses
+/// some every round; with views only the members of the classes of those holders hear of it
+/// (about `MEMBERS_PER_CLASS` members, not every member): at 4,096 workers the broadcast of
+/// every change to everyone outgrew the coordinator's link (README "Simulator").
+pub fn view(holders: &[u32], class: u32, classes: u32) -> Vec<u32> {
+    let own: Vec<u32> = holders
+        .iter()
+        .copied()
+        .filter(|&k| class_of(k, classes) == class)
+        .collect();
+    if own.is_empty() {
+        holders.to_vec()
+    } else {
+        own
+    }
+}
+
+/// One line of a delta: the keys a view gained and lost, each ascending.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct ViewChange {
+    pub gained: Vec<u32>,
+    pub lost: Vec<u32>,
+}
+
+impl ViewChange {
+    /// What turns `before` into `now` (both ascending), or `None` if they are the same.
+    fn between(before: &[u32], now: &[u32]) -> Option<ViewChange> {
+        let gained: Vec<u32> = now
+            .iter()
+            .copied()
+            .filter(|k| before.binary_search(k).is_err())
+            .collect();
+        let lost: Vec<u32> = before
+            .iter()
+            .copied()
+            .filter(|k| now.binary_search(k).is_err())
+            .collect();
+        (!gained.is_empty() || !lost.is_empty()).then_some(ViewChange { gained, lost })
+    }
+}
+
+/// How one domain's holders changed between two maps: its holders before and now, each
+/// ascending.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct HolderChange {
+    pub domain: u32,
+    pub before: Vec<u32>,
+    pub now: Vec<u32>,
+}
+
+impl HolderChange {
+    /// What turns `before` (none: nobody held it) into `now` for `domain`, or `None` if they
+    /// hold the same keys.
+    pub fn between(domain: u32, before: Option<&Vec<u32>>, now: &[u32]) -> Option<HolderChange> {
+        let mut old: Vec<u32> = before.cloned().unwrap_or_default();
+        let mut new: Vec<u32> = now.to_vec();
+        old.sort_unstable();
+        new.sort_unstable();
+        (old != new).then_some(HolderChange {
+            domain,
+            before: old,
+            now: new,
+        })
+    }
+
+    /// The whole change: what a member that sees every holder is told.
+    pub fn whole(&self) -> ViewChange {
+        ViewChange::between(&self.before, &self.now).unwrap_or_default()
+    }
+
+    /// What each view class is told of this change among `classes`: `(rest, own)`, where a
+    /// class in `own` is told its line there (`None`: its view did not change) and every
+    /// other class is told `rest` (no holder of it before or now, so it sees every holder).
+    /// Costs the holders before and now, not the classes.
+    pub fn lines(&self, classes: u32) -> (Option<ViewChange>, BTreeMap<u32, Option<ViewChange>>) {
+        let rest = ViewChange::between(&self.before, &self.now);
+        let mut split: BTreeMap<u32, (Vec<u32>, Vec<u32>)> = BTreeMap::new();
+        for &k in &self.before {
+            split.entry(class_of(k, classes)).or_default().0.push(k);
+        }
+        for &k in &self.now {
+            split.entry(class_of(k, classes)).or_default().1.push(k);
+        }
+        let own = split
+            .into_iter()
+            .map(|(class, (before, now))| {
+                let before = if before.is_empty() {
+                    &self.before
+                } else {
+                    &before
+                };
+                let now = if now.is_empty() { &self.now } else { &now };
+                (class, ViewChange::between(before, now))
+            })
+            .collect();
+        (rest, own)
+    }
+}
 
 /// See the module documentation.
 #[derive(Clone, Debug, Default)]
@@ -50,22 +175,21 @@ impl SentHolders {
         self.synced.remove(&key);
     }
 
-    /// `map` becomes the last map sent; returns the domains whose holders changed since the
-    /// one before, a domain no one holds any more listed with none.
-    pub fn update(&mut self, map: HolderMap) -> Vec<(u32, Vec<u32>)> {
+    /// `map` becomes the last map sent; returns how the holders of each domain changed since
+    /// the one before, by domain (a domain no one holds any more is listed with none now).
+    pub fn update(&mut self, map: HolderMap) -> Vec<HolderChange> {
         self.in_step = false;
-        let mut delta: Vec<(u32, Vec<u32>)> = map
+        let mut delta: Vec<HolderChange> = map
             .iter()
-            .filter(|(d, keys)| self.sent.get(d) != Some(keys))
-            .map(|(&d, keys)| (d, keys.clone()))
+            .filter_map(|(&d, keys)| HolderChange::between(d, self.sent.get(&d), keys))
             .collect();
         delta.extend(
             self.sent
-                .keys()
-                .filter(|d| !map.contains_key(d))
-                .map(|&d| (d, Vec::new())),
+                .iter()
+                .filter(|(d, _)| !map.contains_key(d))
+                .filter_map(|(&d, keys)| HolderChange::between(d, Some(keys), &[])),
         );
-        delta.sort_unstable_by_key(|&(d, _)| d);
+        delta.sort_unstable_by_key(|c| c.domain);
         self.sent = map;
         delta
     }
@@ -79,7 +203,7 @@ impl SentHolders {
         &mut self,
         changes: Vec<(u32, Vec<u32>)>,
         whole: impl FnOnce() -> HolderMap,
-    ) -> Vec<(u32, Vec<u32>)> {
+    ) -> Vec<HolderChange> {
         if !self.in_step {
             let delta = self.update(whole());
             self.in_step = true;
@@ -87,22 +211,24 @@ impl SentHolders {
         }
         let mut delta = Vec::with_capacity(changes.len());
         for (d, keys) in changes {
-            let unchanged = match self.sent.get(&d) {
-                Some(sent) => *sent == keys,
-                None => keys.is_empty(),
-            };
-            if unchanged {
+            let Some(change) = HolderChange::between(d, self.sent.get(&d), &keys) else {
                 continue;
-            }
+            };
             if keys.is_empty() {
                 self.sent.remove(&d);
             } else {
-                self.sent.insert(d, keys.clone());
+                self.sent.insert(d, keys);
             }
-            delta.push((d, keys));
+            delta.push(change);
         }
-        delta.sort_unstable_by_key(|&(d, _)| d);
+        delta.sort_unstable_by_key(|c| c.domain);
         delta
+    }
+
+    /// Whether the last map sent is the map of every member's plan that the index's changes
+    /// apply to (else the next [`SentHolders::update_from_index`] starts from the whole map).
+    pub fn in_step(&self) -> bool {
+        self.in_step
     }
 
     /// The last map sent.
@@ -134,19 +260,50 @@ mod tests {
         list.iter().map(|&(d, ks)| (d, ks.to_vec())).collect()
     }
 
+    /// A change as (domain, gained, lost).
+    type Said = (u32, Vec<u32>, Vec<u32>);
+
+    fn change(domain: u32, gained: &[u32], lost: &[u32]) -> Said {
+        (domain, gained.to_vec(), lost.to_vec())
+    }
+
+    fn said(changes: Vec<HolderChange>) -> Vec<Said> {
+        changes
+            .into_iter()
+            .map(|c| {
+                let w = c.whole();
+                (c.domain, w.gained, w.lost)
+            })
+            .collect()
+    }
+
     #[test]
-    fn a_delta_lists_changed_and_dropped_domains_only() {
+    fn a_delta_lists_what_changed_domains_gained_and_lost_only() {
         let mut s = SentHolders::default();
         let first = s.update(map(&[(0, &[1]), (1, &[2]), (2, &[3])]));
         assert_eq!(first.len(), 3, "everything is new");
-        let next = s.update(map(&[(0, &[1]), (1, &[2, 4]), (3, &[5])]));
+        let next = said(s.update(map(&[(0, &[1]), (1, &[2, 4]), (3, &[5])])));
         assert_eq!(
             next,
-            vec![(1, vec![2, 4]), (2, vec![]), (3, vec![5])],
+            vec![
+                change(1, &[4], &[]),
+                change(2, &[], &[3]),
+                change(3, &[5], &[])
+            ],
             "0 unchanged, 1 gained a holder, 2 has none now, 3 is new"
         );
         assert_eq!(s.sent(), &map(&[(0, &[1]), (1, &[2, 4]), (3, &[5])]));
         assert!(s.update(s.sent().clone()).is_empty());
+        // A long list that gains one key and loses another is two keys on the wire.
+        let hot: Vec<u32> = (0..300).collect();
+        s.update([(9, hot.clone())].into_iter().collect());
+        let mut moved = hot.clone();
+        moved.retain(|&k| k != 17);
+        moved.push(300);
+        assert_eq!(
+            said(s.update([(9, moved)].into_iter().collect())),
+            vec![change(9, &[300], &[17])]
+        );
     }
 
     #[test]
@@ -171,9 +328,104 @@ mod tests {
         // A map sent from elsewhere (a barrier round's) puts it out of step again.
         kept.update(map(&[(7, &[7])]));
         assert_eq!(
-            kept.update_from_index(Vec::new(), || next.clone()),
-            vec![(0, vec![1]), (1, vec![2, 4]), (3, vec![5]), (7, vec![])]
+            said(kept.update_from_index(Vec::new(), || next.clone())),
+            vec![
+                change(0, &[1], &[]),
+                change(1, &[2, 4], &[]),
+                change(3, &[5], &[]),
+                change(7, &[], &[7])
+            ]
         );
+    }
+
+    /// Applies one line to `held`'s list of `domain` as a worker does: lost keys out, gained
+    /// keys in.
+    fn apply(held: &mut HolderMap, domain: u32, line: &ViewChange) {
+        let keys = held.entry(domain).or_default();
+        keys.retain(|k| !line.lost.contains(k));
+        keys.extend(&line.gained);
+        keys.sort_unstable();
+        if keys.is_empty() {
+            held.remove(&domain);
+        }
+    }
+
+    /// A member of `class`'s view of the whole map.
+    fn view_of(map: &HolderMap, class: u32, classes: u32) -> HolderMap {
+        map.iter()
+            .map(|(&d, keys)| (d, view(keys, class, classes)))
+            .filter(|(_, keys)| !keys.is_empty())
+            .collect()
+    }
+
+    #[test]
+    fn deltas_applied_in_turn_give_each_classs_view_of_each_map_sent() {
+        let classes = 3;
+        let mut s = SentHolders::default();
+        // What a member of each class holds, and a member that sees every holder.
+        let mut held = vec![HolderMap::new(); classes as usize];
+        let mut all = HolderMap::new();
+        let mut seed = 7u64;
+        let mut draw = move || {
+            seed = seed
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            seed >> 33
+        };
+        for _ in 0..50 {
+            let mut next = HolderMap::new();
+            for d in 0..20u32 {
+                let keys: Vec<u32> = (0..12u32).filter(|_| draw() % 3 == 0).collect();
+                if !keys.is_empty() {
+                    next.insert(d, keys);
+                }
+            }
+            for c in s.update(next.clone()) {
+                apply(&mut all, c.domain, &c.whole());
+                let (rest, own) = c.lines(classes);
+                for class in 0..classes {
+                    let line = own.get(&class).unwrap_or(&rest);
+                    if let Some(line) = line {
+                        apply(&mut held[class as usize], c.domain, line);
+                    }
+                }
+            }
+            assert_eq!(all, next);
+            for class in 0..classes {
+                assert_eq!(held[class as usize], view_of(&next, class, classes));
+            }
+        }
+    }
+
+    #[test]
+    fn a_view_is_a_members_class_of_holders_or_every_holder() {
+        assert_eq!(view_classes(4), 1);
+        assert_eq!(view_classes(4_096), 64);
+        let holders = [1, 2, 5, 9, 130];
+        assert_eq!(view(&holders, 1, 64), [1]);
+        assert_eq!(view(&holders, 2, 64), [2, 130], "130 is of class 2 too");
+        assert_eq!(view(&holders, 3, 64), holders, "no holder of class 3");
+        assert_eq!(view(&holders, 0, 1), holders, "one class sees everything");
+        // A hot domain gaining a holder of class 7 is news to class 7 only.
+        let before: Vec<u32> = (0..300).collect();
+        let mut now = before.clone();
+        now.push(64 * 5 + 7);
+        let c = HolderChange::between(1, Some(&before), &now).unwrap();
+        let (rest, own) = c.lines(64);
+        assert_eq!(
+            own[&7],
+            Some(ViewChange {
+                gained: vec![327],
+                lost: vec![]
+            })
+        );
+        assert_eq!(own.values().filter(|l| l.is_some()).count(), 1);
+        assert_eq!(
+            own.len(),
+            64,
+            "every class holds it, so `rest` goes to none"
+        );
+        assert!(rest.is_some());
     }
 
     #[test]

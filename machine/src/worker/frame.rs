@@ -20,7 +20,7 @@ use rayfarm_core::tile::TileGrid;
 use rayfarm_core::wire::{BatchLimits, VerdictRecord};
 use rayfarm_proto as proto;
 
-use super::plan::{Mode, Plan};
+use super::plan::{HolderLine, Mode, Plan};
 use super::queues::{DomainQueues, QueueError, RaySpill};
 use super::speculation::Speculation;
 use crate::Time;
@@ -240,7 +240,7 @@ impl<S: RaySpill> Frame<S> {
         &mut self,
         round: u64,
         work_on: impl IntoIterator<Item = u32>,
-        holders: impl IntoIterator<Item = (u32, Vec<u32>)>,
+        holders: impl IntoIterator<Item = HolderLine>,
         delta: bool,
     ) {
         self.plan.set_round(round, work_on, holders, delta);
@@ -305,7 +305,7 @@ impl<S: RaySpill> Frame<S> {
 
     /// Adopts new holders of the domains (another worker's plan changed; `delta` as
     /// [`Plan::set_holders`]); the rays that leave for them are [`Frame::take_for_peers`]'s.
-    pub fn set_holders(&mut self, holders: impl IntoIterator<Item = (u32, Vec<u32>)>, delta: bool) {
+    pub fn set_holders(&mut self, holders: impl IntoIterator<Item = HolderLine>, delta: bool) {
         self.plan.set_holders(holders, delta);
     }
 

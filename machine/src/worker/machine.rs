@@ -17,7 +17,7 @@ use tracing::{debug, error, info, info_span, warn};
 use super::early::EarlyBundles;
 use super::events::{Action, Event, OpenedScene, PassFailed, PassOutput, PassWork};
 use super::frame::{Frame, FrameParts};
-use super::plan::Mode;
+use super::plan::{HolderLine, Mode};
 use super::queues::{QueueError, RaySpill};
 use crate::Time;
 
@@ -315,7 +315,7 @@ impl<S: RaySpill> Worker<S> {
         frame.set_plan(
             p.round,
             p.work_on.iter().copied(),
-            p.holders.into_iter().map(|h| (h.domain, h.workers)),
+            p.holders.into_iter().map(line),
             p.holders_delta,
         );
         // The cache as the machine knows it: mapped at the last pass's end, less what this plan
@@ -342,10 +342,7 @@ impl<S: RaySpill> Worker<S> {
         let Some(frame) = self.frame.as_mut().filter(|f| f.job_id == h.job_id) else {
             return;
         };
-        frame.set_holders(
-            h.holders.into_iter().map(|h| (h.domain, h.workers)),
-            h.delta,
-        );
+        frame.set_holders(h.holders.into_iter().map(line), h.delta);
         self.send_to_holders();
     }
 
@@ -698,5 +695,14 @@ impl<S: RaySpill> Worker<S> {
                 batches: b.messages,
             });
         }
+    }
+}
+
+/// A holders message's line for one domain as the plan takes it.
+fn line(h: proto::DomainHolders) -> HolderLine {
+    HolderLine {
+        domain: h.domain,
+        workers: h.workers,
+        lost: h.lost,
     }
 }

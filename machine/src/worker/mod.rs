@@ -19,7 +19,7 @@ pub mod speculation;
 
 pub use events::{Action, Event, OpenedScene, PassFailed, PassOutput, PassWork, Payload};
 pub use machine::{Worker, WorkerConfig};
-pub use plan::{Destination, Mode, Plan, Sorted};
+pub use plan::{Destination, HolderLine, Mode, Plan, Sorted};
 pub use queues::{DomainQueues, MemorySpill, QueueError, RaySpill};
 pub use speculation::Speculation;
 

@@ -51,6 +51,16 @@ pub struct Sorted {
     pub dropped: u64,
 }
 
+/// One domain's line of a holders message (`proto::DomainHolders`): in a whole map, the keys
+/// holding it (`workers`); in a delta, the keys that began to hold it (`workers`) and those
+/// that stopped (`lost`), so a hot domain's long list travels once, not every round.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct HolderLine {
+    pub domain: u32,
+    pub workers: Vec<u32>,
+    pub lost: Vec<u32>,
+}
+
 /// Former holders remembered per domain.
 const FORMER_HOLDERS: usize = 2;
 
@@ -173,7 +183,7 @@ impl Plan {
         &mut self,
         round: u64,
         work_on: impl IntoIterator<Item = u32>,
-        holders: impl IntoIterator<Item = (u32, Vec<u32>)>,
+        holders: impl IntoIterator<Item = HolderLine>,
         delta: bool,
     ) {
         self.round = round;
@@ -182,19 +192,28 @@ impl Plan {
     }
 
     /// Adopts new holders of the domains (worker keys), keeping this worker's own plan; this
-    /// worker is left out. `delta`: only the domains listed changed (one listed with no
-    /// holder left has none now), the others keep theirs; otherwise the list is the whole map.
-    /// Deltas keep the coordinator's broadcast of a round to what changed, where the whole
-    /// map to every member grew with workers x held domains (README "Simulator").
-    pub fn set_holders(&mut self, holders: impl IntoIterator<Item = (u32, Vec<u32>)>, delta: bool) {
-        let mut before = if delta {
-            BTreeMap::new()
-        } else {
-            std::mem::take(&mut self.holders)
-        };
-        for (d, mut ws) in holders {
+    /// worker is left out. `delta`: only the domains listed changed, each by the keys it gained
+    /// and lost (a gained key goes in at its place in key order, the order the coordinator's
+    /// lists have, so the list is the coordinator's and a ray's holder the same as from a whole
+    /// map); the others keep theirs. Otherwise the list is the whole map. Deltas keep the
+    /// coordinator's broadcast of a round to what changed, where whole lists to every member
+    /// grew with workers x holders (README "Simulator").
+    pub fn set_holders(&mut self, holders: impl IntoIterator<Item = HolderLine>, delta: bool) {
+        if delta {
+            for line in holders {
+                self.change_holders(line);
+            }
+            return;
+        }
+        let mut before = std::mem::take(&mut self.holders);
+        for HolderLine {
+            domain: d,
+            workers: mut ws,
+            ..
+        } in holders
+        {
             ws.retain(|w| *w != self.me);
-            if let Some(old) = before.remove(&d).or_else(|| self.holders.remove(&d)) {
+            if let Some(old) = before.remove(&d) {
                 self.note_former(d, old.into_iter().filter(|w| !ws.contains(w)));
             }
             if !ws.is_empty() {
@@ -205,6 +224,29 @@ impl Plan {
         for (d, old) in before {
             self.note_former(d, old);
         }
+    }
+
+    /// Applies one domain's line of a delta: its lost keys out, its gained keys in.
+    fn change_holders(&mut self, line: HolderLine) {
+        let HolderLine {
+            domain: d,
+            workers: gained,
+            mut lost,
+        } = line;
+        lost.sort_unstable();
+        let mut ws = self.holders.remove(&d).unwrap_or_default();
+        let (gone, mut kept): (Vec<u32>, Vec<u32>) =
+            ws.drain(..).partition(|w| lost.binary_search(w).is_ok());
+        for g in gained {
+            if g != self.me && !kept.contains(&g) {
+                let at = kept.partition_point(|&k| k < g);
+                kept.insert(at, g);
+            }
+        }
+        if !kept.is_empty() {
+            self.holders.insert(d, kept);
+        }
+        self.note_former(d, gone);
     }
 
     /// Records which domains are mapped here now.
@@ -404,9 +446,24 @@ mod tests {
             .expect("a known worker") as u32
     }
 
-    fn holders(list: &[(u32, &[&str])]) -> Vec<(u32, Vec<u32>)> {
+    fn holders(list: &[(u32, &[&str])]) -> Vec<HolderLine> {
         list.iter()
-            .map(|(d, ws)| (*d, ws.iter().map(|w| key(w)).collect()))
+            .map(|(d, ws)| HolderLine {
+                domain: *d,
+                workers: ws.iter().map(|w| key(w)).collect(),
+                lost: Vec::new(),
+            })
+            .collect()
+    }
+
+    /// A delta: each domain's gained and lost workers.
+    fn delta(list: &[(u32, &[&str], &[&str])]) -> Vec<HolderLine> {
+        list.iter()
+            .map(|(d, gained, lost)| HolderLine {
+                domain: *d,
+                workers: gained.iter().map(|w| key(w)).collect(),
+                lost: lost.iter().map(|w| key(w)).collect(),
+            })
             .collect()
     }
 
@@ -468,10 +525,14 @@ mod tests {
             holders(&[(0, &["a:1"]), (1, &["b:1"]), (2, &["c:1"])]),
             false,
         );
-        // Domain 0 moves to d, domain 1 has no holder now (listed empty, or only this worker),
-        // domain 2 is not listed and stays c's; domain 3 is new.
+        // Domain 0 moves to d, domain 1 has no holder now but this worker, domain 2 is not
+        // listed and stays c's; domain 3 is new.
         plan.set_holders(
-            holders(&[(0, &["d:1"]), (1, &["me:1"]), (3, &["a:1", "me:1"])]),
+            delta(&[
+                (0, &["d:1"], &["a:1"]),
+                (1, &["me:1"], &["b:1"]),
+                (3, &["a:1", "me:1"], &[]),
+            ]),
             true,
         );
         let to = |d| plan.destination(&ray(0, 0, d, 0));
@@ -479,8 +540,22 @@ mod tests {
         assert_eq!(to(1), Destination::Local);
         assert_eq!(to(2), Destination::Peer("c:1".into()));
         assert_eq!(to(3), Destination::Peer("a:1".into()));
-        plan.set_holders(holders(&[(2, &[])]), true);
+        plan.set_holders(delta(&[(2, &[], &["c:1"])]), true);
         assert_eq!(plan.held_elsewhere().collect::<Vec<_>>(), [0, 3]);
+        // A long list changes by its gains and losses, each gain at its place in key order,
+        // so a ray's holder is the one the whole list would give.
+        plan.set_holders(delta(&[(3, &["d:1", "b:1"], &[])]), true);
+        plan.set_holders(delta(&[(3, &["c:1"], &["d:1"])]), true);
+        let whole = {
+            let mut p = new_plan(Mode::Dynamic, 1, 4);
+            p.set_holders(holders(&[(3, &["a:1", "b:1", "c:1"])]), false);
+            p
+        };
+        for pixel in 0..6 {
+            let r = ray(0, 0, 3, pixel);
+            assert_eq!(plan.destination(&r), whole.destination(&r));
+        }
+        assert_eq!(plan.holders_of(3), ["a:1", "b:1", "c:1", "d:1"]);
         // A whole map replaces everything.
         plan.set_holders(holders(&[(1, &["b:1"])]), false);
         assert_eq!(plan.held_elsewhere().collect::<Vec<_>>(), [1]);
@@ -506,7 +581,10 @@ mod tests {
         plan.set_round(1, [], holders(&[(0, &["a:1"]), (1, &["b:1"])]), false);
         assert_eq!(plan.holders_of(0), ["a:1"]);
         // Domain 0 moves to c, domain 1 to this worker: their holders before are asked after.
-        plan.set_holders(holders(&[(0, &["c:1"]), (1, &["me:1"])]), true);
+        plan.set_holders(
+            delta(&[(0, &["c:1"], &["a:1"]), (1, &["me:1"], &["b:1"])]),
+            true,
+        );
         assert_eq!(plan.holders_of(0), ["c:1", "a:1"]);
         assert_eq!(plan.holders_of(1), ["b:1"]);
         // A whole map without domain 0: c held it last.

@@ -82,13 +82,22 @@ fn plan(round: u64, work_on: &[u32], holders: &[(u32, &str)]) -> Event<MemorySpi
 /// The frame's workers by key (its roster): this one (`me:1`) is key 0.
 const NAMES: [&str; 6] = ["me:1", "a:1", "b:1", "c:1", "d:1", "gone:1"];
 
+/// A worker's key in [`NAMES`].
+fn key_of(address: &str) -> u32 {
+    NAMES
+        .iter()
+        .position(|n| *n == address)
+        .expect("in the roster") as u32
+}
+
 /// Holders by address, as the coordinator names them: by key.
 fn holders_of(holders: &[(u32, &str)]) -> Vec<proto::DomainHolders> {
     holders
         .iter()
         .map(|&(domain, w)| proto::DomainHolders {
             domain,
-            workers: vec![NAMES.iter().position(|n| *n == w).expect("in the roster") as u32],
+            workers: vec![key_of(w)],
+            lost: Vec::new(),
         })
         .collect()
 }
@@ -191,6 +200,34 @@ fn a_batch_goes_to_the_holder_the_latest_plan_names() {
         "a domain no one holds waits here"
     );
     assert_eq!(w.frame().unwrap().counters.rays_received, 4);
+    // A delta names what changed: domain 1 gains c and loses d; domain 2 gains b.
+    let actions = w.handle(
+        Time(5),
+        control(FromCoordinator::Holders(proto::Holders {
+            job_id: JOB.into(),
+            holders: vec![
+                proto::DomainHolders {
+                    domain: 1,
+                    workers: vec![key_of("c:1")],
+                    lost: vec![key_of("d:1")],
+                },
+                proto::DomainHolders {
+                    domain: 2,
+                    workers: vec![key_of("b:1")],
+                    lost: Vec::new(),
+                },
+            ],
+            delta: true,
+        })),
+    );
+    assert_eq!(
+        rays_sent(&actions)["b:1"],
+        [rays[1]],
+        "the ray waiting for domain 2 leaves"
+    );
+    let sent = rays_sent(&w.handle(Time(6), bundle(JOB, &rays)));
+    assert_eq!(sent["c:1"], [rays[0]]);
+    assert_eq!(sent["b:1"], [rays[1]]);
 }
 
 #[test]
