@@ -219,15 +219,40 @@ impl<'a> Bvh<'a> {
     }
 }
 
+/// Bytes from one `bounds` row of a [`BvhNode`] to the next.
+const ROW_BYTES: u32 = (WIDTH * std::mem::size_of::<f32>()) as u32;
+
+/// Per octant of a ray's direction (bit `a` set if it travels up axis `a`), the byte offsets
+/// into a node's `bounds` of the rows it enters through (x, y, z) and leaves through (x, y,
+/// z): rows 0..3 are minima, 3..6 maxima, and a ray travelling down an axis enters at the
+/// maximum. A table, so a ray's set-up is one load instead of a select per row, and the
+/// kernels add an offset to a node's address instead of scaling a row index per node visit.
+const ROW_OFFSETS: [[u32; 6]; 8] = {
+    let mut table = [[0; 6]; 8];
+    let mut octant = 0;
+    while octant < 8 {
+        let mut a = 0;
+        while a < 3 {
+            let down = if octant >> a & 1 != 0 { 0 } else { 3 };
+            table[octant][a] = (a as u32 + down) * ROW_BYTES;
+            table[octant][3 + a] = (a as u32 + 3 - down) * ROW_BYTES;
+            a += 1;
+        }
+        octant += 1;
+    }
+    table
+};
+
 /// A ray prepared for box and triangle tests.
 #[derive(Clone, Copy, Debug)]
 pub struct TraceRay {
     sheared: ShearedRay,
     inv: [f32; 3],
     origin_inv: [f32; 3],
-    /// Per axis, the `bounds` row the ray enters through (minimum if it travels up the axis).
-    near_row: [usize; 3],
-    far_row: [usize; 3],
+    /// Byte offsets into a node's `bounds` of the rows the ray enters through (per axis),
+    /// then of those it leaves through: [`ROW_OFFSETS`] of its octant, each below
+    /// `6 * ROW_BYTES` (the kernels read node rows at these offsets without a check).
+    rows: [u32; 6],
 }
 
 impl TraceRay {
@@ -245,19 +270,21 @@ impl TraceRay {
         let safe = Vec3A::select(d.abs().cmplt(tiny), tiny.copysign(d), d);
         let inv = Vec3A::ONE / safe;
         let origin_inv = Vec3A::from(origin) * inv;
-        // Rows 0..3 are minima, 3..6 maxima: a ray travelling down an axis enters at the
-        // maximum. Selects from one comparison's bits rather than a branch per axis: rays'
-        // signs are unpredictable.
-        let up = inv.cmpge(Vec3A::ZERO).bitmask();
-        let down = |a: usize| if up >> a & 1 != 0 { 0 } else { 3 };
-        let (d0, d1, d2) = (down(0), down(1), down(2));
+        // The rows from one comparison's bits and a table rather than a branch per axis:
+        // rays' signs are unpredictable.
+        let up = inv.cmpge(Vec3A::ZERO).bitmask() as usize & 7;
         TraceRay {
             sheared: ShearedRay::new(origin, dir),
             inv: inv.to_array(),
             origin_inv: origin_inv.to_array(),
-            near_row: [d0, 1 + d1, 2 + d2],
-            far_row: [3 - d0, 4 - d1, 5 - d2],
+            rows: ROW_OFFSETS[up],
         }
+    }
+
+    /// The `bounds` row index of the ray's entry (`k` 0..3, per axis) or exit (3..6) plane.
+    #[inline(always)]
+    fn row(&self, k: usize) -> usize {
+        (self.rows[k] / ROW_BYTES) as usize
     }
 }
 

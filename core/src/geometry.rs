@@ -105,7 +105,12 @@ pub struct PackedTriangle {
 /// tested with the same arithmetic from both of its triangles.
 #[derive(Clone, Copy, Debug)]
 pub struct ShearedRay {
-    origin: Vec3,
+    /// The origin in the ray's axes: `origin[axes[i]]` for i = 0, 1, 2, permuted once here
+    /// rather than per triangle or per traversal (the subtractions from a vertex are the
+    /// same per coordinate either way).
+    origin: [f32; 3],
+    /// The axes that become x, y and z: a permutation of 0, 1, 2 (made only by
+    /// [`ShearedRay::new`], so the tests may index with them unchecked).
     axes: [usize; 3],
     shear: Vec3,
 }
@@ -127,8 +132,9 @@ impl ShearedRay {
         if d[kz] < 0.0 {
             std::mem::swap(&mut kx, &mut ky);
         }
+        let o = origin.to_array();
         ShearedRay {
-            origin,
+            origin: [o[kx], o[ky], o[kz]],
             axes: [kx, ky, kz],
             shear: Vec3::new(d[kx] / d[kz], d[ky] / d[kz], 1.0 / d[kz]),
         }
@@ -181,13 +187,13 @@ impl PackedTriangle {
     pub fn intersect_t(&self, r: &ShearedRay) -> f32 {
         let [kx, ky, kz] = r.axes;
         let s = r.shear;
-        // Vertices relative to the origin, sheared into the ray's space.
-        let a = Vec3::from(self.v0) - r.origin;
-        let b = Vec3::from(self.v1) - r.origin;
-        let c = Vec3::from(self.v2) - r.origin;
-        let (ax, ay) = (a[kx] - s.x * a[kz], a[ky] - s.y * a[kz]);
-        let (bx, by) = (b[kx] - s.x * b[kz], b[ky] - s.y * b[kz]);
-        let (cx, cy) = (c[kx] - s.x * c[kz], c[ky] - s.y * c[kz]);
+        let o = r.origin;
+        // Vertices relative to the origin in the ray's axes, then sheared into its space.
+        let rel = |v: [f32; 3]| [v[kx] - o[0], v[ky] - o[1], v[kz] - o[2]];
+        let (a, b, c) = (rel(self.v0), rel(self.v1), rel(self.v2));
+        let (ax, ay) = (a[0] - s.x * a[2], a[1] - s.y * a[2]);
+        let (bx, by) = (b[0] - s.x * b[2], b[1] - s.y * b[2]);
+        let (cx, cy) = (c[0] - s.x * c[2], c[1] - s.y * c[2]);
         let mut u = cx * by - cy * bx;
         let mut v = ax * cy - ay * cx;
         let mut w = bx * ay - by * ax;
@@ -206,7 +212,7 @@ impl PackedTriangle {
         if det == 0.0 {
             return f32::INFINITY;
         }
-        let t_scaled = u * (s.z * a[kz]) + v * (s.z * b[kz]) + w * (s.z * c[kz]);
+        let t_scaled = u * (s.z * a[2]) + v * (s.z * b[2]) + w * (s.z * c[2]);
         // Same sign as det means a positive distance.
         if (det > 0.0 && t_scaled <= 0.0) || (det < 0.0 && t_scaled >= 0.0) {
             return f32::INFINITY;
@@ -360,15 +366,17 @@ impl TriangleBlock {
     #[inline(always)]
     pub unsafe fn intersect_sse(&self, r: &ShearedSse, t0: f32, t1: f32) -> ([f32; BLOCK], u32) {
         use std::arch::x86_64::*;
-        let [kx, ky, kz] = r.ray.axes;
-        // SAFETY: SSE2 is part of x86-64; the loads read this block's aligned arrays.
+        let [kx, ky, kz] = r.axis_bytes;
+        // SAFETY: SSE2 is part of x86-64; the loads read this block's aligned arrays, at the
+        // byte offsets of axes 0..3 (`ShearedSse::new`).
         unsafe {
             let rel = |i: usize| {
-                let p = &self.v[i];
+                let p = self.v[i].as_ptr().cast::<u8>();
+                let axis = |at: usize| _mm_load_ps(p.add(at).cast::<f32>());
                 (
-                    _mm_sub_ps(_mm_load_ps(p[kx].as_ptr()), r.origin[0]),
-                    _mm_sub_ps(_mm_load_ps(p[ky].as_ptr()), r.origin[1]),
-                    _mm_sub_ps(_mm_load_ps(p[kz].as_ptr()), r.origin[2]),
+                    _mm_sub_ps(axis(kx), r.origin[0]),
+                    _mm_sub_ps(axis(ky), r.origin[1]),
+                    _mm_sub_ps(axis(kz), r.origin[2]),
                 )
             };
             let (a, b, c) = (rel(0), rel(1), rel(2));
@@ -445,6 +453,9 @@ impl TriangleBlock {
 #[derive(Clone, Copy)]
 pub struct ShearedSse {
     ray: ShearedRay,
+    /// Byte offsets of the ray's axes' rows in a block's `v[vertex]` (`axes[i] * 16`), so a
+    /// block test adds them to its address unscaled.
+    axis_bytes: [usize; 3],
     origin: [std::arch::x86_64::__m128; 3],
     sx: std::arch::x86_64::__m128,
     sy: std::arch::x86_64::__m128,
@@ -458,13 +469,13 @@ impl ShearedSse {
     #[inline(always)]
     pub fn new(ray: &ShearedRay) -> Self {
         use std::arch::x86_64::_mm_set1_ps;
-        let [kx, ky, kz] = ray.axes;
-        let o = ray.origin.to_array();
+        let o = ray.origin;
         // SAFETY: SSE2 is part of x86-64.
         unsafe {
             ShearedSse {
                 ray: *ray,
-                origin: [_mm_set1_ps(o[kx]), _mm_set1_ps(o[ky]), _mm_set1_ps(o[kz])],
+                axis_bytes: ray.axes.map(|k| k * std::mem::size_of::<[f32; BLOCK]>()),
+                origin: [_mm_set1_ps(o[0]), _mm_set1_ps(o[1]), _mm_set1_ps(o[2])],
                 sx: _mm_set1_ps(ray.shear.x),
                 sy: _mm_set1_ps(ray.shear.y),
                 sz: _mm_set1_ps(ray.shear.z),

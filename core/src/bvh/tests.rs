@@ -97,8 +97,8 @@ fn trace_ray_set_up_equals_the_per_axis_form() {
                     let oi = o[a] * inv;
                     assert_eq!(r.origin_inv[a].to_bits(), oi.to_bits(), "{dir:?} axis {a}");
                     let down = if inv >= 0.0 { 0 } else { 3 };
-                    assert_eq!(r.near_row[a], a + down, "{dir:?} axis {a}");
-                    assert_eq!(r.far_row[a], a + 3 - down, "{dir:?} axis {a}");
+                    assert_eq!(r.row(a), a + down, "{dir:?} axis {a}");
+                    assert_eq!(r.row(3 + a), a + 3 - down, "{dir:?} axis {a}");
                 }
             }
         }

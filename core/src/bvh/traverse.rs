@@ -79,10 +79,10 @@ impl Traverser {
         match self.kernel {
             #[cfg(target_arch = "x86_64")]
             // SAFETY: a traverser holds only a kernel this CPU supports (`with_kernel`).
-            Kernel::Avx2 => unsafe { x86::nearest_avx2(stack, bvh, ray, t0, t1) },
+            Kernel::Avx2 => unsafe { x86::nearest_avx2(stack, &bvh, ray, t0, t1) },
             #[cfg(target_arch = "x86_64")]
-            Kernel::Sse => nearest_sse(stack, bvh, ray, t0, t1),
-            _ => nearest_scalar(stack, bvh, ray, t0, t1),
+            Kernel::Sse => nearest_sse(stack, &bvh, ray, t0, t1),
+            _ => nearest_scalar(stack, &bvh, ray, t0, t1),
         }
     }
 
@@ -138,10 +138,10 @@ impl Traverser {
         match self.kernel {
             #[cfg(target_arch = "x86_64")]
             // SAFETY: as in `nearest_hit`.
-            Kernel::Avx2 => unsafe { x86::any_avx2(stack, bvh, ray, t0, t1) },
+            Kernel::Avx2 => unsafe { x86::any_avx2(stack, &bvh, ray, t0, t1) },
             #[cfg(target_arch = "x86_64")]
-            Kernel::Sse => any_sse(stack, bvh, ray, t0, t1),
-            _ => any_scalar(stack, bvh, ray, t0, t1),
+            Kernel::Sse => any_sse(stack, &bvh, ray, t0, t1),
+            _ => any_scalar(stack, &bvh, ray, t0, t1),
         }
     }
 }
@@ -149,27 +149,27 @@ impl Traverser {
 /// [`nearest`] with the SSE tests, out of line (see [`Traverser::nearest_hit`]).
 #[cfg(target_arch = "x86_64")]
 #[inline(never)]
-fn nearest_sse(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32) -> Option<Hit> {
-    nearest::<x86::Sse>(stack, bvh, ray, t0, t1)
+fn nearest_sse(stack: &mut Stack, bvh: &Bvh, ray: &TraceRay, t0: f32, t1: f32) -> Option<Hit> {
+    nearest::<x86::Sse>(stack, *bvh, ray, t0, t1)
 }
 
 /// [`nearest`] with the scalar tests, out of line.
 #[inline(never)]
-fn nearest_scalar(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32) -> Option<Hit> {
-    nearest::<Scalar>(stack, bvh, ray, t0, t1)
+fn nearest_scalar(stack: &mut Stack, bvh: &Bvh, ray: &TraceRay, t0: f32, t1: f32) -> Option<Hit> {
+    nearest::<Scalar>(stack, *bvh, ray, t0, t1)
 }
 
 /// [`any`] with the SSE tests, out of line.
 #[cfg(target_arch = "x86_64")]
 #[inline(never)]
-fn any_sse(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32) -> bool {
-    any::<x86::Sse>(stack, bvh, ray, t0, t1)
+fn any_sse(stack: &mut Stack, bvh: &Bvh, ray: &TraceRay, t0: f32, t1: f32) -> bool {
+    any::<x86::Sse>(stack, *bvh, ray, t0, t1)
 }
 
 /// [`any`] with the scalar tests, out of line.
 #[inline(never)]
-fn any_scalar(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32) -> bool {
-    any::<Scalar>(stack, bvh, ray, t0, t1)
+fn any_scalar(stack: &mut Stack, bvh: &Bvh, ray: &TraceRay, t0: f32, t1: f32) -> bool {
+    any::<Scalar>(stack, *bvh, ray, t0, t1)
 }
 
 /// The box and triangle tests of one instruction set; the traversal loops are written once over it.
@@ -220,8 +220,8 @@ impl Isa for Scalar {
         for (lane, entry) in out.iter_mut().enumerate() {
             let (mut near, mut far) = (t0, t1);
             for a in 0..3 {
-                let tn = node.bounds[ray.near_row[a]][lane] * ray.inv[a] - ray.origin_inv[a];
-                let tf = node.bounds[ray.far_row[a]][lane] * ray.inv[a] - ray.origin_inv[a];
+                let tn = node.bounds[ray.row(a)][lane] * ray.inv[a] - ray.origin_inv[a];
+                let tf = node.bounds[ray.row(3 + a)][lane] * ray.inv[a] - ray.origin_inv[a];
                 near = near.max(tn);
                 far = far.min(tf);
             }

@@ -7,6 +7,22 @@ use super::packet::{PacketStack, nearest_packet};
 use super::{Bvh, BvhNode, Hit, Isa, Stack, TraceRay, WIDTH, any, nearest};
 use crate::geometry::{BLOCK, ShearedSse, TriangleBlock};
 
+/// The first float of the `bounds` row at byte offset `offset` (one of [`TraceRay`]'s `rows`).
+///
+/// # Safety
+/// `offset` must be a row's offset within `bounds` (below 6 rows).
+#[inline(always)]
+unsafe fn row_ptr(node: &BvhNode, offset: u32) -> *const f32 {
+    // SAFETY: as the caller promises.
+    unsafe {
+        node.bounds
+            .as_ptr()
+            .cast::<u8>()
+            .add(offset as usize)
+            .cast::<f32>()
+    }
+}
+
 /// Four lanes at a time: a node's two halves in turn.
 pub struct Sse;
 
@@ -14,8 +30,8 @@ pub struct SseRay {
     tri: ShearedSse,
     inv: [__m128; 3],
     origin_inv: [__m128; 3],
-    near_row: [usize; 3],
-    far_row: [usize; 3],
+    /// [`TraceRay`]'s row offsets.
+    rows: [u32; 6],
 }
 
 impl Isa for Sse {
@@ -29,8 +45,7 @@ impl Isa for Sse {
                 tri: ShearedSse::new(&ray.sheared),
                 inv: ray.inv.map(|v| _mm_set1_ps(v)),
                 origin_inv: ray.origin_inv.map(|v| _mm_set1_ps(v)),
-                near_row: ray.near_row,
-                far_row: ray.far_row,
+                rows: ray.rows,
             }
         }
     }
@@ -43,18 +58,19 @@ impl Isa for Sse {
         unsafe {
             for half in 0..2 {
                 let at = half * 4;
-                let plane = |row: usize, a: usize| {
-                    // SAFETY: rows are below 6 (`TraceRay::new`), `at` is 0 or 4.
-                    let b = _mm_load_ps(node.bounds.get_unchecked(row).as_ptr().add(at));
+                let plane = |k: usize, a: usize| {
+                    // SAFETY: `rows` are row offsets within `bounds` (`TraceRay::new`), `at`
+                    // is 0 or 4.
+                    let b = _mm_load_ps(row_ptr(node, r.rows[k]).add(at));
                     _mm_sub_ps(_mm_mul_ps(b, r.inv[a]), r.origin_inv[a])
                 };
                 let near = _mm_max_ps(
-                    _mm_max_ps(plane(r.near_row[0], 0), plane(r.near_row[1], 1)),
-                    _mm_max_ps(plane(r.near_row[2], 2), _mm_set1_ps(t0)),
+                    _mm_max_ps(plane(0, 0), plane(1, 1)),
+                    _mm_max_ps(plane(2, 2), _mm_set1_ps(t0)),
                 );
                 let far = _mm_min_ps(
-                    _mm_min_ps(plane(r.far_row[0], 0), plane(r.far_row[1], 1)),
-                    _mm_min_ps(plane(r.far_row[2], 2), _mm_set1_ps(t1)),
+                    _mm_min_ps(plane(3, 0), plane(4, 1)),
+                    _mm_min_ps(plane(5, 2), _mm_set1_ps(t1)),
                 );
                 _mm_storeu_ps(out[at..].as_mut_ptr(), near);
                 mask |= (_mm_movemask_ps(_mm_cmple_ps(near, far)) as u32) << at;
@@ -77,8 +93,8 @@ struct Avx2Ray {
     tri: ShearedSse,
     inv: [__m256; 3],
     origin_inv: [__m256; 3],
-    near_row: [usize; 3],
-    far_row: [usize; 3],
+    /// [`TraceRay`]'s row offsets.
+    rows: [u32; 6],
 }
 
 impl Isa for Avx2 {
@@ -92,8 +108,7 @@ impl Isa for Avx2 {
                 tri: ShearedSse::new(&ray.sheared),
                 inv: ray.inv.map(|v| _mm256_set1_ps(v)),
                 origin_inv: ray.origin_inv.map(|v| _mm256_set1_ps(v)),
-                near_row: ray.near_row,
-                far_row: ray.far_row,
+                rows: ray.rows,
             }
         }
     }
@@ -104,18 +119,18 @@ impl Isa for Avx2 {
         // SAFETY: only reached from the `avx2,fma` functions below; loads read the node's
         // 64-byte aligned rows.
         let mask = unsafe {
-            let plane = |row: usize, a: usize| {
-                // SAFETY: rows are below 6 (`TraceRay::new`).
-                let b = _mm256_load_ps(node.bounds.get_unchecked(row).as_ptr());
+            let plane = |k: usize, a: usize| {
+                // SAFETY: `rows` are row offsets within `bounds` (`TraceRay::new`).
+                let b = _mm256_load_ps(row_ptr(node, r.rows[k]));
                 _mm256_fmsub_ps(b, r.inv[a], r.origin_inv[a])
             };
             let near = _mm256_max_ps(
-                _mm256_max_ps(plane(r.near_row[0], 0), plane(r.near_row[1], 1)),
-                _mm256_max_ps(plane(r.near_row[2], 2), _mm256_set1_ps(t0)),
+                _mm256_max_ps(plane(0, 0), plane(1, 1)),
+                _mm256_max_ps(plane(2, 2), _mm256_set1_ps(t0)),
             );
             let far = _mm256_min_ps(
-                _mm256_min_ps(plane(r.far_row[0], 0), plane(r.far_row[1], 1)),
-                _mm256_min_ps(plane(r.far_row[2], 2), _mm256_set1_ps(t1)),
+                _mm256_min_ps(plane(3, 0), plane(4, 1)),
+                _mm256_min_ps(plane(5, 2), _mm256_set1_ps(t1)),
             );
             _mm256_storeu_ps(out.as_mut_ptr(), near);
             _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(near, far)) as u32
@@ -134,18 +149,18 @@ impl Isa for Avx2 {
         // SAFETY: only reached from the `avx2,fma` functions below; loads read the node's
         // 64-byte aligned rows and `nearest`'s eight floats.
         unsafe {
-            let plane = |row: usize, a: usize| {
-                // SAFETY: rows are below 6 (`TraceRay::new`).
-                let b = _mm256_load_ps(node.bounds.get_unchecked(row).as_ptr());
+            let plane = |k: usize, a: usize| {
+                // SAFETY: `rows` are row offsets within `bounds` (`TraceRay::new`).
+                let b = _mm256_load_ps(row_ptr(node, r.rows[k]));
                 _mm256_fmsub_ps(b, r.inv[a], r.origin_inv[a])
             };
             let near = _mm256_max_ps(
-                _mm256_max_ps(plane(r.near_row[0], 0), plane(r.near_row[1], 1)),
-                _mm256_max_ps(plane(r.near_row[2], 2), _mm256_set1_ps(t0)),
+                _mm256_max_ps(plane(0, 0), plane(1, 1)),
+                _mm256_max_ps(plane(2, 2), _mm256_set1_ps(t0)),
             );
             let far = _mm256_min_ps(
-                _mm256_min_ps(plane(r.far_row[0], 0), plane(r.far_row[1], 1)),
-                _mm256_min_ps(plane(r.far_row[2], 2), _mm256_set1_ps(t1)),
+                _mm256_min_ps(plane(3, 0), plane(4, 1)),
+                _mm256_min_ps(plane(5, 2), _mm256_set1_ps(t1)),
             );
             let entered = _mm256_cmp_ps::<_CMP_LE_OQ>(near, far);
             let held = _mm256_loadu_ps(nearest.as_ptr());
@@ -167,12 +182,12 @@ impl Isa for Avx2 {
 #[target_feature(enable = "avx2,fma")]
 pub unsafe fn nearest_avx2(
     stack: &mut Stack,
-    bvh: Bvh,
+    bvh: &Bvh,
     ray: &TraceRay,
     t0: f32,
     t1: f32,
 ) -> Option<Hit> {
-    nearest::<Avx2>(stack, bvh, ray, t0, t1)
+    nearest::<Avx2>(stack, *bvh, ray, t0, t1)
 }
 
 /// # Safety
@@ -193,6 +208,6 @@ pub unsafe fn nearest_packet_avx2(
 /// # Safety
 /// The CPU must support AVX2 and FMA.
 #[target_feature(enable = "avx2,fma")]
-pub unsafe fn any_avx2(stack: &mut Stack, bvh: Bvh, ray: &TraceRay, t0: f32, t1: f32) -> bool {
-    any::<Avx2>(stack, bvh, ray, t0, t1)
+pub unsafe fn any_avx2(stack: &mut Stack, bvh: &Bvh, ray: &TraceRay, t0: f32, t1: f32) -> bool {
+    any::<Avx2>(stack, *bvh, ray, t0, t1)
 }
