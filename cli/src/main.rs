@@ -27,7 +27,7 @@ struct Cli {
 enum Command {
     /// Simulate a cluster in this process on virtual time (real machines, real kernel), with
     /// faults from seeds; exits non-zero naming any seed that breaks an invariant.
-    Sim(cmd::sim::SimArgs),
+    Sim(Box<cmd::sim::SimArgs>),
     /// Cut a mesh, a volume or a generated scene into domains on disk.
     Prepare(cmd::prepare::PrepareArgs),
     /// Render a scene in this process (the reference every distributed render must equal).
@@ -122,7 +122,7 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
     match command {
         Command::Prepare(a) => cmd::prepare::run(a),
         Command::Render(a) => cmd::render::run(a),
-        Command::Sim(a) => cmd::sim::run(a),
+        Command::Sim(a) => cmd::sim::run(*a),
         Command::Demo(a) => cmd::demo::run(a),
         Command::Submit(a) => cmd::submit::run(a),
         Command::Watch(a) => cmd::watch::run(a),
