@@ -175,6 +175,11 @@ struct World<'a> {
     /// By worker: the coordinator's last message to it, if that is a `Holders` its NIC has
     /// not begun to send (see [`World::fold_into_waiting`]).
     waiting_holders: std::collections::HashMap<NodeId, WaitingHolders>,
+    /// Whether the coordinator's `Holders` are folded: only where the coordinator splits its
+    /// members into view classes (past 127 workers), where the broadcast outran its link.
+    /// Below, the coordinator shell sends every message as it is made (one stream a worker),
+    /// and the simulator, validated against it at 4 and 8 workers, does the same.
+    fold_holders: bool,
 }
 
 /// A `Holders` message waiting for the coordinator's NIC: the event slot its delivery waits
@@ -253,6 +258,7 @@ pub fn simulate(
         cores: config.cost.cores.map(SharedCores::new),
         handled_ns: None,
         waiting_holders: Default::default(),
+        fold_holders: holders::view_classes(config.workers) > 1,
     };
     for _ in 0..config.workers {
         world.spawn()?;
@@ -426,7 +432,7 @@ impl World<'_> {
 
     /// Sends `msg` when its sender is done with it at `depart` (not before now).
     fn send_at(&mut self, depart: Time, from: NodeId, to: NodeId, msg: Msg) {
-        if from != COORDINATOR {
+        if from != COORDINATOR || !self.fold_holders {
             self.transmit(depart, from, to, msg);
             return;
         }
