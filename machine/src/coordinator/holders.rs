@@ -31,6 +31,8 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 
+use rayfarm_proto as proto;
+
 /// Holders by domain, as member keys.
 pub type HolderMap = BTreeMap<u32, Vec<u32>>;
 
@@ -150,6 +152,65 @@ impl HolderChange {
             .collect();
         (rest, own)
     }
+}
+
+/// Folds `later` into `earlier`: two `Holders` messages for one member of one frame, with
+/// nothing else sent to it between them, made one that leaves the member's map as the two
+/// applied in turn do (`worker::Plan::set_holders`: a delta line takes its lost keys out, then
+/// puts its gained keys in; a whole map replaces the map). A shell whose link to a member is
+/// still busy sending merges that member's waiting `Holders` with the next instead of queueing
+/// both: under the predictive schedule most domains have one holder, so every round's change
+/// is news to every member (views do not help), and at 4,096 workers the rounds' messages
+/// outran the coordinator's link and waited in memory by the gigabyte (README "Simulator").
+/// Merged, a member has at most one waiting, of at most one line a changed domain.
+pub fn fold_holders(earlier: &mut proto::Holders, later: proto::Holders) {
+    if !later.delta {
+        *earlier = later;
+        return;
+    }
+    // A domain's line so far: the keys put in and, for a delta, taken out.
+    let mut lines: BTreeMap<u32, (BTreeSet<u32>, BTreeSet<u32>)> = BTreeMap::new();
+    for h in earlier.holders.drain(..) {
+        let line = lines.entry(h.domain).or_default();
+        if earlier.delta {
+            fold_line(line, h.workers, h.lost);
+        } else {
+            // A whole map's line names every holder of its domain.
+            *line = (h.workers.into_iter().collect(), BTreeSet::new());
+        }
+    }
+    for h in later.holders {
+        let line = lines.entry(h.domain).or_default();
+        fold_line(line, h.workers, h.lost);
+    }
+    let whole = !earlier.delta;
+    earlier.holders = lines
+        .into_iter()
+        .filter_map(|(domain, (gained, lost))| {
+            // A whole map leaves out the domains nobody holds; its lines lose nothing.
+            (!whole || !gained.is_empty()).then(|| proto::DomainHolders {
+                domain,
+                workers: gained.into_iter().collect(),
+                lost: if whole {
+                    Vec::new()
+                } else {
+                    lost.into_iter().collect()
+                },
+            })
+        })
+        .collect();
+}
+
+/// One domain's line `(gained, lost)` followed by a delta line of `gained` and `lost`: the
+/// keys lost by either are taken out first, then those gained and not lost after, and those
+/// gained after, put in (a whole map's line has nothing taken out; the worker takes a line's
+/// lost keys out before it puts the gained ones in, so a key lost then gained again stays).
+fn fold_line(line: &mut (BTreeSet<u32>, BTreeSet<u32>), gained: Vec<u32>, lost: Vec<u32>) {
+    for k in lost {
+        line.0.remove(&k);
+        line.1.insert(k);
+    }
+    line.0.extend(gained);
 }
 
 /// See the module documentation.
@@ -395,6 +456,106 @@ mod tests {
                 assert_eq!(held[class as usize], view_of(&next, class, classes));
             }
         }
+    }
+
+    /// Random deltas (and now and then a whole map) for one worker: the worker's map after
+    /// each message in turn is the map after their fold, whichever message the fold starts at.
+    #[test]
+    fn folded_holders_leave_the_workers_map_as_the_messages_in_turn() {
+        use crate::worker::{HolderLine, Mode, Plan};
+        let roster: std::sync::Arc<std::collections::HashMap<u32, String>> =
+            std::sync::Arc::new((0..8).map(|k| (k, format!("w{k}"))).collect());
+        let plan = || Plan::new(Mode::Predictive, 1, 6, 0, roster.clone());
+        let apply = |p: &mut Plan, h: &proto::Holders| {
+            let lines = h.holders.iter().map(|l| HolderLine {
+                domain: l.domain,
+                workers: l.workers.clone(),
+                lost: l.lost.clone(),
+            });
+            p.set_holders(lines, h.delta);
+        };
+        let held =
+            |p: &Plan| -> Vec<Vec<u32>> { (0..6).map(|d| p.holder_keys(d).to_vec()).collect() };
+        let mut seed = 11u64;
+        let mut draw = move |n: u64| {
+            seed = seed
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            (seed >> 33) % n
+        };
+        let mut folds = 0;
+        for _ in 0..300 {
+            let messages: Vec<proto::Holders> = (0..1 + draw(5))
+                .map(|_| {
+                    let keys = |draw: &mut dyn FnMut(u64) -> u64| -> Vec<u32> {
+                        let mut ks: Vec<u32> = (0..draw(3)).map(|_| draw(8) as u32).collect();
+                        ks.sort_unstable();
+                        ks.dedup();
+                        ks
+                    };
+                    let delta = draw(6) != 0;
+                    let mut holders: Vec<proto::DomainHolders> = (0..draw(4))
+                        .map(|_| proto::DomainHolders {
+                            domain: draw(6) as u32,
+                            workers: keys(&mut draw),
+                            lost: if delta { keys(&mut draw) } else { Vec::new() },
+                        })
+                        .collect();
+                    if !delta {
+                        // A whole map names a domain once (a delta may name it again).
+                        let mut seen = BTreeSet::new();
+                        holders.retain(|l| seen.insert(l.domain));
+                    }
+                    proto::Holders {
+                        job_id: "f".into(),
+                        holders,
+                        delta,
+                    }
+                })
+                .collect();
+            // Both workers start from the same map, then take the messages in turn or folded.
+            let mut in_turn = plan();
+            let start = proto::Holders {
+                job_id: "f".into(),
+                holders: (0..6)
+                    .map(|d| proto::DomainHolders {
+                        domain: d,
+                        workers: vec![(d % 4) + 1, 7],
+                        lost: Vec::new(),
+                    })
+                    .collect(),
+                delta: false,
+            };
+            apply(&mut in_turn, &start);
+            let mut folded = in_turn.clone();
+            let mut one = messages[0].clone();
+            for m in &messages {
+                apply(&mut in_turn, m);
+            }
+            for m in &messages[1..] {
+                fold_holders(&mut one, m.clone());
+                folds += 1;
+            }
+            apply(&mut folded, &one);
+            assert_eq!(
+                held(&folded),
+                held(&in_turn),
+                "{messages:?} folded into {one:?}"
+            );
+            let lines = one
+                .holders
+                .iter()
+                .map(|l| l.domain)
+                .collect::<BTreeSet<_>>();
+            if messages.len() > 1 {
+                assert_eq!(
+                    lines.len(),
+                    one.holders.len(),
+                    "a fold has one line a domain"
+                );
+            }
+        }
+        assert!(folds > 300);
     }
 
     #[test]

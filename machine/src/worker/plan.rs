@@ -173,6 +173,12 @@ impl Plan {
         former.truncate(FORMER_HOLDERS);
     }
 
+    /// The other workers holding `domain` now, in key order (as the coordinator's messages
+    /// made them; former holders are not named).
+    pub fn holder_keys(&self, domain: u32) -> &[u32] {
+        self.holders.get(&domain).map_or(&[], Vec::as_slice)
+    }
+
     /// Whether some other worker holds `domain` this round.
     pub fn is_held_elsewhere(&self, domain: u32) -> bool {
         self.holders.contains_key(&domain)

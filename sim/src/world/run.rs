@@ -83,6 +83,9 @@ pub struct Outcome {
     /// Rays sent to another worker, as the workers' frame reports count them.
     pub rays_migrated: u64,
     /// Messages of every kind.
+    /// Coordinator `Holders` messages folded into one waiting for the coordinator's NIC to
+    /// the same worker (not counted in `messages`).
+    pub holders_folded: u64,
     pub messages: u64,
     pub rounds: u64,
     pub events: u64,
