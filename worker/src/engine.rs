@@ -100,8 +100,6 @@ struct OpenFrame {
     pass_waits: std::time::Duration,
     /// How long passes of the frame waited for a tracing thread to start them.
     pass_start_waits: std::time::Duration,
-    /// Passes of the frame that finished.
-    passes: u64,
 }
 
 /// The engine. See the module documentation.
@@ -247,7 +245,6 @@ impl Engine {
                 if let Some(f) = self.frame.as_mut().filter(|f| f.job_id == job_id) {
                     f.pass_waits += finished.elapsed();
                     f.pass_start_waits += start_wait;
-                    f.passes += 1;
                 }
                 if let Ok(output) = &result {
                     count_pass(output);
@@ -321,7 +318,6 @@ impl Engine {
                     (start, cpu_at_start) = (f.cache_at_start, f.cpu_at_start);
                     stats.pass_wait_seconds = f.pass_waits.as_secs_f64();
                     stats.pass_start_wait_seconds = f.pass_start_waits.as_secs_f64();
-                    stats.passes = f.passes;
                 }
                 let cpu_now = self.cpu_now();
                 stats.trace_cpu_seconds = (cpu_now.0 - cpu_at_start.0).max(0.0);
@@ -573,7 +569,6 @@ impl Engine {
             cpu_at_start: self.cpu_now(),
             pass_waits: std::time::Duration::ZERO,
             pass_start_waits: std::time::Duration::ZERO,
-            passes: 0,
         });
         Ok(OpenedScene {
             grid,

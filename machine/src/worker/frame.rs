@@ -34,6 +34,8 @@ pub struct FrameCounters {
     pub rays_received: u64,
     /// Rays handed to idle peers as demand-driven tasks (hybrid).
     pub rays_shared: u64,
+    /// Passes of the frame it took back finished (the shell and the simulator both read this).
+    pub passes: u64,
     pub busy: Duration,
     /// Time with no pass to run, by why ([`IdleKind`] as index), closed intervals only.
     pub idle: [Duration; 3],

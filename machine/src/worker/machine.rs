@@ -446,6 +446,7 @@ impl<S: RaySpill> Worker<S> {
             rays_spilled: frame.spilled(),
             verdicts_refused: frame.speculation().map_or(0, |s| s.refused),
             rays_shared: c.rays_shared,
+            passes: c.passes,
             tiers: tier_traffic(self.bundler.stats()),
             busy_seconds,
             frame_seconds,
@@ -504,6 +505,7 @@ impl<S: RaySpill> Worker<S> {
             return;
         };
         frame.counters.rays.add(&out.counters);
+        frame.counters.passes += 1;
         frame.counters.busy += out.busy;
         frame.set_resident(resident);
         if !out.results.is_empty() {

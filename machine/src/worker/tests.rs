@@ -767,6 +767,38 @@ fn idle_time_is_counted_by_why_the_worker_has_no_pass() {
     assert_eq!(stats.busy_seconds, 0.0);
 }
 
+#[test]
+fn the_frame_statistics_count_the_passes_of_the_frame_that_finished() {
+    let mut w = worker();
+    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    w.handle(Time(1), plan(1, &[0], &[]));
+    assert!(pass_started(&w.handle(Time(2), bundle(JOB, &[ray(0, 0, 0, 1)]))).is_some());
+    w.handle(Time(3), finished(PassOutput::default()));
+    assert!(pass_started(&w.handle(Time(4), bundle(JOB, &[ray(0, 0, 0, 2)]))).is_some());
+    w.handle(Time(5), finished(PassOutput::default()));
+    // A pass of another job is not this frame's.
+    w.handle(
+        Time(6),
+        Event::PassFinished {
+            job_id: "other".into(),
+            result: Ok(PassOutput::default()),
+            resident: Vec::new(),
+        },
+    );
+    let end = control(FromCoordinator::EndFrame(proto::EndFrame {
+        job_id: JOB.into(),
+    }));
+    let stats = w
+        .handle(Time(7), end)
+        .into_iter()
+        .find_map(|a| match a {
+            Action::FrameEnded { stats, .. } => Some(stats),
+            _ => None,
+        })
+        .expect("the frame's statistics");
+    assert_eq!(stats.passes, 2);
+}
+
 /// Rays sent in the tasks tier, by peer.
 fn tasks_sent(actions: &[Action]) -> BTreeMap<String, Vec<RayRecord>> {
     sent_in(actions, Tier::Tasks)

@@ -76,7 +76,7 @@ pub struct Outcome {
     pub prefetches_wasted: u64,
     /// Ray segments traced, in every pass that finished.
     pub segments: u64,
-    /// Passes every worker started.
+    /// Passes the workers finished in their frames, as their frame statistics count them.
     pub passes: u64,
     /// Bytes of peer bundles sent.
     pub peer_bytes: u64,

@@ -258,7 +258,6 @@ impl World<'_> {
                     w.pass_until = Some((loaded_at + work, loaded_at));
                 }
                 self.outcome.loads += run.loads;
-                self.outcome.passes += 1;
                 self.compute(node, loaded_at, work, Ev::PassDone { node, job_id, run });
             }
             Action::Prefetch {
@@ -289,7 +288,7 @@ impl World<'_> {
             Action::FrameEnded { job_id, mut stats } => {
                 stats.cache = w.cache_counters();
                 stats.threads = cost.threads as usize;
-                let migrated = stats.rays_sent;
+                let (migrated, passes) = (stats.rays_sent, stats.passes);
                 let report = proto::FrameReport {
                     job_id,
                     stats_json: serde_json::to_string(&stats).unwrap_or_default(),
@@ -305,6 +304,7 @@ impl World<'_> {
                     );
                 }
                 self.outcome.rays_migrated += migrated;
+                self.outcome.passes += passes;
             }
         }
     }
