@@ -649,6 +649,7 @@ impl World<'_> {
                 }
                 link.reported = true;
                 let reason = format!("{} bundles unacknowledged", link.owed.len());
+                self.outcome.peers_reported += 1;
                 self.feed(node, machine::Event::PeerUnresponsive { peer, reason });
             }
             Ev::Heartbeat { node } => {
