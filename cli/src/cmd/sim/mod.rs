@@ -166,6 +166,12 @@ pub struct ModelArgs {
     /// message (1,024 workers at 20 ms are 51,200 a virtual second).
     #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u64).range(4..=3_600_000))]
     pub heartbeat_ms: u64,
+    /// A peer that leaves a bundle unacknowledged this many milliseconds is reported, as the
+    /// worker's `--peer-ack-timeout-ms` [default: half a heartbeat]. The workers' own wave
+    /// sizes send bursts whose decoding takes longer than half a heartbeat on a stream (the
+    /// real worker waits 30 s): a comparison with `rayfarm bench` gives the bench's 30000.
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..=86_400_000))]
+    pub peer_ack_timeout_ms: Option<u64>,
 }
 
 fn check_speculation(s: &str) -> Result<String, String> {
@@ -239,12 +245,20 @@ impl ModelArgs {
         if self.heartbeat_ms != DEFAULT_HEARTBEAT_MS {
             f.push_str(&format!(" --heartbeat-ms {}", self.heartbeat_ms));
         }
+        if let Some(ms) = self.peer_ack_timeout_ms {
+            f.push_str(&format!(" --peer-ack-timeout-ms {ms}"));
+        }
         f
     }
 
-    /// The deadlines of the simulated cluster, from the heartbeat period.
+    /// The deadlines of the simulated cluster, from the heartbeat period (the
+    /// acknowledgement's as given, if it is).
     fn deadlines(&self) -> Deadlines {
-        Deadlines::from_heartbeat(Duration::from_millis(self.heartbeat_ms))
+        let mut d = Deadlines::from_heartbeat(Duration::from_millis(self.heartbeat_ms));
+        if let Some(ms) = self.peer_ack_timeout_ms {
+            d.ack = Duration::from_millis(ms);
+        }
+        d
     }
 
     fn config(
