@@ -83,8 +83,8 @@ impl World<'_> {
     /// acknowledges it once decoded; the engine takes it into the machine after what it is
     /// handling. So the acknowledgement waits for the stream's own bundles, never for the
     /// engine's backlog nor for the bundles other peers sent (a shell that did everything in
-    /// one line missed deadlines the real worker keeps, and its peers were dropped as lost
-    /// while healthy). The machine's own queueing of the rays is part of the receiving price
+    /// one line missed deadlines the real worker keeps, and healthy peers were reported
+    /// unresponsive). The machine's own queueing of the rays is part of the receiving price
     /// as calibrated, so the engine adds none.
     fn receive_bundle(&mut self, from: NodeId, to: NodeId, seq: u64, bytes: usize, msg: Msg) {
         let now = self.now;

@@ -84,7 +84,7 @@ pub enum SimCommand {
     /// Measure the cost model's prices on this machine (per-segment trace cost, radiance and
     /// shadow apart, per camera and volume sample, per pass, per planning round) and write
     /// them to the file `rayfarm sim --cost` reads.
-    Calibrate(CalibrateArgs),
+    Calibrate(Box<CalibrateArgs>),
     /// Draw domain loads and simulated frame time against the worker count, a line per
     /// schedule, from the CSV files of earlier runs.
     Chart(ChartArgs),
@@ -168,8 +168,8 @@ pub struct ModelArgs {
     pub heartbeat_ms: u64,
     /// A peer that leaves a bundle unacknowledged this many milliseconds is reported, as the
     /// worker's `--peer-ack-timeout-ms` [default: half a heartbeat]. The workers' own wave
-    /// sizes send bursts whose decoding takes longer than half a heartbeat on a stream (the
-    /// real worker waits 30 s): a comparison with `rayfarm bench` gives the bench's 30000.
+    /// sizes send bursts whose decoding on one stream takes longer than half a heartbeat;
+    /// the real worker waits 30 s (30000).
     #[arg(long, value_parser = clap::value_parser!(u64).range(1..=86_400_000))]
     pub peer_ack_timeout_ms: Option<u64>,
 }
@@ -419,7 +419,7 @@ const CLEAN_BOUND: Duration = Duration::from_secs(24 * 3600);
 
 pub fn run(a: SimArgs) -> anyhow::Result<()> {
     match a.command.clone() {
-        Some(SimCommand::Calibrate(c)) => return run_calibrate(c),
+        Some(SimCommand::Calibrate(c)) => return run_calibrate(*c),
         Some(SimCommand::Chart(c)) => return run_chart(c),
         None => {}
     }
