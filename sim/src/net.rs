@@ -59,6 +59,8 @@ pub struct Network {
     free_at: BTreeMap<NodeId, Time>,
     /// When the last message on each directed link arrives (later ones never overtake it).
     last_arrival: BTreeMap<(NodeId, NodeId), Time>,
+    /// The same for the packets sent beside the NIC's queue ([`Network::send_packet`]).
+    last_packet: BTreeMap<(NodeId, NodeId), Time>,
     /// Links cut both ways for a while: what is sent meanwhile arrives after the heal.
     partitions: Vec<(NodeId, NodeId, Window)>,
     /// Extra delay on every message to or from a node sent in a window.
@@ -78,6 +80,7 @@ impl Network {
             model,
             free_at: BTreeMap::new(),
             last_arrival: BTreeMap::new(),
+            last_packet: BTreeMap::new(),
             partitions: Vec::new(),
             delays: Vec::new(),
             jitter,
@@ -130,11 +133,41 @@ impl Network {
     pub fn send(&mut self, now: Time, from: NodeId, to: NodeId, bytes: usize) -> (Time, Time) {
         self.messages += 1;
         self.bytes += bytes as u64;
-        let link = (from, to);
         let start = now.max(self.free_at.get(&from).copied().unwrap_or_default());
         let transmit = self.transmit(bytes);
         self.free_at.insert(from, start + transmit);
-        let mut at = start + transmit + self.model.latency;
+        let at = self.arrive(now, start + transmit, from, to);
+        let link = (from, to);
+        let at = at.max(self.last_arrival.get(&link).copied().unwrap_or_default());
+        self.last_arrival.insert(link, at);
+        (start, at)
+    }
+
+    /// A message of one packet (a peer's acknowledgement) sent from `from` to `to` at `now`
+    /// on a connection of its own: it does not queue behind the bulk the NIC is sending for
+    /// other connections (a NIC interleaves its connections' packets, so it waits one
+    /// packet, whose time is left out), only behind the packets sent before it on its link.
+    /// When it arrives.
+    pub fn send_packet(&mut self, now: Time, from: NodeId, to: NodeId, bytes: usize) -> Time {
+        self.messages += 1;
+        self.bytes += bytes as u64;
+        let transmit = self.transmit(bytes);
+        // It takes its own bytes' time from the NIC's queue all the same.
+        if let Some(free) = self.free_at.get_mut(&from).filter(|f| **f > now) {
+            *free = *free + transmit;
+        }
+        let at = self.arrive(now, now + transmit, from, to);
+        let link = (from, to);
+        let at = at.max(self.last_packet.get(&link).copied().unwrap_or_default());
+        self.last_packet.insert(link, at);
+        at
+    }
+
+    /// When a message sent at `now` from `from` to `to`, off the NIC at `sent`, arrives: the
+    /// latency, then the faults' jitter, delays and partitions.
+    fn arrive(&mut self, now: Time, sent: Time, from: NodeId, to: NodeId) -> Time {
+        let link = (from, to);
+        let mut at = sent + self.model.latency;
         if !self.jitter.is_zero() {
             at = at + Duration::from_nanos(self.rng.below(self.jitter.as_nanos() as u64 + 1));
         }
@@ -148,9 +181,7 @@ impl Network {
                 at = at.max(window.until + self.model.latency);
             }
         }
-        let at = at.max(self.last_arrival.get(&link).copied().unwrap_or_default());
-        self.last_arrival.insert(link, at);
-        (start, at)
+        at
     }
 }
 
@@ -194,6 +225,31 @@ mod tests {
             n.messages, 3,
             "a lengthened message is no message of its own"
         );
+    }
+
+    #[test]
+    fn a_packet_slips_past_the_bulk_on_the_nic_and_keeps_its_order_among_packets() {
+        let mut n = net();
+        // 12.5 MB of bulk for node 2 keeps the NIC busy for 10 ms.
+        assert_eq!(n.arrival(Time(0), 1, 2, 12_500_000), Time(10_100_000));
+        // An acknowledgement to node 2 sent meanwhile arrives after the latency alone.
+        let ack = n.send_packet(Time(1_000), 1, 2, 16);
+        assert_eq!(ack, Time(101_012));
+        // One sent later on the same link never overtakes it.
+        n.delay(
+            1,
+            Window {
+                from: Time(0),
+                until: Time(2_000),
+            },
+            Duration::from_millis(5),
+        );
+        let delayed = n.send_packet(Time(1_500), 1, 2, 16);
+        assert!(delayed > ack);
+        assert!(n.send_packet(Time(3_000), 1, 2, 16) >= delayed);
+        // The NIC still sends the packets' bytes: the next bulk leaves that much later.
+        let (start, _) = n.send(Time(0), 1, 3, 0);
+        assert_eq!(start, Time(10_000_000 + 3 * 12));
     }
 
     #[test]

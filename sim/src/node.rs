@@ -87,12 +87,18 @@ pub struct QueueCaps {
     pub spill_bytes: u64,
 }
 
-/// Bundles a worker sent one peer that the peer has not acknowledged, oldest first.
+/// A worker's outbound link to one peer (the worker's `peers::run_link` task and its
+/// stream): the bundles the peer has not acknowledged, oldest first, each with when the link
+/// took it (the real link times a bundle from there), and when the link is done sending
+/// the bundles it took so far.
 #[derive(Default)]
 pub struct PeerLink {
     pub owed: VecDeque<(u64, Time)>,
     /// Reported unresponsive since the link was last opened.
     pub reported: bool,
+    /// When the link has encoded and handed to the NIC every bundle it took: the next one
+    /// is sent after them (one stream a peer, in order), whatever the worker's shell does.
+    pub sending_until: Time,
 }
 
 /// A finished pass: its output and the virtual time it took.
@@ -130,10 +136,15 @@ pub struct SimWorker {
     /// When its line to the storage is free: its loads, a pass's and a prefetch's, are read
     /// one after another.
     io_free_at: Time,
-    /// When its shell is done with the bundles it sent and received so far: a worker's
-    /// messages are handled one after another, beside its passes.
+    /// When its shell (the worker's engine task) is done with what it was given so far:
+    /// finished passes' outputs and peers' bundles are taken in one after another, beside
+    /// its passes.
     pub msg_free_at: Time,
     pub links: BTreeMap<String, PeerLink>,
+    /// By sender: when this worker's peer service is done decoding the bundles that sender's
+    /// stream brought so far (one task a stream, bundles in order; each is acknowledged once
+    /// decoded, before the engine takes it in).
+    pub inbound: BTreeMap<NodeId, Time>,
     pub next_bundle: u64,
     scene: Arc<Scene>,
     cache: Arc<Mutex<DomainCache>>,
@@ -171,6 +182,7 @@ impl SimWorker {
             io_free_at: Time(0),
             msg_free_at: Time(0),
             links: BTreeMap::new(),
+            inbound: BTreeMap::new(),
             next_bundle: 0,
             scene,
             cache: Arc::new(Mutex::new(cache)),

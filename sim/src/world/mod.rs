@@ -84,9 +84,17 @@ enum Ev {
         to: NodeId,
         msg: Msg,
     },
-    /// A bundle whose handling on the receiver's shell is done (it waited for the shell and
-    /// took its receiving price).
+    /// A bundle the receiver's engine takes in now (its stream's task decoded it, and the
+    /// engine was done with what it handled before).
     Received {
+        to: NodeId,
+        msg: Msg,
+    },
+    /// A worker's message that its sender is done with now (a bundle its link encoded, an
+    /// acknowledgement its peer service made) goes to the sender's NIC: the NIC sends
+    /// messages in the order they are ready, so one ready later never holds up one ready
+    /// sooner.
+    Depart {
         from: NodeId,
         to: NodeId,
         msg: Msg,
@@ -432,6 +440,11 @@ impl World<'_> {
 
     /// Sends `msg` when its sender is done with it at `depart` (not before now).
     fn send_at(&mut self, depart: Time, from: NodeId, to: NodeId, msg: Msg) {
+        if from != COORDINATOR && depart > self.now {
+            // A worker's NIC is not held for it until it is ready (`Ev::Depart`).
+            self.heap.push(depart, Ev::Depart { from, to, msg });
+            return;
+        }
         if from != COORDINATOR || !self.fold_holders {
             self.transmit(depart, from, to, msg);
             return;
@@ -533,6 +546,11 @@ impl World<'_> {
         if let Msg::Bundle { .. } = msg {
             self.outcome.peer_bytes += bytes as u64;
         }
+        if let Msg::Ack { .. } = msg {
+            let at = self.net.send_packet(depart.max(self.now), from, to, bytes);
+            let slot = self.heap.push_waiting(at, Ev::Deliver { from, to, msg });
+            return (depart.max(self.now), slot, bytes);
+        }
         let (start, at) = self.net.send(depart.max(self.now), from, to, bytes);
         let slot = self.heap.push_waiting(at, Ev::Deliver { from, to, msg });
         (start, slot, bytes)
@@ -542,7 +560,13 @@ impl World<'_> {
         match ev {
             Ev::Deliver { from, to, msg } if to == COORDINATOR => self.at_coordinator(from, msg),
             Ev::Deliver { from, to, msg } => self.at_worker(from, to, msg),
-            Ev::Received { from, to, msg } => self.take_bundle(from, to, msg),
+            Ev::Received { to, msg } => self.take_bundle(to, msg),
+            Ev::Depart { from, to, msg } => {
+                // A process that died sends nothing more.
+                if self.worker(from).is_some() {
+                    self.transmit(self.now, from, to, msg);
+                }
+            }
             Ev::PassDone { node, job_id, run } => {
                 let Some(w) = self.worker_mut(node) else {
                     return;
@@ -649,6 +673,7 @@ impl World<'_> {
                 }
                 link.reported = true;
                 let reason = format!("{} bundles unacknowledged", link.owed.len());
+                self.outcome.peers_reported += 1;
                 self.feed(node, machine::Event::PeerUnresponsive { peer, reason });
             }
             Ev::Heartbeat { node } => {

@@ -82,6 +82,10 @@ pub struct Outcome {
     pub peer_bytes: u64,
     /// Rays sent to another worker, as the workers' frame reports count them.
     pub rays_migrated: u64,
+    /// Times a worker reported a peer unresponsive (a bundle unacknowledged past the
+    /// deadline): in a run without faults every one is a false alarm, and the coordinator
+    /// drops the peer it accuses.
+    pub peers_reported: u64,
     /// Messages of every kind.
     /// Coordinator `Holders` messages folded into one waiting for the coordinator's NIC to
     /// the same worker (not counted in `messages`).

@@ -40,22 +40,8 @@ impl World<'_> {
 
     pub(super) fn at_worker(&mut self, from: NodeId, to: NodeId, msg: Msg) {
         let now = self.now;
-        if let Msg::Bundle { batches, .. } = &msg {
-            // The shell takes it in after the bundles before it, for its receiving price.
-            let bytes = batches.iter().map(Bytes::len).sum();
-            let cost = self.config.cost.bundle_receive(bytes);
-            let Some(free) = self.worker(to).map(|w| w.msg_free_at) else {
-                return;
-            };
-            if !cost.is_zero() {
-                let done = self.steal(now.max(free), cost);
-                if let Some(w) = self.worker_mut(to) {
-                    w.msg_free_at = done;
-                }
-                self.heap.push(done, Ev::Received { from, to, msg });
-                return;
-            }
-            return self.take_bundle(from, to, msg);
+        if let Msg::Bundle { batches, seq, .. } = &msg {
+            return self.receive_bundle(from, to, *seq, batches.iter().map(Bytes::len).sum(), msg);
         }
         let Some(w) = self.worker_mut(to) else { return };
         match msg {
@@ -91,25 +77,58 @@ impl World<'_> {
         }
     }
 
-    /// A peer bundle the shell of `to` has taken in: decoded, handed to the machine and
-    /// acknowledged (with `measure`, the decoding's and the machine's CPU time recorded).
-    pub(super) fn take_bundle(&mut self, from: NodeId, to: NodeId, msg: Msg) {
+    /// A peer bundle from `from` has reached `to`. As the worker's peer service
+    /// (`worker/src/peers.rs`, `exchange_bundles`) does, the task of the sender's stream
+    /// decodes it after the bundles before it on that stream, for its receiving price, and
+    /// acknowledges it once decoded; the engine takes it into the machine after what it is
+    /// handling. So the acknowledgement waits for the stream's own bundles, never for the
+    /// engine's backlog nor for the bundles other peers sent (a shell that did everything in
+    /// one line missed deadlines the real worker keeps, and healthy peers were reported
+    /// unresponsive). The machine's own queueing of the rays is part of the receiving price
+    /// as calibrated, so the engine adds none.
+    fn receive_bundle(&mut self, from: NodeId, to: NodeId, seq: u64, bytes: usize, msg: Msg) {
         let now = self.now;
+        let cost = self.config.cost.bundle_receive(bytes);
+        let Some(w) = self.worker(to) else { return };
+        let ready = now.max(w.inbound.get(&from).copied().unwrap_or_default());
+        let decoded = if cost.is_zero() {
+            ready
+        } else {
+            self.steal(ready, cost)
+        };
+        let Some(w) = self.worker_mut(to) else { return };
+        w.inbound.insert(from, decoded);
+        // A worker stuck on its peer port takes in and acknowledges nothing from then on.
+        if w.is_stuck(decoded) {
+            return;
+        }
+        let me = w.address.clone();
+        let taken = decoded.max(w.msg_free_at);
+        self.send_at(decoded, to, from, Msg::Ack { from: me, seq });
+        if taken > now {
+            self.heap.push(taken, Ev::Received { to, msg });
+        } else {
+            self.take_bundle(to, msg);
+        }
+    }
+
+    /// A peer bundle the engine of `to` takes in: decoded and handed to the machine (with
+    /// `measure`, the decoding's and the machine's CPU time recorded). It was acknowledged
+    /// when its stream's task decoded it.
+    pub(super) fn take_bundle(&mut self, to: NodeId, msg: Msg) {
         let Msg::Bundle {
             sender,
             job_id,
             tier,
             batches,
-            seq,
+            ..
         } = msg
         else {
             return;
         };
-        let Some(w) = self.worker_mut(to) else { return };
-        if w.is_stuck(now) {
+        if self.worker(to).is_none() {
             return;
         }
-        let me = w.address.clone();
         let measure = self.config.measure;
         let started = measure.then(thread_cpu_ns);
         let decoded = decode(tier, &batches);
@@ -136,7 +155,6 @@ impl World<'_> {
                 batches: kept.then_some(batches),
             });
         }
-        self.send(to, from, Msg::Ack { from: me, seq });
     }
 
     /// Hands `event` to the machine of `node` and carries out its actions.
@@ -197,15 +215,15 @@ impl World<'_> {
             } => {
                 let bytes: usize = batches.iter().map(Bytes::len).sum();
                 let send_cost = cost.bundle_send(bytes);
-                let free = w.msg_free_at;
                 let seq = w.next_bundle;
                 w.next_bundle += 1;
-                w.links
-                    .entry(peer.clone())
-                    .or_default()
-                    .owed
-                    .push_back((seq, now));
                 let sender = w.address.clone();
+                // The engine hands it to the peer's link at once; the link times it from
+                // there (`peers::run_link`) and sends it after the bundles it took before,
+                // for its sending price, beside whatever the engine does next.
+                let link = w.links.entry(peer.clone()).or_default();
+                link.owed.push_back((seq, now));
+                let ready = now.max(link.sending_until);
                 self.heap.push(
                     now + ack_deadline,
                     Ev::AckDue {
@@ -214,16 +232,14 @@ impl World<'_> {
                         seq,
                     },
                 );
-                // It leaves once the sender's shell has handled it, after the bundles before it.
                 let depart = if send_cost.is_zero() {
-                    now
+                    ready
                 } else {
-                    let done = self.steal(now.max(free), send_cost);
-                    if let Some(w) = self.worker_mut(node) {
-                        w.msg_free_at = done;
-                    }
-                    done
+                    self.steal(ready, send_cost)
                 };
+                if let Some(link) = self.worker_mut(node).and_then(|w| w.links.get_mut(&peer)) {
+                    link.sending_until = depart;
+                }
                 if let Some(to) = self.node_of(&peer) {
                     self.send_at(
                         depart,

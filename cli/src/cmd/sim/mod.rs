@@ -84,7 +84,7 @@ pub enum SimCommand {
     /// Measure the cost model's prices on this machine (per-segment trace cost, radiance and
     /// shadow apart, per camera and volume sample, per pass, per planning round) and write
     /// them to the file `rayfarm sim --cost` reads.
-    Calibrate(CalibrateArgs),
+    Calibrate(Box<CalibrateArgs>),
     /// Draw domain loads and simulated frame time against the worker count, a line per
     /// schedule, from the CSV files of earlier runs.
     Chart(ChartArgs),
@@ -166,6 +166,12 @@ pub struct ModelArgs {
     /// message (1,024 workers at 20 ms are 51,200 a virtual second).
     #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u64).range(4..=3_600_000))]
     pub heartbeat_ms: u64,
+    /// A peer that leaves a bundle unacknowledged this many milliseconds is reported, as the
+    /// worker's `--peer-ack-timeout-ms` [default: half a heartbeat]. The workers' own wave
+    /// sizes send bursts whose decoding on one stream takes longer than half a heartbeat;
+    /// the real worker waits 30 s (30000).
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..=86_400_000))]
+    pub peer_ack_timeout_ms: Option<u64>,
 }
 
 fn check_speculation(s: &str) -> Result<String, String> {
@@ -239,12 +245,20 @@ impl ModelArgs {
         if self.heartbeat_ms != DEFAULT_HEARTBEAT_MS {
             f.push_str(&format!(" --heartbeat-ms {}", self.heartbeat_ms));
         }
+        if let Some(ms) = self.peer_ack_timeout_ms {
+            f.push_str(&format!(" --peer-ack-timeout-ms {ms}"));
+        }
         f
     }
 
-    /// The deadlines of the simulated cluster, from the heartbeat period.
+    /// The deadlines of the simulated cluster, from the heartbeat period (the
+    /// acknowledgement's as given, if it is).
     fn deadlines(&self) -> Deadlines {
-        Deadlines::from_heartbeat(Duration::from_millis(self.heartbeat_ms))
+        let mut d = Deadlines::from_heartbeat(Duration::from_millis(self.heartbeat_ms));
+        if let Some(ms) = self.peer_ack_timeout_ms {
+            d.ack = Duration::from_millis(ms);
+        }
+        d
     }
 
     fn config(
@@ -405,7 +419,7 @@ const CLEAN_BOUND: Duration = Duration::from_secs(24 * 3600);
 
 pub fn run(a: SimArgs) -> anyhow::Result<()> {
     match a.command.clone() {
-        Some(SimCommand::Calibrate(c)) => return run_calibrate(c),
+        Some(SimCommand::Calibrate(c)) => return run_calibrate(*c),
         Some(SimCommand::Chart(c)) => return run_chart(c),
         None => {}
     }

@@ -23,6 +23,12 @@ pub(super) fn print_row(schedule: Schedule, workers: usize, o: &Outcome, wall: f
             o.loads, o.prefetches, o.prefetches_used, o.prefetches_wasted
         );
     }
+    if o.peers_reported > 0 {
+        eprintln!(
+            "  {} peers reported unresponsive (bundles unacknowledged past the deadline)",
+            o.peers_reported
+        );
+    }
     if o.holders_folded > 0 {
         eprintln!(
             "  {} holders messages folded into one already waiting for the coordinator's link",
