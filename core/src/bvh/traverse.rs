@@ -252,11 +252,19 @@ impl Isa for Scalar {
 /// Asks the cache for the nodes and first leaf blocks of the children in `mask`.
 #[inline(always)]
 pub(super) fn prefetch_children(bvh: Bvh, node: &BvhNode, mut mask: u32) {
-    #[cfg(target_arch = "x86_64")]
     while mask != 0 {
-        use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
         let slot = mask.trailing_zeros() as usize;
         mask &= mask - 1;
+        prefetch_child(bvh, node, slot);
+    }
+}
+
+/// Asks the cache for the node or first leaf block of the child in `slot`.
+#[inline(always)]
+pub(super) fn prefetch_child(bvh: Bvh, node: &BvhNode, slot: usize) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
         let (child, meta) = (node.child[slot] as usize, node.meta[slot]);
         let base = if meta == SLOT_INNER {
             bvh.nodes.as_ptr().wrapping_add(child).cast::<i8>()
@@ -274,7 +282,7 @@ pub(super) fn prefetch_children(bvh: Bvh, node: &BvhNode, mut mask: u32) {
         }
     }
     #[cfg(not(target_arch = "x86_64"))]
-    let _ = (bvh, node, mask);
+    let _ = (bvh, node, slot);
 }
 
 /// Tests a leaf's blocks (`first` is the index of the first), keeping the nearest hit (ties
@@ -431,37 +439,37 @@ pub(super) fn descend<K: Isa>(
                     // Two entered children, the commonest case: one comparison orders them,
                     // and the farther one's memory is asked for now, so its cache misses
                     // overlap with the work on the nearer (which is loaded at once anyway).
+                    // The order picks slots, not entries, so it is two conditional moves
+                    // rather than a branch (which way it goes is a coin toss per node).
                     let slot = mask.trailing_zeros() as usize;
-                    let second = Entry {
-                        child: node.child[slot],
-                        meta: node.meta[slot],
-                        near: near[slot],
+                    let swap = near[slot] < near[first_slot];
+                    let near_slot = if swap { slot } else { first_slot };
+                    let far_slot = if swap { first_slot } else { slot };
+                    prefetch_child(bvh, node, far_slot);
+                    let entry = |s: usize| Entry {
+                        child: node.child[s],
+                        meta: node.meta[s],
+                        near: near[s],
                     };
-                    let (nearer, farther, far_slot) = if second.near < first.near {
-                        (second, first, first_slot)
-                    } else {
-                        (first, second, slot)
-                    };
-                    prefetch_children(bvh, node, 1 << far_slot);
                     // SAFETY: a validated tree's traversal holds fewer than STACK_ENTRIES.
-                    unsafe { stack.push(farther) };
-                    cur = nearer;
+                    unsafe { stack.push(entry(far_slot)) };
+                    cur = entry(near_slot);
                     continue;
                 }
-                // Every entered child's memory is asked for now, so the cache misses of the
-                // siblings overlap with the work on the nearest.
-                let all = mask | 1 << first_slot;
-                prefetch_children(bvh, node, all);
                 // The entered children go onto the stack sorted, farthest deepest, the nearest
                 // on top (it becomes `cur`): each is written straight to its place, its rank
                 // among its siblings (how many are farther, ties by slot), so there are no
                 // compares between entries and no moves (an insertion sort's compares are
-                // unpredictable branches).
+                // unpredictable branches). Every entered child's memory is asked for in the
+                // same pass, so the cache misses of the siblings overlap with the work on the
+                // nearest.
+                let all = mask | 1 << first_slot;
                 let base = stack.len;
                 let mut m = all;
                 while m != 0 {
                     let slot = m.trailing_zeros() as usize;
                     m &= m - 1;
+                    prefetch_child(bvh, node, slot);
                     let rank = (K::farther_or_tied(&near, slot) & all).count_ones();
                     let entry = Entry {
                         child: node.child[slot],
