@@ -356,7 +356,8 @@ impl TriangleBlock {
 
     /// The watertight test of all four lanes with SSE: the same operations in the same order as
     /// [`PackedTriangle::intersect_t`] (no fused multiply-add), so every lane's distance has
-    /// the same bits as the scalar test. Lanes with an exactly zero edge function, which the
+    /// the same bits as the scalar test (a lane whose edge functions are not all numbers is
+    /// a miss either way, its distance infinity or NaN). Lanes with an exactly zero edge function, which the
     /// scalar test decides in double precision, are handed to it. The mask is as
     /// [`TriangleBlock::intersect_scalar`]'s.
     ///
@@ -395,14 +396,13 @@ impl TriangleBlock {
                 _mm_or_ps(_mm_cmpeq_ps(u, zero), _mm_cmpeq_ps(v, zero)),
                 _mm_cmpeq_ps(w, zero),
             );
-            let neg = _mm_or_ps(
-                _mm_or_ps(_mm_cmplt_ps(u, zero), _mm_cmplt_ps(v, zero)),
-                _mm_cmplt_ps(w, zero),
-            );
-            let pos = _mm_or_ps(
-                _mm_or_ps(_mm_cmpgt_ps(u, zero), _mm_cmpgt_ps(v, zero)),
-                _mm_cmpgt_ps(w, zero),
-            );
+            // Some edge function negative is the least of them negative, some positive the
+            // greatest positive: two compares where six were, the same lanes whenever u, v and
+            // w are numbers. (A NaN, from products overflowing to infinities of both signs,
+            // may decide `outside` either way here; such a lane's distance is NaN or infinity
+            // and never within the interval, so the lanes hit do not change.)
+            let neg = _mm_cmplt_ps(_mm_min_ps(_mm_min_ps(u, v), w), zero);
+            let pos = _mm_cmpgt_ps(_mm_max_ps(_mm_max_ps(u, v), w), zero);
             let outside = _mm_and_ps(neg, pos);
             let mut redo = _mm_movemask_ps(edge_zero) as u32;
             // Most blocks a ray reaches miss on every lane: stop before the distance.

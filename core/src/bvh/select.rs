@@ -10,7 +10,8 @@ pub enum Kernel {
     Scalar,
     /// Four boxes (two halves of a node) and four triangles at a time, SSE2: any x86-64.
     Sse,
-    /// Eight boxes at a time with AVX2 and FMA, four triangles with SSE.
+    /// Eight boxes at a time with AVX2 and FMA, four triangles with SSE (and POPCNT, which
+    /// every AVX2 CPU has, to order a node's children).
     Avx2,
 }
 
@@ -42,7 +43,11 @@ impl Kernel {
             #[cfg(target_arch = "x86_64")]
             Kernel::Sse => true,
             #[cfg(target_arch = "x86_64")]
-            Kernel::Avx2 => is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma"),
+            Kernel::Avx2 => {
+                is_x86_feature_detected!("avx2")
+                    && is_x86_feature_detected!("fma")
+                    && is_x86_feature_detected!("popcnt")
+            }
             #[cfg(not(target_arch = "x86_64"))]
             _ => false,
         }

@@ -198,6 +198,18 @@ pub(super) trait Isa {
         }
         mask
     }
+    /// The lanes of `near` farther than lane `slot`'s, or as near with a lower slot: the
+    /// number of entered lanes among them is `slot`'s place in its entered siblings sorted
+    /// farthest first, a permutation of places (entered lanes are never NaN: `near <= far`).
+    #[inline(always)]
+    fn farther_or_tied(near: &[f32; WIDTH], slot: usize) -> u32 {
+        let d = near[slot];
+        let mut lanes = 0;
+        for (lane, &n) in near.iter().enumerate() {
+            lanes |= ((n > d || (n == d && lane < slot)) as u32) << lane;
+        }
+        lanes
+    }
     /// The watertight test of a block's four lanes (infinity for a miss), and a bit mask of
     /// the lanes whose hit lies in `[t0, t1]`.
     fn block(block: &TriangleBlock, ray: &Self::Ray, t0: f32, t1: f32) -> ([f32; BLOCK], u32);
@@ -240,11 +252,19 @@ impl Isa for Scalar {
 /// Asks the cache for the nodes and first leaf blocks of the children in `mask`.
 #[inline(always)]
 pub(super) fn prefetch_children(bvh: Bvh, node: &BvhNode, mut mask: u32) {
-    #[cfg(target_arch = "x86_64")]
     while mask != 0 {
-        use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
         let slot = mask.trailing_zeros() as usize;
         mask &= mask - 1;
+        prefetch_child(bvh, node, slot);
+    }
+}
+
+/// Asks the cache for the node or first leaf block of the child in `slot`.
+#[inline(always)]
+pub(super) fn prefetch_child(bvh: Bvh, node: &BvhNode, slot: usize) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
         let (child, meta) = (node.child[slot] as usize, node.meta[slot]);
         let base = if meta == SLOT_INNER {
             bvh.nodes.as_ptr().wrapping_add(child).cast::<i8>()
@@ -262,7 +282,7 @@ pub(super) fn prefetch_children(bvh: Bvh, node: &BvhNode, mut mask: u32) {
         }
     }
     #[cfg(not(target_arch = "x86_64"))]
-    let _ = (bvh, node, mask);
+    let _ = (bvh, node, slot);
 }
 
 /// Tests a leaf's blocks (`first` is the index of the first), keeping the nearest hit (ties
@@ -327,6 +347,26 @@ impl Stack {
         // SAFETY: as the caller promises.
         unsafe { *self.entries.get_unchecked_mut(self.len) = e };
         self.len += 1;
+    }
+
+    /// Writes entry `at` (above the held ones; [`Stack::len`] is set by the caller).
+    ///
+    /// # Safety
+    /// `at` must be below [`STACK_ENTRIES`].
+    #[inline(always)]
+    unsafe fn put(&mut self, at: usize, e: Entry) {
+        // SAFETY: as the caller promises.
+        unsafe { *self.entries.get_unchecked_mut(at) = e };
+    }
+
+    /// Entry `at`.
+    ///
+    /// # Safety
+    /// `at` must be below [`STACK_ENTRIES`].
+    #[inline(always)]
+    unsafe fn get(&self, at: usize) -> Entry {
+        // SAFETY: as the caller promises.
+        unsafe { *self.entries.get_unchecked(at) }
     }
 
     #[inline(always)]
@@ -399,53 +439,52 @@ pub(super) fn descend<K: Isa>(
                     // Two entered children, the commonest case: one comparison orders them,
                     // and the farther one's memory is asked for now, so its cache misses
                     // overlap with the work on the nearer (which is loaded at once anyway).
+                    // The order picks slots, not entries, so it is two conditional moves
+                    // rather than a branch (which way it goes is a coin toss per node).
                     let slot = mask.trailing_zeros() as usize;
-                    let second = Entry {
-                        child: node.child[slot],
-                        meta: node.meta[slot],
-                        near: near[slot],
+                    let swap = near[slot] < near[first_slot];
+                    let near_slot = if swap { slot } else { first_slot };
+                    let far_slot = if swap { first_slot } else { slot };
+                    prefetch_child(bvh, node, far_slot);
+                    let entry = |s: usize| Entry {
+                        child: node.child[s],
+                        meta: node.meta[s],
+                        near: near[s],
                     };
-                    let (nearer, farther, far_slot) = if second.near < first.near {
-                        (second, first, first_slot)
-                    } else {
-                        (first, second, slot)
-                    };
-                    prefetch_children(bvh, node, 1 << far_slot);
                     // SAFETY: a validated tree's traversal holds fewer than STACK_ENTRIES.
-                    unsafe { stack.push(farther) };
-                    cur = nearer;
+                    unsafe { stack.push(entry(far_slot)) };
+                    cur = entry(near_slot);
                     continue;
                 }
-                // Every entered child's memory is asked for now, so the cache misses of the
-                // siblings overlap with the work on the nearest.
-                prefetch_children(bvh, node, mask | 1 << first_slot);
-                // Insert the entered children so the stack stays sorted within this node's
-                // run, farthest deepest; the nearest becomes `cur`.
+                // The entered children go onto the stack sorted, farthest deepest, the nearest
+                // on top (it becomes `cur`): each is written straight to its place, its rank
+                // among its siblings (how many are farther, ties by slot), so there are no
+                // compares between entries and no moves (an insertion sort's compares are
+                // unpredictable branches). Every entered child's memory is asked for in the
+                // same pass, so the cache misses of the siblings overlap with the work on the
+                // nearest.
+                let all = mask | 1 << first_slot;
                 let base = stack.len;
-                // SAFETY: a validated tree's traversal holds fewer than STACK_ENTRIES.
-                unsafe { stack.push(first) };
-                while mask != 0 {
-                    let slot = mask.trailing_zeros() as usize;
-                    mask &= mask - 1;
+                let mut m = all;
+                while m != 0 {
+                    let slot = m.trailing_zeros() as usize;
+                    m &= m - 1;
+                    prefetch_child(bvh, node, slot);
+                    let rank = (K::farther_or_tied(&near, slot) & all).count_ones();
                     let entry = Entry {
                         child: node.child[slot],
                         meta: node.meta[slot],
                         near: near[slot],
                     };
-                    let mut at = stack.len;
-                    // SAFETY: as above.
-                    unsafe { stack.push(entry) };
-                    let e = &mut stack.entries[..stack.len];
-                    while at > base && e[at - 1].near < entry.near {
-                        e[at] = e[at - 1];
-                        at -= 1;
-                    }
-                    e[at] = entry;
+                    // SAFETY: `rank` is below the number of entered children, at most WIDTH,
+                    // and a validated tree's traversal holds fewer than STACK_ENTRIES.
+                    unsafe { stack.put(base + rank as usize, entry) };
                 }
-                if let Some(e) = stack.pop() {
-                    cur = e;
-                    continue;
-                }
+                let top = base + all.count_ones() as usize - 1;
+                // SAFETY: `top` was just written.
+                cur = unsafe { stack.get(top) };
+                stack.len = top;
+                continue;
             }
         } else {
             // SAFETY: a leaf child's range of a validated tree.

@@ -80,6 +80,22 @@ impl Isa for Sse {
     }
 
     #[inline(always)]
+    fn farther_or_tied(near: &[f32; WIDTH], slot: usize) -> u32 {
+        // SAFETY: SSE2 is part of x86-64; the loads read `near`'s eight floats.
+        unsafe {
+            let d = _mm_set1_ps(near[slot]);
+            let half = |at: usize| {
+                let v = _mm_loadu_ps(near.as_ptr().add(at));
+                let farther = _mm_movemask_ps(_mm_cmpgt_ps(v, d)) as u32;
+                let tied = _mm_movemask_ps(_mm_cmpeq_ps(v, d)) as u32;
+                (farther << at, tied << at)
+            };
+            let ((f0, e0), (f1, e1)) = (half(0), half(4));
+            (f0 | f1) | ((e0 | e1) & ((1 << slot) - 1))
+        }
+    }
+
+    #[inline(always)]
     fn block(block: &TriangleBlock, r: &SseRay, t0: f32, t1: f32) -> ([f32; BLOCK], u32) {
         // SAFETY: SSE2 is part of x86-64.
         unsafe { block.intersect_sse(&r.tri, t0, t1) }
@@ -102,7 +118,7 @@ impl Isa for Avx2 {
 
     #[inline(always)]
     fn prepare(ray: &TraceRay) -> Avx2Ray {
-        // SAFETY: only reached from the `avx2,fma` functions below.
+        // SAFETY: only reached from the `avx2,fma,popcnt` functions below.
         unsafe {
             Avx2Ray {
                 tri: ShearedSse::new(&ray.sheared),
@@ -116,7 +132,7 @@ impl Isa for Avx2 {
     #[inline(always)]
     fn slab(node: &BvhNode, r: &Avx2Ray, t0: f32, t1: f32) -> ([f32; WIDTH], u32) {
         let mut out = [0.0f32; WIDTH];
-        // SAFETY: only reached from the `avx2,fma` functions below; loads read the node's
+        // SAFETY: only reached from the `avx2,fma,popcnt` functions below; loads read the node's
         // 64-byte aligned rows.
         let mask = unsafe {
             let plane = |k: usize, a: usize| {
@@ -146,7 +162,7 @@ impl Isa for Avx2 {
         t1: f32,
         nearest: &mut [f32; WIDTH],
     ) -> u32 {
-        // SAFETY: only reached from the `avx2,fma` functions below; loads read the node's
+        // SAFETY: only reached from the `avx2,fma,popcnt` functions below; loads read the node's
         // 64-byte aligned rows and `nearest`'s eight floats.
         unsafe {
             let plane = |k: usize, a: usize| {
@@ -171,6 +187,19 @@ impl Isa for Avx2 {
     }
 
     #[inline(always)]
+    fn farther_or_tied(near: &[f32; WIDTH], slot: usize) -> u32 {
+        // SAFETY: only reached from the `avx2,fma,popcnt` functions below; the loads read `near`'s
+        // eight floats.
+        unsafe {
+            let v = _mm256_loadu_ps(near.as_ptr());
+            let d = _mm256_set1_ps(near[slot]);
+            let farther = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_GT_OQ>(v, d)) as u32;
+            let tied = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_EQ_OQ>(v, d)) as u32;
+            farther | (tied & ((1 << slot) - 1))
+        }
+    }
+
+    #[inline(always)]
     fn block(block: &TriangleBlock, r: &Avx2Ray, t0: f32, t1: f32) -> ([f32; BLOCK], u32) {
         // SAFETY: SSE2 is part of x86-64.
         unsafe { block.intersect_sse(&r.tri, t0, t1) }
@@ -178,8 +207,8 @@ impl Isa for Avx2 {
 }
 
 /// # Safety
-/// The CPU must support AVX2 and FMA.
-#[target_feature(enable = "avx2,fma")]
+/// The CPU must support AVX2, FMA and POPCNT.
+#[target_feature(enable = "avx2,fma,popcnt")]
 pub unsafe fn nearest_avx2(
     stack: &mut Stack,
     bvh: &Bvh,
@@ -191,8 +220,8 @@ pub unsafe fn nearest_avx2(
 }
 
 /// # Safety
-/// The CPU must support AVX2 and FMA.
-#[target_feature(enable = "avx2,fma")]
+/// The CPU must support AVX2, FMA and POPCNT.
+#[target_feature(enable = "avx2,fma,popcnt")]
 pub unsafe fn nearest_packet_avx2(
     stack: &mut PacketStack,
     single: &mut Stack,
@@ -206,8 +235,8 @@ pub unsafe fn nearest_packet_avx2(
 }
 
 /// # Safety
-/// The CPU must support AVX2 and FMA.
-#[target_feature(enable = "avx2,fma")]
+/// The CPU must support AVX2, FMA and POPCNT.
+#[target_feature(enable = "avx2,fma,popcnt")]
 pub unsafe fn any_avx2(stack: &mut Stack, bvh: &Bvh, ray: &TraceRay, t0: f32, t1: f32) -> bool {
     any::<Avx2>(stack, *bvh, ray, t0, t1)
 }
