@@ -4,7 +4,6 @@
 //! (`rayfarm-node`), the coordinator, the workers and the CLI are layers over it. See
 //! `docs/ARCHITECTURE.md` for where each concept lives.
 
-pub mod brick;
 pub mod bundler;
 pub mod bvh;
 pub mod camera;

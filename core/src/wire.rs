@@ -32,6 +32,15 @@ pub const VERSION: u16 = 3;
 pub const VERDICT_VERSION: u16 = 4;
 /// Bytes before the first record.
 pub const HEADER_BYTES: usize = 16;
+/// Most lights a volume segment's verdict may name ([`VerdictRecord::LIGHT`]): a shadowed
+/// segment carries one colour per light, and a volume is lit by at most this many of the
+/// manifest's lights (the renderer's `render::volume_light::MAX_LIGHTS` is this bound). Kept
+/// here, with the records it bounds, so checking a batch needs nothing of the renderer.
+pub const MAX_SEGMENT_LIGHTS: usize = 4;
+/// Most segments one ray may collect from all its copies, the most a closing volume verdict
+/// may count: a bound on what a peer can make a group hold (far above a ray's crossings of
+/// block faces in any volume a brick can hold).
+pub const MAX_SEGMENTS: u32 = 1 << 16;
 const RECORD_BYTES: usize = std::mem::size_of::<RayRecord>();
 const COPY_BYTES: usize = std::mem::size_of::<CopyRecord>();
 /// The in-memory verdict's size (its wire form is shorter, see [`encode_verdicts`]).
@@ -434,7 +443,7 @@ fn check_verdict(v: &VerdictRecord, l: &BatchLimits) -> Result<(), &'static str>
             if !(colour && v.t.is_finite() && v.t >= 0.0) {
                 return Err("volume segment light or depth out of range");
             }
-            if v.material as usize >= crate::render::volume_light::MAX_LIGHTS {
+            if v.material as usize >= MAX_SEGMENT_LIGHTS {
                 return Err("volume segment light index out of range");
             }
         }
@@ -442,7 +451,7 @@ fn check_verdict(v: &VerdictRecord, l: &BatchLimits) -> Result<(), &'static str>
             if v.order != 0 || v.t != 0.0 || v.normal != [0.0; 3] {
                 return Err("a closing volume verdict carries segment fields");
             }
-            if v.material > crate::render::speculation::MAX_SEGMENTS {
+            if v.material > MAX_SEGMENTS {
                 return Err("a closing volume verdict counts too many segments");
             }
         }

@@ -12,9 +12,11 @@ use std::time::Duration;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
 #[repr(u8)]
 pub enum Tier {
-    /// Control messages and data (domain) requests: sent at once, never bundled for long.
+    /// Sent at once, never bundled for long. No message uses it today: a peer's domain
+    /// requests are their own call (`FetchDomain`), and tile results go to the coordinator.
     Control = 0,
-    /// Tile results and returned credit: sent fast because their arrival frees memory.
+    /// Verdicts of speculative copies going back to their ray's group: sent fast, because the
+    /// group holds its ray (and its pixel's credit) until they are in.
     Results = 1,
     /// Data-parallel rays migrated to the owner of their domain.
     Migrated = 2,

@@ -1,4 +1,4 @@
-//! A volume scene for direct volume rendering: a scalar volume cut into bricks (`crate::brick`),
+//! A volume scene for direct volume rendering: a scalar volume cut into bricks (`crate::scene::brick`),
 //! one domain each, written one brick at a time so the volume is never all in memory (a raw
 //! file is mapped and only the brick being written is read).
 //!
@@ -12,9 +12,9 @@ use glam::Vec3;
 use tracing::{info, info_span};
 
 use super::{DomainTriangles, PrepareError, default_lighting, publish_staged, reference_margin};
-use crate::brick::{BLOCK, write_brick};
 use crate::geometry::Aabb;
 use crate::isosurface::{Grid, Lattice, march_smooth};
+use crate::scene::brick::{BLOCK, write_brick};
 use crate::scene::domain_file::SourceTriangle;
 use crate::scene::manifest::FORMAT_VERSION;
 use crate::scene::{

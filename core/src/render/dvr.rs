@@ -22,8 +22,8 @@ use std::ops::ControlFlow;
 use glam::Vec3;
 
 use super::volume_light::{Lighting, MAX_LIGHTS, RayLights, SHADOW_BIAS_VOXELS};
-use crate::brick::{BLOCK, Brick};
 use crate::ray::{RayKind, RayRecord};
+use crate::scene::brick::{BLOCK, Brick};
 use crate::scene::{Light, VolumeSpec};
 use crate::transfer::TransferTable;
 

@@ -20,8 +20,8 @@ use crate::sampling::{Purpose, uniform};
 use crate::scene::Light;
 
 /// Most lights that light a volume; the manifest's first ones (a shadowed segment carries one
-/// colour per light).
-pub const MAX_LIGHTS: usize = 4;
+/// colour per light, so the verdict format bounds them: `wire::MAX_SEGMENT_LIGHTS`).
+pub const MAX_LIGHTS: usize = crate::wire::MAX_SEGMENT_LIGHTS;
 
 /// Share of a sample's colour it shows unlit (the sky's light, without shadows or occlusion).
 pub const AMBIENT: f32 = 0.2;

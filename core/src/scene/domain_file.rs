@@ -18,8 +18,8 @@ use std::ops::Range;
 use std::path::{Path, PathBuf};
 
 use bytemuck::{Pod, Zeroable};
-use memmap2::{Mmap, MmapOptions};
 
+use super::residence::{Held, Received, Residence};
 use super::{SceneError, check_domain_checksum, domain_checksum, write_domain_file};
 use crate::bvh::{self, BvhNode};
 use crate::geometry::{Aabb, BLOCK, NormalBlock, PackedTriangle, TriangleBlock};
@@ -180,7 +180,7 @@ fn normal_blocks(triangles: &[SourceTriangle], blocks: &[TriangleBlock]) -> Vec<
         .collect()
 }
 
-/// A mapped, checked domain file: a mesh domain, or a volume brick (`crate::brick`), whose
+/// A mapped, checked domain file: a mesh domain, or a volume brick (`scene::brick`), whose
 /// mesh sections are then empty; a brick of a scene with surfaces in its volume carries its
 /// surfaces' mesh domain beside it ([`DomainData::surfaces`]).
 pub struct DomainData {
@@ -190,7 +190,7 @@ pub struct DomainData {
     bounds: Aabb,
     triangles: u64,
     sections: [Range<usize>; SECTIONS],
-    brick: Option<crate::brick::BrickLayout>,
+    brick: Option<super::brick::BrickLayout>,
     surfaces: Option<Box<DomainData>>,
 }
 
@@ -235,11 +235,7 @@ impl DomainData {
 
     /// How this domain's bytes are held: copied into huge pages, or mapped from the file.
     pub fn residence(&self) -> Residence {
-        if self.map.start.is_some() {
-            Residence::HugePages
-        } else {
-            Residence::Mapped
-        }
+        self.map.residence()
     }
 
     /// A domain file's bytes that arrived from elsewhere (a peer that had it loaded), checked
@@ -275,9 +271,9 @@ impl DomainData {
             path: path.into(),
             reason,
         };
-        if crate::brick::is_brick(&map) {
+        if super::brick::is_brick(&map) {
             let layout =
-                crate::brick::parse(&map, expected_checksum, verify_checksum).map_err(bad)?;
+                super::brick::parse(&map, expected_checksum, verify_checksum).map_err(bad)?;
             return Ok(DomainData {
                 path: path.into(),
                 domain: layout.header.domain,
@@ -382,7 +378,7 @@ impl DomainData {
     }
 
     /// The volume brick, if this domain is one.
-    pub fn brick(&self) -> Option<crate::brick::Brick<'_>> {
+    pub fn brick(&self) -> Option<super::brick::Brick<'_>> {
         self.brick.as_ref().map(|b| b.view(&self.map))
     }
 
@@ -461,197 +457,6 @@ impl DomainData {
     }
 }
 
-/// Where a domain's bytes live while it is loaded.
-///
-/// Incoherent rays are bound by memory: each one touches a few dozen nodes and blocks spread
-/// over the whole tree, and with 4 KiB pages most of those touches also miss the TLB (a
-/// 61 MiB domain is 15,000 pages, far beyond the TLB's reach; 31 huge pages are within it).
-/// A file mapping is made of the page cache's pages, which the program cannot ask to be huge,
-/// so the default copies the file into anonymous memory that the kernel is asked
-/// (`madvise(MADV_HUGEPAGE)`) to back with 2 MiB pages. The load reads every byte anyway (the
-/// checksum, the tree's validation, the material check), so the copy adds one pass over
-/// memory; the cache counts the same bytes as before (the file's size).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Residence {
-    /// Mapped from the file (`mmap`), in the page cache's pages.
-    Mapped,
-    /// Copied into anonymous memory aligned to, and advised to use, 2 MiB pages.
-    HugePages,
-}
-
-/// Files smaller than this stay mapped: they would not fill one huge page.
-const HUGE_PAGE: usize = 2 << 20;
-
-impl Residence {
-    /// The process's choice for a file of `bytes`: `RAYFARM_HUGEPAGES=0` (or `off`) maps
-    /// every domain file, `RAYFARM_HUGEPAGES=1` (or `on`) copies every one whatever its size;
-    /// unset, files of at least one huge page (2 MiB) are copied and smaller ones mapped. The
-    /// variable is read once.
-    pub fn selected(bytes: u64) -> Residence {
-        static CHOICE: std::sync::OnceLock<Option<Residence>> = std::sync::OnceLock::new();
-        let forced = *CHOICE.get_or_init(|| match std::env::var("RAYFARM_HUGEPAGES") {
-            Ok(v) if matches!(v.trim(), "0" | "off" | "false" | "no") => {
-                tracing::info!("domain files mapped, not copied into huge pages");
-                Some(Residence::Mapped)
-            }
-            Ok(v) if matches!(v.trim(), "1" | "on" | "true" | "yes") => {
-                tracing::info!("every domain file copied into huge pages");
-                Some(Residence::HugePages)
-            }
-            _ => None,
-        });
-        forced.unwrap_or(if bytes >= HUGE_PAGE as u64 {
-            Residence::HugePages
-        } else {
-            Residence::Mapped
-        })
-    }
-}
-
-/// A domain file's bytes: a mapping of the file, or a copy at an offset in an anonymous
-/// region (`start`), aligned to a huge page.
-struct Held {
-    map: Mmap,
-    start: Option<usize>,
-    len: usize,
-}
-
-/// Anonymous memory for `len` bytes advised `MADV_HUGEPAGE`, and the offset in it of a 2 MiB
-/// boundary where they start: one huge page more than `len`, so that the bytes can start on
-/// the boundary (pages of the slack that are never touched are never allocated).
-fn huge_page_region(len: usize) -> std::io::Result<(memmap2::MmapMut, usize)> {
-    let region = len
-        .checked_add(HUGE_PAGE)
-        .ok_or(std::io::ErrorKind::FileTooLarge)?;
-    let map = MmapOptions::new().len(region).map_anon()?;
-    // Best effort: without transparent huge pages (`never`) the bytes are still correct.
-    #[cfg(target_os = "linux")]
-    if let Err(e) = map.advise(memmap2::Advice::HugePage) {
-        tracing::debug!("madvise(MADV_HUGEPAGE) refused: {e}");
-    }
-    let start = map.as_ptr().align_offset(HUGE_PAGE).min(HUGE_PAGE);
-    Ok((map, start))
-}
-
-impl Held {
-    /// Holds `file` (`len` bytes long) as `residence` says.
-    fn load(mut file: std::fs::File, len: u64, residence: Residence) -> std::io::Result<Held> {
-        let len = usize::try_from(len).map_err(|_| std::io::ErrorKind::FileTooLarge)?;
-        if residence == Residence::Mapped || len == 0 {
-            // SAFETY: domain files are written once, then renamed into place and never
-            // modified; a file changed under us is a broken deployment, and every value read
-            // is bounds-checked.
-            let map = unsafe { Mmap::map(&file) }?;
-            let len = map.len();
-            return Ok(Held {
-                map,
-                start: None,
-                len,
-            });
-        }
-        let (mut anon, start) = huge_page_region(len)?;
-        std::io::Read::read_exact(&mut file, &mut anon[start..start + len])?;
-        // A file that grew since its size was read is a file changed under us: refused, as
-        // its checksum would be.
-        let mut probe = [0u8; 1];
-        if std::io::Read::read(&mut file, &mut probe)? != 0 {
-            return Err(std::io::Error::other("the file grew while it was read"));
-        }
-        Ok(Held {
-            map: anon.make_read_only()?,
-            start: Some(start),
-            len,
-        })
-    }
-}
-
-/// A domain file's bytes arriving in order from elsewhere (a peer), written straight into
-/// memory held as a load from storage would hold them ([`Residence`]: a file of a huge page
-/// or more into 2 MiB-aligned memory advised `MADV_HUGEPAGE`), so a domain from a peer
-/// traces exactly like one from storage. Never holds more than the length it was made for.
-pub struct Received {
-    map: memmap2::MmapMut,
-    start: usize,
-    len: usize,
-    written: usize,
-    huge: bool,
-}
-
-impl Received {
-    /// Room for a file of `len` bytes, held as `residence` says (`None`: as the process
-    /// chooses for that size, [`Residence::selected`]).
-    pub fn new(len: u64, residence: Option<Residence>) -> std::io::Result<Received> {
-        let residence = residence.unwrap_or_else(|| Residence::selected(len));
-        let len = usize::try_from(len).map_err(|_| std::io::ErrorKind::FileTooLarge)?;
-        let huge = residence == Residence::HugePages && len > 0;
-        let (map, start) = if huge {
-            huge_page_region(len)?
-        } else {
-            (MmapOptions::new().len(len.max(1)).map_anon()?, 0)
-        };
-        Ok(Received {
-            map,
-            start,
-            len,
-            written: 0,
-            huge,
-        })
-    }
-
-    /// Appends `chunk`; refused if it would run past the length.
-    pub fn push(&mut self, chunk: &[u8]) -> Result<(), String> {
-        let end = self
-            .written
-            .checked_add(chunk.len())
-            .filter(|&e| e <= self.len)
-            .ok_or_else(|| {
-                format!(
-                    "{} more bytes after {} of a {} byte file",
-                    chunk.len(),
-                    self.written,
-                    self.len
-                )
-            })?;
-        self.map[self.start + self.written..self.start + end].copy_from_slice(chunk);
-        self.written = end;
-        Ok(())
-    }
-
-    /// Bytes written so far.
-    pub fn written(&self) -> u64 {
-        self.written as u64
-    }
-
-    /// Bytes still missing.
-    pub fn missing(&self) -> u64 {
-        (self.len - self.written) as u64
-    }
-
-    fn into_held(self) -> std::io::Result<Held> {
-        if self.written != self.len {
-            return Err(std::io::Error::new(
-                std::io::ErrorKind::UnexpectedEof,
-                format!("{} of {} bytes arrived", self.written, self.len),
-            ));
-        }
-        Ok(Held {
-            map: self.map.make_read_only()?,
-            // Reported as huge-page resident only when it was copied into such memory.
-            start: self.huge.then_some(self.start),
-            len: self.len,
-        })
-    }
-}
-
-impl std::ops::Deref for Held {
-    type Target = [u8];
-
-    fn deref(&self) -> &[u8] {
-        let start = self.start.unwrap_or(0);
-        &self.map[start..start + self.len]
-    }
-}
-
 /// Triangles the blocks hold: every lane that is not a repeat of the lane before it.
 fn distinct_triangles(blocks: &[TriangleBlock]) -> u64 {
     blocks
@@ -699,19 +504,10 @@ fn parse_header(bytes: &[u8]) -> Result<Header, String> {
 
 /// Reads a domain file from bytes in memory (tests and fuzzing use this).
 pub fn parse_domain_bytes(bytes: &[u8], materials: u32) -> Result<DomainData, SceneError> {
-    let mut map = memmap2::MmapMut::map_anon(bytes.len().max(1))
-        .map_err(|e| SceneError::io("<memory>", e))?;
-    map[..bytes.len()].copy_from_slice(bytes);
-    let map = Held {
-        map: map
-            .make_read_only()
-            .map_err(|e| SceneError::io("<memory>", e))?,
-        start: None,
-        len: bytes.len(),
-    };
+    let map = Held::copy_of(bytes).map_err(|e| SceneError::io("<memory>", e))?;
     // The checksum is still verified against the contents; only the manifest is absent.
-    let checksum = match crate::brick::recorded_checksum(bytes) {
-        Some(c) if crate::brick::is_brick(bytes) => c,
+    let checksum = match super::brick::recorded_checksum(bytes) {
+        Some(c) if super::brick::is_brick(bytes) => c,
         _ => parse_header(bytes).map(|h| h.checksum).unwrap_or(0),
     };
     DomainData::from_map(map, Path::new("<memory>"), checksum, true, materials)

@@ -4,8 +4,8 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use super::domain_file::Received;
 use super::partition::{DomainTree, KdNode};
+use super::residence::Received;
 use super::{DomainData, MANIFEST_FILE, Residence, SceneError, write_atomically};
 use crate::geometry::Aabb;
 
@@ -39,7 +39,7 @@ pub struct Manifest {
     /// One entry per domain, in domain-id order.
     pub domains: Vec<DomainEntry>,
     /// A volume scene: how its voxels lie in space and how they are rendered; its domains are
-    /// bricks (`crate::brick`). Absent for a scene of triangles.
+    /// bricks (`scene::brick`). Absent for a scene of triangles.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub volume: Option<VolumeSpec>,
 }

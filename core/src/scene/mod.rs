@@ -1,15 +1,18 @@
 //! A scene on shared storage: a TOML manifest and one memory-mappable file per domain.
 
+pub mod brick;
 pub mod domain_file;
 pub mod manifest;
 pub mod partition;
+pub mod residence;
 
 use std::fs::File;
 use std::path::{Path, PathBuf};
 
-pub use domain_file::{DomainData, DomainSummary, Received, Residence, write_domain};
+pub use domain_file::{DomainData, DomainSummary, write_domain};
 pub use manifest::{Camera, DomainEntry, Light, Manifest, Material, Sky, SurfaceFile, VolumeSpec};
 pub use partition::{DomainTree, KdNode};
+pub use residence::{Received, Residence};
 
 /// Name of the manifest inside a scene directory.
 pub const MANIFEST_FILE: &str = "scene.toml";

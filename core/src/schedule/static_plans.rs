@@ -48,10 +48,48 @@ pub fn domain_owner(domain: DomainId, workers: u32) -> u32 {
     domain.0 % workers
 }
 
+/// The hybrid schedule's condition for demand-driven loads on one worker: its cache of
+/// `cache_bytes` holds the domains it owns (`owned_bytes`) and still has room for the largest
+/// other domain (`largest_bytes`), so a domain loaded on demand never pushes owned
+/// (data-parallel) data out. The coordinator asks it of every worker before a frame
+/// ([`owned_domains_fit`]), a worker of itself once it knows what it owns.
+pub fn demand_loads_fit(cache_bytes: u64, owned_bytes: u64, largest_bytes: u64) -> bool {
+    cache_bytes >= owned_bytes.saturating_add(largest_bytes)
+}
+
+/// Whether the domain schedule's owner map ([`domain_owner`]) leaves every cache (`caches`,
+/// one a worker, in worker order) room for its owned domains plus the largest other
+/// ([`demand_loads_fit`]); `domain_bytes` are the domains' sizes in domain order.
+pub fn owned_domains_fit(domain_bytes: &[u64], caches: &[u64]) -> bool {
+    let n = caches.len().max(1) as u32;
+    let largest = domain_bytes.iter().copied().max().unwrap_or(0);
+    let mut owned = vec![0u64; n as usize];
+    for (d, &bytes) in domain_bytes.iter().enumerate() {
+        owned[domain_owner(DomainId(d as u32), n) as usize] += bytes;
+    }
+    caches
+        .iter()
+        .zip(&owned)
+        .all(|(&cache, &own)| demand_loads_fit(cache, own, largest))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use proptest::prelude::*;
+
+    #[test]
+    fn owned_domains_fit_when_each_cache_holds_its_share_and_the_largest_other() {
+        // Four domains of 100 over two workers: each owns 200 and needs 100 more.
+        assert!(owned_domains_fit(&[100; 4], &[300, 300]));
+        assert!(!owned_domains_fit(&[100; 4], &[299, 300]));
+        // Worker 0 owns domains 0 and 2 (500), worker 1 domains 1 and 3 (20); largest 400.
+        assert!(owned_domains_fit(&[400, 10, 100, 10], &[900, 420]));
+        assert!(!owned_domains_fit(&[400, 10, 100, 10], &[899, 420]));
+        // One worker's own test is the same rule.
+        assert!(demand_loads_fit(900, 500, 400) && !demand_loads_fit(899, 500, 400));
+        assert!(!demand_loads_fit(u64::MAX - 1, u64::MAX, 1), "no overflow");
+    }
 
     #[test]
     fn image_plane_shares_are_contiguous_and_balanced() {

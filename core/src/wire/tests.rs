@@ -176,7 +176,7 @@ fn verdicts_round_trip_and_bad_ones_are_refused() {
     );
     let too_many = |v: &mut VerdictRecord| {
         (v.kind, v.order, v.t, v.normal) = (VerdictRecord::VOLUME_END, 0, 0.0, [0.0; 3]);
-        v.material = crate::render::speculation::MAX_SEGMENTS + 1;
+        v.material = super::MAX_SEGMENTS + 1;
     };
     assert_eq!(
         refused(too_many),

@@ -206,15 +206,15 @@ pub fn peer_bundle(data: &[u8]) {
     }
 }
 
-/// Volume bricks (`core::brick`): the checksum is fixed up first, as for domain files, and
+/// Volume bricks (`core::scene::brick`): the checksum is fixed up first, as for domain files, and
 /// the bytes copied to a 64-byte aligned buffer, as a map would be. An accepted brick is
 /// marched along rays from its corners through its centre with a density transfer function,
 /// lit by a directional light: no panic, every segment's colour finite and non-negative, its
 /// opacity and the ray's a fraction.
 pub fn brick(data: &[u8]) {
-    use rayfarm_core::brick;
     use rayfarm_core::ray::RayRecord;
     use rayfarm_core::render::dvr::{SampleCounts, VolumeView, composite};
+    use rayfarm_core::scene::brick;
     use rayfarm_core::scene::{Light, VolumeSpec};
     use rayfarm_core::transfer::TransferFunction;
 

@@ -1,6 +1,7 @@
 //! The running frame driven by plain events: no process, socket or clock.
 
 use super::*;
+use crate::coordinator::holders::{HolderChange, view_classes};
 use rayfarm_core::cluster::tile_sums;
 
 /// A 64x64 frame of four 32-pixel tiles over four domains of 100 bytes.
@@ -359,16 +360,6 @@ fn answer(rays: u64, queued: u64) -> proto::TasksShared {
         rays,
         queued,
     }
-}
-
-#[test]
-fn owned_domains_fit_when_each_cache_holds_its_share_and_the_largest_other() {
-    // Four domains of 100 bytes over two workers: each owns two.
-    assert!(owned_domains_fit(&[100; 4], &[300, 300]));
-    assert!(!owned_domains_fit(&[100; 4], &[299, 300]));
-    // Uneven sizes: worker 0 owns domains 0 and 2 (400 + 100), the largest is 400.
-    assert!(owned_domains_fit(&[400, 10, 100, 10], &[900, 420]));
-    assert!(!owned_domains_fit(&[400, 10, 100, 10], &[899, 420]));
 }
 
 #[test]

@@ -16,6 +16,7 @@ use rayfarm_core::render::KernelCounters;
 use rayfarm_core::render::speculation::Outcome;
 use rayfarm_core::schedule::speculation_depth::Depth;
 use rayfarm_core::schedule::speculative::{GenerationCounts, QueueView, next_queue};
+use rayfarm_core::schedule::static_plans::demand_loads_fit;
 use rayfarm_core::tile::TileGrid;
 use rayfarm_core::wire::{BatchLimits, VerdictRecord};
 use rayfarm_proto as proto;
@@ -211,8 +212,9 @@ impl<S: RaySpill> Frame<S> {
     }
 
     /// Under hybrid, whether demand-driven rays may load domains: only while the cache has
-    /// room for every owned domain plus the largest other, so that they never push owned
-    /// (data-parallel) data out. Otherwise they migrate like the rest.
+    /// room for every owned domain plus the largest other (`demand_loads_fit`, the rule the
+    /// coordinator checks for every worker), so that they never push owned (data-parallel)
+    /// data out. Otherwise they migrate like the rest.
     /// Returns the domains to pin in the cache (the owned ones when demand loads may use
     /// the rest).
     pub fn decide_demand_loads(&mut self, cache_bytes: u64) -> Vec<u32> {
@@ -229,7 +231,7 @@ impl<S: RaySpill> Frame<S> {
         };
         // By rounds, the plan fills the cache with what the coordinator chose: a demand load
         // would push it out.
-        *demand_loads = !*rounds && cache_bytes >= owned + largest;
+        *demand_loads = !*rounds && demand_loads_fit(cache_bytes, owned, largest);
         if *demand_loads {
             self.plan.work_on().iter().copied().collect()
         } else {

@@ -21,7 +21,7 @@ impl SceneView {
     pub(super) fn trace_brick(
         &self,
         volume: &VolumeView,
-        (brick, surfaces): (&crate::brick::Brick, Option<Bvh>),
+        (brick, surfaces): (&crate::scene::brick::Brick, Option<Bvh>),
         rays: &[RayRecord],
         sink: &mut impl RaySink,
         counters: &mut KernelCounters,

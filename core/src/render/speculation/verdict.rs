@@ -56,8 +56,8 @@ pub struct SegmentLight {
 }
 
 /// Most segments one ray may collect from all its copies: a bound on what a peer can make a
-/// group hold (far above a ray's crossings of block faces in any volume a brick can hold).
-pub const MAX_SEGMENTS: u32 = 1 << 16;
+/// group hold. The verdict format holds it, since a batch's check needs it.
+pub use crate::wire::MAX_SEGMENTS;
 
 impl VerdictRecord {
     /// Kind of a verdict that found nothing: `order` names the copy's domain, so its group

@@ -22,8 +22,8 @@ use std::path::Path;
 
 use bytemuck::{Pod, Zeroable};
 
+use super::{SceneError, check_domain_checksum, domain_checksum, write_domain_file};
 use crate::isosurface::Lattice;
-use crate::scene::{SceneError, check_domain_checksum, domain_checksum, write_domain_file};
 
 /// First bytes of every brick file.
 pub const MAGIC: [u8; 8] = *b"RFBRICK\0";

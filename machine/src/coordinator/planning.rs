@@ -1,0 +1,349 @@
+//! The running frame's rounds: the owner map given once (domain, and hybrid whose owned
+//! domains fit the caches), barrier and asynchronous rounds planned from the members'
+//! reports by `schedule::rounds` (dynamic and predictive), and what each member is told of
+//! the holders afterwards (whole, or only what changed, by view class). The policies are
+//! `rayfarm_core::schedule`'s; this applies them to the frame's members and makes the
+//! messages.
+
+use std::collections::{BTreeMap, BTreeSet};
+
+use rayfarm_core::schedule::DomainId;
+use rayfarm_core::schedule::dynamic::WorkerPlan;
+use rayfarm_core::schedule::rounds;
+use rayfarm_core::schedule::static_plans::domain_owner;
+use rayfarm_proto::{self as proto, Schedule, coordinator_message::Body};
+use tracing::{debug, info};
+
+use super::{Member, Outgoing, RunningFrame, msg};
+use crate::coordinator::holders::{
+    HolderChange, HolderMap, ViewChange, class_of, view, view_classes,
+};
+
+impl RunningFrame {
+    /// Whether the frame's domains go to owners once (domain, and hybrid whose owned domains
+    /// fit the caches) rather than by rounds.
+    pub(super) fn owners_once(&self) -> bool {
+        match self.schedule {
+            Schedule::Domain => true,
+            Schedule::Hybrid => !self.hybrid_rounds,
+            _ => false,
+        }
+    }
+
+    /// The static domain schedule: domain `d` belongs to the `d mod n`-th worker.
+    pub(super) fn owner_plans(&mut self) -> Vec<Outgoing> {
+        let keys: Vec<u32> = self.members.keys().copied().collect();
+        let n = keys.len() as u32;
+        let owner = |d: u32| keys[domain_owner(DomainId(d), n) as usize];
+        let domains = self.domain_bytes.len() as u32;
+        for d in 0..domains {
+            self.grants.name_holder(owner(d));
+        }
+        let holders: Vec<proto::DomainHolders> = (0..domains)
+            .map(|d| proto::DomainHolders {
+                domain: d,
+                workers: vec![owner(d)],
+                lost: Vec::new(),
+            })
+            .collect();
+        // Every member gets the whole map; no asynchronous round follows these schedules'
+        // one plan, but the record stays true.
+        self.sent_holders
+            .update((0..domains).map(|d| (d, vec![owner(d)])).collect());
+        self.sent_holders.synced_only(keys.iter().copied());
+        self.round = 1;
+        self.planning.owner_map();
+        keys.iter()
+            .map(|&key| {
+                let body = Body::RoundPlan(proto::RoundPlan {
+                    job_id: self.frame_id(),
+                    round: 1,
+                    work_on: (0..domains).filter(|&d| owner(d) == key).collect(),
+                    evict: Vec::new(),
+                    holders: holders.clone(),
+                    next: Vec::new(),
+                    holders_delta: false,
+                });
+                (key, msg(body))
+            })
+            .collect()
+    }
+
+    /// Under barrier rounds: once every member's round is over, plans the next round for all
+    /// of them from their reports (nothing while anyone still works).
+    pub(super) fn plan_if_round_over(&mut self) -> Vec<Outgoing> {
+        let Some((plan, wanted)) = self.cluster().barrier_round(self.round) else {
+            return Vec::new();
+        };
+        self.round += 1;
+        self.planning.whole(self.members.len());
+        self.planned_loads += plan.load_count() as u64;
+        let map: HolderMap = plan
+            .routes()
+            .into_iter()
+            .map(|(d, ws)| (d.0, ws.into_iter().map(|w| w.0).collect()))
+            .collect();
+        let holders = self.holders(map.clone());
+        // Only the planned members get this map, whole.
+        self.sent_holders.update(map);
+        self.sent_holders
+            .synced_only(plan.workers().iter().map(|p| p.worker.0));
+        info!(
+            round = self.round,
+            loads = plan.load_count(),
+            wanted,
+            "round planned"
+        );
+        plan.workers()
+            .iter()
+            .map(|p| self.plan_message(p, &holders, Vec::new(), false))
+            .collect()
+    }
+
+    /// `p` as this round's message to its worker, with `holders` (only the changed ones if
+    /// `delta`) and the domains it will most likely be given next (`next`, for its prefetch).
+    pub(super) fn plan_message(
+        &self,
+        p: &WorkerPlan,
+        holders: &[proto::DomainHolders],
+        next: Vec<u32>,
+        delta: bool,
+    ) -> Outgoing {
+        debug!(worker = p.worker.0, keep = ?p.keep, load = ?p.load, evict = ?p.evict, ?next, "plan");
+        let body = Body::RoundPlan(proto::RoundPlan {
+            job_id: self.frame_id(),
+            round: self.round,
+            work_on: p.work().map(|d| d.0).collect(),
+            evict: p.evict.iter().map(|d| d.0).collect(),
+            holders: holders.to_vec(),
+            next,
+            holders_delta: delta,
+        });
+        (p.worker.0, msg(body))
+    }
+
+    /// Planning one step ahead, for jobs that prefetch: for each of `plans` in turn, the
+    /// domain its worker will most likely be given when it runs dry, from the same
+    /// ray-weighted planning: the fullest wanted domain nobody holds once these plans are
+    /// adopted (what Fig. 5 would hand out next), each guessed for one worker only.
+    pub(super) fn next_domains(&self, plans: &[WorkerPlan]) -> Vec<Vec<u32>> {
+        if !self.spec.prefetch {
+            return vec![Vec::new(); plans.len()];
+        }
+        let mut unheld = self.index.unheld();
+        plans
+            .iter()
+            .map(|p| {
+                unheld
+                    .by_ref()
+                    .find(|&d| !p.works_on(DomainId(d)))
+                    .into_iter()
+                    .collect()
+            })
+            .collect()
+    }
+
+    /// Asynchronous rounds: plans every member that has run dry, from the latest reports of
+    /// all, kept in `index` (the plans of `rounds::Cluster::dry_plans`, at the cost of the
+    /// dry members' plans); members whose plan did not change learn the new holders. A member
+    /// that holds the last map sent gets only the domains whose holders changed
+    /// (`SentHolders`), so a round costs what it changed, not members x held domains.
+    pub(super) fn plan_dry_members(&mut self) -> Vec<Outgoing> {
+        // In a subframe after the first, its first plan waits until every member has reported
+        // once: the members hold what they loaded for the subframe before, but a member that
+        // has not reported takes no part in a plan, so the first to report would be planned
+        // alone and given every domain it has rays for (predictive, caches holding the scene
+        // of 48 domains: 48 + 45 + 26 + 15 loads over four subframes, 48 + 0 + 0 + 0 with the
+        // wait). A frame's first subframe does not wait: caches are cold or unknown there, and
+        // waiting for the slowest member's first report cost the dynamic schedule 36% of a
+        // simulated frame (b48, 4 workers, 8 spp) for no load saved. Every member reports when
+        // it first runs out of work; one that never does is dropped by its heartbeat timeout,
+        // which lets the plan go ahead.
+        if self.subframe > 0 && self.round == 0 && self.members.values().any(|m| !m.reported) {
+            return Vec::new();
+        }
+        let dry = self.index.dry_count();
+        let changed = self
+            .index
+            .dry_plans(&self.members, &self.domain_bytes, self.options);
+        if changed.is_empty() {
+            return Vec::new();
+        }
+        self.round += 1;
+        // Nobody busy: `dry_plans` planned every member from the whole cluster.
+        if dry >= self.members.len() {
+            self.planning.whole(self.members.len());
+        } else {
+            self.planning.incremental(dry, self.members.len());
+        }
+        let (loads, _) = self.index.adopt(&mut self.members, &changed, self.round);
+        self.planned_loads += loads;
+        let holder_changes = self.index.take_holder_changes();
+        let members = &self.members;
+        let was_in_step = self.sent_holders.in_step();
+        let changes = self
+            .sent_holders
+            .update_from_index(holder_changes, || rounds::current_holders(members));
+        if !was_in_step {
+            // The map before was another kind's (a barrier round's, the owner map's): its
+            // lists were whole, not views, so every member starts from the whole view.
+            self.sent_holders.synced_only(std::iter::empty());
+        }
+        let classes = *self
+            .view_classes
+            .get_or_insert_with(|| view_classes(self.members.len()));
+        // Every holder in the map is named in `Grants`: those a domain gained here, the others
+        // when the map that first listed them was sent.
+        let deltas = self.holder_changes(&changes, classes);
+        let mut wholes: BTreeMap<u32, Vec<proto::DomainHolders>> = BTreeMap::new();
+        for &key in self.members.keys() {
+            if !self.sent_holders.is_synced(key) {
+                let class = class_of(key, classes);
+                if let std::collections::btree_map::Entry::Vacant(e) = wholes.entry(class) {
+                    e.insert(self.whole_view(class, classes));
+                }
+            }
+        }
+        let lines = |key: u32, synced: bool| {
+            let class = class_of(key, classes);
+            if synced {
+                &deltas[class as usize]
+            } else {
+                &wholes[&class]
+            }
+        };
+        debug!(
+            round = self.round,
+            planned = changed.len(),
+            changed_domains = changes.len(),
+            "dry workers planned"
+        );
+        let next = self.next_domains(&changed);
+        let mut out: Vec<Outgoing> = changed
+            .iter()
+            .zip(next)
+            .map(|(p, next)| {
+                let synced = self.sent_holders.is_synced(p.worker.0);
+                self.plan_message(p, lines(p.worker.0, synced), next, synced)
+            })
+            .collect();
+        let planned: BTreeSet<u32> = changed.iter().map(|p| p.worker.0).collect();
+        for &key in self.members.keys().filter(|k| !planned.contains(k)) {
+            let synced = self.sent_holders.is_synced(key);
+            let holders = lines(key, synced);
+            if synced && holders.is_empty() {
+                continue;
+            }
+            let body = Body::Holders(proto::Holders {
+                job_id: self.frame_id(),
+                holders: holders.clone(),
+                delta: synced,
+            });
+            out.push((key, msg(body)));
+        }
+        self.sent_holders
+            .synced_only(self.members.keys().copied().collect::<Vec<_>>());
+        out
+    }
+
+    /// Takes member `key`'s report, plan and presence as they are now into `index`.
+    pub(super) fn touch(&mut self, key: u32) {
+        self.index
+            .update(key, self.members.get(&key).map(|m| &m.rounds));
+    }
+
+    /// The frame's members as the rounds see them. Only the predictive schedule plans the
+    /// oldest generation first.
+    pub(super) fn cluster(&self) -> rounds::Cluster<'_, Member> {
+        rounds::Cluster {
+            members: &self.members,
+            domain_bytes: &self.domain_bytes,
+            oldest_first: self.schedule == Schedule::Predictive,
+            options: self.options,
+        }
+    }
+
+    /// Holders by member key, as the workers get them (they know every member's address
+    /// from the roster). Every key named is recorded as a holder (`Grants`).
+    pub(super) fn holders(
+        &mut self,
+        by_domain: impl IntoIterator<Item = (u32, Vec<u32>)>,
+    ) -> Vec<proto::DomainHolders> {
+        let by_domain: Vec<(u32, Vec<u32>)> = by_domain.into_iter().collect();
+        for k in by_domain.iter().flat_map(|(_, keys)| keys) {
+            if self.members.contains_key(k) {
+                self.grants.name_holder(*k);
+            }
+        }
+        by_domain
+            .into_iter()
+            .map(|(domain, keys)| proto::DomainHolders {
+                domain,
+                workers: keys
+                    .into_iter()
+                    .filter(|k| self.members.contains_key(k))
+                    .collect(),
+                lost: Vec::new(),
+            })
+            .collect()
+    }
+
+    /// The deltas the members get, by view class (`holders::view`): each changed domain's
+    /// keys gained and lost in that class's view, the classes' lines found once for every
+    /// class. Every key gained is recorded as a holder (`Grants`); one no longer a member is
+    /// left out (a lost member's domains are listed with it as lost, and the workers forgot it
+    /// already).
+    pub(super) fn holder_changes(
+        &mut self,
+        changes: &[HolderChange],
+        classes: u32,
+    ) -> Vec<Vec<proto::DomainHolders>> {
+        for c in changes {
+            for k in c.whole().gained {
+                if self.members.contains_key(&k) {
+                    self.grants.name_holder(k);
+                }
+            }
+        }
+        let members = &self.members;
+        let line = |domain: u32, l: &ViewChange| proto::DomainHolders {
+            domain,
+            workers: l
+                .gained
+                .iter()
+                .copied()
+                .filter(|k| members.contains_key(k))
+                .collect(),
+            lost: l.lost.clone(),
+        };
+        let mut by_class: Vec<Vec<proto::DomainHolders>> = vec![Vec::new(); classes as usize];
+        for c in changes {
+            let (rest, own) = c.lines(classes);
+            let rest = rest.map(|l| line(c.domain, &l));
+            for (class, lines) in by_class.iter_mut().enumerate() {
+                match own.get(&(class as u32)) {
+                    Some(Some(l)) => lines.push(line(c.domain, l)),
+                    Some(None) => {}
+                    None => lines.extend(rest.clone()),
+                }
+            }
+        }
+        by_class
+    }
+
+    /// The last map sent as a member of view `class` sees it, whole.
+    pub(super) fn whole_view(&self, class: u32, classes: u32) -> Vec<proto::DomainHolders> {
+        self.sent_holders
+            .sent()
+            .iter()
+            .map(|(&domain, keys)| proto::DomainHolders {
+                domain,
+                workers: view(keys, class, classes)
+                    .into_iter()
+                    .filter(|k| self.members.contains_key(k))
+                    .collect(),
+                lost: Vec::new(),
+            })
+            .collect()
+    }
+}
