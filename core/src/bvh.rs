@@ -281,14 +281,6 @@ impl TraceRay {
         }
     }
 
-    /// The ray's octant, the index of its `rows` in [`ROW_OFFSETS`] (bit `a` set if it enters
-    /// through axis `a`'s minimum, a row below 3).
-    #[inline(always)]
-    fn octant(&self) -> usize {
-        let up = |a: usize| ((self.rows[a] < 3 * ROW_BYTES) as usize) << a;
-        up(0) | up(1) | up(2)
-    }
-
     /// The `bounds` row index of the ray's entry (`k` 0..3, per axis) or exit (3..6) plane.
     #[inline(always)]
     fn row(&self, k: usize) -> usize {

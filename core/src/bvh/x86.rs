@@ -4,7 +4,7 @@
 use std::arch::x86_64::*;
 
 use super::packet::{PacketStack, nearest_packet};
-use super::{Bvh, BvhNode, Hit, Isa, ROW_OFFSETS, Stack, TraceRay, WIDTH, any, nearest};
+use super::{Bvh, BvhNode, Hit, Isa, Stack, TraceRay, WIDTH, any, nearest};
 use crate::geometry::{BLOCK, ShearedSse, TriangleBlock};
 
 /// The first float of the `bounds` row at byte offset `offset` (one of [`TraceRay`]'s `rows`).
@@ -131,7 +131,27 @@ impl Isa for Avx2 {
 
     #[inline(always)]
     fn slab(node: &BvhNode, r: &Avx2Ray, t0: f32, t1: f32) -> ([f32; WIDTH], u32) {
-        avx2_slab(node, r, r.rows, t0, t1)
+        let mut out = [0.0f32; WIDTH];
+        // SAFETY: only reached from the `avx2,fma,popcnt` functions below; loads read the node's
+        // 64-byte aligned rows.
+        let mask = unsafe {
+            let plane = |k: usize, a: usize| {
+                // SAFETY: `rows` are row offsets within `bounds` (`TraceRay::new`).
+                let b = _mm256_load_ps(row_ptr(node, r.rows[k]));
+                _mm256_fmsub_ps(b, r.inv[a], r.origin_inv[a])
+            };
+            let near = _mm256_max_ps(
+                _mm256_max_ps(plane(0, 0), plane(1, 1)),
+                _mm256_max_ps(plane(2, 2), _mm256_set1_ps(t0)),
+            );
+            let far = _mm256_min_ps(
+                _mm256_min_ps(plane(3, 0), plane(4, 1)),
+                _mm256_min_ps(plane(5, 2), _mm256_set1_ps(t1)),
+            );
+            _mm256_storeu_ps(out.as_mut_ptr(), near);
+            _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(near, far)) as u32
+        };
+        (out, mask)
     }
 
     #[inline(always)]
@@ -186,64 +206,6 @@ impl Isa for Avx2 {
     }
 }
 
-/// [`Avx2`]'s box test with the row offsets given: the ray's own (read from the stack at every
-/// node visit, as the loop has no registers to spare for them), or an octant's constants
-/// ([`Avx2Octant`]), which become the row loads' displacements.
-#[inline(always)]
-fn avx2_slab(node: &BvhNode, r: &Avx2Ray, rows: [u32; 6], t0: f32, t1: f32) -> ([f32; WIDTH], u32) {
-    let mut out = [0.0f32; WIDTH];
-    // SAFETY: only reached from the `avx2,fma,popcnt` functions below; loads read the node's
-    // 64-byte aligned rows.
-    let mask = unsafe {
-        let plane = |k: usize, a: usize| {
-            // SAFETY: `rows` are row offsets within `bounds` (`TraceRay::new`, `ROW_OFFSETS`).
-            let b = _mm256_load_ps(row_ptr(node, rows[k]));
-            _mm256_fmsub_ps(b, r.inv[a], r.origin_inv[a])
-        };
-        let near = _mm256_max_ps(
-            _mm256_max_ps(plane(0, 0), plane(1, 1)),
-            _mm256_max_ps(plane(2, 2), _mm256_set1_ps(t0)),
-        );
-        let far = _mm256_min_ps(
-            _mm256_min_ps(plane(3, 0), plane(4, 1)),
-            _mm256_min_ps(plane(5, 2), _mm256_set1_ps(t1)),
-        );
-        _mm256_storeu_ps(out.as_mut_ptr(), near);
-        _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(near, far)) as u32
-    };
-    (out, mask)
-}
-
-/// [`Avx2`] for the rays of one octant (`O`, [`TraceRay::octant`]): the row offsets are
-/// constants, so a node visit reads no offsets and the ray's entry stores none. The nearest-hit
-/// loop is compiled once per octant (eight copies, about 23 KB of code in all) and chosen once
-/// per ray; the same loads, products and compares as [`Avx2`], so the same bits.
-struct Avx2Octant<const O: usize>;
-
-impl<const O: usize> Isa for Avx2Octant<O> {
-    type Ray = Avx2Ray;
-
-    #[inline(always)]
-    fn prepare(ray: &TraceRay) -> Avx2Ray {
-        Avx2::prepare(ray)
-    }
-
-    #[inline(always)]
-    fn slab(node: &BvhNode, r: &Avx2Ray, t0: f32, t1: f32) -> ([f32; WIDTH], u32) {
-        avx2_slab(node, r, ROW_OFFSETS[O], t0, t1)
-    }
-
-    #[inline(always)]
-    fn farther_or_tied(near: &[f32; WIDTH], slot: usize) -> u32 {
-        Avx2::farther_or_tied(near, slot)
-    }
-
-    #[inline(always)]
-    fn block(block: &TriangleBlock, r: &Avx2Ray, t0: f32, t1: f32) -> ([f32; BLOCK], u32) {
-        Avx2::block(block, r, t0, t1)
-    }
-}
-
 /// # Safety
 /// The CPU must support AVX2, FMA and POPCNT.
 #[target_feature(enable = "avx2,fma,popcnt")]
@@ -254,17 +216,7 @@ pub unsafe fn nearest_avx2(
     t0: f32,
     t1: f32,
 ) -> Option<Hit> {
-    let bvh = *bvh;
-    match ray.octant() {
-        0 => nearest::<Avx2Octant<0>>(stack, bvh, ray, t0, t1),
-        1 => nearest::<Avx2Octant<1>>(stack, bvh, ray, t0, t1),
-        2 => nearest::<Avx2Octant<2>>(stack, bvh, ray, t0, t1),
-        3 => nearest::<Avx2Octant<3>>(stack, bvh, ray, t0, t1),
-        4 => nearest::<Avx2Octant<4>>(stack, bvh, ray, t0, t1),
-        5 => nearest::<Avx2Octant<5>>(stack, bvh, ray, t0, t1),
-        6 => nearest::<Avx2Octant<6>>(stack, bvh, ray, t0, t1),
-        _ => nearest::<Avx2Octant<7>>(stack, bvh, ray, t0, t1),
-    }
+    nearest::<Avx2>(stack, *bvh, ray, t0, t1)
 }
 
 /// # Safety
