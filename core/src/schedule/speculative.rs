@@ -37,8 +37,8 @@ pub struct QueueView {
 
 /// A queue holding at most this many rays of its oldest generation counts as holding the
 /// next generation when its domain is not in memory ([`scheduled_generation`]). The
-/// threshold hardly matters: in the simulator (4 workers, b48, predicted:0.9) 20, 200 and
-/// 2,000 gave 270, 273 and 274 loads, against 299 without the rule.
+/// threshold hardly matters: in the simulator (4 workers, b48, predicted:0.9, an experiment's
+/// build) 20, 200 and 2,000 gave 270, 273 and 274 loads, against 299 without the rule.
 pub const STRAGGLER_RAYS: u64 = 200;
 
 /// The generation a domain's queue counts as for the oldest-generation rule, when rays are
