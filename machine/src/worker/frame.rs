@@ -15,7 +15,9 @@ use rayfarm_core::ray::RayRecord;
 use rayfarm_core::render::KernelCounters;
 use rayfarm_core::render::speculation::Outcome;
 use rayfarm_core::schedule::speculation_depth::Depth;
-use rayfarm_core::schedule::speculative::{GenerationCounts, QueueView, next_queue};
+use rayfarm_core::schedule::speculative::{
+    GenerationCounts, QueueView, next_queue, scheduled_generation,
+};
 use rayfarm_core::schedule::static_plans::demand_loads_fit;
 use rayfarm_core::tile::TileGrid;
 use rayfarm_core::wire::{BatchLimits, VerdictRecord};
@@ -539,7 +541,7 @@ impl<S: RaySpill> Frame<S> {
             next_queue(queues().map(|(domain, rays)| QueueView {
                 domain,
                 rays,
-                oldest: self.generations.oldest(domain).unwrap_or(0),
+                oldest: self.scheduled_generation(domain).unwrap_or(0),
                 resident: self.plan.resident().contains(&domain),
                 from_eye: 0,
             }))
@@ -631,12 +633,26 @@ impl<S: RaySpill> Frame<S> {
         }
     }
 
-    /// The oldest generation queued per non-empty queue.
+    /// The oldest generation queued per non-empty queue, as the oldest-generation rule counts
+    /// it ([`Frame::scheduled_generation`]).
     pub fn oldest_generations(&self) -> BTreeMap<u32, u32> {
         self.queues
             .non_empty()
-            .filter_map(|d| Some((d, u32::from(self.generations.oldest(d)?))))
+            .filter_map(|d| Some((d, u32::from(self.scheduled_generation(d)?))))
             .collect()
+    }
+
+    /// The generation `domain`'s queue counts as for the oldest-generation rule: when rays
+    /// are placed speculatively, a few stragglers of the oldest generation for a domain not
+    /// in memory count as the next one (`speculative::scheduled_generation`), here and in the
+    /// reports the coordinator plans from, so both wait for that generation's visit.
+    fn scheduled_generation(&self, domain: u32) -> Option<u16> {
+        let (oldest, of_oldest) = self.generations.oldest_with_count(domain)?;
+        Some(if self.speculation.is_some() {
+            scheduled_generation(oldest, of_oldest, self.plan.resident().contains(&domain))
+        } else {
+            oldest
+        })
     }
 
     /// Rays queued here, over all domains.
