@@ -31,6 +31,7 @@ use crate::node::{PassRun, Scene, SimWorker};
 use crate::storage::SharedStorage;
 
 mod run;
+mod traffic;
 mod workers;
 
 pub use run::{
@@ -180,6 +181,8 @@ struct World<'a> {
     /// Below, the coordinator shell sends every message as it is made (one stream a worker),
     /// and the simulator, validated against it at 4 and 8 workers, does the same.
     fold_holders: bool,
+    /// Messages by kind and the like, for the progress log (`traffic`).
+    traffic: traffic::Traffic,
 }
 
 /// A `Holders` message waiting for the coordinator's NIC: the event slot its delivery waits
@@ -259,6 +262,7 @@ pub fn simulate(
         handled_ns: None,
         waiting_holders: Default::default(),
         fold_holders: holders::view_classes(config.workers) > 1,
+        traffic: Default::default(),
     };
     for _ in 0..config.workers {
         world.spawn()?;
@@ -274,6 +278,7 @@ pub fn simulate(
             break;
         }
         world.now = t;
+        world.traffic.popped(t, &ev, &world.net, world.coord.rounds);
         world.event(ev);
         world.schedule_disk();
         if world.coord.is_done() {
@@ -281,6 +286,9 @@ pub fn simulate(
             break;
         }
     }
+    world
+        .traffic
+        .log("run over", world.now, &world.net, world.coord.rounds);
     Ok(world.finish(ended, bound, expected_hash))
 }
 
@@ -504,6 +512,7 @@ impl World<'_> {
         if e.job_id != later.job_id {
             return Some(later);
         }
+        self.traffic.folded(&later);
         holders::fold_holders(e, later);
         let bytes = earlier.encoded_len();
         let w = self
@@ -533,6 +542,7 @@ impl World<'_> {
         if let Msg::Bundle { .. } = msg {
             self.outcome.peer_bytes += bytes as u64;
         }
+        self.traffic.sent(&msg);
         let (start, at) = self.net.send(depart.max(self.now), from, to, bytes);
         let slot = self.heap.push_waiting(at, Ev::Deliver { from, to, msg });
         (start, slot, bytes)
