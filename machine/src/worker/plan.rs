@@ -3,7 +3,7 @@
 //! follows where each ray goes (here, to a peer, or nowhere when its tile restarted), so the
 //! routing rule lives here once, without queues or sockets.
 
-use std::collections::btree_map::Entry;
+use std::collections::hash_map::Entry;
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::sync::Arc;
 
@@ -98,11 +98,14 @@ pub struct Plan {
     resident: BTreeSet<u32>,
     /// Other workers holding each domain this round, by key. Keys, not addresses: at 256
     /// workers under the dynamic schedule the addresses, in every member's copy of the map and
-    /// in every round's messages, held gigabytes (README "Simulator").
-    holders: BTreeMap<u32, Vec<u32>>,
+    /// in every round's messages, held gigabytes (README "Simulator"). A hash map: every line
+    /// of every holders message looks a domain up here, and at 256 simulated workers of
+    /// thousands of domains each the ordered map's node loads missed the cache (a tenth of a
+    /// dynamic run: perf, README); nothing reads it in domain order.
+    holders: HashMap<u32, Vec<u32>>,
     /// Other workers that held each domain in an earlier round, by key, latest first (at most
     /// [`FORMER_HOLDERS`]): they may still have it loaded, so a load may ask them for it.
-    former: BTreeMap<u32, Vec<u32>>,
+    former: HashMap<u32, Vec<u32>>,
     /// Domains the coordinator expects to give this worker next, most likely first (what
     /// it may prefetch once its own plan is loaded).
     next: Vec<u32>,
@@ -131,8 +134,8 @@ impl Plan {
             roster,
             work_on: BTreeSet::new(),
             resident: BTreeSet::new(),
-            holders: BTreeMap::new(),
-            former: BTreeMap::new(),
+            holders: HashMap::new(),
+            former: HashMap::new(),
             next: Vec::new(),
             changed: None,
         }
@@ -175,9 +178,11 @@ impl Plan {
         self.next = next.into_iter().filter(|&d| d < self.domains).collect();
     }
 
-    /// Domains some other worker holds this round.
+    /// Domains some other worker holds this round, ascending.
     pub fn held_elsewhere(&self) -> impl Iterator<Item = u32> + '_ {
-        self.holders.keys().copied()
+        let mut held: Vec<u32> = self.holders.keys().copied().collect();
+        held.sort_unstable();
+        held.into_iter()
     }
 
     /// Where a load of `domain` may take its bytes from: the other workers holding it this

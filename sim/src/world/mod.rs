@@ -192,6 +192,9 @@ struct WaitingHolders {
     start: Time,
     bytes: usize,
     conn: u64,
+    /// Whether it is a fold of a delta, which the next delta folds into at its own cost
+    /// (`holders::fold_into_folded`), and then the encoded bytes of its `Holders`.
+    folded: Option<usize>,
 }
 
 /// Opens the scene a simulation reads (once for many runs).
@@ -468,6 +471,7 @@ impl World<'_> {
                     start,
                     bytes,
                     conn,
+                    folded: None,
                 };
                 self.waiting_holders.insert(to, waiting);
             }
@@ -513,12 +517,35 @@ impl World<'_> {
             return Some(later);
         }
         self.traffic.folded(&later);
-        holders::fold_holders(e, later);
-        let bytes = earlier.encoded_len();
         let w = self
             .waiting_holders
             .get_mut(&to)
             .expect("found waiting above");
+        // A line's share of the message's bytes: field 2, length-delimited.
+        let line_len = |l: &proto::DomainHolders| {
+            let n = l.encoded_len();
+            1 + prost::length_delimiter_len(n) + n
+        };
+        let holders_len = match w.folded {
+            Some(len) if later.delta => {
+                let change = holders::fold_into_folded(e, later, line_len);
+                len.checked_add_signed(change)
+                    .expect("a message's lines never take away more bytes than it has")
+            }
+            _ => {
+                let delta = later.delta;
+                holders::fold_holders(e, later);
+                let len = e.encoded_len();
+                w.folded = delta.then_some(len);
+                len
+            }
+        };
+        if w.folded.is_some() {
+            w.folded = Some(holders_len);
+        }
+        // The control message: field 7 of the oneof, length-delimited.
+        let bytes = 1 + prost::length_delimiter_len(holders_len) + holders_len;
+        debug_assert_eq!(bytes, earlier.encoded_len());
         let added = bytes.saturating_sub(w.bytes);
         w.bytes = bytes;
         self.net.lengthen(COORDINATOR, added);
