@@ -218,7 +218,7 @@ pub fn fold_into_folded(
     debug_assert!(later.delta, "a whole map replaces what waits: fold_holders");
     let whole = !held.delta;
     // `later`'s lines by domain, in order (a delta may name a domain twice).
-    let mut by_domain: BTreeMap<u32, Vec<(Vec<u32>, Vec<u32>)>> = BTreeMap::new();
+    let mut by_domain: BTreeMap<u32, Vec<GainedLost>> = BTreeMap::new();
     for h in later.holders {
         by_domain
             .entry(h.domain)
@@ -290,6 +290,9 @@ pub fn fold_into_folded(
     }
     change
 }
+
+/// A delta line's keys gained and lost.
+type GainedLost = (Vec<u32>, Vec<u32>);
 
 /// One domain's line `(gained, lost)` followed by a delta line of `gained` and `lost`: the
 /// keys lost by either are taken out first, then those gained and not lost after, and those

@@ -155,7 +155,7 @@ impl Plan {
     /// no other domain's rays can leave: [`Frame::take_for_peers`](super::frame::Frame)
     /// looks at these instead of every queue, on every holders message.
     pub fn take_changed(&mut self) -> Option<BTreeSet<u32>> {
-        std::mem::replace(&mut self.changed, Some(BTreeSet::new()))
+        self.changed.replace(BTreeSet::new())
     }
 
     /// Domains this worker traces this round.
