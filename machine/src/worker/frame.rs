@@ -220,6 +220,11 @@ impl<S: RaySpill> Frame<S> {
     /// Returns the domains to pin in the cache (the owned ones when demand loads may use
     /// the rest).
     pub fn decide_demand_loads(&mut self, cache_bytes: u64) -> Vec<u32> {
+        // Only hybrid decides: the other schedules skip the sizes' walk, which runs on every
+        // plan (over 8,192 domains, 4% of a 256-worker dynamic run: perf, README "Simulator").
+        if !matches!(self.plan.mode, Mode::Hybrid { .. }) {
+            return Vec::new();
+        }
         let sizes = &self.domain_bytes;
         let size = |d: u32| sizes.get(d as usize).copied().unwrap_or(0);
         let owned: u64 = self.plan.work_on().iter().map(|&d| size(d)).sum();
@@ -467,12 +472,31 @@ impl<S: RaySpill> Frame<S> {
     /// the domains with rays queued here, not at every domain held elsewhere: this runs on
     /// every plan and holders message, and at 1,024 workers over 8,192 domains walking the
     /// held ones took two thirds of a simulated predictive frame's time (perf, README).
+    ///
+    /// Under the domain, dynamic and predictive schedules it looks only at the domains whose
+    /// holders, plan or residency changed since its last walk (`Plan::take_changed`): a ray
+    /// queued here then was kept because it was not forwarded, and stays so until one of
+    /// those changes. At 256 workers every round's holders message to each member walked
+    /// every queue (a tenth of a dynamic run: perf, README "Simulator"). Image-plane and
+    /// hybrid keep rays that are forwarded (hybrid's camera rays on demand loads): they walk
+    /// every queue as before, since taking those out and routing them back is what they did.
     pub fn take_for_peers(&mut self) -> Result<BTreeMap<String, Vec<RayRecord>>, QueueError> {
-        let domains: Vec<u32> = self
-            .queues
-            .non_empty()
-            .filter(|&d| self.plan.is_held_elsewhere(d) && self.plan.forwards(d))
-            .collect();
+        let changed = self.plan.take_changed();
+        let leaves = |d: u32| self.plan.is_held_elsewhere(d) && self.plan.forwards(d);
+        let domains: Vec<u32> = match changed {
+            Some(changed)
+                if matches!(
+                    self.plan.mode,
+                    Mode::Domain | Mode::Dynamic | Mode::Predictive
+                ) =>
+            {
+                changed
+                    .into_iter()
+                    .filter(|&d| self.queues.has_queue(d) && leaves(d))
+                    .collect()
+            }
+            _ => self.queues.non_empty().filter(|&d| leaves(d)).collect(),
+        };
         let mut queued = Vec::new();
         for d in domains {
             let len = self.queues.len(d) as usize;

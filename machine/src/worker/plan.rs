@@ -3,6 +3,7 @@
 //! follows where each ray goes (here, to a peer, or nowhere when its tile restarted), so the
 //! routing rule lives here once, without queues or sockets.
 
+use std::collections::hash_map::Entry;
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::sync::Arc;
 
@@ -64,6 +65,16 @@ pub struct HolderLine {
 /// Former holders remembered per domain.
 const FORMER_HOLDERS: usize = 2;
 
+/// Puts each of `gained` but `me` into `kept` (in key order) at its place, once.
+fn insert_gained(kept: &mut Vec<u32>, gained: Vec<u32>, me: u32) {
+    for g in gained {
+        if g != me && !kept.contains(&g) {
+            let at = kept.partition_point(|&k| k < g);
+            kept.insert(at, g);
+        }
+    }
+}
+
 /// See the module documentation.
 #[derive(Clone, Debug)]
 pub struct Plan {
@@ -87,14 +98,21 @@ pub struct Plan {
     resident: BTreeSet<u32>,
     /// Other workers holding each domain this round, by key. Keys, not addresses: at 256
     /// workers under the dynamic schedule the addresses, in every member's copy of the map and
-    /// in every round's messages, held gigabytes (README "Simulator").
-    holders: BTreeMap<u32, Vec<u32>>,
+    /// in every round's messages, held gigabytes (README "Simulator"). A hash map: every line
+    /// of every holders message looks a domain up here, and at 256 simulated workers of
+    /// thousands of domains each the ordered map's node loads missed the cache (a tenth of a
+    /// dynamic run: perf, README); nothing reads it in domain order.
+    holders: HashMap<u32, Vec<u32>>,
     /// Other workers that held each domain in an earlier round, by key, latest first (at most
     /// [`FORMER_HOLDERS`]): they may still have it loaded, so a load may ask them for it.
-    former: BTreeMap<u32, Vec<u32>>,
+    former: HashMap<u32, Vec<u32>>,
     /// Domains the coordinator expects to give this worker next, most likely first (what
     /// it may prefetch once its own plan is loaded).
     next: Vec<u32>,
+    /// Domains whose holders, plan or residency changed since [`Plan::take_changed`] last
+    /// ran: only their queued rays can have begun to leave. `None`: any may have (before
+    /// the first call, after a roster change or a peer's loss).
+    changed: Option<BTreeSet<u32>>,
 }
 
 impl Plan {
@@ -116,10 +134,28 @@ impl Plan {
             roster,
             work_on: BTreeSet::new(),
             resident: BTreeSet::new(),
-            holders: BTreeMap::new(),
-            former: BTreeMap::new(),
+            holders: HashMap::new(),
+            former: HashMap::new(),
             next: Vec::new(),
+            changed: None,
         }
+    }
+
+    /// Notes that whether `domain`'s queued rays leave may have changed.
+    fn note_changed(&mut self, domain: u32) {
+        if let Some(changed) = self.changed.as_mut() {
+            changed.insert(domain);
+        }
+    }
+
+    /// The domains whose queued rays may have begun to leave since the last call (their
+    /// holders, this worker's plan or what is mapped here changed), ascending; `None` when
+    /// any may have. Under the domain, dynamic and predictive schedules a ray is kept here
+    /// exactly when it is not forwarded ([`Plan::forwards`]), so after a walk of the queues
+    /// no other domain's rays can leave: [`Frame::take_for_peers`](super::frame::Frame)
+    /// looks at these instead of every queue, on every holders message.
+    pub fn take_changed(&mut self) -> Option<BTreeSet<u32>> {
+        self.changed.replace(BTreeSet::new())
     }
 
     /// Domains this worker traces this round.
@@ -142,9 +178,11 @@ impl Plan {
         self.next = next.into_iter().filter(|&d| d < self.domains).collect();
     }
 
-    /// Domains some other worker holds this round.
+    /// Domains some other worker holds this round, ascending.
     pub fn held_elsewhere(&self) -> impl Iterator<Item = u32> + '_ {
-        self.holders.keys().copied()
+        let mut held: Vec<u32> = self.holders.keys().copied().collect();
+        held.sort_unstable();
+        held.into_iter()
     }
 
     /// Where a load of `domain` may take its bytes from: the other workers holding it this
@@ -165,6 +203,13 @@ impl Plan {
 
     /// Records that `gone` no longer hold `domain` (they may still have it loaded).
     fn note_former(&mut self, domain: u32, gone: impl IntoIterator<Item = u32>) {
+        let mut gone = gone.into_iter().peekable();
+        // Nobody gone, nothing to note: no entry (an empty list reads as no entry everywhere,
+        // and making one for every domain a holders line names was a search and an insert
+        // per line per worker).
+        if gone.peek().is_none() {
+            return;
+        }
         let former = self.former.entry(domain).or_default();
         for w in gone {
             former.retain(|&f| f != w);
@@ -193,7 +238,18 @@ impl Plan {
         delta: bool,
     ) {
         self.round = round;
-        self.work_on = work_on.into_iter().collect();
+        let work_on: BTreeSet<u32> = work_on.into_iter().collect();
+        if self.changed.is_some() {
+            let moved: Vec<u32> = self
+                .work_on
+                .symmetric_difference(&work_on)
+                .copied()
+                .collect();
+            for d in moved {
+                self.note_changed(d);
+            }
+        }
+        self.work_on = work_on;
         self.set_holders(holders, delta);
     }
 
@@ -207,10 +263,13 @@ impl Plan {
     pub fn set_holders(&mut self, holders: impl IntoIterator<Item = HolderLine>, delta: bool) {
         if delta {
             for line in holders {
+                self.note_changed(line.domain);
                 self.change_holders(line);
             }
             return;
         }
+        // A whole map may change any domain: the next walk looks at every queue.
+        self.changed = None;
         let mut before = std::mem::take(&mut self.holders);
         for HolderLine {
             domain: d,
@@ -240,29 +299,59 @@ impl Plan {
             mut lost,
         } = line;
         lost.sort_unstable();
-        let mut ws = self.holders.remove(&d).unwrap_or_default();
-        let (gone, mut kept): (Vec<u32>, Vec<u32>) =
-            ws.drain(..).partition(|w| lost.binary_search(w).is_ok());
-        for g in gained {
-            if g != self.me && !kept.contains(&g) {
-                let at = kept.partition_point(|&k| k < g);
-                kept.insert(at, g);
+        // The list is changed where it is (one search of the map, no new vectors): this runs
+        // for every line of every holders message on every worker, a fifth of a 256-worker
+        // dynamic run's time when it took the list out, split it in two and put it back.
+        let mut gone = Vec::new();
+        match self.holders.entry(d) {
+            Entry::Occupied(mut e) => {
+                let kept = e.get_mut();
+                if !lost.is_empty() {
+                    kept.retain(|w| {
+                        let lose = lost.binary_search(w).is_ok();
+                        if lose {
+                            gone.push(*w);
+                        }
+                        !lose
+                    });
+                }
+                insert_gained(kept, gained, self.me);
+                if kept.is_empty() {
+                    e.remove();
+                }
             }
-        }
-        if !kept.is_empty() {
-            self.holders.insert(d, kept);
+            Entry::Vacant(e) => {
+                let mut kept = Vec::new();
+                insert_gained(&mut kept, gained, self.me);
+                if !kept.is_empty() {
+                    e.insert(kept);
+                }
+            }
         }
         self.note_former(d, gone);
     }
 
     /// Records which domains are mapped here now.
     pub fn set_resident(&mut self, resident: impl IntoIterator<Item = u32>) {
-        self.resident = resident.into_iter().collect();
+        let resident: BTreeSet<u32> = resident.into_iter().collect();
+        if self.changed.is_some() {
+            let moved: Vec<u32> = self
+                .resident
+                .symmetric_difference(&resident)
+                .copied()
+                .collect();
+            for d in moved {
+                self.note_changed(d);
+            }
+        }
+        self.resident = resident;
     }
 
     /// The frame's roster changed (a worker joined): keys now name these addresses.
     pub fn set_roster(&mut self, roster: Arc<HashMap<u32, String>>) {
         self.roster = roster;
+        // A holder the roster did not name kept its rays here (`peer_of`): they may leave now.
+        self.changed = None;
     }
 
     /// The frame's roster: every worker's peer address by key.
@@ -284,6 +373,7 @@ impl Plan {
         }
         self.holders.retain(|_, hs| !hs.is_empty());
         self.former.retain(|_, hs| !hs.is_empty());
+        self.changed = None;
     }
 
     /// Raises tiles' epochs (never lowers them).

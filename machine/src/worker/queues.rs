@@ -241,6 +241,11 @@ impl<S: RaySpill> DomainQueues<S> {
             + self.spilled.get(&domain).copied().unwrap_or(0)
     }
 
+    /// Whether `domain` is one of [`DomainQueues::non_empty`]'s.
+    pub fn has_queue(&self, domain: u32) -> bool {
+        self.mem.contains_key(&domain) || self.spilled.contains_key(&domain)
+    }
+
     /// Domains with rays queued (in memory or spilled), ascending.
     pub fn non_empty(&self) -> impl Iterator<Item = u32> + '_ {
         let mut mem = self.mem.keys().copied().peekable();

@@ -31,6 +31,7 @@ use crate::node::{PassRun, Scene, SimWorker};
 use crate::storage::SharedStorage;
 
 mod run;
+mod traffic;
 mod workers;
 
 pub use run::{
@@ -188,6 +189,8 @@ struct World<'a> {
     /// Below, the coordinator shell sends every message as it is made (one stream a worker),
     /// and the simulator, validated against it at 4 and 8 workers, does the same.
     fold_holders: bool,
+    /// Messages by kind and the like, for the progress log (`traffic`).
+    traffic: traffic::Traffic,
 }
 
 /// A `Holders` message waiting for the coordinator's NIC: the event slot its delivery waits
@@ -197,6 +200,9 @@ struct WaitingHolders {
     start: Time,
     bytes: usize,
     conn: u64,
+    /// Whether it is a fold of a delta, which the next delta folds into at its own cost
+    /// (`holders::fold_into_folded`), and then the encoded bytes of its `Holders`.
+    folded: Option<usize>,
 }
 
 /// Opens the scene a simulation reads (once for many runs).
@@ -267,6 +273,7 @@ pub fn simulate(
         handled_ns: None,
         waiting_holders: Default::default(),
         fold_holders: holders::view_classes(config.workers) > 1,
+        traffic: Default::default(),
     };
     for _ in 0..config.workers {
         world.spawn()?;
@@ -282,6 +289,7 @@ pub fn simulate(
             break;
         }
         world.now = t;
+        world.traffic.popped(t, &ev, &world.net, world.coord.rounds);
         world.event(ev);
         world.schedule_disk();
         if world.coord.is_done() {
@@ -289,6 +297,9 @@ pub fn simulate(
             break;
         }
     }
+    world
+        .traffic
+        .log("run over", world.now, &world.net, world.coord.rounds);
     Ok(world.finish(ended, bound, expected_hash))
 }
 
@@ -473,6 +484,7 @@ impl World<'_> {
                     start,
                     bytes,
                     conn,
+                    folded: None,
                 };
                 self.waiting_holders.insert(to, waiting);
             }
@@ -517,12 +529,36 @@ impl World<'_> {
         if e.job_id != later.job_id {
             return Some(later);
         }
-        holders::fold_holders(e, later);
-        let bytes = earlier.encoded_len();
+        self.traffic.folded(&later);
         let w = self
             .waiting_holders
             .get_mut(&to)
             .expect("found waiting above");
+        // A line's share of the message's bytes: field 2, length-delimited.
+        let line_len = |l: &proto::DomainHolders| {
+            let n = l.encoded_len();
+            1 + prost::length_delimiter_len(n) + n
+        };
+        let holders_len = match w.folded {
+            Some(len) if later.delta => {
+                let change = holders::fold_into_folded(e, later, line_len);
+                len.checked_add_signed(change)
+                    .expect("a message's lines never take away more bytes than it has")
+            }
+            _ => {
+                let delta = later.delta;
+                holders::fold_holders(e, later);
+                let len = e.encoded_len();
+                w.folded = delta.then_some(len);
+                len
+            }
+        };
+        if w.folded.is_some() {
+            w.folded = Some(holders_len);
+        }
+        // The control message: field 7 of the oneof, length-delimited.
+        let bytes = 1 + prost::length_delimiter_len(holders_len) + holders_len;
+        debug_assert_eq!(bytes, earlier.encoded_len());
         let added = bytes.saturating_sub(w.bytes);
         w.bytes = bytes;
         self.net.lengthen(COORDINATOR, added);
@@ -546,6 +582,7 @@ impl World<'_> {
         if let Msg::Bundle { .. } = msg {
             self.outcome.peer_bytes += bytes as u64;
         }
+        self.traffic.sent(&msg);
         if let Msg::Ack { .. } = msg {
             let at = self.net.send_packet(depart.max(self.now), from, to, bytes);
             let slot = self.heap.push_waiting(at, Ev::Deliver { from, to, msg });
