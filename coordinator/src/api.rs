@@ -13,6 +13,7 @@ use rayfarm_machine::coordinator::cluster::is_terminal;
 use rayfarm_node::bounds::check_field;
 use rayfarm_node::proto;
 use rayfarm_node::proto::job_service_server::JobService;
+use rayfarm_node::requests;
 use rayfarm_node::security::User;
 use tokio::io::{AsyncReadExt, AsyncSeekExt};
 use tokio::sync::{Semaphore, mpsc};
@@ -210,14 +211,6 @@ fn unreadable(job_id: &str, path: &Path, e: std::io::Error) -> Status {
     ))
 }
 
-/// Jobs in a page of ListJobs when the client names no size, and the most it may ask.
-const DEFAULT_PAGE: usize = 100;
-const MAX_PAGE: usize = 1000;
-/// Chunk size of a streamed fetch when the client names none, and the largest it may ask
-/// (a fetch holds a few chunks at most, so this sets what each one may hold).
-const DEFAULT_CHUNK: u32 = 1 << 20;
-const MAX_CHUNK: u32 = 1 << 20;
-
 type WatchStream = Pin<Box<dyn Stream<Item = Result<proto::WatchJobResponse, Status>> + Send>>;
 type ChunkStream = Pin<Box<dyn Stream<Item = Result<proto::FetchResultChunk, Status>> + Send>>;
 
@@ -276,25 +269,18 @@ impl JobService for Api {
         &self,
         request: Request<proto::ListJobsRequest>,
     ) -> Result<Response<proto::ListJobsResponse>, Status> {
-        let r = request.into_inner();
-        check_field("page_token", &r.page_token)?;
-        let size = match r.page_size {
-            0 => DEFAULT_PAGE,
-            n => (n as usize).min(MAX_PAGE),
-        };
-        let page = match r.page_token.as_str() {
-            "" => JobPage::newest(size),
-            token => JobPage {
-                size,
-                from_seq: token.parse().map_err(|_| {
-                    Status::invalid_argument("page_token is not one a ListJobs response gave")
-                })?,
+        let page = requests::list_page(&request.into_inner())?;
+        let page = match page.from_seq {
+            None => JobPage::newest(page.size),
+            Some(from_seq) => JobPage {
+                size: page.size,
+                from_seq,
             },
         };
         let (jobs, next) = self.coordinator.off_runtime(move |c| c.list(page)).await?;
         Ok(Response::new(proto::ListJobsResponse {
             jobs,
-            next_page_token: next.map(|seq| seq.to_string()).unwrap_or_default(),
+            next_page_token: next.map(requests::page_token).unwrap_or_default(),
         }))
     }
 
@@ -357,7 +343,7 @@ impl JobService for Api {
     ) -> Result<Response<ChunkStream>, Status> {
         let client = rayfarm_node::listen::remote_addr(&request).map(|a| a.ip());
         let r = request.into_inner();
-        check_field("job_id", &r.job_id)?;
+        let chunk = requests::result_chunk(&r)?;
         let (path, stats_json, image_hash) = self.result(&r.job_id, r.format()).await?;
         let slot = self.fetches.take(client)?;
         let unreadable = |e| unreadable(&r.job_id, &path, e);
@@ -368,10 +354,6 @@ impl JobService for Api {
                 r.offset, r.job_id
             )));
         }
-        let chunk = match r.chunk_bytes {
-            0 => DEFAULT_CHUNK,
-            n => n.min(MAX_CHUNK),
-        } as usize;
         let mut file = tokio::fs::File::open(&path).await.map_err(unreadable)?;
         file.seek(std::io::SeekFrom::Start(r.offset))
             .await

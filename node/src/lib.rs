@@ -13,6 +13,7 @@ pub mod job;
 pub mod listen;
 pub mod metrics;
 pub mod proto;
+pub mod requests;
 pub mod result_file;
 pub mod security;
 pub mod telemetry;

@@ -35,12 +35,9 @@ use tracing::{debug, warn};
 /// of memory past the cache's budget nor more of the link.
 pub const MAX_TRANSFERS: usize = 4;
 
-/// Largest chunk served (and taken): 1 MiB keeps a transfer's buffered bytes small and
-/// each message far under the peer link's message cap.
-pub const MAX_CHUNK: usize = 1 << 20;
-
-/// Smallest chunk served, whatever the request asks: fewer, larger messages.
-pub const MIN_CHUNK: usize = 64 << 10;
+/// Largest chunk served (and taken), and the smallest served whatever the request asks:
+/// defined with the request's checks, which clamp to them.
+pub use rayfarm_node::requests::{MAX_DOMAIN_CHUNK as MAX_CHUNK, MIN_DOMAIN_CHUNK as MIN_CHUNK};
 
 /// A requester that takes no chunk for this long ends its transfer (its slot is freed).
 const SEND_DEADLINE: Duration = Duration::from_secs(10);
@@ -141,14 +138,7 @@ impl Serving {
             .map_or_else(|| "unknown".to_string(), |a| a.to_string());
         let certified = rayfarm_node::identity::of_request(&request);
         let req = request.into_inner();
-        bounds::check_field("sender", &req.sender)?;
-        bounds::check_field("job_id", &req.job_id)?;
-        if req.protocol_version != PROTOCOL_VERSION {
-            return Err(Status::failed_precondition(format!(
-                "peer speaks protocol {}, this worker {PROTOCOL_VERSION}",
-                req.protocol_version
-            )));
-        }
+        let chunk = rayfarm_node::requests::domain_request(&req)?;
         if let Some(id) = &certified
             && req.sender != id.name
         {
@@ -189,7 +179,7 @@ impl Serving {
         let fault = self.fault;
         let chunk = match fault {
             Some(ServeFault::Slow) => MIN_CHUNK,
-            _ => (req.max_chunk_bytes as usize).clamp(MIN_CHUNK, MAX_CHUNK),
+            _ => chunk,
         };
         let (tx, rx) = mpsc::channel(2);
         debug!(%remote, sender = %req.sender, domain = req.domain, bytes = data.bytes(),

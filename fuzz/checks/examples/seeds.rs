@@ -193,6 +193,77 @@ fn main() {
     };
     let req = proto::SubmitJobRequest { spec: Some(spec) };
     seed("job_request", "small", &req.encode_to_vec());
+    // Every job API call, its pick byte first (`rayfarm_fuzz::job_api_request`).
+    let job_id = || "job-0001".to_string();
+    let api: [(&str, Vec<u8>); 9] = [
+        ("submit", req.encode_to_vec()),
+        (
+            "watch",
+            proto::WatchJobRequest { job_id: job_id() }.encode_to_vec(),
+        ),
+        (
+            "list",
+            proto::ListJobsRequest {
+                page_size: 20,
+                page_token: "42".into(),
+            }
+            .encode_to_vec(),
+        ),
+        (
+            "cancel",
+            proto::CancelJobRequest { job_id: job_id() }.encode_to_vec(),
+        ),
+        (
+            "fetch",
+            proto::FetchResultRequest {
+                job_id: job_id(),
+                format: proto::ImageFormat::Png as i32,
+            }
+            .encode_to_vec(),
+        ),
+        (
+            "fetch_stream",
+            proto::FetchResultStreamRequest {
+                job_id: job_id(),
+                format: proto::ImageFormat::Png as i32,
+                offset: 4096,
+                chunk_bytes: 65536,
+            }
+            .encode_to_vec(),
+        ),
+        (
+            "preview",
+            proto::FetchPreviewRequest { job_id: job_id() }.encode_to_vec(),
+        ),
+        (
+            "priority",
+            proto::SetJobPriorityRequest {
+                job_id: job_id(),
+                priority: -3,
+            }
+            .encode_to_vec(),
+        ),
+        ("status", proto::GetClusterStatusRequest {}.encode_to_vec()),
+    ];
+    for (pick, (name, bytes)) in api.into_iter().enumerate() {
+        let mut input = vec![pick as u8];
+        input.extend_from_slice(&bytes);
+        seed("job_api_request", name, &input);
+    }
+    let domain = proto::DomainRequest {
+        protocol_version: proto::PROTOCOL_VERSION,
+        sender: "worker-1".into(),
+        job_id: job_id(),
+        domain: 3,
+        max_chunk_bytes: 1 << 20,
+    };
+    seed("domain_request", "current", &domain.encode_to_vec());
+    let old = proto::DomainRequest {
+        protocol_version: proto::PROTOCOL_VERSION - 1,
+        max_chunk_bytes: 0,
+        ..domain
+    };
+    seed("domain_request", "old_protocol", &old.encode_to_vec());
 
     let sums = tile_sums::encode(&[(0, [1, 2, 3]), (1, [0, 0, 0]), (5, [1 << 40, 7, -1])]);
     let results = proto::TileResults {

@@ -359,3 +359,121 @@ pub fn transfer_function(data: &[u8]) {
         }
     }
 }
+
+/// A refusal of a request: it says why, and never echoes an oversized field (bounds refuse
+/// with a field's size only).
+fn refused(status: &tonic::Status, fields: &[&str]) {
+    let message = status.message();
+    assert!(!message.is_empty(), "a refusal says why");
+    for field in fields {
+        if field.len() > rayfarm_node::bounds::MAX_FIELD_BYTES {
+            assert!(
+                !message.contains(field),
+                "a refusal echoes an oversized field"
+            );
+        }
+    }
+}
+
+/// A job id field as every job API call but ListJobs checks it before any work.
+fn job_id(id: &str) {
+    if let Err(e) = rayfarm_node::bounds::check_field("job_id", id) {
+        refused(&e, &[id]);
+    }
+}
+
+/// Every job API request (the first byte picks the call, the rest is its protobuf message),
+/// checked as the coordinator checks it before any work: SubmitJob as [`job_request`];
+/// ListJobs's page within bounds and an accepted page token one a response gives (it
+/// re-encodes to itself); FetchResultStream's chunk within bounds; refusals say why and
+/// never echo an oversized field.
+pub fn job_api_request(data: &[u8]) {
+    use rayfarm_node::requests;
+    let Some((&pick, bytes)) = data.split_first() else {
+        return;
+    };
+    match pick % 9 {
+        0 => job_request(bytes),
+        1 => {
+            if let Ok(r) = proto::WatchJobRequest::decode(bytes) {
+                job_id(&r.job_id);
+            }
+        }
+        2 => {
+            let Ok(r) = proto::ListJobsRequest::decode(bytes) else {
+                return;
+            };
+            match requests::list_page(&r) {
+                Ok(page) => {
+                    assert!((1..=requests::MAX_PAGE).contains(&page.size));
+                    match page.from_seq {
+                        None => assert!(r.page_token.is_empty()),
+                        Some(seq) => assert_eq!(
+                            requests::page_token(seq),
+                            r.page_token,
+                            "an accepted page token is not one a response gives"
+                        ),
+                    }
+                }
+                Err(e) => refused(&e, &[&r.page_token]),
+            }
+        }
+        3 => {
+            if let Ok(r) = proto::CancelJobRequest::decode(bytes) {
+                job_id(&r.job_id);
+            }
+        }
+        4 => {
+            if let Ok(r) = proto::FetchResultRequest::decode(bytes) {
+                job_id(&r.job_id);
+                // Any number names a format: unknown ones read as the default.
+                let _ = r.format();
+            }
+        }
+        5 => {
+            let Ok(r) = proto::FetchResultStreamRequest::decode(bytes) else {
+                return;
+            };
+            let _ = r.format();
+            match requests::result_chunk(&r) {
+                Ok(chunk) => assert!((1..=requests::MAX_RESULT_CHUNK).contains(&chunk)),
+                Err(e) => refused(&e, &[&r.job_id]),
+            }
+        }
+        6 => {
+            if let Ok(r) = proto::FetchPreviewRequest::decode(bytes) {
+                job_id(&r.job_id);
+            }
+        }
+        7 => {
+            // Any priority is taken; only the job id is checked.
+            if let Ok(r) = proto::SetJobPriorityRequest::decode(bytes) {
+                job_id(&r.job_id);
+            }
+        }
+        _ => {
+            // No fields to check: decoding (unknown fields skipped) is all the server does.
+            let _ = proto::GetClusterStatusRequest::decode(bytes);
+        }
+    }
+}
+
+/// A peer's `FetchDomain` request (`DomainRequest`), checked as the serving worker checks it
+/// before looking at its frame: an accepted one speaks this protocol, its fields are within
+/// bounds and its chunk size within the server's; refusals say why and never echo an
+/// oversized field.
+pub fn domain_request(data: &[u8]) {
+    use rayfarm_node::requests::{MAX_DOMAIN_CHUNK, MIN_DOMAIN_CHUNK, domain_request};
+    let Ok(r) = proto::DomainRequest::decode(data) else {
+        return;
+    };
+    match domain_request(&r) {
+        Ok(chunk) => {
+            assert_eq!(r.protocol_version, proto::PROTOCOL_VERSION);
+            let bound = rayfarm_node::bounds::MAX_FIELD_BYTES;
+            assert!(r.sender.len() <= bound && r.job_id.len() <= bound);
+            assert!((MIN_DOMAIN_CHUNK..=MAX_DOMAIN_CHUNK).contains(&chunk));
+        }
+        Err(e) => refused(&e, &[&r.sender, &r.job_id]),
+    }
+}

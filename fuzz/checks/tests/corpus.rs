@@ -5,7 +5,7 @@ use std::path::Path;
 
 type Check = fn(&[u8]);
 
-const TARGETS: [(&str, Check); 10] = [
+const TARGETS: [(&str, Check); 12] = [
     ("ray_batch", rayfarm_fuzz::ray_batch),
     ("verdict_batch", rayfarm_fuzz::verdict_batch),
     ("manifest", rayfarm_fuzz::manifest),
@@ -16,6 +16,8 @@ const TARGETS: [(&str, Check); 10] = [
     ("peer_bundle", rayfarm_fuzz::peer_bundle),
     ("brick", rayfarm_fuzz::brick),
     ("transfer_function", rayfarm_fuzz::transfer_function),
+    ("job_api_request", rayfarm_fuzz::job_api_request),
+    ("domain_request", rayfarm_fuzz::domain_request),
 ];
 
 #[test]
