@@ -410,6 +410,17 @@ impl SentHolders {
 mod tests {
     use super::*;
 
+    /// Draws below `n` from a fixed sequence started by `seed` (a linear congruential
+    /// generator: the tests' random maps and messages are the same in every run).
+    fn draws(mut seed: u64) -> impl FnMut(u64) -> u64 {
+        move |n| {
+            seed = seed
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            (seed >> 33) % n
+        }
+    }
+
     fn map(list: &[(u32, &[u32])]) -> HolderMap {
         list.iter().map(|&(d, ks)| (d, ks.to_vec())).collect()
     }
@@ -519,17 +530,11 @@ mod tests {
         // What a member of each class holds, and a member that sees every holder.
         let mut held = vec![HolderMap::new(); classes as usize];
         let mut all = HolderMap::new();
-        let mut seed = 7u64;
-        let mut draw = move || {
-            seed = seed
-                .wrapping_mul(6_364_136_223_846_793_005)
-                .wrapping_add(1_442_695_040_888_963_407);
-            seed >> 33
-        };
+        let mut draw = draws(7);
         for _ in 0..50 {
             let mut next = HolderMap::new();
             for d in 0..20u32 {
-                let keys: Vec<u32> = (0..12u32).filter(|_| draw() % 3 == 0).collect();
+                let keys: Vec<u32> = (0..12u32).filter(|_| draw(3) == 0).collect();
                 if !keys.is_empty() {
                     next.insert(d, keys);
                 }
@@ -556,13 +561,7 @@ mod tests {
     /// after every fold, and `fold_into_folded`'s change of the lines' bytes is theirs.
     #[test]
     fn folding_into_a_fold_gives_the_fold_of_every_line() {
-        let mut seed = 5u64;
-        let mut draw = move |n: u64| {
-            seed = seed
-                .wrapping_mul(6_364_136_223_846_793_005)
-                .wrapping_add(1_442_695_040_888_963_407);
-            (seed >> 33) % n
-        };
+        let mut draw = draws(5);
         // Any additive measure of a line will do to check the accounting.
         let line_len = |l: &proto::DomainHolders| {
             1 + l.domain as usize % 7 + 3 * l.workers.len() + 5 * l.lost.len()
@@ -647,13 +646,7 @@ mod tests {
         };
         let held =
             |p: &Plan| -> Vec<Vec<u32>> { (0..6).map(|d| p.holder_keys(d).to_vec()).collect() };
-        let mut seed = 11u64;
-        let mut draw = move |n: u64| {
-            seed = seed
-                .wrapping_mul(6_364_136_223_846_793_005)
-                .wrapping_add(1_442_695_040_888_963_407);
-            (seed >> 33) % n
-        };
+        let mut draw = draws(11);
         let mut folds = 0;
         for _ in 0..300 {
             let messages: Vec<proto::Holders> = (0..1 + draw(5))

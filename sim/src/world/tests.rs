@@ -12,17 +12,10 @@ use super::{Outcome, SimConfig, simulate};
 use crate::faults::FaultPlan;
 use crate::node::{QueueCaps, Scene};
 
-/// A clean run of `schedule` on four workers whose caches hold about three domains of the
-/// scene in `dir`, so they load, evict and load again.
-fn run(dir: &std::path::Path, schedule: Schedule, shared: bool) -> (Outcome, Arc<Scene>) {
-    let manifest = Manifest::load(dir).unwrap();
-    let largest = manifest.domains.iter().map(|d| d.bytes).max().unwrap();
-    let mut scene = Scene::new(dir.to_path_buf(), manifest);
-    if !shared {
-        scene.mappings = None;
-    }
-    let scene = Arc::new(scene);
-    let config = SimConfig {
+/// Four workers rendering a 48x32 frame of the scene in `dir` with caches of `cache_bytes`, the
+/// default model, small passes, and prefetch under dynamic.
+fn four_workers(dir: &std::path::Path, schedule: Schedule, cache_bytes: u64) -> SimConfig {
+    SimConfig {
         scene: dir.to_path_buf(),
         workers: 4,
         schedule,
@@ -31,7 +24,7 @@ fn run(dir: &std::path::Path, schedule: Schedule, shared: bool) -> (Outcome, Arc
         height: 32,
         spp: 1,
         depth: 3,
-        cache_bytes: largest * 3,
+        cache_bytes,
         wave_rays: 1 << 20,
         pass_rays: 512,
         links: Default::default(),
@@ -49,7 +42,20 @@ fn run(dir: &std::path::Path, schedule: Schedule, shared: bool) -> (Outcome, Arc
         speculation: String::new(),
         prefetch: schedule == Schedule::Dynamic,
         max_events: super::default_max_events(4),
-    };
+    }
+}
+
+/// A clean run of `schedule` on four workers whose caches hold about three domains of the
+/// scene in `dir`, so they load, evict and load again.
+fn run(dir: &std::path::Path, schedule: Schedule, shared: bool) -> (Outcome, Arc<Scene>) {
+    let manifest = Manifest::load(dir).unwrap();
+    let largest = manifest.domains.iter().map(|d| d.bytes).max().unwrap();
+    let mut scene = Scene::new(dir.to_path_buf(), manifest);
+    if !shared {
+        scene.mappings = None;
+    }
+    let scene = Arc::new(scene);
+    let config = four_workers(dir, schedule, largest * 3);
     let hour = Duration::from_secs(3600);
     let outcome = simulate(&config, scene.clone(), &FaultPlan::clean(), hour, None).unwrap();
     (outcome, scene)
@@ -113,32 +119,11 @@ fn burst_run(dir: &std::path::Path) -> Outcome {
     let manifest = Manifest::load(dir).unwrap();
     let scene = Arc::new(Scene::new(dir.to_path_buf(), manifest));
     let config = SimConfig {
-        scene: dir.to_path_buf(),
-        workers: 4,
-        schedule: Schedule::Predictive,
-        warm_up: Vec::new(),
         width: 256,
         height: 256,
-        spp: 1,
-        depth: 3,
-        cache_bytes: 64 << 20,
-        wave_rays: 1 << 20,
         pass_rays: 1 << 18,
-        links: Default::default(),
-        cost: Default::default(),
-        storage: Default::default(),
-        measure: false,
-        caps: QueueCaps {
-            queue_bytes: 512 << 20,
-            spill_bytes: 8 << 30,
-        },
-        ack_deadline: Duration::from_millis(10),
-        disk_latency: Duration::from_millis(2),
-        heartbeat: Duration::from_millis(20),
-        worker_timeout: Duration::from_millis(200),
-        speculation: String::new(),
         prefetch: false,
-        max_events: super::default_max_events(4),
+        ..four_workers(dir, Schedule::Predictive, 64 << 20)
     };
     let hour = Duration::from_secs(3600);
     simulate(&config, scene, &FaultPlan::clean(), hour, None).unwrap()
