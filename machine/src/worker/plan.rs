@@ -75,6 +75,14 @@ fn insert_gained(kept: &mut Vec<u32>, gained: Vec<u32>, me: u32) {
     }
 }
 
+/// Adds to `changed` (when it is kept) the domains in one of `before` and `after` but not
+/// both: a set of domains (the plan's or the mapped ones) moved from `before` to `after`.
+fn note_moved(changed: &mut Option<BTreeSet<u32>>, before: &BTreeSet<u32>, after: &BTreeSet<u32>) {
+    if let Some(changed) = changed {
+        changed.extend(before.symmetric_difference(after).copied());
+    }
+}
+
 /// See the module documentation.
 #[derive(Clone, Debug)]
 pub struct Plan {
@@ -239,16 +247,7 @@ impl Plan {
     ) {
         self.round = round;
         let work_on: BTreeSet<u32> = work_on.into_iter().collect();
-        if self.changed.is_some() {
-            let moved: Vec<u32> = self
-                .work_on
-                .symmetric_difference(&work_on)
-                .copied()
-                .collect();
-            for d in moved {
-                self.note_changed(d);
-            }
-        }
+        note_moved(&mut self.changed, &self.work_on, &work_on);
         self.work_on = work_on;
         self.set_holders(holders, delta);
     }
@@ -334,16 +333,7 @@ impl Plan {
     /// Records which domains are mapped here now.
     pub fn set_resident(&mut self, resident: impl IntoIterator<Item = u32>) {
         let resident: BTreeSet<u32> = resident.into_iter().collect();
-        if self.changed.is_some() {
-            let moved: Vec<u32> = self
-                .resident
-                .symmetric_difference(&resident)
-                .copied()
-                .collect();
-            for d in moved {
-                self.note_changed(d);
-            }
-        }
+        note_moved(&mut self.changed, &self.resident, &resident);
         self.resident = resident;
     }
 
