@@ -279,6 +279,8 @@ fn jobs_stream_through_chaos_none_lost_every_image_the_local_one() {
     // The largest listing of a job (`jobs --json`), bytes: more than the strings of the
     // summary the coordinator keeps of a finished job.
     let mut largest_summary = 0u64;
+    // The largest image fetched, bytes: what a kept preview of a frame holds at most.
+    let mut largest_png = 0u64;
 
     let start = Instant::now();
     let chaos_until = start + Duration::from_secs(secs);
@@ -356,6 +358,7 @@ fn jobs_stream_through_chaos_none_lost_every_image_the_local_one() {
                 job.id,
                 job.what
             );
+            largest_png = largest_png.max(std::fs::metadata(&png).map_or(0, |m| m.len()));
             let _ = std::fs::remove_file(&png);
             finished += 1;
         }
@@ -517,7 +520,7 @@ fn jobs_stream_through_chaos_none_lost_every_image_the_local_one() {
     let literal = literal_memory_check(
         &samples,
         &life_starts,
-        &coordinator_caches(&cluster, largest_stats, largest_summary),
+        &coordinator_caches(&cluster, largest_stats, largest_summary, largest_png),
         &worker_caches(stale_links(&broken_links, samples[n - 1].at)),
     );
     eprintln!("{}", literal.report);
@@ -551,8 +554,14 @@ const CHUNK_OVERHEAD: u64 = 24;
 
 /// The coordinator's caches, each bounded by a constant in its code (restated here with where
 /// it is: the test does not link the coordinator), at the sizes of this soak's entries:
-/// the largest statistics and job listing it fetched, the paths of its results.
-fn coordinator_caches(cluster: &Cluster, largest_stats: u64, largest_summary: u64) -> Vec<Cache> {
+/// the largest statistics, job listing and image it fetched, the paths of its results, the
+/// longest worker id and lost worker its dashboard shows.
+fn coordinator_caches(
+    cluster: &Cluster,
+    largest_stats: u64,
+    largest_summary: u64,
+    largest_png: u64,
+) -> Vec<Cache> {
     // `CACHE_BYTES` in coordinator/src/store.rs.
     const STORE_PAGE_CACHE: u64 = STORE_CACHE_BYTES;
     // `KEPT_FINISHED_VIEWS` in coordinator/src/state/mod.rs.
@@ -572,6 +581,35 @@ fn coordinator_caches(cluster: &Cluster, largest_stats: u64, largest_summary: u6
     // a control byte.
     let slots = (CHECKSUMS * 8 / 7 + 1).next_power_of_two();
     let slot = std::mem::size_of::<(std::path::PathBuf, (std::time::SystemTime, u64, String))>();
+    // `KEPT_SAMPLES` in coordinator/src/dashboard/history.rs: a sample a second, each a
+    // `Sample` (i64, f64, a Vec) with a `WorkerSample` (an id, f64, u64, u64) per registered
+    // worker: at most the soak's workers and a replacement joining before its victim goes.
+    const HISTORY_SAMPLES: u64 = 300;
+    // `KEPT_PREVIEWS` in coordinator/src/state/mod.rs.
+    const PREVIEWS: u64 = 4;
+    let lost_kept = rayfarm_machine::coordinator::cluster::KEPT_LOST_WORKERS as u64;
+    let dashboard: serde_json::Value = {
+        let addr = cluster
+            .coordinator_http()
+            .expect("the coordinator serves --http");
+        let get = || rayfarm_tests::http_get(addr, "/api/cluster");
+        let body = if cluster.has_hosts() {
+            cluster.coordinator_host().within(get)
+        } else {
+            get()
+        };
+        serde_json::from_str(&body).expect("/api/cluster is JSON")
+    };
+    let longest = |list: &str, of: fn(&serde_json::Value) -> u64| {
+        dashboard[list]
+            .as_array()
+            .map_or(0, |l| l.iter().map(of).max().unwrap_or(0))
+    };
+    let worker_id = longest("workers", |w| {
+        w["worker_id"].as_str().map_or(0, |id| id.len() as u64)
+    });
+    let lost = longest("lost", |l| l.to_string().len() as u64);
+    let worker_sample = std::mem::size_of::<(String, f64, u64, u64)>() as u64;
     vec![
         Cache {
             what: "the job store's page cache (store.rs CACHE_BYTES)".into(),
@@ -605,6 +643,34 @@ fn coordinator_caches(cluster: &Cluster, largest_stats: u64, largest_summary: u6
                 * (std::mem::size_of::<rayfarm_machine::coordinator::cluster::JobRecord>() as u64
                     + largest_summary
                     + 8 * CHUNK_OVERHEAD),
+        },
+        Cache {
+            what: format!(
+                "the dashboard's last {HISTORY_SAMPLES} samples (history KEPT_SAMPLES), {} \
+                 workers each, ids of at most {worker_id} bytes",
+                WORKERS + 1
+            ),
+            bytes: HISTORY_SAMPLES
+                * (std::mem::size_of::<(i64, f64, Vec<u8>)>() as u64
+                    + 2 * CHUNK_OVERHEAD
+                    + (WORKERS as u64 + 1) * (worker_sample + worker_id + CHUNK_OVERHEAD)),
+        },
+        Cache {
+            what: format!(
+                "the last {lost_kept} workers lost (KEPT_LOST_WORKERS), at most {lost} bytes \
+                 listed each"
+            ),
+            bytes: lost_kept
+                * (std::mem::size_of::<rayfarm_machine::coordinator::cluster::LostWorker>() as u64
+                    + lost
+                    + 3 * CHUNK_OVERHEAD),
+        },
+        Cache {
+            what: format!(
+                "previews of the last {PREVIEWS} frames (state KEPT_PREVIEWS), each at most \
+                 the image ({largest_png} bytes here) and its bookkeeping"
+            ),
+            bytes: PREVIEWS * (largest_png + 1024),
         },
     ]
 }
