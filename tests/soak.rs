@@ -10,6 +10,16 @@
 //! (RssAnon) must too: the pages the allocator holds around its objects settle only over many
 //! hundreds of jobs.
 //!
+//! The issue's own measure is checked too, literally: each process's heap in use at the last
+//! quiet point against the quiet point right after its first job (worker 0: the soak's first
+//! job, run before the stream and the chaos; the coordinator: the first jobs of its last life,
+//! a quiet point following each restart), allowed 10% and, on top, the caches it fills after
+//! that job, each at the bound its code sets ([`coordinator_caches`], [`worker_caches`]). So
+//! that the end is a settled cluster, clean jobs stream on after the chaos until no peer link
+//! it broke can still be open (the keepalive's reach, [`stale_links`]). The
+//! second-half check stays: it is the sharper one (a worker's allowance here, its peer
+//! streams' buffers, is larger than its whole heap after the first job).
+//!
 //! Memory is read at quiet points: every [`QUIET_EVERY`] jobs the stream pauses until no job is
 //! queued or running and no fault is in force, then one more job runs, so what a process holds
 //! then is what it keeps between jobs, not a running frame's queues (read while the next job
@@ -247,27 +257,54 @@ fn jobs_stream_through_chaos_none_lost_every_image_the_local_one() {
     let mut queue: VecDeque<Job> = VecDeque::new();
     let mut pending: Vec<(Instant, Pending)> = Vec::new();
     let mut faults = Faults::default();
+    // When a worker was killed or cut off, from the start, and how many of worker 0's peer
+    // links it broke: a broken link's streams may stay open until the keepalive closes them.
+    let mut broken_links: Vec<(Duration, u64)> = Vec::new();
     let mut finished = 0u32;
     let mut submitted = 0u32;
     // At each quiet point: (jobs finished, the coordinator's pid, its memory, worker 0's).
     let mut samples: Vec<Sample> = Vec::new();
+    // The quiet points right after each coordinator restart, kept apart so that the windows
+    // of `samples` stay evenly spaced in jobs, and whether the next quiet point is one.
+    let mut life_starts: Vec<Sample> = Vec::new();
+    let mut restarted = false;
     // Jobs finished by which the stream pauses for the next quiet point, and how far it is.
-    let mut quiet_at = 1;
-    let mut quiet = Quiet::Streaming;
+    // The first quiet point comes after exactly one job, run before the stream and the chaos
+    // start: what each process holds after its first job, the measure the issue names.
+    let mut quiet_at = 0;
+    let mut quiet = Quiet::Pausing;
+    // The largest statistics (JSON) of a finished job, bytes: what each of the coordinator's
+    // kept progress channels holds (see [`coordinator_caches`]).
+    let mut largest_stats = 0u64;
+    // The largest listing of a job (`jobs --json`), bytes: more than the strings of the
+    // summary the coordinator keeps of a finished job.
+    let mut largest_summary = 0u64;
+    // The largest image fetched, bytes: what a kept preview of a frame holds at most.
+    let mut largest_png = 0u64;
 
     let start = Instant::now();
     let chaos_until = start + Duration::from_secs(secs);
     let mut next_fault = start + rng.millis(2000, 6000);
     let mut drain_until = None;
+    let mut faults_undone = false;
     loop {
         let now = Instant::now();
         let chaos = now < chaos_until;
-        if !chaos && drain_until.is_none() {
-            // Undo every fault still in force; from here on the jobs in flight must finish.
+        if !chaos && !faults_undone {
+            // Undo every fault still in force.
             for (_, fault) in pending.drain(..) {
                 undo(&cluster, fault);
             }
+            faults_undone = true;
+        }
+        // After the chaos, clean jobs stream on until no link it broke can still be open
+        // (see `stale_links`), so that the last quiet point measures what a process keeps,
+        // not the buffers of streams to peers long gone.
+        let streaming = chaos || stale_links(&broken_links, start.elapsed()) > 0;
+        if !streaming && drain_until.is_none() {
+            // From here on the jobs in flight must finish; then one last quiet point.
             drain_until = Some(now + DRAIN_TIMEOUT);
+            quiet = Quiet::Pausing;
         }
 
         // Keep the stream full while the chaos lasts, except at a quiet point.
@@ -283,7 +320,7 @@ fn jobs_stream_through_chaos_none_lost_every_image_the_local_one() {
             queue.push_back(submit(&cluster, submitted, &expected));
             submitted += 1;
         }
-        while chaos && quiet == Quiet::Streaming && queue.len() < IN_FLIGHT {
+        while streaming && quiet == Quiet::Streaming && queue.len() < IN_FLIGHT {
             queue.push_back(submit(&cluster, submitted, &expected));
             submitted += 1;
         }
@@ -310,6 +347,10 @@ fn jobs_stream_through_chaos_none_lost_every_image_the_local_one() {
             let stats = cluster.dir().join(format!("{}.json", job.id));
             let png = cluster.dir().join(format!("{}.png", job.id));
             cluster.rayfarm_ok(&["fetch", &job.id, "-o", s(&png), "--stats-json", s(&stats)]);
+            largest_stats = largest_stats.max(std::fs::metadata(&stats).map_or(0, |m| m.len()));
+            if let Some(listed) = listed.iter().find(|j| j["job_id"] == job.id.as_str()) {
+                largest_summary = largest_summary.max(listed.to_string().len() as u64);
+            }
             assert_eq!(
                 hash_of(&stats),
                 job.expected,
@@ -317,20 +358,27 @@ fn jobs_stream_through_chaos_none_lost_every_image_the_local_one() {
                 job.id,
                 job.what
             );
+            largest_png = largest_png.max(std::fs::metadata(&png).map_or(0, |m| m.len()));
             let _ = std::fs::remove_file(&png);
             finished += 1;
         }
         if quiet == Quiet::Settling && queue.is_empty() {
             let sample = quiet_sample(&cluster, finished, start.elapsed());
-            if samples.len().is_multiple_of(5) {
-                eprintln!("{}", sample.line());
+            if restarted {
+                // Off the cadence: the next regular quiet point stays where it was.
+                restarted = false;
+                life_starts.push(sample);
+            } else {
+                if samples.len().is_multiple_of(5) {
+                    eprintln!("{}", sample.line());
+                }
+                samples.push(sample);
+                quiet_at = finished + QUIET_EVERY;
             }
-            samples.push(sample);
-            quiet_at = finished + QUIET_EVERY;
             quiet = Quiet::Streaming;
         }
         if let Some(until) = drain_until {
-            if queue.is_empty() {
+            if queue.is_empty() && quiet == Quiet::Streaming {
                 break;
             }
             assert!(
@@ -359,6 +407,7 @@ fn jobs_stream_through_chaos_none_lost_every_image_the_local_one() {
                     alive.retain(|&w| w != victim);
                     alive.push(cluster.add_worker(&worker));
                     faults.workers_killed += 1;
+                    broken_links.push((start.elapsed(), 1));
                 }
                 // The coordinator only in the first 40%: its last life spans the second half
                 // and has warmed up by then.
@@ -366,6 +415,11 @@ fn jobs_stream_through_chaos_none_lost_every_image_the_local_one() {
                     cluster.kill_coordinator();
                     cluster.restart_coordinator();
                     faults.coordinator_killed += 1;
+                    // A quiet point right away: what the new coordinator holds after its
+                    // first jobs (those in flight, then one clean one). The last such point
+                    // is the start of the life that spans the rest of the soak.
+                    quiet = Quiet::Pausing;
+                    restarted = true;
                 }
                 1 | 2 => {
                     let i = alive[rng.below(alive.len() as u64) as usize];
@@ -379,6 +433,8 @@ fn jobs_stream_through_chaos_none_lost_every_image_the_local_one() {
                     cluster.net().isolate(cluster.worker_host(i), &others);
                     pending.push((now + rng.millis(500, 4000), Pending::Cut));
                     faults.links_cut += 1;
+                    let links = if i == 0 { WORKERS as u64 - 1 } else { 1 };
+                    broken_links.push((start.elapsed(), links));
                 }
             }
         }
@@ -458,6 +514,17 @@ fn jobs_stream_through_chaos_none_lost_every_image_the_local_one() {
         "the coordinator's heap in use grew by 10% and its job store's page cache or more over \
          the second half: {report}"
     );
+    // The issue's measure, literally: each long-lived process's heap in use at the end against
+    // right after its first job, allowed 10% and, on top, the caches it fills by design after
+    // that job, each at the bound its code sets (not a margin picked to pass).
+    let literal = literal_memory_check(
+        &samples,
+        &life_starts,
+        &coordinator_caches(&cluster, largest_stats, largest_summary, largest_png),
+        &worker_caches(stale_links(&broken_links, samples[n - 1].at)),
+    );
+    eprintln!("{}", literal.report);
+    assert!(literal.holds, "{}", literal.report);
     // Pages the allocator holds around its objects settle only over a long soak.
     if long {
         assert!(
@@ -474,6 +541,239 @@ fn jobs_stream_through_chaos_none_lost_every_image_the_local_one() {
 
 /// One figure of a quiet point.
 type Measure = fn(&Sample) -> u64;
+
+/// A cache a process fills after its first job and keeps, with the most heap it can hold.
+struct Cache {
+    what: String,
+    bytes: u64,
+}
+
+/// Heap an allocation costs beyond its bytes: glibc's chunk header and its rounding to 16
+/// bytes, at most (a chunk is its size plus 8, rounded up to 16).
+const CHUNK_OVERHEAD: u64 = 24;
+
+/// The coordinator's caches, each bounded by a constant in its code (restated here with where
+/// it is: the test does not link the coordinator), at the sizes of this soak's entries:
+/// the largest statistics, job listing and image it fetched, the paths of its results, the
+/// longest worker id and lost worker its dashboard shows.
+fn coordinator_caches(
+    cluster: &Cluster,
+    largest_stats: u64,
+    largest_summary: u64,
+    largest_png: u64,
+) -> Vec<Cache> {
+    // `CACHE_BYTES` in coordinator/src/store.rs.
+    const STORE_PAGE_CACHE: u64 = STORE_CACHE_BYTES;
+    // `KEPT_FINISHED_VIEWS` in coordinator/src/state/mod.rs.
+    const FINISHED_VIEWS: u64 = 64;
+    // `KEPT_CHECKSUMS` in coordinator/src/api.rs.
+    const CHECKSUMS: u64 = 1024;
+    let finished_jobs = rayfarm_machine::coordinator::cluster::KEPT_FINISHED_JOBS as u64;
+    // A result's path (`<data dir>/jobs/<job id>/image.png`, `results::job_dir`), a job id
+    // being 32 characters or fewer, and its checksum (16 hex digits).
+    let path = cluster
+        .data_dir()
+        .join("jobs")
+        .join("x".repeat(32))
+        .join("image.png");
+    let path = path.as_os_str().len() as u64;
+    // A hash map of N entries has the next power of two above 8/7 N slots, each an entry and
+    // a control byte.
+    let slots = (CHECKSUMS * 8 / 7 + 1).next_power_of_two();
+    let slot = std::mem::size_of::<(std::path::PathBuf, (std::time::SystemTime, u64, String))>();
+    // `KEPT_SAMPLES` in coordinator/src/dashboard/history.rs: a sample a second, each a
+    // `Sample` (i64, f64, a Vec) with a `WorkerSample` (an id, f64, u64, u64) per registered
+    // worker: at most the soak's workers and a replacement joining before its victim goes.
+    const HISTORY_SAMPLES: u64 = 300;
+    // `KEPT_PREVIEWS` in coordinator/src/state/mod.rs.
+    const PREVIEWS: u64 = 4;
+    let lost_kept = rayfarm_machine::coordinator::cluster::KEPT_LOST_WORKERS as u64;
+    let dashboard: serde_json::Value = {
+        let addr = cluster
+            .coordinator_http()
+            .expect("the coordinator serves --http");
+        let get = || rayfarm_tests::http_get(addr, "/api/cluster");
+        let body = if cluster.has_hosts() {
+            cluster.coordinator_host().within(get)
+        } else {
+            get()
+        };
+        serde_json::from_str(&body).expect("/api/cluster is JSON")
+    };
+    let longest = |list: &str, of: fn(&serde_json::Value) -> u64| {
+        dashboard[list]
+            .as_array()
+            .map_or(0, |l| l.iter().map(of).max().unwrap_or(0))
+    };
+    let worker_id = longest("workers", |w| {
+        w["worker_id"].as_str().map_or(0, |id| id.len() as u64)
+    });
+    let lost = longest("lost", |l| l.to_string().len() as u64);
+    let worker_sample = std::mem::size_of::<(String, f64, u64, u64)>() as u64;
+    vec![
+        Cache {
+            what: "the job store's page cache (store.rs CACHE_BYTES)".into(),
+            bytes: STORE_PAGE_CACHE,
+        },
+        Cache {
+            what: format!(
+                "progress of the last {FINISHED_VIEWS} finished jobs (state KEPT_FINISHED_VIEWS), \
+                 each its statistics (at most {largest_stats} bytes here) and strings no \
+                 longer than its listing"
+            ),
+            bytes: FINISHED_VIEWS
+                * (largest_stats
+                    + largest_summary
+                    + std::mem::size_of::<rayfarm_node::proto::WatchJobResponse>() as u64
+                    + 4 * CHUNK_OVERHEAD),
+        },
+        Cache {
+            what: format!(
+                "checksums of up to {CHECKSUMS} results (api.rs KEPT_CHECKSUMS), a path of \
+                 {path} bytes each"
+            ),
+            bytes: slots * (slot as u64 + 1) + CHECKSUMS * (path + 16 + 2 * CHUNK_OVERHEAD),
+        },
+        Cache {
+            what: format!(
+                "the machine's last {finished_jobs} finished jobs (KEPT_FINISHED_JOBS), a \
+                 listing of at most {largest_summary} bytes each"
+            ),
+            bytes: finished_jobs
+                * (std::mem::size_of::<rayfarm_machine::coordinator::cluster::JobRecord>() as u64
+                    + largest_summary
+                    + 8 * CHUNK_OVERHEAD),
+        },
+        Cache {
+            what: format!(
+                "the dashboard's last {HISTORY_SAMPLES} samples (history KEPT_SAMPLES), {} \
+                 workers each, ids of at most {worker_id} bytes",
+                WORKERS + 1
+            ),
+            bytes: HISTORY_SAMPLES
+                * (std::mem::size_of::<(i64, f64, Vec<u8>)>() as u64
+                    + 2 * CHUNK_OVERHEAD
+                    + (WORKERS as u64 + 1) * (worker_sample + worker_id + CHUNK_OVERHEAD)),
+        },
+        Cache {
+            what: format!(
+                "the last {lost_kept} workers lost (KEPT_LOST_WORKERS), at most {lost} bytes \
+                 listed each"
+            ),
+            bytes: lost_kept
+                * (std::mem::size_of::<rayfarm_machine::coordinator::cluster::LostWorker>() as u64
+                    + lost
+                    + 3 * CHUNK_OVERHEAD),
+        },
+        Cache {
+            what: format!(
+                "previews of the last {PREVIEWS} frames (state KEPT_PREVIEWS), each at most \
+                 the image ({largest_png} bytes here) and its bookkeeping"
+            ),
+            bytes: PREVIEWS * (largest_png + 1024),
+        },
+    ]
+}
+
+/// Worker 0's peer links that a kill or a cut may have left open at `at` (from the start of
+/// the soak): those broken within the keepalive's reach before it. A server pings each
+/// connection every `KEEPALIVE_INTERVAL` and closes it after `KEEPALIVE_TIMEOUT` without an
+/// answer (node/src/security); a cut lasts up to 4 s before that clock starts.
+fn stale_links(broken: &[(Duration, u64)], at: Duration) -> u64 {
+    let reach = rayfarm_node::security::KEEPALIVE_INTERVAL
+        + rayfarm_node::security::KEEPALIVE_TIMEOUT
+        + Duration::from_secs(4);
+    broken
+        .iter()
+        .filter(|(when, _)| *when <= at && at - *when <= reach)
+        .map(|(_, links)| links)
+        .sum()
+}
+
+/// A worker's caches: tonic keeps each peer stream's codec buffer at the largest message it
+/// carried, so its streams to and from each of the other workers, and those to and from
+/// peers whose links broke and may not be closed yet (`stale`), hold up to the bundler's
+/// largest bundle each way.
+fn worker_caches(stale: u64) -> Vec<Cache> {
+    let config = rayfarm_core::bundler::BundlerConfig::default();
+    let largest = config
+        .policies
+        .iter()
+        .map(|p| p.max_bytes as u64)
+        .max()
+        .expect("the bundler has tiers");
+    let peers = WORKERS as u64 - 1 + stale;
+    vec![Cache {
+        what: format!(
+            "codec buffers of the streams to and from {peers} peers ({stale} of links broken \
+             within the keepalive's reach), up to the largest bundle ({largest} bytes, \
+             BundlerConfig::default) each way"
+        ),
+        bytes: peers * 2 * (largest + CHUNK_OVERHEAD),
+    }]
+}
+
+/// The literal check's verdict and what it compared.
+struct Literal {
+    holds: bool,
+    report: String,
+}
+
+/// The coordinator's heap in use at the last quiet point against the quiet point right after
+/// its last restart (`life_starts`; the soak's first if it was never restarted), worker 0's
+/// against the first quiet point (after the first job of the soak): each within
+/// [`MEMORY_SLACK`] plus its caches' bounds.
+fn literal_memory_check(
+    samples: &[Sample],
+    life_starts: &[Sample],
+    coordinator: &[Cache],
+    worker: &[Cache],
+) -> Literal {
+    let last = samples.last().expect("quiet points");
+    let coordinator_first = life_starts
+        .iter()
+        .chain(samples)
+        .find(|s| s.coordinator == last.coordinator)
+        .expect("a quiet point of the last coordinator");
+    let mib = |b: u64| b as f64 / 1048576.0;
+    let mut holds = true;
+    let mut report = String::from("memory at the end against after the first job (heap in use):");
+    let mut check = |name: &str, first: &Sample, of: Measure, caches: &[Cache]| {
+        let bound: u64 = caches.iter().map(|c| c.bytes).sum();
+        let allowed = of(first) as f64 * (1.0 + MEMORY_SLACK) + bound as f64;
+        let ok = of(last) as f64 <= allowed;
+        holds &= ok;
+        report += &format!(
+            "\n  {name}: {:.2} MiB after {} jobs -> {:.2} MiB after {}: allowed {:.2} MiB \
+             (+10% and {:.2} MiB of caches) {}",
+            mib(of(first)),
+            first.finished,
+            mib(of(last)),
+            last.finished,
+            mib(allowed as u64),
+            mib(bound),
+            if ok { "holds" } else { "EXCEEDED" }
+        );
+        for c in caches {
+            report += &format!("\n    {:.3} MiB: {}", mib(c.bytes), c.what);
+        }
+    };
+    check(
+        "coordinator",
+        coordinator_first,
+        |s| s.coordinator_memory.in_use,
+        coordinator,
+    );
+    check("worker 0", &samples[0], |s| s.worker0.in_use, worker);
+    if coordinator_first.coordinator != samples[0].coordinator {
+        report += &format!(
+            "\n  (the soak's first coordinator, killed since, held {:.2} MiB after the first job; \
+             the last one opened the store of the jobs before it and resumed those in flight)",
+            mib(samples[0].coordinator_memory.in_use),
+        );
+    }
+    Literal { holds, report }
+}
 
 /// Where the stream is on its way to the next quiet point.
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
