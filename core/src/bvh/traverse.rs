@@ -175,8 +175,18 @@ fn any_scalar(stack: &mut Stack, bvh: &Bvh, ray: &TraceRay, t0: f32, t1: f32) ->
 /// The box and triangle tests of one instruction set; the traversal loops are written once over it.
 pub(super) trait Isa {
     /// The ray with its values broadcast to this set's registers.
-    type Ray;
+    type Ray: Copy;
     fn prepare(ray: &TraceRay) -> Self::Ray;
+    /// `ray` for a run of node visits: [`Isa::slab`]'s values read anew from memory where
+    /// that matters. The nearest-hit loop calls it whenever a run of node visits starts (at
+    /// the root, and after a leaf when the next child is a node), so that to the register
+    /// allocator the box test's values live only through the node visits and not across the
+    /// leaf test (which needs every vector register): they are then loaded once per run
+    /// instead of at every node visit.
+    #[inline(always)]
+    fn fresh(ray: &Self::Ray) -> Self::Ray {
+        *ray
+    }
     /// Entry distances into the node's eight child boxes within `[t0, t1]`, and a bit mask of
     /// the children that are entered.
     fn slab(node: &BvhNode, ray: &Self::Ray, t0: f32, t1: f32) -> ([f32; WIDTH], u32);
@@ -198,15 +208,24 @@ pub(super) trait Isa {
         }
         mask
     }
-    /// The lanes of `near` farther than lane `slot`'s, or as near with a lower slot: the
-    /// number of entered lanes among them is `slot`'s place in its entered siblings sorted
-    /// farthest first, a permutation of places (entered lanes are never NaN: `near <= far`).
+    /// Keys that rank a node's children by entry distance, one per lane and all distinct: a
+    /// distance's bits as a signed integer with its lowest three bits replaced by the slot.
+    /// Among entered lanes (never NaN: `near <= far`) of non-negative distances a greater key
+    /// is a farther child, except between distances within eight ulps, which are ordered by
+    /// slot (negative distances, of an interval starting behind the origin, are ranked in
+    /// reverse). Only the visiting order depends on this, which no hit does (ties go to the
+    /// lower id); what matters is that the keys are distinct, so that ranks are a permutation.
     #[inline(always)]
-    fn farther_or_tied(near: &[f32; WIDTH], slot: usize) -> u32 {
-        let d = near[slot];
+    fn rank_keys(near: &[f32; WIDTH]) -> [i32; WIDTH] {
+        std::array::from_fn(|lane| (near[lane].to_bits() as i32 & !7) | lane as i32)
+    }
+    /// The lanes whose key is greater than lane `slot`'s: the number of entered lanes among
+    /// them is `slot`'s place in its entered siblings sorted farthest first.
+    #[inline(always)]
+    fn above(keys: &[i32; WIDTH], slot: usize) -> u32 {
         let mut lanes = 0;
-        for (lane, &n) in near.iter().enumerate() {
-            lanes |= ((n > d || (n == d && lane < slot)) as u32) << lane;
+        for (lane, &k) in keys.iter().enumerate() {
+            lanes |= ((k > keys[slot]) as u32) << lane;
         }
         lanes
     }
@@ -349,26 +368,6 @@ impl Stack {
         self.len += 1;
     }
 
-    /// Writes entry `at` (above the held ones; [`Stack::len`] is set by the caller).
-    ///
-    /// # Safety
-    /// `at` must be below [`STACK_ENTRIES`].
-    #[inline(always)]
-    unsafe fn put(&mut self, at: usize, e: Entry) {
-        // SAFETY: as the caller promises.
-        unsafe { *self.entries.get_unchecked_mut(at) = e };
-    }
-
-    /// Entry `at`.
-    ///
-    /// # Safety
-    /// `at` must be below [`STACK_ENTRIES`].
-    #[inline(always)]
-    unsafe fn get(&self, at: usize) -> Entry {
-        // SAFETY: as the caller promises.
-        unsafe { *self.entries.get_unchecked(at) }
-    }
-
     #[inline(always)]
     fn pop(&mut self) -> Option<Entry> {
         self.len = self.len.checked_sub(1)?;
@@ -406,6 +405,11 @@ pub(super) fn nearest<K: Isa>(
 
 /// The ordered traversal of the subtree at `start` (the whole tree from the root; a packet's
 /// ray that is left alone, from where it was left), improving `best` (ties to the lower id).
+///
+/// The stack is held as a pointer above its top entry, in a register, rather than as
+/// [`Stack`]'s length: a length in the struct is written back at every push and pop (LLVM
+/// cannot tell that the entries' stores leave it alone), and an index needs an address
+/// computed from it at every access.
 #[inline(always)]
 pub(super) fn descend<K: Isa>(
     stack: &mut Stack,
@@ -416,95 +420,131 @@ pub(super) fn descend<K: Isa>(
     best_out: &mut Hit,
 ) {
     let mut best = *best_out;
-    stack.len = 0;
+    let bottom = stack.entries.as_mut_ptr();
+    // One past the highest entry held; `bottom` when none is.
+    let mut top = bottom;
     let mut cur = start;
-    loop {
-        if cur.meta == SLOT_INNER {
+    'next: loop {
+        // Inner nodes, in a loop of their own until a leaf is reached: the box test's ray
+        // registers are used only here, so the register allocator can keep them here and
+        // save them only around the leaf test (which needs every vector register), rather than
+        // reloading them at every node visit.
+        let boxes = if cur.meta == SLOT_INNER {
+            K::fresh(r)
+        } else {
+            *r
+        };
+        while cur.meta == SLOT_INNER {
             // SAFETY: the root or a child index of a validated tree.
             let node = unsafe { bvh.node(cur.child) };
-            let (near, mut mask) = K::slab(node, r, t0, best.t);
-            if mask != 0 {
-                let first_slot = mask.trailing_zeros() as usize;
-                mask &= mask - 1;
-                let first = Entry {
+            let (near, mut mask) = K::slab(node, &boxes, t0, best.t);
+            if mask == 0 {
+                // SAFETY: `top` and `bottom` bound the held entries.
+                match unsafe { pop_within(&mut top, bottom, best.t) } {
+                    Some(e) => {
+                        cur = e;
+                        continue;
+                    }
+                    None => break 'next,
+                }
+            }
+            let first_slot = mask.trailing_zeros() as usize;
+            mask &= mask - 1;
+            if mask == 0 {
+                cur = Entry {
                     child: node.child[first_slot],
                     meta: node.meta[first_slot],
                     near: near[first_slot],
                 };
-                if mask == 0 {
-                    cur = first;
-                    continue;
-                }
-                if mask & (mask - 1) == 0 {
-                    // Two entered children, the commonest case: one comparison orders them,
-                    // and the farther one's memory is asked for now, so its cache misses
-                    // overlap with the work on the nearer (which is loaded at once anyway).
-                    // The order picks slots, not entries, so it is two conditional moves
-                    // rather than a branch (which way it goes is a coin toss per node).
-                    let slot = mask.trailing_zeros() as usize;
-                    let swap = near[slot] < near[first_slot];
-                    let near_slot = if swap { slot } else { first_slot };
-                    let far_slot = if swap { first_slot } else { slot };
-                    prefetch_child(bvh, node, far_slot);
-                    let entry = |s: usize| Entry {
-                        child: node.child[s],
-                        meta: node.meta[s],
-                        near: near[s],
-                    };
-                    // SAFETY: a validated tree's traversal holds fewer than STACK_ENTRIES.
-                    unsafe { stack.push(entry(far_slot)) };
-                    cur = entry(near_slot);
-                    continue;
-                }
-                // The entered children go onto the stack sorted, farthest deepest, the nearest
-                // on top (it becomes `cur`): each is written straight to its place, its rank
-                // among its siblings (how many are farther, ties by slot), so there are no
-                // compares between entries and no moves (an insertion sort's compares are
-                // unpredictable branches). Every entered child's memory is asked for in the
-                // same pass, so the cache misses of the siblings overlap with the work on the
-                // nearest.
-                let all = mask | 1 << first_slot;
-                let base = stack.len;
-                let mut m = all;
-                while m != 0 {
-                    let slot = m.trailing_zeros() as usize;
-                    m &= m - 1;
-                    prefetch_child(bvh, node, slot);
-                    let rank = (K::farther_or_tied(&near, slot) & all).count_ones();
-                    let entry = Entry {
-                        child: node.child[slot],
-                        meta: node.meta[slot],
-                        near: near[slot],
-                    };
-                    // SAFETY: `rank` is below the number of entered children, at most WIDTH,
-                    // and a validated tree's traversal holds fewer than STACK_ENTRIES.
-                    unsafe { stack.put(base + rank as usize, entry) };
-                }
-                let top = base + all.count_ones() as usize - 1;
-                // SAFETY: `top` was just written.
-                cur = unsafe { stack.get(top) };
-                stack.len = top;
                 continue;
             }
-        } else {
-            // SAFETY: a leaf child's range of a validated tree.
-            let blocks = unsafe { bvh.leaf(cur.child, cur.meta) };
-            leaf_nearest::<K>(blocks, cur.child, r, t0, &mut best);
-        }
-        loop {
-            match stack.pop() {
-                None => {
-                    *best_out = best;
-                    return;
+            if mask & (mask - 1) == 0 {
+                // Two entered children, the commonest case: one comparison orders them,
+                // and the farther one's memory is asked for now, so its cache misses
+                // overlap with the work on the nearer (which is loaded at once anyway).
+                // The order picks slots, not entries, so it is two conditional moves
+                // rather than a branch (which way it goes is a coin toss per node).
+                let slot = mask.trailing_zeros() as usize;
+                let swap = near[slot] < near[first_slot];
+                let near_slot = if swap { slot } else { first_slot };
+                let far_slot = if swap { first_slot } else { slot };
+                prefetch_child(bvh, node, far_slot);
+                let entry = |s: usize| Entry {
+                    child: node.child[s],
+                    meta: node.meta[s],
+                    near: near[s],
+                };
+                // SAFETY: a validated tree's traversal holds fewer than STACK_ENTRIES
+                // (each level leaves at most WIDTH - 1 siblings), so `top` stays within
+                // the stack's entries.
+                unsafe {
+                    top.write(entry(far_slot));
+                    top = top.add(1);
                 }
-                Some(e) if e.near > best.t => continue,
-                Some(e) => {
-                    cur = e;
-                    break;
-                }
+                cur = entry(near_slot);
+                continue;
+            }
+            // The entered children go onto the stack sorted, farthest deepest, the nearest
+            // on top (it becomes `cur`): each is written straight to its place, its rank
+            // among its siblings (how many have a greater key: [`Isa::rank_keys`]), so there are no
+            // compares between entries and no moves (an insertion sort's compares are
+            // unpredictable branches). Every entered child's memory is asked for in the
+            // same pass, so the cache misses of the siblings overlap with the work on the
+            // nearest.
+            let all = mask | 1 << first_slot;
+            let keys = K::rank_keys(&near);
+            let mut m = all;
+            while m != 0 {
+                let slot = m.trailing_zeros() as usize;
+                m &= m - 1;
+                prefetch_child(bvh, node, slot);
+                let rank = (K::above(&keys, slot) & all).count_ones();
+                let entry = Entry {
+                    child: node.child[slot],
+                    meta: node.meta[slot],
+                    near: near[slot],
+                };
+                // SAFETY: `rank` is below the number of entered children, at most WIDTH,
+                // and a validated tree's traversal holds fewer than STACK_ENTRIES.
+                unsafe { top.add(rank as usize).write(entry) };
+            }
+            // SAFETY: the entered children were just written from `top` up; the nearest,
+            // the highest, is visited now and the others stay held.
+            unsafe {
+                top = top.add(all.count_ones() as usize - 1);
+                cur = top.read();
             }
         }
+        // SAFETY: a leaf child's range of a validated tree.
+        let blocks = unsafe { bvh.leaf(cur.child, cur.meta) };
+        leaf_nearest::<K>(blocks, cur.child, r, t0, &mut best);
+        // SAFETY: `top` and `bottom` bound the held entries.
+        match unsafe { pop_within(&mut top, bottom, best.t) } {
+            Some(e) => cur = e,
+            None => break,
+        }
     }
+    *best_out = best;
+}
+
+/// Takes entries off the stack (`bottom` up to below `top`) until one no farther than `t`,
+/// which it returns; `None` when the stack is empty.
+///
+/// # Safety
+/// `bottom..top` must be the held entries of one stack.
+#[inline(always)]
+unsafe fn pop_within(top: &mut *mut Entry, bottom: *mut Entry, t: f32) -> Option<Entry> {
+    while *top != bottom {
+        // SAFETY: `top` is above `bottom`, so an entry is held below it.
+        let e = unsafe {
+            *top = top.sub(1);
+            top.read()
+        };
+        if e.near <= t {
+            return Some(e);
+        }
+    }
+    None
 }
 
 /// Whether a leaf's blocks hold a hit in `[t0, t1]`.

@@ -26,6 +26,7 @@ unsafe fn row_ptr(node: &BvhNode, offset: u32) -> *const f32 {
 /// Four lanes at a time: a node's two halves in turn.
 pub struct Sse;
 
+#[derive(Clone, Copy)]
 pub struct SseRay {
     tri: ShearedSse,
     inv: [__m128; 3],
@@ -80,18 +81,31 @@ impl Isa for Sse {
     }
 
     #[inline(always)]
-    fn farther_or_tied(near: &[f32; WIDTH], slot: usize) -> u32 {
-        // SAFETY: SSE2 is part of x86-64; the loads read `near`'s eight floats.
+    fn rank_keys(near: &[f32; WIDTH]) -> [i32; WIDTH] {
+        let mut keys = [0i32; WIDTH];
+        // SAFETY: SSE2 is part of x86-64; the loads and stores cover `near`'s and `keys`' eight
+        // lanes.
         unsafe {
-            let d = _mm_set1_ps(near[slot]);
+            for at in [0, 4] {
+                let v = _mm_castps_si128(_mm_loadu_ps(near.as_ptr().add(at)));
+                let slots = _mm_setr_epi32(at as i32, at as i32 + 1, at as i32 + 2, at as i32 + 3);
+                let k = _mm_or_si128(_mm_and_si128(v, _mm_set1_epi32(!7)), slots);
+                _mm_storeu_si128(keys.as_mut_ptr().add(at).cast(), k);
+            }
+        }
+        keys
+    }
+
+    #[inline(always)]
+    fn above(keys: &[i32; WIDTH], slot: usize) -> u32 {
+        // SAFETY: SSE2 is part of x86-64; the loads read `keys`' eight lanes.
+        unsafe {
+            let d = _mm_set1_epi32(keys[slot]);
             let half = |at: usize| {
-                let v = _mm_loadu_ps(near.as_ptr().add(at));
-                let farther = _mm_movemask_ps(_mm_cmpgt_ps(v, d)) as u32;
-                let tied = _mm_movemask_ps(_mm_cmpeq_ps(v, d)) as u32;
-                (farther << at, tied << at)
+                let v = _mm_loadu_si128(keys.as_ptr().add(at).cast());
+                (_mm_movemask_ps(_mm_castsi128_ps(_mm_cmpgt_epi32(v, d))) as u32) << at
             };
-            let ((f0, e0), (f1, e1)) = (half(0), half(4));
-            (f0 | f1) | ((e0 | e1) & ((1 << slot) - 1))
+            half(0) | half(4)
         }
     }
 
@@ -105,6 +119,7 @@ impl Isa for Sse {
 /// All eight lanes at once, box planes with one fused multiply-subtract each.
 struct Avx2;
 
+#[derive(Clone, Copy)]
 struct Avx2Ray {
     tri: ShearedSse,
     inv: [__m256; 3],
@@ -126,6 +141,21 @@ impl Isa for Avx2 {
                 origin_inv: ray.origin_inv.map(|v| _mm256_set1_ps(v)),
                 rows: ray.rows,
             }
+        }
+    }
+
+    #[inline(always)]
+    fn fresh(ray: &Avx2Ray) -> Avx2Ray {
+        // Volatile reads, so that they are neither merged with the ray's other reads nor
+        // hoisted out of the loop: the values are live only from here through the node visits.
+        let read = |v: &__m256| {
+            // SAFETY: a read of a live, aligned value.
+            unsafe { std::ptr::read_volatile(v) }
+        };
+        Avx2Ray {
+            inv: ray.inv.each_ref().map(read),
+            origin_inv: ray.origin_inv.each_ref().map(read),
+            ..*ray
         }
     }
 
@@ -187,15 +217,27 @@ impl Isa for Avx2 {
     }
 
     #[inline(always)]
-    fn farther_or_tied(near: &[f32; WIDTH], slot: usize) -> u32 {
-        // SAFETY: only reached from the `avx2,fma,popcnt` functions below; the loads read `near`'s
-        // eight floats.
+    fn rank_keys(near: &[f32; WIDTH]) -> [i32; WIDTH] {
+        let mut keys = [0i32; WIDTH];
+        // SAFETY: only reached from the `avx2,fma,popcnt` functions below; the load and store
+        // cover `near`'s and `keys`' eight lanes.
         unsafe {
-            let v = _mm256_loadu_ps(near.as_ptr());
-            let d = _mm256_set1_ps(near[slot]);
-            let farther = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_GT_OQ>(v, d)) as u32;
-            let tied = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_EQ_OQ>(v, d)) as u32;
-            farther | (tied & ((1 << slot) - 1))
+            let v = _mm256_castps_si256(_mm256_loadu_ps(near.as_ptr()));
+            let slots = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+            let k = _mm256_or_si256(_mm256_and_si256(v, _mm256_set1_epi32(!7)), slots);
+            _mm256_storeu_si256(keys.as_mut_ptr().cast(), k);
+        }
+        keys
+    }
+
+    #[inline(always)]
+    fn above(keys: &[i32; WIDTH], slot: usize) -> u32 {
+        // SAFETY: only reached from the `avx2,fma,popcnt` functions below; the load reads
+        // `keys`' eight lanes.
+        unsafe {
+            let v = _mm256_loadu_si256(keys.as_ptr().cast());
+            let d = _mm256_set1_epi32(keys[slot]);
+            _mm256_movemask_ps(_mm256_castsi256_ps(_mm256_cmpgt_epi32(v, d))) as u32
         }
     }
 
