@@ -265,6 +265,9 @@ impl Groups {
         };
         let n = self.windows.window(&group.ray, &group.path, group.copied);
         let window = &group.path[group.copied..(group.copied + n).min(group.path.len())];
+        if group.copied > 0 {
+            self.windows.later_window(&group.ray, window);
+        }
         group.waiting = window.len() as u32;
         group.copied += window.len();
         self.copies += window.len() as u64;
@@ -308,6 +311,22 @@ impl Groups {
             return Err(GroupError::Mismatch(id));
         }
         let verdict = record.verdict();
+        // The copy's domain has been traced for the ray's generation: a clear verdict names
+        // it, a hit or an occluder its place along the path (of a ray not concluded yet).
+        let traced_in = match verdict {
+            // (A concluded ray's group has given its path up: its clear verdicts teach nothing.)
+            Verdict::Clear => Some(record.order).filter(|d| {
+                let copied = group.path.get(..group.copied).unwrap_or_default();
+                copied.contains(d)
+            }),
+            Verdict::Blocked(order) | Verdict::Hit(SurfaceHit { order, .. }) => {
+                group.path.get(order as usize).copied()
+            }
+            _ => None,
+        };
+        if let Some(d) = traced_in {
+            self.windows.visited(&group.ray, d);
+        }
         if group.spent {
             // The ray concluded already: only count the copies still out.
             if !matches!(

@@ -12,6 +12,15 @@
 //! window of the whole path; a window of one domain is the chained trace with a verdict's
 //! round trip per domain.
 //!
+//! A cut is priced per ray, but a load is paid per domain: a later window's copies reach
+//! their domains only once the window before has answered, and if the schedule has by then
+//! traced such a domain for their generation and evicted it, it is loaded again, for however
+//! few of them (issue 20, README "Why predicted speculation loads more than full"). So the
+//! windows also learn, per domain, whether the later windows sent into it came after it had
+//! been traced for their generation (a verdict of that generation had come back from it), and
+//! a window is not cut in front of a domain where they mostly did: it reaches at least to the
+//! last such domain along the ray (full speculation there, predicted elsewhere).
+//!
 //! Whatever the windows, a ray concludes exactly as the chained trace does: each window is a
 //! prefix of what is left of the path, so the nearest domain with a hit (or any occluder) is
 //! found before anything beyond it matters. So the prediction may depend on the order rays
@@ -124,11 +133,32 @@ impl Tally {
     }
 }
 
+/// Later windows sent into one domain: before any verdict of their generation had come back
+/// from it, and after (late: the domain had been traced for their generation already).
+#[derive(Clone, Copy, Debug, Default)]
+struct Lateness {
+    on_time: u64,
+    late: u64,
+}
+
+impl Lateness {
+    /// Whether later windows into the domain mostly came late: at least one did, and at
+    /// least as many as came on time. Before any later window into it, a domain is not.
+    fn late(&self) -> bool {
+        self.late > 0 && self.late >= self.on_time
+    }
+}
+
 /// The window lengths of [`Depth`], with the termination rates it learns.
 #[derive(Clone, Debug)]
 pub struct Windows {
     depth: Depth,
     tallies: [Vec<Tally>; CLASSES],
+    /// Per domain, one more than the newest generation a verdict came back from it for
+    /// (0: none yet): the domain has been traced for that generation.
+    visited: Vec<u16>,
+    /// Per domain, the later windows sent into it and whether they came late.
+    lateness: Vec<Lateness>,
 }
 
 impl Windows {
@@ -137,6 +167,8 @@ impl Windows {
         Windows {
             depth,
             tallies: Default::default(),
+            visited: Vec::new(),
+            lateness: Vec::new(),
         }
     }
 
@@ -164,10 +196,58 @@ impl Windows {
                         break;
                     }
                 }
-                n
+                // No cut in front of a domain later windows reach late: the window runs to
+                // the last such domain along the ray.
+                let rest = path.get(from + n..).unwrap_or_default();
+                n + rest
+                    .iter()
+                    .rposition(|&d| self.late(d))
+                    .map_or(0, |i| i + 1)
             }
         };
         n.clamp(1, left.max(1))
+    }
+
+    /// Whether later windows into `domain` mostly came after it had been traced for their
+    /// generation.
+    pub fn late(&self, domain: u32) -> bool {
+        self.lateness
+            .get(domain as usize)
+            .is_some_and(Lateness::late)
+    }
+
+    /// Learns that a copy of `ray` was traced in `domain` (its verdict came back): the domain
+    /// has been traced for the ray's generation.
+    pub fn visited(&mut self, ray: &RayRecord, domain: u32) {
+        if !matches!(self.depth, Depth::Predicted(_)) {
+            return;
+        }
+        let d = domain as usize;
+        if self.visited.len() <= d {
+            self.visited.resize(d + 1, 0);
+        }
+        let g = ray.generation().saturating_add(1);
+        self.visited[d] = self.visited[d].max(g);
+    }
+
+    /// Learns from a later window of `ray` (one after its first) sent into `domains`: each
+    /// copy comes late where the domain has been traced for the ray's generation already.
+    pub fn later_window(&mut self, ray: &RayRecord, domains: &[u32]) {
+        if !matches!(self.depth, Depth::Predicted(_)) {
+            return;
+        }
+        for &d in domains {
+            let d = d as usize;
+            if self.lateness.len() <= d {
+                self.lateness.resize(d + 1, Lateness::default());
+            }
+            let visited = self.visited.get(d).copied().unwrap_or(0);
+            if visited > ray.generation() {
+                self.lateness[d].late += 1;
+            } else {
+                self.lateness[d].on_time += 1;
+            }
+        }
     }
 
     /// Learns from a concluded ray: it reached every domain of `path` up to `ended` (its index
@@ -271,5 +351,42 @@ mod tests {
         let mut fixed = Windows::new(Depth::Ahead(1));
         fixed.learn(&r, &path, None);
         assert!(fixed.tallies.iter().all(Vec::is_empty));
+    }
+
+    #[test]
+    fn a_window_runs_through_the_last_domain_later_windows_reached_late() {
+        let path = [0, 1, 2, 3];
+        let r = camera_ray();
+        let bounce = RayRecord { depth: 1, ..r };
+        let mut w = Windows::new(Depth::Predicted(0.9));
+        for _ in 0..100 {
+            w.learn(&r, &path, Some(0));
+        }
+        assert_eq!(w.window(&r, &path, 0), 1, "rays end in domain 0");
+        // Domains 1 and 3 were traced for generation 0; domain 2 only for generation 1.
+        w.visited(&r, 1);
+        w.visited(&r, 3);
+        w.visited(&bounce, 2);
+        // A camera ray's later window reaches domain 3 late, and domain 2 late too (traced
+        // for a younger generation already); a bounce's reaches domain 1 on time.
+        w.later_window(&r, &[3]);
+        assert!(w.late(3));
+        assert_eq!(w.window(&r, &path, 0), 4, "through domain 3");
+        assert_eq!(w.window(&r, &[0, 1], 0), 1, "no late domain on this path");
+        w.later_window(&bounce, &[1]);
+        assert!(!w.late(1));
+        w.later_window(&r, &[2]);
+        assert!(w.late(2));
+        // As many on time as late still counts as late; more on time does not.
+        let second_bounce = RayRecord { depth: 2, ..r };
+        w.later_window(&second_bounce, &[2]);
+        assert!(w.late(2));
+        w.later_window(&second_bounce, &[2]);
+        assert!(!w.late(2));
+        // Fixed windows learn none of it.
+        let mut full = Windows::new(Depth::Full);
+        full.visited(&r, 1);
+        full.later_window(&r, &[1]);
+        assert!(!full.late(1));
     }
 }

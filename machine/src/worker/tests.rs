@@ -946,3 +946,94 @@ fn a_worker_asked_to_share_tasks_of_a_frame_it_does_not_run_says_it_holds_none()
         assert!(tasks_sent(&actions).is_empty());
     }
 }
+
+/// A predictive frame copying rays `speculation` ahead, issuing tile 0's camera rays.
+fn speculating(speculation: &str) -> Event<MemorySpill> {
+    let mut start = start(JOB, Schedule::Predictive, &[0]);
+    if let Some(spec) = start.spec.as_mut() {
+        spec.speculation = speculation.into();
+    }
+    Event::FrameOpened {
+        start,
+        opened: Ok(scene()),
+    }
+}
+
+/// A pass that gave birth to camera rays of `pixels`, each along `path`.
+fn born_along(pixels: std::ops::Range<u32>, path: &[u32]) -> Event<MemorySpill> {
+    let rays: Vec<RayRecord> = pixels.map(|p| ray(0, 0, path[0], p)).collect();
+    finished(PassOutput {
+        paths: vec![path.to_vec(); rays.len()],
+        rays,
+        ..PassOutput::default()
+    })
+}
+
+/// `a:1`'s verdicts on copies it was sent.
+fn verdicts_from_a(verdicts: Vec<VerdictRecord>) -> Event<MemorySpill> {
+    Event::PeerBundle {
+        sender: "a:1".into(),
+        job_id: JOB.into(),
+        payload: Payload::Verdicts(vec![verdicts]),
+    }
+}
+
+/// The copies `actions` sent to `a:1`.
+fn copies_to_a(actions: &[Action]) -> Vec<RayRecord> {
+    rays_sent(actions).remove("a:1").unwrap_or_default()
+}
+
+/// The domains of `copies`, per pixel.
+fn domains_by_pixel(copies: &[RayRecord]) -> BTreeMap<u32, Vec<u32>> {
+    let mut out: BTreeMap<u32, Vec<u32>> = BTreeMap::new();
+    for c in copies {
+        out.entry(c.pixel).or_default().push(c.domain);
+    }
+    out
+}
+
+/// Issue 20: a window is not cut in front of a domain that the later windows sent into it
+/// reached after it had been traced for their generation (each such straggler would load it
+/// again), and is cut as predicted where they came on time.
+#[test]
+fn a_window_runs_through_a_domain_later_windows_reached_late() {
+    use rayfarm_core::render::speculation::{SurfaceHit, Verdict};
+    let hit_at_0 = Verdict::Hit(SurfaceHit {
+        order: 0,
+        t: 1.0,
+        normal: [0.0, 1.0, 0.0],
+        material: 0,
+    });
+    let mut w = worker();
+    w.handle(Time(0), speculating("predicted:0.9"));
+    w.handle(Time(1), plan(1, &[], &[(0, "a:1"), (1, "a:1"), (2, "a:1")]));
+    // Twenty camera rays along domains 0, 1, 2: nothing is known of them, so each is copied
+    // into all three. Domain 1 answers clear (it has now been traced for generation 0), then
+    // domain 0 hits: each ray ends in domain 0, which the windows learn.
+    let first = copies_to_a(&w.handle(Time(2), born_along(0..20, &[0, 1, 2])));
+    let by_pixel = domains_by_pixel(&first);
+    assert_eq!(by_pixel.len(), 20);
+    assert!(by_pixel.values().all(|d| d == &[0, 1, 2]), "{by_pixel:?}");
+    let clear_at_1 = first
+        .iter()
+        .filter(|c| c.domain == 1)
+        .map(|c| VerdictRecord::new(c, Verdict::Clear));
+    let hits = first
+        .iter()
+        .filter(|c| c.domain == 0)
+        .map(|c| VerdictRecord::new(c, hit_at_0));
+    w.handle(Time(3), verdicts_from_a(clear_at_1.chain(hits).collect()));
+    // Rays end in domain 0 often enough now that a window stops after it.
+    let copies = copies_to_a(&w.handle(Time(4), born_along(30..31, &[0, 1, 2])));
+    assert_eq!(domains_by_pixel(&copies)[&30], [0]);
+    // This one goes on: its later window reaches domain 1 late (traced for its generation
+    // already) and domain 2 on time (no verdict of it yet).
+    let clear = vec![VerdictRecord::new(&copies[0], Verdict::Clear)];
+    let later = copies_to_a(&w.handle(Time(5), verdicts_from_a(clear)));
+    assert_eq!(domains_by_pixel(&later)[&30], [1, 2]);
+    // So a window no longer ends in front of domain 1, but still in front of domain 2.
+    let copies = copies_to_a(&w.handle(Time(6), born_along(31..32, &[0, 1, 2])));
+    assert_eq!(domains_by_pixel(&copies)[&31], [0, 1]);
+    let copies = copies_to_a(&w.handle(Time(7), born_along(32..33, &[0, 2])));
+    assert_eq!(domains_by_pixel(&copies)[&32], [0]);
+}
