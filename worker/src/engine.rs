@@ -286,7 +286,7 @@ impl Engine {
                 tier,
                 batches,
             } => {
-                let m = &metrics::worker().tiers[tier as usize];
+                let m = &metrics::worker().tiers[tier.index()];
                 m.bundles.inc();
                 for b in &batches {
                     m.bytes.inc_by(b.len() as u64);

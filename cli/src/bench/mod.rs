@@ -10,10 +10,8 @@ pub mod csv_out;
 pub mod progressive;
 pub mod report;
 
-use rayfarm_core::cluster::stats::ClusterStats;
-
-/// Tier names in the order the statistics and the table show them.
-pub const TIERS: [&str; 4] = ["control", "results", "migrated", "tasks"];
+use rayfarm_core::bundler::Tier;
+use rayfarm_core::cluster::stats::{ClusterStats, tier_name};
 
 /// The schedule the domain-load ratios are measured against (the paper's algorithm).
 pub const REFERENCE_SCHEDULE: &str = "dynamic";
@@ -268,8 +266,8 @@ pub struct Measured {
     pub segments: f64,
     pub rays_migrated: f64,
     pub bytes_migrated: f64,
-    /// Bundles sent per tier, in [`TIERS`] order.
-    pub bundles: [f64; 4],
+    /// Bundles sent per tier, most urgent first ([`Tier::MOST_URGENT_FIRST`]).
+    pub bundles: [f64; Tier::COUNT],
     pub rounds: f64,
     /// Mean over all workers of all runs.
     pub idle_fraction: f64,
@@ -371,11 +369,11 @@ pub struct ScheduleSummary {
 }
 
 /// Bundles sent on `tier`, summed over workers (the statistics already sum them).
-pub fn tier_bundles(stats: &ClusterStats, tier: &str) -> u64 {
+pub fn tier_bundles(stats: &ClusterStats, tier: Tier) -> u64 {
     stats
         .tiers
         .iter()
-        .filter(|t| t.tier == tier)
+        .filter(|t| t.tier == tier_name(tier))
         .map(|t| t.sent.bundles)
         .sum()
 }
@@ -413,8 +411,8 @@ fn measure(ok: &[&ClusterStats]) -> Option<Measured> {
         .iter()
         .flat_map(|s| s.per_worker.iter().map(|w| w.idle_fraction))
         .collect();
-    let mut bundles = [0.0; 4];
-    for (b, tier) in bundles.iter_mut().zip(TIERS) {
+    let mut bundles = [0.0; Tier::COUNT];
+    for (b, tier) in bundles.iter_mut().zip(Tier::MOST_URGENT_FIRST) {
         *b = med(&|s| tier_bundles(s, tier) as f64)?;
     }
     Some(Measured {
@@ -829,7 +827,7 @@ pub(crate) mod tests {
         assert_eq!(m.bytes_loaded, 6.0 * 1024.0);
         assert_eq!(m.segments, 3000.0);
         assert_eq!(m.rays_migrated, 20.0);
-        assert_eq!(m.bundles, [0.0, 0.0, 6.0, 0.0]);
+        assert_eq!(m.bundles, [0.0, 6.0, 0.0]);
         assert_eq!(m.rounds, 7.0);
         assert!((m.idle_fraction - 0.2).abs() < 1e-12);
         assert_eq!(m.peak_rss_bytes, 300);
