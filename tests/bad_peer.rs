@@ -1,7 +1,8 @@
 //! Bad input from outside, against a real cluster: a client that speaks the peer protocol
 //! (the generated tonic client) sends a worker garbage batches, truncated batches, lying
-//! counts, bad records, verdicts in the wrong tier or naming unknown materials, and bundles
-//! of another protocol version while a (predictive) frame runs. Each gets a precise gRPC
+//! counts, bad records, verdicts in the wrong tier or naming unknown materials, bundles of a
+//! tier there is not (none, the retired control tier 1, 99), and bundles of another protocol
+//! version while a (predictive) frame runs. Each gets a precise gRPC
 //! status and a log line with context, and the frame the bad bundles claim to belong to
 //! still renders the image of `rayfarm render --local`. Then scenes whose manifest does not
 //! parse or lies about its domains fail their jobs precisely, and the next job renders the
@@ -156,6 +157,11 @@ fn bad_peers_get_precise_statuses_and_the_frame_they_claim_still_renders() {
     let other_protocol_message = format!("speaks protocol {}", PROTOCOL_VERSION + 1);
     let mut unknown_tier = bundle(&job, vec![valid.clone()]);
     unknown_tier.tier = 99;
+    // The control tier's number before protocol 6: reserved, so refused, never read as rays.
+    let mut control_tier = bundle(&job, vec![valid.clone()]);
+    control_tier.tier = 1;
+    let mut no_tier = bundle(&job, vec![valid.clone()]);
+    no_tier.tier = proto::Tier::Unspecified as i32;
     let garbage = b"GET / HTTP/1.1\r\nHost: worker\r\n\r\n".repeat(5);
     let cases: Vec<(&str, proto::PeerBundle, Code, &str)> = vec![
         (
@@ -221,6 +227,13 @@ fn bad_peers_get_precise_statuses_and_the_frame_they_claim_still_renders() {
             Code::InvalidArgument,
             "unknown tier 99",
         ),
+        (
+            "the retired control tier",
+            control_tier,
+            Code::InvalidArgument,
+            "unknown tier 1",
+        ),
+        ("no tier", no_tier, Code::InvalidArgument, "has no tier"),
     ];
     let runtime = tokio::runtime::Runtime::new().expect("tokio runtime");
     let addr = cluster.worker_addr(0).to_string();

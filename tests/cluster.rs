@@ -85,12 +85,7 @@ fn one_two_and_four_workers_render_the_local_image() {
         let migrated = stats_field(&stats, "/rays_migrated").as_u64().unwrap_or(0);
         if n > 1 && cache < 1 << 30 {
             assert!(migrated > 0, "{n} workers with small caches moved no rays");
-            let tiers = stats_field(&stats, "/tiers");
-            let migrated_tier = tiers
-                .as_array()
-                .and_then(|t| t.iter().find(|t| t["tier"] == "migrated"))
-                .expect("migrated tier counted");
-            assert!(migrated_tier["bundles"].as_u64() > Some(0));
+            assert!(tier_bundles(&stats, "migrated") > Some(0));
         }
     }
 }
@@ -128,7 +123,7 @@ fn every_schedule_renders_the_local_image_with_one_to_four_workers() {
                 );
             }
             // Verdicts of speculative copies travel in the results tier, and only they do.
-            let verdict_bundles = stats_field(&stats, "/tiers/1/bundles").as_u64();
+            let verdict_bundles = tier_bundles(&stats, "results");
             match (schedule, n) {
                 ("predictive", 2..) => assert!(verdict_bundles > Some(0), "{n} workers"),
                 _ => assert_eq!(verdict_bundles, Some(0), "{schedule} with {n} workers"),
@@ -155,13 +150,24 @@ fn hybrid_hands_a_slow_workers_queued_rays_to_idle_workers_as_tasks() {
     let stats = submit_wait(&cluster, &frame, "tasks");
     assert_eq!(hash_of(&stats), expected);
     let shared = stats_field(&stats, "/rays_shared").as_u64().unwrap_or(0);
-    let task_bundles = stats_field(&stats, "/tiers/3/bundles")
-        .as_u64()
-        .unwrap_or(0);
+    let task_bundles = tier_bundles(&stats, "tasks").unwrap_or(0);
     eprintln!("{shared} rays handed over as tasks in {task_bundles} bundles");
-    assert_eq!(stats_field(&stats, "/tiers/3/tier"), "tasks");
     assert!(shared > 0, "no queued rays were handed to an idle worker");
     assert!(task_bundles > 0, "tasks travel in the tasks tier");
+}
+
+/// Bundles a frame's workers sent in the tier called `tier`, found by name; checks that the
+/// statistics list the tiers there are, most urgent first.
+fn tier_bundles(stats: &Path, tier: &str) -> Option<u64> {
+    let tiers = stats_field(stats, "/tiers");
+    let tiers = tiers.as_array()?;
+    let names: Vec<&str> = tiers.iter().filter_map(|t| t["tier"].as_str()).collect();
+    assert_eq!(
+        names,
+        ["results", "migrated", "tasks"],
+        "the tiers in {stats:?}"
+    );
+    tiers.iter().find(|t| t["tier"] == tier)?["bundles"].as_u64()
 }
 
 /// Segments traced in a frame (radiance and shadow).
@@ -194,7 +200,7 @@ fn predictive_speculation_renders_the_local_image_at_every_setting_with_one_to_f
             frame.extend(["--speculation", setting]);
             let stats = submit_wait(&cluster, &frame, &format!("{setting}-{n}"));
             assert_eq!(hash_of(&stats), expected, "{setting} with {n} workers");
-            let verdict_bundles = stats_field(&stats, "/tiers/1/bundles").as_u64();
+            let verdict_bundles = tier_bundles(&stats, "results");
             if setting == "none" {
                 assert_eq!(verdict_bundles, Some(0), "no copies, no verdicts");
             } else if n > 1 {

@@ -17,6 +17,8 @@ use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
 use prometheus_client::metrics::info::Info;
 use prometheus_client::registry::{Registry, Unit};
+use rayfarm_core::bundler::Tier;
+use rayfarm_core::cluster::stats::tier_name;
 
 /// The content type of the text [`encode`] writes (OpenMetrics 1.0, which Prometheus reads).
 pub const CONTENT_TYPE: &str = "application/openmetrics-text; version=1.0.0; charset=utf-8";
@@ -29,9 +31,6 @@ pub type SecondsCounter = Counter<f64, std::sync::atomic::AtomicU64>;
 
 /// Job states as the `state` label of `rayfarm_jobs` spells them.
 pub const JOB_STATES: [&str; 5] = ["queued", "running", "succeeded", "failed", "cancelled"];
-
-/// Bundler tiers as the `tier` label spells them, most urgent first.
-pub const TIERS: [&str; 4] = ["control", "results", "migrated", "tasks"];
 
 /// The gRPC status codes as the `code` label of `rayfarm_rpc_errors_total` spells them,
 /// indexed by code number (0, OK, is never counted).
@@ -264,8 +263,9 @@ pub struct WorkerMetrics {
     pub passes: Counter,
     /// Time spent in passes.
     pub busy_seconds: SecondsCounter,
-    /// Traffic to peers, by [`TIERS`] index.
-    pub tiers: [TierCounters; 4],
+    /// Traffic to peers, by [`Tier::index`]; the `tier` label is the tier's name
+    /// ([`tier_name`]).
+    pub tiers: [TierCounters; Tier::COUNT],
     /// Rays received from peers.
     pub rays_received: Counter,
     /// Bytes of rays queued in memory now.
@@ -409,10 +409,10 @@ impl WorkerMetrics {
                 .map(|kind| child(&created, "kind", kind)),
             passes,
             busy_seconds,
-            tiers: TIERS.map(|tier| TierCounters {
-                rays: child(&rays_sent, "tier", tier),
-                bytes: child(&bytes_sent, "tier", tier),
-                bundles: child(&bundles, "tier", tier),
+            tiers: Tier::MOST_URGENT_FIRST.map(|tier| TierCounters {
+                rays: child(&rays_sent, "tier", tier_name(tier)),
+                bytes: child(&bytes_sent, "tier", tier_name(tier)),
+                bundles: child(&bundles, "tier", tier_name(tier)),
             }),
             rays_received,
             queue_bytes,
@@ -460,7 +460,7 @@ mod tests {
     fn families_encode_with_conventional_names() {
         let m = WorkerMetrics::new();
         m.domain_loads.inc_by(3);
-        m.tiers[2].bytes.inc_by(100);
+        m.tiers[Tier::Migrated.index()].bytes.inc_by(100);
         m.domain_load_seconds.inc_by(0.5);
         rpc_error(16);
         rpc_error(0);
@@ -475,6 +475,12 @@ mod tests {
             assert!(text.lines().any(|l| l == line), "no {line:?} in\n{text}");
         }
         assert!(text.contains("rayfarm_build_info{"), "{text}");
+        // Every tier's series is there from the start, and only the tiers there are.
+        for tier in ["results", "tasks"] {
+            let line = format!("rayfarm_bundles_sent_total{{tier=\"{tier}\"}} 0");
+            assert!(text.lines().any(|l| l == line), "no {line:?} in\n{text}");
+        }
+        assert!(!text.contains("tier=\"control\""), "{text}");
         let heap = text
             .lines()
             .find_map(|l| l.strip_prefix("rayfarm_heap_in_use_bytes "))

@@ -11,4 +11,6 @@ include!(concat!(env!("OUT_DIR"), "/rayfarm.v1.rs"));
 /// named by worker key (`DomainHolders.workers`), demand-driven tasks (`ShareTasks`,
 /// `TasksShared`, `StartFrame.hybrid_rounds`). 5: a holders delta names each changed domain's
 /// gained and lost keys (`DomainHolders.workers`, `DomainHolders.lost`), not its whole list.
-pub const PROTOCOL_VERSION: u32 = 5;
+/// 6: the control tier, which no bundle used, retired (`Tier` 1 reserved); a bundle of tier 1
+/// or of no tier is refused.
+pub const PROTOCOL_VERSION: u32 = 6;

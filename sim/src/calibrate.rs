@@ -336,7 +336,6 @@ fn time_encode(tier: Tier, batches: &[Bytes]) -> Option<f64> {
 /// `tier` as the peer protocol numbers it.
 fn proto_tier(tier: Tier) -> i32 {
     let t = match tier {
-        Tier::Control => rayfarm_proto::Tier::Control,
         Tier::Results => rayfarm_proto::Tier::Results,
         Tier::Migrated => rayfarm_proto::Tier::Migrated,
         Tier::Tasks => rayfarm_proto::Tier::Tasks,

@@ -3,33 +3,37 @@
 //! events, and carries out its actions: the control stream and peer links, passes on the
 //! rayon pool, the domain cache. Opening a frame reads the scene's manifest here, so the
 //! machine never touches a file.
+//!
+//! Apart from the event loop here, a module each: opening a frame's scene (`scene`), passes
+//! and prefetches on their threads (`passes`), and what the engine adds to the metrics and a
+//! frame's statistics (`counting`).
+
+mod counting;
+mod passes;
+mod scene;
 
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
-use anyhow::Context;
 use rayfarm_core::bundler::BundlerConfig;
-use rayfarm_core::cluster::scene_ref;
 use rayfarm_core::render::cache::{CacheCounters, DomainCache, StorageModel};
 use rayfarm_core::render::stats::peak_rss_bytes;
-use rayfarm_core::scene::Manifest;
 use rayfarm_machine::Time;
+use rayfarm_machine::pass::FrameView;
 use rayfarm_machine::worker::{
-    self as machine, Action, DomainQueues, OpenedScene, PassFailed, PassOutput, Worker,
-    WorkerConfig,
+    self as machine, Action, PassFailed, PassOutput, Worker, WorkerConfig,
 };
-use rayfarm_node::cpu::{ThreadClocks, process_cpu_seconds};
+use rayfarm_node::cpu::ThreadClocks;
+use rayfarm_node::metrics;
 use rayfarm_node::proto::{self, coordinator_message::Body as FromCoordinator};
-use rayfarm_node::{job, metrics};
 use tokio::sync::mpsc;
-use tracing::info;
 
 use crate::domains::PeerDomains;
-use crate::pass;
 use crate::peers::PeerLinks;
 use crate::queues::FileSpill;
-use rayfarm_machine::pass::{FrameView, PassInput};
+use counting::count_pass;
+use scene::SceneKey;
 
 /// What the engine needs to know about itself.
 #[derive(Clone, Debug)]
@@ -81,12 +85,6 @@ pub enum Event {
     /// peer that stopped acknowledging.
     Machine(Box<machine::Event<FileSpill>>),
 }
-
-/// How long opening a frame waits for its scene's manifest.
-const SCENE_READ_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(10);
-
-/// What identifies a scene to the cache: its directory and its manifest.
-type SceneKey = (PathBuf, Manifest);
 
 /// What the shell keeps of the frame it opened last: what passes read, and the cache's
 /// counters at its start (the frame's statistics count from there).
@@ -286,7 +284,7 @@ impl Engine {
                 tier,
                 batches,
             } => {
-                let m = &metrics::worker().tiers[tier as usize];
+                let m = &metrics::worker().tiers[tier.index()];
                 m.bundles.inc();
                 for b in &batches {
                     m.bytes.inc_by(b.len() as u64);
@@ -343,283 +341,8 @@ impl Engine {
         }
     }
 
-    /// Tells the fetcher who holds `domain` now, before a load of it may ask them.
-    fn offer_holders(&self, domain: u32) {
-        if let Some(frame) = self.machine.frame() {
-            self.domains
-                .hints
-                .set_holders(domain, &frame.plan().holders_of(domain));
-        }
-    }
-
-    fn start_pass(&mut self, job_id: String, work: machine::PassWork) {
-        if let Some((domain, _)) = &work.trace {
-            self.offer_holders(*domain);
-        }
-        let events = self.done.clone();
-        let (Some(frame), Some((scene, cache))) = (
-            self.frame.as_ref().filter(|f| f.job_id == job_id),
-            &self.cache,
-        ) else {
-            // Never: the machine runs passes only of the frame opened last.
-            let result = Err(PassFailed::Load("no scene open for the pass".to_string()));
-            let finished = Instant::now();
-            let _ = events.send(Event::PassDone {
-                job_id,
-                result,
-                finished,
-                start_wait: std::time::Duration::ZERO,
-            });
-            return;
-        };
-        let input = PassInput {
-            frame: frame.view.clone(),
-            work,
-            cache: cache.clone(),
-        };
-        let scene = scene.clone();
-        // Straight onto the tracing pool: one thread hand-over per pass, not two (a blocking
-        // thread waiting in `install`), which on a machine with fewer cores than busy threads
-        // costs a scheduler slice each.
-        let handed = Instant::now();
-        self.pool.spawn(move || {
-            let start_wait = handed.elapsed();
-            // A panicking pass must not abort the process (rayon's default for a spawned
-            // job) nor leave the machine waiting for it: it declines the frame like a pass
-            // that could not load its domain.
-            let result =
-                match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| pass::run(input))) {
-                    Ok(r) => r.map_err(|e| pass_failed(&scene, e.to_string())),
-                    Err(_) => Err(PassFailed::Load("the pass panicked".to_string())),
-                };
-            // The engine may be gone at shutdown; nothing is left to do then.
-            let finished = Instant::now();
-            let _ = events.send(Event::PassDone {
-                job_id,
-                result,
-                finished,
-                start_wait,
-            });
-        });
-    }
-
-    /// The tracing pool's and the whole process's CPU seconds so far.
-    fn cpu_now(&self) -> (f64, f64) {
-        (self.trace_clocks.seconds(), process_cpu_seconds())
-    }
-
-    /// Loads `domain` ahead of need on a blocking thread, beside any pass: the cache decides
-    /// under its lock whether it fits without evicting `keep`, the read (mapping, checksum,
-    /// emulated storage) runs off the lock, so passes go on using the cache meanwhile.
-    fn prefetch(&mut self, job_id: String, domain: u32, keep: Vec<u32>) {
-        self.offer_holders(domain);
-        let events = self.done.clone();
-        let Some((_, cache)) = &self.cache else {
-            let result = Err("no scene open for the prefetch".to_string());
-            let _ = events.send(Event::PrefetchDone {
-                job_id,
-                domain,
-                result,
-            });
-            return;
-        };
-        let cache = cache.clone();
-        let keep: std::collections::BTreeSet<u32> = keep.into_iter().collect();
-        tokio::task::spawn_blocking(move || {
-            let pending = lock(&cache).begin_prefetch(domain, &keep);
-            let result = match pending.map(|p| p.read()) {
-                None => Ok(false),
-                Some(Ok(loaded)) => Ok(lock(&cache).finish_prefetch(loaded, &keep)),
-                Some(Err(e)) => Err(e.to_string()),
-            };
-            let _ = events.send(Event::PrefetchDone {
-                job_id,
-                domain,
-                result,
-            });
-        });
-    }
-
-    /// Adds what the cache did since the last call to the metrics (after each pass and at
-    /// a frame's end: loads and evictions happen in passes and on the machine's orders).
-    fn count_cache(&mut self) {
-        let Some(now) = self.with_cache(|c| c.counters()) else {
-            return;
-        };
-        let d = now.since(&self.cache_counted);
-        let m = metrics::worker();
-        m.domain_loads.inc_by(d.loads);
-        m.domain_load_bytes.inc_by(d.bytes_loaded);
-        m.domain_evictions.inc_by(d.evictions);
-        m.domain_load_seconds.inc_by(d.load_nanos as f64 / 1e9);
-        m.domain_load_bytes_from_peers.inc_by(d.bytes_from_peers);
-        m.domain_peer_failures.inc_by(d.peer_failures);
-        self.cache_counted = now;
-    }
-
     fn with_cache<T>(&self, f: impl FnOnce(&mut DomainCache) -> T) -> Option<T> {
         self.cache.as_ref().map(|(_, c)| f(&mut lock(c)))
-    }
-
-    /// The directory and manifest of a StartFrame's scene, read on a blocking thread within
-    /// [`SCENE_READ_TIMEOUT`]: storage that hangs (a FIFO that became the manifest, a dead
-    /// mount) declines the frame with a clear error instead of stalling this engine and the
-    /// runtime's threads. The stuck thread is left to its read.
-    async fn read_scene(&self, s: &proto::StartFrame) -> anyhow::Result<(PathBuf, Manifest)> {
-        let spec = s
-            .spec
-            .as_ref()
-            .ok_or_else(|| anyhow::anyhow!("StartFrame without a job spec"))?;
-        let (root, allow_absolute) = (
-            self.config.scene_root.clone(),
-            self.config.allow_absolute_scenes,
-        );
-        let scene = spec.scene.clone();
-        let read = tokio::task::spawn_blocking(move || {
-            let dir = scene_ref::resolve(&root, &scene, allow_absolute)?;
-            if !dir.is_dir() {
-                // Each node names its own mount point of the shared storage.
-                anyhow::bail!(
-                    "scene {scene:?} not found: {} is not a directory (is --scene-root {} \
-                     where this node sees the scenes?)",
-                    dir.display(),
-                    root.display()
-                );
-            }
-            let manifest = Manifest::load(&dir)?;
-            Ok((dir, manifest))
-        });
-        match tokio::time::timeout(SCENE_READ_TIMEOUT, read).await {
-            Ok(Ok(result)) => result,
-            Ok(Err(e)) => Err(anyhow::anyhow!(
-                "reading scene {:?} failed: {e}",
-                spec.scene
-            )),
-            Err(_) => Err(anyhow::anyhow!(
-                "scene {:?}: its manifest could not be read within {SCENE_READ_TIMEOUT:?}",
-                spec.scene
-            )),
-        }
-    }
-
-    fn open_frame(
-        &mut self,
-        s: &proto::StartFrame,
-        (dir, manifest): (PathBuf, Manifest),
-    ) -> anyhow::Result<OpenedScene<FileSpill>> {
-        let spec = s
-            .spec
-            .as_ref()
-            .ok_or_else(|| anyhow::anyhow!("StartFrame without a job spec"))?;
-        let frame = job::frame_spec(spec, &manifest.camera).map_err(anyhow::Error::msg)?;
-        let samples = job::start_samples(s, frame.spp).map_err(anyhow::Error::msg)?;
-        let (view, limits) =
-            FrameView::open(&manifest, &frame, s.tile_size, samples).map_err(anyhow::Error::msg)?;
-        let grid = view.grid;
-        // Keyed by the manifest too: the domains mapped for an older version of the scene in
-        // this directory are never traced for the new one (their files were replaced by a
-        // rename, so the old mappings stay intact for passes still holding them).
-        let scene_key = (dir, manifest.clone());
-        if self.cache.as_ref().is_none_or(|(key, _)| *key != scene_key) {
-            if self.cache.is_some() {
-                info!(scene = %spec.scene, "scene changed on disk: opening it afresh");
-            }
-            // What the old cache did since the last count is counted before it goes.
-            self.count_cache();
-            self.cache_counted = CacheCounters::default();
-            let cache = DomainCache::new(&scene_key.0, &manifest, self.config.cache_bytes)
-                .with_storage(self.config.storage);
-            self.cache = Some((scene_key, Arc::new(Mutex::new(cache))));
-        } else {
-            self.with_cache(|cache| {
-                cache.pin([]);
-                if spec.cold_cache {
-                    cache.clear();
-                }
-            });
-        }
-        // Loading from peers is the job's choice; this worker serves its loaded domains to
-        // the frame's other workers only when the job asks for it.
-        let from_peers = spec.peer_domains.then(|| self.domains.loads.clone());
-        self.domains.hints.set_frame(&s.job_id);
-        let shelf = self.with_cache(|cache| {
-            cache.set_peers(from_peers);
-            cache.shelf()
-        });
-        self.domains.serving.set(
-            shelf
-                .filter(|_| spec.peer_domains)
-                .map(|sh| (s.job_id.clone(), sh)),
-        );
-        let spill = FileSpill::new(&self.config.spill_dir)
-            .with_context(|| format!("spill directory {}", self.config.spill_dir.display()))?;
-        let queues = DomainQueues::new(
-            manifest.domains.len(),
-            self.config.queue_bytes,
-            self.config.spill_bytes,
-            spill,
-        );
-        let (domain_bytes, resident, cache_at_start) = self
-            .with_cache(|c| (c.domain_bytes(), c.resident(), c.counters()))
-            .unwrap_or_default();
-        self.frame = Some(OpenFrame {
-            job_id: s.job_id.clone(),
-            view: Arc::new(view),
-            cache_at_start,
-            cpu_at_start: self.cpu_now(),
-            pass_waits: std::time::Duration::ZERO,
-            pass_start_waits: std::time::Duration::ZERO,
-        });
-        Ok(OpenedScene {
-            grid,
-            spp: samples.count,
-            limits,
-            domain_bytes,
-            resident,
-            queues,
-        })
-    }
-}
-
-/// Why a pass failed: this worker could not load a domain, unless the scene's manifest on
-/// disk is no longer the one the frame opened (the scene was re-prepared in place). Runs on
-/// the pass's blocking thread, never the runtime; the manifest is re-read on a thread of its
-/// own and waited for at most [`SCENE_READ_TIMEOUT`], so storage that hangs (a manifest
-/// replaced by a FIFO, a dead mount) still ends the pass: the frame is declined, not stalled.
-fn pass_failed((dir, manifest): &SceneKey, e: String) -> PassFailed {
-    let (tx, rx) = std::sync::mpsc::channel();
-    let reread = dir.clone();
-    std::thread::spawn(move || {
-        let _ = tx.send(Manifest::load(&reread).ok());
-    });
-    match rx.recv_timeout(SCENE_READ_TIMEOUT) {
-        Ok(now) if now.as_ref() == Some(manifest) => PassFailed::Load(e),
-        Ok(_) => PassFailed::SceneReplaced(format!(
-            "scene {} was replaced on disk while its frame ran (re-prepared in place?): \
-             {e}; submit the job again to render the new version",
-            dir.display()
-        )),
-        Err(_) => PassFailed::Load(format!(
-            "{e}; the scene's manifest {} could not be re-read within {SCENE_READ_TIMEOUT:?}",
-            dir.join(rayfarm_core::scene::MANIFEST_FILE).display()
-        )),
-    }
-}
-
-/// Adds a finished pass's rays and time to the metrics.
-fn count_pass(output: &PassOutput) {
-    let (m, c) = (metrics::worker(), &output.counters);
-    m.passes.inc();
-    m.busy_seconds.inc_by(output.busy.as_secs_f64());
-    m.radiance_segments.inc_by(c.radiance_segments);
-    m.shadow_segments.inc_by(c.shadow_segments);
-    for (counter, n) in m.rays_created.iter().zip([
-        c.primary_rays,
-        c.shadow_rays,
-        c.bounce_rays,
-        c.reflection_rays,
-    ]) {
-        counter.inc_by(n);
     }
 }
 

@@ -131,7 +131,6 @@ impl PeerLinks {
 
 fn proto_tier(tier: Tier) -> proto::Tier {
     match tier {
-        Tier::Control => proto::Tier::Control,
         Tier::Results => proto::Tier::Results,
         Tier::Migrated => proto::Tier::Migrated,
         Tier::Tasks => proto::Tier::Tasks,
@@ -370,11 +369,23 @@ fn decode_bundle(bundle: &proto::PeerBundle) -> Result<machine::Payload, Status>
             bundle.sender, bundle.protocol_version
         )));
     }
-    let Ok(tier) = proto::Tier::try_from(bundle.tier) else {
-        return Err(Status::invalid_argument(format!(
-            "bundle {} has unknown tier {}",
-            bundle.sequence, bundle.tier
-        )));
+    // The results tier carries verdicts (predictive schedule), the other two rays. Tier 1,
+    // the control tier retired in protocol 6, is no `proto::Tier`: refused as unknown.
+    let verdicts = match proto::Tier::try_from(bundle.tier) {
+        Ok(proto::Tier::Results) => true,
+        Ok(proto::Tier::Migrated | proto::Tier::Tasks) => false,
+        Ok(proto::Tier::Unspecified) => {
+            return Err(Status::invalid_argument(format!(
+                "bundle {} has no tier",
+                bundle.sequence
+            )));
+        }
+        Err(_) => {
+            return Err(Status::invalid_argument(format!(
+                "bundle {} has unknown tier {}",
+                bundle.sequence, bundle.tier
+            )));
+        }
     };
     let limits = BatchLimits::any_frame(MAX_BATCH_RECORDS);
     let refused = |i: usize, e: WireError| {
@@ -390,17 +401,17 @@ fn decode_bundle(bundle: &proto::PeerBundle) -> Result<machine::Payload, Status>
         }
     };
     let batches = bundle.batches.iter().enumerate();
-    // The results tier carries verdicts (predictive schedule), every other tier rays.
-    Ok(match tier {
-        proto::Tier::Results => machine::Payload::Verdicts(
+    Ok(if verdicts {
+        machine::Payload::Verdicts(
             batches
                 .map(|(i, b)| wire::decode_verdicts(b, &limits).map_err(|e| refused(i, e)))
                 .collect::<Result<_, _>>()?,
-        ),
-        _ => machine::Payload::Rays(
+        )
+    } else {
+        machine::Payload::Rays(
             batches
                 .map(|(i, b)| wire::decode_batch(b, &limits).map_err(|e| refused(i, e)))
                 .collect::<Result<_, _>>()?,
-        ),
+        )
     })
 }

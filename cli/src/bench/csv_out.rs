@@ -6,6 +6,7 @@ use std::path::Path;
 use anyhow::Context;
 use serde::Serialize;
 
+use rayfarm_core::bundler::Tier;
 use rayfarm_core::cluster::stats::{ClusterStats, SubframeCost};
 
 use super::{RunOutcome, ray_work_seconds, tier_bundles};
@@ -58,7 +59,6 @@ struct Row<'a> {
     rays_migrated: Option<u64>,
     bytes_migrated: Option<u64>,
     rays_spilled: Option<u64>,
-    bundles_control: Option<u64>,
     bundles_results: Option<u64>,
     bundles_migrated: Option<u64>,
     bundles_tasks: Option<u64>,
@@ -89,7 +89,7 @@ struct Row<'a> {
 
 fn row<'a>(r: &'a RunOutcome, setup: &'a Setup) -> Row<'a> {
     let s = r.stats();
-    let bundles = |tier: &str| s.map(|s| tier_bundles(s, tier));
+    let bundles = |tier: Tier| s.map(|s| tier_bundles(s, tier));
     let idle = s.and_then(|s| {
         let n = s.per_worker.len();
         (n > 0).then(|| s.per_worker.iter().map(|w| w.idle_fraction).sum::<f64>() / n as f64)
@@ -116,10 +116,9 @@ fn row<'a>(r: &'a RunOutcome, setup: &'a Setup) -> Row<'a> {
         rays_migrated: s.map(|s| s.rays_migrated),
         bytes_migrated: s.map(|s| s.bytes_migrated),
         rays_spilled: s.map(|s| s.per_worker.iter().map(|w| w.rays_spilled).sum()),
-        bundles_control: bundles("control"),
-        bundles_results: bundles("results"),
-        bundles_migrated: bundles("migrated"),
-        bundles_tasks: bundles("tasks"),
+        bundles_results: bundles(Tier::Results),
+        bundles_migrated: bundles(Tier::Migrated),
+        bundles_tasks: bundles(Tier::Tasks),
         rounds: s.map(|s| s.rounds),
         subframe_loads: per_subframe(s, |c| c.loads.to_string()),
         subframe_done_seconds: per_subframe(s, |c| format!("{:.3}", c.done_seconds)),
@@ -214,7 +213,6 @@ mod tests {
             "segments",
             "rays_migrated",
             "bytes_migrated",
-            "bundles_control",
             "bundles_results",
             "bundles_migrated",
             "bundles_tasks",
@@ -234,6 +232,8 @@ mod tests {
                 "no column {col}: {header:?}"
             );
         }
+        // One column per tier there is: the retired control tier has none.
+        assert!(!header.iter().any(|h| h == "bundles_control"));
         let rows: Vec<csv::StringRecord> = reader.records().map(Result::unwrap).collect();
         assert_eq!(rows.len(), 2);
         let get = |r: &csv::StringRecord, col: &str| {

@@ -3,10 +3,12 @@
 //! parent module.
 
 use comfy_table::{ContentArrangement, Table, presets::UTF8_FULL_CONDENSED};
+use rayfarm_core::bundler::Tier;
+use rayfarm_core::cluster::stats::tier_name;
 
 use super::{
-    Bound, BoundInputs, HashCheck, REFERENCE_SCHEDULE, ScheduleSummary, TIERS, best_median,
-    efficiency, generations, ratio, reference_loads,
+    Bound, BoundInputs, HashCheck, REFERENCE_SCHEDULE, ScheduleSummary, best_median, efficiency,
+    generations, ratio, reference_loads,
 };
 use crate::units::human;
 
@@ -154,8 +156,8 @@ pub fn bound_footnote(
     let legend = "wall times are the coordinator's (frame start to last tile); other columns \
                   are medians over a schedule's successful runs, except idle (the mean over \
                   workers and runs) and peak RSS (the largest worker's high-water mark since \
-                  it started: the same workers serve every run); bundles per tier: c control, \
-                  r results, m migrated, t tasks.";
+                  it started: the same workers serve every run); bundles per tier: r results, \
+                  m migrated, t tasks.";
     let Some(b) = bound else {
         return format!("no run succeeded, so there is no bound; {legend}");
     };
@@ -259,12 +261,15 @@ pub fn percent(f: Option<f64>) -> String {
     f.map_or_else(|| "-".into(), |f| format!("{:.0} %", f * 100.0))
 }
 
-/// Bundles per tier, compact: "c0 r0 m1661 t0".
-pub fn bundles(per_tier: &[f64; 4]) -> String {
-    TIERS
+/// Bundles per tier, most urgent first, compact: "r0 m1661 t0".
+pub fn bundles(per_tier: &[f64; Tier::COUNT]) -> String {
+    Tier::MOST_URGENT_FIRST
         .iter()
         .zip(per_tier)
-        .map(|(tier, n)| format!("{}{}", &tier[..1], count(*n).replace(' ', "")))
+        .map(|(&tier, n)| {
+            let initial = &tier_name(tier)[..1];
+            format!("{initial}{}", count(*n).replace(' ', ""))
+        })
         .collect::<Vec<_>>()
         .join(" ")
 }
@@ -293,8 +298,8 @@ mod tests {
         assert_eq!(times(Some(12.34)), "12.3x");
         assert_eq!(times(None), "-");
         assert_eq!(percent(Some(0.434)), "43 %");
-        assert_eq!(bundles(&[0.0, 0.0, 1661.0, 0.0]), "c0 r0 m1661 t0");
-        assert_eq!(bundles(&[0.0, 0.0, 18672.0, 2.5]), "c0 r0 m18.7k t2.5");
+        assert_eq!(bundles(&[0.0, 1661.0, 0.0]), "r0 m1661 t0");
+        assert_eq!(bundles(&[4.0, 18672.0, 2.5]), "r4 m18.7k t2.5");
     }
 
     #[test]
@@ -311,7 +316,7 @@ mod tests {
         let b = bound(&runs, &inputs(vec![1 << 20], None));
         let text = bench_table(&summaries, b.as_ref()).to_string();
         let dynamic = row(&text, "│ dynamic ");
-        for want in ["1/1", "2.00 s (2.00-2.00)", "1.00x", "c0 r0 m6 t0", "50 %"] {
+        for want in ["1/1", "2.00 s (2.00-2.00)", "1.00x", "r0 m6 t0", "50 %"] {
             assert!(dynamic.contains(want), "{want:?} missing in {dynamic}");
         }
         let domain = row(&text, "│ domain ");

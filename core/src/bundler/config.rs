@@ -6,31 +6,31 @@ use std::time::Duration;
 
 /// Priority tier of an outbound message.
 ///
-/// A lower number is MORE urgent: `Control` (0) is the most urgent, `Tasks` (3) the least.
+/// A lower number is MORE urgent: `Results` (0) is the most urgent, `Tasks` (2) the least.
 /// The derived `Ord` follows the number, so sorting ascending puts the most urgent first.
 /// Prefer [`Tier::is_more_urgent_than`] over comparing tiers with `<` in calling code.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
 #[repr(u8)]
+///
+/// There is no tier for requests: a peer's domain request is its own call (`FetchDomain`,
+/// a stream of the domain's bytes, far too large to sit in a bundle), and tile results go to
+/// the coordinator on the worker's control stream, not to peers.
 pub enum Tier {
-    /// Sent at once, never bundled for long. No message uses it today: a peer's domain
-    /// requests are their own call (`FetchDomain`), and tile results go to the coordinator.
-    Control = 0,
     /// Verdicts of speculative copies going back to their ray's group: sent fast, because the
     /// group holds its ray (and its pixel's credit) until they are in.
-    Results = 1,
+    Results = 0,
     /// Data-parallel rays migrated to the owner of their domain.
-    Migrated = 2,
+    Migrated = 1,
     /// Demand-driven tasks: bundled the most.
-    Tasks = 3,
+    Tasks = 2,
 }
 
 impl Tier {
     /// Number of tiers.
-    pub const COUNT: usize = 4;
+    pub const COUNT: usize = 3;
 
     /// All tiers, most urgent first; this is the order in which bundles are emitted.
-    pub const MOST_URGENT_FIRST: [Tier; Tier::COUNT] =
-        [Tier::Control, Tier::Results, Tier::Migrated, Tier::Tasks];
+    pub const MOST_URGENT_FIRST: [Tier; Tier::COUNT] = [Tier::Results, Tier::Migrated, Tier::Tasks];
 
     /// Position of the tier in per-tier arrays (its number, 0 = most urgent).
     pub const fn index(self) -> usize {
@@ -40,10 +40,9 @@ impl Tier {
     /// Tier with the given number, if any.
     pub const fn from_index(index: usize) -> Option<Tier> {
         match index {
-            0 => Some(Tier::Control),
-            1 => Some(Tier::Results),
-            2 => Some(Tier::Migrated),
-            3 => Some(Tier::Tasks),
+            0 => Some(Tier::Results),
+            1 => Some(Tier::Migrated),
+            2 => Some(Tier::Tasks),
             _ => None,
         }
     }
@@ -55,8 +54,8 @@ impl Tier {
 
     /// True for the bulk ray tiers that the per-peer byte cap applies to.
     ///
-    /// Control and result messages are exempt: refusing them would stall exactly the
-    /// messages that unblock peers and free memory, and they never sit for long anyway.
+    /// Verdicts are exempt: refusing them would stall exactly the messages that unblock
+    /// peers (a group holds its ray until they are in), and they never sit for long anyway.
     pub const fn is_capped(self) -> bool {
         matches!(self, Tier::Migrated | Tier::Tasks)
     }
@@ -106,12 +105,11 @@ pub(super) const KIB: usize = 1024;
 pub(super) const MIB: usize = 1024 * KIB;
 
 impl Default for BundlerConfig {
-    /// Control: immediate, 64 KiB bundles. Results: 16 KiB / 1 ms. Migrated: 256 KiB / 5 ms.
-    /// Tasks: 1 MiB / 20 ms. Peer cap: 8 MiB of bulk traffic.
+    /// Results: 16 KiB / 1 ms. Migrated: 256 KiB / 5 ms. Tasks: 1 MiB / 20 ms. Peer cap:
+    /// 8 MiB of bulk traffic.
     fn default() -> Self {
         BundlerConfig {
             policies: [
-                TierPolicy::immediate(64 * KIB),
                 TierPolicy {
                     max_bytes: 16 * KIB,
                     max_age: Duration::from_millis(1),
@@ -166,12 +164,6 @@ impl BundlerConfig {
     }
 
     fn validate_ages(&self) -> Result<(), ConfigError> {
-        let control = self.policy(Tier::Control);
-        if !control.is_immediate() {
-            return Err(ConfigError::ControlNotImmediate {
-                max_age: control.max_age,
-            });
-        }
         for pair in Tier::MOST_URGENT_FIRST.windows(2) {
             let (urgent, bulk) = (pair[0], pair[1]);
             if self.policy(urgent).max_age > self.policy(bulk).max_age {
@@ -218,11 +210,6 @@ pub enum ConfigError {
         /// Offending tier.
         tier: Tier,
     },
-    /// The control tier has a nonzero `max_age`; control must be sent at once.
-    ControlNotImmediate {
-        /// The configured age.
-        max_age: Duration,
-    },
     /// A more urgent tier waits longer than a less urgent one.
     UrgencyInversion {
         /// The tier that should be faster.
@@ -249,10 +236,6 @@ impl fmt::Display for ConfigError {
             ConfigError::ZeroMaxBytes { tier } => {
                 write!(f, "tier {tier:?}: max_bytes must be positive")
             }
-            ConfigError::ControlNotImmediate { max_age } => write!(
-                f,
-                "tier Control must be sent at once, but has max_age {max_age:?} (use zero)"
-            ),
             ConfigError::UrgencyInversion {
                 more_urgent,
                 less_urgent,

@@ -2,9 +2,11 @@
 //!
 //! Sending every small message on its own wastes per-message overhead, while holding
 //! everything back for a big bundle delays the messages that other workers are waiting on.
-//! Following the hybrid scheduler's buffering scheme, messages are sorted into four tiers;
-//! each tier has its own size and age limits, so data requests leave at once, results (which
-//! free memory on arrival) leave quickly, and bulk ray traffic is bundled the most.
+//! Following the hybrid scheduler's buffering scheme, messages are sorted into three tiers;
+//! each tier has its own size and age limits, so verdicts (which a peer's held rays wait on)
+//! leave quickly and bulk ray traffic is bundled the most. Requests have no tier: a peer
+//! asks for a domain with its own call, whose answer (the domain's bytes) is far too large
+//! for a bundle.
 //!
 //! The bundler is pure: it performs no I/O and reads no clock. The caller passes the current
 //! time as a [`Duration`] since an arbitrary epoch of its choosing (for instance the start of
@@ -128,7 +130,8 @@ impl<P: Ord + Clone> Bundler<P> {
 
     /// Queues `message` for `peer` in `tier`, arriving at `now`.
     ///
-    /// Nothing is sent here: call [`Bundler::poll`] afterwards (at once for `Control`).
+    /// Nothing is sent here: call [`Bundler::poll`] afterwards (at once for a tier whose
+    /// policy is immediate).
     /// A refused message is handed back inside the error.
     pub fn push(
         &mut self,
@@ -147,8 +150,8 @@ impl<P: Ord + Clone> Bundler<P> {
         Ok(())
     }
 
-    /// Removes and returns the bundles due at `now`: all due `Control` bundles of all peers,
-    /// then all due `Results` bundles, and so on. Afterwards no tier of any peer is due.
+    /// Removes and returns the bundles due at `now`: all due `Results` bundles of all peers,
+    /// then all due `Migrated` bundles, and so on. Afterwards no tier of any peer is due.
     pub fn poll(&mut self, now: Duration) -> Vec<Bundle<P>> {
         let now = self.observe(now);
         self.drain(Drain::Due(now))

@@ -24,9 +24,13 @@ fn tagged(tag: u8, len: usize) -> Bytes {
 fn default_config_is_valid_and_ordered() {
     let config = BundlerConfig::default();
     assert_eq!(config.validate(), Ok(()));
-    assert!(config.policy(Tier::Control).is_immediate());
-    assert!(Tier::Control.is_more_urgent_than(Tier::Results));
+    assert_eq!(Tier::MOST_URGENT_FIRST[0], Tier::Results);
+    assert!(Tier::Results.is_more_urgent_than(Tier::Migrated));
     assert!(!Tier::Tasks.is_more_urgent_than(Tier::Migrated));
+    // No default tier is immediate: even verdicts wait up to a millisecond to share a bundle.
+    for tier in Tier::MOST_URGENT_FIRST {
+        assert!(!config.policy(tier).is_immediate(), "{tier:?}");
+    }
     for (i, tier) in Tier::MOST_URGENT_FIRST.into_iter().enumerate() {
         assert_eq!(Tier::from_index(i), Some(tier));
         assert_eq!(tier.index(), i);
@@ -57,17 +61,17 @@ fn nonsense_configs_are_rejected() {
             .contains("Migrated")
     );
 
-    let slow_control = base.with_policy(
-        Tier::Control,
-        TierPolicy {
-            max_bytes: 10,
-            max_age: MS,
-        },
+    // Any tier may be immediate, as long as no tier after it waits less.
+    let immediate_results = base.with_policy(Tier::Results, TierPolicy::immediate(10));
+    assert_eq!(immediate_results.validate(), Ok(()));
+    assert_eq!(
+        base.with_policy(Tier::Tasks, TierPolicy::immediate(MIB))
+            .validate(),
+        Err(ConfigError::UrgencyInversion {
+            more_urgent: Tier::Migrated,
+            less_urgent: Tier::Tasks
+        })
     );
-    assert!(matches!(
-        slow_control.validate(),
-        Err(ConfigError::ControlNotImmediate { .. })
-    ));
 
     let inverted = base.with_policy(
         Tier::Results,
@@ -100,7 +104,7 @@ fn nonsense_configs_are_rejected() {
 }
 
 #[test]
-fn control_is_never_stuck_behind_bulk_traffic() {
+fn verdicts_are_never_stuck_behind_bulk_traffic() {
     let mut b = bundler();
     for peer in 0..40 {
         for _ in 0..8 {
@@ -108,23 +112,34 @@ fn control_is_never_stuck_behind_bulk_traffic() {
             b.push(peer, Tier::Migrated, msg(128 * KIB), at(0)).unwrap();
         }
     }
-    b.push(39, Tier::Control, msg(32), at(100)).unwrap();
-    let out = b.poll(at(100));
+    // Due after its millisecond, when every peer's bulk tiers are long due too.
+    b.push(39, Tier::Results, msg(32), at(100)).unwrap();
+    let out = b.poll(at(101));
     assert_eq!(out[0].peer, 39);
-    assert_eq!(out[0].tier, Tier::Control);
+    assert_eq!(out[0].tier, Tier::Results);
     assert_eq!(out[0].messages, vec![Bytes::from(msg(32))]);
-    assert!(out[1..].iter().all(|bundle| bundle.tier != Tier::Control));
+    assert!(out[1..].iter().all(|bundle| bundle.tier != Tier::Results));
     assert!(out.len() > 40);
 }
 
 #[test]
-fn control_is_due_at_once() {
-    let mut b = bundler();
-    b.push(1, Tier::Control, msg(1), at(5)).unwrap();
+fn an_immediate_tier_is_due_at_once() {
+    let config = BundlerConfig::default().with_policy(Tier::Results, TierPolicy::immediate(KIB));
+    let mut b: Bundler<u32> = Bundler::new(config).unwrap();
+    b.push(1, Tier::Results, msg(1), at(5)).unwrap();
+    b.push(1, Tier::Migrated, msg(1), at(5)).unwrap();
     assert_eq!(b.next_deadline(), Some(at(5)));
     let out = b.poll(at(5));
     assert_eq!(out.len(), 1);
-    assert!(b.is_empty());
+    assert_eq!(out[0].tier, Tier::Results);
+    // The other tiers keep their own policies.
+    assert_eq!(b.next_deadline(), Some(at(10)));
+    // An immediate tier still packs what is pending into bundles of its size.
+    for i in 0..5 {
+        b.push(1, Tier::Results, tagged(i, KIB / 2), at(6)).unwrap();
+    }
+    let sizes: Vec<usize> = b.poll(at(6)).iter().map(|x| x.messages.len()).collect();
+    assert_eq!(sizes, vec![2, 2, 1]);
 }
 
 #[test]
@@ -150,12 +165,10 @@ fn age_trigger_fires_exactly_at_max_age_for_each_tier() {
         let start = at(3);
         b.push(1, tier, msg(10), start).unwrap();
         assert_eq!(b.next_deadline(), Some(start + age));
-        if !age.is_zero() {
-            assert!(
-                b.poll(start + age - US).is_empty(),
-                "{tier:?} flushed early"
-            );
-        }
+        assert!(
+            b.poll(start + age - US).is_empty(),
+            "{tier:?} flushed early"
+        );
         let out = b.poll(start + age);
         assert_eq!(out.len(), 1, "{tier:?}");
         assert_eq!(out[0].tier, tier);
@@ -227,7 +240,7 @@ fn flush_all_empties_everything() {
         }
     }
     let out = b.flush_all(at(0));
-    assert_eq!(out.len(), 20);
+    assert_eq!(out.len(), 5 * Tier::COUNT);
     assert!(b.is_empty());
     assert_eq!(b.pending_messages(), 0);
     assert_eq!(b.next_deadline(), None);
@@ -271,9 +284,8 @@ fn backpressure_hands_the_message_back() {
     );
     assert_eq!(err.clone().into_message(), tagged(9, 11));
     assert!(err.to_string().contains("full"));
-    // Other peers and the urgent tiers are unaffected.
+    // Other peers and the verdicts' tier are unaffected.
     b.push(2, Tier::Tasks, msg(11), at(0)).unwrap();
-    b.push(1, Tier::Control, msg(MIB), at(0)).unwrap();
     b.push(1, Tier::Results, msg(MIB), at(0)).unwrap();
     assert_eq!(b.stats()[Tier::Tasks].rejected, 1);
     // Once the bulk tier is sent there is room again.
@@ -289,12 +301,12 @@ fn backpressure_hands_the_message_back() {
 #[test]
 fn stats_count_bundles_messages_and_bytes() {
     let mut b = bundler();
-    b.push(1, Tier::Control, msg(3), at(0)).unwrap();
-    b.push(1, Tier::Control, msg(4), at(0)).unwrap();
+    b.push(1, Tier::Results, msg(3), at(0)).unwrap();
+    b.push(1, Tier::Results, msg(4), at(0)).unwrap();
     b.push(2, Tier::Tasks, msg(5), at(0)).unwrap();
-    b.poll(at(0));
+    b.poll(at(1));
     assert_eq!(
-        b.stats()[Tier::Control],
+        b.stats()[Tier::Results],
         TierStats {
             bundles: 1,
             messages: 2,
@@ -324,11 +336,11 @@ fn clock_never_runs_backwards() {
 fn flush_peer_returns_only_that_peers_messages() {
     let mut b = bundler();
     b.push(1, Tier::Tasks, tagged(1, 5), at(0)).unwrap();
-    b.push(1, Tier::Control, tagged(2, 5), at(0)).unwrap();
+    b.push(1, Tier::Results, tagged(2, 5), at(0)).unwrap();
     b.push(2, Tier::Tasks, tagged(3, 5), at(0)).unwrap();
     let out = b.flush_peer(&1);
     let tiers: Vec<Tier> = out.iter().map(|bundle| bundle.tier).collect();
-    assert_eq!(tiers, vec![Tier::Control, Tier::Tasks]);
+    assert_eq!(tiers, vec![Tier::Results, Tier::Tasks]);
     assert!(out.iter().all(|bundle| bundle.peer == 1));
     assert_eq!(b.pending_messages(), 1);
     assert!(b.flush_peer(&1).is_empty());
@@ -349,10 +361,11 @@ mod model {
             max_bytes,
             max_age: Duration::from_millis(ms),
         };
+        // Verdicts immediate, so that the model covers a tier due at once as well as ones
+        // due by age.
         BundlerConfig {
             policies: [
-                TierPolicy::immediate(600),
-                policy(1_000, 1),
+                TierPolicy::immediate(1_000),
                 policy(4_000, 3),
                 policy(8_000, 7),
             ],

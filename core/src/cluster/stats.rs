@@ -10,7 +10,7 @@ use crate::render::kernel::KernelCounters;
 /// Traffic of one bundler tier.
 #[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct TierTraffic {
-    /// Tier name: control, results, migrated, tasks.
+    /// Tier name: results, migrated, tasks.
     pub tier: String,
     /// Bundles, messages and bytes sent.
     #[serde(flatten)]
@@ -31,7 +31,6 @@ pub fn tier_traffic(stats: &crate::bundler::Stats) -> Vec<TierTraffic> {
 /// Lower-case name of a tier.
 pub fn tier_name(tier: Tier) -> &'static str {
     match tier {
-        Tier::Control => "control",
         Tier::Results => "results",
         Tier::Migrated => "migrated",
         Tier::Tasks => "tasks",

@@ -15,294 +15,35 @@
 //! storage); such loads count as loads like any other, and apart (`bytes_from_peers`). The
 //! domains resident here are also on a [`Shelf`] that this worker's peer service reads
 //! without the cache's lock (a pass may hold it through a slow load).
+//!
+//! Apart from the cache itself, a module each: its counters (`counters`), the emulated
+//! storage (`storage`), where a load reads a domain from and a prefetch's read off the lock
+//! (`load`), and the shelf the peer service reads (`shelf`).
 
+mod counters;
+mod load;
 pub mod peers;
+mod shared;
+mod shelf;
+mod storage;
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use tracing::{debug, info_span};
 
 use crate::scene::{DomainData, Manifest, SceneError};
-use peers::{Origin, PeerError, PeerLoads};
+use load::Source;
+use peers::{Origin, PeerLoads};
+use storage::StorageLine;
 
-mod shared;
-
+pub use counters::CacheCounters;
+pub use load::{LoadedDomain, PendingLoad};
 pub use shared::SharedMappings;
-
-/// Loads, evictions and bytes, for the statistics.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-pub struct CacheCounters {
-    /// Domain files mapped.
-    pub loads: u64,
-    /// Bytes of the domain files mapped.
-    pub bytes_loaded: u64,
-    /// Domains dropped to stay under the budget.
-    pub evictions: u64,
-    /// Largest number of bytes resident at once.
-    pub peak_resident_bytes: u64,
-    /// Time passes spent loading (mapping, checking, emulated storage delay), nanoseconds;
-    /// prefetches' time is apart (`prefetch_nanos`): it overlaps tracing.
-    #[serde(default)]
-    pub load_nanos: u64,
-    /// Of `loads`, those made ahead of need (prefetches), kept or not.
-    #[serde(default)]
-    pub prefetches: u64,
-    /// Prefetched domains a pass then asked for while they were mapped.
-    #[serde(default)]
-    pub prefetches_used: u64,
-    /// Prefetched domains that left the cache unused, or found no room when they arrived.
-    #[serde(default)]
-    pub prefetches_wasted: u64,
-    /// Time prefetches spent loading, nanoseconds (beside tracing, not in a pass's time).
-    #[serde(default)]
-    pub prefetch_nanos: u64,
-    /// Of `loads`, those whose bytes came from a peer.
-    #[serde(default)]
-    pub peer_loads: u64,
-    /// Of `bytes_loaded`, the bytes that came from peers (the rest came from storage).
-    #[serde(default)]
-    pub bytes_from_peers: u64,
-    /// Loads that asked a peer, which failed (unreachable, stalled, bad bytes): then storage.
-    #[serde(default)]
-    pub peer_failures: u64,
-    /// Loads that asked a peer, which refused at once (not loaded there, busy): then storage.
-    #[serde(default)]
-    pub peer_refusals: u64,
-}
-
-impl CacheCounters {
-    /// Adds `other`'s counts to these; the peak is the larger of the two.
-    pub fn add(&mut self, other: &CacheCounters) {
-        self.loads += other.loads;
-        self.bytes_loaded += other.bytes_loaded;
-        self.evictions += other.evictions;
-        self.peak_resident_bytes = self.peak_resident_bytes.max(other.peak_resident_bytes);
-        self.load_nanos += other.load_nanos;
-        self.prefetches += other.prefetches;
-        self.prefetches_used += other.prefetches_used;
-        self.prefetches_wasted += other.prefetches_wasted;
-        self.prefetch_nanos += other.prefetch_nanos;
-        self.peer_loads += other.peer_loads;
-        self.bytes_from_peers += other.bytes_from_peers;
-        self.peer_failures += other.peer_failures;
-        self.peer_refusals += other.peer_refusals;
-    }
-
-    /// Bytes loaded from storage (the rest came from peers).
-    pub fn bytes_from_storage(&self) -> u64 {
-        self.bytes_loaded.saturating_sub(self.bytes_from_peers)
-    }
-
-    /// What changed from `start` to these (a frame's share of a process's counters); the
-    /// peak is these counters' own.
-    pub fn since(&self, start: &CacheCounters) -> CacheCounters {
-        CacheCounters {
-            loads: self.loads - start.loads,
-            bytes_loaded: self.bytes_loaded - start.bytes_loaded,
-            evictions: self.evictions - start.evictions,
-            peak_resident_bytes: self.peak_resident_bytes,
-            load_nanos: self.load_nanos - start.load_nanos,
-            prefetches: self.prefetches - start.prefetches,
-            prefetches_used: self.prefetches_used - start.prefetches_used,
-            prefetches_wasted: self.prefetches_wasted - start.prefetches_wasted,
-            prefetch_nanos: self.prefetch_nanos - start.prefetch_nanos,
-            peer_loads: self.peer_loads - start.peer_loads,
-            bytes_from_peers: self.bytes_from_peers - start.bytes_from_peers,
-            peer_failures: self.peer_failures - start.peer_failures,
-            peer_refusals: self.peer_refusals - start.peer_refusals,
-        }
-    }
-}
-
-/// An emulation of slower shared storage, charged on every load: `latency` plus the file's
-/// bytes at `bandwidth`. For benchmarks only; it makes a load cost what it would on a
-/// cluster's network file system.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct StorageModel {
-    /// Bytes per second; `None` is unlimited.
-    pub bandwidth: Option<u64>,
-    /// Fixed cost of each load.
-    pub latency: Duration,
-}
-
-impl StorageModel {
-    /// The emulated time to load `bytes`.
-    pub fn delay(&self, bytes: u64) -> Duration {
-        let transfer = self
-            .bandwidth
-            .filter(|&b| b > 0)
-            .map_or(Duration::ZERO, |b| {
-                Duration::from_secs_f64(bytes as f64 / b as f64)
-            });
-        self.latency + transfer
-    }
-
-    /// Whether any delay is added.
-    pub fn is_active(&self) -> bool {
-        self.bandwidth.is_some() || !self.latency.is_zero()
-    }
-}
-
-/// One worker's line to the emulated storage: its loads are served one after another, so a
-/// prefetch beside a pass's load does not double the bandwidth. Shared by the cache and its
-/// pending prefetches (they wait off the cache's lock).
-#[derive(Clone, Debug, Default)]
-struct StorageLine {
-    model: StorageModel,
-    /// When the last load reserved on the line is delivered.
-    free_at: Arc<std::sync::Mutex<Option<Instant>>>,
-}
-
-impl StorageLine {
-    /// The emulated transfer time of `bytes` when storage is emulated (the estimate of a
-    /// load's cost until loads have been measured).
-    fn estimate(&self, bytes: u64) -> Option<Duration> {
-        self.model.is_active().then(|| self.model.delay(bytes))
-    }
-
-    /// Waits until `bytes` are delivered after the loads reserved before them.
-    fn deliver(&self, bytes: u64) {
-        if !self.model.is_active() {
-            return;
-        }
-        let now = Instant::now();
-        let done = {
-            let mut free = self.free_at.lock().unwrap_or_else(|p| p.into_inner());
-            let start = free.map_or(now, |f| f.max(now));
-            let done = start + self.model.delay(bytes);
-            *free = Some(done);
-            done
-        };
-        std::thread::sleep(done.saturating_duration_since(now));
-    }
-}
-
-/// A prefetch under way: what [`PendingLoad::read`] needs to load the domain without the
-/// cache.
-pub struct PendingLoad {
-    domain: u32,
-    source: Source,
-    verify: bool,
-}
-
-/// A prefetched domain read from storage or a peer, for [`DomainCache::finish_prefetch`].
-pub struct LoadedDomain {
-    domain: u32,
-    data: Arc<DomainData>,
-    nanos: u64,
-    origin: Origin,
-}
-
-/// Where a cache reads domains from: the scene's directory on storage and, when loading
-/// from peers is on, its peers. Cloned into prefetches, which read off the cache's lock.
-#[derive(Clone)]
-struct Source {
-    dir: PathBuf,
-    manifest: Arc<Manifest>,
-    storage: StorageLine,
-    peers: Option<Arc<PeerLoads>>,
-    /// Where other caches of this process share their mappings, if they do.
-    mappings: Option<Arc<SharedMappings>>,
-}
-
-impl Source {
-    /// Reads `domain`: from a peer when [`peers`] decides so and the peer delivers (its
-    /// checksum always verified), else from storage (verified if `verify`).
-    fn read(&self, domain: u32, verify: bool) -> Result<(Arc<DomainData>, Origin), SceneError> {
-        let mut origin = Origin::default();
-        if let Some(peers) = &self.peers {
-            let bytes = self
-                .manifest
-                .domains
-                .get(domain as usize)
-                .map_or(0, |d| d.bytes);
-            match peers.fetch(&self.manifest, domain, self.storage.estimate(bytes)) {
-                Ok(Some(data)) => {
-                    origin.from_peer = true;
-                    return Ok((Arc::new(data), origin));
-                }
-                Ok(None) => {}
-                Err(PeerError::Refused(_)) => origin.peer_refused = true,
-                Err(PeerError::Failed(_)) => origin.peer_failed = true,
-            }
-        }
-        let started = Instant::now();
-        let data = open(
-            &self.manifest,
-            &self.dir,
-            domain,
-            verify,
-            self.mappings.as_deref(),
-        )?;
-        self.storage.deliver(data.bytes());
-        if let Some(peers) = &self.peers {
-            peers.note_storage(data.bytes(), started.elapsed());
-        }
-        Ok((data, origin))
-    }
-}
-
-/// The domains resident in a cache, readable without the cache's lock: what this worker's
-/// peer service serves. A transfer holds its domain until it ends, even if the cache evicts
-/// it meanwhile (the server bounds how many run at once).
-#[derive(Clone, Default)]
-pub struct Shelf(Arc<std::sync::Mutex<BTreeMap<u32, Arc<DomainData>>>>);
-
-impl Shelf {
-    /// The domain if it is resident now.
-    pub fn get(&self, domain: u32) -> Option<Arc<DomainData>> {
-        self.lock().get(&domain).cloned()
-    }
-
-    fn lock(&self) -> std::sync::MutexGuard<'_, BTreeMap<u32, Arc<DomainData>>> {
-        self.0.lock().unwrap_or_else(|p| p.into_inner())
-    }
-}
-
-/// Maps `domain` for a cache: its own mapping, or the one `mappings` shares.
-fn open(
-    manifest: &Manifest,
-    dir: &std::path::Path,
-    domain: u32,
-    verify: bool,
-    mappings: Option<&SharedMappings>,
-) -> Result<Arc<DomainData>, SceneError> {
-    match mappings {
-        Some(m) => m.open(manifest, dir, domain, verify),
-        None => manifest.open_domain(dir, domain, verify).map(Arc::new),
-    }
-}
-
-impl PendingLoad {
-    /// The domain being loaded.
-    pub fn domain(&self) -> u32 {
-        self.domain
-    }
-
-    /// Maps and checks the domain and waits for the emulated storage: the prefetch's I/O,
-    /// run off the cache's lock.
-    pub fn read(self) -> Result<LoadedDomain, SceneError> {
-        let _span = info_span!("prefetch_domain", domain = self.domain).entered();
-        let started = Instant::now();
-        let (data, origin) = self.source.read(self.domain, self.verify)?;
-        Ok(LoadedDomain {
-            domain: self.domain,
-            data,
-            nanos: started.elapsed().as_nanos() as u64,
-            origin,
-        })
-    }
-}
-
-impl LoadedDomain {
-    /// The domain loaded.
-    pub fn domain(&self) -> u32 {
-        self.domain
-    }
-}
+pub use shelf::Shelf;
+pub use storage::StorageModel;
 
 /// `posix_fadvise(DONTNEED)` on a whole file: clean pages leave the page cache.
 fn drop_page_cache(path: &std::path::Path) -> std::io::Result<()> {

@@ -1,13 +1,27 @@
 //! The scene manifest: camera, lights, materials and the domain table, as TOML.
+//!
+//! The types and their checks are here; a module each holds the limits on a manifest's size
+//! (`limits`), TOML errors with the text withheld (`redacted`), and opening a domain's files
+//! against the manifest's entry (`domains`).
 
-use std::path::{Path, PathBuf};
+mod domains;
+mod limits;
+mod redacted;
+
+use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
 use super::partition::{DomainTree, KdNode};
-use super::residence::Received;
-use super::{DomainData, MANIFEST_FILE, Residence, SceneError, write_atomically};
+use super::{MANIFEST_FILE, SceneError, write_atomically};
 use crate::geometry::Aabb;
+use limits::MAX_CHECKSUM;
+use redacted::toml_error;
+
+pub use limits::{
+    MAX_DOMAIN_TEXT_BYTES, MAX_DOMAINS, MAX_F32_TEXT, MAX_FILE_NAME, MAX_MANIFEST_BYTES,
+    MAX_MANIFEST_HEAD_BYTES,
+};
 
 /// Version of the manifest and domain file layout this build reads and writes.
 pub const FORMAT_VERSION: u32 = 1;
@@ -265,81 +279,6 @@ pub struct SurfaceFile {
     pub checksum: String,
 }
 
-/// Most domains a scene may have (`prepare --domains`' limit, checked when a manifest is read).
-pub const MAX_DOMAINS: u32 = 1 << 16;
-
-/// Longest file name a domain entry may give (prepare writes 16 to 18 bytes); names are
-/// ASCII letters, digits, `.`, `-` and `_`, so TOML writes them unescaped and a domain's text
-/// stays within [`MAX_DOMAIN_TEXT_BYTES`].
-pub const MAX_FILE_NAME: usize = 32;
-
-/// Longest checksum text: 16 hex digits, a 64-bit hash.
-const MAX_CHECKSUM: usize = 16;
-
-/// Longest text TOML writes for an `f32`: `{}` never uses an exponent, so the longest are
-/// negative normals near the smallest, `-0.` then 37 zeros and up to 9 significant digits
-/// (the 9 digits that round-trip any `f32`); subnormals need no digit past the 45th place
-/// (their spacing is 1.4e-45), and numbers from 1 up print at most 39 integer digits and `.0`.
-/// Checked by `manifest::tests::no_f32_is_longer_than_its_bound`.
-pub const MAX_F32_TEXT: usize = 49;
-
-/// Most text one domain adds to a manifest: its entry (with a volume brick's value range and
-/// surfaces file) and its two k-d tree nodes (a leaf, and the split that a tree of n leaves
-/// has n - 1 of), every number and name at its longest (`manifest::tests`).
-pub const MAX_DOMAIN_TEXT_BYTES: u64 = 896;
-
-/// Room for everything but the domains and the k-d tree: name, camera, sky, materials (prepare
-/// writes up to 263), lights, a volume's transfer function (prepare reads up to
-/// `transfer::MAX_POINTS` points; `manifest::tests`).
-pub const MAX_MANIFEST_HEAD_BYTES: u64 = 2 << 20;
-
-/// Largest manifest read: every manifest prepare can write fits, [`MAX_DOMAINS`] domains at
-/// their longest after the longest head (`manifest::tests` checks the sum), and nothing larger
-/// is read. 58 MiB; a 65,536-domain scene prepare writes is about 23.4 MB (README "Scenes").
-pub const MAX_MANIFEST_BYTES: u64 =
-    MAX_MANIFEST_HEAD_BYTES + MAX_DOMAINS as u64 * MAX_DOMAIN_TEXT_BYTES;
-
-/// A TOML error as `line L, column C: what` without any of the text: toml's own message
-/// quotes the offending line, and serde's quote values (`invalid type: string "…"`) and
-/// unknown keys, which for a file that is no manifest would be its contents.
-fn toml_error(text: &str, mut e: toml::de::Error) -> String {
-    let at = e.span().map(|span| {
-        let before = &text.as_bytes()[..span.start.min(text.len())];
-        let line = before.iter().filter(|&&b| b == b'\n').count() + 1;
-        let column = before.iter().rev().take_while(|&&b| b != b'\n').count() + 1;
-        format!("line {line}, column {column}: ")
-    });
-    // Without the input, the message says which key it was in rather than quoting the line.
-    e.set_input(None);
-    let what = e.to_string().trim_end().replace('\n', " ");
-    format!("{}{}", at.unwrap_or_default(), redact(&what))
-}
-
-/// `message` with every `"quoted"` literal and the name after `unknown field`/`unknown
-/// variant` withheld.
-fn redact(message: &str) -> String {
-    let mut out = String::with_capacity(message.len());
-    let mut rest = message;
-    while let Some(i) = rest.find('"') {
-        out.push_str(&rest[..i]);
-        out.push_str("\"…\"");
-        rest = match rest[i + 1..].find('"') {
-            Some(j) => &rest[i + 1 + j + 1..],
-            None => "",
-        };
-    }
-    out.push_str(rest);
-    for lead in ["unknown field `", "unknown variant `"] {
-        if let Some(i) = out.find(lead) {
-            let start = i + lead.len();
-            if let Some(len) = out[start..].find('`') {
-                out.replace_range(start..start + len, "…");
-            }
-        }
-    }
-    out
-}
-
 impl Manifest {
     /// Reads and checks `DIR/scene.toml`: a regular file of at most [`MAX_MANIFEST_BYTES`],
     /// else refused before reading. Errors name the file and the position, never its text.
@@ -374,144 +313,6 @@ impl Manifest {
             reason: e.to_string(),
         })?;
         write_atomically(&dir.join(MANIFEST_FILE), text.as_bytes())
-    }
-
-    /// Maps domain `domain` of the scene in `dir` and checks it against this manifest: its id,
-    /// its size, its header checksum, its materials; with `verify_checksum` also hashes every
-    /// byte. The one way every reader opens a domain.
-    pub fn open_domain(
-        &self,
-        dir: &Path,
-        domain: u32,
-        verify_checksum: bool,
-    ) -> Result<DomainData, SceneError> {
-        self.open_domain_as(dir, domain, verify_checksum, None)
-    }
-
-    /// [`Manifest::open_domain`], its files held in memory as `residence` says (`None`: as the
-    /// process chooses, [`Residence::selected`]).
-    pub fn open_domain_as(
-        &self,
-        dir: &Path,
-        domain: u32,
-        verify_checksum: bool,
-        residence: Option<Residence>,
-    ) -> Result<DomainData, SceneError> {
-        let entry = self
-            .domains
-            .get(domain as usize)
-            .ok_or_else(|| SceneError::Manifest {
-                path: dir.join(MANIFEST_FILE),
-                reason: format!("no domain {domain} of {}", self.domains.len()),
-            })?;
-        let checksum = checksum_value(&entry.checksum);
-        let path = dir.join(&entry.file);
-        let materials = self.materials.len() as u32;
-        let mut data = DomainData::open_as(&path, checksum, verify_checksum, materials, residence)?;
-        if let Some(s) = &entry.surfaces {
-            let checksum = checksum_value(&s.checksum);
-            let file = dir.join(&s.file);
-            let surfaces =
-                DomainData::open_as(&file, checksum, verify_checksum, materials, residence)?;
-            data.attach_surfaces(surfaces)?;
-        }
-        self.check_domain(entry, domain, path, data)
-    }
-
-    /// The domain `domain` from bytes that arrived from a peer (`origin` names it in errors):
-    /// its file and, for a brick with surfaces, its surfaces' file, each checked against its
-    /// own checksum in the manifest, then against the manifest's entry exactly as
-    /// [`Manifest::open_domain`] checks a file from storage. Nothing here trusts the sender.
-    pub fn received_domain(
-        &self,
-        origin: &Path,
-        domain: u32,
-        file: Received,
-        surfaces: Option<Received>,
-    ) -> Result<DomainData, SceneError> {
-        let entry = self
-            .domains
-            .get(domain as usize)
-            .ok_or_else(|| SceneError::Domain {
-                path: origin.into(),
-                reason: format!("no domain {domain} of {}", self.domains.len()),
-            })?;
-        let materials = self.materials.len() as u32;
-        let checksum = checksum_value(&entry.checksum);
-        let mut data = DomainData::from_received(file, origin, checksum, materials)?;
-        match (&entry.surfaces, surfaces) {
-            (Some(s), Some(received)) => {
-                let checksum = checksum_value(&s.checksum);
-                let surfaces = DomainData::from_received(received, origin, checksum, materials)?;
-                data.attach_surfaces(surfaces)?;
-            }
-            (None, None) => {}
-            (expected, _) => {
-                return Err(SceneError::Domain {
-                    path: origin.into(),
-                    reason: format!(
-                        "sent {} surfaces file where the manifest has {}",
-                        if expected.is_some() { "no" } else { "a" },
-                        if expected.is_some() { "one" } else { "none" }
-                    ),
-                });
-            }
-        }
-        self.check_domain(entry, domain, origin.into(), data)
-    }
-
-    /// `data` if it is what the manifest's `entry` for `domain` describes.
-    fn check_domain(
-        &self,
-        entry: &DomainEntry,
-        domain: u32,
-        path: PathBuf,
-        data: DomainData,
-    ) -> Result<DomainData, SceneError> {
-        let mismatch = if data.domain() != domain {
-            Some(format!(
-                "holds domain {}, the manifest says {domain}",
-                data.domain()
-            ))
-        } else if data.bytes() != entry.bytes {
-            Some(format!(
-                "is {} bytes, the manifest says {}",
-                data.bytes(),
-                entry.bytes
-            ))
-        } else if data.brick().is_some() != self.volume.is_some() {
-            Some(match self.volume {
-                Some(_) => "is a mesh domain in a volume scene".to_string(),
-                None => "is a volume brick in a scene of triangles".to_string(),
-            })
-        } else if let (Some(b), Some(v)) = (data.brick(), &self.volume)
-            && (b.header.volume_dims != v.dims
-                || entry.values != Some([b.header.value_min, b.header.value_max]))
-        {
-            Some("brick's volume dims or value range differ from the manifest's".to_string())
-        } else if data.triangle_count() != entry.triangles {
-            Some(format!(
-                "holds {} triangles, the manifest says {}",
-                data.triangle_count(),
-                entry.triangles
-            ))
-        } else {
-            None
-        };
-        match mismatch {
-            Some(reason) => Err(SceneError::Domain { path, reason }),
-            None => Ok(data),
-        }
-    }
-
-    /// Maps every domain file once to check it matches this build and the manifest; with
-    /// `verify_checksums` also hashes every byte.
-    pub fn check_domains(&self, dir: &Path, verify_checksums: bool) -> Result<(), SceneError> {
-        for d in 0..self.domains.len() as u32 {
-            // Mapped: the check keeps nothing, so a copy into huge pages would be wasted.
-            self.open_domain_as(dir, d, verify_checksums, Some(Residence::Mapped))?;
-        }
-        Ok(())
     }
 
     /// The domain tree, checked.
@@ -630,12 +431,6 @@ impl Manifest {
         }
         DomainTree::check(&self.kd_nodes, self.domains.len())
     }
-}
-
-/// A checksum of the domain table as a number (its hex was checked when the manifest was
-/// read).
-fn checksum_value(hex: &str) -> u64 {
-    u64::from_str_radix(hex, 16).unwrap_or_default()
 }
 
 /// A file name in the scene directory: short, no path, nothing TOML must escape.
