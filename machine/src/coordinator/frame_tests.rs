@@ -496,7 +496,7 @@ fn busy_members_hear_of_new_holders_at_most_once_an_interval_and_then_route_by_t
     let mut plans: Vec<Plan> = (0..3)
         .map(|k| Plan::new(Mode::Dynamic, 4, 4, k, roster.clone()))
         .collect();
-    let mut hear = |out: &[Outgoing], plans: &mut Vec<Plan>| {
+    let hear = |out: &[Outgoing], plans: &mut [Plan]| {
         for (k, plan) in plans.iter_mut().enumerate() {
             apply_holders(plan, &to(out, k as u32));
         }

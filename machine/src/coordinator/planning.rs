@@ -204,10 +204,9 @@ impl RunningFrame {
             let key = p.worker.0;
             let class = class_of(key, classes);
             let synced = self.sent_holders.is_synced(key);
-            if !lines.contains_key(&(class, synced)) {
-                let l = self.lines_for(class, classes, synced);
-                lines.insert((class, synced), l);
-            }
+            lines
+                .entry((class, synced))
+                .or_insert_with(|| self.lines_for(class, classes, synced));
         }
         debug!(
             round = self.round,
@@ -244,10 +243,9 @@ impl RunningFrame {
             if synced && self.sent_holders.is_told(key, class) {
                 continue;
             }
-            if !lines.contains_key(&(class, synced)) {
-                let l = self.lines_for(class, classes, synced);
-                lines.insert((class, synced), l);
-            }
+            lines
+                .entry((class, synced))
+                .or_insert_with(|| self.lines_for(class, classes, synced));
             let holders = &lines[&(class, synced)];
             if !(synced && holders.is_empty()) {
                 let body = Body::Holders(proto::Holders {
@@ -315,10 +313,9 @@ impl RunningFrame {
             if synced && self.sent_holders.is_told(key, class) {
                 continue;
             }
-            if !lines.contains_key(&(class, synced)) {
-                let l = self.lines_for(class, classes, synced);
-                lines.insert((class, synced), l);
-            }
+            lines
+                .entry((class, synced))
+                .or_insert_with(|| self.lines_for(class, classes, synced));
             let holders = &lines[&(class, synced)];
             if synced && holders.is_empty() {
                 continue;
