@@ -44,6 +44,8 @@ pub struct CoordConfig {
     pub workers: usize,
     pub heartbeat: Duration,
     pub worker_timeout: Duration,
+    /// Busy workers are told new holders at most once per this interval.
+    pub holders_interval: Duration,
     /// How long one record takes to reach the disk.
     pub disk_latency: Duration,
     /// What its planning rounds cost.
@@ -145,6 +147,7 @@ impl SimCoordinator {
                 fill_free_slots: true,
             },
             rounds: Rounds::Async,
+            holders_interval: self.config.holders_interval,
             max_attempts: 3,
             max_jobs_per_user: 16,
             max_pixel_samples_per_user: u64::MAX,

@@ -33,11 +33,6 @@ impl<E> Default for EventHeap<E> {
 impl<E> EventHeap<E> {
     /// Schedules `event` at `at`.
     pub fn push(&mut self, at: Time, event: E) {
-        self.push_waiting(at, event);
-    }
-
-    /// Schedules `event` at `at`; returns the slot it waits in (see [`EventHeap::waiting`]).
-    pub fn push_waiting(&mut self, at: Time, event: E) -> u32 {
         self.seq += 1;
         let slot = match self.free.pop() {
             Some(i) => {
@@ -51,13 +46,6 @@ impl<E> EventHeap<E> {
             }
         };
         self.heap.push(Reverse((at, self.seq, slot)));
-        slot
-    }
-
-    /// The event waiting in `slot`, to change before it is due: only valid for an event
-    /// known not to have been popped yet (a slot is reused once its event pops).
-    pub fn waiting(&mut self, slot: u32) -> Option<&mut E> {
-        self.slots.get_mut(slot as usize)?.as_mut()
     }
 
     /// The earliest event and its time.

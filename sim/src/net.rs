@@ -112,16 +112,6 @@ impl Network {
         self.send(now, from, to, bytes).1
     }
 
-    /// `from`'s NIC sends `bytes` more as part of a message it has not begun to send (one
-    /// that absorbed a later one): later messages leave that much later.
-    pub fn lengthen(&mut self, from: NodeId, bytes: usize) {
-        self.bytes += bytes as u64;
-        let transmit = self.transmit(bytes);
-        if let Some(free) = self.free_at.get_mut(&from) {
-            *free = *free + transmit;
-        }
-    }
-
     fn transmit(&self, bytes: usize) -> Duration {
         Duration::from_nanos(
             (bytes as u128 * 1_000_000_000 / u128::from(self.model.bytes_per_second.max(1))) as u64,
@@ -208,23 +198,6 @@ mod tests {
         assert_eq!(n.arrival(Time(0), 1, 3, 1_250_000), Time(2_100_000));
         // Another sender's NIC is free.
         assert_eq!(n.arrival(Time(0), 2, 3, 1_250_000), Time(1_100_000));
-    }
-
-    #[test]
-    fn a_message_lengthened_before_it_leaves_delays_the_next_by_its_added_bytes() {
-        let mut n = net();
-        let (start, at) = n.send(Time(0), 1, 2, 1_250_000);
-        assert_eq!((start, at), (Time(0), Time(1_100_000)));
-        let (start, _) = n.send(Time(0), 1, 3, 0);
-        assert_eq!(start, Time(1_000_000), "waits for the first");
-        // The second absorbs a message of 1.25 MB: the NIC is busy 1 ms more.
-        n.lengthen(1, 1_250_000);
-        assert_eq!(n.send(Time(0), 1, 4, 0).0, Time(2_000_000));
-        assert_eq!(n.bytes, 2_500_000);
-        assert_eq!(
-            n.messages, 3,
-            "a lengthened message is no message of its own"
-        );
     }
 
     #[test]

@@ -59,6 +59,8 @@ pub struct Config {
     pub schedule_options: Options,
     /// How the dynamic schedule's rounds advance.
     pub rounds: Rounds,
+    /// Busy workers are told new holders at most once per this interval.
+    pub holders_interval: Duration,
     /// Admission: the most a frame may need of each figure (`admission::Needs`).
     pub max_frame_bytes: u64,
     /// Starts of a job's frame after which it fails instead of starting again.
@@ -155,6 +157,7 @@ fn machine_config(config: &Config) -> cluster::Config {
         report_timeout: config.report_timeout,
         schedule_options: config.schedule_options,
         rounds: config.rounds,
+        holders_interval: config.holders_interval,
         max_attempts: config.max_attempts,
         max_jobs_per_user: config.max_jobs_per_user,
         max_pixel_samples_per_user: config.max_pixel_samples_per_user,

@@ -16,6 +16,7 @@ fn config(root: &std::path::Path) -> Config {
         report_timeout: Duration::from_secs(1),
         schedule_options: Options::default(),
         rounds: Rounds::default(),
+        holders_interval: Duration::ZERO,
         max_frame_bytes: 16 << 30,
         max_attempts: 3,
     }

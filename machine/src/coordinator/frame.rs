@@ -192,6 +192,9 @@ pub struct RunningFrame {
     /// View classes of the holders' deltas (`holders::view`), fixed at the first asynchronous
     /// round from the members then.
     view_classes: Option<u32>,
+    /// Busy members are told the holders at most once per this interval
+    /// (`RunningFrame::flush_holders`); zero tells them after every round.
+    holders_interval: std::time::Duration,
     /// Tile results refused as impossible (each dropped its sender).
     pub refused_results: u64,
     /// The job's samples as subframes (one for a one-pass job), and the one being rendered:
@@ -262,12 +265,20 @@ impl RunningFrame {
             grants: Grants::new(tiles),
             sent_holders: SentHolders::default(),
             view_classes: None,
+            holders_interval: std::time::Duration::ZERO,
             refused_results: 0,
             subframes,
             subframe: 0,
             rounds_before: 0,
             segments_before: 0,
         })
+    }
+
+    /// Tells busy members the holders at most once per `interval` (zero: after every round):
+    /// see [`RunningFrame::flush_holders`].
+    pub fn with_holders_interval(mut self, interval: std::time::Duration) -> Self {
+        self.holders_interval = interval;
+        self
     }
 
     /// Every member's peer address by key.

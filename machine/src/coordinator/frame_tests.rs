@@ -129,7 +129,10 @@ fn a_dry_worker_is_planned_at_once_under_asynchronous_rounds() {
     let out = f.report(0, report(0, &[], &[(1, 50, 0)]));
     assert!(planned_domains(&out, 0).contains(&1), "{out:?}");
     assert_eq!(f.round, 1);
-    // Worker 1 keeps working and learns who holds domain 1.
+    // Worker 1 keeps working and learns who holds domain 1 at the holders flush (here after
+    // every round: the frame's interval is zero).
+    assert!(to(&out, 1).is_empty(), "{out:?}");
+    let out = f.flush_holders(Time(0));
     match to(&out, 1)[..] {
         [Body::Holders(h)] => {
             let one = h.holders.iter().find(|h| h.domain == 1).expect("domain 1");
@@ -454,4 +457,135 @@ fn a_hot_domains_change_is_news_to_the_view_classes_of_the_keys_it_gained_and_lo
     // Class 2 saw every holder of domain 2 and now sees its own 6 only.
     assert_eq!(deltas[2], [line(2, &[6], &[5])]);
     assert_eq!(deltas[3], [line(1, &[203], &[]), line(2, &[6], &[])]);
+}
+
+/// The holders a worker's plan routes by after `messages` (its plans and holders messages).
+fn apply_holders(plan: &mut crate::worker::Plan, messages: &[&Body]) {
+    use crate::worker::HolderLine;
+    let lines = |ls: &[proto::DomainHolders]| -> Vec<HolderLine> {
+        ls.iter()
+            .map(|l| HolderLine {
+                domain: l.domain,
+                workers: l.workers.clone(),
+                lost: l.lost.clone(),
+            })
+            .collect()
+    };
+    for m in messages {
+        match m {
+            Body::RoundPlan(p) => plan.set_round(
+                p.round,
+                p.work_on.clone(),
+                lines(&p.holders),
+                p.holders_delta,
+            ),
+            Body::Holders(h) => plan.set_holders(lines(&h.holders), h.delta),
+            _ => {}
+        }
+    }
+}
+
+#[test]
+fn busy_members_hear_of_new_holders_at_most_once_an_interval_and_then_route_by_the_latest() {
+    use crate::worker::{Mode, Plan};
+    let ms = |n: u64| Time(n * 1_000_000);
+    let (f, _) = started(Schedule::Dynamic, Rounds::Async, 3);
+    let mut f = f.with_holders_interval(std::time::Duration::from_millis(10));
+    let roster: std::sync::Arc<std::collections::HashMap<u32, String>> =
+        std::sync::Arc::new((0..3).map(|k| (k, format!("w{k}"))).collect());
+    let mut plans: Vec<Plan> = (0..3)
+        .map(|k| Plan::new(Mode::Dynamic, 4, 4, k, roster.clone()))
+        .collect();
+    let hear = |out: &[Outgoing], plans: &mut [Plan]| {
+        for (k, plan) in plans.iter_mut().enumerate() {
+            apply_holders(plan, &to(out, k as u32));
+        }
+    };
+    // The first round (member 0 dry with rays for domain 1) goes out at once, whole.
+    let out = f.report(0, report(0, &[], &[(1, 50, 0)]));
+    hear(&out, &mut plans);
+    assert_eq!(f.holders_due(), Some(Time(0)));
+    let flush = f.flush_holders(Time(0));
+    assert_eq!(flush.len(), 2, "both busy members: {flush:?}");
+    hear(&flush, &mut plans);
+    assert_eq!(f.holders_due(), None, "nothing changed since");
+    // Member 1 runs dry 1 ms later with rays for domain 2: its plan carries what changed, the
+    // busy member 2 hears nothing yet, not even at a flush before the interval is over.
+    let out = f.report(1, report(0, &[], &[(2, 40, 0)]));
+    assert!(planned_domains(&out, 1).contains(&2), "{out:?}");
+    assert!(to(&out, 2).is_empty() && to(&out, 0).is_empty(), "{out:?}");
+    hear(&out, &mut plans);
+    assert_eq!(f.holders_due(), Some(ms(10)));
+    assert!(f.flush_holders(ms(1)).is_empty());
+    assert!(f.flush_holders(ms(9)).is_empty());
+    // Member 0 runs dry again at 5 ms, with rays for domain 3.
+    let out = f.report(0, report(1, &[1], &[(3, 30, 0)]));
+    assert!(planned_domains(&out, 0).contains(&3), "{out:?}");
+    hear(&out, &mut plans);
+    // Until the flush, member 2 routes domain 2 and 3's rays nowhere: it keeps them.
+    let ray = |domain: u32| rayfarm_core::ray::RayRecord {
+        domain,
+        pixel: 7,
+        ..bytemuck::Zeroable::zeroed()
+    };
+    let stale = plans[2].destination(&ray(3));
+    assert_eq!(stale, crate::worker::Destination::Local, "not heard of yet");
+    // At 10 ms every member that was not told the latest changes gets them, once: member 2
+    // both rounds' folded, member 1 (planned before the second round) the second's; member 0
+    // was planned after both.
+    let flush = f.flush_holders(ms(10));
+    let told: Vec<u32> = flush.iter().map(|(k, _)| *k).collect();
+    assert_eq!(told, [1, 2], "{flush:?}");
+    for (_, m) in &flush {
+        assert!(matches!(&m.body, Some(Body::Holders(h)) if h.delta));
+    }
+    hear(&flush, &mut plans);
+    assert!(f.flush_holders(ms(30)).is_empty(), "nothing new");
+    // Every member now holds the coordinator's map (less itself) and routes by it.
+    let map = f.sent_holders.sent().clone();
+    for (k, plan) in plans.iter().enumerate() {
+        for d in 0..4u32 {
+            let mut want: Vec<u32> = map.get(&d).cloned().unwrap_or_default();
+            want.retain(|&w| w != k as u32);
+            assert_eq!(plan.holder_keys(d), want, "member {k}, domain {d}");
+        }
+    }
+    let holder = map[&3][0];
+    assert_eq!(
+        plans[2].destination(&ray(3)),
+        crate::worker::Destination::Peer(format!("w{holder}"))
+    );
+}
+
+#[test]
+fn a_busy_member_whose_reported_rays_a_round_counts_at_a_new_holder_is_told_at_once() {
+    let ms = |n: u64| Time(n * 1_000_000);
+    // Caches of one domain each.
+    let (f, _) = started_with_caches(Schedule::Dynamic, 3, 100);
+    let mut f = f.with_holders_interval(std::time::Duration::from_millis(10));
+    // Member 0 runs dry with rays for domains 1 and 3 and is given 1; everyone hears of it.
+    let out = f.report(0, report(0, &[], &[(1, 50, 0), (3, 30, 0)]));
+    assert_eq!(planned_domains(&out, 0), [1]);
+    assert_eq!(f.flush_holders(ms(0)).len(), 2);
+    // Member 1 runs dry with rays for domain 3 and is given it: the index now counts member
+    // 0's 30 rays there, so member 0 (busy) hears at once, not at the flush; member 2, with
+    // no rays reported, waits for the flush.
+    let out = f.report(1, report(0, &[], &[(3, 10, 0)]));
+    assert_eq!(planned_domains(&out, 1), [3]);
+    match to(&out, 0)[..] {
+        [Body::Holders(h)] => {
+            assert!(h.delta);
+            let three = h.holders.iter().find(|l| l.domain == 3).expect("domain 3");
+            assert_eq!(three.workers, [1]);
+        }
+        ref other => panic!("{other:?}"),
+    }
+    assert!(to(&out, 2).is_empty(), "{out:?}");
+    assert!(f.flush_holders(ms(5)).is_empty(), "not due yet");
+    let flush = f.flush_holders(ms(10));
+    assert_eq!(
+        flush.iter().map(|(k, _)| *k).collect::<Vec<_>>(),
+        [2],
+        "member 0 was told already"
+    );
 }

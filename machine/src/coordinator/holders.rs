@@ -23,15 +23,22 @@
 //! coordinator 7.2 GB of queued messages at 4,096 workers x 32,768 domains (heaptrack, README
 //! "Simulator"); what changed is a few keys a domain.
 //!
-//! The one map kept is the last one sent, with the members known to hold it; a member that
-//! joined, or that missed a map (a barrier round plans only some members), gets the whole
-//! map once. Control streams are ordered, so a member that got every message since holds
-//! exactly the last map sent, less the peers it was told are lost (whose domains the next
-//! delta lists, since the lost member is no holder any more).
+//! The one map kept is the latest, with the members known to hold a map they can be brought
+//! up to it from; a member that joined, or that missed a map (a barrier round plans only some
+//! members), gets the whole map once. A round's changes are not sent to every busy member:
+//! they wait, folded by view class (`Pending`), and go out with a member's next plan, or to
+//! every member at the next flush, at most once per holders interval
+//! (`RunningFrame::flush_holders`): one message a round to every busy member was 91% of a
+//! 256-worker dynamic simulation's messages. Control streams are ordered, so after a flush
+//! every member holds the latest map, less the peers it was told are lost (whose domains the
+//! next delta lists, since the lost member is no holder any more).
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::time::Duration;
 
 use rayfarm_proto as proto;
+
+use crate::Time;
 
 /// Holders by domain, as member keys.
 pub type HolderMap = BTreeMap<u32, Vec<u32>>;
@@ -154,168 +161,98 @@ impl HolderChange {
     }
 }
 
-/// Folds `later` into `earlier`: two `Holders` messages for one member of one frame, with
-/// nothing else sent to it between them, made one that leaves the member's map as the two
-/// applied in turn do (`worker::Plan::set_holders`: a delta line takes its lost keys out, then
-/// puts its gained keys in; a whole map replaces the map). A shell whose link to a member is
-/// still busy sending merges that member's waiting `Holders` with the next instead of queueing
-/// both: under the predictive schedule most domains have one holder, so every round's change
-/// is news to every member (views do not help), and at 4,096 workers the rounds' messages
-/// outran the coordinator's link and waited in memory by the gigabyte (README "Simulator").
-/// Merged, a member has at most one waiting, of at most one line a changed domain.
-pub fn fold_holders(earlier: &mut proto::Holders, later: proto::Holders) {
-    if !later.delta {
-        *earlier = later;
-        return;
-    }
-    // A domain's line so far: the keys put in and, for a delta, taken out.
-    let mut lines: BTreeMap<u32, (BTreeSet<u32>, BTreeSet<u32>)> = BTreeMap::new();
-    for h in earlier.holders.drain(..) {
-        let line = lines.entry(h.domain).or_default();
-        if earlier.delta {
-            fold_line(line, h.workers, h.lost);
-        } else {
-            // A whole map's line names every holder of its domain.
-            *line = (h.workers.into_iter().collect(), BTreeSet::new());
+/// One view class's holder changes since the members were last all told, folded into one line
+/// a domain: what a member of the class that holds any map sent since is told to bring it up to
+/// date. A busy member needs the holders only to route its rays, and every asynchronous round
+/// changed some: one `Holders` a round to every busy member was 91% of a 256-worker dynamic
+/// simulation's 15.9 M messages (README "Simulator"). The changes now wait here and go out with
+/// the member's next plan, or to every member at most once per holders interval
+/// (`RunningFrame::flush_holders`).
+///
+/// A line keeps every key the domain lost and every key it gained and did not lose after
+/// (`absorb`: lost keys of either out, then those gained and not lost after, and those gained
+/// after, in; a worker takes a line's lost keys out before it puts the gained ones in). So the
+/// fold of the changes since version `v` brings a member at any version from `v` on to the
+/// latest: what it applied already is taken out and put back as the latest has it. A member
+/// told by its plan, then by the flush, is never out of step (a test applies the fold to
+/// workers' maps at every version between).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Pending {
+    /// By domain: the keys gained and lost (each ascending).
+    lines: BTreeMap<u32, ViewChange>,
+    /// The round that last added to the lines (a member told at or after it holds them).
+    pub changed_round: u64,
+}
+
+impl Pending {
+    /// Folds one delta line of `domain` (keys `gained` and `lost`) in after the others.
+    pub fn absorb(&mut self, domain: u32, gained: &[u32], lost: &[u32], round: u64) {
+        if gained.is_empty() && lost.is_empty() {
+            return;
+        }
+        self.changed_round = round;
+        let line = self.lines.entry(domain).or_default();
+        for &k in lost {
+            if let Ok(i) = line.gained.binary_search(&k) {
+                line.gained.remove(i);
+            }
+            if let Err(i) = line.lost.binary_search(&k) {
+                line.lost.insert(i, k);
+            }
+        }
+        for &k in gained {
+            if let Err(i) = line.gained.binary_search(&k) {
+                line.gained.insert(i, k);
+            }
         }
     }
-    for h in later.holders {
-        let line = lines.entry(h.domain).or_default();
-        fold_line(line, h.workers, h.lost);
+
+    /// Whether nothing changed since the members were last all told.
+    pub fn is_empty(&self) -> bool {
+        self.lines.is_empty()
     }
-    let whole = !earlier.delta;
-    earlier.holders = lines
-        .into_iter()
-        .filter_map(|(domain, (gained, lost))| {
-            // A whole map leaves out the domains nobody holds; its lines lose nothing.
-            (!whole || !gained.is_empty()).then(|| proto::DomainHolders {
+
+    /// Domain lines changed.
+    pub fn len(&self) -> usize {
+        self.lines.len()
+    }
+
+    /// The folded lines as a delta's, ascending by domain; gained keys that `is_member` refuses
+    /// are left out (a member lost since: the workers forgot it, and a later round lists it
+    /// lost).
+    pub fn lines(&self, is_member: impl Fn(u32) -> bool) -> Vec<proto::DomainHolders> {
+        self.lines
+            .iter()
+            .map(|(&domain, l)| proto::DomainHolders {
                 domain,
-                workers: gained.into_iter().collect(),
-                lost: if whole {
-                    Vec::new()
-                } else {
-                    lost.into_iter().collect()
-                },
+                workers: l.gained.iter().copied().filter(|&k| is_member(k)).collect(),
+                lost: l.lost.clone(),
             })
-        })
-        .collect();
-}
-
-/// [`fold_holders`] of a delta `later` into an `earlier` that is itself the result of a fold
-/// of a delta (its lines ascending by domain, one a domain, each line's keys ascending and
-/// once; a whole map's lines each with a holder and none lost), at the cost of `later`, not
-/// of `earlier`: a folded message waiting for a backlogged link
-/// holds the net change since the member's last message, thousands of lines, and rebuilding
-/// all of them on every round's fold (a map of sets of every line, collected back) was 89% of
-/// a 256-worker predictive simulation (perf, README "Simulator"). The result is the one
-/// `fold_holders` gives, line for line. `line_len` is a line's share of the message's encoded
-/// bytes; returns by how much the lines' bytes changed.
-pub fn fold_into_folded(
-    held: &mut proto::Holders,
-    later: proto::Holders,
-    line_len: impl Fn(&proto::DomainHolders) -> usize,
-) -> isize {
-    debug_assert!(later.delta, "a whole map replaces what waits: fold_holders");
-    let whole = !held.delta;
-    // `later`'s lines by domain, in order (a delta may name a domain twice).
-    let mut by_domain: BTreeMap<u32, Vec<GainedLost>> = BTreeMap::new();
-    for h in later.holders {
-        by_domain
-            .entry(h.domain)
-            .or_default()
-            .push((h.workers, h.lost));
+            .filter(|l| !l.workers.is_empty() || !l.lost.is_empty())
+            .collect()
     }
-    let mut change = 0isize;
-    // Each named domain's line is changed where it is, or made where it goes; a whole map
-    // drops a line left with no holder.
-    let mut emptied = false;
-    let mut fresh: Vec<proto::DomainHolders> = Vec::new();
-    for (domain, steps) in by_domain {
-        let found = held.holders.binary_search_by_key(&domain, |l| l.domain);
-        let mut line = match found {
-            Ok(i) => {
-                change -= line_len(&held.holders[i]) as isize;
-                std::mem::take(&mut held.holders[i])
-            }
-            Err(_) => proto::DomainHolders {
-                domain,
-                ..Default::default()
-            },
-        };
-        for (gained, lost) in steps {
-            for k in lost {
-                if let Ok(i) = line.workers.binary_search(&k) {
-                    line.workers.remove(i);
-                }
-                if !whole && let Err(i) = line.lost.binary_search(&k) {
-                    line.lost.insert(i, k);
-                }
-            }
-            for k in gained {
-                if let Err(i) = line.workers.binary_search(&k) {
-                    line.workers.insert(i, k);
-                }
-            }
-        }
-        line.domain = domain;
-        let keep = !whole || !line.workers.is_empty();
-        if keep {
-            change += line_len(&line) as isize;
-        }
-        match found {
-            Ok(i) => {
-                emptied |= !keep;
-                held.holders[i] = line;
-            }
-            Err(_) if keep => fresh.push(line),
-            Err(_) => {}
-        }
-    }
-    if emptied {
-        held.holders.retain(|l| !l.workers.is_empty());
-    }
-    if !fresh.is_empty() {
-        // Both ascending by domain, no domain in both: merged in one pass.
-        let old = std::mem::take(&mut held.holders);
-        let mut merged = Vec::with_capacity(old.len() + fresh.len());
-        let mut fresh = fresh.into_iter().peekable();
-        for line in old {
-            while let Some(f) = fresh.next_if(|f| f.domain < line.domain) {
-                merged.push(f);
-            }
-            merged.push(line);
-        }
-        merged.extend(fresh);
-        held.holders = merged;
-    }
-    change
-}
-
-/// A delta line's keys gained and lost.
-type GainedLost = (Vec<u32>, Vec<u32>);
-
-/// One domain's line `(gained, lost)` followed by a delta line of `gained` and `lost`: the
-/// keys lost by either are taken out first, then those gained and not lost after, and those
-/// gained after, put in (a whole map's line has nothing taken out; the worker takes a line's
-/// lost keys out before it puts the gained ones in, so a key lost then gained again stays).
-fn fold_line(line: &mut (BTreeSet<u32>, BTreeSet<u32>), gained: Vec<u32>, lost: Vec<u32>) {
-    for k in lost {
-        line.0.remove(&k);
-        line.1.insert(k);
-    }
-    line.0.extend(gained);
 }
 
 /// See the module documentation.
 #[derive(Clone, Debug, Default)]
 pub struct SentHolders {
-    /// The last map sent.
+    /// The latest map: what a member is brought up to by what it is told next.
     sent: HolderMap,
-    /// Members that hold `sent`.
+    /// Members that hold a map from the last flush on (or the whole of the last barrier or
+    /// owner map), so that their class's `pending` brings them up to date; the others are
+    /// told the whole map.
     synced: BTreeSet<u32>,
     /// Whether `sent` is the map of every member's plan as of the index's last taken changes
     /// (else it is a barrier round's map, the owner map, or none yet).
     in_step: bool,
+    /// By view class: the changes since the last flush, folded.
+    pending: Vec<Pending>,
+    /// By member: the round whose holders it was last told (its plan's or a flush's).
+    told: HashMap<u32, u64>,
+    /// Whether a round changed something since the last flush (or left a member unsynced).
+    dirty: bool,
+    /// When the members were last all told.
+    last_flush: Option<Time>,
 }
 
 impl SentHolders {
@@ -327,6 +264,7 @@ impl SentHolders {
     /// `key` left the frame, or joined it with no map yet.
     pub fn forget(&mut self, key: u32) {
         self.synced.remove(&key);
+        self.told.remove(&key);
     }
 
     /// `map` becomes the last map sent; returns how the holders of each domain changed since
@@ -400,9 +338,71 @@ impl SentHolders {
         self.synced.insert(key);
     }
 
-    /// Only `keys` were sent the last map: the others hold an older one.
+    /// Only `keys` were sent the last map: the others hold an older one. What was pending
+    /// is spent (those that hold the map got it whole; the others will).
     pub fn synced_only(&mut self, keys: impl IntoIterator<Item = u32>) {
         self.synced = keys.into_iter().collect();
+        self.pending
+            .iter_mut()
+            .for_each(|p| *p = Pending::default());
+    }
+
+    /// Folds a round's delta lines, by view class (`lines[class]`), into what is pending for
+    /// each class; the next flush is due.
+    pub fn absorb(&mut self, lines: &[Vec<proto::DomainHolders>], round: u64) {
+        if self.pending.len() < lines.len() {
+            self.pending.resize_with(lines.len(), Pending::default);
+        }
+        for (pending, lines) in self.pending.iter_mut().zip(lines) {
+            for l in lines {
+                pending.absorb(l.domain, &l.workers, &l.lost, round);
+            }
+        }
+        self.dirty |= lines.iter().any(|l| !l.is_empty());
+    }
+
+    /// Makes the next flush due though nothing changed: some member holds no map it can be
+    /// brought up to date from (it joined, or missed a barrier round's map) and is told the
+    /// whole map then.
+    pub fn mark_dirty(&mut self) {
+        self.dirty = true;
+    }
+
+    /// What is pending for view `class`.
+    pub fn pending(&self, class: u32) -> Option<&Pending> {
+        self.pending.get(class as usize)
+    }
+
+    /// `key` was told the holders as of `round` (its plan carried its class's pending lines,
+    /// or the whole map).
+    pub fn told(&mut self, key: u32, round: u64) {
+        self.synced.insert(key);
+        self.told.insert(key, round);
+    }
+
+    /// Whether `key`, synced, was told its class's pending lines already (its plan came after
+    /// they last changed).
+    pub fn is_told(&self, key: u32, class: u32) -> bool {
+        self.told
+            .get(&key)
+            .is_some_and(|&r| self.pending(class).is_none_or(|p| r >= p.changed_round))
+    }
+
+    /// When the next flush is due, if a round changed anything since the last: `interval`
+    /// after the last flush (at once after the first round).
+    pub fn due(&self, interval: Duration) -> Option<Time> {
+        self.dirty
+            .then(|| self.last_flush.map_or(Time(0), |t| t + interval))
+    }
+
+    /// Every member in `members` was told the latest map at `now`: nothing is pending.
+    pub fn flushed(&mut self, now: Time, members: impl IntoIterator<Item = u32>, round: u64) {
+        self.synced_only(members);
+        for &k in &self.synced {
+            self.told.insert(k, round);
+        }
+        self.dirty = false;
+        self.last_flush = Some(now);
     }
 }
 
@@ -556,170 +556,103 @@ mod tests {
         }
     }
 
-    /// Random messages folded one after another, each delta into a fold of a delta by
-    /// `fold_into_folded` (as the simulator does) and all by `fold_holders`: the same message
-    /// after every fold, and `fold_into_folded`'s change of the lines' bytes is theirs.
+    /// Random rounds of holder changes for one member's class, each a delta line a domain
+    /// (what `RunningFrame::holder_changes` makes): the fold of the rounds from any one on
+    /// (`Pending`), applied by a worker (`Plan::set_holders`) whose map is that of any round
+    /// from there on, gives the map of the last round. So a member told the pending lines with
+    /// its plan and again at the flush, or only at the flush, holds the coordinator's map.
     #[test]
-    fn folding_into_a_fold_gives_the_fold_of_every_line() {
-        let mut draw = draws(5);
-        // Any additive measure of a line will do to check the accounting.
-        let line_len = |l: &proto::DomainHolders| {
-            1 + l.domain as usize % 7 + 3 * l.workers.len() + 5 * l.lost.len()
-        };
-        let total = |h: &proto::Holders| h.holders.iter().map(line_len).sum::<usize>();
-        let mut fast_folds = 0;
-        for _ in 0..400 {
-            let message = |draw: &mut dyn FnMut(u64) -> u64| {
-                let delta = draw(8) != 0;
-                // Keys unsorted and repeated now and then: a fold takes any.
-                let keys = |draw: &mut dyn FnMut(u64) -> u64| -> Vec<u32> {
-                    (0..draw(4)).map(|_| draw(10) as u32).collect()
-                };
-                let mut holders: Vec<proto::DomainHolders> = Vec::new();
-                for _ in 0..draw(6) {
-                    let domain = draw(12) as u32;
-                    let workers = keys(draw);
-                    let lost = if delta { keys(draw) } else { Vec::new() };
-                    holders.push(proto::DomainHolders {
-                        domain,
-                        workers,
-                        lost,
-                    });
-                }
-                if !delta {
-                    let mut seen = BTreeSet::new();
-                    holders.retain(|l| seen.insert(l.domain));
-                    for l in &mut holders {
-                        l.workers.sort_unstable();
-                        l.workers.dedup();
-                    }
-                }
-                proto::Holders {
-                    job_id: "f".into(),
-                    holders,
-                    delta,
-                }
-            };
-            let first = message(&mut draw);
-            let mut slow = first.clone();
-            let mut fast = first;
-            // Whether `fast` is a fold of a delta, and its lines' bytes then.
-            let mut folded: Option<usize> = None;
-            for _ in 0..1 + draw(6) {
-                let later = message(&mut draw);
-                fold_holders(&mut slow, later.clone());
-                match folded {
-                    Some(len) if later.delta => {
-                        let change = fold_into_folded(&mut fast, later, line_len);
-                        let len = len.checked_add_signed(change).unwrap();
-                        assert_eq!(len, total(&fast), "the bytes of {fast:?}");
-                        folded = Some(len);
-                        fast_folds += 1;
-                    }
-                    _ => {
-                        let delta = later.delta;
-                        fold_holders(&mut fast, later);
-                        folded = delta.then(|| total(&fast));
-                    }
-                }
-                assert_eq!(fast, slow);
-            }
-        }
-        assert!(fast_folds > 500, "{fast_folds} folds into a fold");
-    }
-
-    /// Random deltas (and now and then a whole map) for one worker: the worker's map after
-    /// each message in turn is the map after their fold, whichever message the fold starts at.
-    #[test]
-    fn folded_holders_leave_the_workers_map_as_the_messages_in_turn() {
+    fn pending_changes_bring_a_worker_at_any_later_map_to_the_latest() {
         use crate::worker::{HolderLine, Mode, Plan};
+        let domains = 6u32;
         let roster: std::sync::Arc<std::collections::HashMap<u32, String>> =
             std::sync::Arc::new((0..8).map(|k| (k, format!("w{k}"))).collect());
-        let plan = || Plan::new(Mode::Predictive, 1, 6, 0, roster.clone());
-        let apply = |p: &mut Plan, h: &proto::Holders| {
-            let lines = h.holders.iter().map(|l| HolderLine {
-                domain: l.domain,
-                workers: l.workers.clone(),
-                lost: l.lost.clone(),
-            });
-            p.set_holders(lines, h.delta);
-        };
-        let held =
-            |p: &Plan| -> Vec<Vec<u32>> { (0..6).map(|d| p.holder_keys(d).to_vec()).collect() };
-        let mut draw = draws(11);
-        let mut folds = 0;
-        for _ in 0..300 {
-            let messages: Vec<proto::Holders> = (0..1 + draw(5))
-                .map(|_| {
-                    let keys = |draw: &mut dyn FnMut(u64) -> u64| -> Vec<u32> {
-                        let mut ks: Vec<u32> = (0..draw(3)).map(|_| draw(8) as u32).collect();
-                        ks.sort_unstable();
-                        ks.dedup();
-                        ks
-                    };
-                    let delta = draw(6) != 0;
-                    let mut holders: Vec<proto::DomainHolders> = (0..draw(4))
-                        .map(|_| proto::DomainHolders {
-                            domain: draw(6) as u32,
-                            workers: keys(&mut draw),
-                            lost: if delta { keys(&mut draw) } else { Vec::new() },
-                        })
-                        .collect();
-                    if !delta {
-                        // A whole map names a domain once (a delta may name it again).
-                        let mut seen = BTreeSet::new();
-                        holders.retain(|l| seen.insert(l.domain));
-                    }
-                    proto::Holders {
-                        job_id: "f".into(),
-                        holders,
-                        delta,
-                    }
+        let lines_of = |p: &Pending| -> Vec<HolderLine> {
+            p.lines(|_| true)
+                .into_iter()
+                .map(|l| HolderLine {
+                    domain: l.domain,
+                    workers: l.workers,
+                    lost: l.lost,
                 })
-                .collect();
-            // Both workers start from the same map, then take the messages in turn or folded.
-            let mut in_turn = plan();
-            let start = proto::Holders {
-                job_id: "f".into(),
-                holders: (0..6)
-                    .map(|d| proto::DomainHolders {
-                        domain: d,
-                        workers: vec![(d % 4) + 1, 7],
-                        lost: Vec::new(),
+                .collect()
+        };
+        // This member is key 0: the worker leaves itself out of every list.
+        let held = |p: &Plan| -> Vec<Vec<u32>> {
+            (0..domains).map(|d| p.holder_keys(d).to_vec()).collect()
+        };
+        let mut draw = draws(11);
+        let mut checked = 0;
+        for _ in 0..200 {
+            // The coordinator's maps, one a round, and each round's delta (a whole map first).
+            let mut maps: Vec<HolderMap> = Vec::new();
+            let mut sent = SentHolders::default();
+            let mut deltas: Vec<Vec<proto::DomainHolders>> = Vec::new();
+            for _ in 0..2 + draw(6) {
+                let mut next = maps.last().cloned().unwrap_or_default();
+                // A few domains change: keys in and out, now and then every holder gone.
+                for _ in 0..1 + draw(3) {
+                    let d = draw(u64::from(domains)) as u32;
+                    let keys = next.entry(d).or_default();
+                    for _ in 0..draw(3) {
+                        let k = draw(8) as u32;
+                        match keys.binary_search(&k) {
+                            Ok(i) => {
+                                keys.remove(i);
+                            }
+                            Err(i) => keys.insert(i, k),
+                        }
+                    }
+                    if draw(5) == 0 {
+                        keys.clear();
+                    }
+                }
+                next.retain(|_, keys| !keys.is_empty());
+                let delta = sent
+                    .update(next.clone())
+                    .iter()
+                    .map(|c| {
+                        let w = c.whole();
+                        proto::DomainHolders {
+                            domain: c.domain,
+                            workers: w.gained,
+                            lost: w.lost,
+                        }
                     })
-                    .collect(),
-                delta: false,
+                    .collect();
+                deltas.push(delta);
+                maps.push(next);
+            }
+            let last = maps.len() - 1;
+            let worker_at = |u: usize| {
+                let mut p = Plan::new(Mode::Dynamic, 1, domains, 0, roster.clone());
+                let whole = maps[u].iter().map(|(&domain, keys)| HolderLine {
+                    domain,
+                    workers: keys.clone(),
+                    lost: Vec::new(),
+                });
+                p.set_holders(whole, false);
+                p
             };
-            apply(&mut in_turn, &start);
-            let mut folded = in_turn.clone();
-            let mut one = messages[0].clone();
-            for m in &messages {
-                apply(&mut in_turn, m);
-            }
-            for m in &messages[1..] {
-                fold_holders(&mut one, m.clone());
-                folds += 1;
-            }
-            apply(&mut folded, &one);
-            assert_eq!(
-                held(&folded),
-                held(&in_turn),
-                "{messages:?} folded into {one:?}"
-            );
-            let lines = one
-                .holders
-                .iter()
-                .map(|l| l.domain)
-                .collect::<BTreeSet<_>>();
-            if messages.len() > 1 {
-                assert_eq!(
-                    lines.len(),
-                    one.holders.len(),
-                    "a fold has one line a domain"
-                );
+            let want = held(&worker_at(last));
+            // Pending from round v + 1 on; a worker at round u >= v applies it.
+            for v in 0..last {
+                let mut pending = Pending::default();
+                for (r, delta) in deltas.iter().enumerate().skip(v + 1) {
+                    for l in delta {
+                        pending.absorb(l.domain, &l.workers, &l.lost, r as u64);
+                    }
+                }
+                assert!(pending.len() <= domains as usize, "one line a domain");
+                for u in v..=last {
+                    let mut p = worker_at(u);
+                    p.set_holders(lines_of(&pending), true);
+                    assert_eq!(held(&p), want, "from {v}, the worker at {u}: {pending:?}");
+                    checked += 1;
+                }
             }
         }
-        assert!(folds > 300);
+        assert!(checked > 500, "{checked} workers checked");
     }
 
     #[test]

@@ -5,7 +5,7 @@
 //! `rayfarm_core::schedule`'s; this applies them to the frame's members and makes the
 //! messages.
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::BTreeMap;
 
 use rayfarm_core::schedule::DomainId;
 use rayfarm_core::schedule::dynamic::WorkerPlan;
@@ -15,6 +15,7 @@ use rayfarm_proto::{self as proto, Schedule, coordinator_message::Body};
 use tracing::{debug, info};
 
 use super::{Member, Outgoing, RunningFrame, msg};
+use crate::Time;
 use crate::coordinator::holders::{
     HolderChange, HolderMap, ViewChange, class_of, view, view_classes,
 };
@@ -176,7 +177,7 @@ impl RunningFrame {
         } else {
             self.planning.incremental(dry, self.members.len());
         }
-        let (loads, _) = self.index.adopt(&mut self.members, &changed, self.round);
+        let (loads, touched) = self.index.adopt(&mut self.members, &changed, self.round);
         self.planned_loads += loads;
         let holder_changes = self.index.take_holder_changes();
         let members = &self.members;
@@ -195,23 +196,18 @@ impl RunningFrame {
         // Every holder in the map is named in `Grants`: those a domain gained here, the others
         // when the map that first listed them was sent.
         let deltas = self.holder_changes(&changes, classes);
-        let mut wholes: BTreeMap<u32, Vec<proto::DomainHolders>> = BTreeMap::new();
-        for &key in self.members.keys() {
-            if !self.sent_holders.is_synced(key) {
-                let class = class_of(key, classes);
-                if let std::collections::btree_map::Entry::Vacant(e) = wholes.entry(class) {
-                    e.insert(self.whole_view(class, classes));
-                }
-            }
-        }
-        let lines = |key: u32, synced: bool| {
+        // The round's changes wait with what is pending for each class: the planned members
+        // take them now with their plans, the busy ones at the next flush.
+        self.sent_holders.absorb(&deltas, self.round);
+        let mut lines: BTreeMap<(u32, bool), Vec<proto::DomainHolders>> = BTreeMap::new();
+        for p in &changed {
+            let key = p.worker.0;
             let class = class_of(key, classes);
-            if synced {
-                &deltas[class as usize]
-            } else {
-                &wholes[&class]
-            }
-        };
+            let synced = self.sent_holders.is_synced(key);
+            lines
+                .entry((class, synced))
+                .or_insert_with(|| self.lines_for(class, classes, synced));
+        }
         debug!(
             round = self.round,
             planned = changed.len(),
@@ -223,14 +219,104 @@ impl RunningFrame {
             .iter()
             .zip(next)
             .map(|(p, next)| {
-                let synced = self.sent_holders.is_synced(p.worker.0);
-                self.plan_message(p, lines(p.worker.0, synced), next, synced)
+                let key = p.worker.0;
+                let synced = self.sent_holders.is_synced(key);
+                let l = &lines[&(class_of(key, classes), synced)];
+                self.plan_message(p, l, next, synced)
             })
             .collect();
-        let planned: BTreeSet<u32> = changed.iter().map(|p| p.worker.0).collect();
-        for &key in self.members.keys().filter(|k| !planned.contains(k)) {
+        for p in &changed {
+            self.sent_holders.told(p.worker.0, self.round);
+        }
+        // Members whose reported rays the index now counts at a domain's new holder
+        // (`RoundIndex::adopt` moved them) are told at once, as before the flush existed: the
+        // next plans count on those rays being forwarded, and a member told only at the flush
+        // could miss a holder that gained and dropped the domain within one interval, and keep
+        // rays nobody counts (a hybrid frame at 8 workers never ended that way).
+        let planned: std::collections::BTreeSet<u32> = changed.iter().map(|p| p.worker.0).collect();
+        for key in touched {
+            if planned.contains(&key) || !self.members.contains_key(&key) {
+                continue;
+            }
+            let class = class_of(key, classes);
             let synced = self.sent_holders.is_synced(key);
-            let holders = lines(key, synced);
+            if synced && self.sent_holders.is_told(key, class) {
+                continue;
+            }
+            lines
+                .entry((class, synced))
+                .or_insert_with(|| self.lines_for(class, classes, synced));
+            let holders = &lines[&(class, synced)];
+            if !(synced && holders.is_empty()) {
+                let body = Body::Holders(proto::Holders {
+                    job_id: self.frame_id(),
+                    holders: holders.clone(),
+                    delta: synced,
+                });
+                out.push((key, msg(body)));
+            }
+            self.sent_holders.told(key, self.round);
+        }
+        if self
+            .members
+            .keys()
+            .any(|&k| !self.sent_holders.is_synced(k))
+        {
+            self.sent_holders.mark_dirty();
+        }
+        out
+    }
+
+    /// What a member of view `class` is told of the holders: its class's pending lines if it
+    /// holds a map from the last flush on (`synced`), else the whole map as its class sees it.
+    fn lines_for(&self, class: u32, classes: u32, synced: bool) -> Vec<proto::DomainHolders> {
+        if !synced {
+            return self.whole_view(class, classes);
+        }
+        let members = &self.members;
+        self.sent_holders
+            .pending(class)
+            .map(|p| p.lines(|k| members.contains_key(&k)))
+            .unwrap_or_default()
+    }
+
+    /// When the members' next holders flush is due, if a round changed anything since the last.
+    pub fn holders_due(&self) -> Option<Time> {
+        self.sent_holders.due(self.holders_interval)
+    }
+
+    /// Tells every member what changed in the holders since the last flush, if it is due at
+    /// `now` (at most once per holders interval): a member that holds a map from the last flush
+    /// on gets its class's pending lines (none if its plan carried them already), any other
+    /// the whole map as its class sees it. Between flushes a busy member routes by what it
+    /// was told last: a ray for a domain whose new holder it has not heard of waits in its
+    /// queue, and one sent to a former holder is forwarded or waits there, until the next
+    /// flush or plan (README "Simulator": one message a round to every busy member was 91% of
+    /// a 256-worker dynamic simulation's messages).
+    pub fn flush_holders(&mut self, now: Time) -> Vec<Outgoing> {
+        if self
+            .sent_holders
+            .due(self.holders_interval)
+            .is_none_or(|t| now < t)
+        {
+            return Vec::new();
+        }
+        let Some(classes) = self.view_classes else {
+            return Vec::new();
+        };
+        let mut lines: BTreeMap<(u32, bool), Vec<proto::DomainHolders>> = BTreeMap::new();
+        let mut out = Vec::new();
+        let keys: Vec<u32> = self.members.keys().copied().collect();
+        for key in keys {
+            let class = class_of(key, classes);
+            let synced = self.sent_holders.is_synced(key);
+            if synced && self.sent_holders.is_told(key, class) {
+                continue;
+            }
+            lines
+                .entry((class, synced))
+                .or_insert_with(|| self.lines_for(class, classes, synced));
+            let holders = &lines[&(class, synced)];
             if synced && holders.is_empty() {
                 continue;
             }
@@ -241,8 +327,9 @@ impl RunningFrame {
             });
             out.push((key, msg(body)));
         }
+        let round = self.round;
         self.sent_holders
-            .synced_only(self.members.keys().copied().collect::<Vec<_>>());
+            .flushed(now, self.members.keys().copied().collect::<Vec<_>>(), round);
         out
     }
 

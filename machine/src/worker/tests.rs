@@ -1036,4 +1036,40 @@ fn a_window_runs_through_a_domain_later_windows_reached_late() {
     assert_eq!(domains_by_pixel(&copies)[&31], [0, 1]);
     let copies = copies_to_a(&w.handle(Time(7), born_along(32..33, &[0, 2])));
     assert_eq!(domains_by_pixel(&copies)[&32], [0]);
+
+/// A peer that learned late that this worker gave domain 1 up sends its rays here anyway: they
+/// wait (and are reported) until this worker hears who holds it now, then go on there, as do
+/// later ones; nothing is lost or sent back to the stale sender.
+#[test]
+fn rays_sent_to_a_former_holder_wait_for_the_new_holder_then_go_on() {
+    let mut w = worker();
+    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    w.handle(Time(1), plan(1, &[1], &[]));
+    // Its next plan gives domain 1 up; the coordinator has not told it the new holder yet.
+    w.handle(Time(2), plan(2, &[0], &[]));
+    let rays = [ray(0, 0, 1, 3), ray(0, 0, 1, 4)];
+    let actions = w.handle(Time(3), bundle(JOB, &rays));
+    assert!(rays_sent(&actions).is_empty(), "{actions:?}");
+    assert_eq!(
+        queue_reports(&actions)[0].queued_rays,
+        HashMap::from([(1, 2)]),
+        "the coordinator hears of them"
+    );
+    // The flush names c the holder of domain 1: the waiting rays leave for it.
+    let actions = w.handle(
+        Time(4),
+        control(FromCoordinator::Holders(proto::Holders {
+            job_id: JOB.into(),
+            holders: vec![proto::DomainHolders {
+                domain: 1,
+                workers: vec![key_of("c:1")],
+                lost: Vec::new(),
+            }],
+            delta: true,
+        })),
+    );
+    assert_eq!(rays_sent(&actions)["c:1"], rays);
+    let sent = rays_sent(&w.handle(Time(5), bundle(JOB, &rays)));
+    assert_eq!(sent.keys().collect::<Vec<_>>(), ["c:1"]);
+    assert!(w.frame().unwrap().queue_sizes().is_empty());
 }

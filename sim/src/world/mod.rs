@@ -16,9 +16,8 @@ use rayfarm_core::bundler::Tier;
 use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::scene::Manifest;
 use rayfarm_machine::Time;
-use rayfarm_machine::coordinator::holders;
 use rayfarm_machine::worker::{self as machine, WorkerConfig};
-use rayfarm_proto::{self as proto, coordinator_message::Body, worker_message::Body as FromWorker};
+use rayfarm_proto::{self as proto, worker_message::Body as FromWorker};
 
 use crate::check::Checks;
 use crate::coord::{CoordConfig, SimCoordinator, ToNode};
@@ -73,10 +72,6 @@ enum Msg {
         from: String,
         seq: u64,
     },
-}
-
-fn msg_of(body: Body) -> proto::CoordinatorMessage {
-    proto::CoordinatorMessage { body: Some(body) }
 }
 
 enum Ev {
@@ -181,28 +176,8 @@ struct World<'a> {
     cores: Option<SharedCores<Ev>>,
     /// CPU time of the machine's handling of the last bundle fed, when measured.
     handled_ns: Option<u64>,
-    /// By worker: the coordinator's last message to it, if that is a `Holders` its NIC has
-    /// not begun to send (see [`World::fold_into_waiting`]).
-    waiting_holders: std::collections::HashMap<NodeId, WaitingHolders>,
-    /// Whether the coordinator's `Holders` are folded: only where the coordinator splits its
-    /// members into view classes (past 127 workers), where the broadcast outran its link.
-    /// Below, the coordinator shell sends every message as it is made (one stream a worker),
-    /// and the simulator, validated against it at 4 and 8 workers, does the same.
-    fold_holders: bool,
     /// Messages by kind and the like, for the progress log (`traffic`).
     traffic: traffic::Traffic,
-}
-
-/// A `Holders` message waiting for the coordinator's NIC: the event slot its delivery waits
-/// in, when the NIC begins to send it, its bytes as priced, and its stream.
-struct WaitingHolders {
-    slot: u32,
-    start: Time,
-    bytes: usize,
-    conn: u64,
-    /// Whether it is a fold of a delta, which the next delta folds into at its own cost
-    /// (`holders::fold_into_folded`), and then the encoded bytes of its `Holders`.
-    folded: Option<usize>,
 }
 
 /// Opens the scene a simulation reads (once for many runs).
@@ -252,6 +227,7 @@ pub fn simulate(
         workers: config.workers,
         heartbeat: config.heartbeat,
         worker_timeout: config.worker_timeout,
+        holders_interval: config.holders_interval,
         disk_latency: config.disk_latency,
         cost: config.cost,
     })?;
@@ -271,8 +247,6 @@ pub fn simulate(
         conns: 0,
         cores: config.cost.cores.map(SharedCores::new),
         handled_ns: None,
-        waiting_holders: Default::default(),
-        fold_holders: holders::view_classes(config.workers) > 1,
         traffic: Default::default(),
     };
     for _ in 0..config.workers {
@@ -456,119 +430,11 @@ impl World<'_> {
             self.heap.push(depart, Ev::Depart { from, to, msg });
             return;
         }
-        if from != COORDINATOR || !self.fold_holders {
-            self.transmit(depart, from, to, msg);
-            return;
-        }
-        let msg = match msg {
-            Msg::Control(
-                proto::CoordinatorMessage {
-                    body: Some(Body::Holders(h)),
-                },
-                conn,
-            ) => match self.fold_into_waiting(to, conn, h) {
-                None => return,
-                Some(h) => Msg::Control(msg_of(Body::Holders(h)), conn),
-            },
-            msg => msg,
-        };
-        let holders = match &msg {
-            Msg::Control(m, conn) if matches!(m.body, Some(Body::Holders(_))) => Some(*conn),
-            _ => None,
-        };
-        let (start, slot, bytes) = self.transmit(depart, from, to, msg);
-        match holders {
-            Some(conn) => {
-                let waiting = WaitingHolders {
-                    slot,
-                    start,
-                    bytes,
-                    conn,
-                    folded: None,
-                };
-                self.waiting_holders.insert(to, waiting);
-            }
-            None => {
-                self.waiting_holders.remove(&to);
-            }
-        }
+        self.transmit(depart, from, to, msg);
     }
 
-    /// A coordinator's `Holders` for a worker whose last message from it is a `Holders` the
-    /// coordinator's NIC has not begun to send is folded into that one
-    /// (`holders::fold_holders`), as a shell that keeps one waiting `Holders` a member would:
-    /// under the predictive schedule at 4,096 workers every round's change went to every
-    /// member, the rounds outran the coordinator's NIC, and the messages waited in memory by
-    /// the gigabyte (README "Simulator"). The NIC is charged the bytes the fold added; the
-    /// message keeps its arrival (it leaves after now, so what it carries is known when it
-    /// leaves). Gives back a message that is not folded.
-    fn fold_into_waiting(
-        &mut self,
-        to: NodeId,
-        conn: u64,
-        later: proto::Holders,
-    ) -> Option<proto::Holders> {
-        let Some(w) = self
-            .waiting_holders
-            .get(&to)
-            .filter(|w| w.start > self.now && w.conn == conn)
-        else {
-            return Some(later);
-        };
-        let slot = w.slot;
-        let Some(Ev::Deliver {
-            msg: Msg::Control(earlier, _),
-            ..
-        }) = self.heap.waiting(slot)
-        else {
-            return Some(later);
-        };
-        let Some(Body::Holders(e)) = earlier.body.as_mut() else {
-            return Some(later);
-        };
-        if e.job_id != later.job_id {
-            return Some(later);
-        }
-        self.traffic.folded(&later);
-        let w = self
-            .waiting_holders
-            .get_mut(&to)
-            .expect("found waiting above");
-        // A line's share of the message's bytes: field 2, length-delimited.
-        let line_len = |l: &proto::DomainHolders| {
-            let n = l.encoded_len();
-            1 + prost::length_delimiter_len(n) + n
-        };
-        let holders_len = match w.folded {
-            Some(len) if later.delta => {
-                let change = holders::fold_into_folded(e, later, line_len);
-                len.checked_add_signed(change)
-                    .expect("a message's lines never take away more bytes than it has")
-            }
-            _ => {
-                let delta = later.delta;
-                holders::fold_holders(e, later);
-                let len = e.encoded_len();
-                w.folded = delta.then_some(len);
-                len
-            }
-        };
-        if w.folded.is_some() {
-            w.folded = Some(holders_len);
-        }
-        // The control message: field 7 of the oneof, length-delimited.
-        let bytes = 1 + prost::length_delimiter_len(holders_len) + holders_len;
-        debug_assert_eq!(bytes, earlier.encoded_len());
-        let added = bytes.saturating_sub(w.bytes);
-        w.bytes = bytes;
-        self.net.lengthen(COORDINATOR, added);
-        self.outcome.holders_folded += 1;
-        None
-    }
-
-    /// Puts `msg` on the network; returns when the sender's NIC begins to send it, the event
-    /// slot of its delivery, and its bytes.
-    fn transmit(&mut self, depart: Time, from: NodeId, to: NodeId, msg: Msg) -> (Time, u32, usize) {
+    /// Puts `msg` on the network.
+    fn transmit(&mut self, depart: Time, from: NodeId, to: NodeId, msg: Msg) {
         let bytes = match &msg {
             Msg::Register(r, _) => r.encoded_len(),
             Msg::ToCoordinator(b, _) => proto::WorkerMessage {
@@ -585,12 +451,11 @@ impl World<'_> {
         self.traffic.sent(&msg);
         if let Msg::Ack { .. } = msg {
             let at = self.net.send_packet(depart.max(self.now), from, to, bytes);
-            let slot = self.heap.push_waiting(at, Ev::Deliver { from, to, msg });
-            return (depart.max(self.now), slot, bytes);
+            self.heap.push(at, Ev::Deliver { from, to, msg });
+            return;
         }
-        let (start, at) = self.net.send(depart.max(self.now), from, to, bytes);
-        let slot = self.heap.push_waiting(at, Ev::Deliver { from, to, msg });
-        (start, slot, bytes)
+        let (_, at) = self.net.send(depart.max(self.now), from, to, bytes);
+        self.heap.push(at, Ev::Deliver { from, to, msg });
     }
 
     fn event(&mut self, ev: Ev) {

@@ -44,6 +44,9 @@ pub struct SimConfig {
     pub disk_latency: Duration,
     pub heartbeat: Duration,
     pub worker_timeout: Duration,
+    /// Busy workers are told new holders at most once per this interval (the coordinator's
+    /// `--holders-interval-ms`).
+    pub holders_interval: Duration,
     /// The predictive schedule's speculation setting (`JobSpec.speculation`; empty: full).
     pub speculation: String,
     /// Workers load their next domains while they trace (`JobSpec.prefetch`).
@@ -87,9 +90,6 @@ pub struct Outcome {
     /// drops the peer it accuses.
     pub peers_reported: u64,
     /// Messages of every kind.
-    /// Coordinator `Holders` messages folded into one waiting for the coordinator's NIC to
-    /// the same worker (not counted in `messages`).
-    pub holders_folded: u64,
     pub messages: u64,
     pub rounds: u64,
     pub events: u64,

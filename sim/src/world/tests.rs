@@ -38,6 +38,7 @@ fn four_workers(dir: &std::path::Path, schedule: Schedule, cache_bytes: u64) -> 
         ack_deadline: Duration::from_millis(10),
         disk_latency: Duration::from_millis(2),
         heartbeat: Duration::from_millis(20),
+        holders_interval: Duration::ZERO,
         worker_timeout: Duration::from_millis(200),
         speculation: String::new(),
         prefetch: schedule == Schedule::Dynamic,

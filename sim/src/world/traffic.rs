@@ -36,9 +36,6 @@ pub(super) struct Traffic {
     other_to_coordinator: u64,
     bundles: u64,
     acks: u64,
-    /// `Holders` folded into a waiting one, and their lines.
-    folded: u64,
-    folded_lines: u64,
 }
 
 impl Traffic {
@@ -84,12 +81,6 @@ impl Traffic {
         }
     }
 
-    /// Counts a `Holders` folded into one already waiting (it is not sent itself).
-    pub(super) fn folded(&mut self, h: &rayfarm_proto::Holders) {
-        self.folded += 1;
-        self.folded_lines += h.holders.len() as u64;
-    }
-
     /// Logs the counts so far, `what` naming the moment.
     pub(super) fn log(&self, what: &str, now: Time, net: &Network, rounds: u64) {
         let virtual_s = now.0 as f64 / 1e9;
@@ -106,8 +97,6 @@ impl Traffic {
             plans = self.plans,
             holders = self.holders,
             holder_lines = self.holder_lines,
-            folded = self.folded,
-            folded_lines = self.folded_lines,
             other_control = self.other_control,
             reports = self.reports,
             worker_heartbeats = self.worker_heartbeats,

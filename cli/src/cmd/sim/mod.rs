@@ -172,6 +172,13 @@ pub struct ModelArgs {
     /// the real worker waits 30 s (30000).
     #[arg(long, value_parser = clap::value_parser!(u64).range(1..=86_400_000))]
     pub peer_ack_timeout_ms: Option<u64>,
+    /// A busy worker is told of new holders at most once per this many milliseconds, as the
+    /// coordinator's `--holders-interval-ms` [default: 0, after every round, the coordinator's
+    /// default]. Every asynchronous round changes some holders, and one message a round to
+    /// every busy worker was 91% of a 256-worker dynamic frame's messages; a frame of
+    /// simulated minutes may take 100 (README "Simulator": what it saves and what it costs).
+    #[arg(long, value_parser = clap::value_parser!(u64).range(0..=60_000))]
+    pub holders_interval_ms: Option<u64>,
 }
 
 fn check_speculation(s: &str) -> Result<String, String> {
@@ -248,6 +255,9 @@ impl ModelArgs {
         if let Some(ms) = self.peer_ack_timeout_ms {
             f.push_str(&format!(" --peer-ack-timeout-ms {ms}"));
         }
+        if let Some(ms) = self.holders_interval_ms {
+            f.push_str(&format!(" --holders-interval-ms {ms}"));
+        }
         f
     }
 
@@ -257,6 +267,9 @@ impl ModelArgs {
         let mut d = Deadlines::from_heartbeat(Duration::from_millis(self.heartbeat_ms));
         if let Some(ms) = self.peer_ack_timeout_ms {
             d.ack = Duration::from_millis(ms);
+        }
+        if let Some(ms) = self.holders_interval_ms {
+            d.holders = Duration::from_millis(ms);
         }
         d
     }
@@ -293,6 +306,7 @@ impl ModelArgs {
             ack_deadline: self.deadlines().ack,
             heartbeat: self.deadlines().heartbeat,
             worker_timeout: self.deadlines().worker_timeout,
+            holders_interval: self.deadlines().holders,
             disk_latency: DISK_LATENCY,
             speculation: match schedule {
                 Schedule::Predictive => self.speculation.clone().unwrap_or_default(),
@@ -362,6 +376,10 @@ struct Deadlines {
     worker_timeout: Duration,
     /// A peer that acknowledges nothing this long is reported: half a heartbeat.
     ack: Duration,
+    /// Busy workers are told new holders at most once per this: after every round unless
+    /// `--holders-interval-ms` says otherwise (at 8 workers 1-2 ms made the predictive frame
+    /// 13% longer, README "Simulator").
+    holders: Duration,
 }
 
 impl Deadlines {
@@ -370,6 +388,7 @@ impl Deadlines {
             heartbeat,
             worker_timeout: heartbeat * 10,
             ack: heartbeat / 2,
+            holders: Duration::ZERO,
         }
     }
 }
@@ -602,6 +621,7 @@ mod tests {
         assert_eq!(d.heartbeat, Duration::from_millis(20));
         assert_eq!(d.worker_timeout, Duration::from_millis(200));
         assert_eq!(d.ack, Duration::from_millis(10));
+        assert_eq!(d.holders, Duration::ZERO, "the coordinator's default");
         let d = Deadlines::from_heartbeat(Duration::from_secs(1));
         assert_eq!(d.worker_timeout, Duration::from_secs(10));
         assert_eq!(d.ack, Duration::from_millis(500));

@@ -29,12 +29,6 @@ pub(super) fn print_row(schedule: Schedule, workers: usize, o: &Outcome, wall: f
             o.peers_reported
         );
     }
-    if o.holders_folded > 0 {
-        eprintln!(
-            "  {} holders messages folded into one already waiting for the coordinator's link",
-            o.holders_folded
-        );
-    }
     println!(
         "{:<12} {:>7} {:>12.3} {:>7} {:>12} {:>10} {:>10} {:>12} {:>9} {:>7} {:>8.2}  {}",
         schedule_name(schedule),

@@ -85,6 +85,7 @@ impl Coordinator {
                 self.config.schedule_options,
                 self.config.rounds,
             )
+            .map(|f| f.with_holders_interval(self.config.holders_interval))
         });
         let mut frame = match opened {
             Ok(frame) => frame,

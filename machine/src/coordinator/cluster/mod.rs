@@ -46,6 +46,10 @@ pub struct Config {
     pub schedule_options: Options,
     /// How the dynamic schedule's rounds advance.
     pub rounds: Rounds,
+    /// Busy members of a frame are told new holders at most once per this interval (with
+    /// their next plan if sooner); zero tells them after every round. See
+    /// `RunningFrame::flush_holders`.
+    pub holders_interval: Duration,
     /// Starts of a job's frame after which it fails instead of starting again (and losses of
     /// one worker during one job after which the job fails).
     pub max_attempts: u32,
@@ -384,7 +388,21 @@ impl Coordinator {
             Input::Fail { job_id, error } => self.fail_job(now, &job_id, &error, &mut out),
             Input::ShutDown => self.shut_down(&mut out),
         }
+        self.flush_holders(now, &mut out);
         out
+    }
+
+    /// The running frame's holders flush, if it is due: checked after every event, so while
+    /// workers talk to the coordinator (every heartbeat at least) a flush leaves within its
+    /// interval; the tick is the backstop ([`Coordinator::next_deadline`]).
+    fn flush_holders(&mut self, now: Time, out: &mut Vec<Action>) {
+        let Some(frame) = self.running.as_mut() else {
+            return;
+        };
+        let messages = frame.flush_holders(now);
+        if !messages.is_empty() {
+            self.send(messages, out);
+        }
     }
 
     /// Wall-clock milliseconds at `now`.
@@ -450,12 +468,13 @@ impl Coordinator {
     }
 
     /// The earliest time a [`Input::Tick`] has work to do besides the periodic reaping: a
-    /// finished frame's report deadline.
+    /// finished frame's report deadline, or the running frame's next holders flush.
     pub fn next_deadline(&self) -> Option<Time> {
         self.finishing
             .values()
             .filter(|f| f.stats.is_some())
             .map(|f| f.deadline)
+            .chain(self.running.as_ref().and_then(RunningFrame::holders_due))
             .min()
     }
 }

@@ -18,6 +18,7 @@ fn config() -> Config {
             fill_free_slots: true,
         },
         rounds: Rounds::Async,
+        holders_interval: Duration::ZERO,
         max_attempts: 3,
         max_jobs_per_user: 2,
         max_pixel_samples_per_user: 1 << 20,
