@@ -8,11 +8,13 @@
 //! than spill and reload actions because a pass needs its rays the moment it is planned: a
 //! round trip through the shell would split one decision into three events for no gain.
 
+pub mod counters;
 pub mod early;
 pub mod events;
 pub mod frame;
 mod inbound;
 mod machine;
+mod outbound;
 pub mod plan;
 pub mod queues;
 pub mod speculation;
