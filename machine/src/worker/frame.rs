@@ -8,11 +8,9 @@
 //! forget either.
 
 use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
-use std::time::Duration;
 use tracing::debug;
 
 use rayfarm_core::ray::RayRecord;
-use rayfarm_core::render::KernelCounters;
 use rayfarm_core::render::speculation::Outcome;
 use rayfarm_core::schedule::speculation_depth::Depth;
 use rayfarm_core::schedule::speculative::{

@@ -5,12 +5,9 @@
 
 use std::time::Duration;
 
-use bytes::Bytes;
-use rayfarm_core::bundler::{Bundle, Bundler, BundlerConfig, ConfigError, PushErrorKind, Tier};
+use rayfarm_core::bundler::{Bundler, BundlerConfig, ConfigError};
 use rayfarm_core::cluster::stats::{WorkerFrameStats, tier_traffic};
-use rayfarm_core::ray::RayRecord;
 use rayfarm_core::schedule::speculation_depth::parse_setting;
-use rayfarm_core::wire::{self, VerdictRecord};
 use rayfarm_proto::{self as proto, Schedule, coordinator_message::Body as FromCoordinator};
 use tracing::{debug, error, info, info_span, warn};
 

@@ -1036,6 +1036,7 @@ fn a_window_runs_through_a_domain_later_windows_reached_late() {
     assert_eq!(domains_by_pixel(&copies)[&31], [0, 1]);
     let copies = copies_to_a(&w.handle(Time(7), born_along(32..33, &[0, 2])));
     assert_eq!(domains_by_pixel(&copies)[&32], [0]);
+}
 
 /// A peer that learned late that this worker gave domain 1 up sends its rays here anyway: they
 /// wait (and are reported) until this worker hears who holds it now, then go on there, as do
