@@ -4,14 +4,14 @@
 //! liveness bound.
 //!
 //! The parts: [`run`] is what a run is given and what it produced; this module holds the
-//! loop, the coordinator's side and the faults; [`workers`] is the workers' side (their
-//! machines' events and actions, peer bundles and acknowledgements, kills).
+//! loop and the faults; [`workers`] is the workers' side (their machines' events and actions,
+//! peer bundles and acknowledgements, kills), [`coordinator`] the coordinator's, [`network`]
+//! messages on the wire and [`compute`] time on the workers' cores.
 
 use std::sync::Arc;
 use std::time::Duration;
 
 use bytes::Bytes;
-use prost::Message;
 use rayfarm_core::bundler::Tier;
 use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::scene::Manifest;
@@ -20,7 +20,7 @@ use rayfarm_machine::worker::{self as machine, WorkerConfig};
 use rayfarm_proto::{self as proto, worker_message::Body as FromWorker};
 
 use crate::check::Checks;
-use crate::coord::{CoordConfig, SimCoordinator, ToNode};
+use crate::coord::{CoordConfig, SimCoordinator};
 use crate::cores::SharedCores;
 use crate::cost::FinishedWork;
 use crate::events::EventHeap;
@@ -29,6 +29,9 @@ use crate::net::{COORDINATOR, Network, NodeId};
 use crate::node::{PassRun, Scene, SimWorker};
 use crate::storage::SharedStorage;
 
+mod compute;
+mod coordinator;
+mod network;
 mod run;
 mod traffic;
 mod workers;
@@ -359,105 +362,6 @@ impl World<'_> {
         self.by_address.get(address).copied()
     }
 
-    /// Computes `work` that can start at `ready` (not before now), then sets off `done`: at
-    /// once on the worker's own cores, or on the cores every worker shares (`--cores`),
-    /// sliced with whatever else wants them then (`cores::SharedCores`).
-    fn compute(&mut self, node: NodeId, ready: Time, work: Duration, done: Ev) {
-        if self.cores.is_none() {
-            return self.heap.push(ready + work, done);
-        }
-        let done = Box::new(done);
-        self.heap.push(ready, Ev::Compute { node, work, done });
-    }
-
-    /// When handling a message, `work` that its shell takes up at `ready`, ends: it never
-    /// waits for a shared core (the operating system slices a short task in at once), but
-    /// while it runs it takes its share of them from the computations.
-    fn steal(&mut self, ready: Time, work: Duration) -> Time {
-        let Some(cores) = self.cores.as_mut() else {
-            return ready + work;
-        };
-        let end = cores.handle(self.now, ready, work);
-        self.check_cores_again();
-        end
-    }
-
-    /// Hands a finished pass to its worker's machine (timed, with `measure`).
-    fn take_pass(
-        &mut self,
-        node: NodeId,
-        job_id: String,
-        result: Result<machine::PassOutput, machine::PassFailed>,
-    ) {
-        let Some(w) = self.worker(node) else {
-            return;
-        };
-        let resident = w.resident();
-        let measured = match (&result, self.config.measure) {
-            (Ok(out), true) => Some(FinishedWork::of(out)),
-            _ => None,
-        };
-        self.feed(
-            node,
-            machine::Event::PassFinished {
-                job_id,
-                result,
-                resident,
-            },
-        );
-        if let (Some(work), Some(cpu_ns)) = (measured, self.handled_ns.take()) {
-            self.outcome
-                .measured_finished
-                .push(MeasuredFinished { work, cpu_ns });
-        }
-    }
-
-    /// Schedules the shared cores' next check (after every change to what they run).
-    fn check_cores_again(&mut self) {
-        if let Some((at, epoch)) = self.cores.as_ref().and_then(SharedCores::next_check) {
-            self.heap.push(at, Ev::CoresCheck { epoch });
-        }
-    }
-
-    fn send(&mut self, from: NodeId, to: NodeId, msg: Msg) {
-        self.send_at(self.now, from, to, msg);
-    }
-
-    /// Sends `msg` when its sender is done with it at `depart` (not before now).
-    fn send_at(&mut self, depart: Time, from: NodeId, to: NodeId, msg: Msg) {
-        if from != COORDINATOR && depart > self.now {
-            // A worker's NIC is not held for it until it is ready (`Ev::Depart`).
-            self.heap.push(depart, Ev::Depart { from, to, msg });
-            return;
-        }
-        self.transmit(depart, from, to, msg);
-    }
-
-    /// Puts `msg` on the network.
-    fn transmit(&mut self, depart: Time, from: NodeId, to: NodeId, msg: Msg) {
-        let bytes = match &msg {
-            Msg::Register(r, _) => r.encoded_len(),
-            Msg::ToCoordinator(b, _) => proto::WorkerMessage {
-                body: Some(b.clone()),
-            }
-            .encoded_len(),
-            Msg::Control(m, _) => m.encoded_len(),
-            Msg::Bundle { batches, .. } => batches.iter().map(Bytes::len).sum::<usize>() + 64,
-            Msg::Closed(_) | Msg::StreamEnded(_) | Msg::Ack { .. } => 16,
-        };
-        if let Msg::Bundle { .. } = msg {
-            self.outcome.peer_bytes += bytes as u64;
-        }
-        self.traffic.sent(&msg);
-        if let Msg::Ack { .. } = msg {
-            let at = self.net.send_packet(depart.max(self.now), from, to, bytes);
-            self.heap.push(at, Ev::Deliver { from, to, msg });
-            return;
-        }
-        let (_, at) = self.net.send(depart.max(self.now), from, to, bytes);
-        self.heap.push(at, Ev::Deliver { from, to, msg });
-    }
-
     fn event(&mut self, ev: Ev) {
         match ev {
             Ev::Deliver { from, to, msg } if to == COORDINATOR => self.at_coordinator(from, msg),
@@ -624,37 +528,6 @@ impl World<'_> {
             Ev::Restart => {
                 let out = self.coord.restart(self.now);
                 self.carry_out(out);
-            }
-        }
-    }
-
-    fn at_coordinator(&mut self, from: NodeId, msg: Msg) {
-        let now = self.now;
-        let out = match msg {
-            Msg::Register(r, conn) => self.coord.register(now, from, conn, r),
-            Msg::ToCoordinator(body, conn) => self.coord.message(now, from, conn, body),
-            Msg::StreamEnded(conn) => self.coord.gone(now, from, conn),
-            _ => Vec::new(),
-        };
-        for &(frame, tile, at) in &self.coord.commits[self.checks.commits_seen..] {
-            self.checks.commit(frame, tile, at);
-        }
-        self.checks.commits_seen = self.coord.commits.len();
-        self.carry_out(out);
-    }
-
-    /// Sends what the coordinator answered, once it is done planning (it handles one thing
-    /// at a time, so what it sends leaves when all it was given so far is done).
-    fn carry_out(&mut self, out: Vec<ToNode>) {
-        let depart = self.coord.free_at;
-        for o in out {
-            match o {
-                ToNode::Send(node, conn, m) => {
-                    self.send_at(depart, COORDINATOR, node, Msg::Control(*m, conn))
-                }
-                ToNode::Close(node, conn) => {
-                    self.send_at(depart, COORDINATOR, node, Msg::Closed(conn))
-                }
             }
         }
     }
