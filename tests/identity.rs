@@ -94,6 +94,7 @@ async fn push_as(
         protocol_version: proto::PROTOCOL_VERSION,
         sender: sender.into(),
         job_id: "no-such-job".into(),
+        tier: proto::Tier::Migrated as i32,
         sequence: 1,
         ..Default::default()
     };

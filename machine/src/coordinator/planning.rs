@@ -243,17 +243,8 @@ impl RunningFrame {
             if synced && self.sent_holders.is_told(key, class) {
                 continue;
             }
-            lines
-                .entry((class, synced))
-                .or_insert_with(|| self.lines_for(class, classes, synced));
-            let holders = &lines[&(class, synced)];
-            if !(synced && holders.is_empty()) {
-                let body = Body::Holders(proto::Holders {
-                    job_id: self.frame_id(),
-                    holders: holders.clone(),
-                    delta: synced,
-                });
-                out.push((key, msg(body)));
+            if let Some(h) = self.holders_message(class, classes, synced, &mut lines) {
+                out.push((key, msg(Body::Holders(h))));
             }
             self.sent_holders.told(key, self.round);
         }
@@ -265,6 +256,29 @@ impl RunningFrame {
             self.sent_holders.mark_dirty();
         }
         out
+    }
+
+    /// The `Holders` for a member of view `class`: [`Self::lines_for`] (kept in `lines` for
+    /// the other members of the same class and state), or nothing when it holds a map from
+    /// the last flush on and its class has no pending line.
+    fn holders_message(
+        &self,
+        class: u32,
+        classes: u32,
+        synced: bool,
+        lines: &mut BTreeMap<(u32, bool), Vec<proto::DomainHolders>>,
+    ) -> Option<proto::Holders> {
+        let holders = lines
+            .entry((class, synced))
+            .or_insert_with(|| self.lines_for(class, classes, synced));
+        if synced && holders.is_empty() {
+            return None;
+        }
+        Some(proto::Holders {
+            job_id: self.frame_id(),
+            holders: holders.clone(),
+            delta: synced,
+        })
     }
 
     /// What a member of view `class` is told of the holders: its class's pending lines if it
@@ -313,19 +327,9 @@ impl RunningFrame {
             if synced && self.sent_holders.is_told(key, class) {
                 continue;
             }
-            lines
-                .entry((class, synced))
-                .or_insert_with(|| self.lines_for(class, classes, synced));
-            let holders = &lines[&(class, synced)];
-            if synced && holders.is_empty() {
-                continue;
+            if let Some(h) = self.holders_message(class, classes, synced, &mut lines) {
+                out.push((key, msg(Body::Holders(h))));
             }
-            let body = Body::Holders(proto::Holders {
-                job_id: self.frame_id(),
-                holders: holders.clone(),
-                delta: synced,
-            });
-            out.push((key, msg(body)));
         }
         let round = self.round;
         self.sent_holders
