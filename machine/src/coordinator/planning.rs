@@ -5,7 +5,7 @@
 //! `rayfarm_core::schedule`'s; this applies them to the frame's members and makes the
 //! messages.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 use rayfarm_core::schedule::DomainId;
 use rayfarm_core::schedule::dynamic::WorkerPlan;
@@ -233,7 +233,7 @@ impl RunningFrame {
         // next plans count on those rays being forwarded, and a member told only at the flush
         // could miss a holder that gained and dropped the domain within one interval, and keep
         // rays nobody counts (a hybrid frame at 8 workers never ended that way).
-        let planned: std::collections::BTreeSet<u32> = changed.iter().map(|p| p.worker.0).collect();
+        let planned: BTreeSet<u32> = changed.iter().map(|p| p.worker.0).collect();
         for key in touched {
             if planned.contains(&key) || !self.members.contains_key(&key) {
                 continue;
@@ -308,11 +308,7 @@ impl RunningFrame {
     /// flush or plan (README "Simulator": one message a round to every busy member was 91% of
     /// a 256-worker dynamic simulation's messages).
     pub fn flush_holders(&mut self, now: Time) -> Vec<Outgoing> {
-        if self
-            .sent_holders
-            .due(self.holders_interval)
-            .is_none_or(|t| now < t)
-        {
+        if self.holders_due().is_none_or(|t| now < t) {
             return Vec::new();
         }
         let Some(classes) = self.view_classes else {
