@@ -9,7 +9,8 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use rayfarm_tests::{
-    Cluster, ClusterOpts, WorkerOpts, prepare_nbody, s, stats_field, submit_wait, try_http_request,
+    Cluster, ClusterOpts, WorkerOpts, fixed_port, prepare_nbody, s, stats_field, submit_wait,
+    try_http_request,
 };
 
 /// How long Prometheus may take to start, and to have scraped the frame's end.
@@ -22,12 +23,6 @@ fn find_prometheus() -> Option<PathBuf> {
         .chain(["/usr/bin", "/usr/sbin"])
         .map(|dir| PathBuf::from(dir).join("prometheus"))
         .find(|p| p.is_file())
-}
-
-/// A port the OS considers free now (Prometheus takes its listen address as a flag).
-fn free_port() -> u16 {
-    let listener = std::net::TcpListener::bind("127.0.0.1:0").expect("bind a free port");
-    listener.local_addr().expect("local address").port()
 }
 
 /// A Prometheus server, killed when dropped.
@@ -105,7 +100,7 @@ fn prometheus_scrapes_the_frames_domain_loads() {
         ),
     )
     .unwrap();
-    let addr = format!("127.0.0.1:{}", free_port());
+    let addr = format!("127.0.0.1:{}", fixed_port());
     let log = dir.path().join("prometheus.log");
     let child = Command::new(program)
         .arg(format!("--config.file={}", s(&config)))

@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use rayfarm_tests::{bin, hash_of, local_hash, prepare_nbody, s, wait_until};
+use rayfarm_tests::{bin, fixed_port, hash_of, local_hash, prepare_nbody, s, wait_until};
 
 /// The frame the batch job renders.
 const FRAME: [&str; 8] = [
@@ -29,12 +29,6 @@ fn find(program: &str) -> Option<PathBuf> {
         .chain(["/usr/sbin", "/sbin"])
         .map(|dir| Path::new(dir).join(program))
         .find(|p| p.is_file())
-}
-
-/// A port the OS considers free now.
-fn free_port() -> u16 {
-    let listener = std::net::TcpListener::bind("127.0.0.1:0").expect("bind a free port");
-    listener.local_addr().expect("local address").port()
 }
 
 /// This machine's short host name, as Slurm names the node.
@@ -120,8 +114,8 @@ impl Slurm {
              SwitchType=switch/none\n\
              NodeName={host} NodeAddr=127.0.0.1 CPUs={cpus} State=UNKNOWN\n\
              PartitionName=rayfarm Nodes=ALL Default=YES MaxTime=INFINITE State=UP\n",
-            ctld = free_port(),
-            slurmd = free_port(),
+            ctld = fixed_port(),
+            slurmd = fixed_port(),
             socket = s(&socket),
             d = s(&d),
             cpus = std::thread::available_parallelism().map_or(1, |n| n.get()),
@@ -261,8 +255,8 @@ fn the_sbatch_script_renders_the_local_image() {
         .env("RAYFARM_SCENE_ROOT", &scenes)
         .env("RAYFARM_DATA_DIR", work.join("data"))
         .env("RAYFARM_CACHE_BYTES", "256MiB")
-        .env("RAYFARM_PORT", free_port().to_string())
-        .env("RAYFARM_PEER_PORT", free_port().to_string())
+        .env("RAYFARM_PORT", fixed_port().to_string())
+        .env("RAYFARM_PEER_PORT", fixed_port().to_string())
         .env("RAYFARM_SUBMIT", &submit)
         .env("SLURM_CONF", &slurm.conf)
         .output()

@@ -7,7 +7,7 @@
 //! hashes, [`process`] starts, signals and waits on processes, [`cluster`] runs a coordinator
 //! and its workers, [`identical`] renders a scene every way that must give the same image,
 //! [`http`] speaks plain HTTP/1.1 to their dashboards and metrics, [`hostile`] is an attacker's
-//! raw connections and HTTP/2 frames.
+//! raw connections and HTTP/2 frames, [`ports`] picks ports for programs that need one fixed.
 
 use std::path::Path;
 
@@ -17,6 +17,7 @@ pub mod hostile;
 pub mod hosts;
 pub mod http;
 pub mod identical;
+pub mod ports;
 pub mod process;
 pub mod scenes;
 
@@ -26,6 +27,7 @@ pub use cli::{
 };
 pub use cluster::{Cluster, ClusterOpts, WorkerOpts, job, jobs, submit_wait};
 pub use http::{http_get, http_request, try_http_request};
+pub use ports::fixed_port;
 pub use process::{START_TIMEOUT, proc_status_bytes, signal_pid, wait_child, wait_until};
 pub use scenes::{domain_bytes, file_hash, hash_of, local_hash, prepare_nbody, stats_field};
 
