@@ -12,6 +12,7 @@ pub mod counters;
 pub mod early;
 pub mod events;
 pub mod frame;
+pub mod holder_map;
 mod inbound;
 mod machine;
 mod outbound;

@@ -3,11 +3,12 @@
 //! follows where each ray goes (here, to a peer, or nowhere when its tile restarted), so the
 //! routing rule lives here once, without queues or sockets.
 
-use std::collections::hash_map::Entry;
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::sync::Arc;
 
 use rayfarm_core::ray::RayRecord;
+
+use super::holder_map::{FormerHolders, HolderMap};
 
 /// Where a frame's rays are traced: the job's schedule as the worker sees it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -62,19 +63,6 @@ pub struct HolderLine {
     pub lost: Vec<u32>,
 }
 
-/// Former holders remembered per domain.
-const FORMER_HOLDERS: usize = 2;
-
-/// Puts each of `gained` but `me` into `kept` (in key order) at its place, once.
-fn insert_gained(kept: &mut Vec<u32>, gained: Vec<u32>, me: u32) {
-    for g in gained {
-        if g != me && !kept.contains(&g) {
-            let at = kept.partition_point(|&k| k < g);
-            kept.insert(at, g);
-        }
-    }
-}
-
 /// Adds to `changed` (when it is kept) the domains in one of `before` and `after` but not
 /// both: a set of domains (the plan's or the mapped ones) moved from `before` to `after`.
 fn note_moved(changed: &mut Option<BTreeSet<u32>>, before: &BTreeSet<u32>, after: &BTreeSet<u32>) {
@@ -106,14 +94,12 @@ pub struct Plan {
     resident: BTreeSet<u32>,
     /// Other workers holding each domain this round, by key. Keys, not addresses: at 256
     /// workers under the dynamic schedule the addresses, in every member's copy of the map and
-    /// in every round's messages, held gigabytes (README "Simulator"). A hash map: every line
-    /// of every holders message looks a domain up here, and at 256 simulated workers of
-    /// thousands of domains each the ordered map's node loads missed the cache (a tenth of a
-    /// dynamic run: perf, README); nothing reads it in domain order.
-    holders: HashMap<u32, Vec<u32>>,
-    /// Other workers that held each domain in an earlier round, by key, latest first (at most
-    /// [`FORMER_HOLDERS`]): they may still have it loaded, so a load may ask them for it.
-    former: HashMap<u32, Vec<u32>>,
+    /// in every round's messages, held gigabytes (README "Simulator"); a slot a domain, not a
+    /// map of lists (see [`HolderMap`]).
+    holders: HolderMap,
+    /// Other workers that held each domain in an earlier round, by key, latest first: they
+    /// may still have it loaded, so a load may ask them for it.
+    former: FormerHolders,
     /// Domains the coordinator expects to give this worker next, most likely first (what
     /// it may prefetch once its own plan is loaded).
     next: Vec<u32>,
@@ -142,8 +128,8 @@ impl Plan {
             roster,
             work_on: BTreeSet::new(),
             resident: BTreeSet::new(),
-            holders: HashMap::new(),
-            former: HashMap::new(),
+            holders: HolderMap::new(domains),
+            former: FormerHolders::new(domains),
             next: Vec::new(),
             changed: None,
         }
@@ -188,18 +174,16 @@ impl Plan {
 
     /// Domains some other worker holds this round, ascending.
     pub fn held_elsewhere(&self) -> impl Iterator<Item = u32> + '_ {
-        let mut held: Vec<u32> = self.holders.keys().copied().collect();
-        held.sort_unstable();
-        held.into_iter()
+        self.holders.held()
     }
 
     /// Where a load of `domain` may take its bytes from: the other workers holding it this
     /// round, then those that held it before, latest first (they may still have it loaded).
     pub fn holders_of(&self, domain: u32) -> Vec<String> {
-        let now = self.holders.get(&domain).into_iter().flatten();
-        let before = self.former.get(&domain).into_iter().flatten();
+        let now = self.holders.get(domain).iter().copied();
+        let before = self.former.get(domain);
         let mut keys: Vec<u32> = Vec::new();
-        for &w in now.chain(before) {
+        for w in now.chain(before) {
             if !keys.contains(&w) {
                 keys.push(w);
             }
@@ -211,30 +195,18 @@ impl Plan {
 
     /// Records that `gone` no longer hold `domain` (they may still have it loaded).
     fn note_former(&mut self, domain: u32, gone: impl IntoIterator<Item = u32>) {
-        let mut gone = gone.into_iter().peekable();
-        // Nobody gone, nothing to note: no entry (an empty list reads as no entry everywhere,
-        // and making one for every domain a holders line names was a search and an insert
-        // per line per worker).
-        if gone.peek().is_none() {
-            return;
-        }
-        let former = self.former.entry(domain).or_default();
-        for w in gone {
-            former.retain(|&f| f != w);
-            former.insert(0, w);
-        }
-        former.truncate(FORMER_HOLDERS);
+        self.former.note(domain, gone);
     }
 
     /// The other workers holding `domain` now, in key order (as the coordinator's messages
     /// made them; former holders are not named).
     pub fn holder_keys(&self, domain: u32) -> &[u32] {
-        self.holders.get(&domain).map_or(&[], Vec::as_slice)
+        self.holders.get(domain)
     }
 
     /// Whether some other worker holds `domain` this round.
     pub fn is_held_elsewhere(&self, domain: u32) -> bool {
-        self.holders.contains_key(&domain)
+        self.holders.contains(domain)
     }
 
     /// Adopts a round's plan (its holders as [`Plan::set_holders`] takes them).
@@ -269,24 +241,15 @@ impl Plan {
         }
         // A whole map may change any domain: the next walk looks at every queue.
         self.changed = None;
-        let mut before = std::mem::take(&mut self.holders);
-        for HolderLine {
-            domain: d,
-            workers: mut ws,
-            ..
-        } in holders
-        {
-            ws.retain(|w| *w != self.me);
-            if let Some(old) = before.remove(&d) {
-                self.note_former(d, old.into_iter().filter(|w| !ws.contains(w)));
-            }
-            if !ws.is_empty() {
-                self.holders.insert(d, ws);
-            }
+        let before = std::mem::replace(&mut self.holders, HolderMap::new(self.domains));
+        for line in holders {
+            self.holders.set(line.domain, line.workers, self.me);
         }
-        // A whole map leaves out the domains nobody holds now.
-        for (d, old) in before {
-            self.note_former(d, old);
+        // Who held a domain before and not now, listed or left out (nobody holds it now).
+        for d in before.held() {
+            let now = self.holders.get(d);
+            let gone = before.get(d).iter().filter(|k| !now.contains(k)).copied();
+            self.former.note(d, gone);
         }
     }
 
@@ -298,35 +261,8 @@ impl Plan {
             mut lost,
         } = line;
         lost.sort_unstable();
-        // The list is changed where it is (one search of the map, no new vectors): this runs
-        // for every line of every holders message on every worker, a fifth of a 256-worker
-        // dynamic run's time when it took the list out, split it in two and put it back.
         let mut gone = Vec::new();
-        match self.holders.entry(d) {
-            Entry::Occupied(mut e) => {
-                let kept = e.get_mut();
-                if !lost.is_empty() {
-                    kept.retain(|w| {
-                        let lose = lost.binary_search(w).is_ok();
-                        if lose {
-                            gone.push(*w);
-                        }
-                        !lose
-                    });
-                }
-                insert_gained(kept, gained, self.me);
-                if kept.is_empty() {
-                    e.remove();
-                }
-            }
-            Entry::Vacant(e) => {
-                let mut kept = Vec::new();
-                insert_gained(&mut kept, gained, self.me);
-                if !kept.is_empty() {
-                    e.insert(kept);
-                }
-            }
-        }
+        self.holders.change(d, &lost, gained, self.me, &mut gone);
         self.note_former(d, gone);
     }
 
@@ -358,11 +294,8 @@ impl Plan {
             .filter(|(_, address)| peers.contains(address))
             .map(|(&k, _)| k)
             .collect();
-        for holders in self.holders.values_mut().chain(self.former.values_mut()) {
-            holders.retain(|h| !gone.contains(h));
-        }
-        self.holders.retain(|_, hs| !hs.is_empty());
-        self.former.retain(|_, hs| !hs.is_empty());
+        self.holders.retain_keys(|k| !gone.contains(&k));
+        self.former.retain_keys(|k| !gone.contains(&k));
         self.changed = None;
     }
 
@@ -434,7 +367,10 @@ impl Plan {
         if self.keeps(ray) {
             return None;
         }
-        let ws = self.holders.get(&ray.domain)?;
+        let ws = self.holders.get(ray.domain);
+        if ws.is_empty() {
+            return None;
+        }
         let key = ws[ray.pixel as usize % ws.len()];
         self.roster.get(&key).map(String::as_str)
     }
