@@ -28,6 +28,7 @@ mod tests {
                 }],
                 next: vec![4],
                 holders_delta: true,
+                sole_holders: Vec::new(),
             })),
         };
         let bytes = msg.encode_to_vec();

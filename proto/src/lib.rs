@@ -12,5 +12,6 @@ include!(concat!(env!("OUT_DIR"), "/rayfarm.v1.rs"));
 /// `TasksShared`, `StartFrame.hybrid_rounds`). 5: a holders delta names each changed domain's
 /// gained and lost keys (`DomainHolders.workers`, `DomainHolders.lost`), not its whole list.
 /// 6: the control tier, which no bundle used, retired (`Tier` 1 reserved); a bundle of tier 1
-/// or of no tier is refused.
-pub const PROTOCOL_VERSION: u32 = 6;
+/// or of no tier is refused. 7: a whole map's domains with one holder each go packed
+/// (`RoundPlan.sole_holders`), which an older worker would not read.
+pub const PROTOCOL_VERSION: u32 = 7;

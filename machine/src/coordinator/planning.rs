@@ -40,13 +40,8 @@ impl RunningFrame {
         for d in 0..domains {
             self.grants.name_holder(owner(d));
         }
-        let holders: Vec<proto::DomainHolders> = (0..domains)
-            .map(|d| proto::DomainHolders {
-                domain: d,
-                workers: vec![owner(d)],
-                lost: Vec::new(),
-            })
-            .collect();
+        // One owner a domain: the map goes packed, a key a domain (`sole_holders`).
+        let sole_holders: Vec<u32> = (0..domains).map(|d| owner(d).saturating_add(1)).collect();
         // Every member gets the whole map; no asynchronous round follows these schedules'
         // one plan, but the record stays true.
         self.sent_holders
@@ -61,9 +56,10 @@ impl RunningFrame {
                     round: 1,
                     work_on: (0..domains).filter(|&d| owner(d) == key).collect(),
                     evict: Vec::new(),
-                    holders: holders.clone(),
+                    holders: Vec::new(),
                     next: Vec::new(),
                     holders_delta: false,
+                    sole_holders: sole_holders.clone(),
                 });
                 (key, msg(body))
             })
@@ -119,6 +115,7 @@ impl RunningFrame {
             holders: holders.to_vec(),
             next,
             holders_delta: delta,
+            sole_holders: Vec::new(),
         });
         (p.worker.0, msg(body))
     }

@@ -306,10 +306,26 @@ impl<S: RaySpill> Worker<S> {
             return;
         };
         let _span = info_span!("round", round = p.round).entered();
+        // A whole map's packed part first (a delta has none): domain d's one holder's key
+        // plus one, 0 for none there.
+        let sole = if p.holders_delta {
+            Vec::new()
+        } else {
+            p.sole_holders
+        };
+        let sole = sole
+            .into_iter()
+            .zip(0u32..)
+            .filter(|&(k, _)| k != 0)
+            .map(|(k, domain)| HolderLine {
+                domain,
+                workers: vec![k - 1],
+                lost: Vec::new(),
+            });
         frame.set_plan(
             p.round,
             p.work_on.iter().copied(),
-            p.holders.into_iter().map(line),
+            sole.chain(p.holders.into_iter().map(line)),
             p.holders_delta,
         );
         // The cache as the machine knows it: mapped at the last pass's end, less what this plan

@@ -249,9 +249,17 @@ fn domain_schedule_rays_queued_before_the_plan_go_to_their_owner_though_mapped_h
     let rays = [ray(0, 0, 0, 1), ray(0, 0, 1, 2), ray(0, 0, 2, 3)];
     let early = w.handle(Time(1), bundle(JOB, &rays));
     assert!(rays_sent(&early).is_empty(), "no owner known yet");
+    // The domain schedule's plan, as the coordinator sends it: owners packed.
+    let owners = ["me:1", "b:1", "b:1"].map(|w| key_of(w) + 1).to_vec();
     let mut out = w.handle(
         Time(2),
-        plan(1, &[0], &[(0, "me:1"), (1, "b:1"), (2, "b:1")]),
+        control(FromCoordinator::RoundPlan(proto::RoundPlan {
+            job_id: JOB.into(),
+            round: 1,
+            work_on: vec![0],
+            sole_holders: owners,
+            ..Default::default()
+        })),
     );
     let work = pass_started(&out).expect("its own domain traced");
     assert_eq!(
@@ -261,6 +269,51 @@ fn domain_schedule_rays_queued_before_the_plan_go_to_their_owner_though_mapped_h
     // The others are on their way to their owner (bundled: they go out within a second).
     out.extend(w.handle(Time::from_duration(Duration::from_secs(1)), Event::Tick));
     assert_eq!(rays_sent(&out)["b:1"], [rays[1], rays[2]]);
+}
+
+#[test]
+fn a_whole_maps_packed_holders_route_as_lines_do_and_a_delta_has_none() {
+    let mut w = worker();
+    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    // Domain 1 is b's alone (packed), domain 2 c's and d's (a line), domain 3 nobody's.
+    let packed = |round, delta, sole: &[&str]| {
+        control(FromCoordinator::RoundPlan(proto::RoundPlan {
+            job_id: JOB.into(),
+            round,
+            work_on: vec![0],
+            holders: if delta {
+                Vec::new()
+            } else {
+                vec![proto::DomainHolders {
+                    domain: 2,
+                    workers: vec![key_of("c:1"), key_of("d:1")],
+                    lost: Vec::new(),
+                }]
+            },
+            holders_delta: delta,
+            sole_holders: sole
+                .iter()
+                .map(|w| if w.is_empty() { 0 } else { key_of(w) + 1 })
+                .collect(),
+            ..Default::default()
+        }))
+    };
+    w.handle(Time(1), packed(1, false, &["me:1", "b:1", ""]));
+    let rays = [ray(0, 0, 1, 0), ray(0, 0, 2, 0), ray(0, 0, 2, 1)];
+    let sent = rays_sent(&w.handle(Time(2), bundle(JOB, &rays)));
+    assert_eq!(sent["b:1"], [rays[0]]);
+    assert_eq!(
+        (&sent["c:1"], &sent["d:1"]),
+        (&vec![rays[1]], &vec![rays[2]])
+    );
+    // A delta with packed holders (which a delta never has) changes nobody's domains.
+    w.handle(Time(3), packed(2, true, &["", "a:1", "a:1"]));
+    let sent = rays_sent(&w.handle(Time(4), bundle(JOB, &rays)));
+    assert_eq!(sent["b:1"], [rays[0]]);
+    assert_eq!(
+        (&sent["c:1"], &sent["d:1"]),
+        (&vec![rays[1]], &vec![rays[2]])
+    );
 }
 
 #[test]
