@@ -462,7 +462,7 @@ pub(super) fn descend<K: Isa>(
             let node = unsafe { bvh.node(cur.child) };
             counters::add(1, 0, 0);
             // The SAH builder writes nodes depth first, so the node after this one is one of
-            // its inner children (when it has any), and the one after that is a grandchild:
+            // its inner children (when it has any), and the one after that often a grandchild:
             // their memory is asked for now, before the box test says which child is
             // entered, so that where the ray goes that way the next two levels' cache misses
             // overlap with this node's work instead of following it one after the other.
