@@ -18,6 +18,7 @@ use glam::{Vec3, Vec3A};
 use crate::geometry::{BLOCK, NormalBlock, PackedTriangle, ShearedRay, TriangleBlock};
 
 mod build;
+pub mod counters;
 mod packet;
 mod sah;
 mod select;

@@ -21,6 +21,8 @@
 //! `--count coherent|incoherent|shadow` traces that set once on rayfarm's side only, in
 //! `counted_pass`, for instruction counts: `valgrind --tool=callgrind
 //! --toggle-collect='*counted_pass*' embree_compare SCENE --count coherent` (README, "Benchmarks").
+//! Built with `--features counters` it also prints the node visits, leaf visits and block
+//! tests per ray.
 
 use std::error::Error;
 use std::fs::File;
@@ -353,6 +355,7 @@ fn main() -> Result<()> {
             .ok_or_else(|| format!("--count {name}: expected coherent, incoherent or shadow"))?;
         let mode = mode_of(name);
         let packets = mode == Mode::Packets && Traverser::new().packets();
+        rayfarm_core::bvh::counters::take();
         let found = counted_pass(bvh, rays, mode);
         println!(
             "{name}: {} rays, {found} hits, kernel {}, packets {}",
@@ -360,6 +363,17 @@ fn main() -> Result<()> {
             Traverser::new().kernel().name(),
             if packets { "on" } else { "off" }
         );
+        // Built with `--features counters`: what the pass touched, per ray.
+        if rayfarm_core::bvh::counters::ENABLED {
+            let c = rayfarm_core::bvh::counters::take();
+            let per = |v: u64| v as f64 / rays.len().max(1) as f64;
+            println!(
+                "per ray: {:.3} node visits, {:.3} leaf visits, {:.3} block tests",
+                per(c.nodes),
+                per(c.leaves),
+                per(c.blocks)
+            );
+        }
         return Ok(());
     }
 

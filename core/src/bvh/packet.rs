@@ -134,6 +134,8 @@ pub(super) fn nearest_packet<K: Isa>(
         } else if cur.meta == SLOT_INNER {
             // SAFETY: the root or a child index of a validated tree.
             let node = unsafe { bvh.node(cur.child) };
+            // A packet's node counts once: it is fetched once for all its rays.
+            super::counters::add(1, 0, 0);
             let mut per_ray = 0u64;
             let mut entered = 0u32;
             let mut nearest = [f32::INFINITY; WIDTH];

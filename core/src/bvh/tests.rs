@@ -104,3 +104,60 @@ fn trace_ray_set_up_equals_the_per_axis_form() {
         }
     }
 }
+
+/// The nearest-hit loop prefetches node `i + 1` whenever it visits node `i`, betting that it is
+/// one of `i`'s children: the SAH builder writes nodes depth first, so every node with an inner
+/// child has one right after it.
+#[test]
+fn the_sah_builder_writes_an_inner_child_right_after_its_parent() {
+    use crate::geometry::PackedTriangle;
+    let mut packed: Vec<PackedTriangle> = (0..4000)
+        .map(|i| {
+            let (x, y) = ((i % 64) as f32, (i / 64) as f32);
+            let z = ((i * 7919) % 101) as f32 * 0.01;
+            let v = [[x, y, z], [x + 1.0, y, z], [x, y + 1.0, z + 0.5]];
+            PackedTriangle::new(&v, i as u64, 0)
+        })
+        .collect();
+    let built = build_with(Builder::Sah, &mut packed);
+    validate(&built.nodes, &built.blocks).unwrap();
+    let mut with_inner = 0;
+    for (i, n) in built.nodes.iter().enumerate() {
+        let inner: Vec<u32> = (0..WIDTH)
+            .filter(|&s| n.meta[s] == SLOT_INNER)
+            .map(|s| n.child[s])
+            .collect();
+        if !inner.is_empty() {
+            with_inner += 1;
+            assert!(
+                inner.contains(&(i as u32 + 1)),
+                "node {i}: inner children {inner:?}"
+            );
+        }
+    }
+    assert!(with_inner > 10, "the test needs a tree of several levels");
+}
+
+/// With the `counters` feature, a ray's node visits, leaf visits and block tests are counted.
+#[cfg(feature = "counters")]
+#[test]
+fn counters_count_what_a_ray_touches() {
+    use crate::geometry::PackedTriangle;
+    let mut packed = vec![PackedTriangle::new(
+        &[[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0]],
+        0,
+        0,
+    )];
+    let built = build_with(Builder::Sah, &mut packed);
+    let bvh = Bvh::new(&built.nodes, &built.blocks).unwrap();
+    let ray = TraceRay::new(Vec3::new(0.2, 0.2, 0.0), Vec3::Z);
+    for kernel in Kernel::ALL.into_iter().filter(|k| k.supported()) {
+        counters::take();
+        let hit = Traverser::with_kernel(kernel)
+            .unwrap()
+            .nearest_hit(bvh, &ray, 0.0, 10.0);
+        assert!(hit.is_some());
+        let c = counters::take();
+        assert_eq!((c.nodes, c.leaves, c.blocks), (1, 1, 1), "{kernel:?}");
+    }
+}
