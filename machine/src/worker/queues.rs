@@ -182,10 +182,7 @@ impl<S: RaySpill> DomainQueues<S> {
             room.min(rays.len())
         };
         if in_memory > 0 {
-            self.mem
-                .entry(domain)
-                .or_default()
-                .push(&rays[..in_memory]);
+            self.mem.entry(domain).or_default().push(&rays[..in_memory]);
         }
         self.mem_rays += in_memory as u64;
         let rest = &rays[in_memory..];

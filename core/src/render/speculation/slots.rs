@@ -67,7 +67,11 @@ mod tests {
         }
         assert_eq!(slots.len(), n);
         for i in [0, CHUNK - 1, CHUNK, 2 * CHUNK + 7, n - 1] {
-            assert_eq!(slots.get_mut(i as u32).copied(), Some(Some(i * 10)), "id {i}");
+            assert_eq!(
+                slots.get_mut(i as u32).copied(),
+                Some(Some(i * 10)),
+                "id {i}"
+            );
         }
         *slots.get_mut(CHUNK as u32).unwrap() = None;
         assert_eq!(slots.get_mut(CHUNK as u32).copied(), Some(None));

@@ -6,9 +6,13 @@
 
 use rayfarm_core::ray::RayRecord;
 
-/// Rays fewer than this are added to the last part rather than kept as a part of their own
-/// (so trickles of a few rays do not make a long list of tiny parts).
+/// Rays fewer than this are added to a part with room for them rather than kept as a part
+/// of their own (so trickles of a few rays do not make a long list of tiny parts).
 const SMALL: usize = 256;
+
+/// Rays a part made for such trickles has room for: a part is never grown, since growing a
+/// large one would copy it whole for a few rays.
+const TRICKLE_PART: usize = 4 * SMALL;
 
 /// See the module documentation.
 #[derive(Default)]
@@ -25,22 +29,32 @@ impl Parts {
 
     /// Appends `rays`, kept as they are unless they are a few.
     pub(super) fn push_owned(&mut self, rays: Vec<RayRecord>) {
-        self.len += rays.len();
-        match self.parts.last_mut() {
-            Some(last) if rays.len() < SMALL => last.extend_from_slice(&rays),
-            _ if rays.is_empty() => {}
-            _ => self.parts.push(rays),
+        if rays.len() < SMALL {
+            return self.push(&rays);
         }
+        self.len += rays.len();
+        self.parts.push(rays);
     }
 
     /// Appends a copy of `rays`.
     pub(super) fn push(&mut self, rays: &[RayRecord]) {
-        match self.parts.last_mut() {
-            Some(last) if rays.len() < SMALL => last.extend_from_slice(rays),
-            _ if rays.is_empty() => {}
-            _ => self.parts.push(rays.to_vec()),
+        if rays.is_empty() {
+            return;
         }
         self.len += rays.len();
+        if rays.len() >= SMALL {
+            return self.parts.push(rays.to_vec());
+        }
+        match self.parts.last_mut() {
+            Some(last) if last.capacity() - last.len() >= rays.len() => {
+                last.extend_from_slice(rays);
+            }
+            _ => {
+                let mut part = Vec::with_capacity(TRICKLE_PART);
+                part.extend_from_slice(rays);
+                self.parts.push(part);
+            }
+        }
     }
 
     /// Takes the last `n` rays held (all if fewer), in their order.
@@ -121,6 +135,24 @@ mod tests {
             }
             assert_eq!(parts.len(), flat.len(), "step {step}");
         }
+    }
+
+    #[test]
+    fn a_trickle_never_grows_a_large_part() {
+        let mut parts = Parts::default();
+        let big = rays(0, 1000);
+        let at = big.as_ptr();
+        parts.push_owned(big);
+        parts.push_owned(rays(1000, 3));
+        parts.push(&rays(1003, 2));
+        assert_eq!(
+            parts.parts[0].as_ptr(),
+            at,
+            "the large part stays where it was"
+        );
+        assert_eq!((parts.parts.len(), parts.parts[1].len()), (2, 5));
+        let pixels: Vec<u32> = parts.take_back(7).iter().map(|r| r.pixel).collect();
+        assert_eq!(pixels, (998..1005).collect::<Vec<_>>());
     }
 
     #[test]
