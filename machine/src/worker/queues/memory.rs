@@ -161,7 +161,8 @@ mod tests {
         let big = rays(0, 1000);
         let at = big.as_ptr();
         parts.push_owned(big);
-        assert_eq!(parts.take_back(5000).as_ptr(), at);
+        let taken = parts.take_back(5000);
+        assert_eq!(taken.as_ptr(), at);
         assert_eq!(parts.len(), 0);
     }
 }
