@@ -25,6 +25,8 @@
 //! sends its nearest hit too ([`Verdict::VolumeHit`], counted with the segments, which stop
 //! at it), or a shadow ray's [`Verdict::Blocked`] alone.
 
+mod path;
+mod slots;
 mod verdict;
 
 pub use verdict::{MAX_SEGMENTS, SegmentLight, SurfaceHit, Verdict};
@@ -35,6 +37,8 @@ use crate::ray::RayRecord;
 use crate::schedule::speculation_depth::{Depth, Windows};
 use crate::schedule::speculative::Generations;
 use crate::wire::VerdictRecord;
+use path::Path;
+use slots::Slots;
 
 /// All verdicts of a ray combined.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -51,14 +55,53 @@ pub struct Outcome {
     pub lights: Vec<SegmentLight>,
 }
 
-impl Outcome {
+/// A ray waiting for its copies' verdicts. It keeps the ray's credit: copies carry none.
+///
+/// Kept small, since settling a verdict is one random access into the groups, mostly a
+/// cache miss (README "Benchmarks"): the path is held in the record for most rays, and what
+/// only volume rays need is boxed apart.
+struct Group {
+    ray: RayRecord,
+    /// The domains with geometry along the ray, nearest first.
+    path: Path,
+    /// How many of them have been sent copies (the windows so far).
+    copied: u32,
+    /// The worker holding the group, named in the copies.
+    resolver: u32,
+    /// Copies of the current window whose last verdict is still to come.
+    waiting: u32,
+    /// The ray has concluded before all its copies answered (see [`Groups::skip`]): the
+    /// group only counts the copies still out, so that their verdicts find it and the id is
+    /// not reused while they may come.
+    spent: bool,
+    /// Which places along `path` have answered.
+    answered: Answered,
+    /// The nearest place along the ray where a copy found an occluder.
+    blocker: Option<u32>,
+    /// The hit of the nearest domain that has one.
+    nearest: Option<SurfaceHit>,
+    /// Once a volume verdict came: the ray concludes only once every copy has answered.
+    volume: Option<Box<VolumeParts>>,
+}
+
+/// What a group of a volume ray collects besides a surface ray's outcome.
+#[derive(Default)]
+struct VolumeParts {
+    /// Segments announced by closing verdicts minus segments received: a copy's segments
+    /// may arrive before or after its closing verdict, so this dips below zero meanwhile.
+    segments_due: i64,
+    segments: Vec<Segment>,
+    lights: Vec<SegmentLight>,
+}
+
+impl Group {
+    /// Adds one verdict to what the copies found.
     fn add(&mut self, verdict: Verdict) {
         match verdict {
             Verdict::Clear | Verdict::VolumeEnd(_) => {}
-            Verdict::Segment(seg) => self.segments.push(seg),
-            Verdict::Light(light) => self.lights.push(light),
+            Verdict::Segment(seg) => self.volume_parts().segments.push(seg),
+            Verdict::Light(light) => self.volume_parts().lights.push(light),
             Verdict::Blocked(order) => {
-                self.blocked = true;
                 self.blocker = Some(self.blocker.map_or(order, |b| b.min(order)));
             }
             Verdict::Hit(hit) | Verdict::VolumeHit(hit) => {
@@ -69,52 +112,47 @@ impl Outcome {
         }
     }
 
-    /// Where along the ray it ended, if it did (as a place among the domains with geometry
-    /// along it): a radiance ray at its nearest hit, a shadow ray at its nearest occluder.
-    fn ended(&self, ray: &RayRecord) -> Option<u32> {
-        match ray.kind() {
+    /// The volume parts, made on the first volume verdict.
+    fn volume_parts(&mut self) -> &mut VolumeParts {
+        self.volume.get_or_insert_default()
+    }
+
+    /// Segments announced and not yet received (see [`VolumeParts::segments_due`]).
+    fn segments_due(&self) -> i64 {
+        self.volume.as_ref().map_or(0, |v| v.segments_due)
+    }
+
+    /// The outcome so far, taken out of the group.
+    fn take_outcome(&mut self) -> Outcome {
+        let volume = self.volume.as_mut().map(|v| std::mem::take(&mut **v));
+        let (segments, lights) = volume.map_or_else(Default::default, |v| (v.segments, v.lights));
+        Outcome {
+            blocked: self.blocker.is_some(),
+            blocker: self.blocker,
+            nearest: self.nearest,
+            segments,
+            lights,
+        }
+    }
+
+    /// Where along the ray it ended, if it did (as [`Outcome::ended`]).
+    fn ended(&self) -> Option<u32> {
+        match self.ray.kind() {
             RayKind::Radiance => self.nearest.map(|h| h.order),
             RayKind::Shadow => self.blocker,
         }
     }
-}
 
-/// A ray waiting for its copies' verdicts. It keeps the ray's credit: copies carry none.
-struct Group {
-    ray: RayRecord,
-    /// The domains with geometry along the ray, nearest first.
-    path: Vec<u32>,
-    /// How many of them have been sent copies (the windows so far).
-    copied: usize,
-    /// The worker holding the group, named in the copies.
-    resolver: u32,
-    /// Copies of the current window whose last verdict is still to come.
-    waiting: u32,
-    /// Segments announced by closing verdicts minus segments received: a copy's segments
-    /// may arrive before or after its closing verdict, so this dips below zero meanwhile.
-    segments_due: i64,
-    /// Which places along `path` have answered.
-    answered: Answered,
-    /// A volume verdict came: the ray concludes only once every copy has answered.
-    volume: bool,
-    /// The ray has concluded before all its copies answered (see [`Groups::skip`]): the
-    /// group only counts the copies still out, so that their verdicts find it and the id is
-    /// not reused while they may come.
-    spent: bool,
-    outcome: Outcome,
-}
-
-impl Group {
     /// Whether the verdicts so far decide the ray as the chained trace would, though copies
     /// farther along it have not answered: a shadow ray's occluder anywhere, or a radiance
     /// ray's hit with every nearer domain answered clear. Volume rays wait for all.
     fn decided_early(&self) -> bool {
-        if self.volume {
+        if self.volume.is_some() {
             return false;
         }
         match self.ray.kind() {
-            RayKind::Shadow => self.outcome.blocked,
-            RayKind::Radiance => self.outcome.nearest.is_some_and(|h| {
+            RayKind::Shadow => self.blocker.is_some(),
+            RayKind::Radiance => self.nearest.is_some_and(|h| {
                 (h.order as usize) < self.path.len()
                     && self.answered.all_before(h.order as usize, self.path.len())
             }),
@@ -127,6 +165,11 @@ impl Group {
             self.answered.set(p, self.path.len());
         }
     }
+
+    /// The domains sent copies so far.
+    fn copied(&self) -> &[u32] {
+        self.path.get(..self.copied as usize).unwrap_or_default()
+    }
 }
 
 /// Which places along a ray's path have answered: a bit each while the path has at most 64
@@ -135,7 +178,7 @@ impl Group {
 #[derive(Default)]
 struct Answered {
     bits: u64,
-    long: Vec<bool>,
+    long: Option<Box<[bool]>>,
 }
 
 impl Answered {
@@ -144,10 +187,7 @@ impl Answered {
         if len <= 64 {
             self.bits |= 1 << p;
         } else {
-            if self.long.is_empty() {
-                self.long = vec![false; len];
-            }
-            self.long[p] = true;
+            self.long.get_or_insert_with(|| vec![false; len].into())[p] = true;
         }
     }
 
@@ -157,7 +197,7 @@ impl Answered {
             let mask = (1u64 << n) - 1;
             self.bits == 0 || self.bits & mask == mask
         } else {
-            self.long.is_empty() || self.long[..n].iter().all(|&a| a)
+            self.long.as_ref().is_none_or(|l| l[..n].iter().all(|&a| a))
         }
     }
 }
@@ -178,7 +218,7 @@ pub enum GroupError {
 
 /// The rays born here that wait for their copies; group ids are reused once concluded.
 pub struct Groups {
-    slots: Vec<Option<Group>>,
+    slots: Slots<Group>,
     free: Vec<u32>,
     /// Rays waiting per generation (`RayRecord::generation`).
     by_generation: Generations,
@@ -204,7 +244,7 @@ impl Groups {
     /// No rays waiting; copies go `depth` domains ahead.
     pub fn new(depth: Depth) -> Self {
         Groups {
-            slots: Vec::new(),
+            slots: Slots::default(),
             free: Vec::new(),
             by_generation: Generations::default(),
             windows: Windows::new(depth),
@@ -234,42 +274,42 @@ impl Groups {
         debug_assert!(!path.is_empty());
         let group = Group {
             ray,
-            path,
+            path: Path::from(path),
             copied: 0,
             resolver,
             waiting: 0,
-            segments_due: 0,
-            answered: Answered::default(),
-            volume: false,
             spent: false,
-            outcome: Outcome::default(),
+            answered: Answered::default(),
+            blocker: None,
+            nearest: None,
+            volume: None,
         };
         self.by_generation.add(ray.generation());
         let id = match self.free.pop() {
             Some(id) => {
-                self.slots[id as usize] = Some(group);
+                if let Some(slot) = self.slots.get_mut(id) {
+                    *slot = Some(group);
+                }
                 id
             }
-            None => {
-                self.slots.push(Some(group));
-                (self.slots.len() - 1) as u32
-            }
+            None => self.slots.push(group),
         };
         self.next_window(id, out);
     }
 
     /// Sends group `id`'s next window of copies to `out`.
     fn next_window(&mut self, id: u32, out: &mut Vec<RayRecord>) {
-        let Some(group) = self.slots[id as usize].as_mut() else {
+        let Some(group) = self.slots.get_mut(id).and_then(Option::as_mut) else {
             return;
         };
-        let n = self.windows.window(&group.ray, &group.path, group.copied);
-        let window = &group.path[group.copied..(group.copied + n).min(group.path.len())];
-        if group.copied > 0 {
+        let from = group.copied as usize;
+        let n = self.windows.window(&group.ray, &group.path, from);
+        let window = &group.path[from..(from + n).min(group.path.len())];
+        if from > 0 {
             self.windows.later_window(&group.ray, window);
         }
         group.waiting = window.len() as u32;
-        group.copied += window.len();
+        group.copied += window.len() as u32;
         self.copies += window.len() as u64;
         let (ray, resolver) = (group.ray, group.resolver);
         // A copy carries only what tracing it reads: the group keeps the ray's weight and
@@ -299,10 +339,7 @@ impl Groups {
         more: &mut Vec<RayRecord>,
     ) -> Result<Option<(RayRecord, Outcome)>, GroupError> {
         let id = record.group;
-        let slot = self
-            .slots
-            .get_mut(id as usize)
-            .ok_or(GroupError::Unknown(id))?;
+        let slot = self.slots.get_mut(id).ok_or(GroupError::Unknown(id))?;
         let group = slot.as_mut().ok_or(GroupError::Unknown(id))?;
         let r = &group.ray;
         if (r.tile, r.epoch, r.pixel, r.sample)
@@ -311,21 +348,19 @@ impl Groups {
             return Err(GroupError::Mismatch(id));
         }
         let verdict = record.verdict();
-        // The copy's domain has been traced for the ray's generation: a clear verdict names
-        // it, a hit or an occluder its place along the path (of a ray not concluded yet).
-        let traced_in = match verdict {
-            // (A concluded ray's group has given its path up: its clear verdicts teach nothing.)
-            Verdict::Clear => Some(record.order).filter(|d| {
-                let copied = group.path.get(..group.copied).unwrap_or_default();
-                copied.contains(d)
-            }),
+        // Where along the path the copy was: a clear verdict names its domain, a hit or an
+        // occluder its place. (A concluded ray's group has given its path up: its verdicts
+        // teach nothing.)
+        let place = match verdict {
+            Verdict::Clear => group.copied().iter().position(|&d| d == record.order),
             Verdict::Blocked(order) | Verdict::Hit(SurfaceHit { order, .. }) => {
-                group.path.get(order as usize).copied()
+                Some(order as usize).filter(|&p| p < group.path.len())
             }
             _ => None,
         };
-        if let Some(d) = traced_in {
-            self.windows.visited(&group.ray, d);
+        // The copy's domain has been traced for the ray's generation.
+        if let Some(p) = place {
+            self.windows.visited(&group.ray, group.path[p]);
         }
         if group.spent {
             // The ray concluded already: only count the copies still out.
@@ -343,37 +378,31 @@ impl Groups {
         }
         match verdict {
             Verdict::Segment(_) | Verdict::Light(_) | Verdict::VolumeHit(_) => {
-                group.volume = true;
-                let held = (group.outcome.segments.len() + group.outcome.lights.len()) as u32;
-                if held >= MAX_SEGMENTS || (group.waiting == 0 && group.segments_due <= 0) {
+                let waiting = group.waiting;
+                let volume = group.volume_parts();
+                let held = (volume.segments.len() + volume.lights.len()) as u32;
+                if held >= MAX_SEGMENTS || (waiting == 0 && volume.segments_due <= 0) {
                     return Err(GroupError::TooManySegments(id));
                 }
-                group.segments_due -= 1;
+                volume.segments_due -= 1;
             }
             Verdict::VolumeEnd(n) => {
-                group.volume = true;
+                let volume = group.volume_parts();
                 if n > MAX_SEGMENTS {
                     return Err(GroupError::TooManySegments(id));
                 }
-                group.segments_due += i64::from(n);
+                volume.segments_due += i64::from(n);
                 group.waiting = group.waiting.saturating_sub(1);
             }
-            Verdict::Clear => {
-                // A clear verdict names its copy's domain; hits and occluders their place.
-                let place = group.path[..group.copied]
-                    .iter()
-                    .position(|&d| d == record.order);
+            Verdict::Clear | Verdict::Blocked(_) | Verdict::Hit(_) => {
                 group.answer(place);
                 group.waiting = group.waiting.saturating_sub(1);
             }
-            Verdict::Blocked(order) | Verdict::Hit(SurfaceHit { order, .. }) => {
-                group.answer(Some(order as usize));
-                group.waiting = group.waiting.saturating_sub(1);
-            }
         }
-        group.outcome.add(verdict);
-        if group.waiting > 0 || group.segments_due != 0 {
-            if group.waiting == 0 && group.segments_due < 0 {
+        group.add(verdict);
+        let segments_due = group.segments_due();
+        if group.waiting > 0 || segments_due != 0 {
+            if group.waiting == 0 && segments_due < 0 {
                 // Segments beyond what every copy announced: this group cannot conclude
                 // as a chained trace would; drop it rather than conclude it wrongly.
                 let dropped = slot.take().map(|g| g.ray);
@@ -386,17 +415,19 @@ impl Groups {
                 self.early += 1;
                 group.spent = true;
                 let ray = group.ray;
-                let outcome = std::mem::take(&mut group.outcome);
-                let ended = outcome.ended(&ray).map(|e| e as usize);
+                let ended = group.ended().map(|e| e as usize);
+                let outcome = group.take_outcome();
                 let path = std::mem::take(&mut group.path);
+                group.copied = 0;
                 self.windows.learn(&ray, &path, ended);
                 self.by_generation.remove(ray.generation());
                 return Ok(Some((ray, outcome)));
             }
             return Ok(None);
         }
-        let ended = group.outcome.ended(&group.ray);
-        if ended.is_none() && !group.outcome.blocked && group.copied < group.path.len() {
+        let ended = group.ended();
+        if ended.is_none() && group.blocker.is_none() && (group.copied as usize) < group.path.len()
+        {
             // The window found nothing that ends the ray: on to the next.
             self.extensions += 1;
             self.next_window(id, more);
@@ -404,8 +435,8 @@ impl Groups {
         }
         self.windows
             .learn(&group.ray, &group.path, ended.map(|e| e as usize));
-        let done = self.slots[id as usize].take().map(|g| {
-            let mut outcome = g.outcome;
+        let done = slot.take().map(|mut g| {
+            let mut outcome = g.take_outcome();
             // Each segment's first sample is its own: the order along the ray, no ties.
             outcome.segments.sort_unstable_by_key(|s| s.first);
             outcome.lights.sort_unstable_by_key(|l| (l.first, l.light));
@@ -422,7 +453,7 @@ impl Groups {
     /// moved).
     pub fn skip(&mut self, copy: &RayRecord) -> bool {
         let id = copy.group;
-        let Some(slot) = self.slots.get_mut(id as usize) else {
+        let Some(slot) = self.slots.get_mut(id) else {
             return false;
         };
         let Some(group) = slot.as_mut().filter(|g| g.spent) else {
@@ -470,11 +501,14 @@ impl Groups {
 
     /// Drops waiting rays `keep` refuses (a fault restarted their tiles).
     pub fn retain(&mut self, mut keep: impl FnMut(&RayRecord) -> bool) {
-        for id in 0..self.slots.len() {
-            if self.slots[id].as_ref().is_some_and(|g| !keep(&g.ray)) {
+        for id in 0..self.slots.len() as u32 {
+            let Some(slot) = self.slots.get_mut(id) else {
+                continue;
+            };
+            if slot.as_ref().is_some_and(|g| !keep(&g.ray)) {
                 // A spent group's ray was counted out of its generation when it concluded.
-                let dropped = self.slots[id].take().filter(|g| !g.spent).map(|g| g.ray);
-                self.release(id as u32, &dropped);
+                let dropped = slot.take().filter(|g| !g.spent).map(|g| g.ray);
+                self.release(id, &dropped);
             }
         }
     }

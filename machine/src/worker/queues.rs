@@ -5,11 +5,15 @@
 //! The store is a trait so that the machine touches no file: the worker binary spills to
 //! local files, tests and the simulator to memory ([`MemorySpill`]).
 
+mod memory;
+
 use std::cmp::Reverse;
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::fmt;
 
 use rayfarm_core::ray::RayRecord;
+
+use memory::Parts;
 
 /// Bytes of one queued ray.
 pub const RAY_BYTES: u64 = std::mem::size_of::<RayRecord>() as u64;
@@ -83,7 +87,7 @@ pub struct DomainQueues<S> {
     /// Number of domains of the scene.
     domains: u32,
     /// Rays of each domain in memory (no empty entry).
-    mem: BTreeMap<u32, Vec<RayRecord>>,
+    mem: BTreeMap<u32, Parts>,
     /// Rays of each domain in the spill store (no zero entry).
     spilled: BTreeMap<u32, u64>,
     spill: S,
@@ -141,17 +145,17 @@ impl<S: RaySpill> DomainQueues<S> {
         (self.mem_rays * RAY_BYTES, self.spill_rays * RAY_BYTES)
     }
 
-    /// [`DomainQueues::push`] of a vector the caller gives up: when the domain's queue is
-    /// empty, nothing of it is spilled and it all fits in memory, the vector becomes the
-    /// queue as it is instead of being copied into a new one (routing hands every ray a
-    /// worker keeps to this, 2.3 M a frame on a predictive worker).
+    /// [`DomainQueues::push`] of a vector the caller gives up: when nothing of the domain's
+    /// queue is spilled and it all fits in memory, the vector joins the queue as it is
+    /// instead of being copied (routing hands every ray a worker keeps to this, 2.3 M a frame
+    /// on a predictive worker).
     pub fn push_owned(&mut self, domain: u32, rays: Vec<RayRecord>) -> Result<(), QueueError> {
         let before = self.len(domain);
         let room = self.mem_cap_rays.saturating_sub(self.mem_rays) as usize;
-        let pushed = if before == 0 && rays.len() <= room {
+        let pushed = if !self.spilled.contains_key(&domain) && rays.len() <= room {
             self.mem_rays += rays.len() as u64;
             if !rays.is_empty() {
-                self.mem.insert(domain, rays);
+                self.mem.entry(domain).or_default().push_owned(rays);
             }
             Ok(())
         } else {
@@ -178,10 +182,7 @@ impl<S: RaySpill> DomainQueues<S> {
             room.min(rays.len())
         };
         if in_memory > 0 {
-            self.mem
-                .entry(domain)
-                .or_default()
-                .extend_from_slice(&rays[..in_memory]);
+            self.mem.entry(domain).or_default().push(&rays[..in_memory]);
         }
         self.mem_rays += in_memory as u64;
         let rest = &rays[in_memory..];
@@ -212,8 +213,12 @@ impl<S: RaySpill> DomainQueues<S> {
 
     fn take_unindexed(&mut self, domain: u32, max: usize) -> Result<Vec<RayRecord>, QueueError> {
         let mut out = match self.mem.get_mut(&domain) {
-            Some(q) if q.len() > max => q.split_off(q.len() - max),
-            Some(_) => self.mem.remove(&domain).unwrap_or_default(),
+            Some(q) if q.len() > max => q.take_back(max),
+            Some(_) => self
+                .mem
+                .remove(&domain)
+                .map(|mut q| q.take_back(usize::MAX))
+                .unwrap_or_default(),
             None => Vec::new(),
         };
         self.mem_rays -= out.len() as u64;

@@ -120,13 +120,14 @@ impl Speculation {
         &mut self,
         verdicts: Vec<(u32, VerdictRecord)>,
     ) -> BTreeMap<String, Vec<VerdictRecord>> {
-        let mut out: BTreeMap<String, Vec<VerdictRecord>> = BTreeMap::new();
+        // By resolver key first: a peer's address is copied once, not once per verdict.
+        let mut by_key: BTreeMap<u32, Vec<VerdictRecord>> = BTreeMap::new();
         let mut mine = Vec::new();
         for (resolver, v) in verdicts {
             if resolver == self.me {
                 mine.push(v);
-            } else if let Some(peer) = self.roster.get(&resolver) {
-                out.entry(peer.clone()).or_default().push(v);
+            } else if self.roster.contains_key(&resolver) {
+                by_key.entry(resolver).or_default().push(v);
             } else if self.gone.contains(&resolver) {
                 self.refused += 1;
             } else {
@@ -134,6 +135,14 @@ impl Speculation {
             }
         }
         self.settle(&mine);
+        let mut out: BTreeMap<String, Vec<VerdictRecord>> = BTreeMap::new();
+        for (resolver, mut verdicts) in by_key {
+            // (Every key here is in the roster, looked up just above.)
+            if let Some(peer) = self.roster.get(&resolver) {
+                // Two keys of one address (a worker that re-registered) share its list.
+                out.entry(peer.clone()).or_default().append(&mut verdicts);
+            }
+        }
         out
     }
 

@@ -356,3 +356,49 @@ fn volume_rays_wait_for_every_copy() {
     assert_eq!(outcome.nearest.map(|h| h.order), Some(1));
     assert_eq!(groups.early, 0);
 }
+
+#[test]
+fn a_path_longer_than_the_record_holds_answers_as_a_short_one() {
+    // 70 places: the path on the heap, the answers as flags (past 64 places).
+    let domains: Vec<u32> = (0..70).map(|d| d * 3).collect();
+    let mut groups = Groups::default();
+    let copies = copies(&mut groups, ray(9), &domains);
+    assert_eq!(copies.len(), 70);
+    // A hit at place 2 decides nothing until places 0 and 1 are clear.
+    assert!(settle(&mut groups, &copies[2], hit(2, 1.0)).is_none());
+    assert!(settle(&mut groups, &copies[1], Verdict::Clear).is_none());
+    let (r, outcome) = settle(&mut groups, &copies[0], Verdict::Clear).unwrap();
+    assert_eq!((r.credit, outcome.nearest.map(|h| h.order)), (9, Some(2)));
+    // The 67 copies still out hold the id until they are skipped.
+    assert!(copies[3..].iter().all(|c| groups.skip(c)));
+    assert_eq!(groups.waiting(), 0);
+}
+
+#[test]
+fn many_waiting_rays_each_keep_their_own_group() {
+    // More rays than one chunk of slots holds, settled in the reverse order.
+    let mut groups = Groups::default();
+    let firsts: Vec<RayRecord> = (0..10_000u32)
+        .map(|i| {
+            let r = RayRecord {
+                pixel: i,
+                credit: u64::from(i) + 1,
+                ..RayRecord::zeroed()
+            };
+            spread(&mut groups, r, &[i % 7])
+        })
+        .collect();
+    assert_eq!(groups.waiting(), 10_000);
+    for (i, copy) in firsts.iter().enumerate().rev() {
+        let (r, _) = settle(&mut groups, copy, Verdict::Clear).unwrap();
+        assert_eq!((r.pixel, r.credit), (i as u32, i as u64 + 1));
+    }
+    assert_eq!(groups.waiting(), 0);
+}
+
+#[test]
+fn a_group_record_stays_small() {
+    // Settling a verdict is one random access into the groups (README "Benchmarks"): a
+    // group was 280 bytes and a path vector before this bound.
+    assert!(std::mem::size_of::<Option<Group>>() <= 232);
+}
