@@ -196,8 +196,8 @@ impl RunningFrame {
         // Every holder in the map is named in `Grants`: those a domain gained here, the others
         // when the map that first listed them was sent.
         let deltas = self.holder_changes(&changes, classes);
-        // The round's changes wait with what is pending for each class: the planned members
-        // take them now with their plans, the busy ones at the next flush.
+        // The round's changes wait with what is pending for each class: the members planned
+        // or touched here take some of them now (below), everyone the rest at the next flush.
         self.sent_holders.absorb(&deltas, self.round);
         // What a member planned or touched here is told with its plan or at once: when busy
         // members are told after every round (no interval), its class's pending lines, all of
