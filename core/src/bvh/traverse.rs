@@ -279,50 +279,44 @@ pub(super) fn prefetch_children(bvh: Bvh, node: &BvhNode, mut mask: u32) {
     }
 }
 
+/// Asks the cache for the four 64-byte lines from `base`, which need not point into anything
+/// (a prefetch never faults, the address is only a hint).
+#[inline(always)]
+fn prefetch_lines(base: *const i8) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
+        // SAFETY: a prefetch never faults; the address is only a hint.
+        unsafe {
+            _mm_prefetch::<_MM_HINT_T0>(base);
+            _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(64));
+            _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(128));
+            _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(192));
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = base;
+}
+
 /// Asks the cache for the four lines of node `index`, which need not exist (a prefetch of an
 /// address past the nodes is harmless).
 #[inline(always)]
 pub(super) fn prefetch_node(bvh: Bvh, index: usize) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
-        let base = bvh.nodes.as_ptr().wrapping_add(index).cast::<i8>();
-        // SAFETY: a prefetch never faults; the address is only a hint.
-        unsafe {
-            _mm_prefetch::<_MM_HINT_T0>(base);
-            _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(64));
-            _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(128));
-            _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(192));
-        }
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = (bvh, index);
+    prefetch_lines(bvh.nodes.as_ptr().wrapping_add(index).cast::<i8>());
 }
 
-/// Asks the cache for the node or first leaf block of the child in `slot`.
+/// Asks the cache for the node or first leaf block of the child in `slot`: four lines
+/// whatever the child, a node's four or a block's three and the first of the leaf's next
+/// block (no loop or branch on the kind).
 #[inline(always)]
 pub(super) fn prefetch_child(bvh: Bvh, node: &BvhNode, slot: usize) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
-        let (child, meta) = (node.child[slot] as usize, node.meta[slot]);
-        let base = if meta == SLOT_INNER {
-            bvh.nodes.as_ptr().wrapping_add(child).cast::<i8>()
-        } else {
-            bvh.blocks.as_ptr().wrapping_add(child).cast::<i8>()
-        };
-        // Four lines whatever the child: a node's four, or a block's three and the first of
-        // the leaf's next block; no loop or branch on the kind.
-        // SAFETY: a prefetch never faults; the address is only a hint.
-        unsafe {
-            _mm_prefetch::<_MM_HINT_T0>(base);
-            _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(64));
-            _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(128));
-            _mm_prefetch::<_MM_HINT_T0>(base.wrapping_add(192));
-        }
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = (bvh, node, slot);
+    let (child, meta) = (node.child[slot] as usize, node.meta[slot]);
+    let base = if meta == SLOT_INNER {
+        bvh.nodes.as_ptr().wrapping_add(child).cast::<i8>()
+    } else {
+        bvh.blocks.as_ptr().wrapping_add(child).cast::<i8>()
+    };
+    prefetch_lines(base);
 }
 
 /// Tests a leaf's blocks (`first` is the index of the first), keeping the nearest hit (ties
