@@ -235,11 +235,9 @@ impl RunningFrame {
             if planned.contains(&key) || !self.members.contains_key(&key) {
                 continue;
             }
-            let class = class_of(key, classes);
-            let synced = self.sent_holders.is_synced(key);
-            if synced && self.sent_holders.is_told(key, class) {
+            let Some((class, synced)) = self.owes_holders(key, classes) else {
                 continue;
-            }
+            };
             if let Some(h) = self.holders_message(class, classes, synced, &mut lines) {
                 out.push((key, msg(Body::Holders(h))));
             }
@@ -253,6 +251,14 @@ impl RunningFrame {
             self.sent_holders.mark_dirty();
         }
         out
+    }
+
+    /// Whether member `key` is owed a `Holders`: its view class and whether it holds a map
+    /// from the last flush on, unless it does and was told its class's pending lines already.
+    fn owes_holders(&self, key: u32, classes: u32) -> Option<(u32, bool)> {
+        let class = class_of(key, classes);
+        let synced = self.sent_holders.is_synced(key);
+        (!(synced && self.sent_holders.is_told(key, class))).then_some((class, synced))
     }
 
     /// The `Holders` for a member of view `class`: [`Self::lines_for`] (kept in `lines` for
@@ -315,11 +321,9 @@ impl RunningFrame {
         let mut out = Vec::new();
         let keys: Vec<u32> = self.members.keys().copied().collect();
         for key in keys {
-            let class = class_of(key, classes);
-            let synced = self.sent_holders.is_synced(key);
-            if synced && self.sent_holders.is_told(key, class) {
+            let Some((class, synced)) = self.owes_holders(key, classes) else {
                 continue;
-            }
+            };
             if let Some(h) = self.holders_message(class, classes, synced, &mut lines) {
                 out.push((key, msg(Body::Holders(h))));
             }
