@@ -27,8 +27,14 @@ fn ephemeral_start() -> u16 {
 /// out before by this process. Starts at a place set by the process id so parallel test
 /// processes rarely try the same ports.
 pub fn fixed_port() -> u16 {
-    let high = ephemeral_start().max(20_000);
-    let low = 10_000u16;
+    let high = ephemeral_start();
+    // Below the ephemeral range and above the well-known ports: from 10,000 up where the
+    // range leaves room.
+    let low = if high > 11_000 { 10_000 } else { 1_024 };
+    assert!(
+        high > low,
+        "the ephemeral range starts at {high}: no port below it to use"
+    );
     let span = u32::from(high - low);
     let start = std::process::id() * 97 % span;
     let mut given = GIVEN.lock().unwrap_or_else(|e| e.into_inner());
