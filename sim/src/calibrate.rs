@@ -11,15 +11,14 @@
 //! the rest fitted again (non-negative least squares by elimination).
 //!
 //! Planning: asynchronous rounds of the dynamic schedule (free cache slots filled, as the
-//! coordinator plans by default) over synthetic clusters of several sizes
-//! (`schedule::synthetic`, the planning benchmark's cluster), as the coordinator makes them
-//! (`round_index::RoundIndex`: the dry members' reports taken in, the dry members planned,
-//! the plans adopted and queued counts moved, the holders map rebuilt and diffed), timed on
-//! the thread's clock (the fastest of five). Incremental rounds (1, 8 or 64 members dry, the
-//! rest busy) are fitted as `round + planned x P + member x M + domain x D`: the incremental
-//! planner's cost follows the members it plans, not the cluster's size. Rounds with every
-//! member dry are planned from the whole cluster and fitted apart as
-//! `round + member x M + domain x D`.
+//! coordinator plans by default) timed on the real coordinator machine in its steady state at
+//! several sizes (`machine::coordinator::synthetic::SteadyFrame`, the machine's `rounds`
+//! benchmark's coordinator): the dry members' reports taken, then one round planned, as the
+//! coordinator shell and the simulator hand them over (thread clock, the median of several
+//! rounds). Incremental rounds (1, 8 or 64 members dry, the rest busy) are fitted as
+//! `round + planned x P + member x M + domain x D`: the incremental planner's cost follows the
+//! members it plans, not the cluster's size. Rounds with every member dry are planned from the
+//! whole cluster and fitted apart as `round + member x M + domain x D`.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -28,11 +27,7 @@ use bytes::Bytes;
 use rayfarm_core::bundler::Tier;
 use rayfarm_core::wire::{self, BatchLimits};
 
-use rayfarm_core::schedule::dynamic::Options;
-use rayfarm_core::schedule::round_index::RoundIndex;
-use rayfarm_core::schedule::rounds::current_holders;
-use rayfarm_core::schedule::synthetic::{DOMAIN_BYTES, members};
-use rayfarm_machine::coordinator::holders::SentHolders;
+use rayfarm_machine::coordinator::synthetic::SteadyFrame;
 
 use crate::cost::ComputeCost;
 use crate::faults::FaultPlan;
@@ -398,59 +393,38 @@ fn time_rounds() -> Vec<TimedRound> {
     out
 }
 
-/// The fastest of five rounds of `workers` members over `domains` domains with `dry` of them
-/// dry, planned as the coordinator plans an asynchronous round of the dynamic schedule
-/// (`RunningFrame::plan_dry_members`): the dry members' reports taken into the index, their
-/// plans drafted, adopted (queued rays moved to their holders), and the holders the plans
-/// changed taken from the index into the map last sent (`SentHolders::update_from_index`).
-/// Building and sending the messages is left out (the network prices those bytes).
+/// A round of `workers` members over `domains` domains with `dry` of them dry, as the real
+/// coordinator machine plans it (`machine::coordinator::synthetic::SteadyFrame`: the whole
+/// `Coordinator` in its steady state, every member planned once already): the `dry` members'
+/// reports taken (`Coordinator::take`), then one round planned (`Coordinator::plan`): the
+/// plans drafted and adopted, the holders' deltas by view class, the plan and holders
+/// messages made, tallies and progress. Thread CPU time, the median of several rounds (each
+/// plans other members, so they differ); with every member dry, one round from the whole
+/// cluster. The holders flush is kept out (an hour's interval): it is not a round.
 fn time_round(workers: u32, domains: u32, dry: u32) -> TimedRound {
-    let options = Options {
-        fill_free_slots: true,
-        ..Options::default()
-    };
-    let sizes = vec![DOMAIN_BYTES; domains as usize];
     let whole = dry >= workers;
-    let fresh = members(workers, domains, if whole { 0 } else { dry });
-    let best = (0..5)
+    let mut frame = SteadyFrame::new(workers, domains, Duration::from_secs(3600));
+    let repeats = match dry {
+        _ if whole => 1,
+        1 => 21,
+        2..=8 => 9,
+        _ => 5,
+    };
+    let mut times: Vec<u64> = (0..repeats)
         .map(|_| {
-            let mut members = fresh.clone();
-            let mut index = RoundIndex::new(domains, false);
-            let mut sent = SentHolders::default();
-            for (&k, m) in &members {
-                index.update(k, Some(m));
-            }
-            // One round untimed: the index's first adoption looks at every queue (all are new
-            // to it); from then on a round looks at what changed. With nobody dry it plans
-            // nothing and only the holders map is made.
-            let plans = index.dry_plans(&members, &sizes, options);
-            index.adopt(&mut members, &plans, 2);
-            sent.update_from_index(index.take_holder_changes(), || current_holders(&members));
-            // The members to time run dry now: their reports are of the latest round.
-            let planned: Vec<u32> = members.keys().copied().take(dry as usize).collect();
-            for k in &planned {
-                if let Some(r) = members.get_mut(k).and_then(|m| m.report.as_mut()) {
-                    r.round = 2;
-                }
-            }
+            let inputs: Vec<_> = (0..dry).map(|_| frame.next_report()).collect();
             let start = thread_cpu_ns();
-            for &k in &planned {
-                index.update(k, members.get(&k));
-            }
-            let plans = index.dry_plans(&members, &sizes, options);
-            std::hint::black_box(index.adopt(&mut members, &plans, 3));
-            let changes = index.take_holder_changes();
-            std::hint::black_box(sent.update_from_index(changes, || current_holders(&members)));
+            std::hint::black_box(frame.handle_all(inputs));
             thread_cpu_ns().saturating_sub(start)
         })
-        .min()
-        .unwrap_or(0);
+        .collect();
+    times.sort_unstable();
     TimedRound {
         members: workers as usize,
         domains: domains as usize,
         planned: dry.min(workers) as usize,
         whole,
-        ns: best as f64,
+        ns: times[times.len() / 2] as f64,
     }
 }
 

@@ -132,6 +132,9 @@ pub struct RoundIndex {
     holders: BTreeMap<u32, BTreeSet<u32>>,
     /// Domains whose holders changed since [`RoundIndex::take_holder_changes`] last ran.
     holders_changed: BTreeSet<u32>,
+    /// By member: the domains whose queued rays the last [`RoundIndex::adopt`] moved from it
+    /// to a holder (it must learn those holders at once).
+    moved: BTreeMap<u32, BTreeSet<u32>>,
     /// The largest of the `domain_bytes` [`RoundIndex::dry_plans`] is given (the frame's,
     /// the same every round), found at its first call: finding it every round walked every
     /// domain's size (8,192 at 256 workers, 3% of a dynamic run: perf, README "Simulator").
@@ -167,6 +170,7 @@ impl RoundIndex {
             newly_held: BTreeSet::new(),
             holders: BTreeMap::new(),
             holders_changed: BTreeSet::new(),
+            moved: BTreeMap::new(),
             largest: None,
         }
     }
@@ -348,6 +352,7 @@ impl RoundIndex {
             candidates.extend(self.queuers[d as usize].iter().map(|&k| (k, d)));
         }
         let mut changed = BTreeSet::new();
+        self.moved.clear();
         // Per new holder: domain -> (rays, oldest generation among them).
         let mut moved: BTreeMap<u32, BTreeMap<u32, (u64, Option<u32>)>> = BTreeMap::new();
         for (k, d) in candidates {
@@ -366,6 +371,7 @@ impl RoundIndex {
             let generation = report.oldest_generation.remove(&d);
             if let Some(n) = report.queued.remove(&d) {
                 changed.insert(k);
+                self.moved.entry(k).or_default().insert(d);
                 let entry = moved.entry(holder).or_default().entry(d).or_default();
                 entry.0 += n;
                 entry.1 = entry.1.into_iter().chain(generation).min();
@@ -373,6 +379,12 @@ impl RoundIndex {
         }
         changed.extend(deposit_moved(members, moved));
         changed
+    }
+
+    /// The domains whose queued rays the last [`RoundIndex::adopt`] moved from member `key`
+    /// to their holders.
+    pub fn moved_from(&self, key: u32) -> Option<&BTreeSet<u32>> {
+        self.moved.get(&key)
     }
 
     /// Wanted domains nobody holds, fullest first (Fig. 5's `to_assign` as it stands now):

@@ -202,6 +202,11 @@ pub struct RunningFrame {
     /// same film (see [`RunningFrame::next_subframe`]).
     subframes: Vec<Samples>,
     pub subframe: usize,
+    /// Whether a report taken since the last round asks for one (`plan_asked`).
+    round_asked: bool,
+    /// Segments the members reported in this subframe, summed (kept as results come, so the
+    /// progress published after every round does not walk the members).
+    segments_now: u64,
     /// Rounds planned, and segments members reported, in the subframes committed before.
     rounds_before: u64,
     segments_before: u64,
@@ -269,6 +274,8 @@ impl RunningFrame {
             refused_results: 0,
             subframes,
             subframe: 0,
+            round_asked: false,
+            segments_now: 0,
             rounds_before: 0,
             segments_before: 0,
         })
@@ -400,6 +407,7 @@ impl RunningFrame {
     /// part, and no messages if no member is left (the caller decides the job's fate).
     pub fn lose(&mut self, key: u32) -> Option<Vec<Outgoing>> {
         let lost = self.members.remove(&key)?;
+        self.segments_now -= lost.segments;
         self.sent_holders.forget(key);
         self.touch(key);
         if self.members.is_empty() {
@@ -460,10 +468,21 @@ impl RunningFrame {
         }))
     }
 
-    /// Records a queue report; under the dynamic schedule, returns the next round's plans
-    /// when every worker has finished the current round and some ray is queued somewhere.
-    /// The static schedules decide once and never plan again.
+    /// Records a queue report and plans the round it asks for at once: [`Self::take_report`]
+    /// then [`Self::plan_asked`], for a caller that hands the frame one report at a time.
     pub fn report(&mut self, key: u32, report: proto::QueueReport) -> Vec<Outgoing> {
+        let mut out = self.take_report(key, report);
+        out.extend(self.plan_asked());
+        out
+    }
+
+    /// Records a queue report; what it asks of the rounds waits for [`Self::plan_asked`], so
+    /// the reports a busy coordinator received meanwhile are planned in one round (under
+    /// asynchronous rounds, every member that ran dry among them is drafted together, as
+    /// `RoundIndex::dry_plans` plans any number of dry members). Returns what does not wait:
+    /// the hybrid schedule's demand-driven tiles and task requests. The static schedules
+    /// decide once and never plan again.
+    pub fn take_report(&mut self, key: u32, report: proto::QueueReport) -> Vec<Outgoing> {
         let Some(member) = self.members.get_mut(&key) else {
             return Vec::new();
         };
@@ -472,18 +491,28 @@ impl RunningFrame {
         member.reported = true;
         self.touch(key);
         match self.schedule {
-            Schedule::Dynamic | Schedule::Predictive | Schedule::Unspecified => match self.rounds {
-                Rounds::Barrier => self.plan_if_round_over(),
-                Rounds::Async => self.plan_dry_members(),
-            },
+            Schedule::Dynamic | Schedule::Predictive | Schedule::Unspecified => {
+                self.round_asked = true;
+                Vec::new()
+            }
             Schedule::Hybrid => {
-                let mut out = self.demand_driven(key, queued);
-                if self.hybrid_rounds {
-                    out.extend(self.plan_dry_members());
-                }
-                out
+                self.round_asked |= self.hybrid_rounds;
+                self.demand_driven(key, queued)
             }
             _ => Vec::new(),
+        }
+    }
+
+    /// Plans the round the reports taken since the last one ask for, if any: under barrier
+    /// rounds the next round when every member has finished the current one and some ray is
+    /// queued somewhere, under asynchronous rounds every member that ran dry.
+    pub fn plan_asked(&mut self) -> Vec<Outgoing> {
+        if !std::mem::take(&mut self.round_asked) {
+            return Vec::new();
+        }
+        match self.rounds {
+            Rounds::Barrier if self.schedule != Schedule::Hybrid => self.plan_if_round_over(),
+            _ => self.plan_dry_members(),
         }
     }
 
@@ -569,7 +598,9 @@ impl RunningFrame {
         results: proto::TileResults,
     ) -> (Vec<CommittedTile>, Option<String>) {
         if let Some(m) = self.members.get_mut(&key) {
-            m.segments = m.segments.max(results.segments_traced);
+            let now = m.segments.max(results.segments_traced);
+            self.segments_now += now - m.segments;
+            m.segments = now;
         }
         let mut committed = Vec::new();
         for r in results.results {
@@ -606,8 +637,7 @@ impl RunningFrame {
         let done = self.ledger.tiles_done();
         let total = self.ledger.grid().count();
         let elapsed = now.since(self.started).as_secs_f64();
-        let segments: u64 =
-            self.segments_before + self.members.values().map(|m| m.segments).sum::<u64>();
+        let segments = self.segments_before + self.segments_now;
         let samples = self.samples();
         let spp = f64::from(self.frame.spp.max(1));
         let fraction = (f64::from(samples.first)

@@ -9,6 +9,8 @@
 //! members were last told of the domains' holders (`holders`), and the hybrid schedule's
 //! demand-driven tasks: which busy worker is asked to feed which idle one (`tasks`). The process
 //! shell (`rayfarm-coordinator`) and the simulator feed it events and carry out its actions.
+//! `synthetic` is a coordinator at scale in its steady state, for timing its rounds (the
+//! simulator's calibration and this crate's `rounds` benchmark).
 
 pub mod accusations;
 pub mod cluster;
@@ -16,6 +18,7 @@ pub mod frame;
 pub mod grants;
 pub mod holders;
 pub mod queue;
+pub mod synthetic;
 pub mod tasks;
 
 pub use accusations::{Accusations, Verdict};

@@ -87,6 +87,8 @@ impl RunningFrame {
             .starting_at(floor);
         self.rounds_before += self.round;
         self.round = 0;
+        // A report of the subframe before asks nothing of this one.
+        self.round_asked = false;
         self.grants = Grants::new(grid.count());
         self.hand_outs = HandOuts::default();
         self.tasks = super::TaskDirections::default();
@@ -101,6 +103,7 @@ impl RunningFrame {
             .into_iter()
             .map(|(k, m)| {
                 self.segments_before += m.segments;
+                self.segments_now -= m.segments;
                 (k, Member::new(m.peer_address, m.rounds.cache_bytes))
             })
             .collect();

@@ -158,3 +158,53 @@ fn a_run_without_faults_reports_no_peer_unresponsive_under_bursts_of_bundles() {
         "peers reported unresponsive in a clean run"
     );
 }
+
+/// A coordinator whose every round takes 5 ms of virtual time is busy when most reports
+/// arrive: they wait, and the reports that arrived meanwhile are planned in one round, so
+/// there are fewer rounds than reports; the image is the one a coordinator that plans for
+/// nothing makes.
+#[test]
+fn reports_that_reach_a_busy_coordinator_are_planned_together() {
+    let root = tempfile::tempdir().unwrap();
+    let dir = root.path().join("nb");
+    let options = NbodyOptions {
+        name: "nb".into(),
+        triangles: 6000,
+        seed: 5,
+        domains: 16,
+        max_memory: None,
+        force: false,
+    };
+    prepare_nbody(&dir, &options).unwrap();
+    let manifest = Manifest::load(&dir).unwrap();
+    let largest = manifest.domains.iter().map(|d| d.bytes).max().unwrap();
+    let scene = Arc::new(Scene::new(dir.to_path_buf(), manifest));
+    let hour = Duration::from_secs(3600);
+    let mut config = four_workers(&dir, Schedule::Dynamic, largest * 3);
+    config.cost.compute.round_ns = 0.0;
+    config.cost.compute.round_planned_ns = 0.0;
+    config.cost.compute.round_domain_ns = 0.0;
+    config.cost.compute.whole_round_member_ns = 0.0;
+    config.cost.compute.whole_round_domain_ns = 0.0;
+    let free = simulate(&config, scene.clone(), &FaultPlan::clean(), hour, None).unwrap();
+    assert!(free.violations.is_empty(), "{:?}", free.violations);
+    assert_eq!(free.most_reports_at_once, 1);
+    config.cost.compute.round_ns = 5e6;
+    config.cost.compute.whole_round_ns = 5e6;
+    let busy = simulate(&config, scene, &FaultPlan::clean(), hour, None).unwrap();
+    assert!(busy.violations.is_empty(), "{:?}", busy.violations);
+    assert_eq!(busy.image_hash, free.image_hash);
+    assert!(
+        busy.most_reports_at_once > 1,
+        "{}",
+        busy.most_reports_at_once
+    );
+    assert!(
+        busy.rounds < busy.reports_taken,
+        "{} rounds for {} reports",
+        busy.rounds,
+        busy.reports_taken
+    );
+    // Busy time is the rounds' price: at most one round at a time, never more than the frame.
+    assert!(busy.coordinator_busy <= busy.frame_time.unwrap());
+}

@@ -332,6 +332,8 @@ pub struct Coordinator {
     finished: VecDeque<(String, u64)>,
     /// Jobs finished in each state since the store began: succeeded, failed, cancelled.
     ended: [u64; 3],
+    /// Whether a queue report was taken since the last [`Coordinator::plan`].
+    reports_taken: bool,
 }
 
 /// Whether a job in `state` has ended (succeeded, failed or cancelled): it never changes
@@ -365,6 +367,7 @@ impl Coordinator {
             lost: VecDeque::new(),
             finished: VecDeque::new(),
             ended: [0; 3],
+            reports_taken: false,
         }
     }
 
@@ -372,8 +375,19 @@ impl Coordinator {
         &self.config
     }
 
-    /// Handles one event at `now`.
+    /// Handles one event at `now`: [`Coordinator::take`] then [`Coordinator::plan`].
     pub fn handle(&mut self, now: Time, input: Input) -> Vec<Action> {
+        let mut out = self.take(now, input);
+        out.extend(self.plan(now));
+        out
+    }
+
+    /// Takes one event at `now` without planning the round its reports ask for: a shell that
+    /// has several inputs at hand (a busy coordinator's, received while it planned) takes them
+    /// all, then calls [`Coordinator::plan`] once, so one round plans every member that ran
+    /// dry among them. Planning each report apart cost 1.74 M rounds over a 1,024-worker
+    /// frame, the coordinator busy 39% of it (README "Simulator").
+    pub fn take(&mut self, now: Time, input: Input) -> Vec<Action> {
         let mut out = Vec::new();
         match input {
             Input::WorkerMessage { key, body } => self.worker_message(now, key, body, &mut out),
@@ -387,6 +401,22 @@ impl Coordinator {
             }
             Input::Fail { job_id, error } => self.fail_job(now, &job_id, &error, &mut out),
             Input::ShutDown => self.shut_down(&mut out),
+        }
+        out
+    }
+
+    /// Plans the round the reports taken since the last asked for (one round, whatever their
+    /// number), publishes the progress they brought, and sends the holders flush if it is due.
+    pub fn plan(&mut self, now: Time) -> Vec<Action> {
+        let mut out = Vec::new();
+        if std::mem::take(&mut self.reports_taken)
+            && let Some(f) = self.running.as_mut()
+        {
+            let before = f.planning;
+            let plans = f.plan_asked();
+            workers::tally_rounds(f, &before, &mut out);
+            self.send(plans, &mut out);
+            self.publish_progress(now, &mut out);
         }
         self.flush_holders(now, &mut out);
         out

@@ -133,11 +133,11 @@ impl Coordinator {
             FromWorker::QueueReport(r) => {
                 worker.last_report = Some(r.clone());
                 if let Some(f) = self.running.as_mut().filter(|f| f.frame_id() == r.job_id) {
-                    let before = f.planning;
-                    let plans = f.report(key, r);
-                    tally_rounds(f, &before, out);
-                    self.send(plans, out);
-                    self.publish_progress(now, out);
+                    // The round it asks for is planned once the inputs at hand are taken
+                    // (`Coordinator::plan`), with every other report among them.
+                    let messages = f.take_report(key, r);
+                    self.send(messages, out);
+                    self.reports_taken = true;
                 }
             }
             FromWorker::TasksShared(t) => {
