@@ -26,18 +26,6 @@ use rayfarm_proto::{self as proto, JobState, worker_message::Body as FromWorker}
 use crate::cost::CostModel;
 use crate::net::NodeId;
 
-/// What reached the coordinator while it was busy planning, waiting to be taken.
-pub enum Arrival {
-    /// A worker on a node registers on its stream.
-    Register(NodeId, u64, proto::Register),
-    /// A message of the worker on a node, on its stream.
-    Message(NodeId, u64, FromWorker),
-    /// A node's stream ended.
-    Gone(NodeId, u64),
-    /// The coordinator's periodic work.
-    Tick,
-}
-
 /// What the coordinator does to a worker's node.
 pub enum ToNode {
     /// A message on its control stream `conn`.
@@ -119,13 +107,8 @@ pub struct SimCoordinator {
     /// Virtual time spent planning, over every process.
     pub busy: Duration,
     /// When the process is done planning what it was given so far: what it sends leaves
-    /// then, and what reaches it before waits (`inbox`).
+    /// then.
     pub free_at: Time,
-    /// What reached the process while it was busy, in order.
-    inbox: VecDeque<Arrival>,
-    /// Queue reports taken, and the most taken at once (before one round planned them).
-    pub reports_taken: u64,
-    pub most_reports_at_once: u64,
 }
 
 impl SimCoordinator {
@@ -148,9 +131,6 @@ impl SimCoordinator {
             rounds: 0,
             busy: Duration::ZERO,
             free_at: Time(0),
-            inbox: VecDeque::new(),
-            reports_taken: 0,
-            most_reports_at_once: 0,
         };
         c.start(Time(0));
         Ok(c)
@@ -199,9 +179,8 @@ impl SimCoordinator {
     /// of its workers end.
     pub fn crash(&mut self) -> Vec<(NodeId, u64)> {
         self.disk.pending.clear();
-        // Its planning dies with it, and what waited for it.
+        // Its planning dies with it.
         self.free_at = Time(0);
-        self.inbox.clear();
         self.process
             .take()
             .map(|p| p.nodes.into_values().collect())
@@ -254,75 +233,6 @@ impl SimCoordinator {
         };
         let actions = p.machine.handle(now, input);
         self.carry_out(now, actions)
-    }
-
-    /// Whether what reaches the coordinator at `now` must wait: it is still planning, or
-    /// things that reached it before wait already (they are handled in order).
-    pub fn is_busy(&self, now: Time) -> bool {
-        self.process.is_some() && (now < self.free_at || !self.inbox.is_empty())
-    }
-
-    /// `arrival` waits until the coordinator is done with what it planned: returns when it
-    /// will be taken if it is the first to wait (the caller schedules [`Self::take_waiting`]).
-    pub fn wait(&mut self, arrival: Arrival) -> Option<Time> {
-        self.inbox.push_back(arrival);
-        (self.inbox.len() == 1).then_some(self.free_at)
-    }
-
-    /// The coordinator is free at `now`: it takes everything that reached it while it was
-    /// busy, in order, then plans once (`Coordinator::take`, `Coordinator::plan`), as the
-    /// shell's inbox does (`rayfarm-coordinator`'s `State::worker_message`): the members
-    /// that ran dry meanwhile are planned in one round. Returns when to call again instead if
-    /// the coordinator is busy until later (a job record's answer planned meanwhile).
-    pub fn take_waiting(&mut self, now: Time) -> Result<Vec<ToNode>, Time> {
-        if now < self.free_at && !self.inbox.is_empty() {
-            return Err(self.free_at);
-        }
-        let mut out = Vec::new();
-        let waiting = std::mem::take(&mut self.inbox);
-        let reports = waiting
-            .iter()
-            .filter(|a| matches!(a, Arrival::Message(_, _, FromWorker::QueueReport(_))))
-            .count() as u64;
-        self.reports_taken += reports;
-        self.most_reports_at_once = self.most_reports_at_once.max(reports);
-        for arrival in waiting {
-            let input = match arrival {
-                Arrival::Register(node, conn, r) => {
-                    out.extend(self.register(now, node, conn, r));
-                    continue;
-                }
-                Arrival::Message(node, conn, body) => {
-                    let Some(key) = self.key_of(node, conn) else {
-                        continue;
-                    };
-                    if let FromWorker::FrameReport(r) = &body
-                        && !r.error.is_empty()
-                    {
-                        self.problems.push(r.error.clone());
-                    }
-                    Input::WorkerMessage { key, body }
-                }
-                Arrival::Gone(node, conn) => match self.key_of(node, conn) {
-                    Some(key) => Input::WorkerGone {
-                        key,
-                        why: "stream closed".into(),
-                    },
-                    None => continue,
-                },
-                Arrival::Tick => Input::Tick,
-            };
-            let Some(p) = self.process.as_mut() else {
-                break;
-            };
-            let actions = p.machine.take(now, input);
-            out.extend(self.carry_out(now, actions));
-        }
-        if let Some(p) = self.process.as_mut() {
-            let actions = p.machine.plan(now);
-            out.extend(self.carry_out(now, actions));
-        }
-        Ok(out)
     }
 
     /// A worker on `node` registers on its stream `conn`.
@@ -398,10 +308,6 @@ impl SimCoordinator {
         let Some(key) = self.key_of(node, conn) else {
             return Vec::new();
         };
-        if matches!(body, FromWorker::QueueReport(_)) {
-            self.reports_taken += 1;
-            self.most_reports_at_once = self.most_reports_at_once.max(1);
-        }
         if let FromWorker::FrameReport(r) = &body
             && !r.error.is_empty()
         {

@@ -139,12 +139,6 @@ impl JobPage {
 pub struct Coordinator {
     config: Config,
     state: Mutex<State>,
-    /// Workers' messages waiting for the state's lock, in the order they came. Whoever takes
-    /// the lock takes every message here, then has the machine plan once
-    /// (`Coordinator::worker_message`): the reports that came while a round was planned make
-    /// one round together, not one round each. It holds at most one message a worker
-    /// stream: a stream's task waits for the lock after each message it puts here.
-    inbox: Mutex<Vec<(u32, FromWorker)>>,
     /// Reads finished jobs' records (their statistics) outside the state's lock.
     store: Reader,
 }
@@ -233,7 +227,6 @@ impl Coordinator {
         Ok(Arc::new(Coordinator {
             config,
             state: Mutex::new(st),
-            inbox: Mutex::new(Vec::new()),
             store,
         }))
     }

@@ -97,36 +97,15 @@ impl Coordinator {
         Ok(key)
     }
 
-    /// Handles a message of a registered worker: it waits in the inbox for the state's lock,
-    /// and whoever holds the lock next takes every message waiting there, in order, then has
-    /// the machine plan once (`Machine::take`, `Machine::plan`). While one round is planned,
-    /// the reports of the members that run dry meanwhile gather in the inbox and are planned
-    /// together by the next holder of the lock (the simulator models the same, README
-    /// "Simulator"). A caller that finds the inbox emptied by another returns at once.
+    /// Handles one message of a registered worker.
     pub fn worker_message(self: &Arc<Self>, key: u32, mut body: FromWorker) {
         if let FromWorker::PeerUnresponsive(p) = &mut body {
             // Logged and kept by the machine: at most a field's bounds of either.
             p.peer_address = shown(&p.peer_address).to_string();
             p.reason = shown(&p.reason).to_string();
         }
-        self.inbox_lock().push((key, body));
         let mut st = self.lock();
-        let waiting = std::mem::take(&mut *self.inbox_lock());
-        if waiting.is_empty() {
-            return;
-        }
-        let began = Instant::now();
-        let mut actions = Vec::new();
-        for (key, body) in waiting {
-            actions.extend(st.machine.take(now(), Input::WorkerMessage { key, body }));
-        }
-        actions.extend(st.machine.plan(now()));
-        self.carry_out(&mut st, actions, began);
-    }
-
-    fn inbox_lock(&self) -> std::sync::MutexGuard<'_, Vec<(u32, FromWorker)>> {
-        // A push or a take cannot panic half done; a poisoned inbox is still whole.
-        self.inbox.lock().unwrap_or_else(|p| p.into_inner())
+        self.feed(&mut st, Input::WorkerMessage { key, body });
     }
 
     /// Forgets a worker whose stream ended.

@@ -140,8 +140,6 @@ enum Ev {
         node: NodeId,
     },
     CoordTick,
-    /// The coordinator is done planning: what reached it meanwhile is taken now.
-    CoordFree,
     Kill {
         node: NodeId,
     },
@@ -498,11 +496,11 @@ impl World<'_> {
                     .push(self.now + self.config.heartbeat, Ev::Heartbeat { node });
             }
             Ev::CoordTick => {
-                self.coordinator_tick();
+                let out = self.coord.tick(self.now);
+                self.carry_out(out);
                 self.heap
                     .push(self.now + self.config.heartbeat / 4, Ev::CoordTick);
             }
-            Ev::CoordFree => self.coordinator_free(),
             Ev::Kill { node } => self.kill(node),
             Ev::Join => {
                 // A failure to make a worker is a simulator bug; the run goes on without it.
@@ -542,8 +540,6 @@ impl World<'_> {
         o.frame_time = self.coord.completed_at.map(|t| t.since(Time(0)));
         o.frames = self.coord.frames;
         o.coordinator_busy = self.coord.busy;
-        o.reports_taken = self.coord.reports_taken;
-        o.most_reports_at_once = self.coord.most_reports_at_once;
         o.storage_bytes = self.storage.bytes;
         for w in self.workers.iter().flatten() {
             let c = w.cache_counters();

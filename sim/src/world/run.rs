@@ -103,10 +103,6 @@ pub struct Outcome {
     pub violations: Vec<Violation>,
     /// Virtual time the coordinator spent planning.
     pub coordinator_busy: Duration,
-    /// Queue reports the coordinator took, and the most it took at once (those that reached
-    /// it while it planned wait, and are planned in one round, `coord::Arrival`).
-    pub reports_taken: u64,
-    pub most_reports_at_once: u64,
     /// Bytes the storage was charged for.
     pub storage_bytes: u64,
     /// Every pass that loaded nothing, with the CPU time it took here, when measured.
