@@ -198,6 +198,7 @@ impl TaskDirections {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use proptest::prelude::*;
 
     fn dir(donor: u32, receiver: u32) -> Direction {
         Direction { donor, receiver }
@@ -287,5 +288,184 @@ mod tests {
         // 4,095 reports more: it is ranked again, and the next worker to run dry asks it.
         t.busy(4_095, 5_000);
         assert_eq!(t.ran_dry(0), Some(dir(4_095, 0)));
+    }
+
+    /// The decision as it was before the donor index (issue 17), kept as the reference the
+    /// index must agree with: it scans every member for every idle worker.
+    #[derive(Default)]
+    struct Scanning {
+        idle: BTreeMap<u32, BTreeSet<u32>>,
+        asked: BTreeMap<u32, u32>,
+        queued: BTreeMap<u32, u64>,
+        requests: u64,
+        rays_moved: u64,
+    }
+
+    impl Scanning {
+        fn ran_dry(&mut self, key: u32, members: &BTreeSet<u32>) -> Option<Direction> {
+            self.queued.insert(key, 0);
+            self.idle.entry(key).or_default().clear();
+            if self.asked.values().any(|&r| r == key) {
+                return None;
+            }
+            self.next_for(key, members)
+        }
+
+        fn busy(&mut self, key: u32, queued: u64) {
+            self.queued.insert(key, queued);
+            if queued > 0 {
+                self.idle.remove(&key);
+            }
+        }
+
+        fn answered(
+            &mut self,
+            donor: u32,
+            rays: u64,
+            queued: u64,
+            members: &BTreeSet<u32>,
+        ) -> Vec<Direction> {
+            self.queued.insert(donor, queued);
+            self.rays_moved += rays;
+            let Some(receiver) = self.asked.remove(&donor) else {
+                return Vec::new();
+            };
+            if rays > 0 {
+                self.idle.remove(&receiver);
+            }
+            let waiting: Vec<u32> = self.idle.keys().copied().collect();
+            waiting
+                .into_iter()
+                .filter_map(|r| self.next_for(r, members))
+                .collect()
+        }
+
+        fn lose(&mut self, key: u32) {
+            self.idle.remove(&key);
+            self.queued.remove(&key);
+            self.asked.remove(&key);
+            self.asked.retain(|_, r| *r != key);
+        }
+
+        fn next_for(&mut self, receiver: u32, members: &BTreeSet<u32>) -> Option<Direction> {
+            if self.asked.values().any(|&r| r == receiver) {
+                return None;
+            }
+            let tried = self.idle.get(&receiver)?;
+            let donor = members
+                .iter()
+                .copied()
+                .filter(|d| {
+                    *d != receiver
+                        && !self.idle.contains_key(d)
+                        && !self.asked.contains_key(d)
+                        && !tried.contains(d)
+                })
+                .map(|d| (d, self.queued.get(&d).copied().unwrap_or(MIN_QUEUED)))
+                .filter(|&(_, q)| q >= MIN_QUEUED)
+                .max_by_key(|&(d, q)| (q, std::cmp::Reverse(d)))?
+                .0;
+            self.idle.entry(receiver).or_default().insert(donor);
+            self.asked.insert(donor, receiver);
+            self.requests += 1;
+            Some(Direction { donor, receiver })
+        }
+    }
+
+    /// What happens to the frame's workers, as the frame tells `TaskDirections`.
+    #[derive(Clone, Debug)]
+    enum Event {
+        Joined(u32),
+        RanDry(u32),
+        Busy(u32, u64),
+        Answered(u32, u64, u64),
+        Lose(u32),
+    }
+
+    /// Queued rays around [`MIN_QUEUED`] and a few repeated values, so ties and the
+    /// threshold are hit often.
+    fn queued() -> impl Strategy<Value = u64> {
+        prop_oneof![
+            Just(0),
+            Just(10),
+            Just(MIN_QUEUED - 1),
+            Just(MIN_QUEUED),
+            Just(MIN_QUEUED + 1),
+            Just(50_000),
+            Just(90_000),
+            0..200_000u64,
+        ]
+    }
+
+    fn event(keys: u32) -> impl Strategy<Value = Event> {
+        let key = 0..keys;
+        prop_oneof![
+            1 => key.clone().prop_map(Event::Joined),
+            4 => key.clone().prop_map(Event::RanDry),
+            3 => (key.clone(), queued()).prop_map(|(k, q)| Event::Busy(k, q)),
+            4 => (key.clone(), prop_oneof![Just(0), 1..70_000u64], queued())
+                .prop_map(|(k, r, q)| Event::Answered(k, r, q)),
+            1 => key.prop_map(Event::Lose),
+        ]
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(2_000))]
+
+        /// The index gives exactly the directions the scan gave, whatever happens in
+        /// whatever order, and its ranking always matches its state.
+        #[test]
+        fn the_donor_index_directs_as_the_scan_did(
+            start in 0..12u32,
+            events in prop::collection::vec(event(12), 0..200),
+        ) {
+            let mut members: BTreeSet<u32> = (0..start).collect();
+            let mut index = with_members(start);
+            let mut scan = Scanning::default();
+            for e in events {
+                match e {
+                    Event::Joined(k) => {
+                        members.insert(k);
+                        index.joined(k);
+                    }
+                    Event::RanDry(k) => {
+                        prop_assert_eq!(index.ran_dry(k), scan.ran_dry(k, &members), "{:?}", e);
+                    }
+                    Event::Busy(k, q) => {
+                        index.busy(k, q);
+                        scan.busy(k, q);
+                    }
+                    Event::Answered(k, r, q) => {
+                        prop_assert_eq!(
+                            index.answered(k, r, q),
+                            scan.answered(k, r, q, &members),
+                            "{:?}",
+                            e
+                        );
+                    }
+                    Event::Lose(k) => {
+                        members.remove(&k);
+                        index.lose(k);
+                        scan.lose(k);
+                    }
+                }
+                prop_assert_eq!(
+                    (index.requests, index.rays_moved),
+                    (scan.requests, scan.rays_moved)
+                );
+                prop_assert_eq!(&index.asked, &scan.asked);
+                let serving: BTreeMap<u32, u32> =
+                    index.asked.iter().map(|(&d, &r)| (r, d)).collect();
+                prop_assert_eq!(&index.serving, &serving);
+                let ranked: BTreeSet<(Reverse<u64>, u32)> = members
+                    .iter()
+                    .copied()
+                    .filter(|d| !index.idle.contains_key(d) && !index.asked.contains_key(d))
+                    .map(|d| (Reverse(index.queued.get(&d).copied().unwrap_or(MIN_QUEUED)), d))
+                    .filter(|&(Reverse(q), _)| q >= MIN_QUEUED)
+                    .collect();
+                prop_assert_eq!(&index.ranked, &ranked);
+            }
+        }
     }
 }
