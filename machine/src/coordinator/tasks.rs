@@ -397,6 +397,8 @@ mod tests {
         ]
     }
 
+    /// One event about one of workers `0..keys`, members or not (the index must agree with
+    /// the scan whatever it is told).
     fn event(keys: u32) -> impl Strategy<Value = Event> {
         let key = 0..keys;
         prop_oneof![
