@@ -11,6 +11,7 @@
 //! machines the frames before left them.
 
 use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::sync::Arc;
 use std::time::Duration;
 
 use rayfarm_core::render::Film;
@@ -28,8 +29,10 @@ use crate::net::NodeId;
 
 /// What the coordinator does to a worker's node.
 pub enum ToNode {
-    /// A message on its control stream `conn`.
-    Send(NodeId, u64, Box<proto::CoordinatorMessage>),
+    /// A message on its control stream `conn`: shared with the other members told the same
+    /// (a holders flush makes one message per view class); each member's copy still costs
+    /// the coordinator's NIC its bytes (`World::transmit`).
+    Send(NodeId, u64, Arc<proto::CoordinatorMessage>),
     /// Its control stream `conn` is closed (it was dropped, refused, or the coordinator died).
     Close(NodeId, u64),
 }
@@ -348,7 +351,7 @@ impl SimCoordinator {
             let answer = match action {
                 Action::Send((key, m)) => {
                     if let Some(&(node, conn)) = p.nodes.get(&key) {
-                        out.push(ToNode::Send(node, conn, Box::new(m)));
+                        out.push(ToNode::Send(node, conn, m));
                     }
                     None
                 }

@@ -21,8 +21,8 @@ use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::schedule::dynamic::Options;
 use rayfarm_proto::{self as proto, JobState, worker_message::Body as FromWorker};
 
-pub use super::frame::PlanningWork;
 use super::frame::{CommittedTile, Outgoing, Rounds, RunningFrame};
+pub use super::frame::{FlushWork, PlanningWork};
 use super::queue::JobQueue;
 use crate::Time;
 
@@ -189,6 +189,9 @@ pub struct OpenedFrame {
 pub enum Tally {
     /// Rounds planned, with what they planned (the time the event took is planning time).
     Rounds(PlanningWork),
+    /// A holders flush made, with what it walked and made (`FlushWork`): the coordinator's
+    /// time too, priced apart from the rounds by the simulator.
+    HoldersFlushed(FlushWork),
     TilesCommitted(u64),
     /// A subframe of a frame committed (a one-pass frame is one subframe).
     SubframeCommitted,
@@ -429,7 +432,12 @@ impl Coordinator {
         let Some(frame) = self.running.as_mut() else {
             return;
         };
+        let before = frame.flushing;
         let messages = frame.flush_holders(now);
+        let work = frame.flushing.since(&before);
+        if work.flushes > 0 {
+            out.push(Action::Tally(Tally::HoldersFlushed(work)));
+        }
         if !messages.is_empty() {
             self.send(messages, out);
         }
