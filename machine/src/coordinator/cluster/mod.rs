@@ -411,6 +411,15 @@ impl Coordinator {
     /// Plans the round the reports taken since the last asked for (one round, whatever their
     /// number), publishes the progress they brought, and sends the holders flush if it is due.
     pub fn plan(&mut self, now: Time) -> Vec<Action> {
+        let mut out = self.plan_round(now);
+        out.extend(self.flush(now));
+        out
+    }
+
+    /// [`Coordinator::plan`] without the holders flush (then [`Coordinator::flush`]): for
+    /// timing rounds and flushes apart (`synthetic::SteadyFrame::handle_round`, which `rayfarm
+    /// sim calibrate` prices flushes by).
+    pub fn plan_round(&mut self, now: Time) -> Vec<Action> {
         let mut out = Vec::new();
         if std::mem::take(&mut self.reports_taken)
             && let Some(f) = self.running.as_mut()
@@ -421,6 +430,13 @@ impl Coordinator {
             self.send(plans, &mut out);
             self.publish_progress(now, &mut out);
         }
+        out
+    }
+
+    /// The running frame's holders flush, if it is due at `now` (what [`Coordinator::plan`]
+    /// does after the round).
+    pub fn flush(&mut self, now: Time) -> Vec<Action> {
+        let mut out = Vec::new();
         self.flush_holders(now, &mut out);
         out
     }
