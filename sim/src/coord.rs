@@ -51,7 +51,7 @@ pub struct CoordConfig {
     pub holders_interval: Duration,
     /// How long one record takes to reach the disk.
     pub disk_latency: Duration,
-    /// What its planning rounds cost.
+    /// What its planning rounds and holders flushes cost.
     pub cost: CostModel,
 }
 
@@ -107,7 +107,7 @@ pub struct SimCoordinator {
     pub problems: Vec<String>,
     /// Rounds planned over every frame.
     pub rounds: u64,
-    /// Virtual time spent planning, over every process.
+    /// Virtual time spent planning rounds and flushing holders, over every process.
     pub busy: Duration,
     /// When the process is done planning what it was given so far: what it sends leaves
     /// then.
@@ -440,6 +440,14 @@ impl SimCoordinator {
                         .config
                         .cost
                         .planning(&work, self.config.domain_bytes.len());
+                    self.busy += took;
+                    self.free_at = self.free_at.max(now) + took;
+                    None
+                }
+                Action::Tally(Tally::HoldersFlushed(work)) => {
+                    // The coordinator's time as a round's: busy, and what it sends after
+                    // leaves when it is done.
+                    let took = self.config.cost.flushing(&work);
                     self.busy += took;
                     self.free_at = self.free_at.max(now) + took;
                     None
