@@ -416,16 +416,17 @@ impl RunningFrame {
         self.members.insert(key, member);
         self.sent_holders.forget(key);
         self.touch(key);
-        let roster = Body::Roster(proto::Roster {
+        // One roster for every other member, shared as a flush's holders are (`Outgoing`).
+        let roster = msg(Body::Roster(proto::Roster {
             job_id: self.frame_id(),
             members: self.roster(),
-        });
+        }));
         let mut out = vec![(key, self.start_message(key, Vec::new()))];
         out.extend(
             self.members
                 .keys()
                 .filter(|&&k| k != key)
-                .map(|&k| (k, msg(roster.clone()))),
+                .map(|&k| (k, Arc::clone(&roster))),
         );
         out
     }
