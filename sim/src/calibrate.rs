@@ -254,6 +254,7 @@ pub fn calibrate(
             },
             round_ns: round_coef[0],
             round_planned_ns: round_coef[1],
+            round_planned_domain_ns: round_coef[4],
             round_member_ns: round_coef[2],
             round_domain_ns: round_coef[3],
             whole_round_ns: whole_coef[0],
@@ -444,16 +445,22 @@ fn time_round(workers: u32, domains: u32, dry: u32) -> TimedRound {
     }
 }
 
-/// Fits the incremental rounds as `round + planned x P + members x M + domains x D`, and the
+/// Fits the incremental rounds as `round + planned x (P + domains x PD) + members x M + domains x D`, and the
 /// whole-cluster rounds as `round + members x M + domains x D`: (the incremental prices, their
 /// fit error, the whole-cluster prices, their fit error).
-fn fit_rounds(rounds: &[TimedRound]) -> ([f64; 4], f64, [f64; 3], f64) {
+fn fit_rounds(rounds: &[TimedRound]) -> ([f64; 5], f64, [f64; 3], f64) {
     let incremental: Vec<(Vec<f64>, f64)> = rounds
         .iter()
         .filter(|r| !r.whole)
         .map(|r| {
             (
-                vec![1.0, r.planned as f64, r.members as f64, r.domains as f64],
+                vec![
+                    1.0,
+                    r.planned as f64,
+                    r.members as f64,
+                    r.domains as f64,
+                    (r.planned * r.domains) as f64,
+                ],
                 r.ns,
             )
         })
@@ -465,7 +472,7 @@ fn fit_rounds(rounds: &[TimedRound]) -> ([f64; 4], f64, [f64; 3], f64) {
         .collect();
     let (i, ie) = fit(&incremental);
     let (w, we) = fit(&whole);
-    ([i[0], i[1], i[2], i[3]], ie, [w[0], w[1], w[2]], we)
+    ([i[0], i[1], i[2], i[3], i[4]], ie, [w[0], w[1], w[2]], we)
 }
 
 /// Holders intervals the flushes are timed at: a flush tells what the rounds of one interval

@@ -35,6 +35,12 @@ pub struct ComputeCost {
     pub round_ns: f64,
     /// An incremental round's cost per member it plans (each ran dry).
     pub round_planned_ns: f64,
+    /// An incremental round's cost per member it plans per domain of the scene: planning a
+    /// member costs more in a larger cluster (deeper ordered sets, more holders and queues
+    /// to look through; coord17: 0.03 ms at 128 members, 0.35 ms at 4,096). Files calibrated
+    /// before this price was measured read as zero.
+    #[serde(default)]
+    pub round_planned_domain_ns: f64,
     /// An incremental round's cost per member of the cluster (the holders map is rebuilt from
     /// every member's plan).
     pub round_member_ns: f64,
@@ -98,12 +104,13 @@ impl Default for ComputeCost {
             camera_sample_ns: 144.2,
             volume_sample_ns: 71.0,
             round_ns: 0.0,
-            round_planned_ns: 7_025.0,
+            round_planned_ns: 3_617.0,
+            round_planned_domain_ns: 6.575,
             round_member_ns: 0.0,
-            round_domain_ns: 10.1,
+            round_domain_ns: 0.0,
             whole_round_ns: 0.0,
-            whole_round_member_ns: 10_909.0,
-            whole_round_domain_ns: 1_470.0,
+            whole_round_member_ns: 30_600.0,
+            whole_round_domain_ns: 3_523.0,
             flush_ns: 0.0,
             flush_member_ns: 0.0,
             flush_line_ns: 222.3,
@@ -145,6 +152,7 @@ impl ComputeCost {
             ("volume_sample_ns", self.volume_sample_ns),
             ("round_ns", self.round_ns),
             ("round_planned_ns", self.round_planned_ns),
+            ("round_planned_domain_ns", self.round_planned_domain_ns),
             ("round_member_ns", self.round_member_ns),
             ("round_domain_ns", self.round_domain_ns),
             ("whole_round_ns", self.whole_round_ns),
@@ -288,7 +296,7 @@ impl CostModel {
         let whole = work.whole_rounds as f64;
         let incremental = work.rounds.saturating_sub(work.whole_rounds) as f64;
         let ns = incremental * (p.round_ns + p.round_domain_ns * domains)
-            + p.round_planned_ns * work.planned as f64
+            + (p.round_planned_ns + p.round_planned_domain_ns * domains) * work.planned as f64
             + p.round_member_ns * work.members as f64
             + whole * (p.whole_round_ns + p.whole_round_domain_ns * domains)
             + p.whole_round_member_ns * work.whole_members as f64;
@@ -314,6 +322,7 @@ mod tests {
                 volume_sample_ns: 10.0,
                 round_ns: 1000.0,
                 round_planned_ns: 100.0,
+                round_planned_domain_ns: 0.5,
                 round_member_ns: 10.0,
                 round_domain_ns: 1.0,
                 whole_round_ns: 5000.0,
@@ -342,7 +351,8 @@ mod tests {
         // (1000 + 3000 x 500 + 1000 x 250 + 2000 x 100 + 100 x 10) ns / 2 threads.
         assert_eq!(m.pass(&c), Duration::from_nanos(976_000));
         // Two incremental rounds over 64 members planning 1 and 3 of them: 2 x (1000 + 64 x
-        // 10 + 512 x 1) + 4 x 100 ns; one whole round of 64: 5000 + 64 x 1000 + 512 x 50 ns.
+        // 10 + 512 x 1) + 4 x (100 + 512 x 0.5) ns; one whole round of 64: 5000 + 64 x 1000 +
+        // 512 x 50 ns.
         let work = PlanningWork {
             rounds: 3,
             whole_rounds: 1,
@@ -352,7 +362,7 @@ mod tests {
         };
         assert_eq!(
             m.planning(&work, 512),
-            Duration::from_nanos(4304 + 400 + 94_600)
+            Duration::from_nanos(4304 + 1424 + 94_600)
         );
         // Two flushes of 64 members, 500 lines made in all: 2 x 2000 + 128 x 20 + 500 x 3 ns,
         // whatever the members told (each gets the one message of its class).
@@ -383,7 +393,7 @@ mod tests {
         let many = PlanningWork { planned: 32, ..one };
         assert_eq!(
             m.planning(&many, 512) - m.planning(&one, 512),
-            Duration::from_nanos(3100)
+            Duration::from_nanos(31 * (100 + 256))
         );
     }
 

@@ -23,7 +23,9 @@ use super::dynamic::{
 use super::rounds::{Cluster, Member, deposit_moved, set_plans};
 use super::{DomainId, WorkerId};
 
-/// What one member adds to the cluster's figures, kept so it can be taken out again.
+/// What one member adds to the cluster's figures, kept so it can be taken out again. Every
+/// list is ascending (a multiset for `generations`), so a member's old and new parts are
+/// compared in one merge and only what differs is counted again (`RoundIndex::recount`).
 #[derive(Clone, Debug, Default)]
 struct Part {
     /// (domain, rays, oldest generation among them) of its report, domains in the scene only.
@@ -32,38 +34,50 @@ struct Part {
     generations: Vec<u32>,
     /// Domains it holds as the schedule sees it: its memory if it ran dry, its memory and plan
     /// if it is busy; nothing if it has not reported.
-    held: BTreeSet<u32>,
+    held: Vec<u32>,
     /// Domains in its memory or plan (the oldest-generation rule counts their queues).
-    in_memory: BTreeSet<u32>,
+    in_memory: Vec<u32>,
     /// Domains of its plan if it is busy (rays queued elsewhere for them move to it).
-    holding_plan: BTreeSet<u32>,
+    holding_plan: Vec<u32>,
     /// Domains its report has a queue for, empty or not.
-    queues: BTreeSet<u32>,
+    queues: Vec<u32>,
     /// Its plan, whatever it names: the holders map lists it under each of these.
-    plan: BTreeSet<u32>,
+    plan: Vec<u32>,
+}
+
+/// `items` ascending without repeats.
+fn sorted(mut items: Vec<u32>) -> Vec<u32> {
+    items.sort_unstable();
+    items.dedup();
+    items
 }
 
 impl Part {
     fn of(m: &Member, dry: bool, domains: u32) -> Part {
-        let plan = m.plan.iter().copied().filter(|&d| d < domains);
-        let holding_plan = if dry {
-            BTreeSet::new()
-        } else {
-            plan.clone().collect()
-        };
+        let in_scene: Vec<u32> = m.plan.iter().copied().filter(|&d| d < domains).collect();
+        let holding_plan = if dry { Vec::new() } else { in_scene.clone() };
+        let plan: Vec<u32> = m.plan.iter().copied().collect();
         let Some(report) = m.report.as_ref() else {
             return Part {
-                in_memory: plan.collect(),
+                in_memory: in_scene,
                 holding_plan,
-                plan: m.plan.clone(),
+                plan,
                 ..Part::default()
             };
         };
         let resident = report.resident.iter().copied().filter(|&d| d < domains);
-        let mut held: BTreeSet<u32> = resident.clone().collect();
-        if !dry {
-            held.extend(m.plan.iter().copied().filter(|&d| d < domains));
-        }
+        let held = if dry {
+            sorted(resident.clone().collect())
+        } else {
+            sorted(resident.clone().chain(in_scene.iter().copied()).collect())
+        };
+        let mut generations: Vec<u32> = report
+            .oldest_generation
+            .values()
+            .copied()
+            .chain(report.oldest_waiting)
+            .collect();
+        generations.sort_unstable();
         Part {
             queued: report
                 .queued
@@ -71,14 +85,9 @@ impl Part {
                 .filter(|&(&d, &n)| d < domains && n > 0)
                 .map(|(&d, &n)| (d, n, report.oldest_generation.get(&d).copied()))
                 .collect(),
-            generations: report
-                .oldest_generation
-                .values()
-                .copied()
-                .chain(report.oldest_waiting)
-                .collect(),
+            generations,
             held,
-            in_memory: resident.chain(plan).collect(),
+            in_memory: sorted(resident.chain(in_scene).collect()),
             holding_plan,
             queues: report
                 .queued
@@ -86,9 +95,50 @@ impl Part {
                 .copied()
                 .filter(|&d| d < domains)
                 .collect(),
-            plan: m.plan.clone(),
+            plan,
         }
     }
+}
+
+/// `x` moved `by` up (`add`) or down.
+fn step_by<T: std::ops::AddAssign + std::ops::SubAssign>(x: &mut T, by: T, add: bool) {
+    if add { *x += by } else { *x -= by }
+}
+
+/// One step of a merge of two ascending lists: an item of the old list only, of the new
+/// only, or of both.
+enum Merged<T> {
+    Old(T),
+    New(T),
+    Both(T, T),
+}
+
+/// Merges ascending `old` and `new` by `key` (each key at most once a list, except where
+/// equal items pair off one by one, as a multiset's do).
+fn merge<'a, T, K: Ord>(
+    old: &'a [T],
+    new: &'a [T],
+    key: impl Fn(&T) -> K,
+) -> impl Iterator<Item = Merged<&'a T>> {
+    let (mut i, mut j) = (0, 0);
+    std::iter::from_fn(move || {
+        let step = match (old.get(i), new.get(j)) {
+            (None, None) => return None,
+            (Some(o), None) => Merged::Old(o),
+            (None, Some(n)) => Merged::New(n),
+            (Some(o), Some(n)) => match key(o).cmp(&key(n)) {
+                std::cmp::Ordering::Less => Merged::Old(o),
+                std::cmp::Ordering::Greater => Merged::New(n),
+                std::cmp::Ordering::Equal => Merged::Both(o, n),
+            },
+        };
+        match step {
+            Merged::Old(_) => i += 1,
+            Merged::New(_) => j += 1,
+            Merged::Both(..) => (i, j) = (i + 1, j + 1),
+        }
+        Some(step)
+    })
 }
 
 /// The cluster's figures for asynchronous rounds, kept up to date member by member.
@@ -176,50 +226,45 @@ impl RoundIndex {
     }
 
     /// Takes member `key` as it is now (`None`: it left the frame) into the figures: its
-    /// report, plan and whether it ran dry. Costs its report's size, not the cluster's.
+    /// report, plan and whether it ran dry. Costs its report's size, not the cluster's, and
+    /// counts again only what changed since its last update (a holder that rays moved to
+    /// differs in those domains' queues alone).
     pub fn update(&mut self, key: u32, member: Option<&Member>) {
-        let mut touched = BTreeSet::new();
         self.unmoved.insert(key);
-        let old = self.parts.remove(&key);
-        if let Some(old) = &old {
-            self.count(key, old, false, &mut touched);
-        }
+        let old = self.parts.remove(&key).unwrap_or_default();
         self.dry.remove(&key);
-        if let Some(m) = member {
-            let dry = m.is_dry();
-            if dry {
-                self.dry.insert(key);
-            }
-            let part = Part::of(m, dry, self.domains);
-            self.count(key, &part, true, &mut touched);
-            let before = old.as_ref().map(|o| &o.holding_plan);
-            self.newly_held.extend(
-                part.holding_plan
-                    .iter()
-                    .filter(|d| !before.is_some_and(|b| b.contains(d))),
-            );
-            self.parts.insert(key, part);
-        }
-        let plan_now = self.parts.get(&key).map(|p| &p.plan);
-        let plan_before = old.as_ref().map(|o| &o.plan);
-        if plan_now != plan_before {
-            let empty = BTreeSet::new();
-            let (now, before) = (plan_now.unwrap_or(&empty), plan_before.unwrap_or(&empty));
-            let gained: Vec<u32> = now.difference(before).copied().collect();
-            let dropped: Vec<u32> = before.difference(now).copied().collect();
-            for d in gained {
-                self.holders.entry(d).or_default().insert(key);
-                self.holders_changed.insert(d);
-            }
-            for d in dropped {
-                if let Some(keys) = self.holders.get_mut(&d) {
-                    keys.remove(&key);
-                    if keys.is_empty() {
-                        self.holders.remove(&d);
-                    }
+        let new = match member {
+            Some(m) => {
+                let dry = m.is_dry();
+                if dry {
+                    self.dry.insert(key);
                 }
-                self.holders_changed.insert(d);
+                Part::of(m, dry, self.domains)
             }
+            None => Part::default(),
+        };
+        let mut touched = Vec::new();
+        self.recount(key, &old, &new, &mut touched);
+        for step in merge(&old.plan, &new.plan, |&d| d) {
+            match step {
+                Merged::New(&d) => {
+                    self.holders.entry(d).or_default().insert(key);
+                    self.holders_changed.insert(d);
+                }
+                Merged::Old(&d) => {
+                    if let Some(keys) = self.holders.get_mut(&d) {
+                        keys.remove(&key);
+                        if keys.is_empty() {
+                            self.holders.remove(&d);
+                        }
+                    }
+                    self.holders_changed.insert(d);
+                }
+                Merged::Both(..) => {}
+            }
+        }
+        if member.is_some() {
+            self.parts.insert(key, new);
         }
         let oldest = if self.oldest_first {
             self.generations.keys().next().copied()
@@ -232,6 +277,8 @@ impl RoundIndex {
                 self.refresh(d);
             }
         } else {
+            touched.sort_unstable();
+            touched.dedup();
             for d in touched {
                 self.refresh(d);
             }
@@ -262,50 +309,81 @@ impl RoundIndex {
         self.dry.len()
     }
 
-    /// Adds (or takes out) one member's part, noting the domains whose figures moved.
-    fn count(&mut self, key: u32, part: &Part, add: bool, touched: &mut BTreeSet<u32>) {
-        fn step<T: std::ops::AddAssign + std::ops::SubAssign>(x: &mut T, by: T, add: bool) {
-            if add { *x += by } else { *x -= by }
-        }
-        for &(d, n, g) in &part.queued {
-            step(&mut self.queued[d as usize], n, add);
-            if let (true, Some(g)) = (self.oldest_first, g) {
-                let sums = &mut self.by_generation[d as usize];
-                let sum = sums.entry(g).or_default();
-                step(sum, n, add);
-                if *sum == 0 {
-                    sums.remove(&g);
+    /// Counts member `key`'s part `new` in place of `old`: only the entries that differ
+    /// (a merge of the two ascending lists of each kind), noting the domains whose figures
+    /// moved in `touched`.
+    fn recount(&mut self, key: u32, old: &Part, new: &Part, touched: &mut Vec<u32>) {
+        for step in merge(&old.queued, &new.queued, |q| q.0) {
+            let (gone, come) = match step {
+                Merged::Both(o, n) if o == n => continue,
+                Merged::Both(o, n) => (Some(o), Some(n)),
+                Merged::Old(o) => (Some(o), None),
+                Merged::New(n) => (None, Some(n)),
+            };
+            for (&(d, n, g), add) in gone
+                .map(|q| (q, false))
+                .into_iter()
+                .chain(come.map(|q| (q, true)))
+            {
+                step_by(&mut self.queued[d as usize], n, add);
+                if let (true, Some(g)) = (self.oldest_first, g) {
+                    let sums = &mut self.by_generation[d as usize];
+                    let sum = sums.entry(g).or_default();
+                    step_by(sum, n, add);
+                    if *sum == 0 {
+                        sums.remove(&g);
+                    }
                 }
+                touched.push(d);
             }
-            touched.insert(d);
         }
-        for &g in &part.generations {
+        for step in merge(&old.generations, &new.generations, |&g| g) {
+            let (g, add) = match step {
+                Merged::Both(..) => continue,
+                Merged::Old(&g) => (g, false),
+                Merged::New(&g) => (g, true),
+            };
             let times = self.generations.entry(g).or_default();
-            step(times, 1, add);
+            step_by(times, 1, add);
             if *times == 0 {
                 self.generations.remove(&g);
             }
         }
-        for &d in &part.held {
-            step(&mut self.held[d as usize], 1, add);
-            touched.insert(d);
-        }
-        for &d in &part.in_memory {
-            step(&mut self.in_memory[d as usize], 1, add);
-            touched.insert(d);
-        }
-        for &d in &part.holding_plan {
-            if add {
-                self.plan_holders[d as usize].insert(key);
-            } else {
-                self.plan_holders[d as usize].remove(&key);
+        for (counts, old, new) in [
+            (&mut self.held, &old.held, &new.held),
+            (&mut self.in_memory, &old.in_memory, &new.in_memory),
+        ] {
+            for step in merge(old, new, |&d| d) {
+                let (d, add) = match step {
+                    Merged::Both(..) => continue,
+                    Merged::Old(&d) => (d, false),
+                    Merged::New(&d) => (d, true),
+                };
+                step_by(&mut counts[d as usize], 1, add);
+                touched.push(d);
             }
         }
-        for &d in &part.queues {
-            if add {
-                self.queuers[d as usize].insert(key);
-            } else {
-                self.queuers[d as usize].remove(&key);
+        for step in merge(&old.holding_plan, &new.holding_plan, |&d| d) {
+            match step {
+                Merged::Both(..) => {}
+                Merged::Old(&d) => {
+                    self.plan_holders[d as usize].remove(&key);
+                }
+                Merged::New(&d) => {
+                    self.plan_holders[d as usize].insert(key);
+                    self.newly_held.insert(d);
+                }
+            }
+        }
+        for step in merge(&old.queues, &new.queues, |&d| d) {
+            match step {
+                Merged::Both(..) => {}
+                Merged::Old(&d) => {
+                    self.queuers[d as usize].remove(&key);
+                }
+                Merged::New(&d) => {
+                    self.queuers[d as usize].insert(key);
+                }
             }
         }
     }

@@ -5,7 +5,7 @@
 //! tiles it commits instead of writing them, so the coordinator's locking and I/O stay in its
 //! shell.
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::BTreeMap;
 use std::sync::Arc;
 
 use super::accusations::Accusations;
@@ -395,6 +395,7 @@ impl RunningFrame {
         self.members.extend(workers);
         for &k in &keys {
             self.touch(k);
+            self.tasks.joined(k);
         }
         let mut out: Vec<Outgoing> = keys
             .into_iter()
@@ -416,6 +417,7 @@ impl RunningFrame {
         self.members.insert(key, member);
         self.sent_holders.forget(key);
         self.touch(key);
+        self.tasks.joined(key);
         // One roster for every other member, shared as a flush's holders are (`Outgoing`).
         let roster = msg(Body::Roster(proto::Roster {
             job_id: self.frame_id(),
@@ -451,6 +453,9 @@ impl RunningFrame {
         self.segments_now -= lost.segments;
         self.sent_holders.forget(key);
         self.touch(key);
+        // Requests to it or for it are void, and it is never asked again, whatever becomes
+        // of the frame.
+        self.tasks.lose(key);
         if self.members.is_empty() {
             return Some(Vec::new());
         }
@@ -479,7 +484,6 @@ impl RunningFrame {
         // The new owners go out before the re-dealt tiles: a worker traces a hand-out as soon
         // as it arrives, and under the old plan the rays leaving its tiles would be routed to
         // the lost worker, whose link holds them until it gives up (the frame never ended).
-        self.tasks.lose(key);
         if self.owners_once() {
             out.extend(self.owner_plans());
         }
@@ -569,8 +573,7 @@ impl RunningFrame {
             self.tasks.busy(key, queued);
             return Vec::new();
         }
-        let members: BTreeSet<u32> = self.members.keys().copied().collect();
-        let direction = self.tasks.ran_dry(key, &members);
+        let direction = self.tasks.ran_dry(key);
         direction.into_iter().map(|d| self.share(d)).collect()
     }
 
@@ -579,10 +582,7 @@ impl RunningFrame {
         if self.schedule != Schedule::Hybrid || !self.members.contains_key(&key) {
             return Vec::new();
         }
-        let members: BTreeSet<u32> = self.members.keys().copied().collect();
-        let directions = self
-            .tasks
-            .answered(key, answer.rays, answer.queued, &members);
+        let directions = self.tasks.answered(key, answer.rays, answer.queued);
         directions.into_iter().map(|d| self.share(d)).collect()
     }
 
