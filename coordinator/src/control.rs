@@ -7,8 +7,8 @@ use std::sync::Arc;
 use rayfarm_node::proto::worker_control_server::WorkerControl;
 use rayfarm_node::proto::{self, worker_message::Body};
 use tokio::sync::mpsc;
-use tokio_stream::Stream;
 use tokio_stream::wrappers::UnboundedReceiverStream;
+use tokio_stream::{Stream, StreamExt};
 use tonic::{Request, Response, Status, Streaming};
 use tracing::warn;
 
@@ -72,6 +72,9 @@ impl WorkerControl for Control {
             coordinator.worker_gone(key, &why);
         });
         let rx = self.faults.delayed(&register.worker_id, rx);
-        Ok(Response::new(Box::pin(UnboundedReceiverStream::new(rx))))
+        // The copy of a shared message (the last holder takes it as it is) is made here, in
+        // this worker's response stream, not under the state's lock where it was queued.
+        let out = UnboundedReceiverStream::new(rx).map(|m| m.map(Arc::unwrap_or_clone));
+        Ok(Response::new(Box::pin(out)))
     }
 }

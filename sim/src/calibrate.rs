@@ -19,6 +19,11 @@
 //! `round + planned x P + member x M + domain x D`: the incremental planner's cost follows the
 //! members it plans, not the cluster's size. Rounds with every member dry are planned from the
 //! whole cluster and fitted apart as `round + member x M + domain x D`.
+//!
+//! Holders flushes: timed on the same steady state apart from the round that found them due
+//! (`SteadyFrame::handle_round`, then `SteadyFrame::flush`), at the same sizes and two holders intervals (so the lines
+//! a flush makes vary apart from the members), fitted as `flush + member x M + line x L`
+//! (`FlushWork`: the frame's members, and the lines made, once per view class and state).
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -27,7 +32,8 @@ use bytes::Bytes;
 use rayfarm_core::bundler::Tier;
 use rayfarm_core::wire::{self, BatchLimits};
 
-use rayfarm_machine::coordinator::synthetic::SteadyFrame;
+use rayfarm_machine::coordinator::FlushWork;
+use rayfarm_machine::coordinator::synthetic::{SteadyFrame, flushed};
 
 use crate::cost::ComputeCost;
 use crate::faults::FaultPlan;
@@ -51,6 +57,9 @@ pub struct Calibration {
     /// planned from the whole cluster.
     pub round_fit_error: f64,
     pub whole_round_fit_error: f64,
+    /// The holders flushes the flush prices were fitted to, and the fit's error.
+    pub flushes: Vec<TimedFlush>,
+    pub flush_fit_error: f64,
     /// Peer bundles received in the run, and the fit of their receiving (decoding and the
     /// worker machine's handling) as `bundle + byte x B`: coefficients and error.
     pub bundles_received: usize,
@@ -191,6 +200,8 @@ pub fn calibrate(
     let volumes = passes.iter().any(|p| p.counters.volume_samples > 0);
     let rounds = time_rounds();
     let (round_coef, round_fit_error, whole_coef, whole_round_fit_error) = fit_rounds(&rounds);
+    let flushes = time_flushes();
+    let (flush_coef, flush_fit_error) = fit_flushes(&flushes);
     let received = &outcome.measured_bundles;
     let receive = fit_per_byte(
         &received
@@ -249,6 +260,9 @@ pub fn calibrate(
             whole_round_ns: whole_coef[0],
             whole_round_member_ns: whole_coef[1],
             whole_round_domain_ns: whole_coef[2],
+            flush_ns: flush_coef[0],
+            flush_member_ns: flush_coef[1],
+            flush_line_ns: flush_coef[2],
             // What this run timed: encoding on the sender, decoding and the machine on the
             // receiver; the gRPC stream between them is the caller's to add (it needs a
             // runtime and sockets: the CLI's `transport`).
@@ -267,6 +281,8 @@ pub fn calibrate(
         rounds,
         round_fit_error,
         whole_round_fit_error,
+        flushes,
+        flush_fit_error,
         bundles_received: received.len(),
         receive,
         encode,
@@ -457,6 +473,85 @@ fn fit_rounds(rounds: &[TimedRound]) -> ([f64; 5], f64, [f64; 3], f64) {
     let (i, ie) = fit(&incremental);
     let (w, we) = fit(&whole);
     ([i[0], i[1], i[2], i[3], i[4]], ie, [w[0], w[1], w[2]], we)
+}
+
+/// Holders intervals the flushes are timed at: a flush tells what the rounds of one interval
+/// changed, so the longer one makes more lines over the same members.
+const FLUSH_INTERVALS_MS: [u64; 2] = [20, 100];
+
+/// Flushes timed at each size and interval (the median is kept), after the first (every
+/// member's first plan, made as the frame was set up, is still in it).
+const FLUSHES_TIMED: usize = 5;
+
+/// One timed holders flush: the cluster's size, what the flush did (`FlushWork`), and its
+/// thread CPU time (the median of [`FLUSHES_TIMED`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TimedFlush {
+    pub members: usize,
+    pub domains: usize,
+    pub interval: Duration,
+    /// Members told (sent a `Holders`) and lines made, of the median flush.
+    pub told: u64,
+    pub lines: u64,
+    pub ns: f64,
+}
+
+/// Flushes at every size of [`ROUND_SIZES`] and interval of [`FLUSH_INTERVALS_MS`].
+fn time_flushes() -> Vec<TimedFlush> {
+    let mut out = Vec::new();
+    for &(workers, domains) in &ROUND_SIZES {
+        for ms in FLUSH_INTERVALS_MS {
+            out.push(time_flush(workers, domains, Duration::from_millis(ms)));
+        }
+    }
+    out
+}
+
+/// Holders flushes of `workers` members over `domains` domains, every `interval`, as the
+/// real coordinator machine makes them in its steady state
+/// (`machine::coordinator::synthetic::SteadyFrame`, members running dry one after another
+/// a report's gap apart): each report's round planned, then the flush, if due, timed alone
+/// (`SteadyFrame::flush`; thread CPU time, the actions dropped included, as a
+/// round's). The median flush of [`FLUSHES_TIMED`], with what it did.
+fn time_flush(workers: u32, domains: u32, interval: Duration) -> TimedFlush {
+    let mut frame = SteadyFrame::new(workers, domains, interval);
+    let mut timed: Vec<(u64, FlushWork)> = Vec::new();
+    let mut seen = 0;
+    while timed.len() < FLUSHES_TIMED {
+        let input = frame.next_report();
+        drop(frame.handle_round(input));
+        let start = thread_cpu_ns();
+        let flush = std::hint::black_box(frame.flush());
+        let work = flushed(&flush);
+        drop(flush);
+        let ns = thread_cpu_ns().saturating_sub(start);
+        if work.flushes == 0 {
+            continue;
+        }
+        seen += 1;
+        if seen > 1 {
+            timed.push((ns, work));
+        }
+    }
+    timed.sort_unstable_by_key(|t| t.0);
+    let (ns, work) = timed[timed.len() / 2];
+    TimedFlush {
+        members: work.members as usize,
+        domains: domains as usize,
+        interval,
+        told: work.told,
+        lines: work.lines,
+        ns: ns as f64,
+    }
+}
+
+/// Fits the flushes as `flush + members x M + lines x L`: the prices and the fit's error.
+fn fit_flushes(flushes: &[TimedFlush]) -> ([f64; 3], f64) {
+    let (c, e) = fit(&flushes
+        .iter()
+        .map(|f| (vec![1.0, f.members as f64, f.lines as f64], f.ns))
+        .collect::<Vec<_>>());
+    ([c[0], c[1], c[2]], e)
 }
 
 #[cfg(test)]

@@ -11,6 +11,7 @@
 //! machines the frames before left them.
 
 use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::sync::Arc;
 use std::time::Duration;
 
 use rayfarm_core::render::Film;
@@ -28,8 +29,10 @@ use crate::net::NodeId;
 
 /// What the coordinator does to a worker's node.
 pub enum ToNode {
-    /// A message on its control stream `conn`.
-    Send(NodeId, u64, Box<proto::CoordinatorMessage>),
+    /// A message on its control stream `conn`: shared with the other members told the same
+    /// (a holders flush makes one message per view class); each member's copy still costs
+    /// the coordinator's NIC its bytes (`World::transmit`).
+    Send(NodeId, u64, Arc<proto::CoordinatorMessage>),
     /// Its control stream `conn` is closed (it was dropped, refused, or the coordinator died).
     Close(NodeId, u64),
 }
@@ -48,7 +51,7 @@ pub struct CoordConfig {
     pub holders_interval: Duration,
     /// How long one record takes to reach the disk.
     pub disk_latency: Duration,
-    /// What its planning rounds cost.
+    /// What its planning rounds and holders flushes cost.
     pub cost: CostModel,
 }
 
@@ -104,7 +107,7 @@ pub struct SimCoordinator {
     pub problems: Vec<String>,
     /// Rounds planned over every frame.
     pub rounds: u64,
-    /// Virtual time spent planning, over every process.
+    /// Virtual time spent planning rounds and flushing holders, over every process.
     pub busy: Duration,
     /// When the process is done planning what it was given so far: what it sends leaves
     /// then.
@@ -348,7 +351,7 @@ impl SimCoordinator {
             let answer = match action {
                 Action::Send((key, m)) => {
                     if let Some(&(node, conn)) = p.nodes.get(&key) {
-                        out.push(ToNode::Send(node, conn, Box::new(m)));
+                        out.push(ToNode::Send(node, conn, m));
                     }
                     None
                 }
@@ -437,6 +440,14 @@ impl SimCoordinator {
                         .config
                         .cost
                         .planning(&work, self.config.domain_bytes.len());
+                    self.busy += took;
+                    self.free_at = self.free_at.max(now) + took;
+                    None
+                }
+                Action::Tally(Tally::HoldersFlushed(work)) => {
+                    // The coordinator's time as a round's: busy, and what it sends after
+                    // leaves when it is done.
+                    let took = self.config.cost.flushing(&work);
                     self.busy += took;
                     self.free_at = self.free_at.max(now) + took;
                     None

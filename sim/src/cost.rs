@@ -4,16 +4,17 @@
 //! (`rayfarm_machine::coordinator::PlanningWork`): an incremental round (someone busy) a fixed
 //! part plus a part per member planned, per member of the cluster and per domain; a round
 //! planned from the whole cluster (barrier rounds, or nobody busy) a part per member and per
-//! domain at the whole-cluster planner's prices. The prices are measured on a machine by `rayfarm sim calibrate`
-//! (`calibrate`) and kept in a TOML file ([`ComputeCost::load`]); the defaults are one such
-//! measurement. Loads are priced by the shared storage (`storage`), messages by the network
+//! domain at the whole-cluster planner's prices; a holders flush (`FlushWork`) a fixed part,
+//! a part per member of the frame and per holder line it made. The prices are measured on a
+//! machine by `rayfarm sim calibrate` (`calibrate`) and kept in a TOML file
+//! ([`ComputeCost::load`]); the defaults are one such measurement. Loads are priced by the shared storage (`storage`), messages by the network
 //! (`net`).
 
 use std::path::Path;
 use std::time::Duration;
 
 use rayfarm_core::render::KernelCounters;
-use rayfarm_machine::coordinator::PlanningWork;
+use rayfarm_machine::coordinator::{FlushWork, PlanningWork};
 use serde::{Deserialize, Serialize};
 
 /// Prices of computing, in nanoseconds of one core. See the module documentation.
@@ -52,6 +53,18 @@ pub struct ComputeCost {
     pub whole_round_member_ns: f64,
     /// A whole-cluster round's cost per domain.
     pub whole_round_domain_ns: f64,
+    /// Fixed cost of one holders flush of the coordinator (busy members told the holders
+    /// changed since the last, `RunningFrame::flush_holders`). Files calibrated before flushes
+    /// were priced read as zero.
+    #[serde(default)]
+    pub flush_ns: f64,
+    /// A flush's cost per member of the frame (each is walked, and told or passed over).
+    #[serde(default)]
+    pub flush_member_ns: f64,
+    /// A flush's cost per holder line made (each view class's and state's lines once, shared
+    /// by the members told them).
+    #[serde(default)]
+    pub flush_line_ns: f64,
     /// Sending one peer bundle, per bundle: the sender encoding its rays and its half of the
     /// gRPC stream (protobuf, HTTP/2, the socket).
     pub bundle_send_ns: f64,
@@ -98,6 +111,9 @@ impl Default for ComputeCost {
             whole_round_ns: 0.0,
             whole_round_member_ns: 30_600.0,
             whole_round_domain_ns: 3_523.0,
+            flush_ns: 0.0,
+            flush_member_ns: 0.0,
+            flush_line_ns: 222.3,
             bundle_send_ns: 3_717.0,
             bundle_send_byte_ns: 0.759,
             bundle_receive_ns: 10_534.0,
@@ -142,6 +158,9 @@ impl ComputeCost {
             ("whole_round_ns", self.whole_round_ns),
             ("whole_round_member_ns", self.whole_round_member_ns),
             ("whole_round_domain_ns", self.whole_round_domain_ns),
+            ("flush_ns", self.flush_ns),
+            ("flush_member_ns", self.flush_member_ns),
+            ("flush_line_ns", self.flush_line_ns),
             ("bundle_send_ns", self.bundle_send_ns),
             ("bundle_send_byte_ns", self.bundle_send_byte_ns),
             ("bundle_receive_ns", self.bundle_receive_ns),
@@ -260,6 +279,16 @@ impl CostModel {
         nanos(p.bundle_receive_ns + p.bundle_receive_byte_ns * bytes as f64)
     }
 
+    /// Virtual time of the holders flushes `work` counts.
+    pub fn flushing(&self, work: &FlushWork) -> Duration {
+        let p = &self.compute;
+        nanos(
+            p.flush_ns * work.flushes as f64
+                + p.flush_member_ns * work.members as f64
+                + p.flush_line_ns * work.lines as f64,
+        )
+    }
+
     /// Virtual time of the planning rounds `work` counts, over a scene of `domains` domains.
     pub fn planning(&self, work: &PlanningWork, domains: usize) -> Duration {
         let p = &self.compute;
@@ -299,6 +328,9 @@ mod tests {
                 whole_round_ns: 5000.0,
                 whole_round_member_ns: 1000.0,
                 whole_round_domain_ns: 50.0,
+                flush_ns: 2000.0,
+                flush_member_ns: 20.0,
+                flush_line_ns: 3.0,
                 bundle_send_ns: 2000.0,
                 bundle_send_byte_ns: 0.5,
                 bundle_receive_ns: 3000.0,
@@ -332,6 +364,15 @@ mod tests {
             m.planning(&work, 512),
             Duration::from_nanos(4304 + 1424 + 94_600)
         );
+        // Two flushes of 64 members, 500 lines made in all: 2 x 2000 + 128 x 20 + 500 x 3 ns,
+        // whatever the members told (each gets the one message of its class).
+        let flushes = FlushWork {
+            flushes: 2,
+            members: 128,
+            told: 100,
+            lines: 500,
+        };
+        assert_eq!(m.flushing(&flushes), Duration::from_nanos(8060));
         // A bundle of 4,000 bytes: 2000 + 2000 ns to send, 3000 + 1000 ns to receive.
         assert_eq!(m.bundle_send(4000), Duration::from_nanos(4000));
         assert_eq!(m.bundle_receive(4000), Duration::from_nanos(4000));
@@ -354,6 +395,24 @@ mod tests {
             m.planning(&many, 512) - m.planning(&one, 512),
             Duration::from_nanos(31 * (100 + 256))
         );
+    }
+
+    #[test]
+    fn the_defaults_are_the_calibration_files_prices_rounded() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("calibration.toml");
+        let file = ComputeCost::load(&path).unwrap();
+        let (a, b) = (
+            toml::Value::try_from(file).unwrap(),
+            toml::Value::try_from(ComputeCost::default()).unwrap(),
+        );
+        let (a, b) = (a.as_table().unwrap(), b.as_table().unwrap());
+        for (name, want) in b {
+            let (got, want) = (a[name].as_float().unwrap(), want.as_float().unwrap());
+            assert!(
+                (got - want).abs() <= 0.005 * want.abs().max(1.0),
+                "{name}: the file says {got}, the default {want}"
+            );
+        }
     }
 
     #[test]

@@ -271,6 +271,8 @@ fn count(tally: Tally, began: Instant) {
             m.rounds.inc_by(work.rounds);
             m.planning_seconds.observe(began.elapsed().as_secs_f64());
         }
+        // Its time is the event's, as a round's: the flush follows the event that made it due.
+        Tally::HoldersFlushed(_) => {}
         Tally::TilesCommitted(n) => {
             m.tiles_committed.inc_by(n);
         }

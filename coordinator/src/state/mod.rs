@@ -70,8 +70,11 @@ pub struct Config {
 /// What workers and clients are told once the coordinator is stopping.
 pub const SHUTTING_DOWN: &str = "the coordinator is shutting down";
 
-/// Where a worker's messages go.
-pub type WorkerTx = mpsc::UnboundedSender<Result<proto::CoordinatorMessage, Status>>;
+/// Where a worker's messages go: shared with every member told the same (a holders flush
+/// makes one message per view class, `rayfarm_machine::coordinator::Outgoing`), so carrying
+/// the machine's actions out under the state's lock costs a reference a worker; the worker's
+/// stream task copies the message out (`Arc::unwrap_or_clone`) and encodes it.
+pub type WorkerTx = mpsc::UnboundedSender<Result<Arc<proto::CoordinatorMessage>, Status>>;
 
 /// What the shell keeps of a job beside its record in the machine.
 struct JobView {

@@ -35,7 +35,7 @@ fn attach(
     id: &str,
 ) -> (
     u32,
-    mpsc::UnboundedReceiver<Result<proto::CoordinatorMessage, Status>>,
+    mpsc::UnboundedReceiver<Result<Arc<proto::CoordinatorMessage>, Status>>,
 ) {
     let (tx, rx) = mpsc::unbounded_channel();
     let register = proto::Register {
@@ -68,7 +68,7 @@ fn start_epochs_of(c: &Arc<Coordinator>, id: &str) -> (u32, BTreeMap<u32, u32>) 
 /// The next StartFrame on a worker's channel. A frame starts once its scene is read off
 /// the lock, and goes out once its start is on disk, from other threads: wait for it.
 fn next_start(
-    rx: &mut mpsc::UnboundedReceiver<Result<proto::CoordinatorMessage, Status>>,
+    rx: &mut mpsc::UnboundedReceiver<Result<Arc<proto::CoordinatorMessage>, Status>>,
 ) -> proto::StartFrame {
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_time()
@@ -76,7 +76,7 @@ fn next_start(
         .expect("runtime");
     let wait = Duration::from_secs(10);
     while let Ok(Some(msg)) = rt.block_on(async { tokio::time::timeout(wait, rx.recv()).await }) {
-        if let Some(Body::StartFrame(s)) = msg.expect("no error").body {
+        if let Some(Body::StartFrame(s)) = Arc::unwrap_or_clone(msg.expect("no error")).body {
             return s;
         }
     }

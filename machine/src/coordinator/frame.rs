@@ -6,6 +6,7 @@
 //! shell.
 
 use std::collections::BTreeMap;
+use std::sync::Arc;
 
 use super::accusations::Accusations;
 use super::grants::Grants;
@@ -27,8 +28,13 @@ use rayfarm_core::tile::{TILE_SIZE, TileGrid};
 use rayfarm_proto::{self as proto, Schedule, coordinator_message::Body};
 use tracing::{debug, info};
 
-/// A message for one worker, by the coordinator's worker key.
-pub type Outgoing = (u32, proto::CoordinatorMessage);
+/// A message for one worker, by the coordinator's worker key. Shared (`Arc`): a holders
+/// flush tells every member of a view class the same lines, and cloning that message for each
+/// member (and dropping the copies) was nearly all of a flush, 103 ms at 4,096 workers x 32,768
+/// domains every 100 ms of frame time (the `rounds` bench's profile). A flush makes one message
+/// per class and state and hands each member a reference; the shells copy and encode it where
+/// it is sent (the coordinator's in each worker's stream task, out of the state's lock).
+pub type Outgoing = (u32, Arc<proto::CoordinatorMessage>);
 
 /// How the dynamic schedule's rounds advance.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -97,6 +103,37 @@ impl PlanningWork {
     }
 }
 
+/// What a frame's holders flushes did, counted since it started, so the simulator can price
+/// them (`rayfarm_sim::cost`) as it prices rounds. A flush walks every member (each is owed
+/// its class's pending lines, the whole map, or nothing) and makes the lines of each view
+/// class and state once; each member owed them gets a reference to that one message, so its
+/// cost follows the members and the lines made, not members x lines
+/// (`RunningFrame::flush_holders`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct FlushWork {
+    /// Flushes made (due, and the frame had view classes to tell).
+    pub flushes: u64,
+    /// Members of the frame summed over the flushes.
+    pub members: u64,
+    /// Members sent a `Holders`, summed over the flushes.
+    pub told: u64,
+    /// Holder lines made, summed over the flushes: each message's lines once, however many
+    /// members it went to.
+    pub lines: u64,
+}
+
+impl FlushWork {
+    /// What was flushed since `before` (an earlier count of the same frame).
+    pub fn since(&self, before: &FlushWork) -> FlushWork {
+        FlushWork {
+            flushes: self.flushes.saturating_sub(before.flushes),
+            members: self.members.saturating_sub(before.members),
+            told: self.told.saturating_sub(before.told),
+            lines: self.lines.saturating_sub(before.lines),
+        }
+    }
+}
+
 /// What the frame needs to know about a worker.
 #[derive(Clone, Debug)]
 pub struct Member {
@@ -158,6 +195,8 @@ pub struct RunningFrame {
     pub round: u64,
     /// What its planning rounds did, over all its subframes (`PlanningWork`).
     pub planning: PlanningWork,
+    /// What its holders flushes did, over all its subframes (`FlushWork`).
+    pub flushing: FlushWork,
     members: BTreeMap<u32, Member>,
     /// The members' figures for asynchronous rounds, updated whenever a member's report, plan
     /// or presence changes (`touch`), so a dry member is planned without re-reading them all.
@@ -212,8 +251,8 @@ pub struct RunningFrame {
     segments_before: u64,
 }
 
-fn msg(body: Body) -> proto::CoordinatorMessage {
-    proto::CoordinatorMessage { body: Some(body) }
+fn msg(body: Body) -> Arc<proto::CoordinatorMessage> {
+    Arc::new(proto::CoordinatorMessage { body: Some(body) })
 }
 
 impl RunningFrame {
@@ -255,6 +294,7 @@ impl RunningFrame {
             ledger: TileLedger::new(grid, TILE_CREDIT).with_samples(subframes[0].count),
             round: 0,
             planning: PlanningWork::default(),
+            flushing: FlushWork::default(),
             members: BTreeMap::new(),
             index,
             started: now,
@@ -296,7 +336,7 @@ impl RunningFrame {
             .collect()
     }
 
-    fn start_message(&self, key: u32, tiles: Vec<u32>) -> proto::CoordinatorMessage {
+    fn start_message(&self, key: u32, tiles: Vec<u32>) -> Arc<proto::CoordinatorMessage> {
         let mut spec = self.spec.clone();
         // Caches are dropped before the job, not before each of its subframes.
         spec.cold_cache &= self.subframe == 0;
@@ -378,16 +418,17 @@ impl RunningFrame {
         self.sent_holders.forget(key);
         self.touch(key);
         self.tasks.joined(key);
-        let roster = Body::Roster(proto::Roster {
+        // One roster for every other member, shared as a flush's holders are (`Outgoing`).
+        let roster = msg(Body::Roster(proto::Roster {
             job_id: self.frame_id(),
             members: self.roster(),
-        });
+        }));
         let mut out = vec![(key, self.start_message(key, Vec::new()))];
         out.extend(
             self.members
                 .keys()
                 .filter(|&&k| k != key)
-                .map(|&k| (k, msg(roster.clone()))),
+                .map(|&k| (k, Arc::clone(&roster))),
         );
         out
     }
@@ -464,7 +505,7 @@ impl RunningFrame {
     }
 
     /// Deals `tiles`' camera rays to `key`: the message that says so.
-    fn hand_out(&mut self, key: u32, tiles: Vec<u32>) -> proto::CoordinatorMessage {
+    fn hand_out(&mut self, key: u32, tiles: Vec<u32>) -> Arc<proto::CoordinatorMessage> {
         self.grants.deal(key, &tiles);
         msg(Body::HandOutTiles(proto::HandOutTiles {
             job_id: self.frame_id(),

@@ -540,6 +540,27 @@ fn busy_members_hear_of_new_holders_at_most_once_an_interval_and_then_route_by_t
     for (_, m) in &flush {
         assert!(matches!(&m.body, Some(Body::Holders(h)) if h.delta));
     }
+    // One class, every member synced: one message, made once and shared by the three, so a
+    // flush makes its lines once, not once a member.
+    assert!(
+        flush
+            .windows(2)
+            .all(|w| std::sync::Arc::ptr_eq(&w[0].1, &w[1].1))
+    );
+    let Some(Body::Holders(h)) = &flush[0].1.body else {
+        unreachable!()
+    };
+    let first = f.flushing.lines - h.holders.len() as u64;
+    assert_eq!(
+        f.flushing,
+        crate::coordinator::FlushWork {
+            flushes: 2,
+            members: 6,
+            told: 5,
+            lines: first + h.holders.len() as u64,
+        },
+        "two flushes (not the ones not due), of 3 members, telling 2 then 3"
+    );
     hear(&flush, &mut plans);
     assert!(f.flush_holders(ms(30)).is_empty(), "nothing new");
     // Every member now holds the coordinator's map (less itself) and routes by it.

@@ -25,4 +25,4 @@ pub use accusations::{Accusations, Verdict};
 pub use cluster::Coordinator;
 pub use frame::lifecycle::{ACCUSATION_GRACE, accusation_grace};
 pub use frame::subframes::{job_of_frame, subframe_id};
-pub use frame::{CommittedTile, Member, Outgoing, PlanningWork, Rounds, RunningFrame};
+pub use frame::{CommittedTile, FlushWork, Member, Outgoing, PlanningWork, Rounds, RunningFrame};

@@ -6,6 +6,7 @@
 //! messages.
 
 use std::collections::{BTreeMap, BTreeSet};
+use std::sync::Arc;
 
 use rayfarm_core::schedule::DomainId;
 use rayfarm_core::schedule::dynamic::WorkerPlan;
@@ -291,27 +292,26 @@ impl RunningFrame {
             .unwrap_or((Vec::new(), true))
     }
 
-    /// The `Holders` for a member of view `class`: [`Self::lines_for`] (kept in `lines` for
-    /// the other members of the same class and state), or nothing when it holds a map from
-    /// the last flush on and its class has no pending line.
+    /// The one `Holders` every member of view `class` in state `synced` is owed at a flush
+    /// ([`Self::lines_for`]), and the lines made for it; no message when they hold a map from
+    /// the last flush on and their class has no pending line.
     fn holders_message(
         &self,
         class: u32,
         classes: u32,
         synced: bool,
-        lines: &mut BTreeMap<(u32, bool), Vec<proto::DomainHolders>>,
-    ) -> Option<proto::Holders> {
-        let holders = lines
-            .entry((class, synced))
-            .or_insert_with(|| self.lines_for(class, classes, synced));
+    ) -> (Option<Arc<proto::CoordinatorMessage>>, usize) {
+        let holders = self.lines_for(class, classes, synced);
+        let made = holders.len();
         if synced && holders.is_empty() {
-            return None;
+            return (None, made);
         }
-        Some(proto::Holders {
+        let h = proto::Holders {
             job_id: self.frame_id(),
-            holders: holders.clone(),
+            holders,
             delta: synced,
-        })
+        };
+        (Some(msg(Body::Holders(h))), made)
     }
 
     /// What a member of view `class` is told of the holders: its class's pending lines if it
@@ -347,17 +347,30 @@ impl RunningFrame {
         let Some(classes) = self.view_classes else {
             return Vec::new();
         };
-        let mut lines: BTreeMap<(u32, bool), Vec<proto::DomainHolders>> = BTreeMap::new();
+        // One message per (class, synced), made when its first member is met and shared by
+        // reference with the rest (`Outgoing`): a flush costs lines + members, not lines x
+        // members.
+        let mut messages: BTreeMap<(u32, bool), Option<Arc<proto::CoordinatorMessage>>> =
+            BTreeMap::new();
+        let mut lines = 0;
         let mut out = Vec::new();
-        let keys: Vec<u32> = self.members.keys().copied().collect();
-        for key in keys {
+        for &key in self.members.keys() {
             let Some((class, synced)) = self.owes_holders(key, classes) else {
                 continue;
             };
-            if let Some(h) = self.holders_message(class, classes, synced, &mut lines) {
-                out.push((key, msg(Body::Holders(h))));
+            let m = messages.entry((class, synced)).or_insert_with(|| {
+                let (m, made) = self.holders_message(class, classes, synced);
+                lines += made;
+                m
+            });
+            if let Some(m) = m {
+                out.push((key, Arc::clone(m)));
             }
         }
+        self.flushing.flushes += 1;
+        self.flushing.members += self.members.len() as u64;
+        self.flushing.told += out.len() as u64;
+        self.flushing.lines += lines as u64;
         let round = self.round;
         self.sent_holders
             .flushed(now, self.members.keys().copied().collect::<Vec<_>>(), round);

@@ -24,7 +24,7 @@ use rayfarm_proto::{
 };
 
 use super::cluster::{Action, Config, Coordinator, Input, OpenedFrame, Tally};
-use super::{PlanningWork, Rounds};
+use super::{FlushWork, PlanningWork, Rounds};
 use crate::Time;
 
 /// Virtual time between two reports: about what 1,024 simulated workers gave (2,600 rounds a
@@ -188,6 +188,24 @@ impl SteadyFrame {
         self.follow(actions)
     }
 
+    /// Hands the coordinator `input` a report's gap after the last, as [`SteadyFrame::handle`]
+    /// does, but plans its round only: the holders flush that may be due with it is
+    /// [`SteadyFrame::flush`]'s, so `rayfarm sim calibrate` times flushes alone (a flush follows
+    /// the round of the report that finds it due).
+    pub fn handle_round(&mut self, input: Input) -> Vec<Action> {
+        self.now = self.now + REPORT_GAP;
+        let mut actions = self.coordinator.take(self.now, input);
+        actions.extend(self.coordinator.plan_round(self.now));
+        self.follow(actions)
+    }
+
+    /// The holders flush, if it is due at the last report's time (after
+    /// [`SteadyFrame::handle_round`]).
+    pub fn flush(&mut self) -> Vec<Action> {
+        let actions = self.coordinator.flush(self.now);
+        self.follow(actions)
+    }
+
     /// Notes the plans among `actions`.
     fn follow(&mut self, actions: Vec<Action>) -> Vec<Action> {
         for a in &actions {
@@ -211,6 +229,20 @@ pub fn planned(actions: &[Action]) -> PlanningWork {
             sum.whole_members += w.whole_members;
             sum.planned += w.planned;
             sum.members += w.members;
+        }
+    }
+    sum
+}
+
+/// What the holders flushes among `actions` did, summed.
+pub fn flushed(actions: &[Action]) -> FlushWork {
+    let mut sum = FlushWork::default();
+    for a in actions {
+        if let Action::Tally(Tally::HoldersFlushed(w)) = a {
+            sum.flushes += w.flushes;
+            sum.members += w.members;
+            sum.told += w.told;
+            sum.lines += w.lines;
         }
     }
     sum
@@ -283,6 +315,39 @@ mod tests {
         let input = s.next_report();
         let actions = s.handle(input);
         assert!(holder_lines(&actions) > 0);
+    }
+
+    #[test]
+    fn a_flush_apart_from_its_round_tells_every_busy_member_once_an_interval() {
+        // 128 members: two view classes. A report every 0.4 ms, a flush due every 10 ms.
+        let mut s = SteadyFrame::new(128, 1024, Duration::from_millis(10));
+        let mut flushes = Vec::new();
+        for _ in 0..200 {
+            let input = s.next_report();
+            let round = s.handle_round(input);
+            let flush = s.flush();
+            assert_eq!(
+                flushed(&round),
+                FlushWork::default(),
+                "no flush in the round"
+            );
+            assert!(!messages(&flush).contains_key("plan"));
+            let work = flushed(&flush);
+            if work.flushes > 0 {
+                assert_eq!(work.told as usize, messages(&flush)["holders"]);
+                assert_eq!(work.members, 128);
+                flushes.push((work, holder_lines(&flush)));
+            }
+        }
+        // 80 ms of reports: a flush every 25 reports, after the one due at once.
+        assert!((7..=9).contains(&flushes.len()), "{flushes:?}");
+        // Each class's lines are made once, not once for each member of the class told them.
+        let (later, told_lines) = flushes.last().expect("flushed");
+        assert!(later.told > 100, "{later:?}");
+        assert!(
+            later.lines > 0 && *told_lines as u64 >= 32 * later.lines,
+            "{later:?}, {told_lines} lines told"
+        );
     }
 
     #[test]

@@ -29,7 +29,7 @@ impl World<'_> {
         for o in out {
             match o {
                 ToNode::Send(node, conn, m) => {
-                    self.send_at(depart, COORDINATOR, node, Msg::Control(*m, conn))
+                    self.send_at(depart, COORDINATOR, node, Msg::Control(m, conn))
                 }
                 ToNode::Close(node, conn) => {
                     self.send_at(depart, COORDINATOR, node, Msg::Closed(conn))

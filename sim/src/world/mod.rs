@@ -59,7 +59,9 @@ pub fn default_max_events(workers: usize) -> u64 {
 enum Msg {
     Register(proto::Register, u64),
     ToCoordinator(FromWorker, u64),
-    Control(proto::CoordinatorMessage, u64),
+    /// A coordinator's message, shared with the other workers told the same (taken out at
+    /// delivery, `Arc::unwrap_or_clone`).
+    Control(Arc<proto::CoordinatorMessage>, u64),
     /// The coordinator closed the worker's control stream (or died, or refused it).
     Closed(u64),
     /// The worker's process died: its stream ends.

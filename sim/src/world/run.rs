@@ -101,7 +101,7 @@ pub struct Outcome {
     /// Jobs submitted (the warm-up ones and the measured one).
     pub jobs: u64,
     pub violations: Vec<Violation>,
-    /// Virtual time the coordinator spent planning.
+    /// Virtual time the coordinator spent planning rounds and flushing holders (its busy time).
     pub coordinator_busy: Duration,
     /// Bytes the storage was charged for.
     pub storage_bytes: u64,

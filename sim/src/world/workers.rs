@@ -2,6 +2,8 @@
 //! bundles, finished passes) and its actions carried out (messages, bundles with their
 //! acknowledgements, passes on the real kernel, cache changes, reports), and a worker killed.
 
+use std::sync::Arc;
+
 use bytes::Bytes;
 use rayfarm_core::bundler::Tier;
 use rayfarm_core::wire::{self, BatchLimits};
@@ -47,7 +49,7 @@ impl World<'_> {
         match msg {
             // What was sent on an older stream than the worker's is for nobody.
             Msg::Control(_, conn) | Msg::Closed(conn) if conn != w.conn => {}
-            Msg::Control(m, _) => match m.body {
+            Msg::Control(m, _) => match Arc::unwrap_or_clone(m).body {
                 Some(Body::StartFrame(start)) => {
                     let opened = w.open(&start);
                     self.feed(to, machine::Event::FrameOpened { start, opened });

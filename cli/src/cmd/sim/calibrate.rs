@@ -129,6 +129,24 @@ pub(super) fn run_calibrate(c: CalibrateArgs) -> anyhow::Result<()> {
         p.whole_round_domain_ns,
         cal.whole_round_fit_error * 100.0
     );
+    for f in &cal.flushes {
+        println!(
+            "holders flush, {} members x {} domains every {} ms: {} told, {} lines made: {:.3} ms",
+            f.members,
+            f.domains,
+            f.interval.as_millis(),
+            f.told,
+            f.lines,
+            f.ns / 1e6
+        );
+    }
+    println!(
+        "  {:.0} ns a flush + {:.1} ns a member + {:.1} ns a line made; fit error {:.1}%",
+        p.flush_ns,
+        p.flush_member_ns,
+        p.flush_line_ns,
+        cal.flush_fit_error * 100.0
+    );
     println!(
         "peer bundles: {} received; receiving (decode, machine) {:.0} ns + {:.3} ns a byte, fit \
          error {:.1}%; encoding {:.0} ns + {:.3} ns a byte over {} bundles, fit error {:.1}%",
@@ -174,7 +192,7 @@ pub(super) fn run_calibrate(c: CalibrateArgs) -> anyhow::Result<()> {
     let text = format!(
         "# rayfarm sim calibrate --scene {} --workers {} --schedule {} {}\n# {} passes (fit \
          error {:.1}%), {} planning rounds (fit error {:.1}% incremental, {:.1}% whole \
-         cluster)\n# {} bundles received (receiving fit error {:.1}%, encoding {:.1}%, gRPC \
+         cluster), {} holders flushes (fit error {:.1}%)\n# {} bundles received (receiving fit error {:.1}%, encoding {:.1}%, gRPC \
          transport {:.1}%)\n# {} finished passes taken in (fit error {:.1}%)\n{}",
         c.scene.display(),
         c.workers,
@@ -185,6 +203,8 @@ pub(super) fn run_calibrate(c: CalibrateArgs) -> anyhow::Result<()> {
         cal.rounds.len(),
         cal.round_fit_error * 100.0,
         cal.whole_round_fit_error * 100.0,
+        cal.flushes.len(),
+        cal.flush_fit_error * 100.0,
         cal.bundles_received,
         cal.receive.1 * 100.0,
         cal.encode.1 * 100.0,

@@ -21,8 +21,8 @@ use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::schedule::dynamic::Options;
 use rayfarm_proto::{self as proto, JobState, worker_message::Body as FromWorker};
 
-pub use super::frame::PlanningWork;
 use super::frame::{CommittedTile, Outgoing, Rounds, RunningFrame};
+pub use super::frame::{FlushWork, PlanningWork};
 use super::queue::JobQueue;
 use crate::Time;
 
@@ -189,6 +189,9 @@ pub struct OpenedFrame {
 pub enum Tally {
     /// Rounds planned, with what they planned (the time the event took is planning time).
     Rounds(PlanningWork),
+    /// A holders flush made, with what it walked and made (`FlushWork`): the coordinator's
+    /// time too, priced apart from the rounds by the simulator.
+    HoldersFlushed(FlushWork),
     TilesCommitted(u64),
     /// A subframe of a frame committed (a one-pass frame is one subframe).
     SubframeCommitted,
@@ -408,6 +411,15 @@ impl Coordinator {
     /// Plans the round the reports taken since the last asked for (one round, whatever their
     /// number), publishes the progress they brought, and sends the holders flush if it is due.
     pub fn plan(&mut self, now: Time) -> Vec<Action> {
+        let mut out = self.plan_round(now);
+        out.extend(self.flush(now));
+        out
+    }
+
+    /// [`Coordinator::plan`] without the holders flush (then [`Coordinator::flush`]): for
+    /// timing rounds and flushes apart (`synthetic::SteadyFrame::handle_round`, which `rayfarm
+    /// sim calibrate` prices flushes by).
+    pub fn plan_round(&mut self, now: Time) -> Vec<Action> {
         let mut out = Vec::new();
         if std::mem::take(&mut self.reports_taken)
             && let Some(f) = self.running.as_mut()
@@ -418,6 +430,13 @@ impl Coordinator {
             self.send(plans, &mut out);
             self.publish_progress(now, &mut out);
         }
+        out
+    }
+
+    /// The running frame's holders flush, if it is due at `now` (what [`Coordinator::plan`]
+    /// does after the round).
+    pub fn flush(&mut self, now: Time) -> Vec<Action> {
+        let mut out = Vec::new();
         self.flush_holders(now, &mut out);
         out
     }
@@ -429,7 +448,12 @@ impl Coordinator {
         let Some(frame) = self.running.as_mut() else {
             return;
         };
+        let before = frame.flushing;
         let messages = frame.flush_holders(now);
+        let work = frame.flushing.since(&before);
+        if work.flushes > 0 {
+            out.push(Action::Tally(Tally::HoldersFlushed(work)));
+        }
         if !messages.is_empty() {
             self.send(messages, out);
         }

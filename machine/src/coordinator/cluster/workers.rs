@@ -2,6 +2,7 @@
 //! results, frame reports, accusations), their loss, and the periodic tick that drops the
 //! silent and judges accusations.
 
+use std::sync::Arc;
 use tracing::{error, info, warn};
 
 use super::*;
@@ -77,9 +78,9 @@ impl Coordinator {
         // Straight out, never held: it is the stream's first message.
         let mut out = vec![Action::Send((
             key,
-            proto::CoordinatorMessage {
+            Arc::new(proto::CoordinatorMessage {
                 body: Some(registered),
-            },
+            }),
         ))];
         self.workers.insert(
             key,
