@@ -379,11 +379,14 @@ impl Plan {
     /// those for a domain the scene lacks.
     ///
     /// This runs on every ray a worker makes or receives (2.3 M a frame per predictive
-    /// worker on big48), so it allocates per destination, not per ray: each ray's
-    /// destination is found once, as a borrowed address (a copy of the address per ray was
-    /// one allocation per ray), the destinations' rays are counted first so that each list
-    /// is allocated once at its size (growing them was a tenth of the worker's event loop:
-    /// perf, README "Benchmarks"), and rays that all go to one place keep their vector.
+    /// worker on big48), so it decides per domain and allocates per destination, not per
+    /// ray: whether a domain's rays stay here and who holds it is found once a batch (each
+    /// ray asked the plan's sets, the holder map and the roster, and compared addresses as
+    /// strings to find its list: 7.8% of a predictive worker's event loop, perf, README
+    /// "Benchmarks"), a ray then only picks its holder by pixel, the destinations' rays are
+    /// counted first so that each list is allocated once at its size, and rays that all go
+    /// to one place keep their vector. The result is what [`Plan::destination`] says ray by
+    /// ray, in the rays' order.
     pub fn sort(&self, rays: Vec<RayRecord>) -> Sorted {
         /// Where one ray goes: an index into the local or the peer lists.
         #[derive(Clone, Copy)]
@@ -392,33 +395,78 @@ impl Plan {
             Local(u32),
             Peer(u32),
         }
+        /// What the rays of one domain do in this batch.
+        #[derive(Clone, Copy)]
+        enum Route<'a> {
+            /// Queued here, in local list `i`.
+            Here(u32),
+            /// To the holder its pixel picks among these keys.
+            Holders(&'a [u32]),
+        }
         let mut sorted = Sorted::default();
         let mut local_index: BTreeMap<u32, u32> = BTreeMap::new();
-        let mut peer_index: BTreeMap<&str, u32> = BTreeMap::new();
         let mut local_counts: Vec<usize> = Vec::new();
+        // Peer lists by address (two keys of one address share a list, as when the ray's
+        // address chose it), found once a key: a ray looks its holder's key up.
+        let mut peer_index: BTreeMap<&str, u32> = BTreeMap::new();
         let mut peer_counts: Vec<usize> = Vec::new();
-        fn count<K: Ord>(index: &mut BTreeMap<K, u32>, counts: &mut Vec<usize>, key: K) -> u32 {
+        let mut by_key: BTreeMap<u32, Option<u32>> = BTreeMap::new();
+        // By domain and, where the schedule keeps a domain's camera rays apart from the rest
+        // (hybrid's demand loads), whether the ray is a camera ray.
+        let mut routes: BTreeMap<(u32, bool), Route<'_>> = BTreeMap::new();
+        fn slot<K: Ord>(index: &mut BTreeMap<K, u32>, counts: &mut Vec<usize>, key: K) -> u32 {
             let next = counts.len() as u32;
             let i = *index.entry(key).or_insert(next);
             if i == next {
                 counts.push(0);
             }
-            counts[i as usize] += 1;
             i
         }
-        let to: Vec<To> = rays
-            .iter()
-            .map(|ray| {
-                if !self.is_current(ray.tile, ray.epoch) || ray.domain >= self.domains {
-                    sorted.dropped += 1;
-                    return To::Dropped;
+        let camera_apart = matches!(
+            self.mode,
+            Mode::Hybrid {
+                demand_loads: true,
+                ..
+            }
+        );
+        let mut to = Vec::with_capacity(rays.len());
+        for ray in &rays {
+            if !self.is_current(ray.tile, ray.epoch) || ray.domain >= self.domains {
+                sorted.dropped += 1;
+                to.push(To::Dropped);
+                continue;
+            }
+            let camera = camera_apart && ray.depth == 0;
+            let route = *routes.entry((ray.domain, camera)).or_insert_with(|| {
+                let ws = self.holders.get(ray.domain);
+                if self.keeps(ray) || ws.is_empty() {
+                    Route::Here(slot(&mut local_index, &mut local_counts, ray.domain))
+                } else {
+                    Route::Holders(ws)
                 }
-                match self.peer_of(ray) {
-                    Some(p) => To::Peer(count(&mut peer_index, &mut peer_counts, p)),
-                    None => To::Local(count(&mut local_index, &mut local_counts, ray.domain)),
+            });
+            let dest = match route {
+                Route::Here(i) => To::Local(i),
+                Route::Holders(ws) => {
+                    let key = ws[ray.pixel as usize % ws.len()];
+                    let peer = *by_key.entry(key).or_insert_with(|| {
+                        // A holder the roster does not name: the ray stays here (`peer_of`).
+                        let address = self.roster.get(&key)?;
+                        Some(slot(&mut peer_index, &mut peer_counts, address.as_str()))
+                    });
+                    match peer {
+                        Some(i) => To::Peer(i),
+                        None => To::Local(slot(&mut local_index, &mut local_counts, ray.domain)),
+                    }
                 }
-            })
-            .collect();
+            };
+            match dest {
+                To::Local(i) => local_counts[i as usize] += 1,
+                To::Peer(i) => peer_counts[i as usize] += 1,
+                To::Dropped => {}
+            }
+            to.push(dest);
+        }
         if sorted.dropped == 0 && local_counts.len() + peer_counts.len() == 1 {
             // One destination: the rays go as they came, in order.
             if let Some((&d, _)) = local_index.first_key_value() {

@@ -227,3 +227,76 @@ fn hybrid_by_rounds_traces_only_what_it_is_planned_or_has_mapped() {
         Destination::Peer("a:1".into())
     );
 }
+
+#[test]
+fn a_batch_is_sorted_as_each_ray_destination_says() {
+    use rayfarm_core::sampling::mix64;
+    let modes = [
+        Mode::ImagePlane,
+        Mode::Domain,
+        Mode::Dynamic,
+        Mode::Predictive,
+        Mode::Hybrid {
+            demand_loads: true,
+            rounds: false,
+        },
+        Mode::Hybrid {
+            demand_loads: true,
+            rounds: true,
+        },
+        Mode::Hybrid {
+            demand_loads: false,
+            rounds: true,
+        },
+    ];
+    const DOMAINS: u32 = 12;
+    for seed in 0..300u64 {
+        let r = |i: u64| mix64(seed << 32 | i);
+        let mode = modes[(r(0) % modes.len() as u64) as usize];
+        let mut plan = new_plan(mode, 4, DOMAINS);
+        plan.bump_epochs([(&1, &1), (&2, &2)]);
+        // Holders among keys 0..=5: key 0 is this worker, key 5 a worker the roster lacks.
+        let lines: Vec<HolderLine> = (0..DOMAINS)
+            .map(|d| HolderLine {
+                domain: d,
+                workers: (0..6u32)
+                    .filter(|k| r(100 + u64::from(d) * 8 + u64::from(*k)) % 3 == 0)
+                    .collect(),
+                lost: Vec::new(),
+            })
+            .collect();
+        let work_on: Vec<u32> = (0..DOMAINS)
+            .filter(|d| r(300 + u64::from(*d)) % 4 == 0)
+            .collect();
+        plan.set_round(1, work_on, lines, false);
+        plan.set_resident((0..DOMAINS).filter(|d| r(400 + u64::from(*d)) % 5 == 0));
+        let rays: Vec<RayRecord> = (0..200u64)
+            .map(|i| {
+                let x = r(1000 + i);
+                let mut ray = ray(
+                    (x % 4) as u32,
+                    ((x >> 8) % 3) as u32,
+                    ((x >> 16) % u64::from(DOMAINS + 1)) as u32,
+                    ((x >> 24) % 64) as u32,
+                );
+                ray.depth = ((x >> 40) % 3) as u16;
+                ray
+            })
+            .collect();
+        let mut want = Sorted::default();
+        for ray in &rays {
+            if !plan.is_current(ray.tile, ray.epoch) || ray.domain >= DOMAINS {
+                want.dropped += 1;
+                continue;
+            }
+            match plan.destination(ray) {
+                Destination::Local => want.local.entry(ray.domain).or_default().push(*ray),
+                Destination::Peer(p) => want.peers.entry(p).or_default().push(*ray),
+            }
+        }
+        let got = plan.sort(rays);
+        assert_eq!(got.local, want.local, "seed {seed}, {mode:?}");
+        assert_eq!(got.peers, want.peers, "seed {seed}, {mode:?}");
+        assert_eq!(got.dropped, want.dropped, "seed {seed}");
+    }
+}
