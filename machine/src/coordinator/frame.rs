@@ -64,8 +64,14 @@ pub struct PlanningWork {
     pub whole_rounds: u64,
     /// Members of the cluster summed over the whole-cluster rounds.
     pub whole_members: u64,
-    /// Members planned (ran dry, so drafted) summed over the incremental rounds.
+    /// Members whose plans the incremental rounds changed (each ran dry, was drafted and
+    /// given a new plan: adopted, holders moved, a message), summed.
     pub planned: u64,
+    /// Members an incremental round drafted whose plans it left as they were (a dry member
+    /// with nothing new for it stays dry and is drafted again by every round after; at 1,024
+    /// workers a round's tail of idle members), summed, also over rounds that changed no
+    /// plan. Such a draft costs a fraction of a planned member.
+    pub drafted: u64,
     /// Members of the cluster summed over the incremental rounds.
     pub members: u64,
 }
@@ -78,6 +84,7 @@ impl PlanningWork {
             whole_rounds: self.whole_rounds.saturating_sub(before.whole_rounds),
             whole_members: self.whole_members.saturating_sub(before.whole_members),
             planned: self.planned.saturating_sub(before.planned),
+            drafted: self.drafted.saturating_sub(before.drafted),
             members: self.members.saturating_sub(before.members),
         }
     }
@@ -95,11 +102,18 @@ impl PlanningWork {
         self.rounds += 1;
     }
 
-    /// One incremental round that planned `planned` of `members` members.
-    fn incremental(&mut self, planned: usize, members: usize) {
+    /// One incremental round of `members` members that drafted `drafted` of them and gave
+    /// `planned` of those new plans.
+    fn incremental(&mut self, drafted: usize, planned: usize, members: usize) {
         self.rounds += 1;
         self.planned += planned as u64;
+        self.drafted += drafted.saturating_sub(planned) as u64;
         self.members += members as u64;
+    }
+
+    /// Drafts that changed no plan (no round: nothing is sent).
+    fn drafted_only(&mut self, drafted: usize) {
+        self.drafted += drafted as u64;
     }
 }
 

@@ -145,6 +145,24 @@ fn a_dry_worker_is_planned_at_once_under_asynchronous_rounds() {
 }
 
 #[test]
+fn a_dry_member_with_nothing_new_is_tallied_as_drafted_not_planned() {
+    let (mut f, _) = started(Schedule::Dynamic, Rounds::Async, 3);
+    // Worker 0 runs dry with one ray for domain 1: planned (worker 2 has not reported, so
+    // the round is incremental).
+    f.report(0, report(0, &[], &[(1, 1, 0)]));
+    assert_eq!((f.planning.planned, f.planning.drafted), (1, 0));
+    // Worker 1 runs dry with nothing, and nothing is left to give it (domain 1 is held and
+    // one ray is too few to copy): drafted, no plan changes, no round.
+    let out = f.report(1, report(0, &[], &[]));
+    assert!(out.is_empty(), "{out:?}");
+    assert_eq!((f.round, f.planning.planned, f.planning.drafted), (1, 1, 1));
+    // Worker 0 runs dry again with a ray for domain 2: it is planned, worker 1 (still dry)
+    // drafted again with nothing.
+    f.report(0, report(1, &[1], &[(2, 1, 0)]));
+    assert_eq!((f.round, f.planning.planned, f.planning.drafted), (2, 2, 2));
+}
+
+#[test]
 fn barrier_rounds_wait_for_every_report() {
     let (mut f, _) = started(Schedule::Dynamic, Rounds::Barrier, 2);
     assert!(f.report(0, report(0, &[], &[(1, 50, 0)])).is_empty());

@@ -165,15 +165,20 @@ impl RunningFrame {
         let changed = self
             .index
             .dry_plans(&self.members, &self.domain_bytes, self.options);
+        let whole = dry >= self.members.len();
         if changed.is_empty() {
+            if !whole {
+                self.planning.drafted_only(dry);
+            }
             return Vec::new();
         }
         self.round += 1;
         // Nobody busy: `dry_plans` planned every member from the whole cluster.
-        if dry >= self.members.len() {
+        if whole {
             self.planning.whole(self.members.len());
         } else {
-            self.planning.incremental(dry, self.members.len());
+            self.planning
+                .incremental(dry, changed.len(), self.members.len());
         }
         let (loads, touched) = self.index.adopt(&mut self.members, &changed, self.round);
         self.planned_loads += loads;

@@ -228,6 +228,7 @@ pub fn planned(actions: &[Action]) -> PlanningWork {
             sum.whole_rounds += w.whole_rounds;
             sum.whole_members += w.whole_members;
             sum.planned += w.planned;
+            sum.drafted += w.drafted;
             sum.members += w.members;
         }
     }
