@@ -100,6 +100,25 @@ impl Part {
     }
 }
 
+/// Member `key` listed under the domains of `new` instead of those of `old` (both
+/// ascending) in `lists` (a set of members a domain); returns the domains it was added to.
+fn list_member(lists: &mut [BTreeSet<u32>], key: u32, old: &[u32], new: &[u32]) -> Vec<u32> {
+    let mut added = Vec::new();
+    for step in merge(old, new, |&d| d) {
+        match step {
+            Merged::Both(..) => {}
+            Merged::Old(&d) => {
+                lists[d as usize].remove(&key);
+            }
+            Merged::New(&d) => {
+                lists[d as usize].insert(key);
+                added.push(d);
+            }
+        }
+    }
+    added
+}
+
 /// `x` moved `by` up (`add`) or down.
 fn step_by<T: std::ops::AddAssign + std::ops::SubAssign>(x: &mut T, by: T, add: bool) {
     if add { *x += by } else { *x -= by }
@@ -363,29 +382,14 @@ impl RoundIndex {
                 touched.push(d);
             }
         }
-        for step in merge(&old.holding_plan, &new.holding_plan, |&d| d) {
-            match step {
-                Merged::Both(..) => {}
-                Merged::Old(&d) => {
-                    self.plan_holders[d as usize].remove(&key);
-                }
-                Merged::New(&d) => {
-                    self.plan_holders[d as usize].insert(key);
-                    self.newly_held.insert(d);
-                }
-            }
-        }
-        for step in merge(&old.queues, &new.queues, |&d| d) {
-            match step {
-                Merged::Both(..) => {}
-                Merged::Old(&d) => {
-                    self.queuers[d as usize].remove(&key);
-                }
-                Merged::New(&d) => {
-                    self.queuers[d as usize].insert(key);
-                }
-            }
-        }
+        let gained = list_member(
+            &mut self.plan_holders,
+            key,
+            &old.holding_plan,
+            &new.holding_plan,
+        );
+        self.newly_held.extend(gained);
+        list_member(&mut self.queuers, key, &old.queues, &new.queues);
     }
 
     /// Asynchronous rounds: `plans` become round `round`'s, as
