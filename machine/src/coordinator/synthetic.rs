@@ -175,16 +175,17 @@ impl SteadyFrame {
         self.follow(actions)
     }
 
-    /// Hands the coordinator `inputs` together a report's gap after the last, as a shell
-    /// with several at hand does (`Coordinator::take` each, then `Coordinator::plan` once):
-    /// `n` reports of running dry make one round that plans those `n` members.
+    /// Hands the coordinator `inputs` together a report's gap after the last
+    /// (`Coordinator::take` each, then `Coordinator::plan_round` once): `n` reports of running
+    /// dry make one round that plans those `n` members. The holders flush that may be due is
+    /// [`SteadyFrame::flush`]'s.
     pub fn handle_all(&mut self, inputs: Vec<Input>) -> Vec<Action> {
         self.now = self.now + REPORT_GAP;
         let mut actions = Vec::new();
         for input in inputs {
             actions.extend(self.coordinator.take(self.now, input));
         }
-        actions.extend(self.coordinator.plan(self.now));
+        actions.extend(self.coordinator.plan_round(self.now));
         self.follow(actions)
     }
 
