@@ -391,7 +391,7 @@ const ROUND_SIZES: [(u32, u32); 6] = [
 const DRY_COUNTS: [u32; 3] = [1, 8, 64];
 
 /// One timed planning round: the cluster's size, how many members it planned, and its
-/// thread CPU time (the fastest of five).
+/// thread CPU time (the median of several, `time_round`).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TimedRound {
     pub members: usize,

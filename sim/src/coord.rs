@@ -338,6 +338,13 @@ impl SimCoordinator {
         self.feed(now, Input::Tick)
     }
 
+    /// The process works for `took` from `now` (or from when it is done with what it has):
+    /// busy that long, and what it sends after leaves when it is done.
+    fn occupy(&mut self, now: Time, took: Duration) {
+        self.busy += took;
+        self.free_at = self.free_at.max(now) + took;
+    }
+
     /// Carries out the machine's actions as the shell does, answering the ones the shell
     /// answers at once (a scene read and results written take no virtual time here).
     fn carry_out(&mut self, now: Time, actions: Vec<Action>) -> Vec<ToNode> {
@@ -440,16 +447,13 @@ impl SimCoordinator {
                         .config
                         .cost
                         .planning(&work, self.config.domain_bytes.len());
-                    self.busy += took;
-                    self.free_at = self.free_at.max(now) + took;
+                    self.occupy(now, took);
                     None
                 }
                 Action::Tally(Tally::HoldersFlushed(work)) => {
-                    // The coordinator's time as a round's: busy, and what it sends after
-                    // leaves when it is done.
+                    // The coordinator's time as a round's.
                     let took = self.config.cost.flushing(&work);
-                    self.busy += took;
-                    self.free_at = self.free_at.max(now) + took;
+                    self.occupy(now, took);
                     None
                 }
                 Action::Tally(_) => None,

@@ -2,7 +2,8 @@
 //! segments, shadow segments, camera samples and volume samples, each at its own price, over
 //! the worker's threads; a planning round of the coordinator costs what its kind follows
 //! (`rayfarm_machine::coordinator::PlanningWork`): an incremental round (someone busy) a fixed
-//! part plus a part per member planned, per member of the cluster and per domain; a round
+//! part plus a part per member planned (and per member planned per domain), per dry member
+//! drafted and left as it was, per member of the cluster and per domain; a round
 //! planned from the whole cluster (barrier rounds, or nobody busy) a part per member and per
 //! domain at the whole-cluster planner's prices; a holders flush (`FlushWork`) a fixed part,
 //! a part per member of the frame and per holder line it made. The prices are measured on a

@@ -194,10 +194,7 @@ impl SteadyFrame {
     /// [`SteadyFrame::flush`]'s, so `rayfarm sim calibrate` times flushes alone (a flush follows
     /// the round of the report that finds it due).
     pub fn handle_round(&mut self, input: Input) -> Vec<Action> {
-        self.now = self.now + REPORT_GAP;
-        let mut actions = self.coordinator.take(self.now, input);
-        actions.extend(self.coordinator.plan_round(self.now));
-        self.follow(actions)
+        self.handle_all(vec![input])
     }
 
     /// The holders flush, if it is due at the last report's time (after
