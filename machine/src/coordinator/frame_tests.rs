@@ -1,7 +1,7 @@
 //! The running frame driven by plain events: no process, socket or clock.
 
 use super::*;
-use crate::coordinator::holders::{HolderChange, view_classes};
+use crate::coordinator::holders::{HolderChange, ViewChange, view_classes};
 use rayfarm_core::cluster::tile_sums;
 
 /// A 64x64 frame of four 32-pixel tiles over four domains of 100 bytes.
@@ -461,20 +461,34 @@ fn a_hot_domains_change_is_news_to_the_view_classes_of_the_keys_it_gained_and_lo
         HolderChange::between(2, Some(&vec![5]), &[5, 6]).unwrap(),
     ];
     let deltas = f.holder_changes(&changes, classes);
-    let line = |domain: u32, gained: &[u32], lost: &[u32]| proto::DomainHolders {
-        domain,
-        workers: gained.to_vec(),
-        lost: lost.to_vec(),
+    let line = |domain: u32, gained: &[u32], lost: &[u32]| {
+        (
+            domain,
+            ViewChange {
+                gained: gained.to_vec(),
+                lost: lost.to_vec(),
+            },
+        )
+    };
+    let told = |class: u32| -> Vec<(u32, ViewChange)> {
+        deltas
+            .iter()
+            .filter_map(|c| c.of(class).map(|l| (c.domain, l.clone())))
+            .collect()
     };
     // Class 0 loses its 4 and sees every holder of domain 2 (it has none of its own).
-    assert_eq!(deltas[0], [line(1, &[], &[4]), line(2, &[6], &[])]);
+    assert_eq!(told(0), [line(1, &[], &[4]), line(2, &[6], &[])]);
     assert!(
-        deltas[1].is_empty(),
+        told(1).is_empty(),
         "class 1 sees its own 5 before and after"
     );
     // Class 2 saw every holder of domain 2 and now sees its own 6 only.
-    assert_eq!(deltas[2], [line(2, &[6], &[5])]);
-    assert_eq!(deltas[3], [line(1, &[203], &[]), line(2, &[6], &[])]);
+    assert_eq!(told(2), [line(2, &[6], &[5])]);
+    assert_eq!(told(3), [line(1, &[203], &[]), line(2, &[6], &[])]);
+    // Domain 1's change is kept once for the classes of its holders, all four; domain 2's
+    // for those of 5 and 6 apart, once for the rest.
+    assert_eq!(deltas[0].own.len(), 4);
+    assert_eq!(deltas[1].own.keys().copied().collect::<Vec<_>>(), [1, 2]);
 }
 
 /// The holders a worker's plan routes by after `messages` (its plans and holders messages).

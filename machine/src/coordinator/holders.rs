@@ -101,6 +101,28 @@ impl ViewChange {
             .collect();
         (!gained.is_empty() || !lost.is_empty()).then_some(ViewChange { gained, lost })
     }
+
+    /// Folds `next` in after this line.
+    fn fold(&mut self, next: &ViewChange) {
+        for &k in &next.lost {
+            if let Ok(i) = self.gained.binary_search(&k) {
+                self.gained.remove(i);
+            }
+            if let Err(i) = self.lost.binary_search(&k) {
+                self.lost.insert(i, k);
+            }
+        }
+        for &k in &next.gained {
+            if let Err(i) = self.gained.binary_search(&k) {
+                self.gained.insert(i, k);
+            }
+        }
+    }
+
+    /// Whether the line says nothing.
+    fn is_empty(&self) -> bool {
+        self.gained.is_empty() && self.lost.is_empty()
+    }
 }
 
 /// How one domain's holders changed between two maps: its holders before and now, each
@@ -132,11 +154,9 @@ impl HolderChange {
         ViewChange::between(&self.before, &self.now).unwrap_or_default()
     }
 
-    /// What each view class is told of this change among `classes`: `(rest, own)`, where a
-    /// class in `own` is told its line there (`None`: its view did not change) and every
-    /// other class is told `rest` (no holder of it before or now, so it sees every holder).
+    /// What each view class is told of this change among `classes` (see [`ClassLines`]).
     /// Costs the holders before and now, not the classes.
-    pub fn lines(&self, classes: u32) -> (Option<ViewChange>, BTreeMap<u32, Option<ViewChange>>) {
+    pub fn lines(&self, classes: u32) -> ClassLines {
         let rest = ViewChange::between(&self.before, &self.now);
         let mut split: BTreeMap<u32, (Vec<u32>, Vec<u32>)> = BTreeMap::new();
         for &k in &self.before {
@@ -157,52 +177,168 @@ impl HolderChange {
                 (class, ViewChange::between(before, now))
             })
             .collect();
-        (rest, own)
+        ClassLines {
+            domain: self.domain,
+            rest,
+            own,
+        }
     }
 }
 
-/// One view class's holder changes since the members were last all told, folded into one line
-/// a domain: what a member of the class that holds any map sent since is told to bring it up to
-/// date. A busy member needs the holders only to route its rays, and every asynchronous round
-/// changed some: one `Holders` a round to every busy member was 91% of a 256-worker dynamic
-/// simulation's 15.9 M messages (README "Simulator"). The changes now wait here and go out with
-/// the member's next plan, or to every member at most once per holders interval
+/// One changed domain's delta lines by view class: a class with a holder of the domain before
+/// or now is in `own`, with its line there (`None`: its view did not change); every other
+/// class sees every holder and is told `rest`. Under the dynamic schedule most domains have a
+/// holder or two, so most classes are told `rest`: kept once, not once a class.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct ClassLines {
+    pub domain: u32,
+    pub rest: Option<ViewChange>,
+    pub own: BTreeMap<u32, Option<ViewChange>>,
+}
+
+impl ClassLines {
+    /// The line view `class` is told, if its view changed.
+    pub fn of(&self, class: u32) -> Option<&ViewChange> {
+        match self.own.get(&class) {
+            Some(line) => line.as_ref(),
+            None => self.rest.as_ref(),
+        }
+    }
+
+    /// The same lines with `keep` applied to each line's gained keys, and a line that says
+    /// nothing then as no line (`None`).
+    pub fn keeping(self, keep: impl Fn(u32) -> bool) -> ClassLines {
+        let trim = |line: Option<ViewChange>| {
+            line.map(|mut l| {
+                l.gained.retain(|&k| keep(k));
+                l
+            })
+            .filter(|l| !l.gained.is_empty() || !l.lost.is_empty())
+        };
+        ClassLines {
+            domain: self.domain,
+            rest: trim(self.rest),
+            own: self
+                .own
+                .into_iter()
+                .map(|(class, line)| (class, trim(line)))
+                .collect(),
+        }
+    }
+}
+
+/// One domain's pending lines: the fold of what the classes that have not held it since the
+/// last flush were told (`rest`, one fold for all of them), and the fold of each class that
+/// has (`own`).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+struct DomainPending {
+    rest: ViewChange,
+    own: BTreeMap<u32, ViewChange>,
+}
+
+/// The holder changes since the members were last all told, folded into one line a domain and
+/// view class: what a member of the class that holds any map sent since is told to bring it up
+/// to date. A busy member needs the holders only to route its rays, and every asynchronous
+/// round changed some: one `Holders` a round to every busy member was 91% of a 256-worker
+/// dynamic simulation's 15.9 M messages (README "Simulator"). The changes now wait here and go
+/// out with the member's next plan, or to every member at most once per holders interval
 /// (`RunningFrame::flush_holders`).
 ///
 /// A line keeps every key the domain lost and every key it gained and did not lose after
-/// (`absorb`: lost keys of either out, then those gained and not lost after, and those gained
-/// after, in; a worker takes a line's lost keys out before it puts the gained ones in). So the
-/// fold of the changes since version `v` brings a member at any version from `v` on to the
-/// latest: what it applied already is taken out and put back as the latest has it. A member
-/// told by its plan, then by the flush, is never out of step (a test applies the fold to
-/// workers' maps at every version between).
+/// (`ViewChange::fold`: lost keys of either out, then those gained and not lost after, and
+/// those gained after, in; a worker takes a line's lost keys out before it puts the gained
+/// ones in). So the fold of the changes since version `v` brings a member at any version from
+/// `v` on to the latest: what it applied already is taken out and put back as the latest has
+/// it. A member told by its plan, then by the flush, is never out of step (a test applies the
+/// fold to workers' maps at every version between).
+///
+/// The classes that have held a domain since the last flush are folded apart; the others
+/// were told the same lines, so they share one fold. A class that first holds the domain
+/// starts from the shared fold, which is what it was told until then (had it held the domain
+/// earlier, it would have been apart since). Folding each change into every class's lines cost
+/// 44% of a round at 4,096 workers (64 classes) over 32,768 domains; a change now costs the
+/// classes of its holders, and such a round went from 130 to 76 us (README "Simulator"). A
+/// property test holds every class's lines equal to its own fold.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct Pending {
-    /// By domain: the keys gained and lost (each ascending).
-    lines: BTreeMap<u32, ViewChange>,
-    /// The round that last added to the lines (a member told at or after it holds them).
-    pub changed_round: u64,
+    /// By domain.
+    lines: BTreeMap<u32, DomainPending>,
+    /// Domains whose `rest` line says something.
+    rest_lines: usize,
+    /// By class: its lines that say something less `rest_lines` (its own lines counted in
+    /// place of the shared ones they stand for).
+    own_lines: Vec<isize>,
+    /// By class: the round that last added to its lines (a member told at or after it holds
+    /// them).
+    changed_round: Vec<u64>,
 }
 
 impl Pending {
-    /// Folds one delta line of `domain` (keys `gained` and `lost`) in after the others.
-    pub fn absorb(&mut self, domain: u32, gained: &[u32], lost: &[u32], round: u64) {
-        if gained.is_empty() && lost.is_empty() {
-            return;
+    /// Nothing pending for any of `classes` view classes.
+    pub fn new(classes: u32) -> Pending {
+        let n = classes.max(1) as usize;
+        Pending {
+            lines: BTreeMap::new(),
+            rest_lines: 0,
+            own_lines: vec![0; n],
+            changed_round: vec![0; n],
         }
-        self.changed_round = round;
-        let line = self.lines.entry(domain).or_default();
-        for &k in lost {
-            if let Ok(i) = line.gained.binary_search(&k) {
-                line.gained.remove(i);
+    }
+
+    /// Folds round `round`'s delta (a [`ClassLines`] per changed domain, lines that say
+    /// nothing left out) in after the others.
+    pub fn absorb(&mut self, delta: &[ClassLines], round: u64) {
+        let classes = self.changed_round.len();
+        // A class is told something by the round if a domain told it its own line, or told
+        // `rest` while it was not named (`named`: how many domains that told `rest` named it).
+        let mut told = vec![false; classes];
+        let (mut rest_domains, mut named) = (0, vec![0usize; classes]);
+        for change in delta {
+            if change.rest.is_none() && change.own.is_empty() {
+                continue;
             }
-            if let Err(i) = line.lost.binary_search(&k) {
-                line.lost.insert(i, k);
+            let entry = self.lines.entry(change.domain).or_default();
+            for (&class, line) in &change.own {
+                let c = class as usize;
+                // First held since the flush: it was told the shared lines until now, so its
+                // own fold starts from them (and stands for them in the count).
+                let own = entry.own.entry(class).or_insert_with(|| entry.rest.clone());
+                if let Some(line) = line {
+                    if own.is_empty() {
+                        self.own_lines[c] += 1;
+                    }
+                    own.fold(line);
+                    told[c] = true;
+                }
             }
+            let Some(rest) = &change.rest else {
+                continue;
+            };
+            rest_domains += 1;
+            for &class in change.own.keys() {
+                named[class as usize] += 1;
+            }
+            // The classes apart that this change does not name see every holder: `rest`.
+            for (&class, own) in entry.own.iter_mut() {
+                if change.own.contains_key(&class) {
+                    continue;
+                }
+                if own.is_empty() {
+                    self.own_lines[class as usize] += 1;
+                }
+                own.fold(rest);
+            }
+            if entry.rest.is_empty() {
+                self.rest_lines += 1;
+                for &class in entry.own.keys() {
+                    self.own_lines[class as usize] -= 1;
+                }
+            }
+            entry.rest.fold(rest);
         }
-        for &k in gained {
-            if let Err(i) = line.gained.binary_search(&k) {
-                line.gained.insert(i, k);
+        for (class, changed) in self.changed_round.iter_mut().enumerate() {
+            if told[class] || named[class] < rest_domains {
+                *changed = round;
             }
         }
     }
@@ -212,41 +348,55 @@ impl Pending {
         self.lines.is_empty()
     }
 
-    /// Domain lines changed.
-    pub fn len(&self) -> usize {
-        self.lines.len()
+    /// Lines that say something pending for view `class`.
+    pub fn len(&self, class: u32) -> usize {
+        let own = self.own_lines.get(class as usize).copied().unwrap_or(0);
+        (self.rest_lines as isize + own).max(0) as usize
     }
 
-    /// The folded lines as a delta's, ascending by domain; gained keys that `is_member` refuses
-    /// are left out (a member lost since: the workers forgot it, and a later round lists it
-    /// lost).
-    pub fn lines(&self, is_member: impl Fn(u32) -> bool) -> Vec<proto::DomainHolders> {
+    /// The round that last added to view `class`'s lines (0: none since the last flush).
+    pub fn changed_round(&self, class: u32) -> u64 {
+        self.changed_round.get(class as usize).copied().unwrap_or(0)
+    }
+
+    /// View `class`'s line of `domain`, if one is pending.
+    fn line_of(&self, domain: u32, class: u32) -> Option<&ViewChange> {
+        let entry = self.lines.get(&domain)?;
+        Some(entry.own.get(&class).unwrap_or(&entry.rest)).filter(|l| !l.is_empty())
+    }
+
+    /// View `class`'s folded lines as a delta's, ascending by domain; gained keys that
+    /// `is_member` refuses are left out (a member lost since: the workers forgot it, and a
+    /// later round lists it lost).
+    pub fn lines(&self, class: u32, is_member: impl Fn(u32) -> bool) -> Vec<proto::DomainHolders> {
         self.lines
-            .iter()
-            .filter_map(|(&domain, l)| Self::line(domain, l, &is_member))
+            .keys()
+            .filter_map(|&d| Self::line(d, self.line_of(d, class)?, &is_member))
             .collect()
     }
 
-    /// The folded lines of `domains` only (ascending), as [`Pending::lines`] makes them, and
-    /// whether they are every line pending. A line brings its domain to the latest holders
-    /// whatever version since the last flush a member holds (see above), so a member may be
-    /// told some domains' lines now and the rest later: a round tells the members it plans,
-    /// or whose rays it moved, the lines of the domains it changed, which cost what the round
-    /// changed, not every line folded since the last flush (at 1,024 workers and a 100 ms
-    /// interval, hundreds of lines in each of ten messages a round: README "Simulator").
+    /// View `class`'s folded lines of `domains` only (ascending), as [`Pending::lines`] makes
+    /// them, and whether they are every line pending for it. A line brings its domain to the
+    /// latest holders whatever version since the last flush a member holds (see above), so a
+    /// member may be told some domains' lines now and the rest later: a round tells the
+    /// members it plans, or whose rays it moved, the lines of the domains it changed, which
+    /// cost what the round changed, not every line folded since the last flush (at 1,024
+    /// workers and a 100 ms interval, hundreds of lines in each of ten messages a round:
+    /// README "Simulator").
     pub fn lines_of(
         &self,
+        class: u32,
         domains: &BTreeSet<u32>,
         is_member: impl Fn(u32) -> bool,
     ) -> (Vec<proto::DomainHolders>, bool) {
         let mut found = 0;
         let lines = domains
             .iter()
-            .filter_map(|&d| self.lines.get(&d).map(|l| (d, l)))
+            .filter_map(|&d| self.line_of(d, class).map(|l| (d, l)))
             .inspect(|_| found += 1)
             .filter_map(|(d, l)| Self::line(d, l, &is_member))
             .collect();
-        (lines, found == self.lines.len())
+        (lines, found == self.len(class))
     }
 
     /// One folded line as a delta's, if it says anything once non-members are left out.
@@ -276,8 +426,8 @@ pub struct SentHolders {
     /// Whether `sent` is the map of every member's plan as of the index's last taken changes
     /// (else it is a barrier round's map, the owner map, or none yet).
     in_step: bool,
-    /// By view class: the changes since the last flush, folded.
-    pending: Vec<Pending>,
+    /// The changes since the last flush, folded by view class.
+    pending: Pending,
     /// By member: the round whose holders it was last told (its plan's or a flush's).
     told: HashMap<u32, u64>,
     /// Whether a round changed something since the last flush (or left a member unsynced).
@@ -379,23 +529,27 @@ impl SentHolders {
     /// is spent (those that hold the map got it whole; the others will).
     pub fn synced_only(&mut self, keys: impl IntoIterator<Item = u32>) {
         self.synced = keys.into_iter().collect();
-        self.pending
-            .iter_mut()
-            .for_each(|p| *p = Pending::default());
+        self.pending = Pending::new(self.classes());
     }
 
-    /// Folds a round's delta lines, by view class (`lines[class]`), into what is pending for
-    /// each class; the next flush is due.
-    pub fn absorb(&mut self, lines: &[Vec<proto::DomainHolders>], round: u64) {
-        if self.pending.len() < lines.len() {
-            self.pending.resize_with(lines.len(), Pending::default);
+    /// View classes the pending lines are kept for.
+    fn classes(&self) -> u32 {
+        self.pending.changed_round.len() as u32
+    }
+
+    /// Folds a round's delta (a [`ClassLines`] per changed domain among `classes` view
+    /// classes) into what is pending; the next flush is due.
+    pub fn absorb(&mut self, delta: &[ClassLines], classes: u32, round: u64) {
+        if self.classes() != classes.max(1) {
+            debug_assert!(self.pending.is_empty(), "the view classes are the frame's");
+            self.pending = Pending::new(classes);
         }
-        for (pending, lines) in self.pending.iter_mut().zip(lines) {
-            for l in lines {
-                pending.absorb(l.domain, &l.workers, &l.lost, round);
-            }
-        }
-        self.dirty |= lines.iter().any(|l| !l.is_empty());
+        self.pending.absorb(delta, round);
+        // Due if some class was told a line.
+        self.dirty |= delta.iter().any(|c| {
+            c.own.values().any(Option::is_some)
+                || (c.rest.is_some() && c.own.len() < classes as usize)
+        });
     }
 
     /// Makes the next flush due though nothing changed: some member holds no map it can be
@@ -405,9 +559,9 @@ impl SentHolders {
         self.dirty = true;
     }
 
-    /// What is pending for view `class`.
-    pub fn pending(&self, class: u32) -> Option<&Pending> {
-        self.pending.get(class as usize)
+    /// What is pending, by view class.
+    pub fn pending(&self) -> &Pending {
+        &self.pending
     }
 
     /// `key` was told the holders as of `round` (its plan carried its class's pending lines,
@@ -422,7 +576,7 @@ impl SentHolders {
     pub fn is_told(&self, key: u32, class: u32) -> bool {
         self.told
             .get(&key)
-            .is_some_and(|&r| self.pending(class).is_none_or(|p| r >= p.changed_round))
+            .is_some_and(|&r| r >= self.pending.changed_round(class))
     }
 
     /// When the next flush is due, if a round changed anything since the last: `interval`
@@ -578,10 +732,9 @@ mod tests {
             }
             for c in s.update(next.clone()) {
                 apply(&mut all, c.domain, &c.whole());
-                let (rest, own) = c.lines(classes);
+                let lines = c.lines(classes);
                 for class in 0..classes {
-                    let line = own.get(&class).unwrap_or(&rest);
-                    if let Some(line) = line {
+                    if let Some(line) = lines.of(class) {
                         apply(&mut held[class as usize], c.domain, line);
                     }
                 }
@@ -591,6 +744,101 @@ mod tests {
                 assert_eq!(held[class as usize], view_of(&next, class, classes));
             }
         }
+    }
+
+    /// Each class's lines folded on their own, as every class's were before the classes
+    /// without a holder shared one fold: the reference the shared fold must equal.
+    #[derive(Default)]
+    struct OwnFold {
+        lines: BTreeMap<u32, ViewChange>,
+        changed_round: u64,
+    }
+
+    impl OwnFold {
+        fn absorb(&mut self, domain: u32, line: &ViewChange, round: u64) {
+            if line.is_empty() {
+                return;
+            }
+            self.changed_round = round;
+            self.lines.entry(domain).or_default().fold(line);
+        }
+
+        fn lines(&self, domains: Option<&BTreeSet<u32>>) -> Vec<proto::DomainHolders> {
+            self.lines
+                .iter()
+                .filter(|(d, _)| domains.is_none_or(|ds| ds.contains(d)))
+                .map(|(&domain, l)| proto::DomainHolders {
+                    domain,
+                    workers: l.gained.clone(),
+                    lost: l.lost.clone(),
+                })
+                .collect()
+        }
+    }
+
+    #[test]
+    fn the_shared_fold_gives_every_class_its_own_fold() {
+        let (classes, domains, keys) = (4u32, 10u32, 24u32);
+        let mut draw = draws(5);
+        let mut checked = 0;
+        for _ in 0..60 {
+            let mut sent = SentHolders::default();
+            let mut pending = Pending::new(classes);
+            let mut own: Vec<OwnFold> = (0..classes).map(|_| OwnFold::default()).collect();
+            let mut map = HolderMap::new();
+            for round in 1..=40u64 {
+                // Now and then the members are all told: nothing pending.
+                if draw(8) == 0 {
+                    pending = Pending::new(classes);
+                    own.iter_mut().for_each(|o| *o = OwnFold::default());
+                }
+                for _ in 0..1 + draw(4) {
+                    let d = draw(u64::from(domains)) as u32;
+                    let holders = map.entry(d).or_default();
+                    // Mostly a holder or two; now and then a hot domain held in every class.
+                    let flips = if draw(6) == 0 { 12 } else { 1 + draw(2) };
+                    for _ in 0..flips {
+                        let k = draw(u64::from(keys)) as u32;
+                        match holders.binary_search(&k) {
+                            Ok(i) => {
+                                holders.remove(i);
+                            }
+                            Err(i) => holders.insert(i, k),
+                        }
+                    }
+                }
+                map.retain(|_, h| !h.is_empty());
+                let delta: Vec<ClassLines> = sent
+                    .update(map.clone())
+                    .iter()
+                    .map(|c| c.lines(classes).keeping(|k| k != 13))
+                    .collect();
+                pending.absorb(&delta, round);
+                for change in &delta {
+                    for class in 0..classes {
+                        if let Some(line) = change.of(class) {
+                            own[class as usize].absorb(change.domain, line, round);
+                        }
+                    }
+                }
+                let some: BTreeSet<u32> = (0..domains).filter(|_| draw(2) == 0).collect();
+                for class in 0..classes {
+                    let o = &own[class as usize];
+                    assert_eq!(
+                        pending.lines(class, |_| true),
+                        o.lines(None),
+                        "class {class}"
+                    );
+                    assert_eq!(pending.len(class), o.lines.len(), "class {class}");
+                    assert_eq!(pending.changed_round(class), o.changed_round);
+                    let (lines, all) = pending.lines_of(class, &some, |_| true);
+                    assert_eq!(lines, o.lines(Some(&some)));
+                    assert_eq!(all, o.lines.keys().all(|d| some.contains(d)));
+                    checked += 1;
+                }
+            }
+        }
+        assert!(checked > 9_000, "{checked} classes checked");
     }
 
     /// Random rounds of holder changes for one member's class, each a delta line a domain
@@ -605,7 +853,7 @@ mod tests {
         let roster: std::sync::Arc<std::collections::HashMap<u32, String>> =
             std::sync::Arc::new((0..8).map(|k| (k, format!("w{k}"))).collect());
         let lines_of = |p: &Pending| -> Vec<HolderLine> {
-            p.lines(|_| true)
+            p.lines(0, |_| true)
                 .into_iter()
                 .map(|l| HolderLine {
                     domain: l.domain,
@@ -624,7 +872,7 @@ mod tests {
             // The coordinator's maps, one a round, and each round's delta (a whole map first).
             let mut maps: Vec<HolderMap> = Vec::new();
             let mut sent = SentHolders::default();
-            let mut deltas: Vec<Vec<proto::DomainHolders>> = Vec::new();
+            let mut deltas: Vec<Vec<ClassLines>> = Vec::new();
             for _ in 0..2 + draw(6) {
                 let mut next = maps.last().cloned().unwrap_or_default();
                 // A few domains change: keys in and out, now and then every holder gone.
@@ -648,14 +896,7 @@ mod tests {
                 let delta = sent
                     .update(next.clone())
                     .iter()
-                    .map(|c| {
-                        let w = c.whole();
-                        proto::DomainHolders {
-                            domain: c.domain,
-                            workers: w.gained,
-                            lost: w.lost,
-                        }
-                    })
+                    .map(|c| c.lines(1))
                     .collect();
                 deltas.push(delta);
                 maps.push(next);
@@ -674,13 +915,11 @@ mod tests {
             let want = held(&worker_at(last));
             // Pending from round v + 1 on; a worker at round u >= v applies it.
             for v in 0..last {
-                let mut pending = Pending::default();
+                let mut pending = Pending::new(1);
                 for (r, delta) in deltas.iter().enumerate().skip(v + 1) {
-                    for l in delta {
-                        pending.absorb(l.domain, &l.workers, &l.lost, r as u64);
-                    }
+                    pending.absorb(delta, r as u64);
                 }
-                assert!(pending.len() <= domains as usize, "one line a domain");
+                assert!(pending.len(0) <= domains as usize, "one line a domain");
                 for u in v..=last {
                     let mut p = worker_at(u);
                     p.set_holders(lines_of(&pending), true);
@@ -706,7 +945,7 @@ mod tests {
         let mut now = before.clone();
         now.push(64 * 5 + 7);
         let c = HolderChange::between(1, Some(&before), &now).unwrap();
-        let (rest, own) = c.lines(64);
+        let ClassLines { rest, own, .. } = c.lines(64);
         assert_eq!(
             own[&7],
             Some(ViewChange {

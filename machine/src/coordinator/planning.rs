@@ -18,7 +18,7 @@ use tracing::{debug, info};
 use super::{Member, Outgoing, RunningFrame, msg};
 use crate::Time;
 use crate::coordinator::holders::{
-    HolderChange, HolderMap, ViewChange, class_of, view, view_classes,
+    ClassLines, HolderChange, HolderMap, class_of, view, view_classes,
 };
 
 impl RunningFrame {
@@ -201,7 +201,7 @@ impl RunningFrame {
         let deltas = self.holder_changes(&changes, classes);
         // The round's changes wait with what is pending for each class: the members planned
         // or touched here take some of them now (below), everyone the rest at the next flush.
-        self.sent_holders.absorb(&deltas, self.round);
+        self.sent_holders.absorb(&deltas, classes, self.round);
         // What a member planned or touched here is told with its plan or at once: when busy
         // members are told after every round (no interval), its class's pending lines, all of
         // them, as the flush that follows tells everyone; else only the lines of the domains
@@ -292,9 +292,8 @@ impl RunningFrame {
         let empty = BTreeSet::new();
         let moved = self.index.moved_from(key).unwrap_or(&empty);
         self.sent_holders
-            .pending(class)
-            .map(|p| p.lines_of(moved, |k| members.contains_key(&k)))
-            .unwrap_or((Vec::new(), true))
+            .pending()
+            .lines_of(class, moved, |k| members.contains_key(&k))
     }
 
     /// The one `Holders` every member of view `class` in state `synced` is owed at a flush
@@ -327,9 +326,8 @@ impl RunningFrame {
         }
         let members = &self.members;
         self.sent_holders
-            .pending(class)
-            .map(|p| p.lines(|k| members.contains_key(&k)))
-            .unwrap_or_default()
+            .pending()
+            .lines(class, |k| members.contains_key(&k))
     }
 
     /// When the members' next holders flush is due, if a round changed anything since the last.
@@ -425,15 +423,15 @@ impl RunningFrame {
     }
 
     /// The deltas the members get, by view class (`holders::view`): each changed domain's
-    /// keys gained and lost in that class's view, the classes' lines found once for every
-    /// class. Every key gained is recorded as a holder (`Grants`); one no longer a member is
-    /// left out (a lost member's domains are listed with it as lost, and the workers forgot it
-    /// already).
+    /// keys gained and lost in the views of the classes that hold it, and in every other
+    /// class's (`ClassLines`). Every key gained is recorded as a holder (`Grants`); one no
+    /// longer a member is left out (a lost member's domains are listed with it as lost, and the
+    /// workers forgot it already).
     pub(super) fn holder_changes(
         &mut self,
         changes: &[HolderChange],
         classes: u32,
-    ) -> Vec<Vec<proto::DomainHolders>> {
+    ) -> Vec<ClassLines> {
         for c in changes {
             for k in c.whole().gained {
                 if self.members.contains_key(&k) {
@@ -442,29 +440,10 @@ impl RunningFrame {
             }
         }
         let members = &self.members;
-        let line = |domain: u32, l: &ViewChange| proto::DomainHolders {
-            domain,
-            workers: l
-                .gained
-                .iter()
-                .copied()
-                .filter(|k| members.contains_key(k))
-                .collect(),
-            lost: l.lost.clone(),
-        };
-        let mut by_class: Vec<Vec<proto::DomainHolders>> = vec![Vec::new(); classes as usize];
-        for c in changes {
-            let (rest, own) = c.lines(classes);
-            let rest = rest.map(|l| line(c.domain, &l));
-            for (class, lines) in by_class.iter_mut().enumerate() {
-                match own.get(&(class as u32)) {
-                    Some(Some(l)) => lines.push(line(c.domain, l)),
-                    Some(None) => {}
-                    None => lines.extend(rest.clone()),
-                }
-            }
-        }
-        by_class
+        changes
+            .iter()
+            .map(|c| c.lines(classes).keeping(|k| members.contains_key(&k)))
+            .collect()
     }
 
     /// The last map sent as a member of view `class` sees it, whole.
