@@ -127,6 +127,15 @@ struct Args {
     /// every round: at 8 workers 1-2 ms made the simulated predictive frame 13% longer.
     #[arg(long, env = "RAYFARM_HOLDERS_INTERVAL_MS", default_value_t = 0)]
     holders_interval_ms: u64,
+    /// Under asynchronous rounds, a worker planned with nothing to trace yet waits up to this
+    /// many milliseconds for the rays its plan moves to it (other workers forward them once
+    /// they hear it holds their domain) before it reports its queues again; it reports as soon
+    /// as it has traced something and run dry. 0 reports at once: the coordinator then hears
+    /// queues without the rays in flight and plans the worker again and again (97% of a
+    /// 256-worker dynamic simulation's reports, README "Simulator").
+    #[arg(long, env = "RAYFARM_REPORT_HOLD_MS", value_parser = clap::value_parser!(u64).range(0..=10_000),
+          default_value_t = rayfarm_machine::coordinator::cluster::DEFAULT_REPORT_HOLD.as_millis() as u64)]
+    report_hold_ms: u64,
     /// Largest film file, set of images, or worker memory for one tile's camera rays a job's
     /// frame may need; a job past it (or past the data directory's free disk) is refused at
     /// submit with RESOURCE_EXHAUSTED. A 16384x16384 frame's film is 6 GiB.
@@ -193,6 +202,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
             RoundsArg::Async => Rounds::Async,
         },
         holders_interval: Duration::from_millis(args.holders_interval_ms.min(60_000)),
+        report_hold: Duration::from_millis(args.report_hold_ms),
         max_frame_bytes: args.max_frame_bytes,
         max_attempts: args.max_attempts,
     };

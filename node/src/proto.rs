@@ -29,6 +29,7 @@ mod tests {
                 next: vec![4],
                 holders_delta: true,
                 sole_holders: Vec::new(),
+                report_hold_ms: 50,
             })),
         };
         let bytes = msg.encode_to_vec();

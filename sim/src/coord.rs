@@ -49,6 +49,9 @@ pub struct CoordConfig {
     pub worker_timeout: Duration,
     /// Busy workers are told new holders at most once per this interval.
     pub holders_interval: Duration,
+    /// How long a planned worker with nothing to trace waits for its plan's rays before it
+    /// reports again (the coordinator's `--report-hold-ms`).
+    pub report_hold: Duration,
     /// How long one record takes to reach the disk.
     pub disk_latency: Duration,
     /// What its planning rounds and holders flushes cost.
@@ -151,6 +154,7 @@ impl SimCoordinator {
             },
             rounds: Rounds::Async,
             holders_interval: self.config.holders_interval,
+            report_hold: self.config.report_hold,
             max_attempts: 3,
             max_jobs_per_user: 16,
             max_pixel_samples_per_user: u64::MAX,

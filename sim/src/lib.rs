@@ -33,5 +33,8 @@ pub mod world;
 pub use check::Violation;
 pub use cost::{ComputeCost, CostModel};
 pub use faults::{Fault, FaultPlan};
+/// The coordinator's default `--report-hold-ms`, which the simulated coordinator takes unless
+/// told otherwise.
+pub use rayfarm_machine::coordinator::cluster::DEFAULT_REPORT_HOLD;
 pub use storage::StorageModel;
 pub use world::{Outcome, RECONNECT, SimConfig, default_max_events, simulate};

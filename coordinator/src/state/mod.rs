@@ -61,6 +61,9 @@ pub struct Config {
     pub rounds: Rounds,
     /// Busy workers are told new holders at most once per this interval.
     pub holders_interval: Duration,
+    /// Under asynchronous rounds, a planned worker with nothing to trace waits up to this long
+    /// for the rays its plan moves to it before it reports again.
+    pub report_hold: Duration,
     /// Admission: the most a frame may need of each figure (`admission::Needs`).
     pub max_frame_bytes: u64,
     /// Starts of a job's frame after which it fails instead of starting again.
@@ -161,6 +164,7 @@ fn machine_config(config: &Config) -> cluster::Config {
         schedule_options: config.schedule_options,
         rounds: config.rounds,
         holders_interval: config.holders_interval,
+        report_hold: config.report_hold,
         max_attempts: config.max_attempts,
         max_jobs_per_user: config.max_jobs_per_user,
         max_pixel_samples_per_user: config.max_pixel_samples_per_user,

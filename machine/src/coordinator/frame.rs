@@ -248,6 +248,9 @@ pub struct RunningFrame {
     /// Busy members are told the holders at most once per this interval
     /// (`RunningFrame::flush_holders`); zero tells them after every round.
     holders_interval: std::time::Duration,
+    /// What an asynchronous round's plans tell their workers to wait for the rays they move
+    /// there before reporting again (`RoundPlan.report_hold_ms`).
+    report_hold: std::time::Duration,
     /// Tile results refused as impossible (each dropped its sender).
     pub refused_results: u64,
     /// The job's samples as subframes (one for a one-pass job), and the one being rendered:
@@ -325,6 +328,7 @@ impl RunningFrame {
             sent_holders: SentHolders::default(),
             view_classes: None,
             holders_interval: std::time::Duration::ZERO,
+            report_hold: std::time::Duration::ZERO,
             refused_results: 0,
             subframes,
             subframe: 0,
@@ -339,6 +343,13 @@ impl RunningFrame {
     /// see [`RunningFrame::flush_holders`].
     pub fn with_holders_interval(mut self, interval: std::time::Duration) -> Self {
         self.holders_interval = interval;
+        self
+    }
+
+    /// Tells the workers an asynchronous round plans to wait up to `hold` for the rays their
+    /// plan moves to them before they report again (zero: at once).
+    pub fn with_report_hold(mut self, hold: std::time::Duration) -> Self {
+        self.report_hold = hold;
         self
     }
 

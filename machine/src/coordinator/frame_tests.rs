@@ -185,6 +185,30 @@ fn barrier_rounds_wait_for_every_report() {
 }
 
 #[test]
+fn asynchronous_plans_tell_the_report_hold_and_barrier_plans_none() {
+    let holds = |rounds| {
+        let (f, _) = started(Schedule::Dynamic, rounds, 2);
+        let mut f = f.with_report_hold(std::time::Duration::from_millis(50));
+        let mut out = f.report(0, report(0, &[], &[(1, 50, 0)]));
+        out.extend(f.report(1, report(0, &[], &[(2, 70, 0)])));
+        let holds: Vec<u32> = out
+            .iter()
+            .filter_map(|(_, m)| match &m.body {
+                Some(Body::RoundPlan(p)) => Some(p.report_hold_ms),
+                _ => None,
+            })
+            .collect();
+        assert!(!holds.is_empty(), "{out:?}");
+        holds
+    };
+    assert!(holds(Rounds::Async).iter().all(|&h| h == 50));
+    assert!(
+        holds(Rounds::Barrier).iter().all(|&h| h == 0),
+        "a barrier round waits for every report"
+    );
+}
+
+#[test]
 fn only_the_predictive_schedule_plans_the_oldest_generation_first() {
     let planned = |schedule| {
         let (mut f, _) = started(schedule, Rounds::Async, 2);

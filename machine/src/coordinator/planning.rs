@@ -61,6 +61,7 @@ impl RunningFrame {
                     next: Vec::new(),
                     holders_delta: false,
                     sole_holders: sole_holders.clone(),
+                    report_hold_ms: 0,
                 });
                 (key, msg(body))
             })
@@ -94,7 +95,7 @@ impl RunningFrame {
         );
         plan.workers()
             .iter()
-            .map(|p| self.plan_message(p, &holders, Vec::new(), false))
+            .map(|p| self.plan_message(p, &holders, Vec::new(), false, 0))
             .collect()
     }
 
@@ -106,6 +107,7 @@ impl RunningFrame {
         holders: &[proto::DomainHolders],
         next: Vec<u32>,
         delta: bool,
+        report_hold_ms: u32,
     ) -> Outgoing {
         debug!(worker = p.worker.0, keep = ?p.keep, load = ?p.load, evict = ?p.evict, ?next, "plan");
         let body = Body::RoundPlan(proto::RoundPlan {
@@ -117,6 +119,7 @@ impl RunningFrame {
             next,
             holders_delta: delta,
             sole_holders: Vec::new(),
+            report_hold_ms,
         });
         (p.worker.0, msg(body))
     }
@@ -217,11 +220,13 @@ impl RunningFrame {
             "dry workers planned"
         );
         let next = self.next_domains(&changed);
+        let hold = u32::try_from(self.report_hold.as_millis()).unwrap_or(u32::MAX);
         let mut out: Vec<Outgoing> = Vec::with_capacity(changed.len());
         for (p, next) in changed.iter().zip(next) {
             let key = p.worker.0;
             let (l, all) = self.round_lines(key, classes, &mut lines);
-            out.push(self.plan_message(p, &l, next, self.sent_holders.is_synced(key)));
+            let synced = self.sent_holders.is_synced(key);
+            out.push(self.plan_message(p, &l, next, synced, hold));
             if all {
                 self.sent_holders.told(key, self.round);
             }

@@ -46,6 +46,9 @@ pub struct Frame<S> {
     /// Under the predictive schedule, the rays born here waiting for their copies' verdicts.
     speculation: Option<Speculation>,
     report: Report,
+    /// Until when a report of running dry waits for the work the last plan sends here (rays
+    /// moved from other workers' queues): none once a pass has run since that plan.
+    report_held: Option<Time>,
     /// A peer's rays of epochs newer than this worker knows for their tiles, waiting for the
     /// coordinator's bump that announces those epochs (see [`Frame::set_aside_newer`]).
     ahead: Vec<RayRecord>,
@@ -159,6 +162,7 @@ impl<S: RaySpill> Frame<S> {
             speculation: speculation.map(|depth| Speculation::new(me, roster, depth)),
             queues,
             report: Report::Due,
+            report_held: None,
             ahead: Vec::new(),
             counters: FrameCounters::default(),
             started,
@@ -200,17 +204,32 @@ impl<S: RaySpill> Frame<S> {
         }
     }
 
-    /// Adopts a round's plan.
+    /// Adopts a round's plan; with nothing to trace, the report of running dry under it waits
+    /// until `hold_until` for the work it sends here (`RoundPlan.report_hold_ms`).
     pub fn set_plan(
         &mut self,
         round: u64,
         work_on: impl IntoIterator<Item = u32>,
         holders: impl IntoIterator<Item = HolderLine>,
         delta: bool,
+        hold_until: Option<Time>,
     ) {
         self.plan.set_round(round, work_on, holders, delta);
         self.prefetched.clear();
         self.report = Report::Due;
+        self.report_held = hold_until;
+    }
+
+    /// A pass starts: what the last plan sent here has come (or the worker had work anyway),
+    /// so running dry after it is reported at once.
+    pub fn pass_started(&mut self) {
+        self.report_held = None;
+    }
+
+    /// Until when the report of running dry waits, if it waits at `now` (see
+    /// [`Frame::set_plan`]).
+    pub fn report_held(&self, now: Time) -> Option<Time> {
+        self.report_held.filter(|&t| now < t)
     }
 
     /// Records the coordinator's guess of this worker's next domains.

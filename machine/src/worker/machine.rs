@@ -22,6 +22,11 @@ use crate::Time;
 /// (about 6.5 MiB of records).
 const MAX_TASK_RAYS: usize = 1 << 16;
 
+/// Longest a plan may hold this worker's report of running dry (`RoundPlan.report_hold_ms`),
+/// whatever the coordinator asks: a worker waiting longer for work that never comes would
+/// stall its part of the frame.
+const MAX_REPORT_HOLD_MS: u64 = 10_000;
+
 /// Recently ended jobs remembered, so that their late bundles are dropped, not held.
 const ENDED_KEPT: usize = 16;
 
@@ -108,9 +113,17 @@ impl<S: RaySpill> Worker<S> {
         self.early.bytes()
     }
 
-    /// When to send [`Event::Tick`] if nothing else happens first (a bundle falls due).
+    /// When to send [`Event::Tick`] if nothing else happens first (a bundle falls due, or a
+    /// report held for a plan's work is due).
     pub fn next_timeout(&self) -> Option<Time> {
-        self.bundler.next_deadline().map(Time::from_duration)
+        let bundles = self.bundler.next_deadline().map(Time::from_duration);
+        // The end of a held report, unless a pass runs (its end reports or pumps anyway).
+        let held = self
+            .frame
+            .as_ref()
+            .filter(|_| !self.pass_running)
+            .and_then(|f| f.report_held(self.now));
+        bundles.into_iter().chain(held).min()
     }
 
     /// Reacts to `event`, which happened at `now`; then starts the next pass or reports the
@@ -322,11 +335,13 @@ impl<S: RaySpill> Worker<S> {
                 workers: vec![k - 1],
                 lost: Vec::new(),
             });
+        let hold = Duration::from_millis(u64::from(p.report_hold_ms).min(MAX_REPORT_HOLD_MS));
         frame.set_plan(
             p.round,
             p.work_on.iter().copied(),
             sole.chain(p.holders.into_iter().map(line)),
             p.holders_delta,
+            (!hold.is_zero()).then(|| self.now + hold),
         );
         // The cache as the machine knows it: mapped at the last pass's end, less what this plan
         // evicts (the cache changes only in passes and by these actions). A pass running now
@@ -593,6 +608,11 @@ impl<S: RaySpill> Worker<S> {
         if primaries.is_empty() && trace.is_none() && !concluding {
             let (now, kind) = (self.now, frame.idle_kind());
             frame.counters.open_idle(now, kind);
+            // A new plan's work may be on its way: the report waits for it (a tick at the
+            // hold's end reports, `next_timeout`).
+            if frame.report_held(now).is_some() {
+                return;
+            }
             // The domain being prefetched has work here: its load ends this wait.
             if !loading.is_some_and(|d| frame.has_work_for(d)) {
                 self.report_idle();
@@ -600,6 +620,7 @@ impl<S: RaySpill> Worker<S> {
             return;
         }
         frame.counters.close_idle(self.now);
+        frame.pass_started();
         self.pass_running = true;
         self.tracing = trace.as_ref().map(|(d, _)| *d);
         let job_id = frame.job_id.clone();

@@ -431,6 +431,49 @@ fn a_pass_that_empties_the_planned_queues_is_reported_once() {
 }
 
 #[test]
+fn a_plan_that_sends_work_here_holds_the_report_until_the_work_runs_or_the_hold_ends() {
+    let ms = |n: u64| Time(n * 1_000_000);
+    let held_plan = |round: u64, hold_ms: u32| {
+        control(FromCoordinator::RoundPlan(proto::RoundPlan {
+            job_id: JOB.into(),
+            round,
+            work_on: vec![0],
+            report_hold_ms: hold_ms,
+            ..Default::default()
+        }))
+    };
+    // Nothing here yet: the report waits for the plan's rays, and the tick at the hold's end
+    // sends it.
+    let mut w = worker();
+    w.handle(ms(0), opened(JOB, Schedule::Dynamic, &[]));
+    let actions = w.handle(ms(1), held_plan(1, 50));
+    assert!(queue_reports(&actions).is_empty(), "held: {actions:?}");
+    assert_eq!(w.next_timeout(), Some(ms(51)));
+    assert!(queue_reports(&w.handle(ms(30), Event::Tick)).is_empty());
+    let reports = queue_reports(&w.handle(ms(51), Event::Tick)).len();
+    assert_eq!(reports, 1, "the hold is over");
+    assert_eq!(w.next_timeout(), None);
+    // The rays come within the hold: traced, then reported at once.
+    let actions = w.handle(ms(60), held_plan(2, 50));
+    assert!(queue_reports(&actions).is_empty());
+    let actions = w.handle(ms(70), bundle(JOB, &[ray(0, 0, 0, 1)]));
+    assert!(pass_started(&actions).is_some());
+    assert_eq!(w.next_timeout(), None, "a pass runs");
+    let actions = w.handle(ms(75), finished(PassOutput::default()));
+    assert_eq!(
+        queue_reports(&actions).len(),
+        1,
+        "ran dry after the work came"
+    );
+    // No hold (barrier rounds, or an older coordinator): reported at once.
+    let actions = w.handle(ms(80), held_plan(3, 0));
+    assert_eq!(queue_reports(&actions).len(), 1);
+    // Whatever the coordinator asks, a hold is bounded.
+    w.handle(ms(90), held_plan(4, u32::MAX));
+    assert_eq!(w.next_timeout(), Some(ms(90 + 10_000)));
+}
+
+#[test]
 fn a_roster_change_addresses_the_verdicts_held_for_a_newcomer() {
     let mut w = worker();
     let actions = w.handle(Time(0), opened(JOB, Schedule::Predictive, &[0]));

@@ -233,6 +233,7 @@ pub fn simulate(
         heartbeat: config.heartbeat,
         worker_timeout: config.worker_timeout,
         holders_interval: config.holders_interval,
+        report_hold: config.report_hold,
         disk_latency: config.disk_latency,
         cost: config.cost,
     })?;

@@ -47,6 +47,9 @@ pub struct SimConfig {
     /// Busy workers are told new holders at most once per this interval (the coordinator's
     /// `--holders-interval-ms`).
     pub holders_interval: Duration,
+    /// How long a planned worker with nothing to trace waits for its plan's rays before it
+    /// reports again (the coordinator's `--report-hold-ms`).
+    pub report_hold: Duration,
     /// The predictive schedule's speculation setting (`JobSpec.speculation`; empty: full).
     pub speculation: String,
     /// Workers load their next domains while they trace (`JobSpec.prefetch`).

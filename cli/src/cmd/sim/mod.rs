@@ -179,6 +179,12 @@ pub struct ModelArgs {
     /// simulated minutes may take 100 (README "Simulator": what it saves and what it costs).
     #[arg(long, value_parser = clap::value_parser!(u64).range(0..=60_000))]
     pub holders_interval_ms: Option<u64>,
+    /// A worker planned by an asynchronous round with nothing to trace yet waits up to this
+    /// many milliseconds for the rays its plan moves to it before it reports again, as the
+    /// coordinator's `--report-hold-ms` [default: the coordinator's, 50]. 0 reports at once
+    /// (README "Simulator": what that cost at 256 workers and more).
+    #[arg(long, value_parser = clap::value_parser!(u64).range(0..=10_000))]
+    pub report_hold_ms: Option<u64>,
 }
 
 fn check_speculation(s: &str) -> Result<String, String> {
@@ -258,6 +264,9 @@ impl ModelArgs {
         if let Some(ms) = self.holders_interval_ms {
             f.push_str(&format!(" --holders-interval-ms {ms}"));
         }
+        if let Some(ms) = self.report_hold_ms {
+            f.push_str(&format!(" --report-hold-ms {ms}"));
+        }
         f
     }
 
@@ -307,6 +316,9 @@ impl ModelArgs {
             heartbeat: self.deadlines().heartbeat,
             worker_timeout: self.deadlines().worker_timeout,
             holders_interval: self.deadlines().holders,
+            report_hold: self
+                .report_hold_ms
+                .map_or(rayfarm_sim::DEFAULT_REPORT_HOLD, Duration::from_millis),
             disk_latency: DISK_LATENCY,
             speculation: match schedule {
                 Schedule::Predictive => self.speculation.clone().unwrap_or_default(),

@@ -85,7 +85,10 @@ impl Coordinator {
                 self.config.schedule_options,
                 self.config.rounds,
             )
-            .map(|f| f.with_holders_interval(self.config.holders_interval))
+            .map(|f| {
+                f.with_holders_interval(self.config.holders_interval)
+                    .with_report_hold(self.config.report_hold)
+            })
         });
         let mut frame = match opened {
             Ok(frame) => frame,

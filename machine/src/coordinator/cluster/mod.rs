@@ -33,6 +33,11 @@ mod workers;
 pub use jobs::PriorityRefused;
 pub use workers::Refusal;
 
+/// How long a worker planned by an asynchronous round, with nothing to trace, waits for the
+/// rays its plan moves to it before it reports again, unless set otherwise (the coordinator's
+/// `--report-hold-ms`; see `RoundPlan.report_hold_ms`).
+pub const DEFAULT_REPORT_HOLD: Duration = Duration::from_millis(50);
+
 /// How the coordinator machine is set up.
 #[derive(Clone, Debug)]
 pub struct Config {
@@ -50,6 +55,10 @@ pub struct Config {
     /// their next plan if sooner); zero tells them after every round. See
     /// `RunningFrame::flush_holders`.
     pub holders_interval: Duration,
+    /// Under asynchronous rounds, a planned worker with nothing to trace waits up to this long
+    /// for the rays its plan moves to it before it reports again (`RoundPlan.report_hold_ms`;
+    /// zero: at once).
+    pub report_hold: Duration,
     /// Starts of a job's frame after which it fails instead of starting again (and losses of
     /// one worker during one job after which the job fails).
     pub max_attempts: u32,
