@@ -58,73 +58,98 @@ fn queue_of<M: AsRef<Member>>(members: &BTreeMap<u32, M>, key: u32, d: u32) -> O
     ))
 }
 
-/// `items` ascending without repeats.
-fn sorted(mut items: Vec<u32>) -> Vec<u32> {
+/// `items` sorted ascending without repeats.
+fn sort_dedup(items: &mut Vec<u32>) {
     items.sort_unstable();
     items.dedup();
-    items
 }
 
 impl Part {
-    fn of(m: &Member, dry: bool, domains: u32) -> Part {
-        let in_scene: Vec<u32> = m.plan.iter().copied().filter(|&d| d < domains).collect();
-        let holding_plan = if dry { Vec::new() } else { in_scene.clone() };
-        let plan: Vec<u32> = m.plan.iter().copied().collect();
+    /// Member `m`'s part (`dry`: whether it ran dry) in a scene of `domains` domains, made in
+    /// this part's lists, which keep their memory: a part is made for every report, plan and
+    /// presence taken in (`RoundIndex::update` reuses the part it replaced).
+    fn fill(&mut self, m: &Member, dry: bool, domains: u32) {
+        let in_scene = m.plan.iter().copied().filter(|&d| d < domains);
+        self.plan.clear();
+        self.plan.extend(m.plan.iter().copied());
+        self.holding_plan.clear();
+        if !dry {
+            self.holding_plan.extend(in_scene.clone());
+        }
+        self.in_memory.clear();
+        self.in_memory.extend(in_scene.clone());
+        self.queued.clear();
+        self.generations.clear();
+        self.held.clear();
+        self.queues.clear();
         let Some(report) = m.report.as_ref() else {
-            return Part {
-                in_memory: in_scene,
-                holding_plan,
-                plan,
-                ..Part::default()
-            };
+            return;
         };
         let resident = report.resident.iter().copied().filter(|&d| d < domains);
-        let held = if dry {
-            sorted(resident.clone().collect())
-        } else {
-            sorted(resident.clone().chain(in_scene.iter().copied()).collect())
-        };
-        let mut generations: Vec<u32> = report
-            .oldest_generation
-            .values()
-            .copied()
-            .chain(report.oldest_waiting)
-            .collect();
-        generations.sort_unstable();
-        Part {
-            queued: report
+        self.in_memory.extend(resident.clone());
+        sort_dedup(&mut self.in_memory);
+        self.held.extend(resident);
+        if !dry {
+            self.held.extend(in_scene);
+        }
+        sort_dedup(&mut self.held);
+        self.generations.extend(
+            report
+                .oldest_generation
+                .values()
+                .copied()
+                .chain(report.oldest_waiting),
+        );
+        self.generations.sort_unstable();
+        self.queued.extend(
+            report
                 .queued
                 .iter()
                 .filter(|&(&d, &n)| d < domains && n > 0)
-                .map(|(&d, &n)| (d, n, report.oldest_generation.get(&d).copied()))
-                .collect(),
-            generations,
-            held,
-            in_memory: sorted(resident.chain(in_scene).collect()),
-            holding_plan,
-            queues: report
-                .queued
-                .keys()
-                .copied()
-                .filter(|&d| d < domains)
-                .collect(),
-            plan,
-        }
+                .map(|(&d, &n)| (d, n, report.oldest_generation.get(&d).copied())),
+        );
+        self.queues
+            .extend(report.queued.keys().copied().filter(|&d| d < domains));
+    }
+
+    /// Empty, keeping its lists' memory.
+    fn clear(&mut self) {
+        self.queued.clear();
+        self.generations.clear();
+        self.held.clear();
+        self.in_memory.clear();
+        self.holding_plan.clear();
+        self.queues.clear();
+        self.plan.clear();
+    }
+}
+
+/// `key` added to `list`, ascending without repeats.
+fn list_in(list: &mut Vec<u32>, key: u32) {
+    if let Err(at) = list.binary_search(&key) {
+        list.insert(at, key);
+    }
+}
+
+/// `key` taken out of `list`, ascending.
+fn list_out(list: &mut Vec<u32>, key: u32) {
+    if let Ok(at) = list.binary_search(&key) {
+        list.remove(at);
     }
 }
 
 /// Member `key` listed under the domains of `new` instead of those of `old` (both
-/// ascending) in `lists` (a set of members a domain); returns the domains it was added to.
-fn list_member(lists: &mut [BTreeSet<u32>], key: u32, old: &[u32], new: &[u32]) -> Vec<u32> {
+/// ascending) in `lists` (the members of each domain, ascending: a domain has a few, and a
+/// list keeps its memory where a set allocated and freed a node whenever a domain's first
+/// member came and its last went); returns the domains it was added to.
+fn list_member(lists: &mut [Vec<u32>], key: u32, old: &[u32], new: &[u32]) -> Vec<u32> {
     let mut added = Vec::new();
     for step in merge(old, new, |&d| d) {
         match step {
             Merged::Both(..) => {}
-            Merged::Old(&d) => {
-                lists[d as usize].remove(&key);
-            }
+            Merged::Old(&d) => list_out(&mut lists[d as usize], key),
             Merged::New(&d) => {
-                lists[d as usize].insert(key);
+                list_in(&mut lists[d as usize], key);
                 added.push(d);
             }
         }
@@ -208,9 +233,9 @@ pub struct RoundIndex {
     /// Wanted domains that someone holds with more rays than holders, by rays per holder.
     hot: BTreeSet<Heat>,
     /// Busy members with each domain in their plan (the last one receives rays moved).
-    plan_holders: Vec<BTreeSet<u32>>,
+    plan_holders: Vec<Vec<u32>>,
     /// Members whose report has a queue for each domain.
-    queuers: Vec<BTreeSet<u32>>,
+    queuers: Vec<Vec<u32>>,
     /// Members changed, and domains that gained a busy holder, since rays last moved: only
     /// their queues can have a holder elsewhere (`adopt`).
     unmoved: BTreeSet<u32>,
@@ -227,6 +252,8 @@ pub struct RoundIndex {
     /// the same every round), found at its first call: finding it every round walked every
     /// domain's size (8,192 at 256 workers, 3% of a dynamic run: perf, README "Simulator").
     largest: Option<u64>,
+    /// A part whose lists the next [`RoundIndex::update`] makes its member's part in.
+    spare: Part,
 }
 
 impl RoundIndex {
@@ -253,14 +280,15 @@ impl RoundIndex {
             unheld: BTreeSet::new(),
             unheld_bits: vec![0; n.div_ceil(64)],
             hot: BTreeSet::new(),
-            plan_holders: vec![BTreeSet::new(); n],
-            queuers: vec![BTreeSet::new(); n],
+            plan_holders: vec![Vec::new(); n],
+            queuers: vec![Vec::new(); n],
             unmoved: BTreeSet::new(),
             newly_held: BTreeSet::new(),
             holders: BTreeMap::new(),
             holders_changed: BTreeSet::new(),
             moved: BTreeMap::new(),
             largest: None,
+            spare: Part::default(),
         }
     }
 
@@ -270,18 +298,25 @@ impl RoundIndex {
     /// differs in those domains' queues alone).
     pub fn update(&mut self, key: u32, member: Option<&Member>) {
         self.unmoved.insert(key);
-        let old = self.parts.remove(&key).unwrap_or_default();
+        // The member's part is made in the lists of the one replaced last time (`spare`),
+        // and the one it replaces kept for next time: no list allocated in a steady state.
+        let old = self
+            .parts
+            .get_mut(&key)
+            .map(std::mem::take)
+            .unwrap_or_default();
         self.dry.remove(&key);
-        let new = match member {
+        let mut new = std::mem::take(&mut self.spare);
+        match member {
             Some(m) => {
                 let dry = m.is_dry();
                 if dry {
                     self.dry.insert(key);
                 }
-                Part::of(m, dry, self.domains)
+                new.fill(m, dry, self.domains);
             }
-            None => Part::default(),
-        };
+            None => new.clear(),
+        }
         let mut touched = Vec::new();
         self.recount(key, &old, &new, &mut touched);
         for step in merge(&old.plan, &new.plan, |&d| d) {
@@ -303,8 +338,16 @@ impl RoundIndex {
             }
         }
         if member.is_some() {
-            self.parts.insert(key, new);
+            match self.parts.get_mut(&key) {
+                Some(part) => *part = new,
+                None => {
+                    self.parts.insert(key, new);
+                }
+            }
+        } else {
+            self.parts.remove(&key);
         }
+        self.spare = old;
         self.refresh_touched(touched);
     }
 
@@ -556,10 +599,10 @@ impl RoundIndex {
                 let at = part.queues.partition_point(|&x| x < d);
                 if rays_now.is_some() {
                     part.queues.insert(at, d);
-                    self.queuers[d as usize].insert(key);
+                    list_in(&mut self.queuers[d as usize], key);
                 } else {
                     part.queues.remove(at);
-                    self.queuers[d as usize].remove(&key);
+                    list_out(&mut self.queuers[d as usize], key);
                 }
             }
         }
