@@ -26,7 +26,7 @@ use super::{DomainId, WorkerId};
 /// What one member adds to the cluster's figures, kept so it can be taken out again. Every
 /// list is ascending (a multiset for `generations`), so a member's old and new parts are
 /// compared in one merge and only what differs is counted again (`RoundIndex::recount`).
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug, Default, PartialEq)]
 struct Part {
     /// (domain, rays, oldest generation among them) of its report, domains in the scene only.
     queued: Vec<(u32, u64, Option<u32>)>,
@@ -45,73 +45,111 @@ struct Part {
     plan: Vec<u32>,
 }
 
-/// `items` ascending without repeats.
-fn sorted(mut items: Vec<u32>) -> Vec<u32> {
+/// One domain's queue in a report: (its rays, the oldest generation among them), `None` where
+/// the report has no entry.
+type Queue = (Option<u64>, Option<u32>);
+
+/// Member `key`'s queue for domain `d`, if it has a report.
+fn queue_of<M: AsRef<Member>>(members: &BTreeMap<u32, M>, key: u32, d: u32) -> Option<Queue> {
+    let report = members.get(&key)?.as_ref().report.as_ref()?;
+    Some((
+        report.queued.get(&d).copied(),
+        report.oldest_generation.get(&d).copied(),
+    ))
+}
+
+/// `items` sorted ascending without repeats.
+fn sort_dedup(items: &mut Vec<u32>) {
     items.sort_unstable();
     items.dedup();
-    items
 }
 
 impl Part {
-    fn of(m: &Member, dry: bool, domains: u32) -> Part {
-        let in_scene: Vec<u32> = m.plan.iter().copied().filter(|&d| d < domains).collect();
-        let holding_plan = if dry { Vec::new() } else { in_scene.clone() };
-        let plan: Vec<u32> = m.plan.iter().copied().collect();
+    /// Member `m`'s part (`dry`: whether it ran dry) in a scene of `domains` domains, made in
+    /// this part's lists, which keep their memory: a part is made for every report, plan and
+    /// presence taken in (`RoundIndex::update` reuses the part it replaced).
+    fn fill(&mut self, m: &Member, dry: bool, domains: u32) {
+        let in_scene = m.plan.iter().copied().filter(|&d| d < domains);
+        self.plan.clear();
+        self.plan.extend(m.plan.iter().copied());
+        self.holding_plan.clear();
+        if !dry {
+            self.holding_plan.extend(in_scene.clone());
+        }
+        self.in_memory.clear();
+        self.in_memory.extend(in_scene.clone());
+        self.queued.clear();
+        self.generations.clear();
+        self.held.clear();
+        self.queues.clear();
         let Some(report) = m.report.as_ref() else {
-            return Part {
-                in_memory: in_scene,
-                holding_plan,
-                plan,
-                ..Part::default()
-            };
+            return;
         };
         let resident = report.resident.iter().copied().filter(|&d| d < domains);
-        let held = if dry {
-            sorted(resident.clone().collect())
-        } else {
-            sorted(resident.clone().chain(in_scene.iter().copied()).collect())
-        };
-        let mut generations: Vec<u32> = report
-            .oldest_generation
-            .values()
-            .copied()
-            .chain(report.oldest_waiting)
-            .collect();
-        generations.sort_unstable();
-        Part {
-            queued: report
+        self.in_memory.extend(resident.clone());
+        sort_dedup(&mut self.in_memory);
+        self.held.extend(resident);
+        if !dry {
+            self.held.extend(in_scene);
+        }
+        sort_dedup(&mut self.held);
+        self.generations.extend(
+            report
+                .oldest_generation
+                .values()
+                .copied()
+                .chain(report.oldest_waiting),
+        );
+        self.generations.sort_unstable();
+        self.queued.extend(
+            report
                 .queued
                 .iter()
                 .filter(|&(&d, &n)| d < domains && n > 0)
-                .map(|(&d, &n)| (d, n, report.oldest_generation.get(&d).copied()))
-                .collect(),
-            generations,
-            held,
-            in_memory: sorted(resident.chain(in_scene).collect()),
-            holding_plan,
-            queues: report
-                .queued
-                .keys()
-                .copied()
-                .filter(|&d| d < domains)
-                .collect(),
-            plan,
-        }
+                .map(|(&d, &n)| (d, n, report.oldest_generation.get(&d).copied())),
+        );
+        self.queues
+            .extend(report.queued.keys().copied().filter(|&d| d < domains));
+    }
+
+    /// Empty, keeping its lists' memory.
+    fn clear(&mut self) {
+        self.queued.clear();
+        self.generations.clear();
+        self.held.clear();
+        self.in_memory.clear();
+        self.holding_plan.clear();
+        self.queues.clear();
+        self.plan.clear();
+    }
+}
+
+/// `key` added to `list`, ascending without repeats.
+fn list_in(list: &mut Vec<u32>, key: u32) {
+    if let Err(at) = list.binary_search(&key) {
+        list.insert(at, key);
+    }
+}
+
+/// `key` taken out of `list`, ascending.
+fn list_out(list: &mut Vec<u32>, key: u32) {
+    if let Ok(at) = list.binary_search(&key) {
+        list.remove(at);
     }
 }
 
 /// Member `key` listed under the domains of `new` instead of those of `old` (both
-/// ascending) in `lists` (a set of members a domain); returns the domains it was added to.
-fn list_member(lists: &mut [BTreeSet<u32>], key: u32, old: &[u32], new: &[u32]) -> Vec<u32> {
+/// ascending) in `lists` (the members of each domain, ascending: a domain has a few, and a
+/// list keeps its memory where a set allocated and freed a node whenever a domain's first
+/// member came and its last went); returns the domains it was added to.
+fn list_member(lists: &mut [Vec<u32>], key: u32, old: &[u32], new: &[u32]) -> Vec<u32> {
     let mut added = Vec::new();
     for step in merge(old, new, |&d| d) {
         match step {
             Merged::Both(..) => {}
-            Merged::Old(&d) => {
-                lists[d as usize].remove(&key);
-            }
+            Merged::Old(&d) => list_out(&mut lists[d as usize], key),
             Merged::New(&d) => {
-                lists[d as usize].insert(key);
+                list_in(&mut lists[d as usize], key);
                 added.push(d);
             }
         }
@@ -186,12 +224,18 @@ pub struct RoundIndex {
     wanted: usize,
     /// Wanted domains nobody holds, fullest first, then the lower id (Fig. 5's `to_assign`).
     unheld: BTreeSet<(Reverse<u64>, u32)>,
-    /// Wanted domains with more rays than holders, by rays per holder.
+    /// The same domains as a bit a domain, for the hot order: a domain nobody holds has more
+    /// rays per holder than any held one, and among them the lower id comes first, so the
+    /// hottest domains are these in ascending order, then `hot`'s. Kept apart, a domain that
+    /// stays unheld moves in `unheld` alone when its rays change (most domains at 4,096
+    /// workers x 32,768 domains, where updating the sets, `refresh`, was a quarter of a round).
+    unheld_bits: Vec<u64>,
+    /// Wanted domains that someone holds with more rays than holders, by rays per holder.
     hot: BTreeSet<Heat>,
     /// Busy members with each domain in their plan (the last one receives rays moved).
-    plan_holders: Vec<BTreeSet<u32>>,
+    plan_holders: Vec<Vec<u32>>,
     /// Members whose report has a queue for each domain.
-    queuers: Vec<BTreeSet<u32>>,
+    queuers: Vec<Vec<u32>>,
     /// Members changed, and domains that gained a busy holder, since rays last moved: only
     /// their queues can have a holder elsewhere (`adopt`).
     unmoved: BTreeSet<u32>,
@@ -208,6 +252,8 @@ pub struct RoundIndex {
     /// the same every round), found at its first call: finding it every round walked every
     /// domain's size (8,192 at 256 workers, 3% of a dynamic run: perf, README "Simulator").
     largest: Option<u64>,
+    /// A part whose lists the next [`RoundIndex::update`] makes its member's part in.
+    spare: Part,
 }
 
 impl RoundIndex {
@@ -232,15 +278,17 @@ impl RoundIndex {
             shown: vec![(0, 0); n],
             wanted: 0,
             unheld: BTreeSet::new(),
+            unheld_bits: vec![0; n.div_ceil(64)],
             hot: BTreeSet::new(),
-            plan_holders: vec![BTreeSet::new(); n],
-            queuers: vec![BTreeSet::new(); n],
+            plan_holders: vec![Vec::new(); n],
+            queuers: vec![Vec::new(); n],
             unmoved: BTreeSet::new(),
             newly_held: BTreeSet::new(),
             holders: BTreeMap::new(),
             holders_changed: BTreeSet::new(),
             moved: BTreeMap::new(),
             largest: None,
+            spare: Part::default(),
         }
     }
 
@@ -250,18 +298,25 @@ impl RoundIndex {
     /// differs in those domains' queues alone).
     pub fn update(&mut self, key: u32, member: Option<&Member>) {
         self.unmoved.insert(key);
-        let old = self.parts.remove(&key).unwrap_or_default();
+        // The member's part is made in the lists of the one replaced last time (`spare`),
+        // and the one it replaces kept for next time: no list allocated in a steady state.
+        let old = self
+            .parts
+            .get_mut(&key)
+            .map(std::mem::take)
+            .unwrap_or_default();
         self.dry.remove(&key);
-        let new = match member {
+        let mut new = std::mem::take(&mut self.spare);
+        match member {
             Some(m) => {
                 let dry = m.is_dry();
                 if dry {
                     self.dry.insert(key);
                 }
-                Part::of(m, dry, self.domains)
+                new.fill(m, dry, self.domains);
             }
-            None => Part::default(),
-        };
+            None => new.clear(),
+        }
         let mut touched = Vec::new();
         self.recount(key, &old, &new, &mut touched);
         for step in merge(&old.plan, &new.plan, |&d| d) {
@@ -283,25 +338,17 @@ impl RoundIndex {
             }
         }
         if member.is_some() {
-            self.parts.insert(key, new);
-        }
-        let oldest = if self.oldest_first {
-            self.generations.keys().next().copied()
-        } else {
-            None
-        };
-        if oldest != self.oldest {
-            self.oldest = oldest;
-            for d in 0..self.domains {
-                self.refresh(d);
+            match self.parts.get_mut(&key) {
+                Some(part) => *part = new,
+                None => {
+                    self.parts.insert(key, new);
+                }
             }
         } else {
-            touched.sort_unstable();
-            touched.dedup();
-            for d in touched {
-                self.refresh(d);
-            }
+            self.parts.remove(&key);
         }
+        self.spare = old;
+        self.refresh_touched(touched);
     }
 
     /// Every domain someone's current plan includes, with the keys of its holders, in key
@@ -409,9 +456,6 @@ impl RoundIndex {
             self.update(k, members.get(&k).map(AsRef::as_ref));
         }
         let moved = self.move_queued_to_holders(members);
-        for &k in &moved {
-            self.update(k, members.get(&k).map(AsRef::as_ref));
-        }
         // Rays just moved went to members that keep them: nothing is left to move.
         self.unmoved.clear();
         self.newly_held.clear();
@@ -419,8 +463,12 @@ impl RoundIndex {
         (loads, changed)
     }
 
-    /// `rounds::move_queued_to_holders` over the queues that may have a holder elsewhere.
-    fn move_queued_to_holders<M: AsMut<Member>>(
+    /// `rounds::move_queued_to_holders` over the queues that may have a holder elsewhere,
+    /// the figures taken along queue by queue (`RoundIndex::requeue`): a member that gave or
+    /// received rays differs from its last update in those domains' queues alone, so its
+    /// part is not made again (rebuilding and merging the whole part of every member touched
+    /// was a third of a round at 4,096 x 32,768).
+    fn move_queued_to_holders<M: AsMut<Member> + AsRef<Member>>(
         &mut self,
         members: &mut BTreeMap<u32, M>,
     ) -> BTreeSet<u32> {
@@ -435,6 +483,8 @@ impl RoundIndex {
         }
         let mut changed = BTreeSet::new();
         self.moved.clear();
+        // Every queue changed, as (member, domain, before, after).
+        let mut edits: Vec<(u32, u32, Queue, Queue)> = Vec::new();
         // Per new holder: domain -> (rays, oldest generation among them).
         let mut moved: BTreeMap<u32, BTreeMap<u32, (u64, Option<u32>)>> = BTreeMap::new();
         for (k, d) in candidates {
@@ -451,7 +501,11 @@ impl RoundIndex {
                 continue;
             }
             let generation = report.oldest_generation.remove(&d);
-            if let Some(n) = report.queued.remove(&d) {
+            let rays = report.queued.remove(&d);
+            if generation.is_some() || rays.is_some() {
+                edits.push((k, d, (rays, generation), (None, None)));
+            }
+            if let Some(n) = rays {
                 changed.insert(k);
                 self.moved.entry(k).or_default().insert(d);
                 let entry = moved.entry(holder).or_default().entry(d).or_default();
@@ -459,8 +513,125 @@ impl RoundIndex {
                 entry.1 = entry.1.into_iter().chain(generation).min();
             }
         }
+        // Each holder's queues before and after `deposit_moved` adds the rays to them.
+        let deposits: Vec<(u32, u32)> = moved
+            .iter()
+            .flat_map(|(&h, queues)| queues.keys().map(move |&d| (h, d)))
+            .collect();
+        let before: Vec<Option<Queue>> = deposits
+            .iter()
+            .map(|&(h, d)| queue_of(members, h, d))
+            .collect();
         changed.extend(deposit_moved(members, moved));
+        for (&(h, d), before) in deposits.iter().zip(before) {
+            if let (Some(before), Some(after)) = (before, queue_of(members, h, d)) {
+                edits.push((h, d, before, after));
+            }
+        }
+        self.requeue(members, &edits);
         changed
+    }
+
+    /// Takes queue `edits` into the figures, each (member, domain, its queue before, after),
+    /// in place of an update of each member named: valid when nothing else about those
+    /// members changed since their last update (their parts differ in those queues alone).
+    fn requeue<M: AsRef<Member>>(
+        &mut self,
+        members: &BTreeMap<u32, M>,
+        edits: &[(u32, u32, Queue, Queue)],
+    ) {
+        let mut touched = Vec::new();
+        let mut unknown = BTreeSet::new();
+        for &(key, d, (rays, generation), (rays_now, generation_now)) in edits {
+            let Some(part) = self.parts.get_mut(&key) else {
+                // Never counted (the owner did not update it): counted whole below.
+                unknown.insert(key);
+                continue;
+            };
+            if generation != generation_now {
+                for (g, add) in [(generation, false), (generation_now, true)] {
+                    let Some(g) = g else { continue };
+                    let at = part.generations.partition_point(|&x| x < g);
+                    if add {
+                        part.generations.insert(at, g);
+                    } else {
+                        part.generations.remove(at);
+                    }
+                    let times = self.generations.entry(g).or_default();
+                    step_by(times, 1, add);
+                    if *times == 0 {
+                        self.generations.remove(&g);
+                    }
+                }
+            }
+            if d >= self.domains {
+                continue;
+            }
+            let queued = |rays: Option<u64>, g| rays.filter(|&n| n > 0).map(|n| (d, n, g));
+            let (old, new) = (queued(rays, generation), queued(rays_now, generation_now));
+            if old != new {
+                let at = part.queued.partition_point(|q| q.0 < d);
+                match new {
+                    Some(q) if old.is_some() => part.queued[at] = q,
+                    Some(q) => part.queued.insert(at, q),
+                    None => {
+                        part.queued.remove(at);
+                    }
+                }
+                for (&(_, n, g), add) in old
+                    .iter()
+                    .map(|q| (q, false))
+                    .chain(new.iter().map(|q| (q, true)))
+                {
+                    step_by(&mut self.queued[d as usize], n, add);
+                    if let (true, Some(g)) = (self.oldest_first, g) {
+                        let sums = &mut self.by_generation[d as usize];
+                        let sum = sums.entry(g).or_default();
+                        step_by(sum, n, add);
+                        if *sum == 0 {
+                            sums.remove(&g);
+                        }
+                    }
+                }
+                touched.push(d);
+            }
+            if rays.is_some() != rays_now.is_some() {
+                let at = part.queues.partition_point(|&x| x < d);
+                if rays_now.is_some() {
+                    part.queues.insert(at, d);
+                    list_in(&mut self.queuers[d as usize], key);
+                } else {
+                    part.queues.remove(at);
+                    list_out(&mut self.queuers[d as usize], key);
+                }
+            }
+        }
+        self.refresh_touched(touched);
+        for key in unknown {
+            self.update(key, members.get(&key).map(AsRef::as_ref));
+        }
+    }
+
+    /// Brings the ordered sets in line with the figures of the domains `touched`, or of
+    /// every domain if the oldest generation reported changed (it decides which rays count).
+    fn refresh_touched(&mut self, mut touched: Vec<u32>) {
+        let oldest = if self.oldest_first {
+            self.generations.keys().next().copied()
+        } else {
+            None
+        };
+        if oldest != self.oldest {
+            self.oldest = oldest;
+            for d in 0..self.domains {
+                self.refresh(d);
+            }
+        } else {
+            touched.sort_unstable();
+            touched.dedup();
+            for d in touched {
+                self.refresh(d);
+            }
+        }
     }
 
     /// The domains whose queued rays the last [`RoundIndex::adopt`] moved from member `key`
@@ -499,22 +670,33 @@ impl RoundIndex {
             if rays == 0 {
                 continue;
             }
+            if add {
+                self.wanted += 1;
+            } else {
+                self.wanted -= 1;
+            }
+            if holders == 0 {
+                let bit = &mut self.unheld_bits[d as usize / 64];
+                if add {
+                    self.unheld.insert((Reverse(rays), d));
+                    *bit |= 1 << (d % 64);
+                } else {
+                    self.unheld.remove(&(Reverse(rays), d));
+                    *bit &= !(1 << (d % 64));
+                }
+                continue;
+            }
             let heat = Heat {
                 domain: DomainId(d),
                 rays,
                 copies: u64::from(holders),
             };
+            if !heat.splits() {
+                continue;
+            }
             if add {
-                self.wanted += 1;
-                if holders == 0 {
-                    self.unheld.insert((Reverse(rays), d));
-                }
-                if heat.splits() {
-                    self.hot.insert(heat);
-                }
+                self.hot.insert(heat);
             } else {
-                self.wanted -= 1;
-                self.unheld.remove(&(Reverse(rays), d));
                 self.hot.remove(&heat);
             }
         }
@@ -555,7 +737,13 @@ impl RoundIndex {
             .filter_map(|k| Some((*k, members.get(k)?.as_ref())))
             .map(|(key, m)| self.draft(key, m, largest))
             .collect();
-        let mut hot = HotOverlay::new(&mut self.hot);
+        let mut hot = HotOverlay {
+            hot: &mut self.hot,
+            unheld: &self.unheld_bits,
+            unheld_left: self.unheld.len(),
+            shown: &self.shown,
+            changed: BTreeMap::new(),
+        };
         let to_assign = self
             .unheld
             .iter()
@@ -564,7 +752,7 @@ impl RoundIndex {
             hot.add_copy(domain.0, rays, 0)
         });
         extend_plans(&mut hot, &mut drafts, options);
-        hot.undo(&self.shown);
+        hot.undo();
         drafts
             .into_iter()
             .map(Draft::finish)
@@ -595,21 +783,21 @@ impl RoundIndex {
     }
 }
 
-/// The hot set with this round's copies counted in, put back as it was afterwards.
+/// The hot order (`RoundIndex::unheld_bits`, then `RoundIndex::hot`) with this round's
+/// copies counted in, the hot set put back as it was afterwards.
 struct HotOverlay<'a> {
     hot: &'a mut BTreeSet<Heat>,
+    /// The unheld domains, a bit each: those not in `changed` have no copy yet.
+    unheld: &'a [u64],
+    /// How many of them have no copy yet.
+    unheld_left: usize,
+    /// (rays that count, holders) of each domain (`RoundIndex::shown`).
+    shown: &'a [(u64, u32)],
     /// Domains whose entry changed, with their entry now.
     changed: BTreeMap<u32, Option<Heat>>,
 }
 
-impl<'a> HotOverlay<'a> {
-    fn new(hot: &'a mut BTreeSet<Heat>) -> Self {
-        HotOverlay {
-            hot,
-            changed: BTreeMap::new(),
-        }
-    }
-
+impl HotOverlay<'_> {
     /// Counts one more holder of `domain`, which has `rays` rays and `copies` holders.
     fn add_copy(&mut self, domain: u32, rays: u64, copies: u64) {
         let heat = Heat {
@@ -617,12 +805,17 @@ impl<'a> HotOverlay<'a> {
             rays,
             copies,
         };
-        self.hot.remove(&heat);
-        self.replace(heat);
+        self.take(heat);
     }
 
-    /// `heat`, taken out of the set, back with one more copy if it still splits.
-    fn replace(&mut self, mut heat: Heat) {
+    /// `heat`, an entry of the hot order, out of it, and back with one more copy if it still
+    /// splits.
+    fn take(&mut self, mut heat: Heat) {
+        if heat.copies == 0 && !self.changed.contains_key(&heat.domain.0) {
+            self.unheld_left -= 1;
+        } else {
+            self.hot.remove(&heat);
+        }
         heat.copies += 1;
         let now = heat.splits().then_some(heat);
         if let Some(h) = now {
@@ -631,19 +824,37 @@ impl<'a> HotOverlay<'a> {
         self.changed.insert(heat.domain.0, now);
     }
 
-    /// Puts every changed entry back as the figures show it.
-    fn undo(self, shown: &[(u64, u32)]) {
+    /// The lowest unheld domain without a copy yet that is `eligible`.
+    fn first_unheld(&self, eligible: impl Fn(DomainId) -> bool) -> Option<u32> {
+        if self.unheld_left == 0 {
+            return None;
+        }
+        for (i, &word) in self.unheld.iter().enumerate() {
+            let mut bits = word;
+            while bits != 0 {
+                let d = i as u32 * 64 + bits.trailing_zeros();
+                bits &= bits - 1;
+                if !self.changed.contains_key(&d) && eligible(DomainId(d)) {
+                    return Some(d);
+                }
+            }
+        }
+        None
+    }
+
+    /// Puts every changed entry of the hot set back as the figures show it.
+    fn undo(self) {
         for (d, now) in self.changed {
             if let Some(h) = now {
                 self.hot.remove(&h);
             }
-            let (rays, holders) = shown[d as usize];
+            let (rays, holders) = self.shown[d as usize];
             let heat = Heat {
                 domain: DomainId(d),
                 rays,
                 copies: u64::from(holders),
             };
-            if rays > 0 && heat.splits() {
+            if rays > 0 && holders > 0 && heat.splits() {
                 self.hot.insert(heat);
             }
         }
@@ -652,9 +863,15 @@ impl<'a> HotOverlay<'a> {
 
 impl Hottest for HotOverlay<'_> {
     fn take_hottest(&mut self, eligible: impl Fn(DomainId) -> bool) -> Option<DomainId> {
-        let heat = *self.hot.iter().rev().find(|h| eligible(h.domain))?;
-        self.hot.remove(&heat);
-        self.replace(heat);
+        let heat = match self.first_unheld(&eligible) {
+            Some(d) => Heat {
+                domain: DomainId(d),
+                rays: self.shown[d as usize].0,
+                copies: 0,
+            },
+            None => *self.hot.iter().rev().find(|h| eligible(h.domain))?,
+        };
+        self.take(heat);
         Some(heat.domain)
     }
 }

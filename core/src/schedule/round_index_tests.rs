@@ -56,6 +56,51 @@ fn change() -> impl Strategy<Value = Change> {
 
 const SIZE: u64 = 100;
 
+/// What an index counts for its plans, comparable (a `Heat` equals another of the same
+/// ratio, so the hot set is listed by its fields).
+fn figures(index: &RoundIndex) -> String {
+    let hot: Vec<(u32, u64, u64)> = index
+        .hot
+        .iter()
+        .map(|h| (h.domain.0, h.rays, h.copies))
+        .collect();
+    format!(
+        "parts {:?}\ndry {:?}\nqueued {:?}\nby generation {:?}\ngenerations {:?}\n\
+         oldest {:?}\nheld {:?}\nin memory {:?}\nshown {:?}\nwanted {}\nunheld {:?} {:?}\n\
+         hot {hot:?}\nplan holders {:?}\nqueuers {:?}\nholders {:?}",
+        index.parts,
+        index.dry,
+        index.queued,
+        index.by_generation,
+        index.generations,
+        index.oldest,
+        index.held,
+        index.in_memory,
+        index.shown,
+        index.wanted,
+        index.unheld,
+        index.unheld_bits,
+        index.plan_holders,
+        index.queuers,
+        index.holders,
+    )
+}
+
+/// The figures `index` keeps equal those of an index given `members` afresh, whatever path
+/// (a whole update, a queue moved) brought each member's part there.
+fn check_figures(
+    index: &RoundIndex,
+    members: &BTreeMap<u32, Member>,
+    oldest_first: bool,
+) -> Result<(), TestCaseError> {
+    let mut fresh = RoundIndex::new(DOMAINS, oldest_first);
+    for (&k, m) in members {
+        fresh.update(k, Some(m));
+    }
+    prop_assert_eq!(figures(index), figures(&fresh));
+    Ok(())
+}
+
 /// Applies `changes`, planning with the index and with `Cluster::dry_plans` at every `Plan`
 /// and checking they agree; after every change, the index's holders map is the one rebuilt
 /// from every member's plan, and so is a map kept only from its changes.
@@ -141,6 +186,7 @@ fn run(changes: &[Change], oldest_first: bool, options: Options) -> Result<(), T
                 }
             }
         }
+        check_figures(&index, &members, oldest_first)?;
         let rebuilt = current_holders(&members);
         let kept: BTreeMap<u32, Vec<u32>> = index
             .holders()
@@ -199,4 +245,87 @@ fn a_dry_member_takes_the_fullest_unheld_domain_while_the_others_work() {
     assert_eq!(plans.len(), 1);
     assert_eq!(plans[0].worker.0, 0);
     assert_eq!(plans[0].load, BTreeSet::from([DomainId(5)]));
+}
+
+/// One step of a round's planning on the hot order: a copy of the `nth` domain nobody holds
+/// that has no copy yet (`pair_with_free_slots`), or the hottest domain outside `barred`
+/// (a bit a domain) taken.
+#[derive(Clone, Debug)]
+enum HotStep {
+    Copy { nth: usize },
+    Take { barred: u16 },
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(2000))]
+
+    /// The overlay over the unheld domains' bits and the held ones' set gives the domains in
+    /// the order one ordered set of every wanted domain that splits gives them (the order the
+    /// index kept before the two were apart), and puts the figures back as they were.
+    #[test]
+    fn the_hot_order_apart_equals_one_ordered_set(
+        counts in prop::collection::vec((0u64..6, 0u32..4), DOMAINS as usize),
+        steps in prop::collection::vec(
+            prop_oneof![
+                (0usize..10).prop_map(|nth| HotStep::Copy { nth }),
+                any::<u16>().prop_map(|barred| HotStep::Take { barred }),
+            ],
+            0..20,
+        ),
+    ) {
+        let mut index = RoundIndex::new(DOMAINS, false);
+        for (d, &(rays, holders)) in counts.iter().enumerate() {
+            index.queued[d] = rays;
+            index.held[d] = holders;
+            index.refresh(d as u32);
+        }
+        let before = figures(&index);
+        let mut one: BTreeSet<Heat> = counts
+            .iter()
+            .enumerate()
+            .map(|(d, &(rays, holders))| Heat {
+                domain: DomainId(d as u32),
+                rays,
+                copies: u64::from(holders),
+            })
+            .filter(|h| h.rays > 0 && h.splits())
+            .collect();
+        let mut overlay = HotOverlay {
+            hot: &mut index.hot,
+            unheld: &index.unheld_bits,
+            unheld_left: index.unheld.len(),
+            shown: &index.shown,
+            changed: BTreeMap::new(),
+        };
+        let again = |one: &mut BTreeSet<Heat>, mut h: Heat| {
+            one.remove(&h);
+            h.copies += 1;
+            if h.splits() {
+                one.insert(h);
+            }
+        };
+        for step in &steps {
+            match *step {
+                HotStep::Copy { nth } => {
+                    let uncopied: Vec<Heat> =
+                        one.iter().filter(|h| h.copies == 0).copied().collect();
+                    let Some(&h) = uncopied.get(nth % uncopied.len().max(1)) else {
+                        continue;
+                    };
+                    overlay.add_copy(h.domain.0, h.rays, 0);
+                    again(&mut one, h);
+                }
+                HotStep::Take { barred } => {
+                    let eligible = |d: DomainId| barred & (1 << d.0) == 0;
+                    let want = one.iter().rev().find(|h| eligible(h.domain)).copied();
+                    if let Some(h) = want {
+                        again(&mut one, h);
+                    }
+                    prop_assert_eq!(overlay.take_hottest(eligible), want.map(|h| h.domain));
+                }
+            }
+        }
+        overlay.undo();
+        prop_assert_eq!(figures(&index), before);
+    }
 }
