@@ -162,6 +162,26 @@ fn step_by<T: std::ops::AddAssign + std::ops::SubAssign>(x: &mut T, by: T, add: 
     if add { *x += by } else { *x -= by }
 }
 
+/// `n` rays queued for domain `d`, the oldest of generation `g`, counted in (`add`) or out of
+/// the rays reported per domain (and per oldest generation, under the oldest-generation rule).
+fn count_queue(
+    queued: &mut [u64],
+    by_generation: &mut [BTreeMap<u32, u64>],
+    oldest_first: bool,
+    (d, n, g): (u32, u64, Option<u32>),
+    add: bool,
+) {
+    step_by(&mut queued[d as usize], n, add);
+    if let (true, Some(g)) = (oldest_first, g) {
+        let sums = &mut by_generation[d as usize];
+        let sum = sums.entry(g).or_default();
+        step_by(sum, n, add);
+        if *sum == 0 {
+            sums.remove(&g);
+        }
+    }
+}
+
 /// One step of a merge of two ascending lists: an item of the old list only, of the new
 /// only, or of both.
 enum Merged<T> {
@@ -391,15 +411,8 @@ impl RoundIndex {
                 .into_iter()
                 .chain(come.map(|q| (q, true)))
             {
-                step_by(&mut self.queued[d as usize], n, add);
-                if let (true, Some(g)) = (self.oldest_first, g) {
-                    let sums = &mut self.by_generation[d as usize];
-                    let sum = sums.entry(g).or_default();
-                    step_by(sum, n, add);
-                    if *sum == 0 {
-                        sums.remove(&g);
-                    }
-                }
+                let (queued, by_generation) = (&mut self.queued, &mut self.by_generation);
+                count_queue(queued, by_generation, self.oldest_first, (d, n, g), add);
                 touched.push(d);
             }
         }
@@ -583,15 +596,8 @@ impl RoundIndex {
                     .map(|q| (q, false))
                     .chain(new.iter().map(|q| (q, true)))
                 {
-                    step_by(&mut self.queued[d as usize], n, add);
-                    if let (true, Some(g)) = (self.oldest_first, g) {
-                        let sums = &mut self.by_generation[d as usize];
-                        let sum = sums.entry(g).or_default();
-                        step_by(sum, n, add);
-                        if *sum == 0 {
-                            sums.remove(&g);
-                        }
-                    }
+                    let (queued, by_generation) = (&mut self.queued, &mut self.by_generation);
+                    count_queue(queued, by_generation, self.oldest_first, (d, n, g), add);
                 }
                 touched.push(d);
             }
