@@ -651,10 +651,19 @@ fn time_drafts() -> Vec<TimedDrafts> {
 }
 
 /// Fits the flushes as `flush + members x M + lines x L`: the prices and the fit's error.
+/// Each flush's error counts relative to its time: the timed flushes run from tens of
+/// microseconds (128 members) to milliseconds (4,096), and a fit of absolute errors served the
+/// large ones and charged a small flush twice its time (84-159 us for a flush of 74 us, and
+/// about that for one of 8 members, which a simulated 8-worker cluster makes after every
+/// round). The error is then the root mean square of the relative errors.
 fn fit_flushes(flushes: &[TimedFlush]) -> ([f64; 3], f64) {
     let (c, e) = fit(&flushes
         .iter()
-        .map(|f| (vec![1.0, f.members as f64, f.lines as f64], f.ns))
+        .filter(|f| f.ns > 0.0)
+        .map(|f| {
+            let x = [1.0, f.members as f64, f.lines as f64];
+            (x.iter().map(|v| v / f.ns).collect(), 1.0)
+        })
         .collect::<Vec<_>>());
     ([c[0], c[1], c[2]], e)
 }
@@ -662,6 +671,48 @@ fn fit_flushes(flushes: &[TimedFlush]) -> ([f64; 3], f64) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn flushes_are_fitted_by_relative_error_so_a_small_one_is_not_overcharged() {
+        // The twelve flushes one `rayfarm sim calibrate` timed on this project's machine
+        // (stop 38): (members, lines made, ms).
+        let timed = [
+            (128, 400, 0.074),
+            (128, 1_326, 0.267),
+            (512, 1_176, 0.198),
+            (512, 4_978, 0.813),
+            (128, 400, 0.073),
+            (128, 1_482, 0.287),
+            (512, 1_600, 0.259),
+            (512, 7_968, 1.058),
+            (1_024, 3_200, 0.381),
+            (1_024, 15_968, 1.666),
+            (4_096, 12_800, 2.429),
+            (4_096, 64_000, 5.898),
+        ];
+        let flushes: Vec<TimedFlush> = timed
+            .iter()
+            .map(|&(members, lines, ms)| TimedFlush {
+                members,
+                domains: 0,
+                interval: Duration::ZERO,
+                told: members as u64,
+                lines,
+                ns: ms * 1e6,
+            })
+            .collect();
+        // The smallest flush as each fit prices it, over its time.
+        let small = |c: &[f64]| (c[0] + 128.0 * c[1] + 400.0 * c[2]) / flushes[0].ns - 1.0;
+        let (relative, _) = fit_flushes(&flushes);
+        assert!(small(&relative).abs() < 0.25, "{relative:?}");
+        // Fitted by absolute errors, the large flushes bought a fixed part the small ones
+        // do not have.
+        let (absolute, _) = fit(&flushes
+            .iter()
+            .map(|f| (vec![1.0, f.members as f64, f.lines as f64], f.ns))
+            .collect::<Vec<_>>());
+        assert!(small(&absolute) > 0.5, "{absolute:?}");
+    }
 
     #[test]
     fn the_fit_recovers_known_prices_and_drops_a_negative_one() {

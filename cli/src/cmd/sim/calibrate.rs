@@ -155,7 +155,7 @@ pub(super) fn run_calibrate(c: CalibrateArgs) -> anyhow::Result<()> {
         );
     }
     println!(
-        "  {:.0} ns a flush + {:.1} ns a member + {:.1} ns a line made; fit error {:.1}%",
+        "  {:.0} ns a flush + {:.1} ns a member + {:.1} ns a line made; fit error {:.1}% (rms of relative errors)",
         p.flush_ns,
         p.flush_member_ns,
         p.flush_line_ns,
