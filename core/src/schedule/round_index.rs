@@ -69,19 +69,13 @@ impl Part {
     /// this part's lists, which keep their memory: a part is made for every report, plan and
     /// presence taken in (`RoundIndex::update` reuses the part it replaced).
     fn fill(&mut self, m: &Member, dry: bool, domains: u32) {
+        self.clear();
         let in_scene = m.plan.iter().copied().filter(|&d| d < domains);
-        self.plan.clear();
         self.plan.extend(m.plan.iter().copied());
-        self.holding_plan.clear();
         if !dry {
             self.holding_plan.extend(in_scene.clone());
         }
-        self.in_memory.clear();
         self.in_memory.extend(in_scene.clone());
-        self.queued.clear();
-        self.generations.clear();
-        self.held.clear();
-        self.queues.clear();
         let Some(report) = m.report.as_ref() else {
             return;
         };
@@ -173,12 +167,19 @@ fn count_queue(
 ) {
     step_by(&mut queued[d as usize], n, add);
     if let (true, Some(g)) = (oldest_first, g) {
-        let sums = &mut by_generation[d as usize];
-        let sum = sums.entry(g).or_default();
-        step_by(sum, n, add);
-        if *sum == 0 {
-            sums.remove(&g);
-        }
+        tally(&mut by_generation[d as usize], g, n, add);
+    }
+}
+
+/// `counts[key]` moved `by` up (`add`) or down, the entry gone once it is zero.
+fn tally<T>(counts: &mut BTreeMap<u32, T>, key: u32, by: T, add: bool)
+where
+    T: std::ops::AddAssign + std::ops::SubAssign + Default + PartialEq,
+{
+    let count = counts.entry(key).or_default();
+    step_by(count, by, add);
+    if *count == T::default() {
+        counts.remove(&key);
     }
 }
 
@@ -422,11 +423,7 @@ impl RoundIndex {
                 Merged::Old(&g) => (g, false),
                 Merged::New(&g) => (g, true),
             };
-            let times = self.generations.entry(g).or_default();
-            step_by(times, 1, add);
-            if *times == 0 {
-                self.generations.remove(&g);
-            }
+            tally(&mut self.generations, g, 1, add);
         }
         for (counts, old, new) in [
             (&mut self.held, &old.held, &new.held),
@@ -570,11 +567,7 @@ impl RoundIndex {
                     } else {
                         part.generations.remove(at);
                     }
-                    let times = self.generations.entry(g).or_default();
-                    step_by(times, 1, add);
-                    if *times == 0 {
-                        self.generations.remove(&g);
-                    }
+                    tally(&mut self.generations, g, 1, add);
                 }
             }
             if d >= self.domains {
