@@ -34,6 +34,7 @@ use tracing::{info, warn};
 
 use crate::state::{Config, Coordinator};
 use rayfarm_machine::coordinator::Rounds;
+use rayfarm_machine::coordinator::cluster::ReportHold;
 
 /// Largest gRPC message accepted or sent on the worker link (tile results of a big pass) and
 /// sent by the job API (fetched images).
@@ -134,8 +135,15 @@ struct Args {
     /// queues without the rays in flight and plans the worker again and again (97% of a
     /// 256-worker dynamic simulation's reports, README "Simulator").
     #[arg(long, env = "RAYFARM_REPORT_HOLD_MS", value_parser = clap::value_parser!(u64).range(0..=10_000),
-          default_value_t = rayfarm_machine::coordinator::cluster::DEFAULT_REPORT_HOLD.as_millis() as u64)]
+          default_value_t = ReportHold::DEFAULT.least.as_millis() as u64)]
     report_hold_ms: u64,
+    /// ...or this many microseconds for each worker of the frame when that is longer: idle
+    /// workers then send at most one report a `--report-hold-per-worker-us` between them,
+    /// however many there are (the default 100 holds 50 ms up to 500 workers, 102 ms at
+    /// 1,024). 0: the hold is `--report-hold-ms` at any size.
+    #[arg(long, env = "RAYFARM_REPORT_HOLD_PER_WORKER_US", value_parser = clap::value_parser!(u64).range(0..=10_000),
+          default_value_t = ReportHold::DEFAULT.per_member.as_micros() as u64)]
+    report_hold_per_worker_us: u64,
     /// Largest film file, set of images, or worker memory for one tile's camera rays a job's
     /// frame may need; a job past it (or past the data directory's free disk) is refused at
     /// submit with RESOURCE_EXHAUSTED. A 16384x16384 frame's film is 6 GiB.
@@ -202,7 +210,10 @@ async fn run(args: Args) -> anyhow::Result<()> {
             RoundsArg::Async => Rounds::Async,
         },
         holders_interval: Duration::from_millis(args.holders_interval_ms.min(60_000)),
-        report_hold: Duration::from_millis(args.report_hold_ms),
+        report_hold: ReportHold {
+            least: Duration::from_millis(args.report_hold_ms),
+            per_member: Duration::from_micros(args.report_hold_per_worker_us),
+        },
         max_frame_bytes: args.max_frame_bytes,
         max_attempts: args.max_attempts,
     };

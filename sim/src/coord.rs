@@ -50,8 +50,8 @@ pub struct CoordConfig {
     /// Busy workers are told new holders at most once per this interval.
     pub holders_interval: Duration,
     /// How long a planned worker with nothing to trace waits for its plan's rays before it
-    /// reports again (the coordinator's `--report-hold-ms`).
-    pub report_hold: Duration,
+    /// reports again (the coordinator's `--report-hold-ms` and `--report-hold-per-worker-us`).
+    pub report_hold: crate::ReportHold,
     /// How long one record takes to reach the disk.
     pub disk_latency: Duration,
     /// What its planning rounds and holders flushes cost.

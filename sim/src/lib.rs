@@ -33,8 +33,8 @@ pub mod world;
 pub use check::Violation;
 pub use cost::{ComputeCost, CostModel};
 pub use faults::{Fault, FaultPlan};
-/// The coordinator's default `--report-hold-ms`, which the simulated coordinator takes unless
-/// told otherwise.
-pub use rayfarm_machine::coordinator::cluster::DEFAULT_REPORT_HOLD;
+/// How long workers hold their reports for a plan's rays; the simulated coordinator takes the
+/// coordinator's default (`ReportHold::DEFAULT`) unless told otherwise.
+pub use rayfarm_machine::coordinator::cluster::ReportHold;
 pub use storage::StorageModel;
 pub use world::{Outcome, RECONNECT, SimConfig, default_max_events, simulate};

@@ -16,7 +16,7 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use rayfarm_core::cluster::scene_ref;
 use rayfarm_core::scene::Manifest;
 use rayfarm_core::schedule::dynamic::Options;
-use rayfarm_machine::coordinator::cluster::{self, Input, JobRecord, is_terminal};
+use rayfarm_machine::coordinator::cluster::{self, Input, JobRecord, ReportHold, is_terminal};
 use rayfarm_machine::coordinator::{Coordinator as Machine, Rounds};
 use rayfarm_node::job::{frame_spec, schedule_name, state_name};
 use rayfarm_node::proto::{self, JobState, Schedule, worker_message::Body as FromWorker};
@@ -61,9 +61,9 @@ pub struct Config {
     pub rounds: Rounds,
     /// Busy workers are told new holders at most once per this interval.
     pub holders_interval: Duration,
-    /// Under asynchronous rounds, a planned worker with nothing to trace waits up to this long
-    /// for the rays its plan moves to it before it reports again.
-    pub report_hold: Duration,
+    /// Under asynchronous rounds, how long a planned worker with nothing to trace waits for
+    /// the rays its plan moves to it before it reports again.
+    pub report_hold: ReportHold,
     /// Admission: the most a frame may need of each figure (`admission::Needs`).
     pub max_frame_bytes: u64,
     /// Starts of a job's frame after which it fails instead of starting again.

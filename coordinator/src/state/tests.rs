@@ -17,7 +17,7 @@ fn config(root: &std::path::Path) -> Config {
         schedule_options: Options::default(),
         rounds: Rounds::default(),
         holders_interval: Duration::ZERO,
-        report_hold: Duration::ZERO,
+        report_hold: ReportHold::NONE,
         max_frame_bytes: 16 << 30,
         max_attempts: 3,
     }

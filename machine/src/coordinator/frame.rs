@@ -9,6 +9,7 @@ use std::collections::BTreeMap;
 use std::sync::Arc;
 
 use super::accusations::Accusations;
+use super::cluster::ReportHold;
 use super::grants::Grants;
 use super::holders::SentHolders;
 use super::tasks::{Direction, TASK_RAYS, TaskDirections};
@@ -250,7 +251,7 @@ pub struct RunningFrame {
     holders_interval: std::time::Duration,
     /// What an asynchronous round's plans tell their workers to wait for the rays they move
     /// there before reporting again (`RoundPlan.report_hold_ms`).
-    report_hold: std::time::Duration,
+    report_hold: ReportHold,
     /// Tile results refused as impossible (each dropped its sender).
     pub refused_results: u64,
     /// The job's samples as subframes (one for a one-pass job), and the one being rendered:
@@ -328,7 +329,7 @@ impl RunningFrame {
             sent_holders: SentHolders::default(),
             view_classes: None,
             holders_interval: std::time::Duration::ZERO,
-            report_hold: std::time::Duration::ZERO,
+            report_hold: ReportHold::NONE,
             refused_results: 0,
             subframes,
             subframe: 0,
@@ -346,9 +347,9 @@ impl RunningFrame {
         self
     }
 
-    /// Tells the workers an asynchronous round plans to wait up to `hold` for the rays their
-    /// plan moves to them before they report again (zero: at once).
-    pub fn with_report_hold(mut self, hold: std::time::Duration) -> Self {
+    /// Tells the workers an asynchronous round plans to wait for the rays their plan moves to
+    /// them before they report again.
+    pub fn with_report_hold(mut self, hold: ReportHold) -> Self {
         self.report_hold = hold;
         self
     }

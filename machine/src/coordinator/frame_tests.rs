@@ -186,9 +186,9 @@ fn barrier_rounds_wait_for_every_report() {
 
 #[test]
 fn asynchronous_plans_tell_the_report_hold_and_barrier_plans_none() {
-    let holds = |rounds| {
+    let holds_with = |rounds, hold| {
         let (f, _) = started(Schedule::Dynamic, rounds, 2);
-        let mut f = f.with_report_hold(std::time::Duration::from_millis(50));
+        let mut f = f.with_report_hold(hold);
         let mut out = f.report(0, report(0, &[], &[(1, 50, 0)]));
         out.extend(f.report(1, report(0, &[], &[(2, 70, 0)])));
         let holds: Vec<u32> = out
@@ -201,7 +201,23 @@ fn asynchronous_plans_tell_the_report_hold_and_barrier_plans_none() {
         assert!(!holds.is_empty(), "{out:?}");
         holds
     };
+    let ms = std::time::Duration::from_millis;
+    let fixed = ReportHold {
+        least: ms(50),
+        per_member: ms(0),
+    };
+    let holds = |rounds| holds_with(rounds, fixed);
     assert!(holds(Rounds::Async).iter().all(|&h| h == 50));
+    let per_member = ReportHold {
+        least: ms(50),
+        per_member: ms(40),
+    };
+    assert!(
+        holds_with(Rounds::Async, per_member)
+            .iter()
+            .all(|&h| h == 80),
+        "two members of 40 ms each hold longer than the least"
+    );
     assert!(
         holds(Rounds::Barrier).iter().all(|&h| h == 0),
         "a barrier round waits for every report"

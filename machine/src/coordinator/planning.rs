@@ -220,7 +220,8 @@ impl RunningFrame {
             "dry workers planned"
         );
         let next = self.next_domains(&changed);
-        let hold = u32::try_from(self.report_hold.as_millis()).unwrap_or(u32::MAX);
+        let hold = self.report_hold.for_members(self.members.len());
+        let hold = u32::try_from(hold.as_millis()).unwrap_or(u32::MAX);
         let mut out: Vec<Outgoing> = Vec::with_capacity(changed.len());
         for (p, next) in changed.iter().zip(next) {
             let key = p.worker.0;

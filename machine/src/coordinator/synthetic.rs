@@ -59,7 +59,7 @@ impl SteadyFrame {
             },
             rounds: Rounds::Async,
             holders_interval,
-            report_hold: super::cluster::DEFAULT_REPORT_HOLD,
+            report_hold: super::cluster::ReportHold::DEFAULT,
             max_attempts: 3,
             max_jobs_per_user: 16,
             max_pixel_samples_per_user: u64::MAX,

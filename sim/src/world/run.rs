@@ -48,8 +48,8 @@ pub struct SimConfig {
     /// `--holders-interval-ms`).
     pub holders_interval: Duration,
     /// How long a planned worker with nothing to trace waits for its plan's rays before it
-    /// reports again (the coordinator's `--report-hold-ms`).
-    pub report_hold: Duration,
+    /// reports again (the coordinator's `--report-hold-ms` and `--report-hold-per-worker-us`).
+    pub report_hold: crate::ReportHold,
     /// The predictive schedule's speculation setting (`JobSpec.speculation`; empty: full).
     pub speculation: String,
     /// Workers load their next domains while they trace (`JobSpec.prefetch`).

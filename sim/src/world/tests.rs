@@ -39,7 +39,7 @@ fn four_workers(dir: &std::path::Path, schedule: Schedule, cache_bytes: u64) -> 
         disk_latency: Duration::from_millis(2),
         heartbeat: Duration::from_millis(20),
         holders_interval: Duration::ZERO,
-        report_hold: crate::DEFAULT_REPORT_HOLD,
+        report_hold: crate::ReportHold::DEFAULT,
         worker_timeout: Duration::from_millis(200),
         speculation: String::new(),
         prefetch: schedule == Schedule::Dynamic,

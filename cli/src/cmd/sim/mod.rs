@@ -19,7 +19,7 @@ use rayfarm_sim::net::LinkModel;
 use rayfarm_sim::node::QueueCaps;
 use rayfarm_sim::world::open_scene;
 use rayfarm_sim::{
-    ComputeCost, CostModel, FaultPlan, Outcome, RECONNECT, SimConfig, StorageModel,
+    ComputeCost, CostModel, FaultPlan, Outcome, RECONNECT, ReportHold, SimConfig, StorageModel,
     default_max_events, simulate,
 };
 use rayon::prelude::*;
@@ -185,6 +185,25 @@ pub struct ModelArgs {
     /// (README "Simulator": what that cost at 256 workers and more).
     #[arg(long, value_parser = clap::value_parser!(u64).range(0..=10_000))]
     pub report_hold_ms: Option<u64>,
+    /// ...or this many microseconds for each worker of the frame when that is longer, as the
+    /// coordinator's `--report-hold-per-worker-us` [default: the coordinator's, 100].
+    #[arg(long, value_parser = clap::value_parser!(u64).range(0..=10_000))]
+    pub report_hold_per_worker_us: Option<u64>,
+}
+
+impl ModelArgs {
+    /// The report hold the flags ask for, the coordinator's default where they are silent.
+    fn report_hold(&self) -> ReportHold {
+        let default = ReportHold::DEFAULT;
+        ReportHold {
+            least: self
+                .report_hold_ms
+                .map_or(default.least, Duration::from_millis),
+            per_member: self
+                .report_hold_per_worker_us
+                .map_or(default.per_member, Duration::from_micros),
+        }
+    }
 }
 
 fn check_speculation(s: &str) -> Result<String, String> {
@@ -267,6 +286,9 @@ impl ModelArgs {
         if let Some(ms) = self.report_hold_ms {
             f.push_str(&format!(" --report-hold-ms {ms}"));
         }
+        if let Some(us) = self.report_hold_per_worker_us {
+            f.push_str(&format!(" --report-hold-per-worker-us {us}"));
+        }
         f
     }
 
@@ -316,9 +338,7 @@ impl ModelArgs {
             heartbeat: self.deadlines().heartbeat,
             worker_timeout: self.deadlines().worker_timeout,
             holders_interval: self.deadlines().holders,
-            report_hold: self
-                .report_hold_ms
-                .map_or(rayfarm_sim::DEFAULT_REPORT_HOLD, Duration::from_millis),
+            report_hold: self.report_hold(),
             disk_latency: DISK_LATENCY,
             speculation: match schedule {
                 Schedule::Predictive => self.speculation.clone().unwrap_or_default(),

@@ -19,7 +19,7 @@ fn config() -> Config {
         },
         rounds: Rounds::Async,
         holders_interval: Duration::ZERO,
-        report_hold: Duration::ZERO,
+        report_hold: super::ReportHold::NONE,
         max_attempts: 3,
         max_jobs_per_user: 2,
         max_pixel_samples_per_user: 1 << 20,
