@@ -538,8 +538,8 @@ fn apply_holders(plan: &mut crate::worker::Plan, messages: &[&Body]) {
         ls.iter()
             .map(|l| HolderLine {
                 domain: l.domain,
-                workers: l.workers.clone(),
-                lost: l.lost.clone(),
+                workers: l.workers.clone().into(),
+                lost: l.lost.clone().into(),
             })
             .collect()
     };

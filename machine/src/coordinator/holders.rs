@@ -857,8 +857,8 @@ mod tests {
                 .into_iter()
                 .map(|l| HolderLine {
                     domain: l.domain,
-                    workers: l.workers,
-                    lost: l.lost,
+                    workers: l.workers.into(),
+                    lost: l.lost.into(),
                 })
                 .collect()
         };
@@ -906,8 +906,8 @@ mod tests {
                 let mut p = Plan::new(Mode::Dynamic, 1, domains, 0, roster.clone());
                 let whole = maps[u].iter().map(|(&domain, keys)| HolderLine {
                     domain,
-                    workers: keys.clone(),
-                    lost: Vec::new(),
+                    workers: keys.clone().into(),
+                    lost: Default::default(),
                 });
                 p.set_holders(whole, false);
                 p

@@ -1,6 +1,7 @@
 //! What goes into the worker machine and what comes out: [`Event`]s, each with the time it
 //! happened, and [`Action`]s for the shell to carry out. Everything here is plain data.
 
+use std::sync::Arc;
 use std::time::Duration;
 
 use bytes::Bytes;
@@ -22,6 +23,9 @@ use super::queues::DomainQueues;
 pub enum Event<S> {
     /// A message from the coordinator other than StartFrame (see [`Event::FrameOpened`]).
     Control(proto::CoordinatorMessage),
+    /// The same, shared with other workers (the simulator sends one holders message to a
+    /// whole view class): the machine reads it in place instead of taking a copy.
+    SharedControl(Arc<proto::CoordinatorMessage>),
     /// The coordinator's StartFrame, with what the shell read from the scene for it (or why
     /// it could not: the frame is declined).
     FrameOpened {

@@ -206,11 +206,11 @@ impl<S: RaySpill> Frame<S> {
 
     /// Adopts a round's plan; with nothing to trace, the report of running dry under it waits
     /// until `hold_until` for the work it sends here (`RoundPlan.report_hold_ms`).
-    pub fn set_plan(
+    pub fn set_plan<'a>(
         &mut self,
         round: u64,
         work_on: impl IntoIterator<Item = u32>,
-        holders: impl IntoIterator<Item = HolderLine>,
+        holders: impl IntoIterator<Item = HolderLine<'a>>,
         delta: bool,
         hold_until: Option<Time>,
     ) {
@@ -289,7 +289,11 @@ impl<S: RaySpill> Frame<S> {
 
     /// Adopts new holders of the domains (another worker's plan changed; `delta` as
     /// [`Plan::set_holders`]); the rays that leave for them are [`Frame::take_for_peers`]'s.
-    pub fn set_holders(&mut self, holders: impl IntoIterator<Item = HolderLine>, delta: bool) {
+    pub fn set_holders<'a>(
+        &mut self,
+        holders: impl IntoIterator<Item = HolderLine<'a>>,
+        delta: bool,
+    ) {
         self.plan.set_holders(holders, delta);
     }
 

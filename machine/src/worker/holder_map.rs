@@ -115,7 +115,7 @@ impl HolderMap {
         &mut self,
         domain: u32,
         lost: &[u32],
-        gained: Vec<u32>,
+        gained: &[u32],
         me: u32,
         gone: &mut Vec<u32>,
     ) {
@@ -134,7 +134,7 @@ impl HolderMap {
                 }
                 !lost
             });
-            insert_gained(kept, gained, me);
+            insert_gained(kept, gained.iter().copied(), me);
             if kept.len() < 2 {
                 let kept = self.many.remove(&domain).unwrap_or_default();
                 self.store(domain, kept);
@@ -149,7 +149,7 @@ impl HolderMap {
                 kept.push(key);
             }
         }
-        insert_gained(&mut kept, gained, me);
+        insert_gained(&mut kept, gained.iter().copied(), me);
         self.store(domain, kept);
     }
 
@@ -248,12 +248,12 @@ mod tests {
         assert_eq!(m.get(1), [3, 9], "sorted, without me and repeats");
         assert_eq!(m.held().collect::<Vec<_>>(), [1]);
         let mut gone = Vec::new();
-        m.change(1, &[3], vec![], 0, &mut gone);
+        m.change(1, &[3], &[], 0, &mut gone);
         assert_eq!((m.get(1), gone.as_slice()), (&[9][..], &[3][..]));
         assert!(m.many.is_empty(), "a list of one lives in its slot");
-        m.change(1, &[], vec![5, 12], 0, &mut gone);
+        m.change(1, &[], &[5, 12], 0, &mut gone);
         assert_eq!(m.get(1), [5, 9, 12]);
-        m.change(1, &[5, 9, 12], vec![], 0, &mut gone);
+        m.change(1, &[5, 9, 12], &[], 0, &mut gone);
         assert!(!m.contains(1));
         assert!(m.many.is_empty());
         // Out of the scene, and the slot markers as keys: ignored.

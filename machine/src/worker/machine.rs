@@ -3,6 +3,7 @@
 //! speculation groups), the bundler and the bundles held for frames not started yet; the
 //! shell owns the sockets, the domain cache, the tracing pool and the clock.
 
+use std::sync::Arc;
 use std::time::Duration;
 
 use rayfarm_core::bundler::{Bundler, BundlerConfig, ConfigError};
@@ -132,6 +133,10 @@ impl<S: RaySpill> Worker<S> {
         self.now = self.now.max(now);
         match event {
             Event::Control(msg) => self.control(msg),
+            Event::SharedControl(msg) => match &msg.body {
+                Some(FromCoordinator::Holders(h)) => self.holders(&h),
+                _ => self.control(Arc::unwrap_or_clone(msg)),
+            },
             Event::FrameOpened { start, opened } => self.start_frame(start, opened),
             Event::Disconnected => {
                 if let Some(f) = self.frame.take() {
@@ -225,7 +230,7 @@ impl<S: RaySpill> Worker<S> {
                 }
             }
             Some(FromCoordinator::EndFrame(e)) => self.end_frame(&e.job_id),
-            Some(FromCoordinator::Holders(h)) => self.holders(h),
+            Some(FromCoordinator::Holders(h)) => self.holders(&h),
             Some(FromCoordinator::Roster(r)) => self.roster(r),
             Some(FromCoordinator::ShareTasks(t)) => self.share_tasks(t),
             Some(FromCoordinator::HandOutTiles(h)) => {
@@ -332,14 +337,14 @@ impl<S: RaySpill> Worker<S> {
             .filter(|&(k, _)| k != 0)
             .map(|(k, domain)| HolderLine {
                 domain,
-                workers: vec![k - 1],
-                lost: Vec::new(),
+                workers: vec![k - 1].into(),
+                lost: Default::default(),
             });
         let hold = Duration::from_millis(u64::from(p.report_hold_ms).min(MAX_REPORT_HOLD_MS));
         frame.set_plan(
             p.round,
             p.work_on.iter().copied(),
-            sole.chain(p.holders.into_iter().map(line)),
+            sole.chain(p.holders.iter().map(line)),
             p.holders_delta,
             (!hold.is_zero()).then(|| self.now + hold),
         );
@@ -363,11 +368,11 @@ impl<S: RaySpill> Worker<S> {
     }
 
     /// Another worker's plan changed: rays waiting here for its domains go to it now.
-    fn holders(&mut self, h: proto::Holders) {
+    fn holders(&mut self, h: &proto::Holders) {
         let Some(frame) = self.frame.as_mut().filter(|f| f.job_id == h.job_id) else {
             return;
         };
-        frame.set_holders(h.holders.into_iter().map(line), h.delta);
+        frame.set_holders(h.holders.iter().map(line), h.delta);
         self.send_to_holders();
     }
 
@@ -657,10 +662,10 @@ impl<S: RaySpill> Worker<S> {
 }
 
 /// A holders message's line for one domain as the plan takes it.
-fn line(h: proto::DomainHolders) -> HolderLine {
+fn line(h: &proto::DomainHolders) -> HolderLine<'_> {
     HolderLine {
         domain: h.domain,
-        workers: h.workers,
-        lost: h.lost,
+        workers: h.workers.as_slice().into(),
+        lost: h.lost.as_slice().into(),
     }
 }

@@ -13,18 +13,18 @@ fn key(address: &str) -> u32 {
         .expect("a known worker") as u32
 }
 
-fn holders(list: &[(u32, &[&str])]) -> Vec<HolderLine> {
+fn holders(list: &[(u32, &[&str])]) -> Vec<HolderLine<'static>> {
     list.iter()
         .map(|(d, ws)| HolderLine {
             domain: *d,
             workers: ws.iter().map(|w| key(w)).collect(),
-            lost: Vec::new(),
+            lost: Default::default(),
         })
         .collect()
 }
 
 /// A delta: each domain's gained and lost workers.
-fn delta(list: &[(u32, &[&str], &[&str])]) -> Vec<HolderLine> {
+fn delta(list: &[(u32, &[&str], &[&str])]) -> Vec<HolderLine<'static>> {
     list.iter()
         .map(|(d, gained, lost)| HolderLine {
             domain: *d,
@@ -262,7 +262,7 @@ fn a_batch_is_sorted_as_each_ray_destination_says() {
                 workers: (0..6u32)
                     .filter(|k| r(100 + u64::from(d) * 8 + u64::from(*k)) % 3 == 0)
                     .collect(),
-                lost: Vec::new(),
+                lost: Default::default(),
             })
             .collect();
         let work_on: Vec<u32> = (0..DOMAINS)

@@ -59,8 +59,8 @@ pub fn default_max_events(workers: usize) -> u64 {
 enum Msg {
     Register(proto::Register, u64),
     ToCoordinator(FromWorker, u64),
-    /// A coordinator's message, shared with the other workers told the same (taken out at
-    /// delivery, `Arc::unwrap_or_clone`).
+    /// A coordinator's message, shared with the other workers told the same (each worker's
+    /// machine reads it in place, `Event::SharedControl`; a StartFrame is taken out).
     Control(Arc<proto::CoordinatorMessage>, u64),
     /// The coordinator closed the worker's control stream (or died, or refused it).
     Closed(u64),

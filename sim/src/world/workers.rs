@@ -49,16 +49,15 @@ impl World<'_> {
         match msg {
             // What was sent on an older stream than the worker's is for nobody.
             Msg::Control(_, conn) | Msg::Closed(conn) if conn != w.conn => {}
-            Msg::Control(m, _) => match Arc::unwrap_or_clone(m).body {
-                Some(Body::StartFrame(start)) => {
+            Msg::Control(m, _) if !matches!(m.body, Some(Body::StartFrame(_))) => {
+                self.feed(to, machine::Event::SharedControl(m));
+            }
+            Msg::Control(m, _) => {
+                if let Some(Body::StartFrame(start)) = Arc::unwrap_or_clone(m).body {
                     let opened = w.open(&start);
                     self.feed(to, machine::Event::FrameOpened { start, opened });
                 }
-                body => self.feed(
-                    to,
-                    machine::Event::Control(proto::CoordinatorMessage { body }),
-                ),
-            },
+            }
             Msg::Closed(_) => {
                 w.disconnected = true;
                 self.feed(to, machine::Event::Disconnected);
