@@ -1,6 +1,8 @@
 //! Messages on the simulated network: sized as encoded, sent when their sender is done with
 //! them (a worker's NIC is not held before), acknowledgements as single packets beside bulk.
 
+use std::sync::Arc;
+
 use bytes::Bytes;
 use prost::Message;
 use rayfarm_machine::Time;
@@ -25,15 +27,25 @@ impl World<'_> {
         self.transmit(depart, from, to, msg);
     }
 
+    /// The encoded size of the coordinator's message `m`.
+    fn control_size(&mut self, m: &Arc<proto::CoordinatorMessage>) -> usize {
+        if let Some((last, size)) = &self.control_size
+            && std::ptr::eq(last.as_ptr(), Arc::as_ptr(m))
+        {
+            return *size;
+        }
+        let size = m.encoded_len();
+        self.control_size = Some((Arc::downgrade(m), size));
+        size
+    }
+
     /// Puts `msg` on the network.
     pub(super) fn transmit(&mut self, depart: Time, from: NodeId, to: NodeId, msg: Msg) {
         let bytes = match &msg {
             Msg::Register(r, _) => r.encoded_len(),
-            Msg::ToCoordinator(b, _) => proto::WorkerMessage {
-                body: Some(b.clone()),
-            }
-            .encoded_len(),
-            Msg::Control(m, _) => m.encoded_len(),
+            // A WorkerMessage is its body alone: the oneof's size, key included.
+            Msg::ToCoordinator(b, _) => b.encoded_len(),
+            Msg::Control(m, _) => self.control_size(m),
             Msg::Bundle { batches, .. } => batches.iter().map(Bytes::len).sum::<usize>() + 64,
             Msg::Closed(_) | Msg::StreamEnded(_) | Msg::Ack { .. } => 16,
         };
