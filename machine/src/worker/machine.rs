@@ -134,7 +134,7 @@ impl<S: RaySpill> Worker<S> {
         match event {
             Event::Control(msg) => self.control(msg),
             Event::SharedControl(msg) => match &msg.body {
-                Some(FromCoordinator::Holders(h)) => self.holders(&h),
+                Some(FromCoordinator::Holders(h)) => self.holders(h),
                 _ => self.control(Arc::unwrap_or_clone(msg)),
             },
             Event::FrameOpened { start, opened } => self.start_frame(start, opened),
