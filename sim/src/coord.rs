@@ -21,8 +21,11 @@ use rayfarm_core::tile::{TILE_SIZE, TileGrid};
 use rayfarm_machine::Time;
 use rayfarm_machine::coordinator::Coordinator;
 use rayfarm_machine::coordinator::Rounds;
-use rayfarm_machine::coordinator::cluster::{Action, Config, Input, JobRecord, OpenedFrame, Tally};
+use rayfarm_machine::coordinator::cluster::{
+    Action, Config, FlushWork, Input, JobRecord, OpenedFrame, PlanningWork, Tally,
+};
 use rayfarm_proto::{self as proto, JobState, worker_message::Body as FromWorker};
+use tracing::info;
 
 use crate::cost::CostModel;
 use crate::net::NodeId;
@@ -112,6 +115,9 @@ pub struct SimCoordinator {
     pub rounds: u64,
     /// Virtual time spent planning rounds and flushing holders, over every process.
     pub busy: Duration,
+    /// What the rounds and the holders flushes of `busy` were, summed over every process.
+    pub planning: PlanningWork,
+    pub flushing: FlushWork,
     /// When the process is done planning what it was given so far: what it sends leaves
     /// then.
     pub free_at: Time,
@@ -136,6 +142,8 @@ impl SimCoordinator {
             problems: Vec::new(),
             rounds: 0,
             busy: Duration::ZERO,
+            planning: PlanningWork::default(),
+            flushing: FlushWork::default(),
             free_at: Time(0),
         };
         c.start(Time(0));
@@ -447,6 +455,7 @@ impl SimCoordinator {
                 }
                 Action::Tally(Tally::Rounds(work)) => {
                     self.rounds += work.rounds;
+                    add_planning(&mut self.planning, &work);
                     let took = self
                         .config
                         .cost
@@ -455,6 +464,11 @@ impl SimCoordinator {
                     None
                 }
                 Action::Tally(Tally::HoldersFlushed(work)) => {
+                    let f = &mut self.flushing;
+                    f.flushes += work.flushes;
+                    f.members += work.members;
+                    f.told += work.told;
+                    f.lines += work.lines;
                     // The coordinator's time as a round's.
                     let took = self.config.cost.flushing(&work);
                     self.occupy(now, took);
@@ -481,5 +495,60 @@ impl SimCoordinator {
             .ok_or_else(|| "the image does not fit the tile grid".to_string())?;
         Film::temporary_in(self.film_dir.path(), grid, frame.spp)
             .map_err(|e| format!("job {id}'s film: {e}"))
+    }
+}
+
+/// Adds `work` to `sum`.
+fn add_planning(sum: &mut PlanningWork, work: &PlanningWork) {
+    sum.rounds += work.rounds;
+    sum.whole_rounds += work.whole_rounds;
+    sum.whole_members += work.whole_members;
+    sum.planned += work.planned;
+    sum.drafted += work.drafted;
+    sum.members += work.members;
+}
+
+impl SimCoordinator {
+    /// Logs where the coordinator's busy time went, priced term by term (`info`): which part
+    /// of a round's price (`CostModel::planning`) or the flushes' a large cluster spends it on.
+    pub fn log_busy(&self) {
+        let p = &self.planning;
+        let cost = &self.config.cost;
+        let domains = self.config.domain_bytes.len();
+        let priced = |w: PlanningWork| cost.planning(&w, domains).as_secs_f64();
+        let rounds = priced(PlanningWork {
+            rounds: p.rounds,
+            whole_rounds: p.whole_rounds,
+            ..Default::default()
+        });
+        let planned = priced(PlanningWork {
+            planned: p.planned,
+            ..Default::default()
+        });
+        let drafted = priced(PlanningWork {
+            drafted: p.drafted,
+            ..Default::default()
+        });
+        let members = priced(PlanningWork {
+            members: p.members,
+            whole_members: p.whole_members,
+            ..Default::default()
+        });
+        let f = &self.flushing;
+        info!(
+            busy_s = format!("{:.3}", self.busy.as_secs_f64()),
+            rounds = p.rounds,
+            whole_rounds = p.whole_rounds,
+            planned = p.planned,
+            drafted = p.drafted,
+            rounds_s = format!("{rounds:.3}"),
+            planned_s = format!("{planned:.3}"),
+            drafted_s = format!("{drafted:.3}"),
+            members_s = format!("{members:.3}"),
+            flushes = f.flushes,
+            flush_lines = f.lines,
+            flushes_s = format!("{:.3}", cost.flushing(f).as_secs_f64()),
+            "coordinator busy"
+        );
     }
 }

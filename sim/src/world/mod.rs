@@ -286,6 +286,7 @@ pub fn simulate(
     world
         .traffic
         .log("run over", world.now, &world.net, world.coord.rounds);
+    world.coord.log_busy();
     Ok(world.finish(ended, bound, expected_hash))
 }
 
