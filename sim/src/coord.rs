@@ -455,7 +455,7 @@ impl SimCoordinator {
                 }
                 Action::Tally(Tally::Rounds(work)) => {
                     self.rounds += work.rounds;
-                    add_planning(&mut self.planning, &work);
+                    self.planning.add(&work);
                     let took = self
                         .config
                         .cost
@@ -464,11 +464,7 @@ impl SimCoordinator {
                     None
                 }
                 Action::Tally(Tally::HoldersFlushed(work)) => {
-                    let f = &mut self.flushing;
-                    f.flushes += work.flushes;
-                    f.members += work.members;
-                    f.told += work.told;
-                    f.lines += work.lines;
+                    self.flushing.add(&work);
                     // The coordinator's time as a round's.
                     let took = self.config.cost.flushing(&work);
                     self.occupy(now, took);
@@ -496,19 +492,7 @@ impl SimCoordinator {
         Film::temporary_in(self.film_dir.path(), grid, frame.spp)
             .map_err(|e| format!("job {id}'s film: {e}"))
     }
-}
 
-/// Adds `work` to `sum`.
-fn add_planning(sum: &mut PlanningWork, work: &PlanningWork) {
-    sum.rounds += work.rounds;
-    sum.whole_rounds += work.whole_rounds;
-    sum.whole_members += work.whole_members;
-    sum.planned += work.planned;
-    sum.drafted += work.drafted;
-    sum.members += work.members;
-}
-
-impl SimCoordinator {
     /// Logs where the coordinator's busy time went, priced term by term (`info`): which part
     /// of a round's price (`CostModel::planning`) or the flushes' a large cluster spends it on.
     pub fn log_busy(&self) {

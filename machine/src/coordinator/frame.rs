@@ -90,6 +90,16 @@ impl PlanningWork {
         }
     }
 
+    /// Adds `more` (another frame's, or another process's, count) to this count.
+    pub fn add(&mut self, more: &PlanningWork) {
+        self.rounds += more.rounds;
+        self.whole_rounds += more.whole_rounds;
+        self.whole_members += more.whole_members;
+        self.planned += more.planned;
+        self.drafted += more.drafted;
+        self.members += more.members;
+    }
+
     /// One round of `members` members planned from the whole cluster.
     fn whole(&mut self, members: usize) {
         self.rounds += 1;
@@ -146,6 +156,14 @@ impl FlushWork {
             told: self.told.saturating_sub(before.told),
             lines: self.lines.saturating_sub(before.lines),
         }
+    }
+
+    /// Adds `more` (another frame's, or another process's, count) to this count.
+    pub fn add(&mut self, more: &FlushWork) {
+        self.flushes += more.flushes;
+        self.members += more.members;
+        self.told += more.told;
+        self.lines += more.lines;
     }
 }
 
