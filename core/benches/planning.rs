@@ -69,7 +69,7 @@ fn planning(c: &mut Criterion) {
             group.bench_function(BenchmarkId::new("async_one_dry", &id), |b| {
                 b.iter(|| black_box(cluster(&one_dry).dry_plans()))
             });
-            let mut index = RoundIndex::new(domains, false);
+            let mut index = RoundIndex::new(&sizes, false);
             for (&k, m) in &one_dry {
                 index.update(k, Some(m));
             }
@@ -134,7 +134,7 @@ fn one_round_in(
 ) -> (BTreeMap<u32, Member>, RoundIndex, HolderMap) {
     let sizes = vec![DOMAIN_BYTES; domains as usize];
     let mut members = members(workers, domains, 1);
-    let mut index = RoundIndex::new(domains, false);
+    let mut index = RoundIndex::new(&sizes, false);
     for (&k, m) in &members {
         index.update(k, Some(m));
     }

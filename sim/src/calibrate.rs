@@ -57,8 +57,6 @@ pub struct Calibration {
     /// planned from the whole cluster.
     pub round_fit_error: f64,
     pub whole_round_fit_error: f64,
-    /// The drafts of idle members the draft price was taken from (the median per member).
-    pub drafts: Vec<TimedDrafts>,
     /// The holders flushes the flush prices were fitted to, and the fit's error.
     pub flushes: Vec<TimedFlush>,
     pub flush_fit_error: f64,
@@ -202,8 +200,6 @@ pub fn calibrate(
     let volumes = passes.iter().any(|p| p.counters.volume_samples > 0);
     let rounds = time_rounds();
     let (round_coef, round_fit_error, whole_coef, whole_round_fit_error) = fit_rounds(&rounds);
-    let drafts = time_drafts();
-    let drafted_ns = median(drafts.iter().map(|d| d.ns / d.drafted as f64).collect());
     let flushes = time_flushes();
     let (flush_coef, flush_fit_error) = fit_flushes(&flushes);
     let received = &outcome.measured_bundles;
@@ -259,7 +255,6 @@ pub fn calibrate(
             round_ns: round_coef[0],
             round_planned_ns: round_coef[1],
             round_planned_domain_ns: round_coef[4],
-            round_drafted_ns: drafted_ns,
             round_member_ns: round_coef[2],
             round_domain_ns: round_coef[3],
             whole_round_ns: whole_coef[0],
@@ -286,7 +281,6 @@ pub fn calibrate(
         rounds,
         round_fit_error,
         whole_round_fit_error,
-        drafts,
         flushes,
         flush_fit_error,
         bundles_received: received.len(),
@@ -562,92 +556,6 @@ fn time_flush(workers: u32, domains: u32, interval: Duration) -> TimedFlush {
         lines: work.lines,
         ns: ns as f64,
     }
-}
-
-/// Drafts of idle members timed: the cluster's size, how many were drafted, thread CPU.
-#[derive(Clone, Debug)]
-pub struct TimedDrafts {
-    pub members: usize,
-    pub domains: usize,
-    pub drafted: usize,
-    pub ns: f64,
-}
-
-/// The middle of `values` (0 if none).
-fn median(mut values: Vec<f64>) -> f64 {
-    values.sort_by(f64::total_cmp);
-    values.get(values.len() / 2).copied().unwrap_or(0.0)
-}
-
-/// Rounds whose dry members are idle with nothing to give them, at the planning sizes: what
-/// drafting a member costs when its plan stays as it was (a dry member is drafted again by
-/// every round while it stays dry). The index (`RoundIndex`, the coordinator's) holds busy
-/// members each planned a domain with one ray queued there (wanted, held, too cool to copy)
-/// and `drafted` idle members (reported dry, nothing queued or mapped); `dry_plans` drafts
-/// the idle ones and changes no plan. Thread CPU, the fastest of five.
-fn time_drafts() -> Vec<TimedDrafts> {
-    use std::collections::{BTreeMap, BTreeSet};
-
-    use rayfarm_core::schedule::dynamic::Options;
-    use rayfarm_core::schedule::round_index::RoundIndex;
-    use rayfarm_core::schedule::rounds::{Member, Queues};
-
-    const DOMAIN_BYTES: u64 = 64 << 20;
-    let options = Options {
-        replicate_onto_idle: false,
-        fill_free_slots: true,
-    };
-    let mut out = Vec::new();
-    for &(members, domains) in &ROUND_SIZES {
-        for drafted in [8u32, 64].into_iter().filter(|&k| k < members) {
-            let mut index = RoundIndex::new(domains, false);
-            let mut cluster: BTreeMap<u32, Member> = BTreeMap::new();
-            for key in 0..members {
-                let busy = key >= drafted;
-                let d = key % domains;
-                let member = Member {
-                    cache_bytes: 2 * DOMAIN_BYTES,
-                    report: Some(Queues {
-                        round: u64::from(!busy),
-                        resident: if busy { vec![d] } else { Vec::new() },
-                        queued: if busy {
-                            BTreeMap::from([(d, 1)])
-                        } else {
-                            BTreeMap::new()
-                        },
-                        ..Queues::default()
-                    }),
-                    plan: if busy {
-                        BTreeSet::from([d])
-                    } else {
-                        BTreeSet::new()
-                    },
-                    planned_round: 1,
-                };
-                index.update(key, Some(&member));
-                cluster.insert(key, member);
-            }
-            let bytes = vec![DOMAIN_BYTES; domains as usize];
-            let ns = (0..5)
-                .map(|_| {
-                    let start = thread_cpu_ns();
-                    let plans = index.dry_plans(&cluster, &bytes, options);
-                    let ns = thread_cpu_ns().saturating_sub(start);
-                    debug_assert!(plans.is_empty(), "an idle member was given work");
-                    std::hint::black_box(plans);
-                    ns
-                })
-                .min()
-                .unwrap_or(0);
-            out.push(TimedDrafts {
-                members: members as usize,
-                domains: domains as usize,
-                drafted: drafted as usize,
-                ns: ns as f64,
-            });
-        }
-    }
-    out
 }
 
 /// Fits the flushes as `flush + members x M + lines x L`: the prices and the fit's error.

@@ -509,10 +509,6 @@ impl SimCoordinator {
             planned: p.planned,
             ..Default::default()
         });
-        let drafted = priced(PlanningWork {
-            drafted: p.drafted,
-            ..Default::default()
-        });
         let members = priced(PlanningWork {
             members: p.members,
             whole_members: p.whole_members,
@@ -524,10 +520,8 @@ impl SimCoordinator {
             rounds = p.rounds,
             whole_rounds = p.whole_rounds,
             planned = p.planned,
-            drafted = p.drafted,
             rounds_s = format!("{rounds:.3}"),
             planned_s = format!("{planned:.3}"),
-            drafted_s = format!("{drafted:.3}"),
             members_s = format!("{members:.3}"),
             flushes = f.flushes,
             flush_lines = f.lines,

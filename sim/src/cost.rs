@@ -2,8 +2,8 @@
 //! segments, shadow segments, camera samples and volume samples, each at its own price, over
 //! the worker's threads; a planning round of the coordinator costs what its kind follows
 //! (`rayfarm_machine::coordinator::PlanningWork`): an incremental round (someone busy) a fixed
-//! part plus a part per member planned (and per member planned per domain), per dry member
-//! drafted and left as it was, per member of the cluster and per domain; a round
+//! part plus a part per member planned (and per member planned per domain), per member of
+//! the cluster and per domain (a dry member it leaves as it was costs it nothing); a round
 //! planned from the whole cluster (barrier rounds, or nobody busy) a part per member and per
 //! domain at the whole-cluster planner's prices; a holders flush (`FlushWork`) a fixed part,
 //! a part per member of the frame and per holder line it made. The prices are measured on a
@@ -42,11 +42,6 @@ pub struct ComputeCost {
     /// before this price was measured read as zero.
     #[serde(default)]
     pub round_planned_domain_ns: f64,
-    /// A member an incremental round drafts but leaves as it was (dry, with nothing new for
-    /// it), per member: the draft without adoption, holders or message. Files calibrated
-    /// before this price was measured read as zero.
-    #[serde(default)]
-    pub round_drafted_ns: f64,
     /// An incremental round's cost per member of the cluster (the holders map is rebuilt from
     /// every member's plan).
     pub round_member_ns: f64,
@@ -112,7 +107,6 @@ impl Default for ComputeCost {
             round_ns: 12_533.0,
             round_planned_ns: 17_018.0,
             round_planned_domain_ns: 0.841,
-            round_drafted_ns: 185.25,
             round_member_ns: 0.0,
             round_domain_ns: 0.0,
             whole_round_ns: 0.0,
@@ -160,7 +154,6 @@ impl ComputeCost {
             ("round_ns", self.round_ns),
             ("round_planned_ns", self.round_planned_ns),
             ("round_planned_domain_ns", self.round_planned_domain_ns),
-            ("round_drafted_ns", self.round_drafted_ns),
             ("round_member_ns", self.round_member_ns),
             ("round_domain_ns", self.round_domain_ns),
             ("whole_round_ns", self.whole_round_ns),
@@ -305,7 +298,6 @@ impl CostModel {
         let incremental = work.rounds.saturating_sub(work.whole_rounds) as f64;
         let ns = incremental * (p.round_ns + p.round_domain_ns * domains)
             + (p.round_planned_ns + p.round_planned_domain_ns * domains) * work.planned as f64
-            + p.round_drafted_ns * work.drafted as f64
             + p.round_member_ns * work.members as f64
             + whole * (p.whole_round_ns + p.whole_round_domain_ns * domains)
             + p.whole_round_member_ns * work.whole_members as f64;
@@ -332,7 +324,6 @@ mod tests {
                 round_ns: 1000.0,
                 round_planned_ns: 100.0,
                 round_planned_domain_ns: 0.5,
-                round_drafted_ns: 20.0,
                 round_member_ns: 10.0,
                 round_domain_ns: 1.0,
                 whole_round_ns: 5000.0,
@@ -361,19 +352,18 @@ mod tests {
         // (1000 + 3000 x 500 + 1000 x 250 + 2000 x 100 + 100 x 10) ns / 2 threads.
         assert_eq!(m.pass(&c), Duration::from_nanos(976_000));
         // Two incremental rounds over 64 members planning 1 and 3 of them: 2 x (1000 + 64 x
-        // 10 + 512 x 1) + 4 x (100 + 512 x 0.5) ns, 10 idle members drafted besides at 20 ns;
-        // one whole round of 64: 5000 + 64 x 1000 + 512 x 50 ns.
+        // 10 + 512 x 1) + 4 x (100 + 512 x 0.5) ns; one whole round of 64: 5000 + 64 x 1000 +
+        // 512 x 50 ns.
         let work = PlanningWork {
             rounds: 3,
             whole_rounds: 1,
             whole_members: 64,
             planned: 4,
-            drafted: 10,
             members: 128,
         };
         assert_eq!(
             m.planning(&work, 512),
-            Duration::from_nanos(4304 + 1424 + 200 + 94_600)
+            Duration::from_nanos(4304 + 1424 + 94_600)
         );
         // Two flushes of 64 members, 500 lines made in all: 2 x 2000 + 128 x 20 + 500 x 3 ns,
         // whatever the members told (each gets the one message of its class).

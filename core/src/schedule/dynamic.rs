@@ -150,7 +150,7 @@ pub fn next_round(state: &ClusterState) -> RoundPlan {
 /// milliseconds (`benches/planning.rs`). The plans equal those of the paper's loops written out
 /// (`dynamic_reference.rs`, compared by a property test).
 pub fn next_round_with(state: &ClusterState, options: Options) -> RoundPlan {
-    let mut drafts: Vec<Draft<'_>> = state
+    let drafts: Vec<Draft<'_>> = state
         .workers()
         .iter()
         .map(|w| {
@@ -160,13 +160,14 @@ pub fn next_round_with(state: &ClusterState, options: Options) -> RoundPlan {
         })
         .collect();
     let to_assign = unheld_fullest_first(state, &drafts);
+    let mut drafts = DraftList::new(drafts);
     pair_with_free_slots(&mut drafts, to_assign, |_, _| {});
     if options.replicate_onto_idle || options.fill_free_slots {
-        let mut hot = HotDomains::new(state, &drafts);
+        let mut hot = HotDomains::new(state, &drafts.drafts);
         extend_plans(&mut hot, &mut drafts, options);
     }
     RoundPlan {
-        workers: drafts.into_iter().map(Draft::finish).collect(),
+        workers: drafts.drafts.into_iter().map(Draft::finish).collect(),
     }
 }
 
@@ -202,18 +203,23 @@ impl<'a> Draft<'a> {
     }
 
     /// Domains planned so far (kept and loaded).
-    fn planned(&self) -> usize {
+    pub(super) fn planned(&self) -> usize {
         self.keep.len() + self.load.len()
     }
 
     /// Slots not holding wanted data: each is one `to_evict` entry of Fig. 5.
-    fn free_slots(&self) -> usize {
+    pub(super) fn free_slots(&self) -> usize {
         self.capacity - self.planned()
     }
 
     /// Whether the plan so far traces rays for `domain`.
-    fn works_on(&self, domain: DomainId) -> bool {
+    pub(super) fn works_on(&self, domain: DomainId) -> bool {
         self.keep.contains(&domain) || self.load.contains(&domain)
+    }
+
+    /// `domain` loaded and traced.
+    pub(super) fn load(&mut self, domain: DomainId) {
+        self.load.insert(domain);
     }
 
     /// Evicts just enough unwanted data to fit the loads (lower id first).
@@ -246,32 +252,98 @@ fn unheld_fullest_first(state: &ClusterState, drafts: &[Draft<'_>]) -> Vec<(Doma
     unheld
 }
 
+/// The drafts of a round as its pairing and extensions walk them, by worker: every worker's
+/// ([`DraftList`]), or only the dry members' of an index, each made when the round first gives
+/// it something (`round_index`), so a round costs what it hands out, not the dry members.
+pub(super) trait Drafts {
+    /// The worker with a free slot and the fewest planned domains, the lower id on ties.
+    fn least_busy_open(&self) -> Option<WorkerId>;
+    /// The first worker after `after` (from the first if `None`), in worker order, whose
+    /// draft has a free slot, or (`idle`) nothing planned.
+    fn next_open(&self, after: Option<WorkerId>, idle: bool) -> Option<WorkerId>;
+    /// Whether `worker`'s draft so far traces rays for `domain`.
+    fn works_on(&self, worker: WorkerId, domain: DomainId) -> bool;
+    /// `domain` loaded by `worker`, which [`Drafts::least_busy_open`] or
+    /// [`Drafts::next_open`] named.
+    fn load(&mut self, worker: WorkerId, domain: DomainId);
+}
+
+/// Every worker's draft by worker id, with those that have a free slot ordered by
+/// (planned domains, position).
+pub(super) struct DraftList<'a> {
+    drafts: Vec<Draft<'a>>,
+    open: BTreeSet<(usize, usize)>,
+}
+
+impl<'a> DraftList<'a> {
+    /// `drafts`, sorted by worker id.
+    fn new(drafts: Vec<Draft<'a>>) -> Self {
+        let open = drafts
+            .iter()
+            .enumerate()
+            .filter(|(_, d)| d.free_slots() > 0)
+            .map(|(i, d)| (d.planned(), i))
+            .collect();
+        DraftList { drafts, open }
+    }
+
+    fn position(&self, worker: WorkerId) -> usize {
+        self.drafts
+            .binary_search_by_key(&worker, |d| d.worker)
+            .expect("a worker of the list")
+    }
+}
+
+impl Drafts for DraftList<'_> {
+    fn least_busy_open(&self) -> Option<WorkerId> {
+        let &(_, i) = self.open.first()?;
+        Some(self.drafts[i].worker)
+    }
+
+    fn next_open(&self, after: Option<WorkerId>, idle: bool) -> Option<WorkerId> {
+        let from = after.map_or(0, |w| self.position(w) + 1);
+        self.drafts[from..]
+            .iter()
+            .find(|d| {
+                if idle {
+                    d.planned() == 0
+                } else {
+                    d.free_slots() > 0
+                }
+            })
+            .map(|d| d.worker)
+    }
+
+    fn works_on(&self, worker: WorkerId, domain: DomainId) -> bool {
+        self.drafts[self.position(worker)].works_on(domain)
+    }
+
+    fn load(&mut self, worker: WorkerId, domain: DomainId) {
+        let i = self.position(worker);
+        let draft = &mut self.drafts[i];
+        let before = (draft.planned(), i);
+        draft.load(domain);
+        self.open.remove(&before);
+        if draft.free_slots() > 0 {
+            self.open.insert((draft.planned(), i));
+        }
+    }
+}
+
 /// Fig. 5's `while` loop: pair `to_assign` (domains with their rays, in `top()` order) with
 /// `to_evict` until either runs out. A domain goes to the worker with a free slot and the
-/// fewest planned domains (lower index on ties), so idle workers are served before busy
-/// ones. `placed` hears of each domain given to a worker, with its rays.
+/// fewest planned domains (lower id on ties), so idle workers are served before busy ones.
+/// `placed` hears of each domain given to a worker, with its rays.
 pub(super) fn pair_with_free_slots(
-    drafts: &mut [Draft<'_>],
+    drafts: &mut impl Drafts,
     to_assign: impl IntoIterator<Item = (DomainId, u64)>,
     mut placed: impl FnMut(DomainId, u64),
 ) {
-    // Workers with a free slot by (planned domains, index); drafts are sorted by id, so the
-    // first entry is the least busy worker with the lowest id.
-    let mut open: BTreeSet<(usize, usize)> = drafts
-        .iter()
-        .enumerate()
-        .filter(|(_, d)| d.free_slots() > 0)
-        .map(|(i, d)| (d.planned(), i))
-        .collect();
     for (domain, rays) in to_assign {
-        let Some((_, i)) = open.pop_first() else {
+        let Some(worker) = drafts.least_busy_open() else {
             return;
         };
-        let draft = &mut drafts[i];
-        draft.load.insert(domain);
-        if draft.free_slots() > 0 {
-            open.insert((draft.planned(), i));
-        }
+        drafts.load(worker, domain);
         placed(domain, rays);
     }
 }
@@ -281,10 +353,13 @@ pub(super) fn pair_with_free_slots(
 pub(super) trait Hottest {
     /// The hottest domain among `eligible` ones, counted as having one more holder.
     fn take_hottest(&mut self, eligible: impl Fn(DomainId) -> bool) -> Option<DomainId>;
+    /// Whether no domain is left to take, whatever is eligible: the extensions stop there
+    /// rather than ask every remaining worker.
+    fn exhausted(&self) -> bool;
 }
 
 /// The extensions [`Options`] turns on, after Fig. 5's pairing.
-pub(super) fn extend_plans(hot: &mut impl Hottest, drafts: &mut [Draft<'_>], options: Options) {
+pub(super) fn extend_plans(hot: &mut impl Hottest, drafts: &mut impl Drafts, options: Options) {
     if options.replicate_onto_idle {
         replicate_onto_idle(hot, drafts);
     }
@@ -296,24 +371,34 @@ pub(super) fn extend_plans(hot: &mut impl Hottest, drafts: &mut [Draft<'_>], opt
 /// Extension (off by default): each worker still idle after Fig. 5 loads a
 /// copy of the domain with the most rays per holder, provided the split still
 /// leaves every holder at least one ray.
-fn replicate_onto_idle(hot: &mut impl Hottest, drafts: &mut [Draft<'_>]) {
-    for draft in drafts.iter_mut().filter(|d| d.planned() == 0) {
-        if let Some(domain) = hot.take_hottest(|_| true) {
-            draft.load.insert(domain);
+fn replicate_onto_idle(hot: &mut impl Hottest, drafts: &mut impl Drafts) {
+    let mut at = None;
+    while let Some(worker) = drafts.next_open(at, true) {
+        if hot.exhausted() {
+            return;
         }
+        if let Some(domain) = hot.take_hottest(|_| true) {
+            drafts.load(worker, domain);
+        }
+        at = Some(worker);
     }
 }
 
 /// Extension (off by default): free slots take copies of wanted domains, hottest per
 /// holder first, a slot at a time across workers (lower id first) so copies spread.
-fn fill_free_slots(hot: &mut impl Hottest, drafts: &mut [Draft<'_>]) {
+fn fill_free_slots(hot: &mut impl Hottest, drafts: &mut impl Drafts) {
     loop {
         let mut placed = false;
-        for draft in drafts.iter_mut().filter(|d| d.free_slots() > 0) {
-            if let Some(domain) = hot.take_hottest(|d| !draft.works_on(d)) {
-                draft.load.insert(domain);
+        let mut at = None;
+        while let Some(worker) = drafts.next_open(at, false) {
+            if hot.exhausted() {
+                return;
+            }
+            if let Some(domain) = hot.take_hottest(|d| !drafts.works_on(worker, d)) {
+                drafts.load(worker, domain);
                 placed = true;
             }
+            at = Some(worker);
         }
         if !placed {
             return;
@@ -366,6 +451,10 @@ impl Hottest for HotDomains {
             self.heap.push(heat);
         }
         Some(domain)
+    }
+
+    fn exhausted(&self) -> bool {
+        self.heap.is_empty()
     }
 }
 

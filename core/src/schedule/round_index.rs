@@ -18,7 +18,7 @@ use std::cmp::Reverse;
 use std::collections::{BTreeMap, BTreeSet};
 
 use super::dynamic::{
-    Draft, Heat, Hottest, Options, WorkerPlan, extend_plans, pair_with_free_slots,
+    Draft, Drafts, Heat, Hottest, Options, WorkerPlan, extend_plans, pair_with_free_slots,
 };
 use super::rounds::{Cluster, Member, deposit_moved, set_plans};
 use super::{DomainId, WorkerId};
@@ -115,6 +115,35 @@ impl Part {
         self.holding_plan.clear();
         self.queues.clear();
         self.plan.clear();
+    }
+}
+
+/// A member that ran dry as Fig. 5's first loop leaves it, kept from round to round: what its
+/// draft would be, without making one (`RoundIndex::dry_plans` makes a draft only for a member
+/// the round gives something or whose plan names other domains than it would keep).
+#[derive(Clone, Debug, PartialEq)]
+struct Dry {
+    /// Domains its cache holds at once, counted by the scene's largest domain (never fewer
+    /// than it holds).
+    capacity: usize,
+    /// Its resident domains with rays that count: those its draft keeps.
+    kept: usize,
+    /// Of those, the ones its plan names.
+    kept_planned: usize,
+    /// The domains its plan names.
+    planned: usize,
+}
+
+impl Dry {
+    /// Whether its draft has a slot not holding wanted data.
+    fn has_free_slot(&self) -> bool {
+        self.capacity > self.kept
+    }
+
+    /// Whether the domains its draft keeps differ from its plan's: given nothing, it is
+    /// planned anyway (with fewer domains).
+    fn differs(&self) -> bool {
+        self.kept != self.kept_planned || self.kept != self.planned
     }
 }
 
@@ -225,8 +254,18 @@ pub struct RoundIndex {
     domains: u32,
     oldest_first: bool,
     parts: BTreeMap<u32, Part>,
-    /// Members that ran dry since their last plan.
-    dry: BTreeSet<u32>,
+    /// Members that ran dry since their last plan, each as its draft would start.
+    dry: BTreeMap<u32, Dry>,
+    /// (domains kept, key) of the dry members with a free slot: the order Fig. 5's pairing
+    /// serves them in.
+    open: BTreeSet<(usize, u32)>,
+    /// The same members by key: the order the extensions serve them in.
+    free: BTreeSet<u32>,
+    /// Dry members whose plan names other domains than their draft keeps.
+    differs: BTreeSet<u32>,
+    /// Dry members with each domain resident (a domain's rays coming or going changes what
+    /// their drafts keep).
+    dry_resident: Vec<Vec<u32>>,
     /// Rays reported per domain, over every member.
     queued: Vec<u64>,
     /// Rays reported per domain by oldest generation (the oldest-generation rule only).
@@ -269,23 +308,26 @@ pub struct RoundIndex {
     /// By member: the domains whose queued rays the last [`RoundIndex::adopt`] moved from it
     /// to a holder (it must learn those holders at once).
     moved: BTreeMap<u32, BTreeSet<u32>>,
-    /// The largest of the `domain_bytes` [`RoundIndex::dry_plans`] is given (the frame's,
-    /// the same every round), found at its first call: finding it every round walked every
-    /// domain's size (8,192 at 256 workers, 3% of a dynamic run: perf, README "Simulator").
-    largest: Option<u64>,
+    /// The scene's largest domain in bytes (at least 1): a cache's slots are counted by it.
+    largest: u64,
     /// A part whose lists the next [`RoundIndex::update`] makes its member's part in.
     spare: Part,
 }
 
 impl RoundIndex {
-    /// An empty index for a scene of `domains` domains; `oldest_first` as in [`Cluster`].
-    pub fn new(domains: u32, oldest_first: bool) -> RoundIndex {
-        let n = domains as usize;
+    /// An empty index for a scene of domains of `domain_bytes` bytes each; `oldest_first` as
+    /// in [`Cluster`].
+    pub fn new(domain_bytes: &[u64], oldest_first: bool) -> RoundIndex {
+        let n = domain_bytes.len();
         RoundIndex {
-            domains,
+            domains: u32::try_from(n).unwrap_or(u32::MAX),
             oldest_first,
             parts: BTreeMap::new(),
-            dry: BTreeSet::new(),
+            dry: BTreeMap::new(),
+            open: BTreeSet::new(),
+            free: BTreeSet::new(),
+            differs: BTreeSet::new(),
+            dry_resident: vec![Vec::new(); n],
             queued: vec![0; n],
             by_generation: if oldest_first {
                 vec![BTreeMap::new(); n]
@@ -308,7 +350,7 @@ impl RoundIndex {
             holders: BTreeMap::new(),
             holders_changed: BTreeSet::new(),
             moved: BTreeMap::new(),
-            largest: None,
+            largest: domain_bytes.iter().copied().max().unwrap_or(1).max(1),
             spare: Part::default(),
         }
     }
@@ -326,16 +368,16 @@ impl RoundIndex {
             .get_mut(&key)
             .map(std::mem::take)
             .unwrap_or_default();
-        self.dry.remove(&key);
-        let mut new = std::mem::take(&mut self.spare);
-        match member {
-            Some(m) => {
-                let dry = m.is_dry();
-                if dry {
-                    self.dry.insert(key);
-                }
-                new.fill(m, dry, self.domains);
+        if let Some(dry) = self.dry.remove(&key) {
+            self.file_dry(key, &dry, false);
+            for &d in &old.held {
+                list_out(&mut self.dry_resident[d as usize], key);
             }
+        }
+        let mut new = std::mem::take(&mut self.spare);
+        let dry = member.filter(|m| m.is_dry());
+        match member {
+            Some(m) => new.fill(m, dry.is_some(), self.domains),
             None => new.clear(),
         }
         let mut touched = Vec::new();
@@ -370,6 +412,76 @@ impl RoundIndex {
         }
         self.spare = old;
         self.refresh_touched(touched);
+        if let Some(m) = dry {
+            self.note_dry(key, m.cache_bytes);
+        }
+    }
+
+    /// Member `key`, which ran dry (its part just made), as its draft would start, with a
+    /// cache of `cache_bytes`.
+    fn note_dry(&mut self, key: u32, cache_bytes: u64) {
+        let part = &self.parts[&key];
+        let resident = &part.held;
+        let wanted = |d: &&u32| self.shown[**d as usize].0 > 0;
+        let dry = Dry {
+            capacity: ((cache_bytes / self.largest) as usize)
+                .max(1)
+                .max(resident.len()),
+            kept: resident.iter().filter(wanted).count(),
+            kept_planned: resident
+                .iter()
+                .filter(wanted)
+                .filter(|d| part.plan.binary_search(d).is_ok())
+                .count(),
+            planned: part.plan.len(),
+        };
+        for &d in resident {
+            list_in(&mut self.dry_resident[d as usize], key);
+        }
+        self.file_dry(key, &dry, true);
+        self.dry.insert(key, dry);
+    }
+
+    /// Dry member `key`, as `dry` says it stands, entered in (`add`) or taken out of the
+    /// orders the rounds serve dry members in.
+    fn file_dry(&mut self, key: u32, dry: &Dry, add: bool) {
+        for (set, is_in) in [
+            (&mut self.free, dry.has_free_slot()),
+            (&mut self.differs, dry.differs()),
+        ] {
+            if is_in && add {
+                set.insert(key);
+            } else if is_in {
+                set.remove(&key);
+            }
+        }
+        if dry.has_free_slot() {
+            if add {
+                self.open.insert((dry.kept, key));
+            } else {
+                self.open.remove(&(dry.kept, key));
+            }
+        }
+    }
+
+    /// Domain `d`'s rays began (`wanted`) or ceased to count: the drafts of the dry members
+    /// holding it keep it, or no longer.
+    fn rewant(&mut self, d: u32, wanted: bool) {
+        let keys = std::mem::take(&mut self.dry_resident[d as usize]);
+        for &key in &keys {
+            let Some(mut dry) = self.dry.get(&key).cloned() else {
+                continue;
+            };
+            self.file_dry(key, &dry, false);
+            let planned = self.parts[&key].plan.binary_search(&d).is_ok();
+            step_by(&mut dry.kept, 1, wanted);
+            if planned {
+                step_by(&mut dry.kept_planned, 1, wanted);
+            }
+            self.file_dry(key, &dry, true);
+            self.dry.insert(key, dry);
+        }
+        self.dry_resident[d as usize] = keys;
     }
 
     /// Every domain someone's current plan includes, with the keys of its holders, in key
@@ -391,7 +503,8 @@ impl RoundIndex {
             .collect()
     }
 
-    /// Members that ran dry since their last plan: those the next `dry_plans` drafts.
+    /// Members that ran dry since their last plan: those the next `dry_plans` plans (it
+    /// drafts only those it gives something or whose plans change).
     pub fn dry_count(&self) -> usize {
         self.dry.len()
     }
@@ -665,6 +778,9 @@ impl RoundIndex {
         if before == now {
             return;
         }
+        if (before.0 > 0) != (now.0 > 0) {
+            self.rewant(d, now.0 > 0);
+        }
         for ((rays, holders), add) in [(before, false), (now, true)] {
             if rays == 0 {
                 continue;
@@ -703,8 +819,11 @@ impl RoundIndex {
 
     /// New plans for the members that ran dry, equal to
     /// [`Cluster::dry_plans`](super::rounds::Cluster::dry_plans) over the same members.
-    /// `members` must be the members this index was last updated with, `domain_bytes` the same
-    /// at every call.
+    /// `members` must be the members this index was last updated with, `domain_bytes` those
+    /// it was made with. Unless nobody is busy, a round costs what it hands out and the dry
+    /// members whose plans change, not the dry members: at 4,096 workers most are dry with
+    /// nothing to gain most of the time, and drafting each of them every round was half the
+    /// coordinator's time (README, "4,096 workers").
     pub fn dry_plans<M: AsRef<Member>>(
         &mut self,
         members: &BTreeMap<u32, M>,
@@ -727,15 +846,16 @@ impl RoundIndex {
         if self.wanted == 0 {
             return Vec::new();
         }
-        let largest = *self
-            .largest
-            .get_or_insert_with(|| domain_bytes.iter().copied().max().unwrap_or(1).max(1));
-        let mut drafts: Vec<Draft<'_>> = self
-            .dry
-            .iter()
-            .filter_map(|k| Some((*k, members.get(k)?.as_ref())))
-            .map(|(key, m)| self.draft(key, m, largest))
-            .collect();
+        let mut drafts = DryDrafts {
+            dry: &self.dry,
+            parts: &self.parts,
+            shown: &self.shown,
+            free: &self.free,
+            open: &mut self.open,
+            taken: Vec::new(),
+            reopened: BTreeSet::new(),
+            drawn: BTreeMap::new(),
+        };
         let mut hot = HotOverlay {
             hot: &mut self.hot,
             unheld: &self.unheld_bits,
@@ -752,33 +872,120 @@ impl RoundIndex {
         });
         extend_plans(&mut hot, &mut drafts, options);
         hot.undo();
-        drafts
-            .into_iter()
-            .map(Draft::finish)
+        let mut drawn = drafts.put_back();
+        let keys: BTreeSet<u32> = drawn.keys().chain(&self.differs).copied().collect();
+        keys.into_iter()
+            .map(|key| {
+                drawn
+                    .remove(&key)
+                    .unwrap_or_else(|| self.draft(key))
+                    .finish()
+            })
             .filter(|p| {
-                let work: BTreeSet<u32> = p.work().map(|d| d.0).collect();
-                !p.evict.is_empty() || work != members[&p.worker.0].as_ref().plan
+                let plan = &self.parts[&p.worker.0].plan;
+                !p.evict.is_empty() || !p.work().map(|d| d.0).eq(plan.iter().copied())
             })
             .collect()
     }
 
-    /// A dry member's draft (Fig. 5's first loop): its resident domains in the scene, slots
-    /// counted by the largest domain (never fewer than it holds), keeping those with rays
-    /// that count.
-    fn draft(&self, key: u32, m: &Member, largest: u64) -> Draft<'static> {
-        let resident: BTreeSet<DomainId> = m
-            .report
-            .iter()
-            .flat_map(|r| r.resident.iter().copied())
-            .filter(|&d| d < self.domains)
-            .map(DomainId)
-            .collect();
-        let capacity = ((m.cache_bytes / largest) as usize)
-            .max(1)
-            .max(resident.len());
-        Draft::keeping_wanted(WorkerId(key), Cow::Owned(resident), capacity, |d| {
-            self.shown[d.0 as usize].0 > 0
-        })
+    /// Dry member `key`'s draft (Fig. 5's first loop).
+    fn draft(&self, key: u32) -> Draft<'static> {
+        draft_of(key, &self.parts[&key], &self.dry[&key], &self.shown)
+    }
+}
+
+/// Dry member `key`'s draft (Fig. 5's first loop): its resident domains in the scene (its
+/// `part`'s), `dry`'s slots, keeping the domains with rays that count (`shown`).
+fn draft_of(key: u32, part: &Part, dry: &Dry, shown: &[(u64, u32)]) -> Draft<'static> {
+    let resident: BTreeSet<DomainId> = part.held.iter().copied().map(DomainId).collect();
+    Draft::keeping_wanted(WorkerId(key), Cow::Owned(resident), dry.capacity, |d| {
+        shown[d.0 as usize].0 > 0
+    })
+}
+
+/// A round's drafts of the dry members: a member's draft is made when the round first gives
+/// it a domain (`drawn`); until then the index's figures stand for it. The pairing's order
+/// (`RoundIndex::open`) loses the drawn members while the round lasts (`taken`, put back
+/// after), their drafts ordered apart (`reopened`).
+struct DryDrafts<'a> {
+    dry: &'a BTreeMap<u32, Dry>,
+    parts: &'a BTreeMap<u32, Part>,
+    shown: &'a [(u64, u32)],
+    free: &'a BTreeSet<u32>,
+    open: &'a mut BTreeSet<(usize, u32)>,
+    taken: Vec<(usize, u32)>,
+    reopened: BTreeSet<(usize, u32)>,
+    drawn: BTreeMap<u32, Draft<'static>>,
+}
+
+impl DryDrafts<'_> {
+    /// The pairing's order as it was, and the drafts made.
+    fn put_back(self) -> BTreeMap<u32, Draft<'static>> {
+        self.open.extend(self.taken);
+        self.drawn
+    }
+}
+
+impl Drafts for DryDrafts<'_> {
+    fn least_busy_open(&self) -> Option<WorkerId> {
+        let first = match (self.open.first(), self.reopened.first()) {
+            (Some(a), Some(b)) => a.min(b),
+            (a, b) => a.or(b)?,
+        };
+        Some(WorkerId(first.1))
+    }
+
+    fn next_open(&self, after: Option<WorkerId>, idle: bool) -> Option<WorkerId> {
+        let from = match after {
+            Some(w) => w.0.checked_add(1)?,
+            None => 0,
+        };
+        let key = if idle {
+            // Every drawn member has something planned; the others keep what they keep.
+            self.open
+                .range((0, from)..(1, 0))
+                .next()
+                .map(|&(_, key)| key)
+        } else {
+            self.free.range(from..).copied().find(|key| {
+                self.drawn
+                    .get(key)
+                    .is_none_or(|draft| draft.free_slots() > 0)
+            })
+        };
+        key.map(WorkerId)
+    }
+
+    fn works_on(&self, worker: WorkerId, domain: DomainId) -> bool {
+        match self.drawn.get(&worker.0) {
+            Some(draft) => draft.works_on(domain),
+            None => {
+                self.shown[domain.0 as usize].0 > 0
+                    && self.parts[&worker.0].held.binary_search(&domain.0).is_ok()
+            }
+        }
+    }
+
+    fn load(&mut self, worker: WorkerId, domain: DomainId) {
+        let key = worker.0;
+        let draft = match self.drawn.entry(key) {
+            std::collections::btree_map::Entry::Occupied(e) => {
+                let draft = e.into_mut();
+                self.reopened.remove(&(draft.planned(), key));
+                draft
+            }
+            std::collections::btree_map::Entry::Vacant(e) => {
+                let dry = &self.dry[&key];
+                if dry.has_free_slot() && self.open.remove(&(dry.kept, key)) {
+                    self.taken.push((dry.kept, key));
+                }
+                e.insert(draft_of(key, &self.parts[&key], dry, self.shown))
+            }
+        };
+        draft.load(domain);
+        if draft.free_slots() > 0 {
+            self.reopened.insert((draft.planned(), key));
+        }
     }
 }
 
@@ -872,6 +1079,10 @@ impl Hottest for HotOverlay<'_> {
         };
         self.take(heat);
         Some(heat.domain)
+    }
+
+    fn exhausted(&self) -> bool {
+        self.unheld_left == 0 && self.hot.is_empty()
     }
 }
 

@@ -65,11 +65,15 @@ fn figures(index: &RoundIndex) -> String {
         .map(|h| (h.domain.0, h.rays, h.copies))
         .collect();
     format!(
-        "parts {:?}\ndry {:?}\nqueued {:?}\nby generation {:?}\ngenerations {:?}\n\
+        "parts {:?}\ndry {:?} {:?} {:?} {:?} {:?}\nqueued {:?}\nby generation {:?}\ngenerations {:?}\n\
          oldest {:?}\nheld {:?}\nin memory {:?}\nshown {:?}\nwanted {}\nunheld {:?} {:?}\n\
          hot {hot:?}\nplan holders {:?}\nqueuers {:?}\nholders {:?}",
         index.parts,
         index.dry,
+        index.open,
+        index.free,
+        index.differs,
+        index.dry_resident,
         index.queued,
         index.by_generation,
         index.generations,
@@ -93,7 +97,7 @@ fn check_figures(
     members: &BTreeMap<u32, Member>,
     oldest_first: bool,
 ) -> Result<(), TestCaseError> {
-    let mut fresh = RoundIndex::new(DOMAINS, oldest_first);
+    let mut fresh = RoundIndex::new(&[SIZE; DOMAINS as usize], oldest_first);
     for (&k, m) in members {
         fresh.update(k, Some(m));
     }
@@ -107,7 +111,7 @@ fn check_figures(
 fn run(changes: &[Change], oldest_first: bool, options: Options) -> Result<(), TestCaseError> {
     let sizes = vec![SIZE; DOMAINS as usize];
     let mut members: BTreeMap<u32, Member> = (0..3).map(|k| (k, Member::new(2 * SIZE))).collect();
-    let mut index = RoundIndex::new(DOMAINS, oldest_first);
+    let mut index = RoundIndex::new(&sizes, oldest_first);
     for (&k, m) in &members {
         index.update(k, Some(m));
     }
@@ -227,7 +231,7 @@ proptest! {
 fn a_dry_member_takes_the_fullest_unheld_domain_while_the_others_work() {
     let sizes = vec![SIZE; DOMAINS as usize];
     let mut members: BTreeMap<u32, Member> = (0..2).map(|k| (k, Member::new(SIZE))).collect();
-    let mut index = RoundIndex::new(DOMAINS, false);
+    let mut index = RoundIndex::new(&sizes, false);
     let busy = members.get_mut(&1).expect("member");
     busy.plan = BTreeSet::from([3]);
     busy.planned_round = 2;
@@ -261,7 +265,8 @@ proptest! {
 
     /// The overlay over the unheld domains' bits and the held ones' set gives the domains in
     /// the order one ordered set of every wanted domain that splits gives them (the order the
-    /// index kept before the two were apart), and puts the figures back as they were.
+    /// index kept before the two were apart), is exhausted when that set is empty, and puts
+    /// the figures back as they were.
     #[test]
     fn the_hot_order_apart_equals_one_ordered_set(
         counts in prop::collection::vec((0u64..6, 0u32..4), DOMAINS as usize),
@@ -273,7 +278,7 @@ proptest! {
             0..20,
         ),
     ) {
-        let mut index = RoundIndex::new(DOMAINS, false);
+        let mut index = RoundIndex::new(&[SIZE; DOMAINS as usize], false);
         for (d, &(rays, holders)) in counts.iter().enumerate() {
             index.queued[d] = rays;
             index.held[d] = holders;
@@ -324,6 +329,8 @@ proptest! {
                     prop_assert_eq!(overlay.take_hottest(eligible), want.map(|h| h.domain));
                 }
             }
+            // The extensions stop asking once nothing is left, whoever asks.
+            prop_assert_eq!(overlay.exhausted(), one.is_empty());
         }
         overlay.undo();
         prop_assert_eq!(figures(&index), before);

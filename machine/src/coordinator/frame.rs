@@ -66,13 +66,10 @@ pub struct PlanningWork {
     /// Members of the cluster summed over the whole-cluster rounds.
     pub whole_members: u64,
     /// Members whose plans the incremental rounds changed (each ran dry, was drafted and
-    /// given a new plan: adopted, holders moved, a message), summed.
+    /// given a new plan: adopted, holders moved, a message), summed. A dry member a round
+    /// leaves as it was costs it nothing: the round drafts only the members it gives
+    /// something or whose plans change (`RoundIndex::dry_plans`).
     pub planned: u64,
-    /// Members an incremental round drafted whose plans it left as they were (a dry member
-    /// with nothing new for it stays dry and is drafted again by every round after; at 1,024
-    /// workers a round's tail of idle members), summed, also over rounds that changed no
-    /// plan. Such a draft costs a fraction of a planned member.
-    pub drafted: u64,
     /// Members of the cluster summed over the incremental rounds.
     pub members: u64,
 }
@@ -85,7 +82,6 @@ impl PlanningWork {
             whole_rounds: self.whole_rounds.saturating_sub(before.whole_rounds),
             whole_members: self.whole_members.saturating_sub(before.whole_members),
             planned: self.planned.saturating_sub(before.planned),
-            drafted: self.drafted.saturating_sub(before.drafted),
             members: self.members.saturating_sub(before.members),
         }
     }
@@ -96,7 +92,6 @@ impl PlanningWork {
         self.whole_rounds += more.whole_rounds;
         self.whole_members += more.whole_members;
         self.planned += more.planned;
-        self.drafted += more.drafted;
         self.members += more.members;
     }
 
@@ -113,18 +108,11 @@ impl PlanningWork {
         self.rounds += 1;
     }
 
-    /// One incremental round of `members` members that drafted `drafted` of them and gave
-    /// `planned` of those new plans.
-    fn incremental(&mut self, drafted: usize, planned: usize, members: usize) {
+    /// One incremental round of `members` members that gave `planned` of them new plans.
+    fn incremental(&mut self, planned: usize, members: usize) {
         self.rounds += 1;
         self.planned += planned as u64;
-        self.drafted += drafted.saturating_sub(planned) as u64;
         self.members += members as u64;
-    }
-
-    /// Drafts that changed no plan (no round: nothing is sent).
-    fn drafted_only(&mut self, drafted: usize) {
-        self.drafted += drafted as u64;
     }
 }
 
@@ -320,7 +308,7 @@ impl RunningFrame {
         };
         let subframes = subframes::plan(&spec, frame.spp);
         let tiles = grid.count();
-        let index = RoundIndex::new(domain_bytes.len() as u32, schedule == Schedule::Predictive);
+        let index = RoundIndex::new(&domain_bytes, schedule == Schedule::Predictive);
         Ok(RunningFrame {
             job_id,
             schedule,

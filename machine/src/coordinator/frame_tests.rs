@@ -145,21 +145,22 @@ fn a_dry_worker_is_planned_at_once_under_asynchronous_rounds() {
 }
 
 #[test]
-fn a_dry_member_with_nothing_new_is_tallied_as_drafted_not_planned() {
+fn a_dry_member_with_nothing_new_is_left_out_of_the_rounds_and_their_tally() {
     let (mut f, _) = started(Schedule::Dynamic, Rounds::Async, 3);
     // Worker 0 runs dry with one ray for domain 1: planned (worker 2 has not reported, so
     // the round is incremental).
     f.report(0, report(0, &[], &[(1, 1, 0)]));
-    assert_eq!((f.planning.planned, f.planning.drafted), (1, 0));
+    assert_eq!((f.round, f.planning.rounds, f.planning.planned), (1, 1, 1));
     // Worker 1 runs dry with nothing, and nothing is left to give it (domain 1 is held and
-    // one ray is too few to copy): drafted, no plan changes, no round.
+    // one ray is too few to copy): no plan changes, no round, nothing counted.
     let out = f.report(1, report(0, &[], &[]));
     assert!(out.is_empty(), "{out:?}");
-    assert_eq!((f.round, f.planning.planned, f.planning.drafted), (1, 1, 1));
-    // Worker 0 runs dry again with a ray for domain 2: it is planned, worker 1 (still dry)
-    // drafted again with nothing.
-    f.report(0, report(1, &[1], &[(2, 1, 0)]));
-    assert_eq!((f.round, f.planning.planned, f.planning.drafted), (2, 2, 2));
+    assert_eq!((f.round, f.planning.rounds, f.planning.planned), (1, 1, 1));
+    // Worker 0 runs dry again with a ray for domain 2: only it is planned; worker 1 stays
+    // dry with nothing.
+    let out = f.report(0, report(1, &[1], &[(2, 1, 0)]));
+    assert!(out.iter().all(|(to, _)| *to == 0), "{out:?}");
+    assert_eq!((f.round, f.planning.rounds, f.planning.planned), (2, 2, 2));
 }
 
 #[test]

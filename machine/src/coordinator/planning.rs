@@ -164,15 +164,11 @@ impl RunningFrame {
         if self.subframe > 0 && self.round == 0 && self.members.values().any(|m| !m.reported) {
             return Vec::new();
         }
-        let dry = self.index.dry_count();
+        let whole = self.index.dry_count() >= self.members.len();
         let changed = self
             .index
             .dry_plans(&self.members, &self.domain_bytes, self.options);
-        let whole = dry >= self.members.len();
         if changed.is_empty() {
-            if !whole {
-                self.planning.drafted_only(dry);
-            }
             return Vec::new();
         }
         self.round += 1;
@@ -180,8 +176,7 @@ impl RunningFrame {
         if whole {
             self.planning.whole(self.members.len());
         } else {
-            self.planning
-                .incremental(dry, changed.len(), self.members.len());
+            self.planning.incremental(changed.len(), self.members.len());
         }
         let (loads, touched) = self.index.adopt(&mut self.members, &changed, self.round);
         self.planned_loads += loads;

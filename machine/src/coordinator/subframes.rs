@@ -96,7 +96,7 @@ impl RunningFrame {
         // The workers open the next subframe as a new frame, with no holders yet.
         self.sent_holders.reset();
         self.index = RoundIndex::new(
-            self.domain_bytes.len() as u32,
+            &self.domain_bytes,
             self.schedule == proto::Schedule::Predictive,
         );
         let members: Vec<(u32, Member)> = std::mem::take(&mut self.members)

@@ -223,12 +223,7 @@ pub fn planned(actions: &[Action]) -> PlanningWork {
     let mut sum = PlanningWork::default();
     for a in actions {
         if let Action::Tally(Tally::Rounds(w)) = a {
-            sum.rounds += w.rounds;
-            sum.whole_rounds += w.whole_rounds;
-            sum.whole_members += w.whole_members;
-            sum.planned += w.planned;
-            sum.drafted += w.drafted;
-            sum.members += w.members;
+            sum.add(w);
         }
     }
     sum

@@ -121,20 +121,6 @@ pub(super) fn run_calibrate(c: CalibrateArgs) -> anyhow::Result<()> {
         p.round_domain_ns,
         cal.round_fit_error * 100.0
     );
-    for d in &cal.drafts {
-        println!(
-            "drafting {} idle members, {} members x {} domains: {:.1} us ({:.0} ns a member)",
-            d.drafted,
-            d.members,
-            d.domains,
-            d.ns / 1e3,
-            d.ns / d.drafted as f64
-        );
-    }
-    println!(
-        "  idle members drafted, plans unchanged: {:.0} ns a member (the median)",
-        p.round_drafted_ns
-    );
     println!(
         "  whole cluster: {:.0} ns a round + {:.1} ns a member + {:.1} ns a domain; fit error \
          {:.1}%",
