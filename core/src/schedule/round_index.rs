@@ -312,6 +312,8 @@ pub struct RoundIndex {
     largest: u64,
     /// A part whose lists the next [`RoundIndex::update`] makes its member's part in.
     spare: Part,
+    /// Drafts [`RoundIndex::dry_plans`] made, since the index began.
+    drafts_made: u64,
 }
 
 impl RoundIndex {
@@ -352,6 +354,7 @@ impl RoundIndex {
             moved: BTreeMap::new(),
             largest: domain_bytes.iter().copied().max().unwrap_or(1).max(1),
             spare: Part::default(),
+            drafts_made: 0,
         }
     }
 
@@ -501,6 +504,13 @@ impl RoundIndex {
                 (d, keys.into_iter().flatten().copied().collect())
             })
             .collect()
+    }
+
+    /// Drafts the incremental rounds made since the index began: the members a round gave
+    /// something, or whose plans it changed, not every dry member (a round planned from the
+    /// whole cluster counts none here).
+    pub fn drafts_made(&self) -> u64 {
+        self.drafts_made
     }
 
     /// Members that ran dry since their last plan: those the next `dry_plans` plans (it
@@ -874,6 +884,7 @@ impl RoundIndex {
         hot.undo();
         let mut drawn = drafts.put_back();
         let keys: BTreeSet<u32> = drawn.keys().chain(&self.differs).copied().collect();
+        self.drafts_made += keys.len() as u64;
         keys.into_iter()
             .map(|key| {
                 drawn

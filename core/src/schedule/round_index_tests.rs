@@ -251,6 +251,46 @@ fn a_dry_member_takes_the_fullest_unheld_domain_while_the_others_work() {
     assert_eq!(plans[0].load, BTreeSet::from([DomainId(5)]));
 }
 
+#[test]
+fn a_round_drafts_whom_it_serves_not_every_idle_member() {
+    let sizes = vec![SIZE; DOMAINS as usize];
+    // Member 0 is busy with domain 3; members 1..=40 ran dry with nothing.
+    let mut members: BTreeMap<u32, Member> = (0..=40).map(|k| (k, Member::new(SIZE))).collect();
+    let busy = members.get_mut(&0).expect("member");
+    busy.plan = BTreeSet::from([3]);
+    busy.planned_round = 2;
+    busy.report = Some(Queues {
+        round: 1,
+        resident: vec![3],
+        queued: BTreeMap::from([(3, 1)]),
+        ..Queues::default()
+    });
+    for k in 1..=40 {
+        members.get_mut(&k).expect("member").report = Some(Queues::default());
+    }
+    let mut index = RoundIndex::new(&sizes, false);
+    for (&k, m) in &members {
+        index.update(k, Some(m));
+    }
+    // Nothing to give anyone (domain 3 is held, one ray too few to copy): no draft at all.
+    assert!(
+        index
+            .dry_plans(&members, &sizes, Options::default())
+            .is_empty()
+    );
+    assert_eq!(index.drafts_made(), 0);
+    // The busy member reports rays for an unheld domain: one idle member gets it, the lowest
+    // key, and is the only one drafted.
+    let busy = members.get_mut(&0).expect("member");
+    busy.report.as_mut().expect("report").queued.insert(7, 5);
+    index.update(0, members.get(&0));
+    let plans = index.dry_plans(&members, &sizes, Options::default());
+    assert_eq!(plans.len(), 1);
+    assert_eq!(plans[0].worker.0, 1);
+    assert_eq!(plans[0].load, BTreeSet::from([DomainId(7)]));
+    assert_eq!(index.drafts_made(), 1);
+}
+
 /// One step of a round's planning on the hot order: a copy of the `nth` domain nobody holds
 /// that has no copy yet (`pair_with_free_slots`), or the hottest domain outside `barred`
 /// (a bit a domain) taken.
