@@ -24,6 +24,7 @@ use rayfarm_machine::coordinator::Rounds;
 use rayfarm_machine::coordinator::cluster::{
     Action, Config, FlushWork, Input, JobRecord, OpenedFrame, PlanningWork, Tally,
 };
+use rayfarm_node::cpu::thread_cpu_ns;
 use rayfarm_proto::{self as proto, JobState, worker_message::Body as FromWorker};
 use tracing::info;
 
@@ -121,6 +122,38 @@ pub struct SimCoordinator {
     /// When the process is done planning what it was given so far: what it sends leaves
     /// then.
     pub free_at: Time,
+    /// Thread CPU the coordinator machine took on this machine for the inputs it was given,
+    /// by kind (`InputKind`), measured while the busy log is on (`log_busy`): what the real
+    /// code cost here beside what the cost model charged.
+    machine_ns: Option<[u64; InputKind::COUNT]>,
+}
+
+/// What the coordinator machine was handed, as its CPU is told apart (`log_busy`): a queue
+/// report takes the report in and plans the round it asks for (and a holders flush, if due).
+#[derive(Clone, Copy)]
+enum InputKind {
+    Report,
+    TileResults,
+    Heartbeat,
+    Tick,
+    Other,
+}
+
+impl InputKind {
+    const COUNT: usize = 5;
+
+    fn of(input: &Input) -> InputKind {
+        match input {
+            Input::WorkerMessage { body, .. } => match body {
+                FromWorker::QueueReport(_) => InputKind::Report,
+                FromWorker::TileResults(_) => InputKind::TileResults,
+                FromWorker::Heartbeat(_) => InputKind::Heartbeat,
+                _ => InputKind::Other,
+            },
+            Input::Tick => InputKind::Tick,
+            _ => InputKind::Other,
+        }
+    }
 }
 
 impl SimCoordinator {
@@ -145,6 +178,7 @@ impl SimCoordinator {
             planning: PlanningWork::default(),
             flushing: FlushWork::default(),
             free_at: Time(0),
+            machine_ns: tracing::enabled!(tracing::Level::INFO).then_some([0; InputKind::COUNT]),
         };
         c.start(Time(0));
         Ok(c)
@@ -246,7 +280,13 @@ impl SimCoordinator {
         let Some(p) = self.process.as_mut() else {
             return Vec::new();
         };
+        let start = self
+            .machine_ns
+            .map(|_| (InputKind::of(&input), thread_cpu_ns()));
         let actions = p.machine.handle(now, input);
+        if let (Some(by_kind), Some((kind, start))) = (self.machine_ns.as_mut(), start) {
+            by_kind[kind as usize] += thread_cpu_ns().saturating_sub(start);
+        }
         self.carry_out(now, actions)
     }
 
@@ -494,7 +534,9 @@ impl SimCoordinator {
     }
 
     /// Logs where the coordinator's busy time went, priced term by term (`info`): which part
-    /// of a round's price (`CostModel::planning`) or the flushes' a large cluster spends it on.
+    /// of a round's price (`CostModel::planning`) or the flushes' a large cluster spends it on;
+    /// and the thread CPU the real machine took here for all its inputs (reports, heartbeats,
+    /// ticks and the rest besides rounds and flushes), to set the prices against.
     pub fn log_busy(&self) {
         let p = &self.planning;
         let cost = &self.config.cost;
@@ -527,6 +569,17 @@ impl SimCoordinator {
             flush_lines = f.lines,
             flushes_s = format!("{:.3}", cost.flushing(f).as_secs_f64()),
             "coordinator busy"
+        );
+        let cpu = self.machine_ns.unwrap_or_default();
+        let s = |kind: InputKind| format!("{:.3}", cpu[kind as usize] as f64 / 1e9);
+        info!(
+            total_s = format!("{:.3}", cpu.iter().sum::<u64>() as f64 / 1e9),
+            reports_s = s(InputKind::Report),
+            tile_results_s = s(InputKind::TileResults),
+            heartbeats_s = s(InputKind::Heartbeat),
+            ticks_s = s(InputKind::Tick),
+            other_s = s(InputKind::Other),
+            "coordinator machine's thread CPU here"
         );
     }
 }
