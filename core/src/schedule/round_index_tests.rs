@@ -227,20 +227,28 @@ proptest! {
     }
 }
 
+/// A member with a cache of one domain, planned domain 3 in round 2 and busy with it (its
+/// report, of round 1, holds `queued`).
+fn busy_on_domain_3(queued: &[(u32, u64)]) -> Member {
+    Member {
+        plan: BTreeSet::from([3]),
+        planned_round: 2,
+        report: Some(Queues {
+            round: 1,
+            resident: vec![3],
+            queued: queued.iter().copied().collect(),
+            ..Queues::default()
+        }),
+        ..Member::new(SIZE)
+    }
+}
+
 #[test]
 fn a_dry_member_takes_the_fullest_unheld_domain_while_the_others_work() {
     let sizes = vec![SIZE; DOMAINS as usize];
     let mut members: BTreeMap<u32, Member> = (0..2).map(|k| (k, Member::new(SIZE))).collect();
     let mut index = RoundIndex::new(&sizes, false);
-    let busy = members.get_mut(&1).expect("member");
-    busy.plan = BTreeSet::from([3]);
-    busy.planned_round = 2;
-    busy.report = Some(Queues {
-        round: 1,
-        resident: vec![3],
-        queued: BTreeMap::from([(3, 5), (4, 9), (5, 20)]),
-        ..Queues::default()
-    });
+    members.insert(1, busy_on_domain_3(&[(3, 5), (4, 9), (5, 20)]));
     members.get_mut(&0).expect("member").report = Some(Queues::default());
     for (&k, m) in &members {
         index.update(k, Some(m));
@@ -256,15 +264,7 @@ fn a_round_drafts_whom_it_serves_not_every_idle_member() {
     let sizes = vec![SIZE; DOMAINS as usize];
     // Member 0 is busy with domain 3; members 1..=40 ran dry with nothing.
     let mut members: BTreeMap<u32, Member> = (0..=40).map(|k| (k, Member::new(SIZE))).collect();
-    let busy = members.get_mut(&0).expect("member");
-    busy.plan = BTreeSet::from([3]);
-    busy.planned_round = 2;
-    busy.report = Some(Queues {
-        round: 1,
-        resident: vec![3],
-        queued: BTreeMap::from([(3, 1)]),
-        ..Queues::default()
-    });
+    members.insert(0, busy_on_domain_3(&[(3, 1)]));
     for k in 1..=40 {
         members.get_mut(&k).expect("member").report = Some(Queues::default());
     }
