@@ -74,13 +74,13 @@ fn planning(c: &mut Criterion) {
                 index.update(k, Some(m));
             }
             assert_eq!(
-                index.dry_plans(&one_dry, &sizes, options),
+                index.dry_plans(&one_dry, options),
                 cluster(&one_dry).dry_plans()
             );
             group.bench_function(BenchmarkId::new("incremental_one_dry", &id), |b| {
                 b.iter(|| {
                     index.update(0, Some(&one_dry[&0]));
-                    black_box(index.dry_plans(&one_dry, &sizes, options))
+                    black_box(index.dry_plans(&one_dry, options))
                 })
             });
         }
@@ -138,7 +138,7 @@ fn one_round_in(
     for (&k, m) in &members {
         index.update(k, Some(m));
     }
-    let plans = index.dry_plans(&members, &sizes, options);
+    let plans = index.dry_plans(&members, options);
     index.adopt(&mut members, &plans, 2);
     index.take_holder_changes();
     let sent = current_holders(&members);
@@ -161,13 +161,12 @@ fn rounds(c: &mut Criterion) {
         (1024, 32768),
         (4096, 32768),
     ] {
-        let sizes = vec![DOMAIN_BYTES; domains as usize];
         let start = one_round_in(workers, domains, options);
         let id = format!("{workers}w_{domains}d");
         let round =
             |(mut members, mut index, sent): (BTreeMap<u32, Member>, RoundIndex, HolderMap)| {
                 index.update(0, members.get(&0));
-                let plans = index.dry_plans(&members, &sizes, options);
+                let plans = index.dry_plans(&members, options);
                 index.adopt(&mut members, &plans, 3);
                 (members, index, sent)
             };

@@ -147,6 +147,11 @@ impl Dry {
     }
 }
 
+/// Whether domain `d` has rays that count (`RoundIndex::shown`): a draft keeps it if resident.
+fn wanted(shown: &[(u64, u32)], d: u32) -> bool {
+    shown[d as usize].0 > 0
+}
+
 /// `key` added to `list`, ascending without repeats.
 fn list_in(list: &mut Vec<u32>, key: u32) {
     if let Err(at) = list.binary_search(&key) {
@@ -308,7 +313,10 @@ pub struct RoundIndex {
     /// By member: the domains whose queued rays the last [`RoundIndex::adopt`] moved from it
     /// to a holder (it must learn those holders at once).
     moved: BTreeMap<u32, BTreeSet<u32>>,
-    /// The scene's largest domain in bytes (at least 1): a cache's slots are counted by it.
+    /// Bytes of each domain of the scene, and the largest of them (at least 1): a cache's
+    /// slots are counted by it (found once: walking every domain's size each round was 3% of
+    /// a dynamic run at 256 workers, README "Simulator").
+    domain_bytes: Vec<u64>,
     largest: u64,
     /// A part whose lists the next [`RoundIndex::update`] makes its member's part in.
     spare: Part,
@@ -352,6 +360,7 @@ impl RoundIndex {
             holders: BTreeMap::new(),
             holders_changed: BTreeSet::new(),
             moved: BTreeMap::new(),
+            domain_bytes: domain_bytes.to_vec(),
             largest: domain_bytes.iter().copied().max().unwrap_or(1).max(1),
             spare: Part::default(),
             drafts_made: 0,
@@ -425,15 +434,15 @@ impl RoundIndex {
     fn note_dry(&mut self, key: u32, cache_bytes: u64) {
         let part = &self.parts[&key];
         let resident = &part.held;
-        let wanted = |d: &&u32| self.shown[**d as usize].0 > 0;
+        let kept = |d: &&u32| wanted(&self.shown, **d);
         let dry = Dry {
             capacity: ((cache_bytes / self.largest) as usize)
                 .max(1)
                 .max(resident.len()),
-            kept: resident.iter().filter(wanted).count(),
+            kept: resident.iter().filter(kept).count(),
             kept_planned: resident
                 .iter()
-                .filter(wanted)
+                .filter(kept)
                 .filter(|d| part.plan.binary_search(d).is_ok())
                 .count(),
             planned: part.plan.len(),
@@ -829,15 +838,13 @@ impl RoundIndex {
 
     /// New plans for the members that ran dry, equal to
     /// [`Cluster::dry_plans`](super::rounds::Cluster::dry_plans) over the same members.
-    /// `members` must be the members this index was last updated with, `domain_bytes` those
-    /// it was made with. Unless nobody is busy, a round costs what it hands out and the dry
+    /// `members` must be the members this index was last updated with. Unless nobody is busy, a round costs what it hands out and the dry
     /// members whose plans change, not the dry members: at 4,096 workers most are dry with
     /// nothing to gain most of the time, and drafting each of them every round was half the
     /// coordinator's time (README, "4,096 workers").
     pub fn dry_plans<M: AsRef<Member>>(
         &mut self,
         members: &BTreeMap<u32, M>,
-        domain_bytes: &[u64],
         options: Options,
     ) -> Vec<WorkerPlan> {
         if self.dry.is_empty() {
@@ -847,7 +854,7 @@ impl RoundIndex {
             // Nobody is busy: every member is planned, from the whole cluster.
             let cluster = Cluster {
                 members,
-                domain_bytes,
+                domain_bytes: &self.domain_bytes,
                 oldest_first: self.oldest_first,
                 options,
             };
@@ -910,7 +917,7 @@ impl RoundIndex {
 fn draft_of(key: u32, part: &Part, dry: &Dry, shown: &[(u64, u32)]) -> Draft<'static> {
     let resident: BTreeSet<DomainId> = part.held.iter().copied().map(DomainId).collect();
     Draft::keeping_wanted(WorkerId(key), Cow::Owned(resident), dry.capacity, |d| {
-        shown[d.0 as usize].0 > 0
+        wanted(shown, d.0)
     })
 }
 
@@ -971,7 +978,7 @@ impl Drafts for DryDrafts<'_> {
         match self.drawn.get(&worker.0) {
             Some(draft) => draft.works_on(domain),
             None => {
-                self.shown[domain.0 as usize].0 > 0
+                wanted(self.shown, domain.0)
                     && self.parts[&worker.0].held.binary_search(&domain.0).is_ok()
             }
         }

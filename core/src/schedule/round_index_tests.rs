@@ -159,7 +159,7 @@ fn run(changes: &[Change], oldest_first: bool, options: Options) -> Result<(), T
                     options,
                 };
                 let want = cluster.dry_plans();
-                let got = index.dry_plans(&members, &sizes, options);
+                let got = index.dry_plans(&members, options);
                 prop_assert_eq!(&got, &want);
                 if !got.is_empty() {
                     round += 1;
@@ -253,7 +253,7 @@ fn a_dry_member_takes_the_fullest_unheld_domain_while_the_others_work() {
     for (&k, m) in &members {
         index.update(k, Some(m));
     }
-    let plans = index.dry_plans(&members, &sizes, Options::default());
+    let plans = index.dry_plans(&members, Options::default());
     assert_eq!(plans.len(), 1);
     assert_eq!(plans[0].worker.0, 0);
     assert_eq!(plans[0].load, BTreeSet::from([DomainId(5)]));
@@ -273,18 +273,14 @@ fn a_round_drafts_whom_it_serves_not_every_idle_member() {
         index.update(k, Some(m));
     }
     // Nothing to give anyone (domain 3 is held, one ray too few to copy): no draft at all.
-    assert!(
-        index
-            .dry_plans(&members, &sizes, Options::default())
-            .is_empty()
-    );
+    assert!(index.dry_plans(&members, Options::default()).is_empty());
     assert_eq!(index.drafts_made(), 0);
     // The busy member reports rays for an unheld domain: one idle member gets it, the lowest
     // key, and is the only one drafted.
     let busy = members.get_mut(&0).expect("member");
     busy.report.as_mut().expect("report").queued.insert(7, 5);
     index.update(0, members.get(&0));
-    let plans = index.dry_plans(&members, &sizes, Options::default());
+    let plans = index.dry_plans(&members, Options::default());
     assert_eq!(plans.len(), 1);
     assert_eq!(plans[0].worker.0, 1);
     assert_eq!(plans[0].load, BTreeSet::from([DomainId(7)]));

@@ -165,9 +165,7 @@ impl RunningFrame {
             return Vec::new();
         }
         let whole = self.index.dry_count() >= self.members.len();
-        let changed = self
-            .index
-            .dry_plans(&self.members, &self.domain_bytes, self.options);
+        let changed = self.index.dry_plans(&self.members, self.options);
         if changed.is_empty() {
             return Vec::new();
         }
