@@ -60,6 +60,9 @@ pub struct CoordConfig {
     pub disk_latency: Duration,
     /// What its planning rounds and holders flushes cost.
     pub cost: CostModel,
+    /// Keep every call the coordinator machine is handed, so that [`SimCoordinator::replay`]
+    /// can hand them to a new machine alone after the run.
+    pub replay: bool,
 }
 
 /// How long a finished frame waits for its workers' statistics (the coordinator's).
@@ -126,6 +129,47 @@ pub struct SimCoordinator {
     /// by kind (`InputKind`), measured while the busy log is on (`log_busy`): what the real
     /// code cost here beside what the cost model charged.
     machine_ns: Option<[u64; InputKind::COUNT]>,
+    /// Every call the machine was handed, with its time, while `CoordConfig::replay` is set
+    /// and the process has not crashed (a replay of a crashed run would need its restarts).
+    calls: Option<Vec<(Time, Call)>>,
+}
+
+/// One call the simulated shell made to the coordinator machine.
+#[derive(Clone)]
+enum Call {
+    Handle(Input),
+    Register(proto::Register),
+    Submit(proto::JobSpec, u64),
+}
+
+/// A run's coordinator machine handed every one of its calls again, in order and at the same
+/// virtual times, as a new machine alone in this process (`SimCoordinator::replay`): the
+/// thread CPU of each call by kind is what a process that only coordinates spends on the
+/// frame, without the simulated workers sharing the caches, as the in-run measure does
+/// (`log_busy`). Handling only: a real shell also encodes and sends what the machine returns.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Replayed {
+    /// Calls handed again.
+    pub calls: u64,
+    /// Thread CPU of the queue reports (taking each in, the rounds they plan and the holders
+    /// flushes due with them).
+    pub reports: Duration,
+    pub tile_results: Duration,
+    pub heartbeats: Duration,
+    pub ticks: Duration,
+    /// Registrations, the submission and every other input.
+    pub other: Duration,
+    /// What the replayed rounds planned.
+    pub planning: PlanningWork,
+    /// Whether that is what the run's rounds planned (the machine repeated itself).
+    pub repeated: bool,
+}
+
+impl Replayed {
+    /// Thread CPU of every call.
+    pub fn total(&self) -> Duration {
+        self.reports + self.tile_results + self.heartbeats + self.ticks + self.other
+    }
 }
 
 /// What the coordinator machine was handed, as its CPU is told apart (`log_busy`): a queue
@@ -179,7 +223,9 @@ impl SimCoordinator {
             flushing: FlushWork::default(),
             free_at: Time(0),
             machine_ns: tracing::enabled!(tracing::Level::INFO).then_some([0; InputKind::COUNT]),
+            calls: None,
         };
+        c.calls = c.config.replay.then(Vec::new);
         c.start(Time(0));
         Ok(c)
     }
@@ -228,6 +274,7 @@ impl SimCoordinator {
     /// of its workers end.
     pub fn crash(&mut self) -> Vec<(NodeId, u64)> {
         self.disk.pending.clear();
+        self.calls = None;
         // Its planning dies with it.
         self.free_at = Time(0);
         self.process
@@ -280,6 +327,9 @@ impl SimCoordinator {
         let Some(p) = self.process.as_mut() else {
             return Vec::new();
         };
+        if let Some(calls) = self.calls.as_mut() {
+            calls.push((now, Call::Handle(input.clone())));
+        }
         let start = self
             .machine_ns
             .map(|_| (InputKind::of(&input), thread_cpu_ns()));
@@ -303,6 +353,9 @@ impl SimCoordinator {
             // Nobody listens: the connection fails.
             return vec![ToNode::Close(node, conn)];
         };
+        if let Some(calls) = self.calls.as_mut() {
+            calls.push((now, Call::Register(r.clone())));
+        }
         let (key, actions) = match p.machine.register(now, &r) {
             Ok(registered) => registered,
             // The shell ends a refused stream at once; the worker tries again later.
@@ -335,6 +388,9 @@ impl SimCoordinator {
         };
         let cost = u64::from(self.config.frame.width) * u64::from(self.config.frame.height);
         let spec = self.config.specs[next].clone();
+        if let Some(calls) = self.calls.as_mut() {
+            calls.push((now, Call::Submit(spec.clone(), cost)));
+        }
         let Ok(record) = p.machine.submit(now, spec, cost, "") else {
             self.problems.push("the job was refused".into());
             return Vec::new();
@@ -515,6 +571,9 @@ impl SimCoordinator {
             if let Some(input) = answer
                 && let Some(p) = self.process.as_mut()
             {
+                if let Some(calls) = self.calls.as_mut() {
+                    calls.push((now, Call::Handle(input.clone())));
+                }
                 todo.extend(p.machine.handle(now, input));
             }
         }
@@ -531,6 +590,54 @@ impl SimCoordinator {
             .ok_or_else(|| "the image does not fit the tile grid".to_string())?;
         Film::temporary_in(self.film_dir.path(), grid, frame.spp)
             .map_err(|e| format!("job {id}'s film: {e}"))
+    }
+
+    /// Hands every call of the run again, in order and at its time, to a new coordinator
+    /// machine alone (see [`Replayed`]); `None` unless `CoordConfig::replay` was set, or if
+    /// the process crashed.
+    pub fn replay(&self) -> Option<Replayed> {
+        let calls = self.calls.as_ref()?;
+        let mut machine = Coordinator::new(self.machine_config(), 0);
+        let mut cpu = [0u64; InputKind::COUNT];
+        let mut planning = PlanningWork::default();
+        for (now, call) in calls {
+            // The copy handed over is made before the clock starts, as the run's own input was.
+            let call = call.clone();
+            let kind = match &call {
+                Call::Handle(input) => InputKind::of(input),
+                _ => InputKind::Other,
+            };
+            let start = thread_cpu_ns();
+            let actions = match call {
+                Call::Handle(input) => machine.handle(*now, input),
+                Call::Register(r) => machine
+                    .register(*now, &r)
+                    .map(|(_, a)| a)
+                    .unwrap_or_default(),
+                Call::Submit(spec, cost) => {
+                    // The record goes to the job store, as the shell's: nothing to hand back.
+                    let _ = machine.submit(*now, spec, cost, "");
+                    Vec::new()
+                }
+            };
+            cpu[kind as usize] += thread_cpu_ns().saturating_sub(start);
+            for a in &actions {
+                if let Action::Tally(Tally::Rounds(w)) = a {
+                    planning.add(w);
+                }
+            }
+        }
+        let took = |kind: InputKind| Duration::from_nanos(cpu[kind as usize]);
+        Some(Replayed {
+            calls: calls.len() as u64,
+            reports: took(InputKind::Report),
+            tile_results: took(InputKind::TileResults),
+            heartbeats: took(InputKind::Heartbeat),
+            ticks: took(InputKind::Tick),
+            other: took(InputKind::Other),
+            repeated: planning == self.planning,
+            planning,
+        })
     }
 
     /// Logs where the coordinator's busy time went, priced term by term (`info`): which part

@@ -241,6 +241,7 @@ pub fn simulate(
         report_hold: config.report_hold,
         disk_latency: config.disk_latency,
         cost: config.cost,
+        replay: config.replay_coordinator,
     })?;
     let mut world = World {
         config,
@@ -550,6 +551,7 @@ impl World<'_> {
         o.frame_time = self.coord.completed_at.map(|t| t.since(Time(0)));
         o.frames = self.coord.frames;
         o.coordinator_busy = self.coord.busy;
+        o.coordinator_replayed = self.coord.replay();
         o.storage_bytes = self.storage.bytes;
         for w in self.workers.iter().flatten() {
             let c = w.cache_counters();

@@ -56,6 +56,9 @@ pub struct SimConfig {
     pub prefetch: bool,
     /// Most events the run may take before it stops unfinished (`default_max_events`).
     pub max_events: u64,
+    /// After the run, hand the coordinator machine's calls to a new machine alone and measure
+    /// its CPU (`Outcome::coordinator_replayed`); the calls are kept in memory meanwhile.
+    pub replay_coordinator: bool,
 }
 
 /// Kills by what the killed worker was doing.
@@ -106,6 +109,9 @@ pub struct Outcome {
     pub violations: Vec<Violation>,
     /// Virtual time the coordinator spent planning rounds and flushing holders (its busy time).
     pub coordinator_busy: Duration,
+    /// The coordinator machine's calls replayed alone, when asked (`replay_coordinator`) and
+    /// the coordinator never crashed.
+    pub coordinator_replayed: Option<crate::coord::Replayed>,
     /// Bytes the storage was charged for.
     pub storage_bytes: u64,
     /// Every pass that loaded nothing, with the CPU time it took here, when measured.

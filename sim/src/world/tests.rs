@@ -44,6 +44,7 @@ fn four_workers(dir: &std::path::Path, schedule: Schedule, cache_bytes: u64) -> 
         speculation: String::new(),
         prefetch: schedule == Schedule::Dynamic,
         max_events: super::default_max_events(4),
+        replay_coordinator: false,
     }
 }
 
@@ -158,4 +159,64 @@ fn a_run_without_faults_reports_no_peer_unresponsive_under_bursts_of_bundles() {
         o.peers_reported, 0,
         "peers reported unresponsive in a clean run"
     );
+}
+
+#[test]
+fn a_replayed_coordinator_plans_the_runs_rounds_again_alone_unless_it_crashed() {
+    let root = tempfile::tempdir().unwrap();
+    let dir = root.path().join("nb");
+    let options = NbodyOptions {
+        name: "nb".into(),
+        triangles: 6000,
+        seed: 5,
+        domains: 16,
+        max_memory: None,
+        force: false,
+    };
+    prepare_nbody(&dir, &options).unwrap();
+    let manifest = Manifest::load(&dir).unwrap();
+    let largest = manifest.domains.iter().map(|d| d.bytes).max().unwrap();
+    let scene = Arc::new(Scene::new(dir.clone(), manifest));
+    let hour = Duration::from_secs(3600);
+    for schedule in [Schedule::Dynamic, Schedule::Predictive] {
+        let config = SimConfig {
+            replay_coordinator: true,
+            ..four_workers(&dir, schedule, largest * 3)
+        };
+        let o = simulate(&config, scene.clone(), &FaultPlan::clean(), hour, None).unwrap();
+        let r = o.coordinator_replayed.clone().expect("replayed");
+        assert!(r.repeated, "{schedule:?}: {r:?}");
+        assert!(
+            r.planning.rounds > 1 && r.planning.rounds == o.rounds,
+            "{r:?}"
+        );
+        assert!(
+            r.calls > r.planning.rounds && r.reports > Duration::ZERO,
+            "{r:?}"
+        );
+        assert!(r.total() >= r.reports + r.heartbeats, "{r:?}");
+        // Not asked: nothing kept, nothing replayed, the same figures otherwise.
+        let plain = four_workers(&dir, schedule, largest * 3);
+        let p = simulate(&plain, scene.clone(), &FaultPlan::clean(), hour, None).unwrap();
+        assert_eq!(p.coordinator_replayed, None);
+        assert_eq!(
+            Outcome {
+                coordinator_replayed: None,
+                ..o.clone()
+            },
+            p
+        );
+        // A coordinator that crashed is not replayed: its restart began from its disk.
+        let span = o.frame_time.unwrap();
+        let crash = FaultPlan {
+            faults: vec![crate::faults::Fault::CrashCoordinator {
+                at: rayfarm_machine::Time(0) + span / 2,
+                down: span / 10,
+            }],
+            ..FaultPlan::clean()
+        };
+        let c = simulate(&config, scene.clone(), &crash, hour, None).unwrap();
+        assert_eq!(c.coordinator_crashes, 1);
+        assert_eq!(c.coordinator_replayed, None);
+    }
 }

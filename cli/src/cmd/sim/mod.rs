@@ -76,6 +76,12 @@ pub struct SimArgs {
     /// Also write one row per run here (CSV).
     #[arg(long)]
     pub csv: Option<PathBuf>,
+    /// After each clean run, hand every call the coordinator machine was given to a new
+    /// machine alone, in order, and print the CPU it takes: what a process that only
+    /// coordinates spends on the frame, beside the busy time the cost model charged. The
+    /// calls are kept in memory during the run.
+    #[arg(long)]
+    pub replay_coordinator: bool,
 }
 
 /// What `rayfarm sim` does besides simulating.
@@ -348,6 +354,7 @@ impl ModelArgs {
             max_events: self
                 .max_events
                 .unwrap_or_else(|| default_max_events(workers)),
+            replay_coordinator: false,
         })
     }
 }
@@ -551,6 +558,7 @@ pub fn run(a: SimArgs) -> anyhow::Result<()> {
         for &schedule in &schedules {
             let config = SimConfig {
                 warm_up: a.warm_up.clone(),
+                replay_coordinator: a.replay_coordinator,
                 ..a.model.config(&scene_dir, workers, schedule)?
             };
             let wall = std::time::Instant::now();
@@ -582,6 +590,11 @@ pub fn run(a: SimArgs) -> anyhow::Result<()> {
             let bound = a
                 .bound_us
                 .map_or(bound(span, a.model.deadlines()), Duration::from_micros);
+            // The seeds' coordinators are not replayed (a crash ends the recording anyway).
+            let config = SimConfig {
+                replay_coordinator: false,
+                ..config.clone()
+            };
             let runs: Vec<(FaultPlan, Result<Outcome, String>)> = a
                 .seeds
                 .clone()

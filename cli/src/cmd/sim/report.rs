@@ -29,6 +29,28 @@ pub(super) fn print_row(schedule: Schedule, workers: usize, o: &Outcome, wall: f
             o.peers_reported
         );
     }
+    if let Some(r) = &o.coordinator_replayed {
+        let secs = |d: Duration| d.as_secs_f64();
+        eprintln!(
+            "  coordinator machine replayed alone: {:.3} s of CPU for {} calls ({:.2}% of the frame; \
+             priced busy {:.3} s): reports {:.3} s, tile results {:.3} s, heartbeats {:.3} s, \
+             ticks {:.3} s, other {:.3} s; {}",
+            secs(r.total()),
+            r.calls,
+            secs(r.total()) / t * 100.0,
+            secs(o.coordinator_busy),
+            secs(r.reports),
+            secs(r.tile_results),
+            secs(r.heartbeats),
+            secs(r.ticks),
+            secs(r.other),
+            if r.repeated {
+                "its rounds planned what the run's did"
+            } else {
+                "ITS ROUNDS PLANNED OTHERWISE than the run's (the measure is not of this frame)"
+            }
+        );
+    }
     println!(
         "{:<12} {:>7} {:>12.3} {:>7} {:>12} {:>10} {:>10} {:>12} {:>9} {:>7} {:>8.2}  {}",
         schedule_name(schedule),

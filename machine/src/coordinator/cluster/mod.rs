@@ -242,7 +242,7 @@ pub enum Tally {
 }
 
 /// Something that happened, with no answer owed to its caller.
-#[derive(Debug)]
+#[derive(Clone, Debug)]
 pub enum Input {
     /// A message of a registered worker (by its key).
     WorkerMessage { key: u32, body: FromWorker },
