@@ -64,10 +64,9 @@ fn run(dir: &std::path::Path, schedule: Schedule, shared: bool) -> (Outcome, Arc
     (outcome, scene)
 }
 
-#[test]
-fn shared_mappings_change_no_figure_and_map_each_domain_once_for_all_workers() {
-    let root = tempfile::tempdir().unwrap();
-    let dir = root.path().join("nb");
+/// The 6,000-triangle scene in 16 domains that these tests render, made under `root`.
+fn sixteen_domains(root: &std::path::Path) -> std::path::PathBuf {
+    let dir = root.join("nb");
     let options = NbodyOptions {
         name: "nb".into(),
         triangles: 6000,
@@ -77,6 +76,13 @@ fn shared_mappings_change_no_figure_and_map_each_domain_once_for_all_workers() {
         force: false,
     };
     prepare_nbody(&dir, &options).unwrap();
+    dir
+}
+
+#[test]
+fn shared_mappings_change_no_figure_and_map_each_domain_once_for_all_workers() {
+    let root = tempfile::tempdir().unwrap();
+    let dir = sixteen_domains(root.path());
     for schedule in [
         Schedule::ImagePlane,
         Schedule::Domain,
@@ -164,16 +170,7 @@ fn a_run_without_faults_reports_no_peer_unresponsive_under_bursts_of_bundles() {
 #[test]
 fn a_replayed_coordinator_plans_the_runs_rounds_again_alone_unless_it_crashed() {
     let root = tempfile::tempdir().unwrap();
-    let dir = root.path().join("nb");
-    let options = NbodyOptions {
-        name: "nb".into(),
-        triangles: 6000,
-        seed: 5,
-        domains: 16,
-        max_memory: None,
-        force: false,
-    };
-    prepare_nbody(&dir, &options).unwrap();
+    let dir = sixteen_domains(root.path());
     let manifest = Manifest::load(&dir).unwrap();
     let largest = manifest.domains.iter().map(|d| d.bytes).max().unwrap();
     let scene = Arc::new(Scene::new(dir.clone(), manifest));
