@@ -33,7 +33,7 @@ use rayfarm_core::bundler::Tier;
 use rayfarm_core::wire::{self, BatchLimits};
 
 use rayfarm_machine::coordinator::FlushWork;
-use rayfarm_machine::coordinator::synthetic::{SteadyFrame, flushed};
+use rayfarm_machine::coordinator::synthetic::{SteadyFrame, flushed, planned};
 
 use crate::cost::ComputeCost;
 use crate::faults::FaultPlan;
@@ -255,6 +255,7 @@ pub fn calibrate(
             round_ns: round_coef[0],
             round_planned_ns: round_coef[1],
             round_planned_domain_ns: round_coef[4],
+            round_queue_ns: round_coef[5],
             round_member_ns: round_coef[2],
             round_domain_ns: round_coef[3],
             whole_round_ns: whole_coef[0],
@@ -384,6 +385,11 @@ const ROUND_SIZES: [(u32, u32); 6] = [
 /// since the last one: one in the common case, more when reports arrive together).
 const DRY_COUNTS: [u32; 3] = [1, 8, 64];
 
+/// Domains a report names in the rounds timed again with large reports (one and eight members
+/// dry at every size), so the fit tells a report's size from the members planned: a predictive
+/// report names hundreds (the synthetic reports otherwise name `schedule::synthetic::QUEUED`).
+const LARGE_REPORT_QUEUES: usize = 256;
+
 /// One timed planning round: the cluster's size, how many members it planned, and its
 /// thread CPU time (the median of several, `time_round`).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -394,6 +400,8 @@ pub struct TimedRound {
     pub planned: usize,
     /// Whether every member was dry, so the round was planned from the whole cluster.
     pub whole: bool,
+    /// Queues the reports taken in named (`PlanningWork::queues`), of the median round.
+    pub queues: u64,
     pub ns: f64,
 }
 
@@ -403,9 +411,12 @@ fn time_rounds() -> Vec<TimedRound> {
     let mut out = Vec::new();
     for &(workers, domains) in &ROUND_SIZES {
         for dry in DRY_COUNTS.into_iter().filter(|&k| k < workers) {
-            out.push(time_round(workers, domains, dry));
+            out.push(time_round(workers, domains, dry, None));
         }
-        out.push(time_round(workers, domains, workers));
+        for dry in [1, 8] {
+            out.push(time_round(workers, domains, dry, Some(LARGE_REPORT_QUEUES)));
+        }
+        out.push(time_round(workers, domains, workers, None));
     }
     out
 }
@@ -423,7 +434,9 @@ fn time_rounds() -> Vec<TimedRound> {
 /// each view class as a round meets them on average. (With an hour's interval, as before,
 /// every line of the frame stayed pending and each round folded its changes into maps of
 /// every domain: the price per member grew with the scene's domains for that reason.)
-fn time_round(workers: u32, domains: u32, dry: u32) -> TimedRound {
+/// With `report_queues`, the timed rounds' reports name that many domains (the warm-up's name
+/// the usual few).
+fn time_round(workers: u32, domains: u32, dry: u32, report_queues: Option<usize>) -> TimedRound {
     let whole = dry >= workers;
     let mut frame = SteadyFrame::new(workers, domains, Duration::from_millis(100));
     frame.flush();
@@ -432,36 +445,47 @@ fn time_round(workers: u32, domains: u32, dry: u32) -> TimedRound {
         frame.handle_round(input);
         frame.flush();
     }
+    if let Some(queues) = report_queues {
+        frame.set_report_queues(queues);
+    }
     let repeats = match dry {
         _ if whole => 1,
         1 => 21,
         2..=8 => 9,
         _ => 5,
     };
-    let mut times: Vec<u64> = (0..repeats)
+    // (thread CPU, queues the round's reports named)
+    let mut times: Vec<(u64, u64)> = (0..repeats)
         .map(|_| {
             let inputs: Vec<_> = (0..dry).map(|_| frame.next_report()).collect();
             let start = thread_cpu_ns();
-            std::hint::black_box(frame.handle_all(inputs));
+            let actions = std::hint::black_box(frame.handle_all(inputs));
+            let queues = planned(&actions).queues;
+            drop(actions);
             let ns = thread_cpu_ns().saturating_sub(start);
             frame.flush();
-            ns
+            (ns, queues)
         })
         .collect();
     times.sort_unstable();
+    let (ns, queues) = times[times.len() / 2];
     TimedRound {
         members: workers as usize,
         domains: domains as usize,
         planned: dry.min(workers) as usize,
         whole,
-        ns: times[times.len() / 2] as f64,
+        queues,
+        ns: ns as f64,
     }
 }
 
-/// Fits the incremental rounds as `round + planned x (P + domains x PD) + members x M + domains x D`, and the
-/// whole-cluster rounds as `round + members x M + domains x D`: (the incremental prices, their
-/// fit error, the whole-cluster prices, their fit error).
-fn fit_rounds(rounds: &[TimedRound]) -> ([f64; 5], f64, [f64; 3], f64) {
+/// Fits the incremental rounds as `round + planned x (P + domains x PD) + members x M + domains
+/// x D + queues x Q`, each round's error relative to its time (they run from 0.02 ms to
+/// milliseconds; fitted by absolute error, the large ones set a price per member of the
+/// cluster that charged a 4,096-member round with one member dry five times its time), and
+/// the whole-cluster rounds as `round + members x M + domains x D`: (the incremental prices,
+/// their fit error, the whole-cluster prices, their fit error).
+fn fit_rounds(rounds: &[TimedRound]) -> ([f64; 6], f64, [f64; 3], f64) {
     let incremental: Vec<(Vec<f64>, f64)> = rounds
         .iter()
         .filter(|r| !r.whole)
@@ -473,6 +497,7 @@ fn fit_rounds(rounds: &[TimedRound]) -> ([f64; 5], f64, [f64; 3], f64) {
                     r.members as f64,
                     r.domains as f64,
                     (r.planned * r.domains) as f64,
+                    r.queues as f64,
                 ],
                 r.ns,
             )
@@ -483,9 +508,14 @@ fn fit_rounds(rounds: &[TimedRound]) -> ([f64; 5], f64, [f64; 3], f64) {
         .filter(|r| r.whole)
         .map(|r| (vec![1.0, r.members as f64, r.domains as f64], r.ns))
         .collect();
-    let (i, ie) = fit(&incremental);
+    let (i, ie) = fit_relative(&incremental);
     let (w, we) = fit(&whole);
-    ([i[0], i[1], i[2], i[3], i[4]], ie, [w[0], w[1], w[2]], we)
+    (
+        [i[0], i[1], i[2], i[3], i[4], i[5]],
+        ie,
+        [w[0], w[1], w[2]],
+        we,
+    )
 }
 
 /// Holders intervals the flushes are timed at: a flush tells what the rounds of one interval
@@ -565,15 +595,23 @@ fn time_flush(workers: u32, domains: u32, interval: Duration) -> TimedFlush {
 /// about that for one of 8 members, which a simulated 8-worker cluster makes after every
 /// round). The error is then the root mean square of the relative errors.
 fn fit_flushes(flushes: &[TimedFlush]) -> ([f64; 3], f64) {
-    let (c, e) = fit(&flushes
-        .iter()
-        .filter(|f| f.ns > 0.0)
-        .map(|f| {
-            let x = [1.0, f.members as f64, f.lines as f64];
-            (x.iter().map(|v| v / f.ns).collect(), 1.0)
-        })
-        .collect::<Vec<_>>());
+    let (c, e) = fit_relative(
+        &flushes
+            .iter()
+            .map(|f| (vec![1.0, f.members as f64, f.lines as f64], f.ns))
+            .collect::<Vec<_>>(),
+    );
     ([c[0], c[1], c[2]], e)
+}
+
+/// [`fit`] with each row's error relative to its value (rows of value zero left out): the
+/// root mean square of the relative errors is the fit's error.
+fn fit_relative(rows: &[(Vec<f64>, f64)]) -> (Vec<f64>, f64) {
+    fit(&rows
+        .iter()
+        .filter(|(_, y)| *y > 0.0)
+        .map(|(x, y)| (x.iter().map(|v| v / y).collect(), 1.0))
+        .collect::<Vec<_>>())
 }
 
 #[cfg(test)]

@@ -2,8 +2,9 @@
 //! segments, shadow segments, camera samples and volume samples, each at its own price, over
 //! the worker's threads; a planning round of the coordinator costs what its kind follows
 //! (`rayfarm_machine::coordinator::PlanningWork`): an incremental round (someone busy) a fixed
-//! part plus a part per member planned (and per member planned per domain), per member of
-//! the cluster and per domain (a dry member it leaves as it was costs it nothing); a round
+//! part plus a part per member planned (and per member planned per domain), per queue the
+//! reports taken in name (a predictive report names hundreds), per member of the cluster and
+//! per domain (a dry member it leaves as it was costs it nothing); a round
 //! planned from the whole cluster (barrier rounds, or nobody busy) a part per member and per
 //! domain at the whole-cluster planner's prices; a holders flush (`FlushWork`) a fixed part,
 //! a part per member of the frame and per holder line it made. The prices are measured on a
@@ -42,6 +43,11 @@ pub struct ComputeCost {
     /// before this price was measured read as zero.
     #[serde(default)]
     pub round_planned_domain_ns: f64,
+    /// Per queue a report taken in names (`PlanningWork::queues`): taking the report in and
+    /// moving its rays follow its size. Files calibrated before this price was measured read
+    /// as zero (their per-member price had reports of 16 queues in it).
+    #[serde(default)]
+    pub round_queue_ns: f64,
     /// An incremental round's cost per member of the cluster (the holders map is rebuilt from
     /// every member's plan).
     pub round_member_ns: f64,
@@ -107,6 +113,7 @@ impl Default for ComputeCost {
             round_ns: 12_533.0,
             round_planned_ns: 17_018.0,
             round_planned_domain_ns: 0.841,
+            round_queue_ns: 0.0,
             round_member_ns: 0.0,
             round_domain_ns: 0.0,
             whole_round_ns: 0.0,
@@ -154,6 +161,7 @@ impl ComputeCost {
             ("round_ns", self.round_ns),
             ("round_planned_ns", self.round_planned_ns),
             ("round_planned_domain_ns", self.round_planned_domain_ns),
+            ("round_queue_ns", self.round_queue_ns),
             ("round_member_ns", self.round_member_ns),
             ("round_domain_ns", self.round_domain_ns),
             ("whole_round_ns", self.whole_round_ns),
@@ -298,6 +306,7 @@ impl CostModel {
         let incremental = work.rounds.saturating_sub(work.whole_rounds) as f64;
         let ns = incremental * (p.round_ns + p.round_domain_ns * domains)
             + (p.round_planned_ns + p.round_planned_domain_ns * domains) * work.planned as f64
+            + p.round_queue_ns * work.queues as f64
             + p.round_member_ns * work.members as f64
             + whole * (p.whole_round_ns + p.whole_round_domain_ns * domains)
             + p.whole_round_member_ns * work.whole_members as f64;
@@ -324,6 +333,7 @@ mod tests {
                 round_ns: 1000.0,
                 round_planned_ns: 100.0,
                 round_planned_domain_ns: 0.5,
+                round_queue_ns: 7.0,
                 round_member_ns: 10.0,
                 round_domain_ns: 1.0,
                 whole_round_ns: 5000.0,
@@ -360,10 +370,20 @@ mod tests {
             whole_members: 64,
             planned: 4,
             members: 128,
+            queues: 0,
         };
         assert_eq!(
             m.planning(&work, 512),
             Duration::from_nanos(4304 + 1424 + 94_600)
+        );
+        // The reports taken in cost their queues, rounds or not: 300 queues x 7 ns.
+        let reports = PlanningWork {
+            queues: 300,
+            ..work
+        };
+        assert_eq!(
+            m.planning(&reports, 512) - m.planning(&work, 512),
+            Duration::from_nanos(2100)
         );
         // Two flushes of 64 members, 500 lines made in all: 2 x 2000 + 128 x 20 + 500 x 3 ns,
         // whatever the members told (each gets the one message of its class).

@@ -267,10 +267,12 @@ fn publish_progress(st: &State, id: &str, progress: Progress) {
 fn count(tally: Tally, began: Instant) {
     let m = rayfarm_node::metrics::coordinator();
     match tally {
-        Tally::Rounds(work) => {
+        // A tally of reports taken in without a round (`PlanningWork::queues`) is no round.
+        Tally::Rounds(work) if work.rounds > 0 => {
             m.rounds.inc_by(work.rounds);
             m.planning_seconds.observe(began.elapsed().as_secs_f64());
         }
+        Tally::Rounds(_) => {}
         // Its time is the event's, as a round's: the flush follows the event that made it due.
         Tally::HoldersFlushed(_) => {}
         Tally::TilesCommitted(n) => {

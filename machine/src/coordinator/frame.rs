@@ -72,6 +72,10 @@ pub struct PlanningWork {
     pub planned: u64,
     /// Members of the cluster summed over the incremental rounds.
     pub members: u64,
+    /// Queues named by the reports taken in (a domain with rays queued, one entry of a
+    /// report's map), summed: taking a report in and moving its rays cost its size, and a
+    /// predictive report names hundreds of domains where a dynamic one names a few dozen.
+    pub queues: u64,
 }
 
 impl PlanningWork {
@@ -83,6 +87,7 @@ impl PlanningWork {
             whole_members: self.whole_members.saturating_sub(before.whole_members),
             planned: self.planned.saturating_sub(before.planned),
             members: self.members.saturating_sub(before.members),
+            queues: self.queues.saturating_sub(before.queues),
         }
     }
 
@@ -93,6 +98,7 @@ impl PlanningWork {
         self.whole_members += more.whole_members;
         self.planned += more.planned;
         self.members += more.members;
+        self.queues += more.queues;
     }
 
     /// One round of `members` members planned from the whole cluster.
@@ -267,6 +273,9 @@ pub struct RunningFrame {
     pub subframe: usize,
     /// Whether a report taken since the last round asks for one (`plan_asked`).
     round_asked: bool,
+    /// Queues named by the reports taken since the last round: counted in `planning` as the
+    /// next round is asked for, so its tally carries them (`PlanningWork::queues`).
+    queues_taken: u64,
     /// Segments the members reported in this subframe, summed (kept as results come, so the
     /// progress published after every round does not walk the members).
     segments_now: u64,
@@ -340,6 +349,7 @@ impl RunningFrame {
             subframes,
             subframe: 0,
             round_asked: false,
+            queues_taken: 0,
             segments_now: 0,
             rounds_before: 0,
             segments_before: 0,
@@ -564,6 +574,7 @@ impl RunningFrame {
             return Vec::new();
         };
         let queued: u64 = report.queued_rays.values().sum();
+        self.queues_taken += report.queued_rays.len() as u64;
         member.rounds.report = Some(queues(report));
         member.reported = true;
         self.touch(key);
@@ -584,6 +595,7 @@ impl RunningFrame {
     /// rounds the next round when every member has finished the current one and some ray is
     /// queued somewhere, under asynchronous rounds every member that ran dry.
     pub fn plan_asked(&mut self) -> Vec<Outgoing> {
+        self.planning.queues += std::mem::take(&mut self.queues_taken);
         if !std::mem::take(&mut self.round_asked) {
             return Vec::new();
         }

@@ -41,6 +41,8 @@ pub struct SteadyFrame {
     plans: HashMap<u32, (u64, Vec<u32>)>,
     /// Reports made so far (the next member to run dry, and the hash's input).
     reports: u64,
+    /// Domains each report has rays queued for ([`QUEUED`] unless set).
+    report_queues: usize,
     now: Time,
 }
 
@@ -72,6 +74,7 @@ impl SteadyFrame {
             keys: Vec::new(),
             plans: HashMap::new(),
             reports: 0,
+            report_queues: QUEUED,
             now: Time(0),
         };
         for w in 0..workers {
@@ -145,15 +148,22 @@ impl SteadyFrame {
         self.keys.len()
     }
 
+    /// Reports from now on name `queues` domains with rays queued (a predictive report names
+    /// hundreds: speculation copies each new ray into the domains along it).
+    pub fn set_report_queues(&mut self, queues: usize) {
+        self.report_queues = queues;
+    }
+
     /// The next member in turn runs dry: its report, of its latest plan's round, with the
-    /// domains that plan gave it resident and rays queued for [`QUEUED`] domains.
+    /// domains that plan gave it resident and rays queued for [`QUEUED`] domains (or as many
+    /// as [`SteadyFrame::set_report_queues`] set).
     pub fn next_report(&mut self) -> Input {
         let n = self.reports;
         self.reports += 1;
         let key = self.keys[(n % self.keys.len().max(1) as u64) as usize];
         let (round, resident) = self.plans.get(&key).cloned().unwrap_or_default();
         let pick = |i: u64| (mix64(n << 20 | i) % u64::from(self.domains)) as u32;
-        let queued_rays: HashMap<u32, u64> = (0..QUEUED as u64)
+        let queued_rays: HashMap<u32, u64> = (0..self.report_queues as u64)
             .map(|i| (pick(i), 1 + mix64(i ^ n) % 10_000))
             .collect();
         Input::WorkerMessage {
@@ -281,9 +291,24 @@ mod tests {
     #[test]
     fn reports_taken_together_make_one_round() {
         let mut s = SteadyFrame::new(64, 512, Duration::from_secs(3600));
+        s.set_report_queues(40);
         let inputs: Vec<Input> = (0..8).map(|_| s.next_report()).collect();
+        // The round's tally carries the queues its reports named, for their price.
+        let named: usize = inputs
+            .iter()
+            .map(|i| match i {
+                Input::WorkerMessage {
+                    body: FromWorker::QueueReport(r),
+                    ..
+                } => r.queued_rays.len(),
+                _ => 0,
+            })
+            .sum();
         let work = planned(&s.handle_all(inputs));
         assert_eq!((work.rounds, work.whole_rounds, work.planned), (1, 0, 8));
+        assert!(named > 8 * 30, "{named}");
+        assert_eq!(work.queues, named as u64);
+        s.set_report_queues(QUEUED);
         // Every member at once is a round planned from the whole cluster.
         let inputs: Vec<Input> = (0..64).map(|_| s.next_report()).collect();
         let work = planned(&s.handle_all(inputs));

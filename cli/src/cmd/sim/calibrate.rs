@@ -102,7 +102,7 @@ pub(super) fn run_calibrate(c: CalibrateArgs) -> anyhow::Result<()> {
         let planned = if r.whole {
             "every member (whole cluster)".to_string()
         } else {
-            format!("{} dry", r.planned)
+            format!("{} dry, reports naming {} queues", r.planned, r.queues)
         };
         println!(
             "planning round, {} members x {} domains, {planned}: {:.3} ms",
@@ -112,11 +112,12 @@ pub(super) fn run_calibrate(c: CalibrateArgs) -> anyhow::Result<()> {
         );
     }
     println!(
-        "  incremental: {:.0} ns a round + ({:.1} ns + {:.3} ns a domain) a member planned + {:.2} \
-         ns a member + {:.2} ns a domain; fit error {:.1}%",
+        "  incremental: {:.0} ns a round + ({:.1} ns + {:.3} ns a domain) a member planned + {:.1} \
+         ns a queue a report names + {:.2} ns a member + {:.2} ns a domain; fit error {:.1}%",
         p.round_ns,
         p.round_planned_ns,
         p.round_planned_domain_ns,
+        p.round_queue_ns,
         p.round_member_ns,
         p.round_domain_ns,
         cal.round_fit_error * 100.0
