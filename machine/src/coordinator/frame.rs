@@ -74,7 +74,8 @@ pub struct PlanningWork {
     pub members: u64,
     /// Queues named by the reports taken in (a domain with rays queued, one entry of a
     /// report's map), summed: taking a report in and moving its rays cost its size, and a
-    /// predictive report names hundreds of domains where a dynamic one names a few dozen.
+    /// predictive report names about a hundred domains where a dynamic one names one (replays
+    /// of 256-worker frames, README "A price for a report's size").
     pub queues: u64,
 }
 
