@@ -387,7 +387,7 @@ const DRY_COUNTS: [u32; 3] = [1, 8, 64];
 
 /// Domains a report names in the rounds timed again with large reports (one and eight members
 /// dry at every size), so the fit tells a report's size from the members planned: a predictive
-/// report names hundreds (the synthetic reports otherwise name `schedule::synthetic::QUEUED`).
+/// report names about a hundred (the synthetic reports otherwise name `schedule::synthetic::QUEUED`).
 const LARGE_REPORT_QUEUES: usize = 256;
 
 /// One timed planning round: the cluster's size, how many members it planned, and its

@@ -3,7 +3,7 @@
 //! the worker's threads; a planning round of the coordinator costs what its kind follows
 //! (`rayfarm_machine::coordinator::PlanningWork`): an incremental round (someone busy) a fixed
 //! part plus a part per member planned (and per member planned per domain), per queue the
-//! reports taken in name (a predictive report names hundreds), per member of the cluster and
+//! reports taken in name (a predictive report names about a hundred), per member of the cluster and
 //! per domain (a dry member it leaves as it was costs it nothing); a round
 //! planned from the whole cluster (barrier rounds, or nobody busy) a part per member and per
 //! domain at the whole-cluster planner's prices; a holders flush (`FlushWork`) a fixed part,

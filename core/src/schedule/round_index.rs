@@ -615,7 +615,7 @@ impl RoundIndex {
         members: &mut BTreeMap<u32, M>,
     ) -> BTreeSet<u32> {
         // Only a queue of a domain in some busy member's plan can move: the others are left
-        // out before they are sorted (a predictive report names hundreds of queues, and
+        // out before they are sorted (a predictive report names about a hundred queues, and
         // putting each in an ordered set was a sixth of its round, README "Simulator").
         let plan_holders = &self.plan_holders;
         let held =
