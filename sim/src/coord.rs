@@ -24,6 +24,7 @@ use rayfarm_machine::coordinator::Rounds;
 use rayfarm_machine::coordinator::cluster::{
     Action, Config, FlushWork, Input, JobRecord, OpenedFrame, PlanningWork, Tally,
 };
+use rayfarm_machine::coordinator::synthetic::planned;
 use rayfarm_node::cpu::thread_cpu_ns;
 use rayfarm_proto::{self as proto, JobState, worker_message::Body as FromWorker};
 use tracing::info;
@@ -621,11 +622,7 @@ impl SimCoordinator {
                 }
             };
             cpu[kind as usize] += thread_cpu_ns().saturating_sub(start);
-            for a in &actions {
-                if let Action::Tally(Tally::Rounds(w)) = a {
-                    planning.add(w);
-                }
-            }
+            planning.add(&planned(&actions));
         }
         let took = |kind: InputKind| Duration::from_nanos(cpu[kind as usize]);
         Some(Replayed {

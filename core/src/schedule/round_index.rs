@@ -851,10 +851,11 @@ impl RoundIndex {
 
     /// New plans for the members that ran dry, equal to
     /// [`Cluster::dry_plans`](super::rounds::Cluster::dry_plans) over the same members.
-    /// `members` must be the members this index was last updated with. Unless nobody is busy, a round costs what it hands out and the dry
-    /// members whose plans change, not the dry members: at 4,096 workers most are dry with
-    /// nothing to gain most of the time, and drafting each of them every round was half the
-    /// coordinator's time (README, "4,096 workers").
+    /// `members` must be the members this index was last updated with. Unless nobody is busy,
+    /// a round costs what it hands out and the dry members whose plans change, not the dry
+    /// members: at 4,096 workers most are dry with nothing to gain most of the time, and
+    /// drafting each of them every round was half the coordinator's time (README, "4,096
+    /// workers").
     pub fn dry_plans<M: AsRef<Member>>(
         &mut self,
         members: &BTreeMap<u32, M>,
