@@ -191,7 +191,6 @@ fn a_replayed_coordinator_plans_the_runs_rounds_again_alone_unless_it_crashed() 
             r.calls > r.planning.rounds && r.reports > Duration::ZERO,
             "{r:?}"
         );
-        assert!(r.total() >= r.reports + r.heartbeats, "{r:?}");
         // Not asked: nothing kept, nothing replayed, the same figures otherwise.
         let plain = four_workers(&dir, schedule, largest * 3);
         let p = simulate(&plain, scene.clone(), &FaultPlan::clean(), hour, None).unwrap();
