@@ -20,7 +20,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use super::dynamic::{
     Draft, Drafts, Heat, Hottest, Options, WorkerPlan, extend_plans, pair_with_free_slots,
 };
-use super::rounds::{Cluster, Member, deposit_moved, set_plans};
+use super::rounds::{Cluster, Member, deposit_moved, is_news, naming_resident, set_plans};
 use super::{DomainId, WorkerId};
 
 /// What one member adds to the cluster's figures, kept so it can be taken out again. Every
@@ -120,7 +120,7 @@ impl Part {
 
 /// A member that ran dry as Fig. 5's first loop leaves it, kept from round to round: what its
 /// draft would be, without making one (`RoundIndex::dry_plans` makes a draft only for a member
-/// the round gives something or whose plan names other domains than it would keep).
+/// the round gives something or whose plan would change, `rounds::is_news`).
 #[derive(Clone, Debug, PartialEq)]
 struct Dry {
     /// Domains its cache holds at once, counted by the scene's largest domain (never fewer
@@ -128,10 +128,9 @@ struct Dry {
     capacity: usize,
     /// Its resident domains with rays that count: those its draft keeps.
     kept: usize,
-    /// Of those, the ones its plan names.
-    kept_planned: usize,
-    /// The domains its plan names.
-    planned: usize,
+    /// Whether its plan names exactly its resident domains (`rounds::naming_resident`): then
+    /// a round that gives it nothing leaves its plan as it is.
+    stands: bool,
 }
 
 impl Dry {
@@ -140,10 +139,11 @@ impl Dry {
         self.capacity > self.kept
     }
 
-    /// Whether the domains its draft keeps differ from its plan's: given nothing, it is
-    /// planned anyway (with fewer domains).
+    /// Whether it is planned even if the round gives it nothing (`rounds::is_news`): its plan
+    /// does not name exactly the domains it holds. Whether their rays count does not matter:
+    /// a plan names every resident domain, wanted or not.
     fn differs(&self) -> bool {
-        self.kept != self.kept_planned || self.kept != self.planned
+        !self.stands
     }
 }
 
@@ -440,12 +440,7 @@ impl RoundIndex {
                 .max(1)
                 .max(resident.len()),
             kept: resident.iter().filter(kept).count(),
-            kept_planned: resident
-                .iter()
-                .filter(kept)
-                .filter(|d| part.plan.binary_search(d).is_ok())
-                .count(),
-            planned: part.plan.len(),
+            stands: part.plan == *resident,
         };
         for &d in resident {
             list_in(&mut self.dry_resident[d as usize], key);
@@ -485,11 +480,7 @@ impl RoundIndex {
                 continue;
             };
             self.file_dry(key, &dry, false);
-            let planned = self.parts[&key].plan.binary_search(&d).is_ok();
             step_by(&mut dry.kept, 1, wanted);
-            if planned {
-                step_by(&mut dry.kept_planned, 1, wanted);
-            }
             self.file_dry(key, &dry, true);
             self.dry.insert(key, dry);
         }
@@ -913,9 +904,10 @@ impl RoundIndex {
                     .unwrap_or_else(|| self.draft(key))
                     .finish()
             })
-            .filter(|p| {
-                let plan = &self.parts[&p.worker.0].plan;
-                !p.evict.is_empty() || !p.work().map(|d| d.0).eq(plan.iter().copied())
+            .filter_map(|p| {
+                let m = members.get(&p.worker.0)?.as_ref();
+                let p = naming_resident(p, m, self.domains);
+                is_news(&p, m).then_some(p)
             })
             .collect()
     }

@@ -3,8 +3,10 @@
 //! rounds plan each member the moment it runs dry, from the latest reports of all. Under the
 //! predictive schedule only the oldest generation's queues count (`speculative`), unless no
 //! one is busy and that generation cannot move on: then everything queued is planned, or a
-//! generation whose last copies are on the wire or lost would stall the frame. Pure: the
-//! coordinator turns the plans into messages.
+//! generation whose last copies are on the wire or lost would stall the frame. An asynchronous
+//! plan names every domain its member holds and does not evict, wanted or not, so a domain
+//! whose rays ran out keeps its holders (`naming_resident`). Pure: the coordinator turns the
+//! plans into messages.
 
 use super::dynamic::{Options, RoundPlan, WorkerPlan, next_round_with};
 use super::speculative::oldest_generation;
@@ -24,6 +26,35 @@ pub struct Queues {
     pub oldest_generation: BTreeMap<u32, u32>,
     /// The oldest generation of rays it holds that wait on something other than a domain.
     pub oldest_waiting: Option<u32>,
+}
+
+/// Dry member `m`'s new plan `p` naming, besides the domains it works on, every other domain
+/// of the scene's `domains` it holds and does not evict. Fig. 5 plans a member to keep only
+/// the resident domains with rays; one whose rays ran out then lost its holder in the map and
+/// every ray that entered it later waited at its sender for a report and a round to plan a
+/// member holding it to keep it (at 4,096 workers, nine plans in ten planned no load,
+/// README "Simulator"). Named, the domain keeps its holders, and such a ray is sent to one of
+/// them directly. The pairing of Fig. 5 is unchanged: an unwanted domain's slot is still free
+/// for a load, which evicts it.
+pub fn naming_resident(mut p: WorkerPlan, m: &Member, domains: u32) -> WorkerPlan {
+    let resident = m.report.iter().flat_map(|r| r.resident.iter().copied());
+    for d in resident.filter(|&d| d < domains).map(DomainId) {
+        if !p.evict.contains(&d) && !p.load.contains(&d) {
+            p.keep.insert(d);
+        }
+    }
+    p
+}
+
+/// Whether `p`, a new plan for dry member `m` (`naming_resident`), is sent to it: it loads or
+/// evicts, works on a domain `m`'s plan does not name, or `m`'s plan names a domain `m` does
+/// not hold.
+pub fn is_news(p: &WorkerPlan, m: &Member) -> bool {
+    let held = |d: &u32| m.report.as_ref().is_some_and(|r| r.resident.contains(d));
+    !p.load.is_empty()
+        || !p.evict.is_empty()
+        || p.work().any(|d| !m.plan.contains(&d.0))
+        || !m.plan.iter().all(held)
 }
 
 /// What the rounds know of one member of the frame.
@@ -112,7 +143,8 @@ impl<M: AsRef<Member>> Cluster<'_, M> {
 
     /// Asynchronous rounds: new plans for the members that have run dry. Busy members keep
     /// theirs: the schedule sees them holding exactly what they work on, with no free slot.
-    /// A dry member whose plan would not change is left out (its rays are elsewhere or on the
+    /// Each plan names every resident domain not evicted (`naming_resident`); a dry member
+    /// whose plan would not change is left out (`is_news`; its rays are elsewhere or on the
     /// wire; its next report plans it again).
     pub fn dry_plans(&self) -> Vec<WorkerPlan> {
         let dry: BTreeSet<u32> = self
@@ -146,11 +178,11 @@ impl<M: AsRef<Member>> Cluster<'_, M> {
                 .workers()
                 .iter()
                 .filter(|p| dry.contains(&p.worker.0))
-                .filter(|p| {
-                    let work: BTreeSet<u32> = p.work().map(|d| d.0).collect();
-                    !p.evict.is_empty() || work != self.members[&p.worker.0].as_ref().plan
+                .map(|p| {
+                    let m = self.members[&p.worker.0].as_ref();
+                    naming_resident(p.clone(), m, self.domain_bytes.len() as u32)
                 })
-                .cloned()
+                .filter(|p| is_news(p, self.members[&p.worker.0].as_ref()))
                 .collect();
             if !changed.is_empty() {
                 return changed;

@@ -146,3 +146,36 @@ fn a_dry_member_whose_plan_would_not_change_is_left_waiting() {
     m.get_mut(&1).expect("member").report = Some(report(0, &[], &[]));
     assert!(cluster(&m, false).dry_plans().is_empty());
 }
+
+#[test]
+fn a_dry_member_keeps_naming_a_resident_domain_whose_rays_ran_out() {
+    let mut m = two_members();
+    let zero = m.get_mut(&0).expect("member");
+    zero.plan = [1].into();
+    zero.planned_round = 1;
+    // Domain 1 has no rays left anywhere: a plan that would only drop it is not sent, so
+    // member 0 stays its holder and rays that enter it later are sent to it directly.
+    zero.report = Some(report(1, &[0, 1], &[]));
+    m.get_mut(&1).expect("member").report = Some(report(0, &[], &[]));
+    assert!(cluster(&m, false).dry_plans().is_empty());
+
+    // Rays for its other resident domain, which its plan does not name: planned to keep it,
+    // and its plan names every domain it holds.
+    m.get_mut(&1).expect("member").report = Some(report(0, &[], &[(0, 4, 0)]));
+    let plans = cluster(&m, false).dry_plans();
+    assert_eq!(plans.len(), 1, "{plans:?}");
+    assert_eq!(plans[0].worker, WorkerId(0));
+    assert_eq!(planned(&plans), [0, 1]);
+
+    // A plan naming a domain it does not hold is replaced (member 1 keeps its own rays: its
+    // plan stands).
+    let one = m.get_mut(&1).expect("member");
+    one.plan = [3].into();
+    one.planned_round = 1;
+    one.report = Some(report(1, &[3], &[(3, 6, 0)]));
+    m.get_mut(&0).expect("member").plan = [1, 2].into();
+    let plans = cluster(&m, false).dry_plans();
+    assert_eq!(plans.len(), 1, "{plans:?}");
+    assert_eq!(plans[0].worker, WorkerId(0));
+    assert_eq!(planned(&plans), [0, 1]);
+}
