@@ -20,7 +20,7 @@ use std::time::Duration;
 
 use anyhow::Context;
 use clap::Parser;
-use rayfarm_core::schedule::dynamic::Options;
+use rayfarm_core::schedule::dynamic::{DEFAULT_COPY_RAYS, Options};
 use rayfarm_node::fault::Faults;
 use rayfarm_node::http::HttpArgs;
 use rayfarm_node::listen::ConnectionArgs;
@@ -115,6 +115,11 @@ struct Args {
     /// schedule only: predictive never copies.
     #[arg(long, env = "RAYFARM_REPLICATE", value_enum, default_value_t = Replicate::FreeSlots)]
     replicate: Replicate,
+    /// A copy (`--replicate`) is made only if every holder of the domain keeps at least this
+    /// many of its rays: a copy costs a load from shared storage, which a few rays do not
+    /// repay (README "Simulator"). 1 copies while a holder would keep one ray.
+    #[arg(long, env = "RAYFARM_COPY_RAYS", default_value_t = DEFAULT_COPY_RAYS)]
+    copy_rays: u64,
     /// How the dynamic schedule's rounds advance: `async` plans a worker as soon as it runs
     /// dry; `barrier` (Fig. 5 as written) waits until every worker has reported.
     #[arg(long, env = "RAYFARM_ROUNDS", value_enum, default_value_t = RoundsArg::Async)]
@@ -204,6 +209,7 @@ async fn run(args: Args) -> anyhow::Result<()> {
         schedule_options: Options {
             replicate_onto_idle: matches!(args.replicate, Replicate::Idle),
             fill_free_slots: matches!(args.replicate, Replicate::FreeSlots),
+            copy_rays: args.copy_rays,
         },
         rounds: match args.rounds {
             RoundsArg::Barrier => Rounds::Barrier,

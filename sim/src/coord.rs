@@ -57,6 +57,8 @@ pub struct CoordConfig {
     /// How long a planned worker with nothing to trace waits for its plan's rays before it
     /// reports again (the coordinator's `--report-hold-ms` and `--report-hold-per-worker-us`).
     pub report_hold: crate::ReportHold,
+    /// The coordinator's `--copy-rays` (`Options::copy_rays`).
+    pub copy_rays: u64,
     /// How long one record takes to reach the disk.
     pub disk_latency: Duration,
     /// What its planning rounds and holders flushes cost.
@@ -240,6 +242,7 @@ impl SimCoordinator {
             schedule_options: Options {
                 replicate_onto_idle: false,
                 fill_free_slots: true,
+                copy_rays: self.config.copy_rays,
             },
             rounds: Rounds::Async,
             holders_interval: self.config.holders_interval,

@@ -62,7 +62,7 @@ pub fn next_round_with(state: &ClusterState, options: Options) -> RoundPlan {
     if options.replicate_onto_idle {
         for i in 0..drafts.len() {
             if drafts[i].planned() == 0
-                && let Some(domain) = hottest(state, &drafts, |_| true)
+                && let Some(domain) = hottest(state, &drafts, options.copy_rays, |_| true)
             {
                 drafts[i].load.insert(domain);
             }
@@ -76,7 +76,9 @@ pub fn next_round_with(state: &ClusterState, options: Options) -> RoundPlan {
                     continue;
                 }
                 let mine = &drafts[i];
-                if let Some(domain) = hottest(state, &drafts, |d| !mine.works_on(d)) {
+                if let Some(domain) =
+                    hottest(state, &drafts, options.copy_rays, |d| !mine.works_on(d))
+                {
                     drafts[i].load.insert(domain);
                     placed = true;
                 }
@@ -113,12 +115,14 @@ pub fn next_round_with(state: &ClusterState, options: Options) -> RoundPlan {
 fn hottest(
     state: &ClusterState,
     drafts: &[Draft<'_>],
+    copy_rays: u64,
     eligible: impl Fn(DomainId) -> bool,
 ) -> Option<DomainId> {
     let mut best: Option<(DomainId, u64, u64)> = None;
     for (domain, rays) in state.wanted().filter(|&(d, _)| eligible(d)) {
         let copies = drafts.iter().filter(|w| w.works_on(domain)).count() as u64;
-        if rays <= copies {
+        // Another copy must leave every holder at least `copy_rays` rays (at least one).
+        if u128::from(rays) < u128::from(copy_rays.max(1)) * u128::from(copies + 1) {
             continue;
         }
         let beats = |&(_, r, c): &(DomainId, u64, u64)| {

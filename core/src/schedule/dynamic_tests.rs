@@ -32,11 +32,13 @@ fn of(plan: &RoundPlan, id: u32) -> &WorkerPlan {
 const REPLICATE: Options = Options {
     replicate_onto_idle: true,
     fill_free_slots: false,
+    copy_rays: 1,
 };
 
 const FILL: Options = Options {
     replicate_onto_idle: false,
     fill_free_slots: true,
+    copy_rays: 1,
 };
 
 #[test]
@@ -317,8 +319,9 @@ proptest! {
         s in arb_state(),
         replicate_onto_idle in any::<bool>(),
         fill_free_slots in any::<bool>(),
+        copy_rays in 0u64..12,
     ) {
-        let options = Options { replicate_onto_idle, fill_free_slots };
+        let options = Options { replicate_onto_idle, fill_free_slots, copy_rays };
         prop_assert_eq!(next_round_with(&s, options), super::reference::next_round_with(&s, options));
     }
 

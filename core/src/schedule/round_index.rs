@@ -318,6 +318,9 @@ pub struct RoundIndex {
     /// a dynamic run at 256 workers, README "Simulator").
     domain_bytes: Vec<u64>,
     largest: u64,
+    /// Rays every holder must keep for the extensions to copy a domain
+    /// ([`Options::copy_rays`]): only domains that split so are in `hot`.
+    copy_rays: u64,
     /// A part whose lists the next [`RoundIndex::update`] makes its member's part in.
     spare: Part,
     /// Drafts [`RoundIndex::dry_plans`] made, since the index began.
@@ -364,7 +367,16 @@ impl RoundIndex {
             largest: domain_bytes.iter().copied().max().unwrap_or(1).max(1),
             spare: Part::default(),
             drafts_made: 0,
+            copy_rays: 1,
         }
+    }
+
+    /// The same index with the extensions copying a domain only if every holder keeps at
+    /// least `copy_rays` of its rays ([`Options::copy_rays`], which `dry_plans` must be given
+    /// alike); set before the first update.
+    pub fn copying_from(mut self, copy_rays: u64) -> RoundIndex {
+        self.copy_rays = copy_rays;
+        self
     }
 
     /// Takes member `key` as it is now (`None`: it left the frame) into the figures: its
@@ -829,7 +841,7 @@ impl RoundIndex {
                 rays,
                 copies: u64::from(holders),
             };
-            if !heat.splits() {
+            if !heat.splits(self.copy_rays) {
                 continue;
             }
             if add {
@@ -884,6 +896,7 @@ impl RoundIndex {
             unheld_left: self.unheld.len(),
             shown: &self.shown,
             changed: BTreeMap::new(),
+            copy_rays: self.copy_rays,
         };
         let to_assign = self
             .unheld
@@ -1025,6 +1038,8 @@ struct HotOverlay<'a> {
     shown: &'a [(u64, u32)],
     /// Domains whose entry changed, with their entry now.
     changed: BTreeMap<u32, Option<Heat>>,
+    /// [`Options::copy_rays`].
+    copy_rays: u64,
 }
 
 impl HotOverlay<'_> {
@@ -1047,7 +1062,7 @@ impl HotOverlay<'_> {
             self.hot.remove(&heat);
         }
         heat.copies += 1;
-        let now = heat.splits().then_some(heat);
+        let now = heat.splits(self.copy_rays).then_some(heat);
         if let Some(h) = now {
             self.hot.insert(h);
         }
@@ -1064,7 +1079,15 @@ impl HotOverlay<'_> {
             while bits != 0 {
                 let d = i as u32 * 64 + bits.trailing_zeros();
                 bits &= bits - 1;
-                if !self.changed.contains_key(&d) && eligible(DomainId(d)) {
+                let first = Heat {
+                    domain: DomainId(d),
+                    rays: self.shown[d as usize].0,
+                    copies: 0,
+                };
+                if !self.changed.contains_key(&d)
+                    && first.splits(self.copy_rays)
+                    && eligible(DomainId(d))
+                {
                     return Some(d);
                 }
             }
@@ -1084,7 +1107,7 @@ impl HotOverlay<'_> {
                 rays,
                 copies: u64::from(holders),
             };
-            if rays > 0 && holders > 0 && heat.splits() {
+            if rays > 0 && holders > 0 && heat.splits(self.copy_rays) {
                 self.hot.insert(heat);
             }
         }

@@ -97,7 +97,8 @@ fn check_figures(
     members: &BTreeMap<u32, Member>,
     oldest_first: bool,
 ) -> Result<(), TestCaseError> {
-    let mut fresh = RoundIndex::new(&[SIZE; DOMAINS as usize], oldest_first);
+    let mut fresh =
+        RoundIndex::new(&[SIZE; DOMAINS as usize], oldest_first).copying_from(index.copy_rays);
     for (&k, m) in members {
         fresh.update(k, Some(m));
     }
@@ -111,7 +112,7 @@ fn check_figures(
 fn run(changes: &[Change], oldest_first: bool, options: Options) -> Result<(), TestCaseError> {
     let sizes = vec![SIZE; DOMAINS as usize];
     let mut members: BTreeMap<u32, Member> = (0..3).map(|k| (k, Member::new(2 * SIZE))).collect();
-    let mut index = RoundIndex::new(&sizes, oldest_first);
+    let mut index = RoundIndex::new(&sizes, oldest_first).copying_from(options.copy_rays);
     for (&k, m) in &members {
         index.update(k, Some(m));
     }
@@ -222,8 +223,10 @@ proptest! {
         oldest_first in any::<bool>(),
         replicate_onto_idle in any::<bool>(),
         fill_free_slots in any::<bool>(),
+        copy_rays in 0u64..12,
     ) {
-        run(&changes, oldest_first, Options { replicate_onto_idle, fill_free_slots })?;
+        let options = Options { replicate_onto_idle, fill_free_slots, copy_rays };
+        run(&changes, oldest_first, options)?;
     }
 }
 
@@ -329,7 +332,7 @@ proptest! {
                 rays,
                 copies: u64::from(holders),
             })
-            .filter(|h| h.rays > 0 && h.splits())
+            .filter(|h| h.rays > 0 && h.splits(1))
             .collect();
         let mut overlay = HotOverlay {
             hot: &mut index.hot,
@@ -337,11 +340,12 @@ proptest! {
             unheld_left: index.unheld.len(),
             shown: &index.shown,
             changed: BTreeMap::new(),
+            copy_rays: 1,
         };
         let again = |one: &mut BTreeSet<Heat>, mut h: Heat| {
             one.remove(&h);
             h.copies += 1;
-            if h.splits() {
+            if h.splits(1) {
                 one.insert(h);
             }
         };

@@ -3,6 +3,7 @@ use super::*;
 const PREDICTIVE: Options = Options {
     replicate_onto_idle: false,
     fill_free_slots: false,
+    copy_rays: 1,
 };
 
 /// A report of `round`: `resident` domains, and (domain, rays, oldest generation) queues.

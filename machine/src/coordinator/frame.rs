@@ -313,12 +313,14 @@ impl RunningFrame {
             Schedule::Predictive => Options {
                 replicate_onto_idle: false,
                 fill_free_slots: false,
+                copy_rays: 1,
             },
             _ => options,
         };
         let subframes = subframes::plan(&spec, frame.spp);
         let tiles = grid.count();
-        let index = RoundIndex::new(&domain_bytes, schedule == Schedule::Predictive);
+        let index = RoundIndex::new(&domain_bytes, schedule == Schedule::Predictive)
+            .copying_from(options.copy_rays);
         Ok(RunningFrame {
             job_id,
             schedule,

@@ -24,6 +24,7 @@ fn frame_of(schedule: Schedule, rounds: Rounds) -> RunningFrame {
     let options = Options {
         replicate_onto_idle: false,
         fill_free_slots: true,
+        copy_rays: 1,
     };
     RunningFrame::new(
         Time(0),

@@ -98,7 +98,8 @@ impl RunningFrame {
         self.index = RoundIndex::new(
             &self.domain_bytes,
             self.schedule == proto::Schedule::Predictive,
-        );
+        )
+        .copying_from(self.options.copy_rays);
         let members: Vec<(u32, Member)> = std::mem::take(&mut self.members)
             .into_iter()
             .map(|(k, m)| {

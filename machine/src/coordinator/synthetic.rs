@@ -16,7 +16,7 @@ use std::time::Duration;
 
 use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::sampling::mix64;
-use rayfarm_core::schedule::dynamic::Options;
+use rayfarm_core::schedule::dynamic::{DEFAULT_COPY_RAYS, Options};
 use rayfarm_core::schedule::synthetic::{DOMAIN_BYTES, QUEUED, RESIDENT};
 use rayfarm_proto::{
     self as proto, PROTOCOL_VERSION, Schedule, coordinator_message::Body,
@@ -58,6 +58,7 @@ impl SteadyFrame {
             schedule_options: Options {
                 replicate_onto_idle: false,
                 fill_free_slots: true,
+                copy_rays: DEFAULT_COPY_RAYS,
             },
             rounds: Rounds::Async,
             holders_interval,

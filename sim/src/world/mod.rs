@@ -239,6 +239,7 @@ pub fn simulate(
         worker_timeout: config.worker_timeout,
         holders_interval: config.holders_interval,
         report_hold: config.report_hold,
+        copy_rays: config.copy_rays,
         disk_latency: config.disk_latency,
         cost: config.cost,
         replay: config.replay_coordinator,

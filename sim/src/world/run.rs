@@ -50,6 +50,9 @@ pub struct SimConfig {
     /// How long a planned worker with nothing to trace waits for its plan's rays before it
     /// reports again (the coordinator's `--report-hold-ms` and `--report-hold-per-worker-us`).
     pub report_hold: crate::ReportHold,
+    /// The dynamic schedule copies a domain only if every holder keeps at least this many of
+    /// its rays (the coordinator's `--copy-rays`, `Options::copy_rays`).
+    pub copy_rays: u64,
     /// The predictive schedule's speculation setting (`JobSpec.speculation`; empty: full).
     pub speculation: String,
     /// Workers load their next domains while they trace (`JobSpec.prefetch`).

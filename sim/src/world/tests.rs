@@ -40,6 +40,7 @@ fn four_workers(dir: &std::path::Path, schedule: Schedule, cache_bytes: u64) -> 
         heartbeat: Duration::from_millis(20),
         holders_interval: Duration::ZERO,
         report_hold: crate::ReportHold::DEFAULT,
+        copy_rays: 1,
         worker_timeout: Duration::from_millis(200),
         speculation: String::new(),
         prefetch: schedule == Schedule::Dynamic,

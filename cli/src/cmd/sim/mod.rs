@@ -185,6 +185,11 @@ pub struct ModelArgs {
     /// simulated minutes may take 100 (README "Simulator": what it saves and what it costs).
     #[arg(long, value_parser = clap::value_parser!(u64).range(0..=60_000))]
     pub holders_interval_ms: Option<u64>,
+    /// The dynamic schedule copies a busy domain onto a free cache slot only if every holder
+    /// keeps at least this many of its rays, as the coordinator's `--copy-rays` (the same
+    /// default).
+    #[arg(long, default_value_t = rayfarm_core::schedule::dynamic::DEFAULT_COPY_RAYS)]
+    pub copy_rays: u64,
     /// A worker planned by an asynchronous round with nothing to trace yet waits up to this
     /// many milliseconds for the rays its plan moves to it before it reports again, as the
     /// coordinator's `--report-hold-ms` [default: the coordinator's, 50]. 0 reports at once
@@ -345,6 +350,7 @@ impl ModelArgs {
             worker_timeout: self.deadlines().worker_timeout,
             holders_interval: self.deadlines().holders,
             report_hold: self.report_hold(),
+            copy_rays: self.copy_rays,
             disk_latency: DISK_LATENCY,
             speculation: match schedule {
                 Schedule::Predictive => self.speculation.clone().unwrap_or_default(),

@@ -16,6 +16,7 @@ fn config() -> Config {
         schedule_options: Options {
             replicate_onto_idle: false,
             fill_free_slots: true,
+            copy_rays: 1,
         },
         rounds: Rounds::Async,
         holders_interval: Duration::ZERO,
