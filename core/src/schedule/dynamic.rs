@@ -33,7 +33,9 @@
 //! remaining `to_evict` processes sit idle. [`Options::replicate_onto_idle`]
 //! optionally hands such idle workers a copy of the domain with the most rays
 //! per holder, in the spirit of the paper's goal of "high utilization"; it is
-//! off by default so that [`next_round`] stays the paper's algorithm.
+//! off by default so that [`next_round`] stays the paper's algorithm. Either
+//! extension copies a domain only while every holder keeps
+//! [`Options::copy_rays`] of its rays.
 //!
 //! Ties are broken deterministically: among equally full queues the lower
 //! domain id goes first; among equally loaded workers the lower worker id is
@@ -59,10 +61,10 @@ pub struct Options {
     /// of one load per copy.
     pub fill_free_slots: bool,
     /// The extensions copy a domain only if every holder is left at least this many of its
-    /// rays (0 counts as 1, the condition of `replicate_onto_idle` in the paper's spirit). A
+    /// rays (0 counts as 1: a holder keeps one ray, the rule before `DEFAULT_COPY_RAYS`). A
     /// copy costs a load from shared storage; one that takes a ray or two off a holder costs
-    /// the cluster more than it saves when loading dominates: at 4,096 simulated workers with
-    /// four camera rays each, nine plans in ten were such copies (README "Simulator").
+    /// the cluster more than it saves when loading dominates (README "Simulator": copies for
+    /// a ray or two were most of the plans of a 4,096-worker frame).
     pub copy_rays: u64,
 }
 
@@ -384,7 +386,7 @@ pub(super) fn extend_plans(hot: &mut impl Hottest, drafts: &mut impl Drafts, opt
 
 /// Extension (off by default): each worker still idle after Fig. 5 loads a
 /// copy of the domain with the most rays per holder, provided the split still
-/// leaves every holder at least one ray.
+/// leaves every holder at least `Options::copy_rays` rays.
 fn replicate_onto_idle(hot: &mut impl Hottest, drafts: &mut impl Drafts) {
     let mut at = None;
     while let Some(worker) = drafts.next_open(at, true) {

@@ -32,9 +32,9 @@ pub struct Queues {
 /// of the scene's `domains` it holds and does not evict. Fig. 5 plans a member to keep only
 /// the resident domains with rays; one whose rays ran out then lost its holder in the map and
 /// every ray that entered it later waited at its sender for a report and a round to plan a
-/// member holding it to keep it (at 4,096 workers, nine plans in ten planned no load,
-/// README "Simulator"). Named, the domain keeps its holders, and such a ray is sent to one of
-/// them directly. The pairing of Fig. 5 is unchanged: an unwanted domain's slot is still free
+/// member holding it to keep it: a report, two plans and two changes of the holders map for
+/// every return of rays (README "Simulator"). Named, the domain keeps its holders, and such a
+/// ray is sent to one of them directly. The pairing of Fig. 5 is unchanged: an unwanted domain's slot is still free
 /// for a load, which evicts it.
 pub fn naming_resident(mut p: WorkerPlan, m: &Member, domains: u32) -> WorkerPlan {
     let resident = m.report.iter().flat_map(|r| r.resident.iter().copied());
