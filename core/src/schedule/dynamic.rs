@@ -73,7 +73,7 @@ pub struct Options {
 /// load of a small domain from fast storage takes; a copy for fewer rays cannot repay its
 /// load. With 1 (a copy while a holder keeps one ray), copies were most of the dynamic
 /// schedule's loads where loading dominates: at 8 workers on b32 288 loads and 2.10 s against
-/// 46 and 0.80 s, at 1,024 simulated workers 48,067 loads against 9,609 (README "Simulator").
+/// 46 and 0.80 s, at 1,024 simulated workers 48,067 loads against 8,147 (README "Simulator").
 pub const DEFAULT_COPY_RAYS: u64 = 4096;
 
 /// What one worker should hold and work on in the coming round.
