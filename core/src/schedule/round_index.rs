@@ -20,7 +20,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use super::dynamic::{
     Draft, Drafts, Heat, Hottest, Options, WorkerPlan, extend_plans, pair_with_free_slots,
 };
-use super::rounds::{Cluster, Member, deposit_moved, is_news, naming_resident, set_plans};
+use super::rounds::{Cluster, Member, deposit_moved, sent_plan, set_plans};
 use super::{DomainId, WorkerId};
 
 /// What one member adds to the cluster's figures, kept so it can be taken out again. Every
@@ -120,7 +120,7 @@ impl Part {
 
 /// A member that ran dry as Fig. 5's first loop leaves it, kept from round to round: what its
 /// draft would be, without making one (`RoundIndex::dry_plans` makes a draft only for a member
-/// the round gives something or whose plan would change, `rounds::is_news`).
+/// the round gives something or whose plan would change, `rounds::sent_plan`).
 #[derive(Clone, Debug, PartialEq)]
 struct Dry {
     /// Domains its cache holds at once, counted by the scene's largest domain (never fewer
@@ -128,8 +128,8 @@ struct Dry {
     capacity: usize,
     /// Its resident domains with rays that count: those its draft keeps.
     kept: usize,
-    /// Whether its plan names exactly its resident domains (`rounds::naming_resident`): then
-    /// a round that gives it nothing leaves its plan as it is.
+    /// Whether its plan names exactly its resident domains (as `rounds::sent_plan` names them):
+    /// then a round that gives it nothing leaves its plan as it is.
     stands: bool,
 }
 
@@ -139,7 +139,7 @@ impl Dry {
         self.capacity > self.kept
     }
 
-    /// Whether it is planned even if the round gives it nothing (`rounds::is_news`): its plan
+    /// Whether it is planned even if the round gives it nothing (`rounds::sent_plan`): its plan
     /// does not name exactly the domains it holds. Whether their rays count does not matter:
     /// a plan names every resident domain, wanted or not.
     fn differs(&self) -> bool {
@@ -919,8 +919,7 @@ impl RoundIndex {
             })
             .filter_map(|p| {
                 let m = members.get(&p.worker.0)?.as_ref();
-                let p = naming_resident(p, m, self.domains);
-                is_news(&p, m).then_some(p)
+                sent_plan(p, m, self.domains)
             })
             .collect()
     }

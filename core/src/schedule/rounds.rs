@@ -34,9 +34,9 @@ pub struct Queues {
 /// every ray that entered it later waited at its sender for a report and a round to plan a
 /// member holding it to keep it: a report, two plans and two changes of the holders map for
 /// every return of rays (README "Simulator"). Named, the domain keeps its holders, and such a
-/// ray is sent to one of them directly. The pairing of Fig. 5 is unchanged: an unwanted domain's slot is still free
-/// for a load, which evicts it.
-pub fn naming_resident(mut p: WorkerPlan, m: &Member, domains: u32) -> WorkerPlan {
+/// ray is sent to one of them directly. The pairing of Fig. 5 is unchanged: an unwanted
+/// domain's slot is still free for a load, which evicts it.
+fn naming_resident(mut p: WorkerPlan, m: &Member, domains: u32) -> WorkerPlan {
     let resident = m.report.iter().flat_map(|r| r.resident.iter().copied());
     for d in resident.filter(|&d| d < domains).map(DomainId) {
         if !p.evict.contains(&d) && !p.load.contains(&d) {
@@ -49,12 +49,20 @@ pub fn naming_resident(mut p: WorkerPlan, m: &Member, domains: u32) -> WorkerPla
 /// Whether `p`, a new plan for dry member `m` (`naming_resident`), is sent to it: it loads or
 /// evicts, works on a domain `m`'s plan does not name, or `m`'s plan names a domain `m` does
 /// not hold.
-pub fn is_news(p: &WorkerPlan, m: &Member) -> bool {
+fn is_news(p: &WorkerPlan, m: &Member) -> bool {
     let held = |d: &u32| m.report.as_ref().is_some_and(|r| r.resident.contains(d));
     !p.load.is_empty()
         || !p.evict.is_empty()
         || p.work().any(|d| !m.plan.contains(&d.0))
         || !m.plan.iter().all(held)
+}
+
+/// Fig. 5's plan `p` for dry member `m` in a scene of `domains` domains as it is sent
+/// (`naming_resident`), or `None` if it would not change what `m` does (`is_news`): the one
+/// rule of both planners, `Cluster::dry_plans` and `RoundIndex::dry_plans`.
+pub fn sent_plan(p: WorkerPlan, m: &Member, domains: u32) -> Option<WorkerPlan> {
+    let p = naming_resident(p, m, domains);
+    is_news(&p, m).then_some(p)
 }
 
 /// What the rounds know of one member of the frame.
@@ -143,9 +151,9 @@ impl<M: AsRef<Member>> Cluster<'_, M> {
 
     /// Asynchronous rounds: new plans for the members that have run dry. Busy members keep
     /// theirs: the schedule sees them holding exactly what they work on, with no free slot.
-    /// Each plan names every resident domain not evicted (`naming_resident`); a dry member
-    /// whose plan would not change is left out (`is_news`; its rays are elsewhere or on the
-    /// wire; its next report plans it again).
+    /// Each plan names every resident domain not evicted; a dry member whose plan would not
+    /// change is left out (`sent_plan`; its rays are elsewhere or on the wire; its next report
+    /// plans it again).
     pub fn dry_plans(&self) -> Vec<WorkerPlan> {
         let dry: BTreeSet<u32> = self
             .each_member()
@@ -178,11 +186,10 @@ impl<M: AsRef<Member>> Cluster<'_, M> {
                 .workers()
                 .iter()
                 .filter(|p| dry.contains(&p.worker.0))
-                .map(|p| {
+                .filter_map(|p| {
                     let m = self.members[&p.worker.0].as_ref();
-                    naming_resident(p.clone(), m, self.domain_bytes.len() as u32)
+                    sent_plan(p.clone(), m, self.domain_bytes.len() as u32)
                 })
-                .filter(|p| is_news(p, self.members[&p.worker.0].as_ref()))
                 .collect();
             if !changed.is_empty() {
                 return changed;
