@@ -13,5 +13,7 @@ include!(concat!(env!("OUT_DIR"), "/rayfarm.v1.rs"));
 /// gained and lost keys (`DomainHolders.workers`, `DomainHolders.lost`), not its whole list.
 /// 6: the control tier, which no bundle used, retired (`Tier` 1 reserved); a bundle of tier 1
 /// or of no tier is refused. 7: a whole map's domains with one holder each go packed
-/// (`RoundPlan.sole_holders`), which an older worker would not read.
-pub const PROTOCOL_VERSION: u32 = 7;
+/// (`RoundPlan.sole_holders`), which an older worker would not read. 8: a frame's roster
+/// comes in a `Roster` after the `StartFrame` (`StartFrame.roster` retired), which an older
+/// worker would ignore.
+pub const PROTOCOL_VERSION: u32 = 8;

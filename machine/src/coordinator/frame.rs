@@ -5,7 +5,7 @@
 //! tiles it commits instead of writing them, so the coordinator's locking and I/O stay in its
 //! shell.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::BTreeMap;
 use std::sync::Arc;
 
 use super::accusations::Accusations;
@@ -373,29 +373,28 @@ impl RunningFrame {
         self
     }
 
-    /// Every member's peer address by key.
-    fn roster(&self) -> HashMap<u32, String> {
-        self.members
-            .iter()
-            .map(|(&k, m)| (k, m.peer_address.clone()))
-            .collect()
+    /// The frame's roster, every member's peer address by key: one message that every member
+    /// shares (a copy in each member's `StartFrame` made a 4,096-worker frame's start cost its
+    /// coordinator 16.7 million address copies).
+    fn roster_message(&self) -> Arc<proto::CoordinatorMessage> {
+        msg(Body::Roster(proto::Roster {
+            job_id: self.frame_id(),
+            members: self
+                .members
+                .iter()
+                .map(|(&k, m)| (k, m.peer_address.clone()))
+                .collect(),
+        }))
     }
 
-    /// Member `key`'s `StartFrame`, with the frame's `roster` (made once for every member: made
-    /// for each, the 4,096 rosters of a 4,096-worker frame cost its coordinator 1.4 s).
-    fn start_message(
-        &self,
-        key: u32,
-        tiles: Vec<u32>,
-        roster: &HashMap<u32, String>,
-    ) -> Arc<proto::CoordinatorMessage> {
+    /// Member `key`'s `StartFrame`; the frame's roster follows it (`roster_message`).
+    fn start_message(&self, key: u32, tiles: Vec<u32>) -> Arc<proto::CoordinatorMessage> {
         let mut spec = self.spec.clone();
         // Caches are dropped before the job, not before each of its subframes.
         spec.cold_cache &= self.subframe == 0;
         let samples = self.samples();
         msg(Body::StartFrame(proto::StartFrame {
             worker_key: key,
-            roster: roster.clone(),
             job_id: self.frame_id(),
             spec: Some(spec),
             first_sample: samples.first,
@@ -449,15 +448,17 @@ impl RunningFrame {
             self.touch(k);
             self.tasks.joined(k);
         }
-        let roster = self.roster();
         let mut out: Vec<Outgoing> = keys
-            .into_iter()
+            .iter()
             .zip(tiles)
-            .map(|(key, tiles)| {
+            .map(|(&key, tiles)| {
                 self.grants.deal(key, &tiles);
-                (key, self.start_message(key, tiles, &roster))
+                (key, self.start_message(key, tiles))
             })
             .collect();
+        // Each member's StartFrame is first on its stream, the roster right behind it.
+        let roster = self.roster_message();
+        out.extend(keys.into_iter().map(|k| (k, Arc::clone(&roster))));
         if self.owners_once() {
             out.extend(self.owner_plans());
         }
@@ -471,19 +472,11 @@ impl RunningFrame {
         self.sent_holders.forget(key);
         self.touch(key);
         self.tasks.joined(key);
-        // One roster for every other member, shared as a flush's holders are (`Outgoing`).
-        let members = self.roster();
-        let mut out = vec![(key, self.start_message(key, Vec::new(), &members))];
-        let roster = msg(Body::Roster(proto::Roster {
-            job_id: self.frame_id(),
-            members,
-        }));
-        out.extend(
-            self.members
-                .keys()
-                .filter(|&&k| k != key)
-                .map(|&k| (k, Arc::clone(&roster))),
-        );
+        // One roster for every member, the newcomer's behind its StartFrame, shared as a
+        // flush's holders are (`Outgoing`).
+        let mut out = vec![(key, self.start_message(key, Vec::new()))];
+        let roster = self.roster_message();
+        out.extend(self.members.keys().map(|&k| (k, Arc::clone(&roster))));
         out
     }
 
@@ -517,16 +510,14 @@ impl RunningFrame {
         let bumped = self.ledger.bump(&unfinished);
         self.grants.withdraw(bumped.iter().map(|&(t, _)| t));
         info!(tiles = bumped.len(), "epochs bumped after losing a worker");
-        let bump = proto::EpochBump {
+        // One message every member shares, as the roster is.
+        let bump = msg(Body::EpochBump(proto::EpochBump {
             job_id: self.frame_id(),
             epochs: bumped.iter().copied().collect(),
             lost_peers: vec![lost.peer_address],
-        };
+        }));
         let keys: Vec<u32> = self.members.keys().copied().collect();
-        let mut out: Vec<Outgoing> = keys
-            .iter()
-            .map(|&k| (k, msg(Body::EpochBump(bump.clone()))))
-            .collect();
+        let mut out: Vec<Outgoing> = keys.iter().map(|&k| (k, Arc::clone(&bump))).collect();
         // What members reported before the bump counted rays they have now dropped.
         for m in self.members.values_mut() {
             m.rounds.report = None;

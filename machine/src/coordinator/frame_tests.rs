@@ -116,12 +116,12 @@ fn predictive_never_copies_domains_into_free_slots() {
 #[test]
 fn a_dry_worker_is_planned_at_once_under_asynchronous_rounds() {
     let (mut f, start) = started(Schedule::Dynamic, Rounds::Async, 2);
-    // Each gets a strided share of the four tiles and its peers' addresses.
+    // Each gets a strided share of the four tiles, then its peers' addresses.
     for (key, tiles) in [(0, [0, 2]), (1, [1, 3])] {
         match to(&start, key)[..] {
-            [Body::StartFrame(s)] => {
+            [Body::StartFrame(s), Body::Roster(r)] => {
                 assert_eq!(s.primary_tiles, tiles);
-                assert_eq!(s.roster.len(), 2);
+                assert_eq!(r.members.len(), 2);
             }
             ref other => panic!("{other:?}"),
         }

@@ -100,11 +100,9 @@ pub struct FrameParts<S> {
     /// Tiles whose camera rays this worker issues, in order.
     pub to_issue: Vec<u32>,
     pub queues: DomainQueues<S>,
-    /// This worker's peer address (never a destination).
-    /// This worker's key in `roster`.
+    /// This worker's key in the frame's roster, which follows the StartFrame: until it comes
+    /// ([`Frame::set_roster`]), the frame names no peer and its rays for others stay here.
     pub me: u32,
-    /// Every worker of the frame's peer address, by key.
-    pub roster: HashMap<u32, String>,
     pub started: Time,
     /// The round in progress (a worker joining mid-frame reports for it at once).
     pub round: u64,
@@ -132,7 +130,6 @@ impl<S: RaySpill> Frame<S> {
             to_issue,
             queues,
             me,
-            roster,
             started,
             round,
             epochs,
@@ -141,7 +138,7 @@ impl<S: RaySpill> Frame<S> {
             prefetch,
         } = parts;
         let tiles = grid.count() as usize;
-        let roster = std::sync::Arc::new(roster);
+        let roster = std::sync::Arc::new(HashMap::new());
         let mut plan = Plan::new(mode, tiles, queues.domains(), me, roster.clone());
         plan.round = round;
         plan.set_resident(resident);
@@ -337,8 +334,8 @@ impl<S: RaySpill> Frame<S> {
         Some(std::mem::take(&mut spec.to_conclude))
     }
 
-    /// Adopts a new roster (a worker joined: holders may name it); predictive: returns the
-    /// held verdicts that now have an address.
+    /// Adopts a new roster (the frame's first, or a worker joined: holders may name it);
+    /// predictive: returns the held verdicts that now have an address.
     pub fn set_roster(
         &mut self,
         roster: HashMap<u32, String>,

@@ -306,7 +306,6 @@ impl<S: RaySpill> Worker<S> {
             prefetch: spec.prefetch,
             queues: scene.queues,
             me: s.worker_key,
-            roster: s.roster.clone(),
             started: self.now,
             round: s.round,
             epochs: s.epochs.clone(),
@@ -438,7 +437,8 @@ impl<S: RaySpill> Worker<S> {
         self.send(proto::worker_message::Body::TasksShared(answer));
     }
 
-    /// A worker joined the frame: verdicts held for it can go.
+    /// The frame's workers (after its StartFrame, or a worker joined): rays and verdicts held
+    /// for a peer the roster did not name can go.
     fn roster(&mut self, r: proto::Roster) {
         let Some(frame) = self.frame.as_mut().filter(|f| f.job_id == r.job_id) else {
             return;
@@ -446,7 +446,7 @@ impl<S: RaySpill> Worker<S> {
         for (peer, verdicts) in frame.set_roster(r.members) {
             self.send_verdicts(peer, &verdicts);
         }
-        self.send_due_bundles();
+        self.send_to_holders();
     }
 
     /// Drops the bundles held for `job_id` and those that arrive late for it.

@@ -373,7 +373,7 @@ impl Plan {
 
     /// [`Plan::destination`] without the copy of the address: `None` is here (also for a
     /// holder the roster does not name, which the coordinator never sends: it sends the
-    /// roster with a new worker before naming it a holder).
+    /// roster behind a frame's StartFrame, and with a new worker, before naming it a holder).
     fn peer_of(&self, ray: &RayRecord) -> Option<&str> {
         if self.keeps(ray) {
             return None;

@@ -31,13 +31,33 @@ fn start(job: &str, schedule: Schedule, tiles: &[u32]) -> proto::StartFrame {
         }),
         tile_size: 4,
         primary_tiles: tiles.to_vec(),
-        roster: NAMES
+        ..Default::default()
+    }
+}
+
+/// The frame's roster, [`NAMES`], as the coordinator sends it behind each StartFrame.
+fn roster(job: &str) -> Event<MemorySpill> {
+    control(FromCoordinator::Roster(proto::Roster {
+        job_id: job.into(),
+        members: NAMES
             .iter()
             .enumerate()
             .map(|(k, n)| (k as u32, n.to_string()))
             .collect(),
-        ..Default::default()
-    }
+    }))
+}
+
+/// `w` opens a frame and takes its roster, at `now`: the actions of both.
+fn open(
+    w: &mut Worker<MemorySpill>,
+    now: Time,
+    job: &str,
+    schedule: Schedule,
+    tiles: &[u32],
+) -> Vec<Action> {
+    let mut actions = w.handle(now, opened(job, schedule, tiles));
+    actions.extend(w.handle(now, roster(job)));
+    actions
 }
 
 fn scene() -> OpenedScene<MemorySpill> {
@@ -177,7 +197,7 @@ fn pass_started(actions: &[Action]) -> Option<&PassWork> {
 #[test]
 fn a_batch_goes_to_the_holder_the_latest_plan_names() {
     let mut w = worker();
-    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    open(&mut w, Time(0), JOB, Schedule::Dynamic, &[]);
     w.handle(Time(1), plan(1, &[0], &[(1, "b:1"), (2, "c:1")]));
     let rays = [ray(0, 0, 1, 5), ray(0, 0, 2, 6)];
     let sent = rays_sent(&w.handle(Time(2), bundle(JOB, &rays)));
@@ -246,6 +266,7 @@ fn domain_schedule_rays_queued_before_the_plan_go_to_their_owner_though_mapped_h
             }),
         },
     );
+    w.handle(Time(0), roster(JOB));
     let rays = [ray(0, 0, 0, 1), ray(0, 0, 1, 2), ray(0, 0, 2, 3)];
     let early = w.handle(Time(1), bundle(JOB, &rays));
     assert!(rays_sent(&early).is_empty(), "no owner known yet");
@@ -272,9 +293,23 @@ fn domain_schedule_rays_queued_before_the_plan_go_to_their_owner_though_mapped_h
 }
 
 #[test]
-fn a_whole_maps_packed_holders_route_as_lines_do_and_a_delta_has_none() {
+fn rays_for_a_peer_wait_here_until_the_roster_behind_the_start_names_it() {
     let mut w = worker();
     w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    // The frame knows no address yet, so a holder's key names nobody: its rays stay here.
+    w.handle(Time(1), plan(1, &[0], &[(1, "b:1")]));
+    let rays = [ray(0, 0, 1, 5)];
+    assert!(rays_sent(&w.handle(Time(2), bundle(JOB, &rays))).is_empty());
+    assert_eq!(w.frame().unwrap().queue_sizes(), BTreeMap::from([(1, 1)]));
+    let mut out = w.handle(Time(3), roster(JOB));
+    out.extend(w.handle(Time::from_duration(Duration::from_secs(1)), Event::Tick));
+    assert_eq!(rays_sent(&out)["b:1"], rays, "{out:?}");
+}
+
+#[test]
+fn a_whole_maps_packed_holders_route_as_lines_do_and_a_delta_has_none() {
+    let mut w = worker();
+    open(&mut w, Time(0), JOB, Schedule::Dynamic, &[]);
     // Domain 1 is b's alone (packed), domain 2 c's and d's (a line), domain 3 nobody's.
     let packed = |round, delta, sole: &[&str]| {
         control(FromCoordinator::RoundPlan(proto::RoundPlan {
@@ -319,7 +354,7 @@ fn a_whole_maps_packed_holders_route_as_lines_do_and_a_delta_has_none() {
 #[test]
 fn a_stale_epochs_rays_are_dropped() {
     let mut w = worker();
-    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    open(&mut w, Time(0), JOB, Schedule::Dynamic, &[]);
     w.handle(Time(1), plan(1, &[0], &[]));
     let bump = control(FromCoordinator::EpochBump(proto::EpochBump {
         job_id: JOB.into(),
@@ -354,7 +389,7 @@ fn a_peers_rays_of_an_epoch_not_yet_heard_of_here_wait_for_the_bump() {
     // A worker was lost; the coordinator's bump reached a peer first, and that peer sends
     // rays of its re-dealt tiles at the new epoch before the bump arrives here.
     let mut w = worker();
-    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    open(&mut w, Time(0), JOB, Schedule::Dynamic, &[]);
     w.handle(Time(1), plan(1, &[0], &[]));
     let early = ray(1, 1, 0, 21);
     let actions = w.handle(Time(2), bundle(JOB, &[early]));
@@ -377,7 +412,7 @@ fn a_forged_ray_of_a_future_epoch_drops_no_real_rays() {
     // tile's real rays here stay current and are traced; the forged one waits for a bump
     // the coordinator never sends, and goes with the frame.
     let mut w = worker();
-    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    open(&mut w, Time(0), JOB, Schedule::Dynamic, &[]);
     w.handle(Time(1), plan(1, &[0], &[]));
     let real = ray(1, 0, 0, 20);
     let forged = ray(1, 9, 0, 22);
@@ -397,7 +432,7 @@ fn more_rays_of_unannounced_epochs_than_the_cap_leave_the_frame() {
         ..WorkerConfig::new("w1".into(), "me:1".into(), 1 << 30)
     })
     .unwrap();
-    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    open(&mut w, Time(0), JOB, Schedule::Dynamic, &[]);
     w.handle(Time(1), plan(1, &[0], &[]));
     let ahead: Vec<RayRecord> = (0..3).map(|p| ray(1, 4, 0, p)).collect();
     assert!(frame_reports(&w.handle(Time(2), bundle(JOB, &ahead[..2]))).is_empty());
@@ -412,7 +447,7 @@ fn more_rays_of_unannounced_epochs_than_the_cap_leave_the_frame() {
 #[test]
 fn a_pass_that_empties_the_planned_queues_is_reported_once() {
     let mut w = worker();
-    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    open(&mut w, Time(0), JOB, Schedule::Dynamic, &[]);
     let actions = w.handle(Time(1), plan(1, &[0], &[]));
     assert_eq!(
         queue_reports(&actions).len(),
@@ -445,7 +480,7 @@ fn a_plan_that_sends_work_here_holds_the_report_until_the_work_runs_or_the_hold_
     // Nothing here yet: the report waits for the plan's rays, and the tick at the hold's end
     // sends it.
     let mut w = worker();
-    w.handle(ms(0), opened(JOB, Schedule::Dynamic, &[]));
+    open(&mut w, ms(0), JOB, Schedule::Dynamic, &[]);
     let actions = w.handle(ms(1), held_plan(1, 50));
     assert!(queue_reports(&actions).is_empty(), "held: {actions:?}");
     assert_eq!(w.next_timeout(), Some(ms(51)));
@@ -476,7 +511,7 @@ fn a_plan_that_sends_work_here_holds_the_report_until_the_work_runs_or_the_hold_
 #[test]
 fn a_roster_change_addresses_the_verdicts_held_for_a_newcomer() {
     let mut w = worker();
-    let actions = w.handle(Time(0), opened(JOB, Schedule::Predictive, &[0]));
+    let actions = open(&mut w, Time(0), JOB, Schedule::Predictive, &[0]);
     assert!(pass_started(&actions).is_some(), "camera rays of tile 0");
     let verdict = VerdictRecord {
         tile: 0,
@@ -558,7 +593,7 @@ fn early_bundles_are_held_within_their_cap_and_timeout_then_replayed() {
 #[test]
 fn bundles_of_an_ended_frame_are_dropped_not_held() {
     let mut w = worker();
-    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    open(&mut w, Time(0), JOB, Schedule::Dynamic, &[]);
     let end = control(FromCoordinator::EndFrame(proto::EndFrame {
         job_id: JOB.into(),
     }));
@@ -576,7 +611,7 @@ fn bundles_of_an_ended_frame_are_dropped_not_held() {
 #[test]
 fn rays_leaving_for_a_new_holder_make_a_report_due_and_an_empty_move_does_not() {
     let mut w = worker();
-    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    open(&mut w, Time(0), JOB, Schedule::Dynamic, &[]);
     w.handle(Time(1), plan(1, &[0], &[]));
     // Domain 2 has no holder: its rays wait here, and the coordinator hears of them.
     let actions = w.handle(Time(2), bundle(JOB, &[ray(0, 0, 2, 1)]));
@@ -616,7 +651,7 @@ fn a_domain_it_cannot_load_is_a_decline_a_replaced_scene_fails_the_frame() {
         ),
     ] {
         let mut w = worker();
-        w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[0]));
+        open(&mut w, Time(0), JOB, Schedule::Dynamic, &[0]);
         let failed = Event::PassFinished {
             job_id: JOB.into(),
             result: Err(failure.clone()),
@@ -637,7 +672,7 @@ fn a_domain_it_cannot_load_is_a_decline_a_replaced_scene_fails_the_frame() {
 #[test]
 fn a_batch_outside_the_frame_is_dropped_and_the_rest_of_its_bundle_routed() {
     let mut w = worker();
-    w.handle(Time(0), opened(JOB, Schedule::ImagePlane, &[]));
+    open(&mut w, Time(0), JOB, Schedule::ImagePlane, &[]);
     let good = ray(0, 0, 1, 3);
     let outside = ray(0, 0, DOMAINS as u32, 3);
     let event = Event::PeerBundle {
@@ -676,7 +711,7 @@ fn a_frame_the_shell_could_not_open_is_declined_with_the_reason() {
     assert_eq!(reports[0].error, "worker w1: scene \"x\" not found");
     assert!(w.frame().is_none() && pass_started(&actions).is_none());
     // Primary tiles outside the frame are the machine's own reason to decline.
-    let actions = w.handle(Time(1), opened(JOB, Schedule::Dynamic, &[4]));
+    let actions = open(&mut w, Time(1), JOB, Schedule::Dynamic, &[4]);
     let reports = frame_reports(&actions);
     assert!(reports[0].declined && reports[0].error.contains("outside the frame's 4 tiles"));
 }
@@ -706,7 +741,7 @@ fn queues_past_both_caps_fail_the_frame_once_with_the_budgets() {
 #[test]
 fn a_silent_peer_is_dropped_and_reported_and_a_stale_pass_is_ignored() {
     let mut w = worker();
-    w.handle(Time(0), opened(JOB, Schedule::ImagePlane, &[0]));
+    open(&mut w, Time(0), JOB, Schedule::ImagePlane, &[0]);
     let lost = Event::PeerUnresponsive {
         peer: "b:1".into(),
         reason: "3 bundles unacknowledged".into(),
@@ -724,7 +759,7 @@ fn a_silent_peer_is_dropped_and_reported_and_a_stale_pass_is_ignored() {
         job_id: JOB.into(),
     }));
     w.handle(Time(2), end);
-    w.handle(Time(3), opened("job-2", Schedule::ImagePlane, &[]));
+    open(&mut w, Time(3), "job-2", Schedule::ImagePlane, &[]);
     let out = PassOutput {
         rays: vec![ray(0, 0, 0, 1)],
         ..PassOutput::default()
@@ -739,7 +774,7 @@ fn hybrid_pins_its_own_domains_only_while_demand_loads_fit_the_cache() {
     for (cache_bytes, pinned) in [(2000, vec![0]), (1999, vec![])] {
         let config = WorkerConfig::new("w1".into(), "me:1".into(), cache_bytes);
         let mut w: Worker<MemorySpill> = Worker::new(config).unwrap();
-        w.handle(Time(0), opened(JOB, Schedule::Hybrid, &[]));
+        open(&mut w, Time(0), JOB, Schedule::Hybrid, &[]);
         let actions = w.handle(Time(1), plan(1, &[0], &[(1, "b:1")]));
         let pins: Vec<&Vec<u32>> = actions
             .iter()
@@ -830,7 +865,7 @@ fn a_prefetching_worker_loads_its_next_domain_while_it_traces_the_mapped_one() {
 #[test]
 fn a_frame_without_prefetch_asks_for_none() {
     let mut w = worker();
-    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    open(&mut w, Time(0), JOB, Schedule::Dynamic, &[]);
     w.handle(Time(1), plan(1, &[0, 1], &[]));
     let actions = w.handle(Time(2), bundle(JOB, &[ray(0, 0, 1, 1)]));
     assert!(pass_started(&actions).is_some());
@@ -840,7 +875,7 @@ fn a_frame_without_prefetch_asks_for_none() {
 #[test]
 fn idle_time_is_counted_by_why_the_worker_has_no_pass() {
     let mut w = worker();
-    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    open(&mut w, Time(0), JOB, Schedule::Dynamic, &[]);
     w.handle(Time(0), plan(1, &[0], &[(1, "b:1")]));
     // Nothing queued from 0 to 1000 ns; then a ray for domain 2, which no one holds and the
     // plan does not give this worker: it waits here, queued, until the frame ends at 3000.
@@ -866,7 +901,7 @@ fn idle_time_is_counted_by_why_the_worker_has_no_pass() {
 #[test]
 fn the_frame_statistics_count_the_passes_of_the_frame_that_finished() {
     let mut w = worker();
-    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    open(&mut w, Time(0), JOB, Schedule::Dynamic, &[]);
     w.handle(Time(1), plan(1, &[0], &[]));
     assert!(pass_started(&w.handle(Time(2), bundle(JOB, &[ray(0, 0, 0, 1)]))).is_some());
     w.handle(Time(3), finished(PassOutput::default()));
@@ -929,6 +964,7 @@ fn a_busy_hybrid_worker_hands_an_idle_peer_what_costs_it_least_and_keeps_half() 
             }),
         },
     );
+    w.handle(Time(0), roster(JOB));
     // Owns domain 0; the cache holds it and more, so camera rays load on demand here.
     w.handle(Time(1), plan(1, &[0], &[(1, "b:1"), (2, "c:1")]));
     let own: Vec<RayRecord> = (0..10).map(|p| ray(0, 0, 0, p)).collect();
@@ -989,7 +1025,7 @@ fn a_busy_hybrid_worker_hands_an_idle_peer_what_costs_it_least_and_keeps_half() 
 #[test]
 fn a_domain_the_idle_peer_would_load_goes_whole_or_not_at_all() {
     let mut w = worker();
-    w.handle(Time(0), opened(JOB, Schedule::Hybrid, &[]));
+    open(&mut w, Time(0), JOB, Schedule::Hybrid, &[]);
     w.handle(Time(1), plan(1, &[0], &[(1, "b:1"), (2, "c:1")]));
     let own: Vec<RayRecord> = (0..10).map(|p| ray(0, 0, 0, p)).collect();
     let camera: Vec<RayRecord> = (10..16).map(|p| ray(0, 0, 1, p)).collect();
@@ -1010,7 +1046,7 @@ fn a_domain_the_idle_peer_would_load_goes_whole_or_not_at_all() {
 #[test]
 fn only_the_hybrid_schedule_shares_tasks() {
     let mut w = worker();
-    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    open(&mut w, Time(0), JOB, Schedule::Dynamic, &[]);
     w.handle(Time(1), plan(1, &[], &[]));
     let rays: Vec<RayRecord> = (0..8).map(|p| ray(0, 0, 1, p)).collect();
     w.handle(Time(2), bundle(JOB, &rays));
@@ -1026,7 +1062,7 @@ fn a_worker_asked_to_share_tasks_of_a_frame_it_does_not_run_says_it_holds_none()
     // asked about, so the coordinator turns to another donor.
     for opened_job in [None, Some("other")] {
         if let Some(job) = opened_job {
-            w.handle(Time(0), opened(job, Schedule::Hybrid, &[]));
+            open(&mut w, Time(0), job, Schedule::Hybrid, &[]);
         }
         let actions = w.handle(Time(1), share("idle:1", &[], 100));
         let answer = shared_answer(&actions).expect("answered");
@@ -1102,6 +1138,7 @@ fn a_window_runs_through_a_domain_later_windows_reached_late() {
     });
     let mut w = worker();
     w.handle(Time(0), speculating("predicted:0.9"));
+    w.handle(Time(0), roster(JOB));
     w.handle(Time(1), plan(1, &[], &[(0, "a:1"), (1, "a:1"), (2, "a:1")]));
     // Twenty camera rays along domains 0, 1, 2: nothing is known of them, so each is copied
     // into all three. Domain 1 answers clear (it has now been traced for generation 0), then
@@ -1140,7 +1177,7 @@ fn a_window_runs_through_a_domain_later_windows_reached_late() {
 #[test]
 fn rays_sent_to_a_former_holder_wait_for_the_new_holder_then_go_on() {
     let mut w = worker();
-    w.handle(Time(0), opened(JOB, Schedule::Dynamic, &[]));
+    open(&mut w, Time(0), JOB, Schedule::Dynamic, &[]);
     w.handle(Time(1), plan(1, &[1], &[]));
     // Its next plan gives domain 1 up; the coordinator has not told it the new holder yet.
     w.handle(Time(2), plan(2, &[0], &[]));
