@@ -22,6 +22,22 @@ pub fn thread_cpu_ns() -> u64 {
     }
 }
 
+/// What one reading of [`thread_cpu_ns`] adds to the interval it opens or closes: the median
+/// of 1,001 back-to-back readings (the end of one system call and the start of the next). An
+/// interval timed by two readings holds it once; where intervals are short and many (the
+/// simulator's replayed coordinator reads the clock around each of half a million calls, a
+/// fifth of its time in the clock), subtracting it leaves the work timed.
+pub fn thread_clock_overhead_ns() -> u64 {
+    let mut gaps: Vec<u64> = (0..1001)
+        .map(|_| {
+            let start = thread_cpu_ns();
+            thread_cpu_ns().saturating_sub(start)
+        })
+        .collect();
+    gaps.sort_unstable();
+    gaps[gaps.len() / 2]
+}
+
 /// The time of CPU clock `clock` in nanoseconds, if it can be read.
 #[cfg(unix)]
 fn clock_ns(clock: libc::clockid_t) -> Option<u64> {
@@ -122,6 +138,19 @@ mod tests {
             std::hint::black_box(x);
         }
         x
+    }
+
+    #[test]
+    #[cfg(target_os = "linux")]
+    fn the_clocks_own_cost_is_a_small_part_of_what_it_times() {
+        let overhead = thread_clock_overhead_ns();
+        // A reading is a system call: some nanoseconds, never a millisecond.
+        assert!((1..1_000_000).contains(&overhead), "{overhead} ns");
+        // Work timed between two readings costs more than the readings alone.
+        let start = thread_cpu_ns();
+        spin(0.01);
+        let timed = thread_cpu_ns() - start;
+        assert!(timed > 1_000_000 + overhead, "{timed} ns");
     }
 
     #[test]

@@ -25,7 +25,7 @@ use rayfarm_machine::coordinator::cluster::{
     Action, Config, FlushWork, Input, JobRecord, OpenedFrame, PlanningWork, Tally,
 };
 use rayfarm_machine::coordinator::synthetic::planned;
-use rayfarm_node::cpu::thread_cpu_ns;
+use rayfarm_node::cpu::{thread_clock_overhead_ns, thread_cpu_ns};
 use rayfarm_proto::{self as proto, JobState, worker_message::Body as FromWorker};
 use tracing::info;
 
@@ -162,6 +162,9 @@ pub struct Replayed {
     pub ticks: Duration,
     /// Registrations, the submission and every other input.
     pub other: Duration,
+    /// The clock's own cost in each call's time (`thread_clock_overhead_ns`), taken out of
+    /// every figure above: `calls` times this is what timing the replay cost besides.
+    pub clock: Duration,
     /// What the replayed rounds planned.
     pub planning: PlanningWork,
     /// Whether that is what the run's rounds planned (the machine repeated itself).
@@ -604,6 +607,7 @@ impl SimCoordinator {
         let mut machine = Coordinator::new(self.machine_config(), 0);
         let mut cpu = [0u64; InputKind::COUNT];
         let mut planning = PlanningWork::default();
+        let clock = thread_clock_overhead_ns();
         for (now, call) in calls {
             // The copy handed over is made before the clock starts, as the run's own input was.
             let call = call.clone();
@@ -624,7 +628,7 @@ impl SimCoordinator {
                     Vec::new()
                 }
             };
-            cpu[kind as usize] += thread_cpu_ns().saturating_sub(start);
+            cpu[kind as usize] += thread_cpu_ns().saturating_sub(start + clock);
             planning.add(&planned(&actions));
         }
         let took = |kind: InputKind| Duration::from_nanos(cpu[kind as usize]);
@@ -635,6 +639,7 @@ impl SimCoordinator {
             heartbeats: took(InputKind::Heartbeat),
             ticks: took(InputKind::Tick),
             other: took(InputKind::Other),
+            clock: Duration::from_nanos(clock),
             repeated: planning == self.planning,
             planning,
         })
