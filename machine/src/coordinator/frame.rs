@@ -448,17 +448,16 @@ impl RunningFrame {
             self.touch(k);
             self.tasks.joined(k);
         }
-        let mut out: Vec<Outgoing> = keys
-            .iter()
-            .zip(tiles)
-            .map(|(&key, tiles)| {
-                self.grants.deal(key, &tiles);
-                (key, self.start_message(key, tiles))
-            })
-            .collect();
-        // Each member's StartFrame is first on its stream, the roster right behind it.
+        // Each member's StartFrame is first on its stream, the roster right behind it (a
+        // member's pair goes out before the next member's, so none waits behind every other
+        // member's start for its peers).
         let roster = self.roster_message();
-        out.extend(keys.into_iter().map(|k| (k, Arc::clone(&roster))));
+        let mut out: Vec<Outgoing> = Vec::with_capacity(2 * keys.len());
+        for (key, tiles) in keys.into_iter().zip(tiles) {
+            self.grants.deal(key, &tiles);
+            out.push((key, self.start_message(key, tiles)));
+            out.push((key, Arc::clone(&roster)));
+        }
         if self.owners_once() {
             out.extend(self.owner_plans());
         }
