@@ -186,6 +186,8 @@ impl<S: RaySpill> Worker<S> {
                         Err(e) => warn!(domain, error = %e, "prefetch failed"),
                     }
                     f.set_resident(resident);
+                    // As after a pass: a domain the load pushed out sends its rays on.
+                    self.send_to_holders();
                 }
             }
             Event::Tick => self.send_due_bundles(),
@@ -563,7 +565,10 @@ impl<S: RaySpill> Worker<S> {
         for (peer, rays) in out_rays {
             self.send_rays(peer, &rays);
         }
-        self.send_due_bundles();
+        // What the pass's loads pushed out of the cache is no longer traced here: rays kept
+        // for it go to its holders now, not at the next plan (which a member that reported
+        // them may never get: the coordinator counts on them leaving).
+        self.send_to_holders();
     }
 
     /// Starts the next pass, or, with nothing to do, sends everything pending and tells the

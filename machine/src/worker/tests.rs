@@ -307,6 +307,40 @@ fn rays_for_a_peer_wait_here_until_the_roster_behind_the_start_names_it() {
 }
 
 #[test]
+fn rays_kept_for_a_mapped_domain_leave_when_a_pass_pushes_it_out_of_the_cache() {
+    let mut w = worker();
+    w.handle(
+        Time(0),
+        Event::FrameOpened {
+            start: start(JOB, Schedule::Dynamic, &[]),
+            opened: Ok(OpenedScene {
+                resident: vec![1],
+                ..scene()
+            }),
+        },
+    );
+    w.handle(Time(0), roster(JOB));
+    // Domain 1 is b's this round, but mapped here: its rays are traced here meanwhile.
+    w.handle(Time(1), plan(1, &[0], &[(1, "b:1")]));
+    let started = w.handle(Time(2), bundle(JOB, &[ray(0, 0, 0, 4)]));
+    assert!(pass_started(&started).is_some(), "domain 0's pass runs");
+    let rays = [ray(0, 0, 1, 5)];
+    assert!(rays_sent(&w.handle(Time(3), bundle(JOB, &rays))).is_empty());
+    // The pass loaded domain 0 and the cache let domain 1 go: its ray is b's now, at once
+    // (the coordinator heard it queued here and plans nothing more for it).
+    let mut out = w.handle(
+        Time(4),
+        Event::PassFinished {
+            job_id: JOB.into(),
+            result: Ok(PassOutput::default()),
+            resident: vec![0],
+        },
+    );
+    out.extend(w.handle(Time::from_duration(Duration::from_secs(1)), Event::Tick));
+    assert_eq!(rays_sent(&out)["b:1"], rays, "{out:?}");
+}
+
+#[test]
 fn a_whole_maps_packed_holders_route_as_lines_do_and_a_delta_has_none() {
     let mut w = worker();
     open(&mut w, Time(0), JOB, Schedule::Dynamic, &[]);

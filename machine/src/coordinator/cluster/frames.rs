@@ -109,11 +109,12 @@ impl Coordinator {
             .iter()
             .map(|(&k, w)| (k, Member::new(w.peer_address.clone(), w.cache_bytes)))
             .collect();
+        let workers = members.len();
         let messages = frame.start(members);
         tally_rounds(&frame, &PlanningWork::default(), out);
         info!(
             job = %id,
-            workers = messages.len(),
+            workers,
             tiles = frame.ledger.grid().count(),
             attempt = attempts + 1,
             "frame started"
