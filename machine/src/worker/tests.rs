@@ -47,6 +47,22 @@ fn roster(job: &str) -> Event<MemorySpill> {
     }))
 }
 
+/// `w` opens a frame of `schedule` with no tiles of its own, holding `resident` mapped from
+/// earlier frames, and takes its roster.
+fn open_holding(w: &mut Worker<MemorySpill>, schedule: Schedule, resident: Vec<u32>) {
+    w.handle(
+        Time(0),
+        Event::FrameOpened {
+            start: start(JOB, schedule, &[]),
+            opened: Ok(OpenedScene {
+                resident,
+                ..scene()
+            }),
+        },
+    );
+    w.handle(Time(0), roster(JOB));
+}
+
 /// `w` opens a frame and takes its roster, at `now`: the actions of both.
 fn open(
     w: &mut Worker<MemorySpill>,
@@ -256,17 +272,7 @@ fn domain_schedule_rays_queued_before_the_plan_go_to_their_owner_though_mapped_h
     // waited here for every domain, and those of domains the worker had mapped from earlier
     // frames but does not own stayed, traced by no one.
     let mut w = worker();
-    w.handle(
-        Time(0),
-        Event::FrameOpened {
-            start: start(JOB, Schedule::Domain, &[]),
-            opened: Ok(OpenedScene {
-                resident: vec![0, 1, 2],
-                ..scene()
-            }),
-        },
-    );
-    w.handle(Time(0), roster(JOB));
+    open_holding(&mut w, Schedule::Domain, vec![0, 1, 2]);
     let rays = [ray(0, 0, 0, 1), ray(0, 0, 1, 2), ray(0, 0, 2, 3)];
     let early = w.handle(Time(1), bundle(JOB, &rays));
     assert!(rays_sent(&early).is_empty(), "no owner known yet");
@@ -309,17 +315,7 @@ fn rays_for_a_peer_wait_here_until_the_roster_behind_the_start_names_it() {
 #[test]
 fn rays_kept_for_a_mapped_domain_leave_when_a_pass_pushes_it_out_of_the_cache() {
     let mut w = worker();
-    w.handle(
-        Time(0),
-        Event::FrameOpened {
-            start: start(JOB, Schedule::Dynamic, &[]),
-            opened: Ok(OpenedScene {
-                resident: vec![1],
-                ..scene()
-            }),
-        },
-    );
-    w.handle(Time(0), roster(JOB));
+    open_holding(&mut w, Schedule::Dynamic, vec![1]);
     // Domain 1 is b's this round, but mapped here: its rays are traced here meanwhile.
     w.handle(Time(1), plan(1, &[0], &[(1, "b:1")]));
     let started = w.handle(Time(2), bundle(JOB, &[ray(0, 0, 0, 4)]));
@@ -988,17 +984,7 @@ fn shared_answer(actions: &[Action]) -> Option<&proto::TasksShared> {
 #[test]
 fn a_busy_hybrid_worker_hands_an_idle_peer_what_costs_it_least_and_keeps_half() {
     let mut w = worker();
-    w.handle(
-        Time(0),
-        Event::FrameOpened {
-            start: start(JOB, Schedule::Hybrid, &[]),
-            opened: Ok(OpenedScene {
-                resident: vec![2],
-                ..scene()
-            }),
-        },
-    );
-    w.handle(Time(0), roster(JOB));
+    open_holding(&mut w, Schedule::Hybrid, vec![2]);
     // Owns domain 0; the cache holds it and more, so camera rays load on demand here.
     w.handle(Time(1), plan(1, &[0], &[(1, "b:1"), (2, "c:1")]));
     let own: Vec<RayRecord> = (0..10).map(|p| ray(0, 0, 0, p)).collect();
