@@ -22,6 +22,15 @@ fn two_members() -> BTreeMap<u32, Member> {
     (0..2).map(|k| (k, Member::new(200))).collect()
 }
 
+/// Member `key` given `plan` at round 1, with `report` (of round 1 or later: it ran dry since;
+/// earlier: it is busy on the plan).
+fn planned_member(m: &mut BTreeMap<u32, Member>, key: u32, plan: &[u32], report: Queues) {
+    let member = m.get_mut(&key).expect("member");
+    member.plan = plan.iter().copied().collect();
+    member.planned_round = 1;
+    member.report = Some(report);
+}
+
 fn cluster(members: &BTreeMap<u32, Member>, oldest_first: bool) -> Cluster<'_> {
     Cluster {
         members,
@@ -68,10 +77,7 @@ fn with_every_member_dry_a_stuck_generation_does_not_stall_the_frame() {
     // Member 0 holds domain 0, whose older rays it has planned already; member 1 is free.
     // Only domain 0 counts under the oldest-first rule, and its plan is unchanged: the
     // younger rays of domain 1 must be planned all the same.
-    let zero = m.get_mut(&0).expect("member");
-    zero.plan = [0].into();
-    zero.planned_round = 1;
-    zero.report = Some(report(1, &[0], &[(0, 5, 1), (1, 7, 2)]));
+    planned_member(&mut m, 0, &[0], report(1, &[0], &[(0, 5, 1), (1, 7, 2)]));
     assert!(
         planned(&cluster(&m, true).dry_plans()).is_empty() || m[&1].report.is_none(),
         "member 1 has not reported, so it has no place in a plan"
@@ -84,10 +90,7 @@ fn with_every_member_dry_a_stuck_generation_does_not_stall_the_frame() {
 fn while_someone_is_busy_younger_generations_wait() {
     let mut m = two_members();
     // Member 0 is busy on domain 0 (its report predates its plan) with generation 1 rays.
-    let zero = m.get_mut(&0).expect("member");
-    zero.plan = [0].into();
-    zero.planned_round = 1;
-    zero.report = Some(report(0, &[0], &[(0, 5, 1)]));
+    planned_member(&mut m, 0, &[0], report(0, &[0], &[(0, 5, 1)]));
     m.get_mut(&1).expect("member").report = Some(report(0, &[], &[(2, 7, 2)]));
     assert!(cluster(&m, true).dry_plans().is_empty());
 }
@@ -96,10 +99,7 @@ fn while_someone_is_busy_younger_generations_wait() {
 fn queued_counts_move_to_the_new_holder_at_once() {
     let mut m = two_members();
     // Member 0 is busy and holds 40 rays of domain 3 (generation 4); member 1 is dry.
-    let zero = m.get_mut(&0).expect("member");
-    zero.plan = [0].into();
-    zero.planned_round = 1;
-    zero.report = Some(report(0, &[0], &[(0, 5, 1), (3, 40, 4)]));
+    planned_member(&mut m, 0, &[0], report(0, &[0], &[(0, 5, 1), (3, 40, 4)]));
     m.get_mut(&1).expect("member").report = Some(report(0, &[], &[(3, 2, 6)]));
     let plans = cluster(&m, false).dry_plans();
     assert_eq!(planned(&plans), [3]);
@@ -140,10 +140,7 @@ fn queued_counts_move_to_the_new_holder_at_once() {
 #[test]
 fn a_dry_member_whose_plan_would_not_change_is_left_waiting() {
     let mut m = two_members();
-    let zero = m.get_mut(&0).expect("member");
-    zero.plan = [1].into();
-    zero.planned_round = 1;
-    zero.report = Some(report(1, &[1], &[(1, 5, 0)]));
+    planned_member(&mut m, 0, &[1], report(1, &[1], &[(1, 5, 0)]));
     m.get_mut(&1).expect("member").report = Some(report(0, &[], &[]));
     assert!(cluster(&m, false).dry_plans().is_empty());
 }
@@ -151,12 +148,9 @@ fn a_dry_member_whose_plan_would_not_change_is_left_waiting() {
 #[test]
 fn a_dry_member_keeps_naming_a_resident_domain_whose_rays_ran_out() {
     let mut m = two_members();
-    let zero = m.get_mut(&0).expect("member");
-    zero.plan = [1].into();
-    zero.planned_round = 1;
     // Domain 1 has no rays left anywhere: a plan that would only drop it is not sent, so
     // member 0 stays its holder and rays that enter it later are sent to it directly.
-    zero.report = Some(report(1, &[0, 1], &[]));
+    planned_member(&mut m, 0, &[1], report(1, &[0, 1], &[]));
     m.get_mut(&1).expect("member").report = Some(report(0, &[], &[]));
     assert!(cluster(&m, false).dry_plans().is_empty());
 
@@ -170,10 +164,7 @@ fn a_dry_member_keeps_naming_a_resident_domain_whose_rays_ran_out() {
 
     // A plan naming a domain it does not hold is replaced (member 1 keeps its own rays: its
     // plan stands).
-    let one = m.get_mut(&1).expect("member");
-    one.plan = [3].into();
-    one.planned_round = 1;
-    one.report = Some(report(1, &[3], &[(3, 6, 0)]));
+    planned_member(&mut m, 1, &[3], report(1, &[3], &[(3, 6, 0)]));
     m.get_mut(&0).expect("member").plan = [1, 2].into();
     let plans = cluster(&m, false).dry_plans();
     assert_eq!(plans.len(), 1, "{plans:?}");
