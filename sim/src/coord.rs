@@ -212,6 +212,8 @@ impl InputKind {
 impl SimCoordinator {
     pub fn new(config: CoordConfig) -> Result<Self, String> {
         let film_dir = tempfile::tempdir().map_err(|e| format!("temporary film directory: {e}"))?;
+        // The machine's CPU is measured while the busy log is on (`log_busy`).
+        let timed = tracing::enabled!(tracing::Level::INFO);
         let mut c = SimCoordinator {
             config,
             process: None,
@@ -231,12 +233,8 @@ impl SimCoordinator {
             planning: PlanningWork::default(),
             flushing: FlushWork::default(),
             free_at: Time(0),
-            machine_ns: tracing::enabled!(tracing::Level::INFO).then_some([0; InputKind::COUNT]),
-            clock_ns: if tracing::enabled!(tracing::Level::INFO) {
-                thread_clock_overhead_ns()
-            } else {
-                0
-            },
+            machine_ns: timed.then_some([0; InputKind::COUNT]),
+            clock_ns: timed.then(thread_clock_overhead_ns).unwrap_or(0),
             calls: None,
         };
         c.calls = c.config.replay.then(Vec::new);
