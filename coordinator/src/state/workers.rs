@@ -24,7 +24,7 @@ impl Coordinator {
                     resident_domains: w
                         .last_report
                         .as_ref()
-                        .map(|r| r.resident_domains.clone())
+                        .map(|r| ascending(&r.resident_domains))
                         .unwrap_or_default(),
                     queued_rays: w
                         .last_report
@@ -123,4 +123,12 @@ impl Coordinator {
         self.feed(&mut st, Input::Tick);
         st.machine.next_deadline().map(|t| t.since(now()))
     }
+}
+
+/// A report's resident domains (in the worker's order of use) as the status lists them.
+fn ascending(by_use: &[u32]) -> Vec<u32> {
+    let mut domains = by_use.to_vec();
+    domains.sort_unstable();
+    domains.dedup();
+    domains
 }

@@ -357,13 +357,47 @@ impl DomainCache {
         self.manifest.domains.iter().map(|d| d.bytes).collect()
     }
 
-    /// Domains mapped now, ascending.
+    /// Domains mapped now, least recently used first: the order in which the coordinator
+    /// evicts those no ray wants (the worker reports them so).
     pub fn resident(&self) -> Vec<u32> {
-        self.resident.keys().copied().collect()
+        let mut by_use: Vec<(u64, u32)> = self
+            .resident
+            .iter()
+            .map(|(&d, r)| (r.last_use, d))
+            .collect();
+        by_use.sort_unstable();
+        by_use.into_iter().map(|(_, d)| d).collect()
     }
 
     /// The counters so far.
     pub fn counters(&self) -> CacheCounters {
         self.counters
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::prepare::generate::{NbodyOptions, prepare_nbody};
+
+    #[test]
+    fn resident_domains_are_listed_least_recently_used_first() {
+        let root = tempfile::tempdir().unwrap();
+        let dir = root.path().join("nb");
+        let options = NbodyOptions {
+            name: "nb".into(),
+            triangles: 2000,
+            seed: 1,
+            domains: 4,
+            max_memory: None,
+            force: false,
+        };
+        let manifest = prepare_nbody(&dir, &options).unwrap();
+        let mut cache = DomainCache::new(&dir, &manifest, u64::MAX);
+        for d in [2, 0, 3, 0] {
+            cache.get(d).unwrap();
+        }
+        // The coordinator evicts in this order: 0, used last, goes last.
+        assert_eq!(cache.resident(), [2, 3, 0]);
     }
 }

@@ -23,7 +23,9 @@
 //!    as one `to_evict` entry, and slots are handed out to the worker with the
 //!    fewest planned domains first, so new work spreads across workers before
 //!    any one of them takes a second new domain (with one-domain caches this is
-//!    exactly the paper's pairing).
+//!    exactly the paper's pairing). Among workers with as many planned, one
+//!    with an empty slot goes before one whose slot holds data: a load there
+//!    evicts nothing that rays may come back to ([`Opening`]).
 //! 4. Data is evicted only when a load needs its slot (in the paper,
 //!    `LoadDomain` replaces the single resident domain). Unwanted data on a
 //!    worker with nothing to load stays resident: dropping it saves nothing and
@@ -39,8 +41,13 @@
 //!
 //! Ties are broken deterministically: among equally full queues the lower
 //! domain id goes first; among equally loaded workers the lower worker id is
-//! served first; among unwanted resident domains the lower id is evicted first
-//! (the coordinator has no recency information to do better).
+//! served first. Among unwanted resident domains the least recently used is
+//! evicted first, in the order the worker reports them
+//! ([`WorkerState::by_use`](super::WorkerState)): the domain a worker traced
+//! last is the one its new rays most likely come back to. Evicting the lower
+//! id first made a worker holding a pair of neighbouring domains and one free
+//! slot load them in turn, each load evicting the other just as the rays it
+//! had made left for it (README "Validation against the real cluster").
 
 use std::borrow::Cow;
 use std::cmp::Ordering;
@@ -170,7 +177,7 @@ pub fn next_round_with(state: &ClusterState, options: Options) -> RoundPlan {
         .workers()
         .iter()
         .map(|w| {
-            Draft::keeping_wanted(w.id, Cow::Borrowed(&w.resident), w.capacity, |d| {
+            Draft::keeping_wanted(w.id, Cow::Borrowed(&w.by_use), w.capacity, |d| {
                 state.queued(d) > 0
             })
         })
@@ -191,8 +198,9 @@ pub fn next_round_with(state: &ClusterState, options: Options) -> RoundPlan {
 /// [`next_round_with`] (from a whole [`ClusterState`]) and `round_index` (from its figures).
 pub(super) struct Draft<'a> {
     worker: WorkerId,
-    /// Domains in the worker's cache (borrowed from a state, or gathered by the caller).
-    resident: Cow<'a, BTreeSet<DomainId>>,
+    /// Domains in the worker's cache, least recently used first, each once (borrowed from a
+    /// state, or gathered by the caller).
+    by_use: Cow<'a, [DomainId]>,
     /// Domains the cache holds at once.
     capacity: usize,
     keep: BTreeSet<DomainId>,
@@ -204,14 +212,14 @@ impl<'a> Draft<'a> {
     /// wants stays with the worker that has it.
     pub(super) fn keeping_wanted(
         worker: WorkerId,
-        resident: Cow<'a, BTreeSet<DomainId>>,
+        by_use: Cow<'a, [DomainId]>,
         capacity: usize,
         wanted: impl Fn(DomainId) -> bool,
     ) -> Self {
-        let keep = resident.iter().copied().filter(|&d| wanted(d)).collect();
+        let keep = by_use.iter().copied().filter(|&d| wanted(d)).collect();
         Draft {
             worker,
-            resident,
+            by_use,
             capacity,
             keep,
             load: BTreeSet::new(),
@@ -228,6 +236,15 @@ impl<'a> Draft<'a> {
         self.capacity - self.planned()
     }
 
+    /// Where the plan so far stands in the pairing's order.
+    pub(super) fn opening(&self) -> Opening {
+        Opening::new(
+            self.planned(),
+            self.by_use.len() + self.load.len(),
+            self.capacity,
+        )
+    }
+
     /// Whether the plan so far traces rays for `domain`.
     pub(super) fn works_on(&self, domain: DomainId) -> bool {
         self.keep.contains(&domain) || self.load.contains(&domain)
@@ -238,11 +255,11 @@ impl<'a> Draft<'a> {
         self.load.insert(domain);
     }
 
-    /// Evicts just enough unwanted data to fit the loads (lower id first).
+    /// Evicts just enough unwanted data to fit the loads (least recently used first).
     pub(super) fn finish(self) -> WorkerPlan {
-        let overflow = (self.resident.len() + self.load.len()).saturating_sub(self.capacity);
+        let overflow = (self.by_use.len() + self.load.len()).saturating_sub(self.capacity);
         let evict = self
-            .resident
+            .by_use
             .iter()
             .copied()
             .filter(|d| !self.keep.contains(d))
@@ -268,6 +285,40 @@ fn unheld_fullest_first(state: &ClusterState, drafts: &[Draft<'_>]) -> Vec<(Doma
     unheld
 }
 
+/// A worker's place in the order Fig. 5's pairing hands out free slots in: fewest planned
+/// domains first, then a worker with an empty slot before one whose load would evict
+/// (unwanted data it holds may be wanted again: a worker with one empty slot left unused while
+/// another evicted for every load loaded a pair of domains in turn, each evicting the other),
+/// then the lower id (the caller's).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub(super) struct Opening {
+    planned: usize,
+    evicts: bool,
+}
+
+impl Opening {
+    /// A worker with `planned` domains planned and `filled` slots taken (held or to load) of
+    /// `capacity`.
+    pub(super) fn new(planned: usize, filled: usize, capacity: usize) -> Self {
+        Opening {
+            planned,
+            evicts: filled >= capacity,
+        }
+    }
+
+    /// The places of a worker with nothing planned: with an empty slot, and without.
+    pub(super) const IDLE: [Opening; 2] = [
+        Opening {
+            planned: 0,
+            evicts: false,
+        },
+        Opening {
+            planned: 0,
+            evicts: true,
+        },
+    ];
+}
+
 /// The drafts of a round as its pairing and extensions walk them, by worker: every worker's
 /// ([`DraftList`]), or only the dry members' of an index, each made when the round first gives
 /// it something (`round_index`), so a round costs what it hands out, not the dry members.
@@ -288,7 +339,7 @@ pub(super) trait Drafts {
 /// (planned domains, position).
 pub(super) struct DraftList<'a> {
     drafts: Vec<Draft<'a>>,
-    open: BTreeSet<(usize, usize)>,
+    open: BTreeSet<(Opening, usize)>,
 }
 
 impl<'a> DraftList<'a> {
@@ -298,7 +349,7 @@ impl<'a> DraftList<'a> {
             .iter()
             .enumerate()
             .filter(|(_, d)| d.free_slots() > 0)
-            .map(|(i, d)| (d.planned(), i))
+            .map(|(i, d)| (d.opening(), i))
             .collect();
         DraftList { drafts, open }
     }
@@ -337,11 +388,11 @@ impl Drafts for DraftList<'_> {
     fn load(&mut self, worker: WorkerId, domain: DomainId) {
         let i = self.position(worker);
         let draft = &mut self.drafts[i];
-        let before = (draft.planned(), i);
+        let before = (draft.opening(), i);
         draft.load(domain);
         self.open.remove(&before);
         if draft.free_slots() > 0 {
-            self.open.insert((draft.planned(), i));
+            self.open.insert((draft.opening(), i));
         }
     }
 }

@@ -23,6 +23,11 @@ impl Draft<'_> {
         self.worker.capacity - self.planned()
     }
 
+    /// Whether a load now would evict: no slot of the cache is empty.
+    fn evicts(&self) -> bool {
+        self.worker.resident.len() + self.load.len() >= self.worker.capacity
+    }
+
     fn works_on(&self, domain: DomainId) -> bool {
         self.keep.contains(&domain) || self.load.contains(&domain)
     }
@@ -53,7 +58,7 @@ pub fn next_round_with(state: &ClusterState, options: Options) -> RoundPlan {
         let Some(draft) = drafts
             .iter_mut()
             .filter(|d| d.free_slots() > 0)
-            .min_by_key(|d| d.planned())
+            .min_by_key(|d| (d.planned(), d.evicts()))
         else {
             break;
         };
@@ -91,9 +96,9 @@ pub fn next_round_with(state: &ClusterState, options: Options) -> RoundPlan {
     let workers = drafts
         .into_iter()
         .map(|d| {
-            let resident = &d.worker.resident;
-            let overflow = (resident.len() + d.load.len()).saturating_sub(d.worker.capacity);
-            let evict = resident
+            let by_use = &d.worker.by_use;
+            let overflow = (by_use.len() + d.load.len()).saturating_sub(d.worker.capacity);
+            let evict = by_use
                 .iter()
                 .copied()
                 .filter(|r| !d.keep.contains(r))

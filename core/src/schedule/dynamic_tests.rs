@@ -102,7 +102,41 @@ fn evicts_only_as_much_as_the_loads_need() {
     let w0 = of(&next_round(&s), 0).clone();
     assert_eq!(w0.keep, set(&[2]));
     assert_eq!(w0.load, set(&[3]));
-    assert_eq!(w0.evict, set(&[0]), "lower unwanted id goes first");
+    assert_eq!(
+        w0.evict,
+        set(&[0]),
+        "the least recently used unwanted domain goes first"
+    );
+}
+
+#[test]
+fn a_load_evicts_the_least_recently_used_unwanted_domain_not_the_lowest_id() {
+    // Worker 0 traced domain 1 last (listed last): its new rays come back to it, so domain 4
+    // goes out, though 1 has the lower id. Evicting 1 made a worker load a pair of
+    // neighbouring domains in turn.
+    let s = state(vec![worker(0, &[4, 2, 1], 3)], &[(2, 5), (3, 7)]);
+    let w0 = of(&next_round(&s), 0).clone();
+    assert_eq!((w0.keep, w0.load), (set(&[2]), set(&[3])));
+    assert_eq!(w0.evict, set(&[4]));
+}
+
+#[test]
+fn a_worker_with_an_empty_slot_takes_a_load_before_one_that_must_evict() {
+    // Both have nothing wanted planned; worker 1's empty slot costs no eviction, so it goes
+    // first though worker 0 has the lower id.
+    let s = state(vec![worker(0, &[0, 1], 2), worker(1, &[2], 2)], &[(5, 9)]);
+    let plan = next_round(&s);
+    assert_eq!(of(&plan, 1).load, set(&[5]));
+    assert!(of(&plan, 1).evict.is_empty());
+    assert!(of(&plan, 0).is_idle() && of(&plan, 0).evict.is_empty());
+    // With more planned, an empty slot waits its turn: worker 1 keeps a wanted domain.
+    let s = state(
+        vec![worker(0, &[0, 1], 2), worker(1, &[2], 2)],
+        &[(2, 3), (5, 9)],
+    );
+    let plan = next_round(&s);
+    assert_eq!(of(&plan, 0).load, set(&[5]));
+    assert_eq!(of(&plan, 0).evict, set(&[0]));
 }
 
 #[test]
@@ -224,10 +258,11 @@ fn does_not_duplicate_a_queue_too_small_to_split() {
 const DOMAINS: u32 = 8;
 
 fn arb_state() -> impl Strategy<Value = ClusterState> {
-    let workers = prop::collection::vec(
-        (1usize..4, prop::collection::btree_set(0..DOMAINS, 0..4)),
-        1..7,
-    );
+    // Resident domains in any order of use.
+    let resident = prop::collection::btree_set(0..DOMAINS, 0..4)
+        .prop_map(Vec::from_iter)
+        .prop_shuffle();
+    let workers = prop::collection::vec((1usize..4, resident), 1..7);
     let queues = prop::collection::vec(prop_oneof![Just(0u64), 1u64..50], DOMAINS as usize);
     (workers, queues).prop_map(|(workers, queues)| {
         let workers = workers.into_iter().enumerate().map(|(i, (cap, res))| {

@@ -55,21 +55,28 @@ pub struct WorkerState {
     pub id: WorkerId,
     /// Domains currently in the worker's cache.
     pub resident: BTreeSet<DomainId>,
+    /// The same domains, least recently used first: the order in which a load evicts those
+    /// no ray wants ([`dynamic`]).
+    pub by_use: Vec<DomainId>,
     /// How many domains the cache can hold at once; at least 1 (the paper's
     /// processes hold exactly one).
     pub capacity: usize,
 }
 
 impl WorkerState {
-    /// A worker with the given resident domains and cache capacity.
+    /// A worker with the given resident domains, least recently used first (a domain named
+    /// twice counts where it is first named), and cache capacity.
     pub fn new(
         id: WorkerId,
         resident: impl IntoIterator<Item = DomainId>,
         capacity: usize,
     ) -> Self {
+        let mut set = BTreeSet::new();
+        let by_use = resident.into_iter().filter(|&d| set.insert(d)).collect();
         Self {
             id,
-            resident: resident.into_iter().collect(),
+            resident: set,
+            by_use,
             capacity,
         }
     }

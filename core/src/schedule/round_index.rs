@@ -18,7 +18,7 @@ use std::cmp::Reverse;
 use std::collections::{BTreeMap, BTreeSet};
 
 use super::dynamic::{
-    Draft, Drafts, Heat, Hottest, Options, WorkerPlan, extend_plans, pair_with_free_slots,
+    Draft, Drafts, Heat, Hottest, Opening, Options, WorkerPlan, extend_plans, pair_with_free_slots,
 };
 use super::rounds::{Cluster, Member, deposit_moved, sent_plan, set_plans};
 use super::{DomainId, WorkerId};
@@ -37,6 +37,9 @@ struct Part {
     held: Vec<u32>,
     /// Domains in its memory or plan (the oldest-generation rule counts their queues).
     in_memory: Vec<u32>,
+    /// Domains in its memory, least recently used first, each once: the order its draft
+    /// evicts them in if it ran dry. The only list here not ascending.
+    by_use: Vec<u32>,
     /// Domains of its plan if it is busy (rays queued elsewhere for them move to it).
     holding_plan: Vec<u32>,
     /// Domains its report has a queue for, empty or not.
@@ -81,6 +84,7 @@ impl Part {
         };
         let resident = report.resident.iter().copied().filter(|&d| d < domains);
         self.in_memory.extend(resident.clone());
+        self.by_use.extend(resident.clone());
         sort_dedup(&mut self.in_memory);
         self.held.extend(resident);
         if !dry {
@@ -112,6 +116,7 @@ impl Part {
         self.generations.clear();
         self.held.clear();
         self.in_memory.clear();
+        self.by_use.clear();
         self.holding_plan.clear();
         self.queues.clear();
         self.plan.clear();
@@ -128,6 +133,8 @@ struct Dry {
     capacity: usize,
     /// Its resident domains with rays that count: those its draft keeps.
     kept: usize,
+    /// Its resident domains.
+    held: usize,
     /// Whether its plan names exactly its resident domains (as `rounds::sent_plan` names them):
     /// then a round that gives it nothing leaves its plan as it is.
     stands: bool,
@@ -137,6 +144,11 @@ impl Dry {
     /// Whether its draft has a slot not holding wanted data.
     fn has_free_slot(&self) -> bool {
         self.capacity > self.kept
+    }
+
+    /// Where its draft would stand in the pairing's order.
+    fn opening(&self) -> Opening {
+        Opening::new(self.kept, self.held, self.capacity)
     }
 
     /// Whether it is planned even if the round gives it nothing (`rounds::sent_plan`): its plan
@@ -261,9 +273,9 @@ pub struct RoundIndex {
     parts: BTreeMap<u32, Part>,
     /// Members that ran dry since their last plan, each as its draft would start.
     dry: BTreeMap<u32, Dry>,
-    /// (domains kept, key) of the dry members with a free slot: the order Fig. 5's pairing
-    /// serves them in.
-    open: BTreeSet<(usize, u32)>,
+    /// (place, key) of the dry members with a free slot: the order Fig. 5's pairing serves
+    /// them in (`Opening`: domains kept, then an empty slot first).
+    open: BTreeSet<(Opening, u32)>,
     /// The same members by key: the order the extensions serve them in.
     free: BTreeSet<u32>,
     /// Dry members whose plan names other domains than their draft keeps.
@@ -452,6 +464,7 @@ impl RoundIndex {
                 .max(1)
                 .max(resident.len()),
             kept: resident.iter().filter(kept).count(),
+            held: resident.len(),
             stands: part.plan == *resident,
         };
         for &d in resident {
@@ -476,9 +489,9 @@ impl RoundIndex {
         }
         if dry.has_free_slot() {
             if add {
-                self.open.insert((dry.kept, key));
+                self.open.insert((dry.opening(), key));
             } else {
-                self.open.remove(&(dry.kept, key));
+                self.open.remove(&(dry.opening(), key));
             }
         }
     }
@@ -933,8 +946,8 @@ impl RoundIndex {
 /// Dry member `key`'s draft (Fig. 5's first loop): its resident domains in the scene (its
 /// `part`'s), `dry`'s slots, keeping the domains with rays that count (`shown`).
 fn draft_of(key: u32, part: &Part, dry: &Dry, shown: &[(u64, u32)]) -> Draft<'static> {
-    let resident: BTreeSet<DomainId> = part.held.iter().copied().map(DomainId).collect();
-    Draft::keeping_wanted(WorkerId(key), Cow::Owned(resident), dry.capacity, |d| {
+    let by_use: Vec<DomainId> = part.by_use.iter().copied().map(DomainId).collect();
+    Draft::keeping_wanted(WorkerId(key), Cow::Owned(by_use), dry.capacity, |d| {
         wanted(shown, d.0)
     })
 }
@@ -948,9 +961,9 @@ struct DryDrafts<'a> {
     parts: &'a BTreeMap<u32, Part>,
     shown: &'a [(u64, u32)],
     free: &'a BTreeSet<u32>,
-    open: &'a mut BTreeSet<(usize, u32)>,
-    taken: Vec<(usize, u32)>,
-    reopened: BTreeSet<(usize, u32)>,
+    open: &'a mut BTreeSet<(Opening, u32)>,
+    taken: Vec<(Opening, u32)>,
+    reopened: BTreeSet<(Opening, u32)>,
     drawn: BTreeMap<u32, Draft<'static>>,
 }
 
@@ -978,10 +991,11 @@ impl Drafts for DryDrafts<'_> {
         };
         let key = if idle {
             // Every drawn member has something planned; the others keep what they keep.
-            self.open
-                .range((0, from)..(1, 0))
-                .next()
+            Opening::IDLE
+                .iter()
+                .filter_map(|&o| self.open.range((o, from)..=(o, u32::MAX)).next())
                 .map(|&(_, key)| key)
+                .min()
         } else {
             self.free.range(from..).copied().find(|key| {
                 self.drawn
@@ -1007,20 +1021,20 @@ impl Drafts for DryDrafts<'_> {
         let draft = match self.drawn.entry(key) {
             std::collections::btree_map::Entry::Occupied(e) => {
                 let draft = e.into_mut();
-                self.reopened.remove(&(draft.planned(), key));
+                self.reopened.remove(&(draft.opening(), key));
                 draft
             }
             std::collections::btree_map::Entry::Vacant(e) => {
                 let dry = &self.dry[&key];
-                if dry.has_free_slot() && self.open.remove(&(dry.kept, key)) {
-                    self.taken.push((dry.kept, key));
+                if dry.has_free_slot() && self.open.remove(&(dry.opening(), key)) {
+                    self.taken.push((dry.opening(), key));
                 }
                 e.insert(draft_of(key, &self.parts[&key], dry, self.shown))
             }
         };
         draft.load(domain);
         if draft.free_slots() > 0 {
-            self.reopened.insert((draft.planned(), key));
+            self.reopened.insert((draft.opening(), key));
         }
     }
 }

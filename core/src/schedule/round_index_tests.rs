@@ -138,13 +138,14 @@ fn run(changes: &[Change], oldest_first: bool, options: Options) -> Result<(), T
                 } else {
                     continue;
                 };
+                // In the worker's order of use, each once, as the coordinator takes it in.
+                let mut seen = BTreeSet::new();
                 m.report = Some(Queues {
                     round: at,
                     resident: resident
                         .iter()
                         .copied()
-                        .collect::<BTreeSet<_>>()
-                        .into_iter()
+                        .filter(|&d| seen.insert(d))
                         .collect(),
                     queued: queued.iter().map(|&(d, n, _)| (d, n)).collect(),
                     oldest_generation: queued.iter().map(|&(d, _, g)| (d, g)).collect(),

@@ -18,7 +18,8 @@ use std::collections::{BTreeMap, BTreeSet};
 pub struct Queues {
     /// The round of the plan it had when it reported.
     pub round: u64,
-    /// Domains in its memory.
+    /// Domains in its memory, least recently used first, each once (the coordinator drops a
+    /// repeat as it takes a report in): a load evicts those no ray wants in this order.
     pub resident: Vec<u32>,
     /// Rays it holds per domain.
     pub queued: BTreeMap<u32, u64>,
@@ -244,19 +245,20 @@ impl<M: AsRef<Member>> Cluster<'_, M> {
             let Some(report) = m.report.as_ref() else {
                 continue;
             };
-            let mut resident: BTreeSet<DomainId> = report
+            // In the worker's order of use: a dry member's load evicts in it.
+            let by_use = report
                 .resident
                 .iter()
                 .filter(|&&d| d < domains)
-                .map(|&d| DomainId(d))
-                .collect();
+                .map(|&d| DomainId(d));
+            let mut resident: BTreeSet<DomainId> = by_use.clone().collect();
             if !busy.contains(&key) {
                 // Domains differ in size: count the slots by the largest, but never fewer
                 // than what the worker holds now.
                 let capacity = ((m.cache_bytes / largest) as usize)
                     .max(1)
                     .max(resident.len());
-                workers.push(WorkerState::new(WorkerId(key), resident, capacity));
+                workers.push(WorkerState::new(WorkerId(key), by_use, capacity));
             } else {
                 // A busy member holds exactly the wanted domains of its plan and memory, with
                 // no slot to spare: what it holds and nobody wants is not a free slot (it is

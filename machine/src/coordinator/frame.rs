@@ -5,7 +5,7 @@
 //! tiles it commits instead of writing them, so the coordinator's locking and I/O stay in its
 //! shell.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
 
 use super::accusations::Accusations;
@@ -198,11 +198,15 @@ impl AsMut<rounds::Member> for Member {
     }
 }
 
-/// A worker's report as the rounds read it.
+/// A worker's report as the rounds read it: its resident domains in its order (least
+/// recently used first), each once.
 fn queues(r: proto::QueueReport) -> rounds::Queues {
+    let mut seen = BTreeSet::new();
+    let mut resident = r.resident_domains;
+    resident.retain(|&d| seen.insert(d));
     rounds::Queues {
         round: r.round,
-        resident: r.resident_domains,
+        resident,
         queued: r.queued_rays.into_iter().collect(),
         oldest_generation: r.oldest_generation.into_iter().collect(),
         oldest_waiting: r.oldest_waiting,

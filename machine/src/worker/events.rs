@@ -42,7 +42,8 @@ pub enum Event<S> {
     },
     /// A peer stopped acknowledging bundles.
     PeerUnresponsive { peer: String, reason: String },
-    /// A pass of the frame of `job_id` finished; `resident` are the domains mapped now.
+    /// A pass of the frame of `job_id` finished; `resident` are the domains mapped now, least
+    /// recently used first.
     PassFinished {
         job_id: String,
         result: Result<PassOutput, PassFailed>,
@@ -50,7 +51,8 @@ pub enum Event<S> {
     },
     /// A prefetch of `domain` for the frame of `job_id` ended: `Ok(true)` it is mapped now,
     /// `Ok(false)` it was loaded but found no room (or was mapped already), `Err` it could
-    /// not be loaded (a pass loading it will say so); `resident` are the domains mapped now.
+    /// not be loaded (a pass loading it will say so); `resident` are the domains mapped now,
+    /// least recently used first.
     PrefetchDone {
         job_id: String,
         domain: u32,
@@ -107,7 +109,7 @@ pub struct OpenedScene<S> {
     pub limits: BatchLimits,
     /// Bytes of every domain file, by domain id.
     pub domain_bytes: std::sync::Arc<[u64]>,
-    /// Domains mapped in the cache now.
+    /// Domains mapped in the cache now, least recently used first.
     pub resident: Vec<u32>,
     /// The frame's (empty) ray queues, over the shell's spill store.
     pub queues: DomainQueues<S>,

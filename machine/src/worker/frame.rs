@@ -294,9 +294,9 @@ impl<S: RaySpill> Frame<S> {
         self.plan.set_holders(holders, delta);
     }
 
-    /// Records which domains are mapped here now.
-    pub fn set_resident(&mut self, resident: impl IntoIterator<Item = u32>) {
-        self.plan.set_resident(resident);
+    /// Records which domains are mapped here now, least recently used first.
+    pub fn set_resident(&mut self, by_use: impl IntoIterator<Item = u32>) {
+        self.plan.set_resident(by_use);
     }
 
     /// More tiles whose camera rays to issue here (those outside the frame are ignored).
@@ -408,7 +408,7 @@ impl<S: RaySpill> Frame<S> {
         Some(proto::QueueReport {
             job_id: self.job_id.clone(),
             round: self.plan.round,
-            resident_domains: self.plan.resident().iter().copied().collect(),
+            resident_domains: self.plan.resident_by_use().to_vec(),
             queued_rays: self.queue_sizes().into_iter().collect(),
             oldest_generation: match self.plan.mode {
                 Mode::Predictive => self.oldest_generations().into_iter().collect(),

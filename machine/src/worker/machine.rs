@@ -354,7 +354,7 @@ impl<S: RaySpill> Worker<S> {
         // may map one more; its PassFinished says so.
         let resident: Vec<u32> = frame
             .plan()
-            .resident()
+            .resident_by_use()
             .iter()
             .copied()
             .filter(|d| !p.evict.contains(d))

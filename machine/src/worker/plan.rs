@@ -95,6 +95,9 @@ pub struct Plan {
     /// domain to no one or to another worker: any worker may trace any ray of a domain it
     /// has, and doing so costs neither a load nor a transfer.
     resident: BTreeSet<u32>,
+    /// The same domains, least recently used first, as the cache last listed them: the
+    /// order the report gives them in, which the coordinator evicts in.
+    by_use: Vec<u32>,
     /// Other workers holding each domain this round, by key. Keys, not addresses: at 256
     /// workers under the dynamic schedule the addresses, in every member's copy of the map and
     /// in every round's messages, held gigabytes (README "Simulator"); a slot a domain, not a
@@ -131,6 +134,7 @@ impl Plan {
             roster,
             work_on: BTreeSet::new(),
             resident: BTreeSet::new(),
+            by_use: Vec::new(),
             holders: HolderMap::new(domains),
             former: FormerHolders::new(domains),
             next: Vec::new(),
@@ -163,6 +167,11 @@ impl Plan {
     /// Domains mapped here.
     pub fn resident(&self) -> &BTreeSet<u32> {
         &self.resident
+    }
+
+    /// Domains mapped here, least recently used first.
+    pub fn resident_by_use(&self) -> &[u32] {
+        &self.by_use
     }
 
     /// Domains the coordinator expects to give this worker next, most likely first.
@@ -277,9 +286,13 @@ impl Plan {
         self.note_former(d, gone);
     }
 
-    /// Records which domains are mapped here now.
-    pub fn set_resident(&mut self, resident: impl IntoIterator<Item = u32>) {
-        let resident: BTreeSet<u32> = resident.into_iter().collect();
+    /// Records which domains are mapped here now, least recently used first (a domain named
+    /// twice counts where it is first named).
+    pub fn set_resident(&mut self, by_use: impl IntoIterator<Item = u32>) {
+        let mut resident = BTreeSet::new();
+        self.by_use.clear();
+        self.by_use
+            .extend(by_use.into_iter().filter(|&d| resident.insert(d)));
         note_moved(&mut self.changed, &self.resident, &resident);
         self.resident = resident;
     }

@@ -496,6 +496,27 @@ fn a_pass_that_empties_the_planned_queues_is_reported_once() {
 }
 
 #[test]
+fn the_report_lists_mapped_domains_in_the_caches_order_of_use() {
+    let mut w = worker();
+    open(&mut w, Time(0), JOB, Schedule::Dynamic, &[]);
+    w.handle(Time(1), plan(1, &[0], &[]));
+    assert!(pass_started(&w.handle(Time(2), bundle(JOB, &[ray(0, 0, 0, 1)]))).is_some());
+    // The cache's order, least recently used first: the coordinator evicts in it, so domain
+    // 0, traced last, is not the first to go though its id is the lowest.
+    let actions = w.handle(
+        Time(3),
+        Event::PassFinished {
+            job_id: JOB.into(),
+            result: Ok(PassOutput::default()),
+            resident: vec![3, 2, 0],
+        },
+    );
+    let reports = queue_reports(&actions);
+    assert_eq!(reports.len(), 1, "{actions:?}");
+    assert_eq!(reports[0].resident_domains, [3, 2, 0]);
+}
+
+#[test]
 fn a_plan_that_sends_work_here_holds_the_report_until_the_work_runs_or_the_hold_ends() {
     let ms = |n: u64| Time(n * 1_000_000);
     let held_plan = |round: u64, hold_ms: u32| {
