@@ -71,11 +71,16 @@ impl WorkerState {
         resident: impl IntoIterator<Item = DomainId>,
         capacity: usize,
     ) -> Self {
-        let mut set = BTreeSet::new();
-        let by_use = resident.into_iter().filter(|&d| set.insert(d)).collect();
+        let mut by_use: Vec<DomainId> = resident.into_iter().collect();
+        // Built whole (sorted, then in bulk): a whole-cluster round makes one for every member.
+        let resident: BTreeSet<DomainId> = by_use.iter().copied().collect();
+        if resident.len() < by_use.len() {
+            let mut seen = BTreeSet::new();
+            by_use.retain(|&d| seen.insert(d));
+        }
         Self {
             id,
-            resident: set,
+            resident,
             by_use,
             capacity,
         }

@@ -251,15 +251,16 @@ impl<M: AsRef<Member>> Cluster<'_, M> {
                 .iter()
                 .filter(|&&d| d < domains)
                 .map(|&d| DomainId(d));
-            let mut resident: BTreeSet<DomainId> = by_use.clone().collect();
             if !busy.contains(&key) {
+                let mut worker = WorkerState::new(WorkerId(key), by_use, 0);
                 // Domains differ in size: count the slots by the largest, but never fewer
                 // than what the worker holds now.
-                let capacity = ((m.cache_bytes / largest) as usize)
+                worker.capacity = ((m.cache_bytes / largest) as usize)
                     .max(1)
-                    .max(resident.len());
-                workers.push(WorkerState::new(WorkerId(key), by_use, capacity));
+                    .max(worker.resident.len());
+                workers.push(worker);
             } else {
+                let mut resident: BTreeSet<DomainId> = by_use.collect();
                 // A busy member holds exactly the wanted domains of its plan and memory, with
                 // no slot to spare: what it holds and nobody wants is not a free slot (it is
                 // not being re-planned, so a load handed to it would be handed to no one).
