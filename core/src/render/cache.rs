@@ -379,11 +379,10 @@ impl DomainCache {
 mod tests {
     use super::*;
     use crate::prepare::generate::{NbodyOptions, prepare_nbody};
+    use std::path::Path;
 
-    #[test]
-    fn resident_domains_are_listed_least_recently_used_first() {
-        let root = tempfile::tempdir().unwrap();
-        let dir = root.path().join("nb");
+    /// A small generated scene of four domains, prepared in `dir`.
+    pub(super) fn four_domains(dir: &Path) -> Manifest {
         let options = NbodyOptions {
             name: "nb".into(),
             triangles: 2000,
@@ -392,7 +391,14 @@ mod tests {
             max_memory: None,
             force: false,
         };
-        let manifest = prepare_nbody(&dir, &options).unwrap();
+        prepare_nbody(dir, &options).unwrap()
+    }
+
+    #[test]
+    fn resident_domains_are_listed_least_recently_used_first() {
+        let root = tempfile::tempdir().unwrap();
+        let dir = root.path().join("nb");
+        let manifest = four_domains(&dir);
         let mut cache = DomainCache::new(&dir, &manifest, u64::MAX);
         for d in [2, 0, 3, 0] {
             cache.get(d).unwrap();

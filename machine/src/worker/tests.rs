@@ -167,6 +167,14 @@ fn finished(out: PassOutput) -> Event<MemorySpill> {
     }
 }
 
+/// `w` with a dynamic frame open (time 0), planned on domain 0 (1) and a pass tracing one ray
+/// of it (2).
+fn tracing_a_ray(w: &mut Worker<MemorySpill>) {
+    open(w, Time(0), JOB, Schedule::Dynamic, &[]);
+    w.handle(Time(1), plan(1, &[0], &[]));
+    assert!(pass_started(&w.handle(Time(2), bundle(JOB, &[ray(0, 0, 0, 1)]))).is_some());
+}
+
 /// Rays sent to each peer by `actions` in the migrated-ray tier.
 fn rays_sent(actions: &[Action]) -> BTreeMap<String, Vec<RayRecord>> {
     sent_in(actions, Tier::Migrated)
@@ -498,9 +506,7 @@ fn a_pass_that_empties_the_planned_queues_is_reported_once() {
 #[test]
 fn the_report_lists_mapped_domains_in_the_caches_order_of_use() {
     let mut w = worker();
-    open(&mut w, Time(0), JOB, Schedule::Dynamic, &[]);
-    w.handle(Time(1), plan(1, &[0], &[]));
-    assert!(pass_started(&w.handle(Time(2), bundle(JOB, &[ray(0, 0, 0, 1)]))).is_some());
+    tracing_a_ray(&mut w);
     // The cache's order, least recently used first: the coordinator evicts in it, so domain
     // 0, traced last, is not the first to go though its id is the lowest.
     let actions = w.handle(
@@ -952,9 +958,7 @@ fn idle_time_is_counted_by_why_the_worker_has_no_pass() {
 #[test]
 fn the_frame_statistics_count_the_passes_of_the_frame_that_finished() {
     let mut w = worker();
-    open(&mut w, Time(0), JOB, Schedule::Dynamic, &[]);
-    w.handle(Time(1), plan(1, &[0], &[]));
-    assert!(pass_started(&w.handle(Time(2), bundle(JOB, &[ray(0, 0, 0, 1)]))).is_some());
+    tracing_a_ray(&mut w);
     w.handle(Time(3), finished(PassOutput::default()));
     assert!(pass_started(&w.handle(Time(4), bundle(JOB, &[ray(0, 0, 0, 2)]))).is_some());
     w.handle(Time(5), finished(PassOutput::default()));

@@ -82,22 +82,14 @@ impl SharedMappings {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::prepare::generate::{NbodyOptions, prepare_nbody};
     use crate::render::cache::DomainCache;
+    use crate::render::cache::tests::four_domains;
 
     #[test]
     fn caches_share_one_mapping_a_domain_and_count_their_own_loads() {
         let root = tempfile::tempdir().unwrap();
         let dir = root.path().join("nb");
-        let options = NbodyOptions {
-            name: "nb".into(),
-            triangles: 2000,
-            seed: 1,
-            domains: 4,
-            max_memory: None,
-            force: false,
-        };
-        let manifest = Arc::new(prepare_nbody(&dir, &options).unwrap());
+        let manifest = Arc::new(four_domains(&dir));
         let shared = Arc::new(SharedMappings::new());
         let cache = |budget| {
             DomainCache::shared(&dir, manifest.clone(), budget).with_shared_mappings(shared.clone())
