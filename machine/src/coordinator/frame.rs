@@ -201,9 +201,15 @@ impl AsMut<rounds::Member> for Member {
 /// A worker's report as the rounds read it: its resident domains in its order (least
 /// recently used first), each once.
 fn queues(r: proto::QueueReport) -> rounds::Queues {
-    let mut seen = BTreeSet::new();
     let mut resident = r.resident_domains;
-    resident.retain(|&d| seen.insert(d));
+    // Checked on a sorted copy (a cache's worth of ids, every report): a set for each report
+    // cost the 4,096-worker frame's coordinator a tenth more.
+    let mut sorted = resident.clone();
+    sorted.sort_unstable();
+    if sorted.windows(2).any(|pair| pair[0] == pair[1]) {
+        let mut seen = BTreeSet::new();
+        resident.retain(|&d| seen.insert(d));
+    }
     rounds::Queues {
         round: r.round,
         resident,

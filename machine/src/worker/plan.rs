@@ -289,10 +289,13 @@ impl Plan {
     /// Records which domains are mapped here now, least recently used first (a domain named
     /// twice counts where it is first named).
     pub fn set_resident(&mut self, by_use: impl IntoIterator<Item = u32>) {
-        let mut resident = BTreeSet::new();
         self.by_use.clear();
-        self.by_use
-            .extend(by_use.into_iter().filter(|&d| resident.insert(d)));
+        self.by_use.extend(by_use);
+        let resident: BTreeSet<u32> = self.by_use.iter().copied().collect();
+        if resident.len() < self.by_use.len() {
+            let mut seen = BTreeSet::new();
+            self.by_use.retain(|&d| seen.insert(d));
+        }
         note_moved(&mut self.changed, &self.resident, &resident);
         self.resident = resident;
     }
