@@ -881,15 +881,31 @@ impl RoundIndex {
             return Vec::new();
         }
         if self.dry.len() == members.len() {
-            // Nobody is busy: every member is planned, from the whole cluster.
+            // Nobody is busy: under the oldest-generation rule the index's plans first, then,
+            // if they change nothing, every queue counted, from the whole cluster.
+            if self.oldest_first {
+                let plans = self.index_plans(members, options);
+                if !plans.is_empty() {
+                    return plans;
+                }
+            }
             let cluster = Cluster {
                 members,
                 domain_bytes: &self.domain_bytes,
-                oldest_first: self.oldest_first,
+                oldest_first: false,
                 options,
             };
             return cluster.dry_plans();
         }
+        self.index_plans(members, options)
+    }
+
+    /// The dry members' plans from the index's figures.
+    fn index_plans<M: AsRef<Member>>(
+        &mut self,
+        members: &BTreeMap<u32, M>,
+        options: Options,
+    ) -> Vec<WorkerPlan> {
         if self.wanted == 0 {
             return Vec::new();
         }
