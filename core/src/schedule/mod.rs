@@ -75,8 +75,7 @@ impl WorkerState {
         // Built whole (sorted, then in bulk): a whole-cluster round makes one for every member.
         let resident: BTreeSet<DomainId> = by_use.iter().copied().collect();
         if resident.len() < by_use.len() {
-            let mut seen = BTreeSet::new();
-            by_use.retain(|&d| seen.insert(d));
+            keep_first_of_each(&mut by_use);
         }
         Self {
             id,
@@ -85,6 +84,14 @@ impl WorkerState {
             capacity,
         }
     }
+}
+
+/// Drops every repeat from `list`, each value kept where it is first named: a worker lists its
+/// resident domains least recently used first, and a repeat (a faulty list) must not move a
+/// domain's place. Callers check for repeats their own cheap way first; this is the rule.
+pub fn keep_first_of_each<T: Ord + Copy>(list: &mut Vec<T>) {
+    let mut seen = BTreeSet::new();
+    list.retain(|&x| seen.insert(x));
 }
 
 /// Why a reported cluster state cannot be scheduled.
@@ -193,6 +200,16 @@ mod tests {
             resident.iter().map(|&d| DomainId(d)),
             capacity,
         )
+    }
+
+    #[test]
+    fn a_repeated_resident_domain_keeps_its_first_place_in_the_order_of_use() {
+        let mut by_use = vec![3, 1, 3, 2, 1];
+        keep_first_of_each(&mut by_use);
+        assert_eq!(by_use, [3, 1, 2]);
+        let w = worker(0, &[3, 1, 3, 2], 4);
+        assert_eq!(w.by_use, [DomainId(3), DomainId(1), DomainId(2)]);
+        assert_eq!(w.resident.len(), 3);
     }
 
     #[test]

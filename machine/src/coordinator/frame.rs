@@ -5,7 +5,7 @@
 //! tiles it commits instead of writing them, so the coordinator's locking and I/O stay in its
 //! shell.
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::BTreeMap;
 use std::sync::Arc;
 
 use super::accusations::Accusations;
@@ -19,6 +19,7 @@ use rayfarm_core::cluster::tile_sums;
 use rayfarm_core::progressive::Samples;
 use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::schedule::dynamic::Options;
+use rayfarm_core::schedule::keep_first_of_each;
 use rayfarm_core::schedule::round_index::RoundIndex;
 use rayfarm_core::schedule::rounds;
 use rayfarm_core::schedule::static_plans::{image_plane_share, owned_domains_fit};
@@ -207,8 +208,7 @@ fn queues(r: proto::QueueReport) -> rounds::Queues {
     let mut sorted = resident.clone();
     sorted.sort_unstable();
     if sorted.windows(2).any(|pair| pair[0] == pair[1]) {
-        let mut seen = BTreeSet::new();
-        resident.retain(|&d| seen.insert(d));
+        keep_first_of_each(&mut resident);
     }
     rounds::Queues {
         round: r.round,

@@ -8,6 +8,7 @@ use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::sync::Arc;
 
 use rayfarm_core::ray::RayRecord;
+use rayfarm_core::schedule::keep_first_of_each;
 
 use super::holder_map::{FormerHolders, HolderMap};
 
@@ -293,8 +294,7 @@ impl Plan {
         self.by_use.extend(by_use);
         let resident: BTreeSet<u32> = self.by_use.iter().copied().collect();
         if resident.len() < self.by_use.len() {
-            let mut seen = BTreeSet::new();
-            self.by_use.retain(|&d| seen.insert(d));
+            keep_first_of_each(&mut self.by_use);
         }
         note_moved(&mut self.changed, &self.resident, &resident);
         self.resident = resident;
