@@ -16,6 +16,14 @@ const FRAME: [&str; 8] = [
     "--width", "160", "--height", "120", "--spp", "4", "--depth", "3",
 ];
 
+/// Frames a test renders, each the local image, until the plans made the event it needs
+/// happen (a load from a peer, worker 0 asked for a domain it holds). The plans decide who
+/// asks whom, and most asks find the domain gone (a load asks the domain's former holders
+/// too, which have mostly evicted it): over 20 frames of this scene at 8 MiB/s, one frame in
+/// ten took no bytes from peers and one in four asked worker 0 for nothing it held; at
+/// 1 MiB/s, 6 frames of 12. Sixteen frames all missing: about 1 in 65,000 at the worst rate.
+const ATTEMPTS: usize = 16;
+
 /// Slow enough storage that a peer on loopback is cheaper, fast enough for a quick test.
 const STORAGE: &str = "8MiB/s";
 
@@ -63,20 +71,33 @@ fn peers_serve_domains_and_the_image_is_the_local_one() {
         .map(|w| w.arg("--http", "127.0.0.1:0"))
         .collect();
     let cluster = Cluster::start(root.path(), Some("nb"), &opts);
-    // Dynamic rounds hand domains from worker to worker, whose former holders still have them
-    // (the predictive schedule's plans rarely do here: its loads find no holder).
-    let json = render(&cluster, "dynamic", "dynamic");
-    assert_eq!(hash_of(&json), expected);
-    let (from_peers_total, loaded) = (
-        counter(&json, "bytes_from_peers"),
-        counter(&json, "bytes_loaded"),
-    );
+    // Dynamic rounds give dry workers copies of the domains other workers hold (the
+    // predictive schedule's plans rarely do here: its loads find no holder), but a frame's
+    // peer loads are few (20 frames: 0-5 of 86-109 loads, 27-53 refusals). Frames, no peer
+    // failing, until one took bytes from peers.
+    let (mut arrived, mut last) = (0, String::new());
+    for attempt in 0..ATTEMPTS {
+        let json = render(&cluster, "dynamic", &format!("dynamic-{attempt}"));
+        assert_eq!(hash_of(&json), expected, "attempt {attempt}");
+        assert_eq!(counter(&json, "peer_failures"), 0, "attempt {attempt}");
+        let (from_peers, loaded) = (
+            counter(&json, "bytes_from_peers"),
+            counter(&json, "bytes_loaded"),
+        );
+        assert!(
+            from_peers < loaded,
+            "{from_peers} of {loaded} bytes from peers"
+        );
+        arrived += from_peers;
+        last = stats_field(&json, "/cache").to_string();
+        if from_peers > 0 {
+            break;
+        }
+    }
     assert!(
-        from_peers_total > 0 && from_peers_total < loaded,
-        "{from_peers_total} of {loaded} bytes from peers: {}",
-        stats_field(&json, "/cache")
+        arrived > 0,
+        "no bytes from peers in {ATTEMPTS} frames, the last's cache: {last}"
     );
-    assert_eq!(counter(&json, "peer_failures"), 0);
     // The same frame without the option loads everything from storage.
     let json = submit_wait(
         &cluster,
@@ -99,8 +120,8 @@ fn peers_serve_domains_and_the_image_is_the_local_one() {
         })
         .sum();
     assert!(
-        served >= from_peers_total && from_peers_total > 0,
-        "{served} bytes served, {from_peers_total} arrived"
+        served >= arrived,
+        "{served} bytes served, {arrived} arrived"
     );
 }
 
@@ -122,7 +143,7 @@ fn a_serving_peer_killed_mid_transfer_costs_a_load_from_storage_not_the_image() 
     // Whether anyone asks worker 0 depends on the plans: frames, each the local image, until
     // worker 0 is serving a domain while one runs; then it is killed there.
     let mut json = None;
-    for attempt in 0..4 {
+    for attempt in 0..ATTEMPTS {
         let stats = cluster.dir().join(format!("killed-{attempt}.json"));
         let png = cluster.dir().join(format!("killed-{attempt}.png"));
         let mut waiter = std::process::Command::new(rayfarm_tests::bin("rayfarm"))
@@ -166,7 +187,8 @@ fn a_serving_peer_killed_mid_transfer_costs_a_load_from_storage_not_the_image() 
         ));
         assert_eq!(hash_of(&stats), expected, "attempt {attempt}");
     }
-    let json = json.expect("worker 0 never served a domain in 4 frames");
+    let json =
+        json.unwrap_or_else(|| panic!("worker 0 never served a domain in {ATTEMPTS} frames"));
     // A survivor saw its transfer break and loaded from storage instead.
     let fell_back = (1..3).any(|i| {
         cluster
@@ -200,7 +222,7 @@ fn a_hostile_peer_is_refused_and_the_load_goes_to_storage() {
         // Which worker asks worker 0 for a domain depends on the plans: a few frames, each
         // the local image, until one did.
         let mut seen = false;
-        for attempt in 0..4 {
+        for attempt in 0..ATTEMPTS {
             let json = render(&cluster, "dynamic", &format!("{fault}-{attempt}"));
             assert_eq!(hash_of(&json), expected, "{fault}");
             let logs = [cluster.worker_log(1), cluster.worker_log(2)];
