@@ -19,6 +19,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .bytes(".rayfarm.v1.PeerBundle.batches")
         .bytes(".rayfarm.v1.FetchResultResponse.image")
         .bytes(".rayfarm.v1.DomainChunk.data")
+        // A report's queues as ordered maps: the coordinator keeps them so (`rounds::Queues`)
+        // and takes a report's in without sorting them again; the worker counts them so.
+        .btree_map(".rayfarm.v1.QueueReport")
         .compile_fds(fds)?;
     Ok(())
 }

@@ -21,16 +21,8 @@ impl Coordinator {
                 .map(|(_, w)| proto::WorkerStatus {
                     worker_id: w.id.clone(),
                     peer_address: w.peer_address.clone(),
-                    resident_domains: w
-                        .last_report
-                        .as_ref()
-                        .map(|r| ascending(&r.resident_domains))
-                        .unwrap_or_default(),
-                    queued_rays: w
-                        .last_report
-                        .as_ref()
-                        .map(|r| r.queued_rays.clone())
-                        .unwrap_or_default(),
+                    resident_domains: ascending(&w.last_report.resident_domains),
+                    queued_rays: w.last_report.queued_rays.iter().copied().collect(),
                     last_seen_ms: at.since(w.last_seen).as_millis() as u64,
                     left_out: w.left_out.clone(),
                     domain_loads: w.heartbeat.domain_loads,

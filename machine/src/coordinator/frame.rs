@@ -213,8 +213,8 @@ fn queues(r: proto::QueueReport) -> rounds::Queues {
     rounds::Queues {
         round: r.round,
         resident,
-        queued: r.queued_rays.into_iter().collect(),
-        oldest_generation: r.oldest_generation.into_iter().collect(),
+        queued: r.queued_rays,
+        oldest_generation: r.oldest_generation,
         oldest_waiting: r.oldest_waiting,
     }
 }

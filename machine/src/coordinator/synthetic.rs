@@ -164,7 +164,7 @@ impl SteadyFrame {
         let key = self.keys[(n % self.keys.len().max(1) as u64) as usize];
         let (round, resident) = self.plans.get(&key).cloned().unwrap_or_default();
         let pick = |i: u64| (mix64(n << 20 | i) % u64::from(self.domains)) as u32;
-        let queued_rays: HashMap<u32, u64> = (0..self.report_queues as u64)
+        let queued_rays: BTreeMap<u32, u64> = (0..self.report_queues as u64)
             .map(|i| (pick(i), 1 + mix64(i ^ n) % 10_000))
             .collect();
         Input::WorkerMessage {

@@ -409,9 +409,9 @@ impl<S: RaySpill> Frame<S> {
             job_id: self.job_id.clone(),
             round: self.plan.round,
             resident_domains: self.plan.resident_by_use().to_vec(),
-            queued_rays: self.queue_sizes().into_iter().collect(),
+            queued_rays: self.queue_sizes(),
             oldest_generation: match self.plan.mode {
-                Mode::Predictive => self.oldest_generations().into_iter().collect(),
+                Mode::Predictive => self.oldest_generations(),
                 _ => Default::default(),
             },
             oldest_waiting: self

@@ -674,7 +674,7 @@ fn rays_leaving_for_a_new_holder_make_a_report_due_and_an_empty_move_does_not() 
     let actions = w.handle(Time(2), bundle(JOB, &[ray(0, 0, 2, 1)]));
     assert_eq!(
         queue_reports(&actions)[0].queued_rays,
-        HashMap::from([(2, 1)])
+        BTreeMap::from([(2, 1)])
     );
     let holders = |w: &str| {
         control(FromCoordinator::Holders(proto::Holders {
@@ -1231,7 +1231,7 @@ fn rays_sent_to_a_former_holder_wait_for_the_new_holder_then_go_on() {
     assert!(rays_sent(&actions).is_empty(), "{actions:?}");
     assert_eq!(
         queue_reports(&actions)[0].queued_rays,
-        HashMap::from([(1, 2)]),
+        BTreeMap::from([(1, 2)]),
         "the coordinator hears of them"
     );
     // The flush names c the holder of domain 1: the waiting rays leave for it.

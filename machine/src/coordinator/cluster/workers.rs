@@ -89,7 +89,7 @@ impl Coordinator {
                 peer_address: r.peer_address.clone(),
                 cache_bytes: r.cache_bytes,
                 last_seen: now,
-                last_report: None,
+                last_report: ReportedQueues::default(),
                 heartbeat: proto::Heartbeat::default(),
                 left_out: String::new(),
             },
@@ -132,7 +132,7 @@ impl Coordinator {
             FromWorker::Register(_) => warn!(key, "worker registered twice; ignored"),
             FromWorker::Heartbeat(h) => worker.heartbeat = h,
             FromWorker::QueueReport(r) => {
-                worker.last_report = Some(r.clone());
+                worker.last_report.copy_from(&r);
                 if let Some(f) = self.running.as_mut().filter(|f| f.frame_id() == r.job_id) {
                     // The round it asks for is planned once the inputs at hand are taken
                     // (`Coordinator::plan`), with every other report among them.
