@@ -129,15 +129,19 @@ impl ThreadClocks {
 mod tests {
     use super::*;
 
-    /// Spins until the calling thread has used about `seconds` of CPU.
-    fn spin(seconds: f64) -> u64 {
-        let start = std::time::Instant::now();
+    /// Busy work, which the optimizer cannot drop, while `more` says so.
+    fn spin_while(mut more: impl FnMut() -> bool) {
         let mut x = 0u64;
-        while start.elapsed().as_secs_f64() < seconds {
+        while more() {
             x = x.wrapping_mul(6364136223846793005).wrapping_add(1);
             std::hint::black_box(x);
         }
-        x
+    }
+
+    /// Spins for `seconds` of wall time (less of this thread's CPU on a loaded machine).
+    fn spin(seconds: f64) {
+        let start = std::time::Instant::now();
+        spin_while(|| start.elapsed().as_secs_f64() < seconds);
     }
 
     #[test]
@@ -149,11 +153,7 @@ mod tests {
         // Against 10 ms of this thread's CPU (counted on its own clock, so a loaded machine
         // cannot shorten it), the readings' cost is under a hundredth.
         let start = thread_cpu_ns();
-        let mut x = 0u64;
-        while thread_cpu_ns() - start < 10_000_000 {
-            x = x.wrapping_mul(6364136223846793005).wrapping_add(1);
-            std::hint::black_box(x);
-        }
+        spin_while(|| thread_cpu_ns() - start < 10_000_000);
         let timed = thread_cpu_ns() - start;
         assert!(overhead * 100 < timed, "{overhead} ns of {timed} ns");
     }
