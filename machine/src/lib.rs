@@ -8,6 +8,7 @@
 
 pub mod coordinator;
 pub mod pass;
+pub mod queue_report;
 pub mod time;
 pub mod worker;
 

@@ -15,5 +15,6 @@ include!(concat!(env!("OUT_DIR"), "/rayfarm.v1.rs"));
 /// or of no tier is refused. 7: a whole map's domains with one holder each go packed
 /// (`RoundPlan.sole_holders`), which an older worker would not read. 8: a frame's roster
 /// comes in a `Roster` after the `StartFrame` (`StartFrame.roster` retired), which an older
-/// worker would ignore.
-pub const PROTOCOL_VERSION: u32 = 8;
+/// worker would ignore. 9: a queue report after a frame's first names only the queues that
+/// changed (`QueueReport.delta`), which an older coordinator would take as whole.
+pub const PROTOCOL_VERSION: u32 = 9;

@@ -20,7 +20,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use super::dynamic::{
     Draft, Drafts, Heat, Hottest, Opening, Options, WorkerPlan, extend_plans, pair_with_free_slots,
 };
-use super::rounds::{Cluster, Member, deposit_moved, sent_plan, set_plans};
+use super::rounds::{Cluster, Member, Queues, deposit_moved, sent_plan, set_plans};
 use super::{DomainId, WorkerId};
 
 /// What one member adds to the cluster's figures, kept so it can be taken out again. Every
@@ -50,15 +50,47 @@ struct Part {
 
 /// One domain's queue in a report: (its rays, the oldest generation among them), `None` where
 /// the report has no entry.
-type Queue = (Option<u64>, Option<u32>);
+pub type Queue = (Option<u64>, Option<u32>);
+
+/// A member's report that names only the queues that changed since its last
+/// (`QueueReport.delta`), for [`RoundIndex::take_changes`].
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Changes {
+    /// The round of the plan it had when it reported.
+    pub round: u64,
+    /// Domains in its memory, least recently used first, each once.
+    pub resident: Vec<u32>,
+    /// The oldest generation of its rays that wait on something other than a domain.
+    pub oldest_waiting: Option<u32>,
+    /// (domain, its queue now) of each queue that changed, each domain once.
+    pub queues: Vec<(u32, Queue)>,
+}
 
 /// Member `key`'s queue for domain `d`, if it has a report.
 fn queue_of<M: AsRef<Member>>(members: &BTreeMap<u32, M>, key: u32, d: u32) -> Option<Queue> {
-    let report = members.get(&key)?.as_ref().report.as_ref()?;
-    Some((
-        report.queued.get(&d).copied(),
-        report.oldest_generation.get(&d).copied(),
-    ))
+    Some(members.get(&key)?.as_ref().report.as_ref()?.queue(d))
+}
+
+impl Queues {
+    /// Domain `d`'s queue.
+    fn queue(&self, d: u32) -> Queue {
+        (
+            self.queued.get(&d).copied(),
+            self.oldest_generation.get(&d).copied(),
+        )
+    }
+
+    /// Domain `d`'s queue made `(rays, generation)`.
+    fn set_queue(&mut self, d: u32, (rays, generation): Queue) {
+        match rays {
+            Some(n) => self.queued.insert(d, n),
+            None => self.queued.remove(&d),
+        };
+        match generation {
+            Some(g) => self.oldest_generation.insert(d, g),
+            None => self.oldest_generation.remove(&d),
+        };
+    }
 }
 
 /// `items` sorted ascending without repeats.
@@ -73,6 +105,23 @@ impl Part {
     /// presence taken in (`RoundIndex::update` reuses the part it replaced).
     fn fill(&mut self, m: &Member, dry: bool, domains: u32) {
         self.clear();
+        self.fill_holdings(m, dry, domains);
+        if let Some(report) = m.report.as_ref() {
+            self.fill_queues(report, domains);
+        }
+    }
+
+    /// The lists of what member `m` holds and plans (all but the queues'), made again.
+    fn fill_holdings(&mut self, m: &Member, dry: bool, domains: u32) {
+        for list in [
+            &mut self.held,
+            &mut self.in_memory,
+            &mut self.by_use,
+            &mut self.holding_plan,
+            &mut self.plan,
+        ] {
+            list.clear();
+        }
         let in_scene = m.plan.iter().copied().filter(|&d| d < domains);
         self.plan.extend(m.plan.iter().copied());
         if !dry {
@@ -91,6 +140,10 @@ impl Part {
             self.held.extend(in_scene);
         }
         sort_dedup(&mut self.held);
+    }
+
+    /// The lists of `report`'s queues and generations, made (from empty).
+    fn fill_queues(&mut self, report: &Queues, domains: u32) {
         self.generations.extend(
             report
                 .oldest_generation
@@ -323,6 +376,14 @@ pub struct RoundIndex {
     /// their queues can have a holder elsewhere (`adopt`).
     unmoved: BTreeSet<u32>,
     newly_held: BTreeSet<u32>,
+    /// (member, domain) queues that may have a holder elsewhere since rays last moved, of
+    /// members whose reports named only what changed ([`RoundIndex::update_queues`]): the
+    /// queues named, and those of domains the member stopped holding or planning.
+    unmoved_queues: Vec<(u32, u32)>,
+    /// By member: its queues as it last reported them where the rounds moved rays since (from
+    /// it to a holder, or to it): a report that names only what changed leaves those queues
+    /// as the worker has them, not as the rounds left them ([`RoundIndex::take_unreported`]).
+    unreported: BTreeMap<u32, BTreeMap<u32, Queue>>,
     /// Every domain in someone's plan, with the members whose plan it is in
     /// (`rounds::current_holders`, kept member by member).
     holders: BTreeMap<u32, BTreeSet<u32>>,
@@ -378,6 +439,8 @@ impl RoundIndex {
             queuers: vec![Vec::new(); n],
             unmoved: BTreeSet::new(),
             newly_held: BTreeSet::new(),
+            unmoved_queues: Vec::new(),
+            unreported: BTreeMap::new(),
             holders: BTreeMap::new(),
             holders_changed: BTreeSet::new(),
             moved: BTreeMap::new(),
@@ -402,10 +465,109 @@ impl RoundIndex {
     /// counts again only what changed since its last update (a holder that rays moved to
     /// differs in those domains' queues alone).
     pub fn update(&mut self, key: u32, member: Option<&Member>) {
-        self.unmoved.insert(key);
+        if member.and_then(|m| m.report.as_ref()).is_none() {
+            self.unreported.remove(&key);
+        }
+        self.renew(key, member, false);
+    }
+
+    /// Member `key` sent a whole report: its queues the rounds moved rays from or to since its
+    /// last are as it says now. The owner calls this with [`RoundIndex::update`] for it.
+    pub fn reported_whole(&mut self, key: u32) {
+        self.unreported.remove(&key);
+    }
+
+    /// Takes in member `key`'s report that names only what changed since its last
+    /// (`QueueReport.delta`): the member's report is brought up to date and the figures with
+    /// it. First its queues the rounds moved rays from or to since are put back as it last
+    /// reported them (it does not name what did not change on its side), then the queues
+    /// `changes` names are set. Costs what the report names and the rounds moved, not every
+    /// queue the member has, as [`RoundIndex::update`] does (a predictive report at 4,096
+    /// workers names about 150 queues, of which one or two changed). False if the member has
+    /// no report to put it in (nothing changes).
+    pub fn take_changes<M: AsMut<Member> + AsRef<Member>>(
+        &mut self,
+        key: u32,
+        members: &mut BTreeMap<u32, M>,
+        changes: Changes,
+    ) -> bool {
+        let Some(q) = members
+            .get_mut(&key)
+            .and_then(|m| m.as_mut().report.as_mut())
+        else {
+            return false;
+        };
+        // Domain -> (its queue as the figures count it, as it is now).
+        let mut edits: BTreeMap<u32, (Queue, Queue)> = BTreeMap::new();
+        for (d, reported) in self.unreported.remove(&key).unwrap_or_default() {
+            edits.insert(d, (q.queue(d), reported));
+            q.set_queue(d, reported);
+        }
+        for (d, now) in changes.queues {
+            let before = edits.get(&d).map_or_else(|| q.queue(d), |e| e.0);
+            edits.insert(d, (before, now));
+            q.set_queue(d, now);
+        }
+        let waiting_before = q.oldest_waiting;
+        q.round = changes.round;
+        q.resident = changes.resident;
+        q.oldest_waiting = changes.oldest_waiting;
+        let edits: Vec<(u32, Queue, Queue)> = edits
+            .into_iter()
+            .filter(|(_, (before, now))| before != now)
+            .map(|(d, (before, now))| (d, before, now))
+            .collect();
+        self.update_queues(key, members, &edits, waiting_before);
+        true
+    }
+
+    /// Takes member `key`'s new report into the figures when it differs from the member as
+    /// last taken in only in the queues of `edits` ((domain, its queue before, after), each
+    /// domain once), its oldest waiting generation (`waiting_before` before) and its round and
+    /// resident domains.
+    fn update_queues<M: AsRef<Member>>(
+        &mut self,
+        key: u32,
+        members: &BTreeMap<u32, M>,
+        edits: &[(u32, Queue, Queue)],
+        waiting_before: Option<u32>,
+    ) {
+        let member = members.get(&key).map(AsRef::as_ref);
+        let (Some(m), Some(part)) = (member, self.parts.get_mut(&key)) else {
+            // Gone, or never counted: counted whole.
+            return self.update(key, member);
+        };
+        let waiting = m.report.as_ref().and_then(|r| r.oldest_waiting);
+        if waiting != waiting_before {
+            for (g, add) in [(waiting_before, false), (waiting, true)] {
+                let Some(g) = g else { continue };
+                let at = part.generations.partition_point(|&x| x < g);
+                if add {
+                    part.generations.insert(at, g);
+                } else {
+                    part.generations.remove(at);
+                }
+                tally(&mut self.generations, g, 1, add);
+            }
+        }
+        let edits: Vec<(u32, u32, Queue, Queue)> =
+            edits.iter().map(|&(d, b, a)| (key, d, b, a)).collect();
+        self.requeue(members, &edits);
+        self.unmoved_queues
+            .extend(edits.iter().map(|&(k, d, ..)| (k, d)));
+        self.renew(key, member, true);
+    }
+
+    /// Member `key` as it is now (see [`RoundIndex::update`]); with `queues_kept`, its part's
+    /// queue lists are taken as they stand (the owner brought them up to date queue by queue,
+    /// [`RoundIndex::update_queues`]) and only the rest is made again.
+    fn renew(&mut self, key: u32, member: Option<&Member>, queues_kept: bool) {
+        if !queues_kept {
+            self.unmoved.insert(key);
+        }
         // The member's part is made in the lists of the one replaced last time (`spare`),
         // and the one it replaces kept for next time: no list allocated in a steady state.
-        let old = self
+        let mut old = self
             .parts
             .get_mut(&key)
             .map(std::mem::take)
@@ -419,11 +581,23 @@ impl RoundIndex {
         let mut new = std::mem::take(&mut self.spare);
         let dry = member.filter(|m| m.is_dry());
         match member {
+            Some(m) if queues_kept => {
+                new.fill_holdings(m, dry.is_some(), self.domains);
+                std::mem::swap(&mut new.queued, &mut old.queued);
+                std::mem::swap(&mut new.generations, &mut old.generations);
+                std::mem::swap(&mut new.queues, &mut old.queues);
+                // A queue of a domain it no longer holds nor plans may now move to a holder.
+                for step in merge(&old.in_memory, &new.in_memory, |&d| d) {
+                    if let Merged::Old(&d) = step {
+                        self.unmoved_queues.push((key, d));
+                    }
+                }
+            }
             Some(m) => new.fill(m, dry.is_some(), self.domains),
             None => new.clear(),
         }
         let mut touched = Vec::new();
-        self.recount(key, &old, &new, &mut touched);
+        self.recount(key, &old, &new, queues_kept, &mut touched);
         for step in merge(&old.plan, &new.plan, |&d| d) {
             match step {
                 Merged::New(&d) => {
@@ -551,9 +725,45 @@ impl RoundIndex {
     }
 
     /// Counts member `key`'s part `new` in place of `old`: only the entries that differ
-    /// (a merge of the two ascending lists of each kind), noting the domains whose figures
-    /// moved in `touched`.
-    fn recount(&mut self, key: u32, old: &Part, new: &Part, touched: &mut Vec<u32>) {
+    /// (a merge of the two ascending lists of each kind; the queues' not at all if
+    /// `queues_kept`: they are counted already), noting the domains whose figures moved in
+    /// `touched`.
+    fn recount(
+        &mut self,
+        key: u32,
+        old: &Part,
+        new: &Part,
+        queues_kept: bool,
+        touched: &mut Vec<u32>,
+    ) {
+        if !queues_kept {
+            self.recount_queues(key, old, new, touched);
+        }
+        for (counts, old, new) in [
+            (&mut self.held, &old.held, &new.held),
+            (&mut self.in_memory, &old.in_memory, &new.in_memory),
+        ] {
+            for step in merge(old, new, |&d| d) {
+                let (d, add) = match step {
+                    Merged::Both(..) => continue,
+                    Merged::Old(&d) => (d, false),
+                    Merged::New(&d) => (d, true),
+                };
+                step_by(&mut counts[d as usize], 1, add);
+                touched.push(d);
+            }
+        }
+        let gained = list_member(
+            &mut self.plan_holders,
+            key,
+            &old.holding_plan,
+            &new.holding_plan,
+        );
+        self.newly_held.extend(gained);
+    }
+
+    /// The queue lists' part of [`RoundIndex::recount`].
+    fn recount_queues(&mut self, key: u32, old: &Part, new: &Part, touched: &mut Vec<u32>) {
         for step in merge(&old.queued, &new.queued, |q| q.0) {
             let (gone, come) = match step {
                 Merged::Both(o, n) if o == n => continue,
@@ -579,27 +789,6 @@ impl RoundIndex {
             };
             tally(&mut self.generations, g, 1, add);
         }
-        for (counts, old, new) in [
-            (&mut self.held, &old.held, &new.held),
-            (&mut self.in_memory, &old.in_memory, &new.in_memory),
-        ] {
-            for step in merge(old, new, |&d| d) {
-                let (d, add) = match step {
-                    Merged::Both(..) => continue,
-                    Merged::Old(&d) => (d, false),
-                    Merged::New(&d) => (d, true),
-                };
-                step_by(&mut counts[d as usize], 1, add);
-                touched.push(d);
-            }
-        }
-        let gained = list_member(
-            &mut self.plan_holders,
-            key,
-            &old.holding_plan,
-            &new.holding_plan,
-        );
-        self.newly_held.extend(gained);
         list_member(&mut self.queuers, key, &old.queues, &new.queues);
     }
 
@@ -622,6 +811,7 @@ impl RoundIndex {
         let moved = self.move_queued_to_holders(members);
         // Rays just moved went to members that keep them: nothing is left to move.
         self.unmoved.clear();
+        self.unmoved_queues.clear();
         self.newly_held.clear();
         changed.extend(moved);
         (loads, changed)
@@ -656,6 +846,19 @@ impl RoundIndex {
                     .filter(held),
             );
         }
+        let parts = &self.parts;
+        let queued_at = |&(k, d): &(u32, u32)| {
+            parts
+                .get(&k)
+                .is_some_and(|p| p.queues.binary_search(&d).is_ok())
+        };
+        candidates.extend(
+            self.unmoved_queues
+                .iter()
+                .copied()
+                .filter(held)
+                .filter(queued_at),
+        );
         candidates.sort_unstable();
         candidates.dedup();
         let mut changed = BTreeSet::new();
@@ -704,6 +907,13 @@ impl RoundIndex {
             if let (Some(before), Some(after)) = (before, queue_of(members, h, d)) {
                 edits.push((h, d, before, after));
             }
+        }
+        for &(k, d, before, _) in &edits {
+            self.unreported
+                .entry(k)
+                .or_default()
+                .entry(d)
+                .or_insert(before);
         }
         self.requeue(members, &edits);
         changed

@@ -7,10 +7,12 @@ const DOMAINS: u32 = 10;
 /// One change the coordinator makes to its members between plans.
 #[derive(Clone, Debug)]
 enum Change {
-    /// Member `key` reports, of its plan's round (it ran dry) or of the one before (busy).
+    /// Member `key` reports, of its plan's round (it ran dry) or of the one before (busy);
+    /// naming only the queues that changed since its last report if `delta` (and it has one).
     Report {
         key: u32,
         dry: bool,
+        delta: bool,
         resident: Vec<u32>,
         queued: Vec<(u32, u64, u32)>,
         waiting: Option<u32>,
@@ -34,15 +36,15 @@ fn change() -> impl Strategy<Value = Change> {
     let domain = 0..DOMAINS + 1; // one past the scene: reports may name what it lacks
     prop_oneof![
         4 => (
-            key.clone(),
-            any::<bool>(),
+            (key.clone(), any::<bool>(), any::<bool>()),
             prop::collection::vec(domain.clone(), 0..4),
             prop::collection::vec((domain, 0u64..40, 0u32..3), 0..6),
             prop::option::of(0u32..3),
         )
-            .prop_map(|(key, dry, resident, queued, waiting)| Change::Report {
+            .prop_map(|((key, dry, delta), resident, queued, waiting)| Change::Report {
                 key,
                 dry,
+                delta,
                 resident,
                 queued,
                 waiting,
@@ -119,11 +121,14 @@ fn run(changes: &[Change], oldest_first: bool, options: Options) -> Result<(), T
     let mut round = 1;
     // What a coordinator told its members, kept from the index's changes alone.
     let mut told: BTreeMap<u32, Vec<u32>> = BTreeMap::new();
+    // Each member's last report as it sent it (the rounds move rays in the coordinator's copy).
+    let mut sent: BTreeMap<u32, Queues> = BTreeMap::new();
     for c in changes {
         match c {
             Change::Report {
                 key,
                 dry,
+                delta,
                 resident,
                 queued,
                 waiting,
@@ -140,7 +145,7 @@ fn run(changes: &[Change], oldest_first: bool, options: Options) -> Result<(), T
                 };
                 // In the worker's order of use, each once, as the coordinator takes it in.
                 let mut seen = BTreeSet::new();
-                m.report = Some(Queues {
+                let report = Queues {
                     round: at,
                     resident: resident
                         .iter()
@@ -150,8 +155,38 @@ fn run(changes: &[Change], oldest_first: bool, options: Options) -> Result<(), T
                     queued: queued.iter().map(|&(d, n, _)| (d, n)).collect(),
                     oldest_generation: queued.iter().map(|&(d, _, g)| (d, g)).collect(),
                     oldest_waiting: *waiting,
-                });
-                index.update(*key, Some(m));
+                };
+                match sent.get(key).filter(|_| *delta && m.report.is_some()) {
+                    Some(last) => {
+                        let mut domains: Vec<u32> = last
+                            .queued
+                            .keys()
+                            .chain(report.queued.keys())
+                            .copied()
+                            .collect();
+                        domains.sort_unstable();
+                        domains.dedup();
+                        let changes = Changes {
+                            round: report.round,
+                            resident: report.resident.clone(),
+                            oldest_waiting: report.oldest_waiting,
+                            queues: domains
+                                .into_iter()
+                                .filter(|&d| last.queue(d) != report.queue(d))
+                                .map(|d| (d, report.queue(d)))
+                                .collect(),
+                        };
+                        prop_assert!(index.take_changes(*key, &mut members, changes));
+                        // Put back where the rounds moved rays, the report is as sent.
+                        prop_assert_eq!(members[key].report.as_ref(), Some(&report));
+                    }
+                    None => {
+                        m.report = Some(report.clone());
+                        index.reported_whole(*key);
+                        index.update(*key, Some(m));
+                    }
+                }
+                sent.insert(*key, report);
             }
             Change::Plan => {
                 let cluster = Cluster {
@@ -183,9 +218,12 @@ fn run(changes: &[Change], oldest_first: bool, options: Options) -> Result<(), T
             }
             Change::Leave { key } => {
                 members.remove(key);
+                sent.remove(key);
                 index.update(*key, None);
             }
             Change::Forget => {
+                // The workers' next reports are whole (they hear of the bump).
+                sent.clear();
                 for (&k, m) in members.iter_mut() {
                     m.report = None;
                     index.update(k, Some(m));
@@ -376,4 +414,65 @@ proptest! {
         overlay.undo();
         prop_assert_eq!(figures(&index), before);
     }
+}
+
+#[test]
+fn a_queue_whose_domain_its_member_evicted_moves_to_the_holder_after_a_delta_report() {
+    // Member 0 holds domain 3 (resident) with 5 rays queued for it, busy on domain 4; member
+    // 1 is busy on domain 3. While 0 holds 3 its rays stay; a report naming no queue, only
+    // that 3 left its memory, lets them move to member 1, as a whole report would.
+    let sizes = vec![SIZE; DOMAINS as usize];
+    let mut members: BTreeMap<u32, Member> = BTreeMap::new();
+    members.insert(1, busy_on_domain_3(&[]));
+    members.insert(
+        0,
+        Member {
+            plan: BTreeSet::from([4]),
+            planned_round: 2,
+            report: Some(Queues {
+                round: 1,
+                resident: vec![3, 4],
+                queued: BTreeMap::from([(3, 5)]),
+                ..Queues::default()
+            }),
+            ..Member::new(2 * SIZE)
+        },
+    );
+    let mut index = RoundIndex::new(&sizes, false);
+    for (&k, m) in &members {
+        index.update(k, Some(m));
+    }
+    index.adopt(&mut members, &[], 2);
+    assert_eq!(
+        members[&0].report.as_ref().map(|r| r.queue(3)),
+        Some((Some(5), None))
+    );
+    let mut whole = members.clone();
+    whole
+        .get_mut(&0)
+        .and_then(|m| m.report.as_mut())
+        .expect("report")
+        .resident = vec![4];
+    let changes = Changes {
+        round: 1,
+        resident: vec![4],
+        ..Changes::default()
+    };
+    let reports = |m: &BTreeMap<u32, Member>| -> Vec<Option<Queues>> {
+        m.values().map(|m| m.report.clone()).collect()
+    };
+    assert!(index.take_changes(0, &mut members, changes));
+    assert_eq!(reports(&members), reports(&whole));
+    let moved = index.adopt(&mut members, &[], 2);
+    let want = adopt_plans(&mut whole, &[], 2);
+    assert_eq!(moved, want);
+    assert_eq!(reports(&members), reports(&whole));
+    assert_eq!(
+        members[&0].report.as_ref().map(|r| r.queue(3)),
+        Some((None, None))
+    );
+    assert_eq!(
+        members[&1].report.as_ref().map(|r| r.queue(3)),
+        Some((Some(5), None))
+    );
 }

@@ -14,13 +14,14 @@ use super::grants::Grants;
 use super::holders::SentHolders;
 use super::tasks::{Direction, TASK_RAYS, TaskDirections};
 use crate::Time;
+use crate::queue_report;
 
 use rayfarm_core::cluster::tile_sums;
 use rayfarm_core::progressive::Samples;
 use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::schedule::dynamic::Options;
 use rayfarm_core::schedule::keep_first_of_each;
-use rayfarm_core::schedule::round_index::RoundIndex;
+use rayfarm_core::schedule::round_index::{Changes, RoundIndex};
 use rayfarm_core::schedule::rounds;
 use rayfarm_core::schedule::static_plans::{image_plane_share, owned_domains_fit};
 use rayfarm_core::schedule::tiles::{HandOuts, strided_share};
@@ -199,10 +200,19 @@ impl AsMut<rounds::Member> for Member {
     }
 }
 
-/// A worker's report as the rounds read it: its resident domains in its order (least
-/// recently used first), each once.
+/// A worker's whole report as the rounds read it.
 fn queues(r: proto::QueueReport) -> rounds::Queues {
-    let mut resident = r.resident_domains;
+    rounds::Queues {
+        round: r.round,
+        resident: resident_once(r.resident_domains),
+        queued: r.queued_rays,
+        oldest_generation: r.oldest_generation,
+        oldest_waiting: r.oldest_waiting,
+    }
+}
+
+/// A report's resident domains in its order (least recently used first), each once.
+fn resident_once(mut resident: Vec<u32>) -> Vec<u32> {
     // Checked on a sorted copy (a cache's worth of ids, every report): a set for each report
     // cost the 4,096-worker frame's coordinator a tenth more.
     let mut sorted = resident.clone();
@@ -210,13 +220,7 @@ fn queues(r: proto::QueueReport) -> rounds::Queues {
     if sorted.windows(2).any(|pair| pair[0] == pair[1]) {
         keep_first_of_each(&mut resident);
     }
-    rounds::Queues {
-        round: r.round,
-        resident,
-        queued: r.queued_rays,
-        oldest_generation: r.oldest_generation,
-        oldest_waiting: r.oldest_waiting,
-    }
+    resident
 }
 
 /// A tile the ledger committed, with its fixed-point sums for the film.
@@ -569,10 +573,14 @@ impl RunningFrame {
 
     /// Records a queue report and plans the round it asks for at once: [`Self::take_report`]
     /// then [`Self::plan_asked`], for a caller that hands the frame one report at a time.
-    pub fn report(&mut self, key: u32, report: proto::QueueReport) -> Vec<Outgoing> {
-        let mut out = self.take_report(key, report);
+    pub fn report(
+        &mut self,
+        key: u32,
+        report: proto::QueueReport,
+    ) -> Result<Vec<Outgoing>, String> {
+        let mut out = self.take_report(key, report)?;
         out.extend(self.plan_asked());
-        out
+        Ok(out)
     }
 
     /// Records a queue report; what it asks of the rounds waits for [`Self::plan_asked`], so
@@ -580,17 +588,37 @@ impl RunningFrame {
     /// asynchronous rounds, every member that ran dry among them is drafted together, as
     /// `RoundIndex::dry_plans` plans any number of dry members). Returns what does not wait:
     /// the hybrid schedule's demand-driven tiles and task requests. The static schedules
-    /// decide once and never plan again.
-    pub fn take_report(&mut self, key: u32, report: proto::QueueReport) -> Vec<Outgoing> {
+    /// decide once and never plan again. A report naming only what changed
+    /// (`QueueReport.delta`) is put into the member's last; an error if it cannot be right
+    /// (it contradicts itself: the worker must be dropped).
+    pub fn take_report(
+        &mut self,
+        key: u32,
+        report: proto::QueueReport,
+    ) -> Result<Vec<Outgoing>, String> {
         let Some(member) = self.members.get_mut(&key) else {
-            return Vec::new();
+            return Ok(Vec::new());
         };
-        let queued: u64 = report.queued_rays.values().sum();
-        self.queues_taken += report.queued_rays.len() as u64;
-        member.rounds.report = Some(queues(report));
+        self.queues_taken += (report.queued_rays.len() + report.cleared_domains.len()) as u64;
+        if report.delta {
+            if !self.take_changes(key, report)? {
+                return Ok(Vec::new());
+            }
+        } else {
+            member.rounds.report = Some(queues(report));
+            self.index.reported_whole(key);
+            self.touch(key);
+        }
+        let Some(member) = self.members.get_mut(&key) else {
+            return Ok(Vec::new());
+        };
         member.reported = true;
-        self.touch(key);
-        match self.schedule {
+        // Just taken in, the report is the worker's own (the rounds have moved nothing yet).
+        let queued: u64 = match (self.schedule, member.rounds.report.as_ref()) {
+            (Schedule::Hybrid, Some(r)) => r.queued.values().sum(),
+            _ => 0,
+        };
+        Ok(match self.schedule {
             Schedule::Dynamic | Schedule::Predictive | Schedule::Unspecified => {
                 self.round_asked = true;
                 Vec::new()
@@ -600,7 +628,21 @@ impl RunningFrame {
                 self.demand_driven(key, queued)
             }
             _ => Vec::new(),
-        }
+        })
+    }
+
+    /// Puts `report`, which names only the queues that changed since member `key`'s last,
+    /// into that one (`RoundIndex::take_changes`). False if there is no report to put it
+    /// into: the frame forgot every member's at a worker's loss (`lose`), and a report sent
+    /// before the worker heard of it is dropped (its next, after it did, is whole).
+    fn take_changes(&mut self, key: u32, report: proto::QueueReport) -> Result<bool, String> {
+        let changes = Changes {
+            queues: queue_report::changes(&report)?,
+            round: report.round,
+            resident: resident_once(report.resident_domains),
+            oldest_waiting: report.oldest_waiting,
+        };
+        Ok(self.index.take_changes(key, &mut self.members, changes))
     }
 
     /// Plans the round the reports taken since the last one ask for, if any: under barrier

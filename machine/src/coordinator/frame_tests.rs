@@ -56,7 +56,7 @@ fn report(round: u64, resident: &[u32], queued: &[(u32, u64, u32)]) -> proto::Qu
         resident_domains: resident.to_vec(),
         queued_rays: queued.iter().map(|&(d, n, _)| (d, n)).collect(),
         oldest_generation: queued.iter().map(|&(d, _, g)| (d, g)).collect(),
-        oldest_waiting: None,
+        ..Default::default()
     }
 }
 
@@ -127,7 +127,7 @@ fn a_dry_worker_is_planned_at_once_under_asynchronous_rounds() {
         }
     }
     // Worker 0 runs dry with rays for domain 1; worker 1 has not reported and is not waited for.
-    let out = f.report(0, report(0, &[], &[(1, 50, 0)]));
+    let out = f.report(0, report(0, &[], &[(1, 50, 0)])).unwrap();
     assert!(planned_domains(&out, 0).contains(&1), "{out:?}");
     assert_eq!(f.round, 1);
     // Worker 1 keeps working and learns who holds domain 1 at the holders flush (here after
@@ -142,7 +142,11 @@ fn a_dry_worker_is_planned_at_once_under_asynchronous_rounds() {
         ref other => panic!("{other:?}"),
     }
     // A report of the round before its plan is no news: worker 0 is busy now.
-    assert!(f.report(0, report(0, &[1], &[(1, 50, 0)])).is_empty());
+    assert!(
+        f.report(0, report(0, &[1], &[(1, 50, 0)]))
+            .unwrap()
+            .is_empty()
+    );
 }
 
 #[test]
@@ -150,16 +154,16 @@ fn a_dry_member_with_nothing_new_is_left_out_of_the_rounds_and_their_tally() {
     let (mut f, _) = started(Schedule::Dynamic, Rounds::Async, 3);
     // Worker 0 runs dry with one ray for domain 1: planned (worker 2 has not reported, so
     // the round is incremental).
-    f.report(0, report(0, &[], &[(1, 1, 0)]));
+    f.report(0, report(0, &[], &[(1, 1, 0)])).unwrap();
     assert_eq!((f.round, f.planning.rounds, f.planning.planned), (1, 1, 1));
     // Worker 1 runs dry with nothing, and nothing is left to give it (domain 1 is held and
     // one ray is too few to copy): no plan changes, no round, nothing counted.
-    let out = f.report(1, report(0, &[], &[]));
+    let out = f.report(1, report(0, &[], &[])).unwrap();
     assert!(out.is_empty(), "{out:?}");
     assert_eq!((f.round, f.planning.rounds, f.planning.planned), (1, 1, 1));
     // Worker 0 runs dry again with a ray for domain 2: only it is planned; worker 1 stays
     // dry with nothing.
-    let out = f.report(0, report(1, &[1], &[(2, 1, 0)]));
+    let out = f.report(0, report(1, &[1], &[(2, 1, 0)])).unwrap();
     assert!(out.iter().all(|(to, _)| *to == 0), "{out:?}");
     assert_eq!((f.round, f.planning.rounds, f.planning.planned), (2, 2, 2));
 }
@@ -167,9 +171,13 @@ fn a_dry_member_with_nothing_new_is_left_out_of_the_rounds_and_their_tally() {
 #[test]
 fn barrier_rounds_wait_for_every_report() {
     let (mut f, _) = started(Schedule::Dynamic, Rounds::Barrier, 2);
-    assert!(f.report(0, report(0, &[], &[(1, 50, 0)])).is_empty());
+    assert!(
+        f.report(0, report(0, &[], &[(1, 50, 0)]))
+            .unwrap()
+            .is_empty()
+    );
     assert_eq!(f.round, 0);
-    let out = f.report(1, report(0, &[], &[(2, 70, 0)]));
+    let out = f.report(1, report(0, &[], &[(2, 70, 0)])).unwrap();
     assert_eq!(f.round, 1);
     let mut planned = [planned_domains(&out, 0), planned_domains(&out, 1)].concat();
     planned.sort();
@@ -191,8 +199,8 @@ fn asynchronous_plans_tell_the_report_hold_and_barrier_plans_none() {
     let holds_with = |rounds, hold| {
         let (f, _) = started(Schedule::Dynamic, rounds, 2);
         let mut f = f.with_report_hold(hold);
-        let mut out = f.report(0, report(0, &[], &[(1, 50, 0)]));
-        out.extend(f.report(1, report(0, &[], &[(2, 70, 0)])));
+        let mut out = f.report(0, report(0, &[], &[(1, 50, 0)])).unwrap();
+        out.extend(f.report(1, report(0, &[], &[(2, 70, 0)])).unwrap());
         let holds: Vec<u32> = out
             .iter()
             .filter_map(|(_, m)| match &m.body {
@@ -230,9 +238,11 @@ fn asynchronous_plans_tell_the_report_hold_and_barrier_plans_none() {
 fn only_the_predictive_schedule_plans_the_oldest_generation_first() {
     let planned = |schedule| {
         let (mut f, _) = started(schedule, Rounds::Async, 2);
-        f.report(1, report(0, &[], &[]));
+        f.report(1, report(0, &[], &[])).unwrap();
         // Domain 2 has more rays, but domain 3 holds the older generation.
-        let out = f.report(0, report(0, &[], &[(2, 900, 2), (3, 5, 1)]));
+        let out = f
+            .report(0, report(0, &[], &[(2, 900, 2), (3, 5, 1)]))
+            .unwrap();
         let mut planned = [planned_domains(&out, 0), planned_domains(&out, 1)].concat();
         // Dynamic may copy a domain into a free slot too.
         planned.sort();
@@ -250,7 +260,7 @@ fn a_lost_worker_s_unfinished_tiles_get_new_epochs_and_go_to_the_survivors() {
     let done = whole_tile(&f, 1, 0, TILE_CREDIT);
     let (committed, refused) = f.results(1, results(vec![done]));
     assert_eq!((committed.len(), refused), (1, None));
-    f.report(0, report(0, &[], &[(1, 50, 0)]));
+    f.report(0, report(0, &[], &[(1, 50, 0)])).unwrap();
     let out = f.lose(2).expect("a member");
     assert_eq!(f.members().collect::<Vec<_>>(), [0, 1]);
     let mut dealt = Vec::new();
@@ -276,7 +286,7 @@ fn a_lost_worker_s_unfinished_tiles_get_new_epochs_and_go_to_the_survivors() {
     assert_eq!((committed.len(), refused), (0, None));
     assert!(!f.ledger.is_complete());
     // The reports from before the bump counted rays the workers dropped: they plan nothing.
-    assert!(f.report(1, report(1, &[], &[])).is_empty());
+    assert!(f.report(1, report(1, &[], &[])).unwrap().is_empty());
     // A worker that took no part is no loss.
     assert!(f.lose(7).is_none());
 }
@@ -368,9 +378,13 @@ fn a_subframe_after_the_first_is_planned_once_every_member_has_reported() {
     assert_eq!(f.subframe, 1);
     // Worker 0 holds domain 1 from the subframe before and has rays for domain 2, which worker
     // 1 holds: planned alone it would be given domain 2 to load; it waits for worker 1.
-    assert!(f.report(0, report(0, &[1], &[(2, 50, 0)])).is_empty());
+    assert!(
+        f.report(0, report(0, &[1], &[(2, 50, 0)]))
+            .unwrap()
+            .is_empty()
+    );
     assert_eq!(f.round, 0);
-    let out = f.report(1, report(0, &[2], &[(1, 50, 0)]));
+    let out = f.report(1, report(0, &[2], &[(1, 50, 0)])).unwrap();
     assert_eq!(f.round, 1);
     assert!(planned_domains(&out, 0).contains(&1), "{out:?}");
     assert!(planned_domains(&out, 1).contains(&2), "{out:?}");
@@ -385,7 +399,7 @@ fn a_worker_named_a_holder_may_send_results_of_any_tile() {
     let (_, refused) = f.results(0, results(vec![whole_tile(&f, theirs, 0, half)]));
     assert!(refused.is_some());
     // Worker 0 runs dry and is planned domain 1: peers may now send it rays of any tile.
-    assert!(planned_domains(&f.report(0, report(0, &[], &[(1, 50, 0)])), 0).contains(&1));
+    assert!(planned_domains(&f.report(0, report(0, &[], &[(1, 50, 0)])).unwrap(), 0).contains(&1));
     let (_, refused) = f.results(0, results(vec![whole_tile(&f, theirs, 0, half)]));
     assert_eq!(refused, None);
     // The domain schedule names every owner a holder from the start.
@@ -433,12 +447,12 @@ fn hybrid_asks_a_busy_worker_to_feed_one_that_ran_dry_once_every_tile_is_out() {
     assert!(matches!(to(&start, 0)[0], Body::StartFrame(s) if !s.hybrid_rounds));
     assert_eq!((primary(&start, 0), primary(&start, 1)), (vec![0], vec![1]));
     // While tiles are left, a dry worker gets tiles, not tasks.
-    let out = f.report(0, report(0, &[0, 2], &[]));
+    let out = f.report(0, report(0, &[0, 2], &[])).unwrap();
     assert!(share_requests(&out, 1).is_empty());
     assert!(matches!(to(&out, 0)[..], [Body::HandOutTiles(h)] if h.tiles == [2]));
-    f.report(1, report(0, &[1], &[]));
+    f.report(1, report(0, &[1], &[])).unwrap();
     // Every tile is out: worker 0 runs dry, worker 1 is asked to feed it, with what 0 has mapped.
-    let out = f.report(0, report(0, &[0, 2], &[]));
+    let out = f.report(0, report(0, &[0, 2], &[])).unwrap();
     let asked = share_requests(&out, 1);
     assert_eq!(asked.len(), 1, "{out:?}");
     assert_eq!(
@@ -447,14 +461,14 @@ fn hybrid_asks_a_busy_worker_to_feed_one_that_ran_dry_once_every_tile_is_out() {
     );
     assert!(asked[0].max_rays > 0 && asked[0].max_rays <= TASK_RAYS);
     // A second dry report while the request is out asks nobody again.
-    assert!(f.report(0, report(0, &[0, 2], &[])).is_empty());
+    assert!(f.report(0, report(0, &[0, 2], &[])).unwrap().is_empty());
     // Worker 1 sent some: nothing more until worker 0 runs dry again.
     assert!(f.tasks_shared(1, &answer(500, 40_000)).is_empty());
-    let out = f.report(0, report(0, &[0, 2], &[]));
+    let out = f.report(0, report(0, &[0, 2], &[])).unwrap();
     assert_eq!(share_requests(&out, 1).len(), 1);
     // Worker 1 had nothing worth sending: with no other busy worker, worker 0 waits.
     assert!(f.tasks_shared(1, &answer(0, 100)).is_empty());
-    assert!(f.report(0, report(0, &[0, 2], &[])).is_empty());
+    assert!(f.report(0, report(0, &[0, 2], &[])).unwrap().is_empty());
     assert_eq!(f.task_counts(), (2, 500));
 }
 
@@ -472,7 +486,7 @@ fn hybrid_whose_owned_domains_do_not_fit_the_caches_plans_rounds_instead_of_owne
     );
     assert!(matches!(to(&start, 0)[0], Body::StartFrame(s) if s.hybrid_rounds));
     // A dry worker with rays queued for domain 3 gets tiles and a plan that holds them.
-    let out = f.report(0, report(0, &[], &[(3, 500, 0)]));
+    let out = f.report(0, report(0, &[], &[(3, 500, 0)])).unwrap();
     assert!(
         to(&out, 0)
             .iter()
@@ -576,7 +590,7 @@ fn busy_members_hear_of_new_holders_at_most_once_an_interval_and_then_route_by_t
         }
     };
     // The first round (member 0 dry with rays for domain 1) goes out at once, whole.
-    let out = f.report(0, report(0, &[], &[(1, 50, 0)]));
+    let out = f.report(0, report(0, &[], &[(1, 50, 0)])).unwrap();
     hear(&out, &mut plans);
     assert_eq!(f.holders_due(), Some(Time(0)));
     let flush = f.flush_holders(Time(0));
@@ -585,7 +599,7 @@ fn busy_members_hear_of_new_holders_at_most_once_an_interval_and_then_route_by_t
     assert_eq!(f.holders_due(), None, "nothing changed since");
     // Member 1 runs dry 1 ms later with rays for domain 2: its plan carries what changed, the
     // busy member 2 hears nothing yet, not even at a flush before the interval is over.
-    let out = f.report(1, report(0, &[], &[(2, 40, 0)]));
+    let out = f.report(1, report(0, &[], &[(2, 40, 0)])).unwrap();
     assert!(planned_domains(&out, 1).contains(&2), "{out:?}");
     assert!(to(&out, 2).is_empty() && to(&out, 0).is_empty(), "{out:?}");
     hear(&out, &mut plans);
@@ -593,7 +607,7 @@ fn busy_members_hear_of_new_holders_at_most_once_an_interval_and_then_route_by_t
     assert!(f.flush_holders(ms(1)).is_empty());
     assert!(f.flush_holders(ms(9)).is_empty());
     // Member 0 runs dry again at 5 ms, with rays for domain 3.
-    let out = f.report(0, report(1, &[1], &[(3, 30, 0)]));
+    let out = f.report(0, report(1, &[1], &[(3, 30, 0)])).unwrap();
     assert!(planned_domains(&out, 0).contains(&3), "{out:?}");
     hear(&out, &mut plans);
     // Until the flush, member 2 routes domain 2 and 3's rays nowhere: it keeps them.
@@ -660,13 +674,15 @@ fn a_busy_member_whose_reported_rays_a_round_counts_at_a_new_holder_is_told_at_o
     let (f, _) = started_with_caches(Schedule::Dynamic, 3, 100);
     let mut f = f.with_holders_interval(std::time::Duration::from_millis(10));
     // Member 0 runs dry with rays for domains 1 and 3 and is given 1; everyone hears of it.
-    let out = f.report(0, report(0, &[], &[(1, 50, 0), (3, 30, 0)]));
+    let out = f
+        .report(0, report(0, &[], &[(1, 50, 0), (3, 30, 0)]))
+        .unwrap();
     assert_eq!(planned_domains(&out, 0), [1]);
     assert_eq!(f.flush_holders(ms(0)).len(), 2);
     // Member 1 runs dry with rays for domain 3 and is given it: the index now counts member
     // 0's 30 rays there, so member 0 (busy) hears at once, not at the flush; member 2, with
     // no rays reported, waits for the flush.
-    let out = f.report(1, report(0, &[], &[(3, 10, 0)]));
+    let out = f.report(1, report(0, &[], &[(3, 10, 0)])).unwrap();
     assert_eq!(planned_domains(&out, 1), [3]);
     match to(&out, 0)[..] {
         [Body::Holders(h)] => {
@@ -687,4 +703,40 @@ fn a_busy_member_whose_reported_rays_a_round_counts_at_a_new_holder_is_told_at_o
         [1, 2],
         "member 0 was told already"
     );
+}
+
+#[test]
+fn a_report_naming_what_changed_is_put_into_the_last_and_one_without_a_last_is_dropped() {
+    let (mut f, _) = started(Schedule::Dynamic, Rounds::Async, 3);
+    // A delta before any whole report (the worker sent it before it heard of a loss that
+    // made the frame forget its report): nothing to put it into, nothing planned.
+    let early = proto::QueueReport {
+        delta: true,
+        ..report(0, &[], &[(1, 50, 0)])
+    };
+    assert!(f.report(0, early).unwrap().is_empty());
+    assert_eq!(f.round, 0);
+    // Worker 0 runs dry with rays for domains 1 and 2, both planned to it.
+    let out = f
+        .report(0, report(0, &[], &[(1, 50, 0), (2, 5, 0)]))
+        .unwrap();
+    assert_eq!(planned_domains(&out, 0), [1, 2]);
+    // Worker 1 runs dry with rays for domain 3; then names only its queue for 3 emptied
+    // and one for domain 0: the rounds see domain 0 wanted and domain 3 not.
+    f.report(1, report(0, &[], &[(3, 7, 0)])).unwrap();
+    let changed = proto::QueueReport {
+        delta: true,
+        cleared_domains: vec![3],
+        ..report(0, &[], &[(0, 9, 0)])
+    };
+    f.take_report(1, changed).unwrap();
+    let queues = &f.members[&1].rounds.report.as_ref().expect("report").queued;
+    assert_eq!(queues, &BTreeMap::from([(0, 9)]));
+    // A report that clears a domain it gives a queue is refused: the worker must go.
+    let impossible = proto::QueueReport {
+        delta: true,
+        cleared_domains: vec![0],
+        ..report(0, &[], &[(0, 1, 0)])
+    };
+    assert!(f.take_report(1, impossible).is_err());
 }

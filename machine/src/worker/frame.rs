@@ -26,6 +26,7 @@ use super::plan::{HolderLine, Mode, Plan};
 use super::queues::{DomainQueues, QueueError, RaySpill};
 use super::speculation::Speculation;
 use crate::Time;
+use crate::queue_report::Heard;
 
 /// The frame being rendered.
 pub struct Frame<S> {
@@ -46,6 +47,8 @@ pub struct Frame<S> {
     /// Under the predictive schedule, the rays born here waiting for their copies' verdicts.
     speculation: Option<Speculation>,
     report: Report,
+    /// What the coordinator has heard of the queues here: a report names what differs.
+    heard: Heard,
     /// Until when a report of running dry waits for the work the last plan sends here (rays
     /// moved from other workers' queues): none once a pass has run since that plan.
     report_held: Option<Time>,
@@ -159,6 +162,7 @@ impl<S: RaySpill> Frame<S> {
             speculation: speculation.map(|depth| Speculation::new(me, roster, depth)),
             queues,
             report: Report::Due,
+            heard: Heard::default(),
             report_held: None,
             ahead: Vec::new(),
             counters: FrameCounters::default(),
@@ -399,21 +403,26 @@ impl<S: RaySpill> Frame<S> {
         (copies, to_peers)
     }
 
-    /// This worker's queues for the coordinator, if it has not heard them since they changed.
+    /// This worker's queues for the coordinator, if it has not heard them since they changed:
+    /// whole in the frame's first report, what changed since the last in the others.
     pub fn take_report(&mut self) -> Option<proto::QueueReport> {
         if self.report == Report::Sent {
             return None;
         }
         self.report = Report::Sent;
+        let oldest = match self.plan.mode {
+            Mode::Predictive => self.oldest_generations(),
+            _ => Default::default(),
+        };
+        let named = self.heard.report(self.queue_sizes(), oldest);
         Some(proto::QueueReport {
             job_id: self.job_id.clone(),
             round: self.plan.round,
             resident_domains: self.plan.resident_by_use().to_vec(),
-            queued_rays: self.queue_sizes(),
-            oldest_generation: match self.plan.mode {
-                Mode::Predictive => self.oldest_generations(),
-                _ => Default::default(),
-            },
+            queued_rays: named.queued_rays,
+            oldest_generation: named.oldest_generation,
+            delta: named.delta,
+            cleared_domains: named.cleared_domains,
             oldest_waiting: self
                 .speculation
                 .as_ref()
@@ -746,6 +755,8 @@ impl<S: RaySpill> Frame<S> {
         self.plan.bump_epochs(bumps);
         self.to_issue.retain(|t| !bumps.contains_key(t));
         self.report = Report::Due;
+        // The coordinator forgot every member's report at the loss: the next is whole.
+        self.heard = Heard::default();
         if let Some(s) = self.speculation.as_mut() {
             s.retain_current(&self.plan.epochs, &[]);
         }

@@ -25,6 +25,7 @@ use super::frame::{CommittedTile, Outgoing, Rounds, RunningFrame};
 pub use super::frame::{FlushWork, PlanningWork};
 use super::queue::JobQueue;
 use crate::Time;
+use crate::queue_report;
 
 mod frames;
 mod jobs;
@@ -173,12 +174,28 @@ pub struct ReportedQueues {
 }
 
 impl ReportedQueues {
-    /// Takes `report`'s figures in place of the last.
-    fn copy_from(&mut self, report: &proto::QueueReport) {
+    /// Takes `report`'s figures in place of the last: all of them from a whole report, the
+    /// queues it names from one that names only what changed (`QueueReport.delta`; one that
+    /// contradicts itself changes no queue here, and the frame refuses it).
+    fn take(&mut self, report: &proto::QueueReport) {
         self.resident_domains.clone_from(&report.resident_domains);
-        self.queued_rays.clear();
-        self.queued_rays
-            .extend(report.queued_rays.iter().map(|(&d, &n)| (d, n)));
+        if !report.delta {
+            self.queued_rays.clear();
+            self.queued_rays
+                .extend(report.queued_rays.iter().map(|(&d, &n)| (d, n)));
+            return;
+        }
+        for (d, (rays, _)) in queue_report::changes(report).unwrap_or_default() {
+            let at = self.queued_rays.binary_search_by_key(&d, |&(d, _)| d);
+            match (at, rays) {
+                (Ok(i), Some(n)) => self.queued_rays[i].1 = n,
+                (Err(i), Some(n)) => self.queued_rays.insert(i, (d, n)),
+                (Ok(i), None) => {
+                    self.queued_rays.remove(i);
+                }
+                (Err(_), None) => {}
+            }
+        }
     }
 }
 

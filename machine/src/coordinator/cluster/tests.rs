@@ -604,3 +604,57 @@ fn new_epochs_after_a_loss_are_stored_before_workers_hear_and_a_restart_starts_a
         "{epochs:?}"
     );
 }
+
+#[test]
+fn a_delta_report_updates_the_status_and_one_contradicting_itself_drops_the_worker() {
+    let (mut h, id, keys, _) = running(&["a", "b"]);
+    let a = keys[0];
+    let mut report = |at: u64, body: proto::QueueReport| {
+        h.handle(
+            Time(at),
+            Input::WorkerMessage {
+                key: a,
+                body: FromWorker::QueueReport(body),
+            },
+        )
+    };
+    let whole = proto::QueueReport {
+        job_id: id.clone(),
+        queued_rays: [(1, 50), (2, 5)].into(),
+        ..Default::default()
+    };
+    report(5, whole);
+    // Domain 2 emptied, domain 3 came: the status lists what the worker holds now.
+    let delta = proto::QueueReport {
+        job_id: id.clone(),
+        delta: true,
+        queued_rays: [(3, 4)].into(),
+        cleared_domains: vec![2],
+        ..Default::default()
+    };
+    report(6, delta);
+    let queued = |h: &Harness| {
+        h.c.workers()
+            .find(|&(k, _)| k == a)
+            .map(|(_, w)| w.last_report.queued_rays.clone())
+    };
+    assert_eq!(queued(&h), Some(vec![(1, 50), (3, 4)]));
+    let impossible = proto::QueueReport {
+        job_id: id,
+        delta: true,
+        queued_rays: [(3, 1)].into(),
+        cleared_domains: vec![3],
+        ..Default::default()
+    };
+    let out = h.handle(
+        Time(7),
+        Input::WorkerMessage {
+            key: a,
+            body: FromWorker::QueueReport(impossible),
+        },
+    );
+    assert!(
+        matches!(closed(&out)[..], [(k, Closing::Refused(why))] if k == a && why.contains("impossible queue report")),
+        "{out:?}"
+    );
+}

@@ -132,12 +132,20 @@ impl Coordinator {
             FromWorker::Register(_) => warn!(key, "worker registered twice; ignored"),
             FromWorker::Heartbeat(h) => worker.heartbeat = h,
             FromWorker::QueueReport(r) => {
-                worker.last_report.copy_from(&r);
+                worker.last_report.take(&r);
+                let worker = worker.id.clone();
                 if let Some(f) = self.running.as_mut().filter(|f| f.frame_id() == r.job_id) {
                     // The round it asks for is planned once the inputs at hand are taken
                     // (`Coordinator::plan`), with every other report among them.
-                    let messages = f.take_report(key, r);
-                    self.send(messages, out);
+                    match f.take_report(key, r) {
+                        Ok(messages) => self.send(messages, out),
+                        Err(e) => {
+                            error!(worker = %worker, error = %e, "worker sent an impossible queue report: dropped, its tiles re-dealt");
+                            f.refuse(worker);
+                            let why = format!("impossible queue report: {e}");
+                            return self.lose(now, key, &why.clone(), Closing::Refused(why), out);
+                        }
+                    }
                     self.reports_taken = true;
                 }
             }
