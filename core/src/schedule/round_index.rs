@@ -509,6 +509,9 @@ impl RoundIndex {
             q.set_queue(d, now);
         }
         let waiting_before = q.oldest_waiting;
+        // Most reports of a dry member say only that rays came for domains it does not hold:
+        // then what it holds and whether it ran dry are as they were.
+        let holds_the_same = q.round == changes.round && q.resident == changes.resident;
         q.round = changes.round;
         q.resident = changes.resident;
         q.oldest_waiting = changes.oldest_waiting;
@@ -517,20 +520,21 @@ impl RoundIndex {
             .filter(|(_, (before, now))| before != now)
             .map(|(d, (before, now))| (d, before, now))
             .collect();
-        self.update_queues(key, members, &edits, waiting_before);
+        self.update_queues(key, members, &edits, waiting_before, holds_the_same);
         true
     }
 
     /// Takes member `key`'s new report into the figures when it differs from the member as
     /// last taken in only in the queues of `edits` ((domain, its queue before, after), each
     /// domain once), its oldest waiting generation (`waiting_before` before) and its round and
-    /// resident domains.
+    /// resident domains (unless `holds_the_same`: those are as they were).
     fn update_queues<M: AsRef<Member>>(
         &mut self,
         key: u32,
         members: &BTreeMap<u32, M>,
         edits: &[(u32, Queue, Queue)],
         waiting_before: Option<u32>,
+        holds_the_same: bool,
     ) {
         let member = members.get(&key).map(AsRef::as_ref);
         let (Some(m), Some(part)) = (member, self.parts.get_mut(&key)) else {
@@ -555,7 +559,9 @@ impl RoundIndex {
         self.requeue(members, &edits);
         self.unmoved_queues
             .extend(edits.iter().map(|&(k, d, ..)| (k, d)));
-        self.renew(key, member, true);
+        if !holds_the_same {
+            self.renew(key, member, true);
+        }
     }
 
     /// Member `key` as it is now (see [`RoundIndex::update`]); with `queues_kept`, its part's

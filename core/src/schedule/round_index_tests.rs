@@ -8,11 +8,13 @@ const DOMAINS: u32 = 10;
 #[derive(Clone, Debug)]
 enum Change {
     /// Member `key` reports, of its plan's round (it ran dry) or of the one before (busy);
-    /// naming only the queues that changed since its last report if `delta` (and it has one).
+    /// naming only the queues that changed since its last report if `delta` (and it has one),
+    /// and then with the resident domains of that one if `same_resident`.
     Report {
         key: u32,
         dry: bool,
         delta: bool,
+        same_resident: bool,
         resident: Vec<u32>,
         queued: Vec<(u32, u64, u32)>,
         waiting: Option<u32>,
@@ -36,15 +38,16 @@ fn change() -> impl Strategy<Value = Change> {
     let domain = 0..DOMAINS + 1; // one past the scene: reports may name what it lacks
     prop_oneof![
         4 => (
-            (key.clone(), any::<bool>(), any::<bool>()),
+            (key.clone(), any::<bool>(), any::<bool>(), any::<bool>()),
             prop::collection::vec(domain.clone(), 0..4),
             prop::collection::vec((domain, 0u64..40, 0u32..3), 0..6),
             prop::option::of(0u32..3),
         )
-            .prop_map(|((key, dry, delta), resident, queued, waiting)| Change::Report {
+            .prop_map(|((key, dry, delta, same_resident), resident, queued, waiting)| Change::Report {
                 key,
                 dry,
                 delta,
+                same_resident,
                 resident,
                 queued,
                 waiting,
@@ -129,6 +132,7 @@ fn run(changes: &[Change], oldest_first: bool, options: Options) -> Result<(), T
                 key,
                 dry,
                 delta,
+                same_resident,
                 resident,
                 queued,
                 waiting,
@@ -145,13 +149,17 @@ fn run(changes: &[Change], oldest_first: bool, options: Options) -> Result<(), T
                 };
                 // In the worker's order of use, each once, as the coordinator takes it in.
                 let mut seen = BTreeSet::new();
-                let report = Queues {
-                    round: at,
-                    resident: resident
+                let resident = match sent.get(key) {
+                    Some(last) if *delta && *same_resident => last.resident.clone(),
+                    _ => resident
                         .iter()
                         .copied()
                         .filter(|&d| seen.insert(d))
                         .collect(),
+                };
+                let report = Queues {
+                    round: at,
+                    resident,
                     queued: queued.iter().map(|&(d, n, _)| (d, n)).collect(),
                     oldest_generation: queued.iter().map(|&(d, _, g)| (d, g)).collect(),
                     oldest_waiting: *waiting,

@@ -133,13 +133,17 @@ impl Coordinator {
             FromWorker::Heartbeat(h) => worker.heartbeat = h,
             FromWorker::QueueReport(r) => {
                 worker.last_report.take(&r);
-                let worker = worker.id.clone();
                 if let Some(f) = self.running.as_mut().filter(|f| f.frame_id() == r.job_id) {
                     // The round it asks for is planned once the inputs at hand are taken
                     // (`Coordinator::plan`), with every other report among them.
                     match f.take_report(key, r) {
                         Ok(messages) => self.send(messages, out),
                         Err(e) => {
+                            let worker = self
+                                .workers
+                                .get(&key)
+                                .map(|w| w.id.clone())
+                                .unwrap_or_default();
                             error!(worker = %worker, error = %e, "worker sent an impossible queue report: dropped, its tiles re-dealt");
                             f.refuse(worker);
                             let why = format!("impossible queue report: {e}");
