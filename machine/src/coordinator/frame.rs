@@ -5,7 +5,7 @@
 //! tiles it commits instead of writing them, so the coordinator's locking and I/O stay in its
 //! shell.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
 
 use super::accusations::Accusations;
@@ -240,6 +240,11 @@ pub struct RunningFrame {
     /// What its holders flushes did, over all its subframes (`FlushWork`).
     pub flushing: FlushWork,
     members: BTreeMap<u32, Member>,
+    /// Keys of the members lost (a key is never given again): a holders line leaves them out.
+    /// Asked for each key of every line a flush makes, this is nearly always empty, where
+    /// looking each key up among the members was a tenth of predictive's coordinator at 4,096
+    /// workers.
+    lost: BTreeSet<u32>,
     /// The members' figures for asynchronous rounds, updated whenever a member's report, plan
     /// or presence changes (`touch`), so a dry member is planned without re-reading them all.
     index: RoundIndex,
@@ -346,6 +351,7 @@ impl RunningFrame {
             planning: PlanningWork::default(),
             flushing: FlushWork::default(),
             members: BTreeMap::new(),
+            lost: BTreeSet::new(),
             index,
             started: now,
             planned_loads: 0,
@@ -510,6 +516,7 @@ impl RunningFrame {
     /// part, and no messages if no member is left (the caller decides the job's fate).
     pub fn lose(&mut self, key: u32) -> Option<Vec<Outgoing>> {
         let lost = self.members.remove(&key)?;
+        self.lost.insert(key);
         self.segments_now -= lost.segments;
         self.sent_holders.forget(key);
         self.touch(key);

@@ -262,6 +262,13 @@ struct DomainPending {
     own: BTreeMap<u32, ViewChange>,
 }
 
+impl DomainPending {
+    /// View `class`'s line, if it says something.
+    fn line(&self, class: u32) -> Option<&ViewChange> {
+        Some(self.own.get(&class).unwrap_or(&self.rest)).filter(|l| !l.is_empty())
+    }
+}
+
 /// The holder changes since the members were last all told, folded into one line a domain and
 /// view class: what a member of the class that holds any map sent since is told to bring it up
 /// to date. A busy member needs the holders only to route its rays, and every asynchronous
@@ -387,17 +394,18 @@ impl Pending {
 
     /// View `class`'s line of `domain`, if one is pending.
     fn line_of(&self, domain: u32, class: u32) -> Option<&ViewChange> {
-        let entry = self.lines.get(&domain)?;
-        Some(entry.own.get(&class).unwrap_or(&entry.rest)).filter(|l| !l.is_empty())
+        self.lines.get(&domain)?.line(class)
     }
 
     /// View `class`'s folded lines as a delta's, ascending by domain; gained keys that
     /// `is_member` refuses are left out (a member lost since: the workers forgot it, and a
     /// later round lists it lost).
     pub fn lines(&self, class: u32, is_member: impl Fn(u32) -> bool) -> Vec<proto::DomainHolders> {
+        // Walked in order, each domain's entry at hand: looking each up again by its key was a
+        // sixth of predictive's coordinator at 4,096 workers (40,000 lines a flush).
         self.lines
-            .keys()
-            .filter_map(|&d| Self::line(d, self.line_of(d, class)?, &is_member))
+            .iter()
+            .filter_map(|(&d, entry)| Self::line(d, entry.line(class)?, &is_member))
             .collect()
     }
 

@@ -323,10 +323,10 @@ impl RunningFrame {
         if !synced {
             return self.whole_view(class, classes);
         }
-        let members = &self.members;
+        let lost = &self.lost;
         self.sent_holders
             .pending()
-            .lines(class, |k| members.contains_key(&k))
+            .lines(class, |k| !lost.contains(&k))
     }
 
     /// When the members' next holders flush is due, if a round changed anything since the last.
