@@ -223,6 +223,29 @@ fn wanted(shown: &[(u64, u32)], d: u32) -> bool {
     shown[d as usize].0 > 0
 }
 
+/// A generation `before` in a member's ascending multiset `list` (and in the index's `counts`)
+/// made `now` (`None`: no generation).
+fn swap_generation(
+    list: &mut Vec<u32>,
+    counts: &mut BTreeMap<u32, usize>,
+    before: Option<u32>,
+    now: Option<u32>,
+) {
+    if before == now {
+        return;
+    }
+    for (g, add) in [(before, false), (now, true)] {
+        let Some(g) = g else { continue };
+        let at = list.partition_point(|&x| x < g);
+        if add {
+            list.insert(at, g);
+        } else {
+            list.remove(at);
+        }
+        tally(counts, g, 1, add);
+    }
+}
+
 /// `key` added to `list`, ascending without repeats.
 fn list_in(list: &mut Vec<u32>, key: u32) {
     if let Err(at) = list.binary_search(&key) {
@@ -542,18 +565,12 @@ impl RoundIndex {
             return self.update(key, member);
         };
         let waiting = m.report.as_ref().and_then(|r| r.oldest_waiting);
-        if waiting != waiting_before {
-            for (g, add) in [(waiting_before, false), (waiting, true)] {
-                let Some(g) = g else { continue };
-                let at = part.generations.partition_point(|&x| x < g);
-                if add {
-                    part.generations.insert(at, g);
-                } else {
-                    part.generations.remove(at);
-                }
-                tally(&mut self.generations, g, 1, add);
-            }
-        }
+        swap_generation(
+            &mut part.generations,
+            &mut self.generations,
+            waiting_before,
+            waiting,
+        );
         let edits: Vec<(u32, u32, Queue, Queue)> =
             edits.iter().map(|&(d, b, a)| (key, d, b, a)).collect();
         self.requeue(members, &edits);
@@ -941,18 +958,12 @@ impl RoundIndex {
                 unknown.insert(key);
                 continue;
             };
-            if generation != generation_now {
-                for (g, add) in [(generation, false), (generation_now, true)] {
-                    let Some(g) = g else { continue };
-                    let at = part.generations.partition_point(|&x| x < g);
-                    if add {
-                        part.generations.insert(at, g);
-                    } else {
-                        part.generations.remove(at);
-                    }
-                    tally(&mut self.generations, g, 1, add);
-                }
-            }
+            swap_generation(
+                &mut part.generations,
+                &mut self.generations,
+                generation,
+                generation_now,
+            );
             if d >= self.domains {
                 continue;
             }

@@ -138,17 +138,7 @@ impl Coordinator {
                     // (`Coordinator::plan`), with every other report among them.
                     match f.take_report(key, r) {
                         Ok(messages) => self.send(messages, out),
-                        Err(e) => {
-                            let worker = self
-                                .workers
-                                .get(&key)
-                                .map(|w| w.id.clone())
-                                .unwrap_or_default();
-                            error!(worker = %worker, error = %e, "worker sent an impossible queue report: dropped, its tiles re-dealt");
-                            f.refuse(worker);
-                            let why = format!("impossible queue report: {e}");
-                            return self.lose(now, key, &why.clone(), Closing::Refused(why), out);
-                        }
+                        Err(e) => return self.refuse(now, key, "queue report", &e, out),
                     }
                     self.reports_taken = true;
                 }
@@ -202,15 +192,7 @@ impl Coordinator {
             });
         }
         if let Some(e) = refused {
-            let worker = self
-                .workers
-                .get(&key)
-                .map(|w| w.id.clone())
-                .unwrap_or_default();
-            error!(worker = %worker, error = %e, "worker sent impossible tile results: dropped, its tiles re-dealt");
-            frame.refuse(worker);
-            let why = format!("impossible tile results: {e}");
-            return self.lose(now, key, &why.clone(), Closing::Refused(why), out);
+            return self.refuse(now, key, "tile results", &e, out);
         }
         if frame.ledger.is_complete() && frame.has_next_subframe() {
             self.next_subframe(now, out);
@@ -219,6 +201,22 @@ impl Coordinator {
         } else {
             self.publish_progress(now, out);
         }
+    }
+
+    /// Drops worker `key`, which sent `what` that cannot be right (`why`): it is sidelined
+    /// from the running frame and its tiles are dealt again.
+    fn refuse(&mut self, now: Time, key: u32, what: &str, why: &str, out: &mut Vec<Action>) {
+        let worker = self
+            .workers
+            .get(&key)
+            .map(|w| w.id.clone())
+            .unwrap_or_default();
+        error!(worker = %worker, error = %why, "worker sent impossible {what}: dropped, its tiles re-dealt");
+        if let Some(frame) = self.running.as_mut() {
+            frame.refuse(worker);
+        }
+        let why = format!("impossible {what}: {why}");
+        self.lose(now, key, &why.clone(), Closing::Refused(why), out);
     }
 
     fn frame_report(&mut self, now: Time, key: u32, r: proto::FrameReport, out: &mut Vec<Action>) {
