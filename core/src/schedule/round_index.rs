@@ -405,7 +405,7 @@ pub struct RoundIndex {
     unmoved_queues: Vec<(u32, u32)>,
     /// By member: its queues as it last reported them where the rounds moved rays since (from
     /// it to a holder, or to it): a report that names only what changed leaves those queues
-    /// as the worker has them, not as the rounds left them ([`RoundIndex::take_unreported`]).
+    /// as the worker has them, not as the rounds left them ([`RoundIndex::take_changes`]).
     unreported: BTreeMap<u32, BTreeMap<u32, Queue>>,
     /// Every domain in someone's plan, with the members whose plan it is in
     /// (`rounds::current_holders`, kept member by member).
