@@ -202,7 +202,7 @@ mod tests {
                 if (x >> 60) < 10 {
                     queued.insert(d, (x >> 40) % 4);
                 }
-                if (x >> 50) % 3 != 0 {
+                if !(x >> 50).is_multiple_of(3) {
                     oldest.insert(d, ((x >> 30) % 3) as u32);
                 }
             }
