@@ -86,6 +86,25 @@ impl Heard {
     }
 }
 
+/// The queues a report names, read once by the coordinator for both the cluster status and
+/// the frame.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Read {
+    /// A whole report: its maps are the worker's queues.
+    Whole,
+    /// A delta: (domain, its queue now) of each queue that changed, as [`changes`] reads them.
+    Changes(Vec<(u32, Queue)>),
+}
+
+/// Reads `report`'s queues: [`Read::Whole`] or a delta's [`changes`]; an error if it
+/// contradicts itself.
+pub fn read(report: &proto::QueueReport) -> Result<Read, String> {
+    Ok(match report.delta {
+        false => Read::Whole,
+        true => Read::Changes(changes(report)?),
+    })
+}
+
 /// A delta report's queues as (domain, its queue now), ascending by domain, each once; an
 /// error if the report contradicts itself (a domain cleared and given entries).
 pub fn changes(report: &proto::QueueReport) -> Result<Vec<(u32, Queue)>, String> {

@@ -21,7 +21,7 @@ use rayfarm_core::progressive::Samples;
 use rayfarm_core::render::local::FrameSpec;
 use rayfarm_core::schedule::dynamic::Options;
 use rayfarm_core::schedule::keep_first_of_each;
-use rayfarm_core::schedule::round_index::{Changes, RoundIndex};
+use rayfarm_core::schedule::round_index::{Changes, Queue, RoundIndex};
 use rayfarm_core::schedule::rounds;
 use rayfarm_core::schedule::static_plans::{image_plane_share, owned_domains_fit};
 use rayfarm_core::schedule::tiles::{HandOuts, strided_share};
@@ -585,7 +585,8 @@ impl RunningFrame {
         key: u32,
         report: proto::QueueReport,
     ) -> Result<Vec<Outgoing>, String> {
-        let mut out = self.take_report(key, report)?;
+        let read = queue_report::read(&report)?;
+        let mut out = self.take_report(key, report, read)?;
         out.extend(self.plan_asked());
         Ok(out)
     }
@@ -596,25 +597,29 @@ impl RunningFrame {
     /// `RoundIndex::dry_plans` plans any number of dry members). Returns what does not wait:
     /// the hybrid schedule's demand-driven tiles and task requests. The static schedules
     /// decide once and never plan again. A report naming only what changed
-    /// (`QueueReport.delta`) is put into the member's last; an error if it cannot be right
-    /// (it contradicts itself: the worker must be dropped).
+    /// (`QueueReport.delta`, its queues as `read` once by the caller) is put into the
+    /// member's last; an error if it cannot be right (the worker must be dropped).
     pub fn take_report(
         &mut self,
         key: u32,
         report: proto::QueueReport,
+        read: queue_report::Read,
     ) -> Result<Vec<Outgoing>, String> {
         let Some(member) = self.members.get_mut(&key) else {
             return Ok(Vec::new());
         };
         self.queues_taken += (report.queued_rays.len() + report.cleared_domains.len()) as u64;
-        if report.delta {
-            if !self.take_changes(key, report)? {
-                return Ok(Vec::new());
+        match read {
+            queue_report::Read::Changes(queues) => {
+                if !self.take_changes(key, report, queues) {
+                    return Ok(Vec::new());
+                }
             }
-        } else {
-            member.rounds.report = Some(queues(report));
-            self.index.reported_whole(key);
-            self.touch(key);
+            queue_report::Read::Whole => {
+                member.rounds.report = Some(queues(report));
+                self.index.reported_whole(key);
+                self.touch(key);
+            }
         }
         let Some(member) = self.members.get_mut(&key) else {
             return Ok(Vec::new());
@@ -642,14 +647,19 @@ impl RunningFrame {
     /// into that one (`RoundIndex::take_changes`). False if there is no report to put it
     /// into: the frame forgot every member's at a worker's loss (`lose`), and a report sent
     /// before the worker heard of it is dropped (its next, after it did, is whole).
-    fn take_changes(&mut self, key: u32, report: proto::QueueReport) -> Result<bool, String> {
+    fn take_changes(
+        &mut self,
+        key: u32,
+        report: proto::QueueReport,
+        queues: Vec<(u32, Queue)>,
+    ) -> bool {
         let changes = Changes {
-            queues: queue_report::changes(&report)?,
+            queues,
             round: report.round,
             resident: resident_once(report.resident_domains),
             oldest_waiting: report.oldest_waiting,
         };
-        Ok(self.index.take_changes(key, &mut self.members, changes))
+        self.index.take_changes(key, &mut self.members, changes)
     }
 
     /// Plans the round the reports taken since the last one ask for, if any: under barrier

@@ -729,7 +729,8 @@ fn a_report_naming_what_changed_is_put_into_the_last_and_one_without_a_last_is_d
         cleared_domains: vec![3],
         ..report(0, &[], &[(0, 9, 0)])
     };
-    f.take_report(1, changed).unwrap();
+    let read = queue_report::read(&changed).unwrap();
+    f.take_report(1, changed, read).unwrap();
     let queues = &f.members[&1].rounds.report.as_ref().expect("report").queued;
     assert_eq!(queues, &BTreeMap::from([(0, 9)]));
     // A report that clears a domain it gives a queue is refused: the worker must go.
@@ -738,5 +739,5 @@ fn a_report_naming_what_changed_is_put_into_the_last_and_one_without_a_last_is_d
         cleared_domains: vec![0],
         ..report(0, &[], &[(0, 1, 0)])
     };
-    assert!(f.take_report(1, impossible).is_err());
+    assert!(f.report(1, impossible).is_err());
 }

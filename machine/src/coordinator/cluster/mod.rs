@@ -175,17 +175,16 @@ pub struct ReportedQueues {
 
 impl ReportedQueues {
     /// Takes `report`'s figures in place of the last: all of them from a whole report, the
-    /// queues it names from one that names only what changed (`QueueReport.delta`; one that
-    /// contradicts itself changes no queue here, and the frame refuses it).
-    fn take(&mut self, report: &proto::QueueReport) {
+    /// queues it names from one that names only what changed (`QueueReport.delta`), as `read`.
+    fn take(&mut self, report: &proto::QueueReport, read: &queue_report::Read) {
         self.resident_domains.clone_from(&report.resident_domains);
-        if !report.delta {
+        let queue_report::Read::Changes(changes) = read else {
             self.queued_rays.clear();
             self.queued_rays
                 .extend(report.queued_rays.iter().map(|(&d, &n)| (d, n)));
             return;
-        }
-        for (d, (rays, _)) in queue_report::changes(report).unwrap_or_default() {
+        };
+        for &(d, (rays, _)) in changes {
             let at = self.queued_rays.binary_search_by_key(&d, |&(d, _)| d);
             match (at, rays) {
                 (Ok(i), Some(n)) => self.queued_rays[i].1 = n,

@@ -132,11 +132,15 @@ impl Coordinator {
             FromWorker::Register(_) => warn!(key, "worker registered twice; ignored"),
             FromWorker::Heartbeat(h) => worker.heartbeat = h,
             FromWorker::QueueReport(r) => {
-                worker.last_report.take(&r);
+                let read = match queue_report::read(&r) {
+                    Ok(read) => read,
+                    Err(e) => return self.refuse(now, key, "queue report", &e, out),
+                };
+                worker.last_report.take(&r, &read);
                 if let Some(f) = self.running.as_mut().filter(|f| f.frame_id() == r.job_id) {
                     // The round it asks for is planned once the inputs at hand are taken
                     // (`Coordinator::plan`), with every other report among them.
-                    match f.take_report(key, r) {
+                    match f.take_report(key, r, read) {
                         Ok(messages) => self.send(messages, out),
                         Err(e) => return self.refuse(now, key, "queue report", &e, out),
                     }
