@@ -285,15 +285,17 @@ fn step_by<T: std::ops::AddAssign + std::ops::SubAssign>(x: &mut T, by: T, add: 
 }
 
 /// `n` rays queued for domain `d`, the oldest of generation `g`, counted in (`add`) or out of
-/// the rays reported per domain (and per oldest generation, under the oldest-generation rule).
+/// the rays reported per domain and in all (and per oldest generation, under the
+/// oldest-generation rule).
 fn count_queue(
-    queued: &mut [u64],
+    (queued, total): (&mut [u64], &mut u64),
     by_generation: &mut [BTreeMap<u32, u64>],
     oldest_first: bool,
     (d, n, g): (u32, u64, Option<u32>),
     add: bool,
 ) {
     step_by(&mut queued[d as usize], n, add);
+    step_by(total, n, add);
     if let (true, Some(g)) = (oldest_first, g) {
         tally(&mut by_generation[d as usize], g, n, add);
     }
@@ -367,6 +369,8 @@ pub struct RoundIndex {
     dry_resident: Vec<Vec<u32>>,
     /// Rays reported per domain, over every member.
     queued: Vec<u64>,
+    /// Rays reported over every member and domain.
+    queued_rays: u64,
     /// Rays reported per domain by oldest generation (the oldest-generation rule only).
     by_generation: Vec<BTreeMap<u32, u64>>,
     /// Every generation reported, with how many times.
@@ -444,6 +448,7 @@ impl RoundIndex {
             differs: BTreeSet::new(),
             dry_resident: vec![Vec::new(); n],
             queued: vec![0; n],
+            queued_rays: 0,
             by_generation: if oldest_first {
                 vec![BTreeMap::new(); n]
             } else {
@@ -799,8 +804,14 @@ impl RoundIndex {
                 .into_iter()
                 .chain(come.map(|q| (q, true)))
             {
-                let (queued, by_generation) = (&mut self.queued, &mut self.by_generation);
-                count_queue(queued, by_generation, self.oldest_first, (d, n, g), add);
+                let queued = (&mut self.queued[..], &mut self.queued_rays);
+                count_queue(
+                    queued,
+                    &mut self.by_generation,
+                    self.oldest_first,
+                    (d, n, g),
+                    add,
+                );
                 touched.push(d);
             }
         }
@@ -983,7 +994,8 @@ impl RoundIndex {
                     .map(|q| (q, false))
                     .chain(new.iter().map(|q| (q, true)))
                 {
-                    let (queued, by_generation) = (&mut self.queued, &mut self.by_generation);
+                    let queued = (&mut self.queued[..], &mut self.queued_rays);
+                    let by_generation = &mut self.by_generation;
                     count_queue(queued, by_generation, self.oldest_first, (d, n, g), add);
                 }
                 touched.push(d);
@@ -1114,8 +1126,15 @@ impl RoundIndex {
             return Vec::new();
         }
         if self.dry.len() == members.len() {
-            // Nobody is busy: under the oldest-generation rule the index's plans first, then,
-            // if they change nothing, every queue counted, from the whole cluster.
+            // Nobody is busy and no ray is queued anywhere (rays between members, or the
+            // frame's end): the whole cluster's planner would find nothing to plan, after
+            // reading every member's report (4.6 ms at 4,096 workers, 62 times in dynamic's
+            // 256x256 frame there: a tenth of its coordinator's CPU).
+            if self.queued_rays == 0 {
+                return Vec::new();
+            }
+            // Under the oldest-generation rule the index's plans first, then, if they change
+            // nothing, every queue counted, from the whole cluster.
             if self.oldest_first {
                 let plans = self.index_plans(members, options);
                 if !plans.is_empty() {
