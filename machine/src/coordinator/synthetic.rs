@@ -179,6 +179,29 @@ impl SteadyFrame {
         }
     }
 
+    /// The next member in turn reports while it works (a delta naming one queue changed, of
+    /// a round before its plan's, so no round plans it): what a report costs the coordinator
+    /// when no round follows (`PlanningWork::reports`). Every member must have reported
+    /// whole once (as [`SteadyFrame::new`] leaves them).
+    pub fn next_busy_report(&mut self) -> Input {
+        let n = self.reports;
+        self.reports += 1;
+        let key = self.keys[(n % self.keys.len().max(1) as u64) as usize];
+        let (round, resident) = self.plans.get(&key).cloned().unwrap_or_default();
+        let d = (mix64(n << 20) % u64::from(self.domains)) as u32;
+        Input::WorkerMessage {
+            key,
+            body: FromWorker::QueueReport(proto::QueueReport {
+                job_id: self.job_id.clone(),
+                round: round.saturating_sub(1),
+                resident_domains: resident,
+                queued_rays: BTreeMap::from([(d, 1 + mix64(n) % 10_000)]),
+                delta: true,
+                ..Default::default()
+            }),
+        }
+    }
+
     /// Hands the coordinator `input` a report's gap after the last, as a shell does: the
     /// actions, with the plans they carry noted for the members' next reports.
     pub fn handle(&mut self, input: Input) -> Vec<Action> {
@@ -307,6 +330,7 @@ mod tests {
             .sum();
         let work = planned(&s.handle_all(inputs));
         assert_eq!((work.rounds, work.whole_rounds, work.planned), (1, 0, 8));
+        assert_eq!(work.reports, 8);
         assert!(named > 8 * 30, "{named}");
         assert_eq!(work.queues, named as u64);
         s.set_report_queues(QUEUED);
@@ -369,6 +393,19 @@ mod tests {
             later.lines > 0 && *told_lines as u64 >= 32 * later.lines,
             "{later:?}, {told_lines} lines told"
         );
+    }
+
+    #[test]
+    fn a_busy_members_report_is_counted_and_plans_nothing() {
+        let mut s = SteadyFrame::new(64, 512, Duration::from_secs(3600));
+        for _ in 0..100 {
+            let input = s.next_busy_report();
+            let work = planned(&s.handle_round(input));
+            assert_eq!((work.rounds, work.reports, work.queues), (0, 1, 1));
+        }
+        // Reports of members that ran dry are counted too, round or not.
+        let inputs: Vec<Input> = (0..8).map(|_| s.next_report()).collect();
+        assert_eq!(planned(&s.handle_all(inputs)).reports, 8);
     }
 
     #[test]

@@ -398,7 +398,7 @@ impl Coordinator {
 /// Tallies the rounds `frame` planned since its planning was counted at `before`.
 pub(super) fn tally_rounds(frame: &RunningFrame, before: &PlanningWork, out: &mut Vec<Action>) {
     let work = frame.planning.since(before);
-    if work.rounds > 0 || work.queues > 0 {
+    if work.rounds > 0 || work.queues > 0 || work.reports > 0 {
         out.push(Action::Tally(Tally::Rounds(work)));
     }
 }
