@@ -51,6 +51,8 @@ pub struct Calibration {
     /// Their CPU time in all, and the root-mean-square error of the fit over the mean pass.
     pub pass_cpu: Duration,
     pub pass_fit_error: f64,
+    /// Reports taken in with no round after them, the report price's measure.
+    pub reports: Vec<TimedReports>,
     /// The planning rounds the planning prices were fitted to.
     pub rounds: Vec<TimedRound>,
     /// The fit's root-mean-square error over the mean round: incremental rounds, and rounds
@@ -198,8 +200,11 @@ pub fn calibrate(
     }
     let (pass_coef, pass_fit_error) = fit(&passes.iter().map(pass_row).collect::<Vec<_>>());
     let volumes = passes.iter().any(|p| p.counters.volume_samples > 0);
+    let reports = time_reports();
+    let report_ns = median(reports.iter().map(|r| r.ns).collect());
     let rounds = time_rounds();
-    let (round_coef, round_fit_error, whole_coef, whole_round_fit_error) = fit_rounds(&rounds);
+    let (round_coef, round_fit_error, whole_coef, whole_round_fit_error) =
+        fit_rounds(&rounds, report_ns);
     let flushes = time_flushes();
     let (flush_coef, flush_fit_error) = fit_flushes(&flushes);
     let received = &outcome.measured_bundles;
@@ -256,6 +261,7 @@ pub fn calibrate(
             round_planned_ns: round_coef[1],
             round_planned_domain_ns: round_coef[4],
             round_queue_ns: round_coef[5],
+            report_ns,
             round_member_ns: round_coef[2],
             round_domain_ns: round_coef[3],
             whole_round_ns: whole_coef[0],
@@ -279,6 +285,7 @@ pub fn calibrate(
         passes: passes.len(),
         pass_cpu: Duration::from_nanos(passes.iter().map(|p| p.cpu_ns).sum()),
         pass_fit_error,
+        reports,
         rounds,
         round_fit_error,
         whole_round_fit_error,
@@ -405,6 +412,63 @@ pub struct TimedRound {
     pub ns: f64,
 }
 
+/// Reports timed alone at each size (the median is kept).
+const REPORTS_TIMED: usize = 201;
+
+/// What one report taken in costs the coordinator at a cluster's size when no round follows:
+/// thread CPU, the median over [`REPORTS_TIMED`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TimedReports {
+    pub members: usize,
+    pub domains: usize,
+    pub ns: f64,
+}
+
+/// Reports of busy members at every size (`SteadyFrame::next_busy_report`: a delta naming
+/// one queue, as a worker sends after its first), each handed to the machine with the round
+/// it asks for, which plans nothing: the message, the status's copy, the member's figures in
+/// the index (`RoundIndex::take_changes`), the tally. A round's reports are priced by this and
+/// the rest of the round by [`fit_rounds`].
+fn time_reports() -> Vec<TimedReports> {
+    ROUND_SIZES
+        .iter()
+        .map(|&(workers, domains)| {
+            let mut frame = SteadyFrame::new(workers, domains, Duration::from_millis(100));
+            frame.flush();
+            // Each member's first report while it works moves its round back; the timed ones
+            // after it change a queue only, as a worker's reports between its plans do.
+            for _ in 0..workers {
+                let input = frame.next_busy_report();
+                frame.handle_round(input);
+                frame.flush();
+            }
+            let times: Vec<f64> = (0..REPORTS_TIMED)
+                .filter_map(|_| {
+                    let input = frame.next_busy_report();
+                    let start = thread_cpu_ns();
+                    let actions = std::hint::black_box(frame.handle_round(input));
+                    let work = planned(&actions);
+                    drop(actions);
+                    let ns = thread_cpu_ns().saturating_sub(start);
+                    frame.flush();
+                    (work.rounds == 0).then_some(ns as f64)
+                })
+                .collect();
+            TimedReports {
+                members: workers as usize,
+                domains: domains as usize,
+                ns: median(times),
+            }
+        })
+        .collect()
+}
+
+/// The middle of `values` (0 for none).
+fn median(mut values: Vec<f64>) -> f64 {
+    values.sort_unstable_by(f64::total_cmp);
+    values.get(values.len() / 2).copied().unwrap_or(0.0)
+}
+
 /// Rounds at every size: incremental ones with each of [`DRY_COUNTS`] members dry, and one
 /// whole-cluster round (every member dry).
 fn time_rounds() -> Vec<TimedRound> {
@@ -484,8 +548,11 @@ fn time_round(workers: u32, domains: u32, dry: u32, report_queues: Option<usize>
 /// milliseconds; fitted by absolute error, the large ones set a price per member of the
 /// cluster that charged a 4,096-member round with one member dry five times its time), and
 /// the whole-cluster rounds as `round + members x M + domains x D`: (the incremental prices,
-/// their fit error, the whole-cluster prices, their fit error).
-fn fit_rounds(rounds: &[TimedRound]) -> ([f64; 6], f64, [f64; 3], f64) {
+/// their fit error, the whole-cluster prices, their fit error). Each round's reports (one a
+/// member planned) are priced at `report_ns` apiece (`time_reports`), so what is fitted is
+/// the rest of its time.
+fn fit_rounds(rounds: &[TimedRound], report_ns: f64) -> ([f64; 6], f64, [f64; 3], f64) {
+    let rest = |r: &TimedRound| (r.ns - report_ns * r.planned as f64).max(0.0);
     let incremental: Vec<(Vec<f64>, f64)> = rounds
         .iter()
         .filter(|r| !r.whole)
@@ -499,14 +566,14 @@ fn fit_rounds(rounds: &[TimedRound]) -> ([f64; 6], f64, [f64; 3], f64) {
                     (r.planned * r.domains) as f64,
                     r.queues as f64,
                 ],
-                r.ns,
+                rest(r),
             )
         })
         .collect();
     let whole: Vec<(Vec<f64>, f64)> = rounds
         .iter()
         .filter(|r| r.whole)
-        .map(|r| (vec![1.0, r.members as f64, r.domains as f64], r.ns))
+        .map(|r| (vec![1.0, r.members as f64, r.domains as f64], rest(r)))
         .collect();
     let (i, ie) = fit_relative(&incremental);
     let (w, we) = fit(&whole);

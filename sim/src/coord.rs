@@ -674,9 +674,17 @@ impl SimCoordinator {
             whole_members: p.whole_members,
             ..Default::default()
         });
+        let reports = priced(PlanningWork {
+            reports: p.reports,
+            queues: p.queues,
+            ..Default::default()
+        });
         let f = &self.flushing;
         info!(
             busy_s = format!("{:.3}", self.busy.as_secs_f64()),
+            reports = p.reports,
+            queues = p.queues,
+            reports_s = format!("{reports:.3}"),
             rounds = p.rounds,
             whole_rounds = p.whole_rounds,
             planned = p.planned,

@@ -2,9 +2,9 @@
 //! segments, shadow segments, camera samples and volume samples, each at its own price, over
 //! the worker's threads; a planning round of the coordinator costs what its kind follows
 //! (`rayfarm_machine::coordinator::PlanningWork`): an incremental round (someone busy) a fixed
-//! part plus a part per member planned (and per member planned per domain), per queue the
-//! reports taken in name (a predictive report names about a hundred), per member of the cluster and
-//! per domain (a dry member it leaves as it was costs it nothing); a round
+//! part plus a part per member planned (and per member planned per domain), per member of the
+//! cluster and per domain (a dry member it leaves as it was costs it nothing); every queue
+//! report taken in, round or not, a part of its own and a part per queue it names; a round
 //! planned from the whole cluster (barrier rounds, or nobody busy) a part per member and per
 //! domain at the whole-cluster planner's prices; a holders flush (`FlushWork`) a fixed part,
 //! a part per member of the frame and per holder line it made. The prices are measured on a
@@ -48,6 +48,11 @@ pub struct ComputeCost {
     /// as zero (their per-member price had reports of 16 queues in it).
     #[serde(default)]
     pub round_queue_ns: f64,
+    /// Per queue report taken in (`PlanningWork::reports`), whether or not a round followed:
+    /// its message and its member's figures. Files calibrated before this price was measured
+    /// read as zero (a report was then free unless it planned something).
+    #[serde(default)]
+    pub report_ns: f64,
     /// An incremental round's cost per member of the cluster (the holders map is rebuilt from
     /// every member's plan).
     pub round_member_ns: f64,
@@ -110,18 +115,19 @@ impl Default for ComputeCost {
             shadow_segment_ns: 264.2,
             camera_sample_ns: 144.2,
             volume_sample_ns: 71.0,
-            round_ns: 12_533.0,
-            round_planned_ns: 17_018.0,
-            round_planned_domain_ns: 0.841,
-            round_queue_ns: 0.0,
-            round_member_ns: 0.0,
+            round_ns: 4_062.0,
+            round_planned_ns: 6_828.1,
+            round_planned_domain_ns: 1.144,
+            round_queue_ns: 461.5,
+            report_ns: 2_204.0,
+            round_member_ns: 0.86,
             round_domain_ns: 0.0,
             whole_round_ns: 0.0,
-            whole_round_member_ns: 12_861.0,
-            whole_round_domain_ns: 1_117.0,
-            flush_ns: 37_094.0,
-            flush_member_ns: 0.0,
-            flush_line_ns: 110.0,
+            whole_round_member_ns: 11_991.9,
+            whole_round_domain_ns: 1_281.8,
+            flush_ns: 24_406.0,
+            flush_member_ns: 28.9,
+            flush_line_ns: 82.4,
             bundle_send_ns: 3_717.0,
             bundle_send_byte_ns: 0.759,
             bundle_receive_ns: 10_534.0,
@@ -162,6 +168,7 @@ impl ComputeCost {
             ("round_planned_ns", self.round_planned_ns),
             ("round_planned_domain_ns", self.round_planned_domain_ns),
             ("round_queue_ns", self.round_queue_ns),
+            ("report_ns", self.report_ns),
             ("round_member_ns", self.round_member_ns),
             ("round_domain_ns", self.round_domain_ns),
             ("whole_round_ns", self.whole_round_ns),
@@ -307,6 +314,7 @@ impl CostModel {
         let ns = incremental * (p.round_ns + p.round_domain_ns * domains)
             + (p.round_planned_ns + p.round_planned_domain_ns * domains) * work.planned as f64
             + p.round_queue_ns * work.queues as f64
+            + p.report_ns * work.reports as f64
             + p.round_member_ns * work.members as f64
             + whole * (p.whole_round_ns + p.whole_round_domain_ns * domains)
             + p.whole_round_member_ns * work.whole_members as f64;
@@ -334,6 +342,7 @@ mod tests {
                 round_planned_ns: 100.0,
                 round_planned_domain_ns: 0.5,
                 round_queue_ns: 7.0,
+                report_ns: 11.0,
                 round_member_ns: 10.0,
                 round_domain_ns: 1.0,
                 whole_round_ns: 5000.0,
@@ -371,19 +380,22 @@ mod tests {
             planned: 4,
             members: 128,
             queues: 0,
+            reports: 0,
         };
         assert_eq!(
             m.planning(&work, 512),
             Duration::from_nanos(4304 + 1424 + 94_600)
         );
-        // The reports taken in cost their queues, rounds or not: 300 queues x 7 ns.
+        // The reports taken in cost themselves and their queues, rounds or not: 20 reports
+        // x 11 ns and 300 queues x 7 ns.
         let reports = PlanningWork {
             queues: 300,
+            reports: 20,
             ..work
         };
         assert_eq!(
             m.planning(&reports, 512) - m.planning(&work, 512),
-            Duration::from_nanos(2100)
+            Duration::from_nanos(220 + 2100)
         );
         // Two flushes of 64 members, 500 lines made in all: 2 x 2000 + 128 x 20 + 500 x 3 ns,
         // whatever the members told (each gets the one message of its class).

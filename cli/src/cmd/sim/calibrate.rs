@@ -98,6 +98,18 @@ pub(super) fn run_calibrate(c: CalibrateArgs) -> anyhow::Result<()> {
             ""
         }
     );
+    for r in &cal.reports {
+        println!(
+            "queue report taken in, no round after it, {} members x {} domains: {:.1} us",
+            r.members,
+            r.domains,
+            r.ns / 1e3
+        );
+    }
+    println!(
+        "  {:.0} ns a report (the median; a round's reports are priced so, the rest of it below)",
+        p.report_ns
+    );
     for r in &cal.rounds {
         let planned = if r.whole {
             "every member (whole cluster)".to_string()

@@ -35,7 +35,7 @@ pub(super) fn print_row(schedule: Schedule, workers: usize, o: &Outcome, wall: f
             "  coordinator machine replayed alone: {:.3} s of CPU for {} calls ({:.2}% of the frame; \
              priced busy {:.3} s): reports {:.3} s, tile results {:.3} s, heartbeats {:.3} s, \
              ticks {:.3} s, other {:.3} s (the clock's own {} ns a call taken out); {} rounds, \
-             {} members planned, {} queues taken in; {}",
+             {} members planned, {} reports naming {} queues taken in; {}",
             secs(r.total()),
             r.calls,
             secs(r.total()) / t * 100.0,
@@ -48,6 +48,7 @@ pub(super) fn print_row(schedule: Schedule, workers: usize, o: &Outcome, wall: f
             r.clock.as_nanos(),
             r.planning.rounds,
             r.planning.planned + r.planning.whole_members,
+            r.planning.reports,
             r.planning.queues,
             if r.repeated {
                 "its rounds planned what the run's did"
