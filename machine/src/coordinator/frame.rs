@@ -81,7 +81,7 @@ pub struct PlanningWork {
     pub queues: u64,
     /// Queue reports taken in, whether or not a round followed: each costs the coordinator
     /// its message and its member's figures (`RoundIndex::take_changes`) even when it names
-    /// one queue, and a predictive frame at 4,096 workers takes 225,000 of them in 1,316
+    /// one queue, and a predictive frame at 4,096 workers takes 256,659 of them in 1,316
     /// rounds (README "Simulator": priced by the rounds alone, its coordinator was busy 1.05%
     /// of the frame where the machine replayed alone took 3.7%).
     pub reports: u64,
