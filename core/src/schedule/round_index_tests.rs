@@ -9,7 +9,8 @@ const DOMAINS: u32 = 10;
 enum Change {
     /// Member `key` reports, of its plan's round (it ran dry) or of the one before (busy);
     /// naming only the queues that changed since its last report if `delta` (and it has one),
-    /// and then with the resident domains of that one if `same_resident`.
+    /// and then with the resident domains of that one if `same_resident` (in the same order or
+    /// another).
     Report {
         key: u32,
         dry: bool,
@@ -151,7 +152,15 @@ fn run(changes: &[Change], oldest_first: bool, options: Options) -> Result<(), T
                 // In the worker's order of use, each once, as the coordinator takes it in.
                 let mut seen = BTreeSet::new();
                 let resident = match sent.get(key) {
-                    Some(last) if *delta && *same_resident => last.resident.clone(),
+                    // The same domains, in another order of use when the drawn list's
+                    // length is odd (a pass used one).
+                    Some(last) if *delta && *same_resident => {
+                        let mut same = last.resident.clone();
+                        if resident.len() % 2 == 1 && !same.is_empty() {
+                            same.rotate_left(1);
+                        }
+                        same
+                    }
                     _ => resident
                         .iter()
                         .copied()
