@@ -501,6 +501,11 @@ impl RunningFrame {
     pub fn join(&mut self, key: u32, member: Member) -> Vec<Outgoing> {
         self.members.insert(key, member);
         self.sent_holders.forget(key);
+        // It holds no map: the next flush tells it the whole one, whether or not a round
+        // changes anything first (rays it holds for domains others hold wait for that; a
+        // joiner whose rays were all for held domains, with every member dry and no plan to
+        // change, waited for ever: `rayfarm sim` predictive seed 2364 of stop 47).
+        self.sent_holders.mark_dirty();
         self.touch(key);
         self.tasks.joined(key);
         // One roster for every member, the newcomer's behind its StartFrame, shared as a

@@ -741,3 +741,31 @@ fn a_report_naming_what_changed_is_put_into_the_last_and_one_without_a_last_is_d
     };
     assert!(f.report(1, impossible).is_err());
 }
+
+#[test]
+fn a_member_that_joins_hears_the_whole_holders_map_at_the_next_flush_with_no_round_after_it() {
+    let ms = |n: u64| Time(n * 1_000_000);
+    let (f, _) = started(Schedule::Dynamic, Rounds::Async, 2);
+    let mut f = f.with_holders_interval(std::time::Duration::from_millis(10));
+    // Member 0 runs dry with rays for domain 1 and is given it; everyone is told at once.
+    let out = f.report(0, report(0, &[], &[(1, 50, 0)])).unwrap();
+    assert!(planned_domains(&out, 0).contains(&1), "{out:?}");
+    f.flush_holders(Time(0));
+    assert_eq!(f.holders_due(), None);
+    // A worker joins. Its rays for domain 1 must go to member 0, but no round may follow to
+    // tell it (every member dry, no plan to change): the flush must, by itself.
+    f.join(2, Member::new("w2".to_string(), 200));
+    assert_eq!(f.holders_due(), Some(ms(10)));
+    let flush = f.flush_holders(ms(10));
+    let told: Vec<&proto::Holders> = to(&flush, 2)
+        .into_iter()
+        .filter_map(|b| match b {
+            Body::Holders(h) => Some(h),
+            _ => None,
+        })
+        .collect();
+    assert!(
+        matches!(told[..], [h] if !h.delta && h.holders.iter().any(|l| l.domain == 1 && l.workers == [0])),
+        "{flush:?}"
+    );
+}
