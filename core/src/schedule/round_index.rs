@@ -48,19 +48,11 @@ struct Part {
     plan: Vec<u32>,
 }
 
-/// How a member's report changed what it holds since its last ([`RoundIndex::take_changes`]).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum Holdings {
-    /// The same round and resident domains in the same order.
-    Same,
-    /// The same round and resident domains, in another order of use.
-    Reordered,
-    /// Another round, or other resident domains.
-    Changed,
-}
-
-/// Whether `a` and `b` name the same domains (each names each once).
+/// Whether `a` and `b` name the same domains, in any order (each names each once).
 fn same_set(a: &[u32], b: &[u32]) -> bool {
+    if a == b {
+        return true;
+    }
     if a.len() != b.len() {
         return false;
     }
@@ -314,17 +306,15 @@ fn step_by<T: std::ops::AddAssign + std::ops::SubAssign>(x: &mut T, by: T, add: 
 }
 
 /// `n` rays queued for domain `d`, the oldest of generation `g`, counted in (`add`) or out of
-/// the rays reported per domain and in all (and per oldest generation, under the
-/// oldest-generation rule).
+/// the rays reported per domain (and per oldest generation, under the oldest-generation rule).
 fn count_queue(
-    (queued, total): (&mut [u64], &mut u64),
+    queued: &mut [u64],
     by_generation: &mut [BTreeMap<u32, u64>],
     oldest_first: bool,
     (d, n, g): (u32, u64, Option<u32>),
     add: bool,
 ) {
     step_by(&mut queued[d as usize], n, add);
-    step_by(total, n, add);
     if let (true, Some(g)) = (oldest_first, g) {
         tally(&mut by_generation[d as usize], g, n, add);
     }
@@ -398,8 +388,6 @@ pub struct RoundIndex {
     dry_resident: Vec<Vec<u32>>,
     /// Rays reported per domain, over every member.
     queued: Vec<u64>,
-    /// Rays reported over every member and domain.
-    queued_rays: u64,
     /// Rays reported per domain by oldest generation (the oldest-generation rule only).
     by_generation: Vec<BTreeMap<u32, u64>>,
     /// Every generation reported, with how many times.
@@ -477,7 +465,6 @@ impl RoundIndex {
             differs: BTreeSet::new(),
             dry_resident: vec![Vec::new(); n],
             queued: vec![0; n],
-            queued_rays: 0,
             by_generation: if oldest_first {
                 vec![BTreeMap::new(); n]
             } else {
@@ -570,15 +557,7 @@ impl RoundIndex {
         // then what it holds and whether it ran dry are as they were. Most others of the same
         // round name the same domains resident in another order of use (a pass used one):
         // only the order its draft would evict in changed.
-        let holdings = if q.round != changes.round {
-            Holdings::Changed
-        } else if q.resident == changes.resident {
-            Holdings::Same
-        } else if same_set(&q.resident, &changes.resident) {
-            Holdings::Reordered
-        } else {
-            Holdings::Changed
-        };
+        let holds_the_same = q.round == changes.round && same_set(&q.resident, &changes.resident);
         q.round = changes.round;
         q.resident = changes.resident;
         q.oldest_waiting = changes.oldest_waiting;
@@ -587,21 +566,22 @@ impl RoundIndex {
             .filter(|(_, (before, now))| before != now)
             .map(|(d, (before, now))| (d, before, now))
             .collect();
-        self.update_queues(key, members, &edits, waiting_before, holdings);
+        self.update_queues(key, members, &edits, waiting_before, holds_the_same);
         true
     }
 
     /// Takes member `key`'s new report into the figures when it differs from the member as
     /// last taken in only in the queues of `edits` ((domain, its queue before, after), each
-    /// domain once), its oldest waiting generation (`waiting_before` before) and, as
-    /// `holdings` says, its round and resident domains.
+    /// domain once), its oldest waiting generation (`waiting_before` before), and its round
+    /// and resident domains unless `holds_the_same` (then they are as they were, but for the
+    /// order of use).
     fn update_queues<M: AsRef<Member>>(
         &mut self,
         key: u32,
         members: &BTreeMap<u32, M>,
         edits: &[(u32, Queue, Queue)],
         waiting_before: Option<u32>,
-        holdings: Holdings,
+        holds_the_same: bool,
     ) {
         let member = members.get(&key).map(AsRef::as_ref);
         let (Some(m), Some(part)) = (member, self.parts.get_mut(&key)) else {
@@ -620,18 +600,15 @@ impl RoundIndex {
         self.requeue(members, &edits);
         self.unmoved_queues
             .extend(edits.iter().map(|&(k, d, ..)| (k, d)));
-        match holdings {
-            Holdings::Same => {}
-            // What it holds, its plan and its being dry are as they were: of its part only
-            // the order of use, which no figure counts (a member's part made again was a
-            // fifth of predictive's coordinator at 4,096 workers, most of it for this).
-            Holdings::Reordered => {
-                let resident = m.report.as_ref().map_or(&[][..], |r| &r.resident[..]);
-                if let Some(part) = self.parts.get_mut(&key) {
-                    part.set_by_use(resident, self.domains);
-                }
-            }
-            Holdings::Changed => self.renew(key, member, true),
+        if !holds_the_same {
+            return self.renew(key, member, true);
+        }
+        // What it holds, its plan and its being dry are as they were: of its part only the
+        // order of use may differ, which no figure counts (a member's part made again was a
+        // fifth of predictive's coordinator at 4,096 workers, most of it for a new order).
+        let resident = m.report.as_ref().map_or(&[][..], |r| &r.resident[..]);
+        if let Some(part) = self.parts.get_mut(&key) {
+            part.set_by_use(resident, self.domains);
         }
     }
 
@@ -853,14 +830,8 @@ impl RoundIndex {
                 .into_iter()
                 .chain(come.map(|q| (q, true)))
             {
-                let queued = (&mut self.queued[..], &mut self.queued_rays);
-                count_queue(
-                    queued,
-                    &mut self.by_generation,
-                    self.oldest_first,
-                    (d, n, g),
-                    add,
-                );
+                let (queued, by_generation) = (&mut self.queued, &mut self.by_generation);
+                count_queue(queued, by_generation, self.oldest_first, (d, n, g), add);
                 touched.push(d);
             }
         }
@@ -1043,8 +1014,7 @@ impl RoundIndex {
                     .map(|q| (q, false))
                     .chain(new.iter().map(|q| (q, true)))
                 {
-                    let queued = (&mut self.queued[..], &mut self.queued_rays);
-                    let by_generation = &mut self.by_generation;
+                    let (queued, by_generation) = (&mut self.queued, &mut self.by_generation);
                     count_queue(queued, by_generation, self.oldest_first, (d, n, g), add);
                 }
                 touched.push(d);
@@ -1178,8 +1148,9 @@ impl RoundIndex {
             // Nobody is busy and no ray is queued anywhere (rays between members, or the
             // frame's end): the whole cluster's planner would find nothing to plan, after
             // reading every member's report (4.6 ms at 4,096 workers, 62 times in dynamic's
-            // 256x256 frame there: a tenth of its coordinator's CPU).
-            if self.queued_rays == 0 {
+            // 256x256 frame there: a tenth of its coordinator's CPU); the index's counts say
+            // so in one walk of the domains.
+            if self.queued.iter().all(|&n| n == 0) {
                 return Vec::new();
             }
             // Under the oldest-generation rule the index's plans first, then, if they change

@@ -71,7 +71,7 @@ fn figures(index: &RoundIndex) -> String {
         .map(|h| (h.domain.0, h.rays, h.copies))
         .collect();
     format!(
-        "parts {:?}\ndry {:?} {:?} {:?} {:?} {:?}\nqueued {:?} {}\nby generation {:?}\ngenerations {:?}\n\
+        "parts {:?}\ndry {:?} {:?} {:?} {:?} {:?}\nqueued {:?}\nby generation {:?}\ngenerations {:?}\n\
          oldest {:?}\nheld {:?}\nin memory {:?}\nshown {:?}\nwanted {}\nunheld {:?} {:?}\n\
          hot {hot:?}\nplan holders {:?}\nqueuers {:?}\nholders {:?}",
         index.parts,
@@ -81,7 +81,6 @@ fn figures(index: &RoundIndex) -> String {
         index.differs,
         index.dry_resident,
         index.queued,
-        index.queued_rays,
         index.by_generation,
         index.generations,
         index.oldest,
