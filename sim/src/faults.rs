@@ -31,6 +31,14 @@ impl Rng {
         if n == 0 { 0 } else { self.draw() % n }
     }
 
+    /// A duration drawn from the exponential distribution of mean `mean`: the wait for an
+    /// event that is as likely at any moment, all that is known of it being its mean.
+    pub fn exponential(&mut self, mean: Duration) -> Duration {
+        // A uniform draw in (0, 1]: 53 random bits, never zero.
+        let u = ((self.draw() >> 11) + 1) as f64 / (1u64 << 53) as f64;
+        Duration::from_nanos((-u.ln() * mean.as_nanos() as f64) as u64)
+    }
+
     /// A time in `[0, span)`.
     pub fn time_within(&mut self, span: Duration) -> Time {
         Time(self.below(span.as_nanos().max(1) as u64))
@@ -228,6 +236,20 @@ impl FaultPlan {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn exponential_draws_have_their_mean_and_its_spread() {
+        let mut rng = Rng::new(11);
+        let mean = Duration::from_micros(1500);
+        let draws: Vec<f64> = (0..20_000)
+            .map(|_| rng.exponential(mean).as_secs_f64() * 1e6)
+            .collect();
+        let avg = draws.iter().sum::<f64>() / draws.len() as f64;
+        assert!((avg - 1500.0).abs() < 45.0, "mean {avg} us");
+        // An exponential's median is ln 2 of its mean.
+        let below = draws.iter().filter(|&&d| d < 1500.0 * 2f64.ln()).count();
+        assert!((9_600..10_400).contains(&below), "{below} below the median");
+    }
 
     #[test]
     fn a_seed_is_always_the_same_plan_and_seeds_differ() {

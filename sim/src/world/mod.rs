@@ -188,6 +188,9 @@ struct World<'a> {
     /// run (perf). Weak, so it neither keeps the message (a StartFrame is taken out of its
     /// `Arc` at delivery) nor lets its address be reused while remembered.
     control_size: Option<(std::sync::Weak<proto::CoordinatorMessage>, usize)>,
+    /// Draws of the passes' waits for their tracing threads (`SimConfig::timing_seed`);
+    /// `None`: every pass waits the mean.
+    pass_waits: Option<Rng>,
 }
 
 /// Opens the scene a simulation reads (once for many runs).
@@ -262,6 +265,7 @@ pub fn simulate(
         handled_ns: None,
         traffic: Default::default(),
         control_size: None,
+        pass_waits: config.timing_seed.map(Rng::new),
     };
     for _ in 0..config.workers {
         world.spawn()?;

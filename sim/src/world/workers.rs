@@ -267,7 +267,11 @@ impl World<'_> {
                 };
                 // A tracing thread takes it up, then its loads go on the node's line, then
                 // its computing on a core.
-                let start = now + cost.pass_start;
+                let wait = match &mut self.pass_waits {
+                    Some(draws) => draws.exponential(cost.pass_start),
+                    None => cost.pass_start,
+                };
+                let start = now + wait;
                 let run = w.run_pass(start, &job_id, work, &cost, &mut self.storage, measure);
                 let loaded_at = start + run.load_time;
                 let work = run.took.saturating_sub(run.load_time);

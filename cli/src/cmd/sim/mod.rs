@@ -36,7 +36,7 @@ pub use calibrate::CalibrateArgs;
 use calibrate::run_calibrate;
 pub use chart::ChartArgs;
 use chart::run_chart;
-use report::{Summary, print_row, write_csv};
+use report::{Spread, Summary, print_row, write_csv};
 
 /// Options of `rayfarm sim`.
 #[derive(Args, Clone, Debug)]
@@ -69,6 +69,13 @@ pub struct SimArgs {
     /// Seeds to run with --faults: A..B (B excluded) or one seed.
     #[arg(long, default_value = "0..100", value_parser = parse_seeds)]
     pub seeds: std::ops::Range<u64>,
+    /// After each clean run, run the frame again once per seed of A..B (or one seed) with
+    /// each pass's wait for its tracing thread (`--pass-start-us`, its mean) drawn at random
+    /// from the seed: how far the frame's time, loads and rays migrated move with timing
+    /// alone, as a real cluster's repeats move (`rayfarm bench --repeats`). Prints every run
+    /// and the medians with their range; every image must be the clean run's.
+    #[arg(long, value_parser = parse_seeds, conflicts_with = "faults")]
+    pub timing_seeds: Option<std::ops::Range<u64>>,
     /// Liveness bound of a faulty run in virtual microseconds [default: twenty clean frames
     /// and every deadline twice].
     #[arg(long)]
@@ -361,6 +368,7 @@ impl ModelArgs {
                 .max_events
                 .unwrap_or_else(|| default_max_events(workers)),
             replay_coordinator: false,
+            timing_seed: None,
         })
     }
 }
@@ -490,6 +498,13 @@ pub fn run(a: SimArgs) -> anyhow::Result<()> {
     let Some(scene_dir) = a.scene.clone() else {
         bail!("--scene is required");
     };
+    if a.timing_seeds.is_some() && a.model.pass_start_us == 0 {
+        bail!(
+            "--timing-seeds draws each pass's wait for its tracing thread around \
+             --pass-start-us: give it (what `rayfarm bench` measures as \"pass waiting for a \
+             tracing thread\")"
+        );
+    }
     let schedules: Vec<Schedule> = a
         .schedule
         .split(',')
@@ -587,6 +602,46 @@ pub fn run(a: SimArgs) -> anyhow::Result<()> {
                 }
                 failed.push(format!("{} clean run", schedule_name(schedule)));
                 continue;
+            }
+            if let Some(seeds) = &a.timing_seeds {
+                let runs: Vec<(u64, Result<Outcome, String>, f64)> = seeds
+                    .clone()
+                    .into_par_iter()
+                    .map(|seed| {
+                        let wall = std::time::Instant::now();
+                        let config = SimConfig {
+                            replay_coordinator: false,
+                            timing_seed: Some(seed),
+                            ..config.clone()
+                        };
+                        let out = simulate(
+                            &config,
+                            scene.clone(),
+                            &FaultPlan::clean(),
+                            CLEAN_BOUND,
+                            clean.image_hash.as_deref(),
+                        );
+                        (seed, out, wall.elapsed().as_secs_f64())
+                    })
+                    .collect();
+                let mut spread = Spread::default();
+                for (seed, out, wall) in runs {
+                    let out = out.map_err(|e| anyhow::anyhow!("timing seed {seed}: {e}"))?;
+                    eprint!("timing seed {seed}: ");
+                    print_row(schedule, workers, &out, wall);
+                    if let Some(f) = csv.as_mut() {
+                        let seed = seed.to_string();
+                        write_csv(f, workers, schedule, &seed, "timing only", &out, wall)?;
+                    }
+                    for v in &out.violations {
+                        eprintln!("{} timing seed {seed}: {v}", schedule_name(schedule));
+                    }
+                    if !out.violations.is_empty() || out.frame_time.is_none() {
+                        failed.push(format!("{} timing seed {seed}", schedule_name(schedule)));
+                    }
+                    spread.add(&out);
+                }
+                spread.print(schedule, workers, seeds);
             }
             if !a.faults {
                 continue;

@@ -165,3 +165,63 @@ impl Summary {
         );
     }
 }
+
+/// What the timing seeds of one schedule came to: each figure's median and range.
+#[derive(Default)]
+pub(super) struct Spread {
+    millis: Vec<f64>,
+    loads: Vec<f64>,
+    migrated: Vec<f64>,
+}
+
+impl Spread {
+    pub(super) fn add(&mut self, o: &Outcome) {
+        if let Some(t) = o.frame_time {
+            self.millis.push(t.as_secs_f64() * 1e3);
+        }
+        self.loads.push(o.loads as f64);
+        self.migrated.push(o.rays_migrated as f64);
+    }
+
+    pub(super) fn print(&self, schedule: Schedule, workers: usize, seeds: &std::ops::Range<u64>) {
+        println!(
+            "{} at {workers} workers, timing seeds {}..{}: virtual ms {}, loads {}, rays migrated \
+             {} (median [min-max])",
+            schedule_name(schedule),
+            seeds.start,
+            seeds.end,
+            median_range(&self.millis, 3),
+            median_range(&self.loads, 0),
+            median_range(&self.migrated, 0),
+        );
+    }
+}
+
+/// "median [min-max]" of `values` with `decimals` places (the median of an even count is the
+/// mean of the middle two), or "-" for none.
+fn median_range(values: &[f64], decimals: usize) -> String {
+    let mut v = values.to_vec();
+    v.sort_by(f64::total_cmp);
+    let (Some(min), Some(max)) = (v.first(), v.last()) else {
+        return "-".into();
+    };
+    let mid = v.len() / 2;
+    let median = if v.len().is_multiple_of(2) {
+        (v[mid - 1] + v[mid]) / 2.0
+    } else {
+        v[mid]
+    };
+    format!("{median:.decimals$} [{min:.decimals$}-{max:.decimals$}]")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::median_range;
+
+    #[test]
+    fn a_median_and_its_range() {
+        assert_eq!(median_range(&[3.0, 1.0, 2.0], 0), "2 [1-3]");
+        assert_eq!(median_range(&[4.0, 1.0, 2.0, 3.0], 1), "2.5 [1.0-4.0]");
+        assert_eq!(median_range(&[], 0), "-");
+    }
+}

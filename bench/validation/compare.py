@@ -1,0 +1,87 @@
+#!/usr/bin/env python3
+"""The simulator against the real cluster, side by side (README "Validation against the real
+cluster"): loads, rays migrated and each schedule's time over image-plane's, from the CSVs of
+`rayfarm bench --csv` (medians over its repeats, their range in brackets) and of `rayfarm sim
+--csv` (the clean run, and the medians of its timing seeds when it ran any).
+
+    compare.py BENCH.csv SIM.csv [SIM2.csv ...]
+
+Marks in bold what is outside the issue's bounds: 15% for loads and rays migrated, 25% for
+time ratios."""
+import csv
+import statistics
+import sys
+
+SCHEDULES = ["domain", "dynamic", "hybrid", "predictive"]
+HASHES = set()
+
+
+def bench(path):
+    rows = {}
+    for r in csv.DictReader(open(path)):
+        HASHES.add(r["image_hash"])
+        if r["ok"] != "true":
+            continue
+        rows.setdefault(r["schedule"], []).append(
+            (float(r["wall_seconds"]), int(r["domain_loads"]), int(r["rays_migrated"])))
+    return rows
+
+
+def sim(path):
+    """{(schedule, kind): [(ms, loads, migrated)]} with kind "clean" or "seeds"."""
+    rows = {}
+    for r in csv.DictReader(open(path)):
+        kind = "clean" if r["seed"] == "clean" else "seeds" if r["faults"] == "timing only" else None
+        if kind is None:
+            continue
+        HASHES.add(r["image_hash"])
+        rows.setdefault((r["schedule"], kind), []).append(
+            (float(r["virtual_ms"]) / 1e3, int(r["loads"]), int(r["rays_migrated"])))
+    return rows
+
+
+def med(values):
+    return statistics.median(values)
+
+
+def cell(real, simulated, bound, fmt):
+    off = (simulated - real) / real * 100 if real else 0.0
+    text = f"{fmt(simulated)} ({off:+.1f}%)"
+    return f"**{text}**" if abs(off) > bound else text
+
+
+def main():
+    b = bench(sys.argv[1])
+    sims = [sim(p) for p in sys.argv[2:]]
+    base = med([t for t, _, _ in b["image-plane"]])
+    print("| schedule | loads: bench / " + " / ".join(f"sim {i + 1}" for i in range(len(sims)))
+          + " | rays migrated: bench / ... | time / image-plane: bench / ... |")
+    print("|---|---|---|---|")
+    for s in SCHEDULES:
+        if s not in b:
+            continue
+        runs = b[s]
+        loads = [l for _, l, _ in runs]
+        mig = [m for _, _, m in runs]
+        ratio = med([t for t, _, _ in runs]) / base
+        lc = [f"{med(loads):,.0f} [{min(loads):,}-{max(loads):,}]"]
+        mc = [f"{med(mig):,.0f} [{min(mig):,}-{max(mig):,}]"]
+        tc = [f"{ratio:.4f}"]
+        for one in sims:
+            kind = "seeds" if (s, "seeds") in one else "clean"
+            rs = one.get((s, kind))
+            ip = one.get(("image-plane", kind))
+            if not rs or not ip:
+                continue
+            lc.append(cell(med(loads), med([l for _, l, _ in rs]), 15, lambda v: f"{v:,.0f}"))
+            mc.append(cell(med(mig), med([m for _, _, m in rs]), 15, lambda v: f"{v:,.0f}"))
+            r = med([t for t, _, _ in rs]) / med([t for t, _, _ in ip])
+            tc.append(cell(ratio, r, 25, lambda v: f"{v:.4f}"))
+        print(f"| {s} | " + " / ".join(lc) + " | " + " / ".join(mc) + " | " + " / ".join(tc) + " |")
+    print(f"images: {', '.join(sorted(HASHES))}")
+    if len(HASHES) != 1:
+        sys.exit("the images differ")
+
+
+if __name__ == "__main__":
+    main()

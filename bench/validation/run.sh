@@ -1,0 +1,37 @@
+#!/bin/sh
+# The simulator against the real cluster (README "Validation against the real cluster"):
+# `rayfarm bench` of every schedule at 4 and 8 workers on the b32 scene with emulated storage,
+# and `rayfarm sim` of the same frame, caches and storage, the model's defaults with the
+# cluster's two shared cores (`--cores 2`, `--pass-start-us 1500`) and its timing seeds; then
+# the table of both (compare.py). Every image must be e4a2c0ac999bd6c1.
+#
+#   bench/validation/run.sh OUT_DIR [REPEATS] [SEEDS]
+#
+# Needs `cargo build --release --bins` and the scene in scenes/b32
+# (`rayfarm prepare --generate nbody --triangles 200000 --seed 5 --domains 32 --out scenes/b32`).
+# Takes about 5 minutes on the 2-core machine; run it with nothing else running.
+set -eu
+out=${1:?usage: run.sh OUT_DIR [REPEATS] [SEEDS]}
+repeats=${2:-5}
+seeds=${3:-0..9}
+here=$(cd "$(dirname "$0")" && pwd)
+bin=${RAYFARM:-$here/../../target/release/rayfarm}
+scene=${SCENE:-scenes/b32}
+mkdir -p "$out"
+frame="--width 128 --height 128 --spp 1 --depth 3 --cache-bytes 2MiB"
+for w in 4 8; do
+    "$bin" bench --scene "$scene" --workers $w --threads 1 \
+        --schedules image-plane,domain,dynamic,hybrid,predictive --repeats "$repeats" $frame \
+        --storage-bandwidth 10MiB/s --storage-latency 2ms --csv "$out/bench$w.csv" \
+        > "$out/bench$w.txt" 2>&1
+    sim="$bin sim --scene $scene --workers $w --schedule image-plane,domain,dynamic,hybrid,predictive \
+        $frame --wave-rays 1048576 --pass-rays 262144 --threads 1 \
+        --storage-bandwidth 1000000000000000 --node-storage-bandwidth 10MiB --storage-latency-us 2000"
+    $sim --csv "$out/sim$w.csv" > "$out/sim$w.txt" 2>&1
+    $sim --cores 2 --pass-start-us 1500 --csv "$out/sim$w-cores.csv" > "$out/sim$w-cores.txt" 2>&1
+    $sim --cores 2 --pass-start-us 1500 --timing-seeds "$seeds" --csv "$out/sim$w-seeds.csv" \
+        > "$out/sim$w-seeds.txt" 2>&1
+    echo "$w workers: bench / sim / sim 2 cores 1.5 ms / its timing seeds $seeds (medians)"
+    python3 "$here/compare.py" "$out/bench$w.csv" "$out/sim$w.csv" "$out/sim$w-cores.csv" \
+        "$out/sim$w-seeds.csv"
+done
