@@ -37,4 +37,4 @@ pub use faults::{Fault, FaultPlan};
 /// coordinator's default (`ReportHold::DEFAULT`) unless told otherwise.
 pub use rayfarm_machine::coordinator::cluster::ReportHold;
 pub use storage::StorageModel;
-pub use world::{Outcome, RECONNECT, SimConfig, default_max_events, simulate};
+pub use world::{FrameTime, Outcome, RECONNECT, SimConfig, default_max_events, simulate};

@@ -633,6 +633,12 @@ impl<S: RaySpill> Worker<S> {
         frame.pass_started();
         self.pass_running = true;
         self.tracing = trace.as_ref().map(|(d, _)| *d);
+        debug!(
+            domain = ?self.tracing,
+            rays = trace.as_ref().map_or(0, |(_, r)| r.len()),
+            primaries = primaries.len(),
+            "pass handed over"
+        );
         let job_id = frame.job_id.clone();
         self.actions.push(Action::StartPass {
             job_id,

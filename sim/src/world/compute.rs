@@ -29,6 +29,7 @@ impl World<'_> {
     /// waits for a shared core (the operating system slices a short task in at once), but
     /// while it runs it takes its share of them from the computations.
     pub(super) fn steal(&mut self, ready: Time, work: Duration) -> Time {
+        self.outcome.time.handling += work;
         let Some(cores) = self.cores.as_mut() else {
             return ready + work;
         };

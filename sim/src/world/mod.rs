@@ -37,7 +37,8 @@ mod traffic;
 mod workers;
 
 pub use run::{
-    KEPT_BUNDLES, Kills, MeasuredBundle, MeasuredFinished, MeasuredPass, Outcome, SimConfig,
+    FrameTime, KEPT_BUNDLES, Kills, MeasuredBundle, MeasuredFinished, MeasuredPass, Outcome,
+    SimConfig,
 };
 
 /// How long a worker whose control stream ended waits before it registers again (the
@@ -393,8 +394,12 @@ impl World<'_> {
                 let Some(w) = self.worker_mut(node) else {
                     return;
                 };
-                w.pass_until = None;
+                let computed = w.pass_until.take().map(|(end, _)| end);
                 let free = w.msg_free_at;
+                // What the shared cores stretched the pass's computing by.
+                if let Some(end) = computed {
+                    self.outcome.time.core_wait += self.now.since(end);
+                }
                 if let Ok(out) = &run.result {
                     self.outcome.segments += out.counters.segments();
                     if let Some(cpu_ns) = run.cpu_ns.filter(|_| run.loads == 0) {
@@ -410,10 +415,15 @@ impl World<'_> {
                     Ok(out) => self.config.cost.finished_pass(&FinishedWork::of(out)),
                     Err(_) => Duration::ZERO,
                 };
-                if price.is_zero() {
+                if price.is_zero() && free <= self.now {
                     return self.take_pass(node, job_id, result);
                 }
-                let done = self.steal(self.now.max(free), price);
+                let done = if price.is_zero() {
+                    free
+                } else {
+                    self.steal(self.now.max(free), price)
+                };
+                self.outcome.time.shell_wait += done.since(self.now);
                 if let Some(w) = self.worker_mut(node) {
                     w.msg_free_at = done;
                 }

@@ -95,6 +95,8 @@ pub struct Outcome {
     pub segments: u64,
     /// Passes the workers finished in their frames, as their frame statistics count them.
     pub passes: u64,
+    /// Where the workers' frames went.
+    pub time: FrameTime,
     /// Bytes of peer bundles sent.
     pub peer_bytes: u64,
     /// Rays sent to another worker, as the workers' frame reports count them.
@@ -130,6 +132,50 @@ pub struct Outcome {
     /// Every finished pass whose output the machine took, with what it held and the CPU time
     /// the machine's handling took here, when measured.
     pub measured_finished: Vec<MeasuredFinished>,
+}
+
+/// Where the simulated workers' frames went, summed over every worker's frame, in the parts
+/// of `rayfarm bench`'s table of a worker's frame (so the two can be set side by side). The
+/// idle parts are the worker machine's own counters; the rest is what the simulator charged.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct FrameTime {
+    /// Workers' frames ended (each worker's frame of each job).
+    pub frames: u64,
+    /// From each frame's start to its end on the worker.
+    pub frame: Duration,
+    /// Passes loading their domains (prefetches, which load beside the passes, aside).
+    pub loading: Duration,
+    /// Passes computing, each at a whole core.
+    pub computing: Duration,
+    /// What sharing the cores with other workers (`--cores`) stretched the computing by.
+    pub core_wait: Duration,
+    /// Passes handed over waiting for their tracing thread (`--pass-start-us`).
+    pub thread_wait: Duration,
+    /// Finished passes waiting for the worker's shell to take them in (it was handling
+    /// bundles or an earlier pass), and its handling of them.
+    pub shell_wait: Duration,
+    /// No pass to run while rays were queued for domains the plan did not give this worker.
+    pub idle_queued: Duration,
+    /// No pass to run, nothing queued, rays of its own waiting for their copies' verdicts.
+    pub idle_verdicts: Duration,
+    /// No pass to run and nothing queued or waiting.
+    pub idle_empty: Duration,
+    /// The workers' shells' computing, as priced: bundles sent and received, finished passes
+    /// taken in (it overlaps the parts above; `rayfarm bench`'s "worker CPU outside
+    /// tracing").
+    pub handling: Duration,
+}
+
+impl FrameTime {
+    /// Adds the machine's account of one worker's frame.
+    pub fn add_frame(&mut self, stats: &rayfarm_core::cluster::stats::WorkerFrameStats) {
+        let secs = |s: f64| Duration::from_secs_f64(s.max(0.0));
+        self.frames += 1;
+        self.frame += secs(stats.frame_seconds);
+        self.idle_queued += secs(stats.idle_queued_seconds);
+        self.idle_verdicts += secs(stats.idle_verdicts_seconds);
+        self.idle_empty += secs(stats.idle_empty_seconds);
+    }
 }
 
 /// A finished pass's output as a worker's shell hands it to the machine, and what the

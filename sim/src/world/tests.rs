@@ -250,3 +250,43 @@ fn timing_seeds_move_the_frame_and_keep_its_image() {
     assert!(times.len() > 1, "the seeds' frames all took {times:?}");
     assert_eq!(run(Some(2)), drawn[2], "a seed repeats");
 }
+
+/// A worker's frame is told in parts that do not overlap: with shared cores and a wait for
+/// the tracing thread, the parts add up to the frame under every schedule.
+#[test]
+fn a_workers_frame_is_the_sum_of_its_parts() {
+    let root = tempfile::tempdir().unwrap();
+    let dir = sixteen_domains(root.path());
+    let manifest = Manifest::load(&dir).unwrap();
+    let largest = manifest.domains.iter().map(|d| d.bytes).max().unwrap();
+    let scene = Arc::new(Scene::new(dir.clone(), manifest));
+    for schedule in [
+        Schedule::ImagePlane,
+        Schedule::Domain,
+        Schedule::Dynamic,
+        Schedule::Hybrid,
+        Schedule::Predictive,
+    ] {
+        let mut config = four_workers(&dir, schedule, largest * 3);
+        config.cost.pass_start = Duration::from_micros(300);
+        config.cost.cores = Some(2);
+        let hour = Duration::from_secs(3600);
+        let out = simulate(&config, scene.clone(), &FaultPlan::clean(), hour, None).unwrap();
+        let t = out.time;
+        assert_eq!(t.frames, 4, "{schedule:?}: a frame a worker");
+        let parts = t.loading
+            + t.computing
+            + t.core_wait
+            + t.thread_wait
+            + t.shell_wait
+            + t.idle_queued
+            + t.idle_verdicts
+            + t.idle_empty;
+        let (parts, frame) = (parts.as_secs_f64(), t.frame.as_secs_f64());
+        assert!(
+            (parts - frame).abs() <= frame * 0.01,
+            "{schedule:?}: parts {parts} s against frames of {frame} s: {t:?}"
+        );
+        assert!(t.loading > Duration::ZERO && t.thread_wait > Duration::ZERO);
+    }
+}

@@ -172,7 +172,9 @@ impl World<'_> {
             return;
         };
         let started = timed.then(thread_cpu_ns);
-        let actions = w.machine.handle(now, event);
+        // The machine's own logs name the simulated worker and the virtual time.
+        let span = tracing::debug_span!("sim worker", node, virtual_us = now.0 / 1000);
+        let actions = span.in_scope(|| w.machine.handle(now, event));
         let handled = started.map(|s| thread_cpu_ns().saturating_sub(s));
         let (queued, cap) = w.queued_bytes();
         let (early, early_cap) = (w.machine.early_bytes(), w.early_cap);
@@ -275,6 +277,9 @@ impl World<'_> {
                 let run = w.run_pass(start, &job_id, work, &cost, &mut self.storage, measure);
                 let loaded_at = start + run.load_time;
                 let work = run.took.saturating_sub(run.load_time);
+                self.outcome.time.thread_wait += wait;
+                self.outcome.time.loading += run.load_time;
+                self.outcome.time.computing += work;
                 if let Some(w) = self.worker_mut(node) {
                     w.pass_until = Some((loaded_at + work, loaded_at));
                 }
@@ -326,6 +331,7 @@ impl World<'_> {
                 }
                 self.outcome.rays_migrated += migrated;
                 self.outcome.passes += passes;
+                self.outcome.time.add_frame(&stats);
             }
         }
     }

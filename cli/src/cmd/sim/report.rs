@@ -17,6 +17,7 @@ pub(super) fn print_row(schedule: Schedule, workers: usize, o: &Outcome, wall: f
         schedule_name(schedule),
         o.passes as f64 / workers.max(1) as f64
     );
+    print_time(&o.time);
     if o.prefetches > 0 {
         eprintln!(
             "  of its {} loads, {} prefetched: {} used, {} wasted",
@@ -72,6 +73,40 @@ pub(super) fn print_row(schedule: Schedule, workers: usize, o: &Outcome, wall: f
         o.coordinator_busy.as_secs_f64() / t * 100.0,
         o.image_hash.as_deref().unwrap_or("-")
     );
+}
+
+/// Where a simulated worker's frame went, as `rayfarm bench` tabulates the real one's: the
+/// mean over the workers' frames of each part, and its share of the frame.
+fn print_time(t: &rayfarm_sim::FrameTime) {
+    if t.frames == 0 {
+        return;
+    }
+    let mean = |d: Duration| d.as_secs_f64() / t.frames as f64;
+    let frame = mean(t.frame);
+    let parts = [
+        ("loading", t.loading),
+        ("computing", t.computing),
+        ("waiting for a core", t.core_wait),
+        ("pass waiting for a tracing thread", t.thread_wait),
+        ("finished pass waiting for the shell", t.shell_wait),
+        ("idle: rays queued, not planned", t.idle_queued),
+        ("idle: waiting for verdicts", t.idle_verdicts),
+        ("idle: nothing queued", t.idle_empty),
+    ];
+    let accounted: f64 = parts.iter().map(|&(_, d)| mean(d)).sum();
+    let share = |s: f64| s / frame.max(1e-12) * 100.0;
+    let mut line = format!("  a worker's frame (mean): {frame:.3} s;");
+    for (name, d) in parts {
+        let s = mean(d);
+        line.push_str(&format!(" {name} {s:.3} s ({:.0}%);", share(s)));
+    }
+    let other = frame - accounted;
+    line.push_str(&format!(
+        " other {other:.3} s ({:.0}%); the shell's computing, overlapping them, {:.3} s",
+        share(other),
+        mean(t.handling)
+    ));
+    eprintln!("{line}");
 }
 
 pub(super) fn write_csv(
