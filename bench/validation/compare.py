@@ -4,7 +4,11 @@ cluster"): loads, rays migrated and each schedule's time over image-plane's, fro
 `rayfarm bench --csv` (medians over its repeats, their range in brackets) and of `rayfarm sim
 --csv` (the clean run, and the medians of its timing seeds when it ran any).
 
-    compare.py BENCH.csv SIM.csv [SIM2.csv ...]
+    compare.py BENCH.csv[,BENCH2.csv...] SIM.csv [SIM2.csv ...]
+    compare.py --pass-wait-us BENCH.csv[,...]   # the mean wait of a pass for its thread
+
+Several bench CSVs (of the same binaries and commands) are pooled: a bench invocation's
+median moves between invocations by more than the bounds on the timing-sensitive figures.
 
 Marks in bold what is outside the issue's bounds: 15% for loads and rays migrated, 25% for
 time ratios."""
@@ -16,9 +20,10 @@ SCHEDULES = ["domain", "dynamic", "hybrid", "predictive"]
 HASHES = set()
 
 
-def bench(path):
+def bench(paths):
+    """Runs by schedule, pooled over the bench CSVs named in `paths` (comma-separated)."""
     rows = {}
-    for r in csv.DictReader(open(path)):
+    for r in (r for path in paths.split(",") for r in csv.DictReader(open(path))):
         HASHES.add(r["image_hash"])
         if r["ok"] != "true":
             continue
@@ -50,7 +55,21 @@ def cell(real, simulated, bound, fmt):
     return f"**{text}**" if abs(off) > bound else text
 
 
+def pass_wait_us(path):
+    """The mean wait of a pass for its tracing thread over every pass of every run, in
+    microseconds: what `rayfarm sim --pass-start-us` charges each pass."""
+    waits = passes = 0.0
+    for r in (r for p in path.split(",") for r in csv.DictReader(open(p))):
+        if r["ok"] == "true" and r.get("passes"):
+            waits += float(r["pass_start_wait_seconds"])
+            passes += int(r["passes"])
+    return round(waits / passes * 1e6) if passes else 0
+
+
 def main():
+    if sys.argv[1] == "--pass-wait-us":
+        print(pass_wait_us(sys.argv[2]))
+        return
     b = bench(sys.argv[1])
     sims = [sim(p) for p in sys.argv[2:]]
     base = med([t for t, _, _ in b["image-plane"]])

@@ -1,9 +1,10 @@
 #!/bin/sh
 # The simulator against the real cluster (README "Validation against the real cluster"):
 # `rayfarm bench` of every schedule at 4 and 8 workers on the b32 scene with emulated storage,
-# and `rayfarm sim` of the same frame, caches and storage, the model's defaults with the
-# cluster's two shared cores (`--cores 2`, `--pass-start-us 1500`) and its timing seeds; then
-# the table of both (compare.py). Every image must be e4a2c0ac999bd6c1.
+# and `rayfarm sim` of the same frame, caches and storage, the model's defaults alone, then
+# with the cluster's two shared cores (`--cores 2`) and the wait of a pass for its tracing
+# thread the bench measured (`--pass-start-us`), then that again over timing seeds; then the
+# table of them all (compare.py). Every image must be e4a2c0ac999bd6c1.
 #
 #   bench/validation/run.sh OUT_DIR [REPEATS] [SEEDS]
 #
@@ -27,11 +28,14 @@ for w in 4 8; do
     sim="$bin sim --scene $scene --workers $w --schedule image-plane,domain,dynamic,hybrid,predictive \
         $frame --wave-rays 1048576 --pass-rays 262144 --threads 1 \
         --storage-bandwidth 1000000000000000 --node-storage-bandwidth 10MiB --storage-latency-us 2000"
+    # The cluster's two cores, and the mean wait of a pass for its tracing thread that this
+    # bench measured over all its passes.
+    wait=$(python3 "$here/compare.py" --pass-wait-us "$out/bench$w.csv")
+    cores="--cores 2 --pass-start-us $wait"
     $sim --csv "$out/sim$w.csv" > "$out/sim$w.txt" 2>&1
-    $sim --cores 2 --pass-start-us 1500 --csv "$out/sim$w-cores.csv" > "$out/sim$w-cores.txt" 2>&1
-    $sim --cores 2 --pass-start-us 1500 --timing-seeds "$seeds" --csv "$out/sim$w-seeds.csv" \
-        > "$out/sim$w-seeds.txt" 2>&1
-    echo "$w workers: bench / sim / sim 2 cores 1.5 ms / its timing seeds $seeds (medians)"
+    $sim $cores --csv "$out/sim$w-cores.csv" > "$out/sim$w-cores.txt" 2>&1
+    $sim $cores --timing-seeds "$seeds" --csv "$out/sim$w-seeds.csv" > "$out/sim$w-seeds.txt" 2>&1
+    echo "$w workers: bench / sim / sim $cores / its timing seeds $seeds (medians)"
     python3 "$here/compare.py" "$out/bench$w.csv" "$out/sim$w.csv" "$out/sim$w-cores.csv" \
         "$out/sim$w-seeds.csv"
 done

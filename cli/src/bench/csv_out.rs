@@ -72,6 +72,13 @@ struct Row<'a> {
     busy_seconds: Option<f64>,
     load_seconds: Option<f64>,
     ray_work_seconds: Option<f64>,
+    /// Passes of every worker, and the seconds they waited for a tracing thread in all
+    /// (what `rayfarm sim --pass-start-us` charges a pass, on average).
+    passes: Option<u64>,
+    pass_start_wait_seconds: Option<f64>,
+    /// CPU seconds of every worker process in its frame, and of those its tracing threads'.
+    cpu_seconds: Option<f64>,
+    trace_cpu_seconds: Option<f64>,
     threads: Option<usize>,
     image_hash: &'a str,
     scene: &'a str,
@@ -127,6 +134,11 @@ fn row<'a>(r: &'a RunOutcome, setup: &'a Setup) -> Row<'a> {
         busy_seconds: s.map(|s| s.per_worker.iter().map(|w| w.busy_seconds).sum()),
         load_seconds: s.map(|s| s.per_worker.iter().map(|w| w.load_seconds).sum()),
         ray_work_seconds: s.map(ray_work_seconds),
+        passes: s.map(|s| s.per_worker.iter().map(|w| w.passes).sum()),
+        pass_start_wait_seconds: s
+            .map(|s| s.per_worker.iter().map(|w| w.pass_start_wait_seconds).sum()),
+        cpu_seconds: s.map(|s| s.per_worker.iter().map(|w| w.cpu_seconds).sum()),
+        trace_cpu_seconds: s.map(|s| s.per_worker.iter().map(|w| w.trace_cpu_seconds).sum()),
         threads: s.map(|s| s.threads),
         image_hash: s.map_or("", |s| s.image_hash.as_str()),
         scene: &setup.scene,
@@ -180,8 +192,13 @@ mod tests {
 
     #[test]
     fn one_row_per_run_with_a_header_and_failures_left_empty() {
+        let mut measured = stats(2.5, 4, 3.0, 1.0, "00ff");
+        for w in &mut measured.per_worker {
+            (w.passes, w.pass_start_wait_seconds) = (40, 0.25);
+            (w.cpu_seconds, w.trace_cpu_seconds) = (0.75, 0.5);
+        }
         let runs = vec![
-            outcome(1, "dynamic", Ok(stats(2.5, 4, 3.0, 1.0, "00ff"))),
+            outcome(1, "dynamic", Ok(measured)),
             outcome(2, "domain", Err("UNIMPLEMENTED: x, \"y\"".into())),
         ];
         let setup = Setup {
@@ -245,6 +262,10 @@ mod tests {
         assert_eq!(get(&rows[0], "domain_loads"), "4");
         assert_eq!(get(&rows[0], "bundles_migrated"), "6");
         assert_eq!(get(&rows[0], "ray_work_seconds"), "2.0");
+        assert_eq!(get(&rows[0], "passes"), "80", "both workers' passes");
+        assert_eq!(get(&rows[0], "pass_start_wait_seconds"), "0.5");
+        assert_eq!(get(&rows[0], "cpu_seconds"), "1.5");
+        assert_eq!(get(&rows[0], "trace_cpu_seconds"), "1.0");
         assert_eq!(get(&rows[0], "image_hash"), "00ff");
         assert_eq!(get(&rows[0], "storage_bandwidth"), "100MiB/s");
         assert_eq!(get(&rows[1], "ok"), "false");
