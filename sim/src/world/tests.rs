@@ -81,6 +81,15 @@ fn sixteen_domains(root: &std::path::Path) -> std::path::PathBuf {
     dir
 }
 
+/// [`sixteen_domains`] opened for simulating, with its largest domain's size.
+fn sixteen_domains_opened(root: &std::path::Path) -> (std::path::PathBuf, Arc<Scene>, u64) {
+    let dir = sixteen_domains(root);
+    let manifest = Manifest::load(&dir).unwrap();
+    let largest = manifest.domains.iter().map(|d| d.bytes).max().unwrap();
+    let scene = Arc::new(Scene::new(dir.clone(), manifest));
+    (dir, scene, largest)
+}
+
 #[test]
 fn shared_mappings_change_no_figure_and_map_each_domain_once_for_all_workers() {
     let root = tempfile::tempdir().unwrap();
@@ -172,10 +181,7 @@ fn a_run_without_faults_reports_no_peer_unresponsive_under_bursts_of_bundles() {
 #[test]
 fn a_replayed_coordinator_plans_the_runs_rounds_again_alone_unless_it_crashed() {
     let root = tempfile::tempdir().unwrap();
-    let dir = sixteen_domains(root.path());
-    let manifest = Manifest::load(&dir).unwrap();
-    let largest = manifest.domains.iter().map(|d| d.bytes).max().unwrap();
-    let scene = Arc::new(Scene::new(dir.clone(), manifest));
+    let (dir, scene, largest) = sixteen_domains_opened(root.path());
     let hour = Duration::from_secs(3600);
     for schedule in [Schedule::Dynamic, Schedule::Predictive] {
         let config = SimConfig {
@@ -224,10 +230,7 @@ fn a_replayed_coordinator_plans_the_runs_rounds_again_alone_unless_it_crashed() 
 #[test]
 fn timing_seeds_move_the_frame_and_keep_its_image() {
     let root = tempfile::tempdir().unwrap();
-    let dir = sixteen_domains(root.path());
-    let manifest = Manifest::load(&dir).unwrap();
-    let largest = manifest.domains.iter().map(|d| d.bytes).max().unwrap();
-    let scene = Arc::new(Scene::new(dir.clone(), manifest));
+    let (dir, scene, largest) = sixteen_domains_opened(root.path());
     let mut config = four_workers(&dir, Schedule::Dynamic, largest * 3);
     config.cost.pass_start = Duration::from_micros(500);
     config.cost.cores = Some(2);
@@ -256,10 +259,7 @@ fn timing_seeds_move_the_frame_and_keep_its_image() {
 #[test]
 fn a_workers_frame_is_the_sum_of_its_parts() {
     let root = tempfile::tempdir().unwrap();
-    let dir = sixteen_domains(root.path());
-    let manifest = Manifest::load(&dir).unwrap();
-    let largest = manifest.domains.iter().map(|d| d.bytes).max().unwrap();
-    let scene = Arc::new(Scene::new(dir.clone(), manifest));
+    let (dir, scene, largest) = sixteen_domains_opened(root.path());
     for schedule in [
         Schedule::ImagePlane,
         Schedule::Domain,
