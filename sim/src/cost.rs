@@ -237,6 +237,14 @@ pub struct CostModel {
     /// thread waits for the operating system to give it a core, about a millisecond a pass
     /// (the bench's "pass waiting for a tracing thread").
     pub pass_start: Duration,
+    /// How long a peer bundle waits, once its stream has decoded and acknowledged it, for
+    /// the worker's engine to take it in (`--bundle-take-us`): no core time, only delay.
+    /// Zero by default. Where the whole cluster shares a few cores, the threads that carry a
+    /// bundle from one machine to the next wait for cores to wake on: the validation's
+    /// cluster took 0.4-2.6 ms on average from a machine's send to the receiver's machine
+    /// taking the bundle, where the simulator's network and decoding take about 0.13
+    /// (`bench/validation/transit.py` reads it from the workers' debug logs).
+    pub bundle_take: Duration,
 }
 
 impl Default for CostModel {
@@ -246,6 +254,7 @@ impl Default for CostModel {
             threads: 1,
             cores: None,
             pass_start: Duration::ZERO,
+            bundle_take: Duration::ZERO,
         }
     }
 }
@@ -332,6 +341,7 @@ mod tests {
             threads: 2,
             cores: None,
             pass_start: Duration::ZERO,
+            bundle_take: Duration::ZERO,
             compute: ComputeCost {
                 pass_ns: 1000.0,
                 radiance_segment_ns: 500.0,

@@ -145,6 +145,9 @@ pub struct SimWorker {
     /// stream brought so far (one task a stream, bundles in order; each is acknowledged once
     /// decoded, before the engine takes it in).
     pub inbound: BTreeMap<NodeId, Time>,
+    /// By sender: when the engine takes in the last bundle that sender's stream brought (in
+    /// the order they came).
+    pub taken_from: BTreeMap<NodeId, Time>,
     pub next_bundle: u64,
     scene: Arc<Scene>,
     cache: Arc<Mutex<DomainCache>>,
@@ -183,6 +186,7 @@ impl SimWorker {
             msg_free_at: Time(0),
             links: BTreeMap::new(),
             inbound: BTreeMap::new(),
+            taken_from: BTreeMap::new(),
             next_bundle: 0,
             scene,
             cache: Arc::new(Mutex::new(cache)),

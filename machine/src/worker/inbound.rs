@@ -6,7 +6,7 @@ use std::collections::BTreeMap;
 
 use rayfarm_core::ray::RayRecord;
 use rayfarm_core::wire::{self, VerdictRecord};
-use tracing::{error, warn};
+use tracing::{debug, error, warn};
 
 use super::events::Payload;
 use super::machine::Worker;
@@ -36,6 +36,7 @@ impl<S: RaySpill> Worker<S> {
     }
 
     pub(super) fn peer_bundle(&mut self, sender: String, job_id: String, payload: Payload) {
+        debug!(%sender, verdicts = matches!(payload, Payload::Verdicts(_)), "bundle taken");
         let Some(frame) = self.frame.as_mut().filter(|f| f.job_id == job_id) else {
             if !self.ended.contains(&job_id) {
                 self.hold_early(sender, job_id, payload);

@@ -8,7 +8,7 @@ use bytes::Bytes;
 use rayfarm_core::bundler::{Bundle, PushErrorKind, Tier};
 use rayfarm_core::ray::RayRecord;
 use rayfarm_core::wire::{self, VerdictRecord};
-use tracing::error;
+use tracing::{debug, error};
 
 use super::events::Action;
 use super::machine::Worker;
@@ -85,6 +85,7 @@ impl<S: RaySpill> Worker<S> {
             return;
         };
         for b in bundles {
+            debug!(peer = %b.peer, tier = ?b.tier, bytes = b.bytes, "bundle sent");
             self.actions.push(Action::ToPeer {
                 peer: b.peer,
                 job_id: job_id.clone(),

@@ -189,9 +189,9 @@ struct World<'a> {
     /// run (perf). Weak, so it neither keeps the message (a StartFrame is taken out of its
     /// `Arc` at delivery) nor lets its address be reused while remembered.
     control_size: Option<(std::sync::Weak<proto::CoordinatorMessage>, usize)>,
-    /// Draws of the passes' waits for their tracing threads (`SimConfig::timing_seed`);
-    /// `None`: every pass waits the mean.
-    pass_waits: Option<Rng>,
+    /// Draws of the waits a timing seed makes random (`SimConfig::timing_seed`): a pass's for
+    /// its tracing thread, a peer bundle's for the engine; `None`: every wait is its mean.
+    waits: Option<Rng>,
 }
 
 /// Opens the scene a simulation reads (once for many runs).
@@ -266,7 +266,7 @@ pub fn simulate(
         handled_ns: None,
         traffic: Default::default(),
         control_size: None,
-        pass_waits: config.timing_seed.map(Rng::new),
+        waits: config.timing_seed.map(Rng::new),
     };
     for _ in 0..config.workers {
         world.spawn()?;

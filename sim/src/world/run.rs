@@ -62,8 +62,9 @@ pub struct SimConfig {
     /// After the run, hand the coordinator machine's calls to a new machine alone and measure
     /// its CPU (`Outcome::coordinator_replayed`); the calls are kept in memory meanwhile.
     pub replay_coordinator: bool,
-    /// Draw each pass's wait for its tracing thread at random around its mean
-    /// (`CostModel::pass_start`) from this seed, rather than waiting the mean every time:
+    /// Draw each pass's wait for its tracing thread (`CostModel::pass_start`) and each peer
+    /// bundle's wait for the engine (`CostModel::bundle_take`) at random around their means
+    /// from this seed, rather than waiting the mean every time:
     /// one of the timings a real cluster's shared cores give, so several seeds show how far
     /// a frame moves with timing alone. `None`: every wait is the mean.
     pub timing_seed: Option<u64>,

@@ -290,3 +290,38 @@ fn a_workers_frame_is_the_sum_of_its_parts() {
         assert!(t.loading > Duration::ZERO && t.thread_wait > Duration::ZERO);
     }
 }
+
+/// A peer bundle's wait for the engine (`CostModel::bundle_take`) slows a frame whose rays
+/// move between workers and changes no image, fixed or drawn from a timing seed.
+#[test]
+fn a_bundles_wait_for_the_engine_slows_the_frame_not_its_image() {
+    let root = tempfile::tempdir().unwrap();
+    let (dir, scene, largest) = sixteen_domains_opened(root.path());
+    let hour = Duration::from_secs(3600);
+    let run = |take_us: u64, seed: Option<u64>| {
+        let mut config = four_workers(&dir, Schedule::Predictive, largest * 3);
+        config.cost.bundle_take = Duration::from_micros(take_us);
+        config.timing_seed = seed;
+        let out = simulate(&config, scene.clone(), &FaultPlan::clean(), hour, None).unwrap();
+        assert!(
+            out.violations.is_empty(),
+            "{take_us} us: {:?}",
+            out.violations
+        );
+        out
+    };
+    let (plain, slowed, drawn) = (run(0, None), run(2000, None), run(2000, Some(3)));
+    assert!(plain.rays_migrated > 0);
+    assert_eq!(slowed.image_hash, plain.image_hash);
+    assert_eq!(drawn.image_hash, plain.image_hash);
+    assert!(
+        slowed.frame_time > plain.frame_time,
+        "{:?} against {:?}",
+        slowed.frame_time,
+        plain.frame_time
+    );
+    assert_ne!(
+        drawn.frame_time, slowed.frame_time,
+        "the seed draws the waits"
+    );
+}

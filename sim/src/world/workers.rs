@@ -104,7 +104,18 @@ impl World<'_> {
             return;
         }
         let me = w.address.clone();
-        let taken = decoded.max(w.msg_free_at);
+        // Acknowledged once decoded; the engine takes it in after what it handles, after
+        // the wake-ups that carry it there.
+        // the wake-ups that carry it there, and never before the sender's earlier bundles.
+        let take = self.config.cost.bundle_take;
+        let wake = match &mut self.waits {
+            Some(draws) if !take.is_zero() => draws.exponential(take),
+            _ => take,
+        };
+        let Some(w) = self.worker_mut(to) else { return };
+        let earlier = w.taken_from.get(&from).copied().unwrap_or_default();
+        let taken = (decoded.max(w.msg_free_at) + wake).max(earlier);
+        w.taken_from.insert(from, taken);
         self.send_at(decoded, to, from, Msg::Ack { from: me, seq });
         if taken > now {
             self.heap.push(taken, Ev::Received { to, msg });
@@ -269,7 +280,7 @@ impl World<'_> {
                 };
                 // A tracing thread takes it up, then its loads go on the node's line, then
                 // its computing on a core.
-                let wait = match &mut self.pass_waits {
+                let wait = match &mut self.waits {
                     Some(draws) => draws.exponential(cost.pass_start),
                     None => cost.pass_start,
                 };

@@ -70,8 +70,8 @@ pub struct SimArgs {
     #[arg(long, default_value = "0..100", value_parser = parse_seeds)]
     pub seeds: std::ops::Range<u64>,
     /// After each clean run, run the frame again once per seed of A..B (or one seed) with
-    /// each pass's wait for its tracing thread (`--pass-start-us`, its mean) drawn at random
-    /// from the seed: how far the frame's time, loads and rays migrated move with timing
+    /// each pass's wait for its tracing thread (`--pass-start-us`, its mean) and each peer
+    /// bundle's wait for the engine (`--bundle-take-us`) drawn at random from the seed: how far the frame's time, loads and rays migrated move with timing
     /// alone, as a real cluster's repeats move (`rayfarm bench --repeats`). Prints every run
     /// and the medians with their range; every image must be the clean run's.
     #[arg(long, value_parser = parse_seeds, conflicts_with = "faults")]
@@ -135,6 +135,13 @@ pub struct ModelArgs {
     /// a tracing thread" over its passes (about 1,000 with 8 workers on 2 cores).
     #[arg(long, default_value_t = 0)]
     pub pass_start_us: u64,
+    /// Microseconds a peer bundle waits, after its stream has decoded and acknowledged it,
+    /// for the worker's engine to take it in (delay, no core time): 0 for workers with cores
+    /// of their own; where the whole cluster shares a few cores, the mean the workers' debug
+    /// logs show from a machine's send to the receiver's machine taking the bundle, less the
+    /// simulator's own 130 or so (`bench/validation/transit.py`).
+    #[arg(long, default_value_t = 0)]
+    pub bundle_take_us: u64,
     /// Prices of computing, from `rayfarm sim calibrate` [default: the ones measured on this
     /// project's VM, README "Simulator"].
     #[arg(long)]
@@ -239,6 +246,7 @@ impl ModelArgs {
             threads: self.threads.max(1),
             cores: self.cores.map(|c| c.max(1)),
             pass_start: Duration::from_micros(self.pass_start_us),
+            bundle_take: Duration::from_micros(self.bundle_take_us),
         })
     }
 
@@ -279,6 +287,9 @@ impl ModelArgs {
         }
         if self.pass_start_us > 0 {
             f.push_str(&format!(" --pass-start-us {}", self.pass_start_us));
+        }
+        if self.bundle_take_us > 0 {
+            f.push_str(&format!(" --bundle-take-us {}", self.bundle_take_us));
         }
         if let Some(p) = &self.cost {
             f.push_str(&format!(" --cost {}", p.display()));
@@ -498,11 +509,11 @@ pub fn run(a: SimArgs) -> anyhow::Result<()> {
     let Some(scene_dir) = a.scene.clone() else {
         bail!("--scene is required");
     };
-    if a.timing_seeds.is_some() && a.model.pass_start_us == 0 {
+    if a.timing_seeds.is_some() && a.model.pass_start_us == 0 && a.model.bundle_take_us == 0 {
         bail!(
             "--timing-seeds draws each pass's wait for its tracing thread around \
-             --pass-start-us: give it (what `rayfarm bench` measures as \"pass waiting for a \
-             tracing thread\")"
+             --pass-start-us and each bundle's wait for the engine around --bundle-take-us: \
+             give one (what `rayfarm bench` measures as \"pass waiting for a tracing thread\")"
         );
     }
     let schedules: Vec<Schedule> = a
