@@ -81,6 +81,15 @@ fn sixteen_domains(root: &std::path::Path) -> std::path::PathBuf {
     dir
 }
 
+/// The five schedules.
+const EVERY_SCHEDULE: [Schedule; 5] = [
+    Schedule::ImagePlane,
+    Schedule::Domain,
+    Schedule::Dynamic,
+    Schedule::Hybrid,
+    Schedule::Predictive,
+];
+
 /// [`sixteen_domains`] opened for simulating, with its largest domain's size.
 fn sixteen_domains_opened(root: &std::path::Path) -> (std::path::PathBuf, Arc<Scene>, u64) {
     let dir = sixteen_domains(root);
@@ -94,13 +103,7 @@ fn sixteen_domains_opened(root: &std::path::Path) -> (std::path::PathBuf, Arc<Sc
 fn shared_mappings_change_no_figure_and_map_each_domain_once_for_all_workers() {
     let root = tempfile::tempdir().unwrap();
     let dir = sixteen_domains(root.path());
-    for schedule in [
-        Schedule::ImagePlane,
-        Schedule::Domain,
-        Schedule::Dynamic,
-        Schedule::Hybrid,
-        Schedule::Predictive,
-    ] {
+    for schedule in EVERY_SCHEDULE {
         let (own, _) = run(&dir, schedule, false);
         let (shared, scene) = run(&dir, schedule, true);
         assert!(
@@ -260,13 +263,7 @@ fn timing_seeds_move_the_frame_and_keep_its_image() {
 fn a_workers_frame_is_the_sum_of_its_parts() {
     let root = tempfile::tempdir().unwrap();
     let (dir, scene, largest) = sixteen_domains_opened(root.path());
-    for schedule in [
-        Schedule::ImagePlane,
-        Schedule::Domain,
-        Schedule::Dynamic,
-        Schedule::Hybrid,
-        Schedule::Predictive,
-    ] {
+    for schedule in EVERY_SCHEDULE {
         let mut config = four_workers(&dir, schedule, largest * 3);
         config.cost.pass_start = Duration::from_micros(300);
         config.cost.cores = Some(2);
