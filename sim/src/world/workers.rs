@@ -105,7 +105,6 @@ impl World<'_> {
         }
         let me = w.address.clone();
         // Acknowledged once decoded; the engine takes it in after what it handles, after
-        // the wake-ups that carry it there.
         // the wake-ups that carry it there, and never before the sender's earlier bundles.
         let take = self.config.cost.bundle_take;
         let wake = match &mut self.waits {
