@@ -66,6 +66,46 @@ def pass_wait_us(path):
     return round(waits / passes * 1e6) if passes else 0
 
 
+# A worker's frame in parts, per worker, as the bench's CSV and the simulator's name them:
+# (label, bench columns summed, simulator columns summed).
+PARTS = [
+    ("frame", ["frame_seconds"], ["frame_seconds"]),
+    ("loading", ["load_seconds"], ["loading_seconds"]),
+    ("pass waiting for a thread", ["pass_start_wait_seconds"], ["thread_wait_seconds"]),
+    ("finished pass waiting", ["pass_wait_seconds"], ["shell_wait_seconds"]),
+    ("idle: rays queued", ["idle_queued_seconds"], ["idle_queued_seconds"]),
+    ("idle: verdicts", ["idle_verdicts_seconds"], ["idle_verdicts_seconds"]),
+    ("idle: nothing queued", ["idle_empty_seconds"], ["idle_empty_seconds"]),
+]
+
+
+def split(paths, sim_path, workers):
+    """Where a worker's frame went, seconds per worker, medians over the bench's repeats and
+    the simulator's runs (its timing seeds when it ran any), when both CSVs carry the parts."""
+    bench_rows = [r for p in paths.split(",") for r in csv.DictReader(open(p)) if r["ok"] == "true"]
+    sim_rows = list(csv.DictReader(open(sim_path)))
+    if not bench_rows or "idle_empty_seconds" not in bench_rows[0] or not sim_rows \
+            or "frame_seconds" not in sim_rows[0]:
+        return
+    seeded = any(r["faults"] == "timing only" for r in sim_rows)
+    sim_rows = [r for r in sim_rows
+                if (r["faults"] == "timing only") == seeded and (seeded or r["seed"] == "clean")]
+    print("\nwhere a worker's frame went, seconds a worker: bench / sim")
+    print("| schedule | " + " | ".join(label for label, _, _ in PARTS) + " |")
+    print("|---" * (len(PARTS) + 1) + "|")
+    for s in SCHEDULES:
+        b = [r for r in bench_rows if r["schedule"] == s]
+        m = [r for r in sim_rows if r["schedule"] == s]
+        if not b or not m:
+            continue
+        cells = []
+        for _, bc, sc in PARTS:
+            bv = med([sum(float(r[c]) for c in bc) / workers for r in b])
+            sv = med([sum(float(r[c]) for c in sc) / int(r["frames"]) for r in m])
+            cells.append(f"{bv:.3f} / {sv:.3f}")
+        print(f"| {s} | " + " | ".join(cells) + " |")
+
+
 def main():
     if sys.argv[1] == "--pass-wait-us":
         print(pass_wait_us(sys.argv[2]))
@@ -100,6 +140,9 @@ def main():
     print(f"images: {', '.join(sorted(HASHES))}")
     if len(HASHES) != 1:
         sys.exit("the images differ")
+    workers = {int(r["workers"]) for p in sys.argv[1].split(",") for r in csv.DictReader(open(p))}
+    if len(workers) == 1:
+        split(sys.argv[1], sys.argv[-1], workers.pop())
 
 
 if __name__ == "__main__":

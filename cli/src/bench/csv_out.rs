@@ -79,6 +79,15 @@ struct Row<'a> {
     /// CPU seconds of every worker process in its frame, and of those its tracing threads'.
     cpu_seconds: Option<f64>,
     trace_cpu_seconds: Option<f64>,
+    /// Seconds every worker spent idle, by why (rays queued the plan did not give it, its
+    /// rays waiting for verdicts, nothing queued), and its finished passes waited for its
+    /// event loop: with the above, the parts of a worker's frame the bench tabulates.
+    idle_queued_seconds: Option<f64>,
+    idle_verdicts_seconds: Option<f64>,
+    idle_empty_seconds: Option<f64>,
+    pass_wait_seconds: Option<f64>,
+    /// Every worker's frame, start to end, summed.
+    frame_seconds: Option<f64>,
     threads: Option<usize>,
     image_hash: &'a str,
     scene: &'a str,
@@ -139,6 +148,12 @@ fn row<'a>(r: &'a RunOutcome, setup: &'a Setup) -> Row<'a> {
             .map(|s| s.per_worker.iter().map(|w| w.pass_start_wait_seconds).sum()),
         cpu_seconds: s.map(|s| s.per_worker.iter().map(|w| w.cpu_seconds).sum()),
         trace_cpu_seconds: s.map(|s| s.per_worker.iter().map(|w| w.trace_cpu_seconds).sum()),
+        idle_queued_seconds: s.map(|s| s.per_worker.iter().map(|w| w.idle_queued_seconds).sum()),
+        idle_verdicts_seconds: s
+            .map(|s| s.per_worker.iter().map(|w| w.idle_verdicts_seconds).sum()),
+        idle_empty_seconds: s.map(|s| s.per_worker.iter().map(|w| w.idle_empty_seconds).sum()),
+        pass_wait_seconds: s.map(|s| s.per_worker.iter().map(|w| w.pass_wait_seconds).sum()),
+        frame_seconds: s.map(|s| s.per_worker.iter().map(|w| w.frame_seconds).sum()),
         threads: s.map(|s| s.threads),
         image_hash: s.map_or("", |s| s.image_hash.as_str()),
         scene: &setup.scene,
@@ -196,6 +211,8 @@ mod tests {
         for w in &mut measured.per_worker {
             (w.passes, w.pass_start_wait_seconds) = (40, 0.25);
             (w.cpu_seconds, w.trace_cpu_seconds) = (0.75, 0.5);
+            (w.idle_queued_seconds, w.idle_verdicts_seconds) = (0.125, 0.0625);
+            (w.idle_empty_seconds, w.pass_wait_seconds) = (0.25, 0.03125);
         }
         let runs = vec![
             outcome(1, "dynamic", Ok(measured)),
@@ -266,6 +283,15 @@ mod tests {
         assert_eq!(get(&rows[0], "pass_start_wait_seconds"), "0.5");
         assert_eq!(get(&rows[0], "cpu_seconds"), "1.5");
         assert_eq!(get(&rows[0], "trace_cpu_seconds"), "1.0");
+        assert_eq!(get(&rows[0], "idle_queued_seconds"), "0.25");
+        assert_eq!(get(&rows[0], "idle_verdicts_seconds"), "0.125");
+        assert_eq!(get(&rows[0], "idle_empty_seconds"), "0.5");
+        assert_eq!(get(&rows[0], "pass_wait_seconds"), "0.0625");
+        assert_eq!(
+            get(&rows[0], "frame_seconds"),
+            "5.0",
+            "two workers' frames of 2.5 s"
+        );
         assert_eq!(get(&rows[0], "image_hash"), "00ff");
         assert_eq!(get(&rows[0], "storage_bandwidth"), "100MiB/s");
         assert_eq!(get(&rows[1], "ok"), "false");

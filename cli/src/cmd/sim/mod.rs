@@ -531,7 +531,8 @@ pub fn run(a: SimArgs) -> anyhow::Result<()> {
                 std::fs::File::create(p).with_context(|| format!("creating {}", p.display()))?;
             writeln!(
                 f,
-                "workers,schedule,seed,faults,virtual_ms,loads,bytes_loaded,segments,rays_migrated,peer_bytes,messages,rounds,planning_ms,wall_seconds,image_hash,violations"
+                "workers,schedule,seed,faults,virtual_ms,loads,bytes_loaded,segments,rays_migrated,peer_bytes,messages,rounds,planning_ms,wall_seconds,image_hash,violations,passes,{}",
+                report::TIME_COLUMNS
             )?;
             Some(f)
         }

@@ -120,7 +120,7 @@ pub(super) fn write_csv(
 ) -> anyhow::Result<()> {
     let violations: Vec<String> = o.violations.iter().map(|v| v.to_string()).collect();
     let quote = |s: &str| format!("\"{}\"", s.replace('"', "\"\""));
-    writeln!(
+    write!(
         f,
         "{},{},{},{},{:.6},{},{},{},{},{},{},{},{:.6},{:.3},{},{}",
         workers,
@@ -140,8 +140,30 @@ pub(super) fn write_csv(
         o.image_hash.as_deref().unwrap_or(""),
         quote(&violations.join("; "))
     )?;
+    let t = &o.time;
+    let secs = |d: Duration| format!("{:.6}", d.as_secs_f64());
+    let parts = [
+        t.frame,
+        t.loading,
+        t.computing,
+        t.core_wait,
+        t.thread_wait,
+        t.shell_wait,
+        t.idle_queued,
+        t.idle_verdicts,
+        t.idle_empty,
+        t.handling,
+    ];
+    let parts: Vec<String> = parts.into_iter().map(secs).collect();
+    writeln!(f, ",{},{},{}", o.passes, t.frames, parts.join(","))?;
     Ok(())
 }
+
+/// The CSV's columns of where the workers' frames went (`FrameTime`), seconds summed over
+/// every worker's frame, after the frames counted.
+pub(super) const TIME_COLUMNS: &str = "frames,frame_seconds,loading_seconds,computing_seconds,\
+    core_wait_seconds,thread_wait_seconds,shell_wait_seconds,idle_queued_seconds,\
+    idle_verdicts_seconds,idle_empty_seconds,handling_seconds";
 
 /// What the fault runs of one schedule came to.
 #[derive(Default)]
