@@ -168,6 +168,21 @@ pub struct FrameTime {
 }
 
 impl FrameTime {
+    /// The parts a worker's frame is told in, named and ordered as `rayfarm bench` tells
+    /// them; apart from overlaps none of them has, they add up to the frame.
+    pub fn parts(&self) -> [(&'static str, Duration); 8] {
+        [
+            ("loading", self.loading),
+            ("computing", self.computing),
+            ("waiting for a core", self.core_wait),
+            ("pass waiting for a tracing thread", self.thread_wait),
+            ("finished pass waiting for the shell", self.shell_wait),
+            ("idle: rays queued, not planned", self.idle_queued),
+            ("idle: waiting for verdicts", self.idle_verdicts),
+            ("idle: nothing queued", self.idle_empty),
+        ]
+    }
+
     /// Adds the machine's account of one worker's frame.
     pub fn add_frame(&mut self, stats: &rayfarm_core::cluster::stats::WorkerFrameStats) {
         let secs = |s: f64| Duration::from_secs_f64(s.max(0.0));

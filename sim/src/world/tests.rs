@@ -271,14 +271,7 @@ fn a_workers_frame_is_the_sum_of_its_parts() {
         let out = simulate(&config, scene.clone(), &FaultPlan::clean(), hour, None).unwrap();
         let t = out.time;
         assert_eq!(t.frames, 4, "{schedule:?}: a frame a worker");
-        let parts = t.loading
-            + t.computing
-            + t.core_wait
-            + t.thread_wait
-            + t.shell_wait
-            + t.idle_queued
-            + t.idle_verdicts
-            + t.idle_empty;
+        let parts: Duration = t.parts().iter().map(|&(_, d)| d).sum();
         let (parts, frame) = (parts.as_secs_f64(), t.frame.as_secs_f64());
         assert!(
             (parts - frame).abs() <= frame * 0.01,

@@ -83,16 +83,7 @@ fn print_time(t: &rayfarm_sim::FrameTime) {
     }
     let mean = |d: Duration| d.as_secs_f64() / t.frames as f64;
     let frame = mean(t.frame);
-    let parts = [
-        ("loading", t.loading),
-        ("computing", t.computing),
-        ("waiting for a core", t.core_wait),
-        ("pass waiting for a tracing thread", t.thread_wait),
-        ("finished pass waiting for the shell", t.shell_wait),
-        ("idle: rays queued, not planned", t.idle_queued),
-        ("idle: waiting for verdicts", t.idle_verdicts),
-        ("idle: nothing queued", t.idle_empty),
-    ];
+    let parts = t.parts();
     let accounted: f64 = parts.iter().map(|&(_, d)| mean(d)).sum();
     let share = |s: f64| s / frame.max(1e-12) * 100.0;
     let mut line = format!("  a worker's frame (mean): {frame:.3} s;");
@@ -142,25 +133,18 @@ pub(super) fn write_csv(
     )?;
     let t = &o.time;
     let secs = |d: Duration| format!("{:.6}", d.as_secs_f64());
-    let parts = [
-        t.frame,
-        t.loading,
-        t.computing,
-        t.core_wait,
-        t.thread_wait,
-        t.shell_wait,
-        t.idle_queued,
-        t.idle_verdicts,
-        t.idle_empty,
-        t.handling,
-    ];
-    let parts: Vec<String> = parts.into_iter().map(secs).collect();
+    let parts: Vec<String> = std::iter::once(t.frame)
+        .chain(t.parts().map(|(_, d)| d))
+        .chain([t.handling])
+        .map(secs)
+        .collect();
     writeln!(f, ",{},{},{}", o.passes, t.frames, parts.join(","))?;
     Ok(())
 }
 
 /// The CSV's columns of where the workers' frames went (`FrameTime`), seconds summed over
-/// every worker's frame, after the frames counted.
+/// every worker's frame, after the frames counted: the frame, its parts in
+/// `FrameTime::parts`'s order, and the shells' handling.
 pub(super) const TIME_COLUMNS: &str = "frames,frame_seconds,loading_seconds,computing_seconds,\
     core_wait_seconds,thread_wait_seconds,shell_wait_seconds,idle_queued_seconds,\
     idle_verdicts_seconds,idle_empty_seconds,handling_seconds";
