@@ -194,6 +194,9 @@ impl Coordinator {
             previewed: VecDeque::new(),
             finished: VecDeque::new(),
         };
+        // What the restore changes (a finished job whose images are gone now fails) is on
+        // disk before anyone can ask: finished jobs are answered from the store.
+        let mut restored = Vec::new();
         for stored in loaded.jobs {
             let Some(record) = stored.into_record() else {
                 continue;
@@ -212,7 +215,10 @@ impl Coordinator {
             let actions = st.machine.restore(now(), record, missing);
             for a in actions {
                 if let cluster::Action::Persist { record, .. } = a {
-                    st.journal.put(StoredJob::from_record(&record));
+                    let (written, wait) = std::sync::mpsc::channel();
+                    let then = Box::new(move |r| drop(written.send(r)));
+                    st.journal.put_then(StoredJob::from_record(&record), then);
+                    restored.push(wait);
                 }
             }
             // Finished jobs are answered from the store (see `KEPT_FINISHED_VIEWS`).
@@ -222,6 +228,11 @@ impl Coordinator {
                     preview: None,
                 };
                 st.views.insert(id, view);
+            }
+        }
+        for wait in restored {
+            if let Ok(Err(e)) = wait.recv() {
+                warn!(error = %e, "a restored job's record was not saved");
             }
         }
         let counts = st.machine.job_counts();
