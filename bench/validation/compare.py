@@ -20,10 +20,15 @@ SCHEDULES = ["domain", "dynamic", "hybrid", "predictive"]
 HASHES = set()
 
 
+def bench_rows(paths):
+    """Every row of the bench CSVs named in `paths` (comma-separated), pooled."""
+    return [r for path in paths.split(",") for r in csv.DictReader(open(path))]
+
+
 def bench(paths):
     """Runs by schedule, pooled over the bench CSVs named in `paths` (comma-separated)."""
     rows = {}
-    for r in (r for path in paths.split(",") for r in csv.DictReader(open(path))):
+    for r in bench_rows(paths):
         HASHES.add(r["image_hash"])
         if r["ok"] != "true":
             continue
@@ -59,7 +64,7 @@ def pass_wait_us(path):
     """The mean wait of a pass for its tracing thread over every pass of every run, in
     microseconds: what `rayfarm sim --pass-start-us` charges each pass."""
     waits = passes = 0.0
-    for r in (r for p in path.split(",") for r in csv.DictReader(open(p))):
+    for r in bench_rows(path):
         if r["ok"] == "true" and r.get("passes"):
             waits += float(r["pass_start_wait_seconds"])
             passes += int(r["passes"])
@@ -82,9 +87,9 @@ PARTS = [
 def split(paths, sim_path, workers):
     """Where a worker's frame went, seconds per worker, medians over the bench's repeats and
     the simulator's runs (its timing seeds when it ran any), when both CSVs carry the parts."""
-    bench_rows = [r for p in paths.split(",") for r in csv.DictReader(open(p)) if r["ok"] == "true"]
+    real = [r for r in bench_rows(paths) if r["ok"] == "true"]
     sim_rows = list(csv.DictReader(open(sim_path)))
-    if not bench_rows or "idle_empty_seconds" not in bench_rows[0] or not sim_rows \
+    if not real or "idle_empty_seconds" not in real[0] or not sim_rows \
             or "frame_seconds" not in sim_rows[0]:
         return
     seeded = any(r["faults"] == "timing only" for r in sim_rows)
@@ -94,7 +99,7 @@ def split(paths, sim_path, workers):
     print("| schedule | " + " | ".join(label for label, _, _ in PARTS) + " |")
     print("|---" * (len(PARTS) + 1) + "|")
     for s in SCHEDULES:
-        b = [r for r in bench_rows if r["schedule"] == s]
+        b = [r for r in real if r["schedule"] == s]
         m = [r for r in sim_rows if r["schedule"] == s]
         if not b or not m:
             continue
@@ -140,7 +145,7 @@ def main():
     print(f"images: {', '.join(sorted(HASHES))}")
     if len(HASHES) != 1:
         sys.exit("the images differ")
-    workers = {int(r["workers"]) for p in sys.argv[1].split(",") for r in csv.DictReader(open(p))}
+    workers = {int(r["workers"]) for r in bench_rows(sys.argv[1])}
     if len(workers) == 1:
         split(sys.argv[1], sys.argv[-1], workers.pop())
 

@@ -7,7 +7,7 @@ use anyhow::Context;
 use serde::Serialize;
 
 use rayfarm_core::bundler::Tier;
-use rayfarm_core::cluster::stats::{ClusterStats, SubframeCost};
+use rayfarm_core::cluster::stats::{ClusterStats, SubframeCost, WorkerFrameStats};
 
 use super::{RunOutcome, ray_work_seconds, tier_bundles};
 
@@ -131,7 +131,7 @@ fn row<'a>(r: &'a RunOutcome, setup: &'a Setup) -> Row<'a> {
         segments: s.map(|s| s.rays.segments()),
         rays_migrated: s.map(|s| s.rays_migrated),
         bytes_migrated: s.map(|s| s.bytes_migrated),
-        rays_spilled: s.map(|s| s.per_worker.iter().map(|w| w.rays_spilled).sum()),
+        rays_spilled: summed(s, |w| w.rays_spilled),
         bundles_results: bundles(Tier::Results),
         bundles_migrated: bundles(Tier::Migrated),
         bundles_tasks: bundles(Tier::Tasks),
@@ -140,20 +140,18 @@ fn row<'a>(r: &'a RunOutcome, setup: &'a Setup) -> Row<'a> {
         subframe_done_seconds: per_subframe(s, |c| format!("{:.3}", c.done_seconds)),
         idle_fraction: idle,
         peak_rss_bytes: s.map(|s| s.peak_rss_bytes),
-        busy_seconds: s.map(|s| s.per_worker.iter().map(|w| w.busy_seconds).sum()),
-        load_seconds: s.map(|s| s.per_worker.iter().map(|w| w.load_seconds).sum()),
+        busy_seconds: summed(s, |w| w.busy_seconds),
+        load_seconds: summed(s, |w| w.load_seconds),
         ray_work_seconds: s.map(ray_work_seconds),
-        passes: s.map(|s| s.per_worker.iter().map(|w| w.passes).sum()),
-        pass_start_wait_seconds: s
-            .map(|s| s.per_worker.iter().map(|w| w.pass_start_wait_seconds).sum()),
-        cpu_seconds: s.map(|s| s.per_worker.iter().map(|w| w.cpu_seconds).sum()),
-        trace_cpu_seconds: s.map(|s| s.per_worker.iter().map(|w| w.trace_cpu_seconds).sum()),
-        idle_queued_seconds: s.map(|s| s.per_worker.iter().map(|w| w.idle_queued_seconds).sum()),
-        idle_verdicts_seconds: s
-            .map(|s| s.per_worker.iter().map(|w| w.idle_verdicts_seconds).sum()),
-        idle_empty_seconds: s.map(|s| s.per_worker.iter().map(|w| w.idle_empty_seconds).sum()),
-        pass_wait_seconds: s.map(|s| s.per_worker.iter().map(|w| w.pass_wait_seconds).sum()),
-        frame_seconds: s.map(|s| s.per_worker.iter().map(|w| w.frame_seconds).sum()),
+        passes: summed(s, |w| w.passes),
+        pass_start_wait_seconds: summed(s, |w| w.pass_start_wait_seconds),
+        cpu_seconds: summed(s, |w| w.cpu_seconds),
+        trace_cpu_seconds: summed(s, |w| w.trace_cpu_seconds),
+        idle_queued_seconds: summed(s, |w| w.idle_queued_seconds),
+        idle_verdicts_seconds: summed(s, |w| w.idle_verdicts_seconds),
+        idle_empty_seconds: summed(s, |w| w.idle_empty_seconds),
+        pass_wait_seconds: summed(s, |w| w.pass_wait_seconds),
+        frame_seconds: summed(s, |w| w.frame_seconds),
         threads: s.map(|s| s.threads),
         image_hash: s.map_or("", |s| s.image_hash.as_str()),
         scene: &setup.scene,
@@ -168,6 +166,14 @@ fn row<'a>(r: &'a RunOutcome, setup: &'a Setup) -> Row<'a> {
         storage_bandwidth: &setup.storage_bandwidth,
         storage_latency: &setup.storage_latency,
     }
+}
+
+/// The sum over a run's workers of one of their figures; `None` for a failed run.
+fn summed<T: std::iter::Sum<T>>(
+    s: Option<&ClusterStats>,
+    figure: impl Fn(&WorkerFrameStats) -> T,
+) -> Option<T> {
+    s.map(|s| s.per_worker.iter().map(figure).sum())
 }
 
 /// One figure of each subframe, joined by `+`; empty for a failed run.

@@ -25,6 +25,15 @@ impl World<'_> {
         self.heap.push(ready, Ev::Compute { node, work, done });
     }
 
+    /// A wait of mean `mean` (a pass's for its tracing thread, a bundle's for the engine):
+    /// drawn around it when a timing seed asks (`SimConfig::timing_seed`), else the mean.
+    pub(super) fn wait(&mut self, mean: Duration) -> Duration {
+        match &mut self.waits {
+            Some(draws) if !mean.is_zero() => draws.exponential(mean),
+            _ => mean,
+        }
+    }
+
     /// When handling a message, `work` that its shell takes up at `ready`, ends: it never
     /// waits for a shared core (the operating system slices a short task in at once), but
     /// while it runs it takes its share of them from the computations.

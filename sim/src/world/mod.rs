@@ -415,14 +415,15 @@ impl World<'_> {
                     Ok(out) => self.config.cost.finished_pass(&FinishedWork::of(out)),
                     Err(_) => Duration::ZERO,
                 };
-                if price.is_zero() && free <= self.now {
+                let ready = self.now.max(free);
+                let done = if price.is_zero() {
+                    ready
+                } else {
+                    self.steal(ready, price)
+                };
+                if done == self.now {
                     return self.take_pass(node, job_id, result);
                 }
-                let done = if price.is_zero() {
-                    free
-                } else {
-                    self.steal(self.now.max(free), price)
-                };
                 self.outcome.time.shell_wait += done.since(self.now);
                 if let Some(w) = self.worker_mut(node) {
                     w.msg_free_at = done;

@@ -106,11 +106,7 @@ impl World<'_> {
         let me = w.address.clone();
         // Acknowledged once decoded; the engine takes it in after what it handles, after
         // the wake-ups that carry it there, and never before the sender's earlier bundles.
-        let take = self.config.cost.bundle_take;
-        let wake = match &mut self.waits {
-            Some(draws) if !take.is_zero() => draws.exponential(take),
-            _ => take,
-        };
+        let wake = self.wait(self.config.cost.bundle_take);
         let Some(w) = self.worker_mut(to) else { return };
         let earlier = w.taken_from.get(&from).copied().unwrap_or_default();
         let taken = (decoded.max(w.msg_free_at) + wake).max(earlier);
@@ -274,14 +270,11 @@ impl World<'_> {
                 }
             }
             Action::StartPass { job_id, work } => {
-                let Some(w) = self.workers.get_mut(node).and_then(Option::as_mut) else {
-                    return;
-                };
                 // A tracing thread takes it up, then its loads go on the node's line, then
                 // its computing on a core.
-                let wait = match &mut self.waits {
-                    Some(draws) => draws.exponential(cost.pass_start),
-                    None => cost.pass_start,
+                let wait = self.wait(cost.pass_start);
+                let Some(w) = self.workers.get_mut(node).and_then(Option::as_mut) else {
+                    return;
                 };
                 let start = now + wait;
                 let run = w.run_pass(start, &job_id, work, &cost, &mut self.storage, measure);
