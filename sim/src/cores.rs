@@ -1,11 +1,14 @@
 //! Cores shared by every simulated worker (`--cores N`), sliced between whatever wants them
 //! as an operating system's scheduler slices them: processor sharing. While k computations
-//! (passes) and m short handlings (bundles on a worker's shell) want the N cores, each
-//! computation advances at min(1, N / (k + m)) of a core, so a long pass cannot hold a core
-//! that another worker's pass waits for, and every pass slows while bundles are handled.
+//! (passes) and m short handlings (bundles and finished passes on a worker's shell) want the
+//! N cores, each advances at min(1, N / (k + m)) of a core, so a long pass cannot hold a core
+//! that another worker's pass waits for, every pass slows while bundles are handled, and
+//! handlings slow too when the cores are saturated (where a cluster's processes spend more
+//! on their messages than on tracing, as nine processes on two cores do, that is most of a
+//! frame's tail: `perf` shows the cores busy throughout it, tracing a fifth of that).
 //!
-//! A handling runs for its own time from when its shell takes it up (a short task the
-//! scheduler slices in at once) and only takes its share from the computations; a
+//! A handling's rate is fixed at its start: its share then, counting itself, which sets its
+//! end at once (its shell's next handling follows it, so the end must be known); a
 //! computation's end moves whenever something starts or ends, so the world asks
 //! [`SharedCores::next_check`] after every change and calls [`SharedCores::check`] then,
 //! ignoring checks an epoch has passed by. Arithmetic is in `f64` core-nanoseconds in one
@@ -73,12 +76,16 @@ impl<E> SharedCores<E> {
         self.epoch += 1;
     }
 
-    /// A handling of `work` that its shell takes up at `start` (now or later): it ends at
-    /// `start + work`, returned, and shares the cores with the computations meanwhile.
+    /// A handling of `work` that its shell takes up at `start` (now or later): it runs at
+    /// the share of a core it would have then, itself one more contender, so on saturated
+    /// cores it takes longer than `work`; its end is returned, and it shares the cores with
+    /// the computations meanwhile.
     pub fn handle(&mut self, now: Time, start: Time, work: Duration) -> Time {
         self.advance(now);
         let start = start.max(now);
-        let end = start + work;
+        let contenders = self.computing.len() + self.handlings_at(start) + 1;
+        let slowdown = (contenders as f64 / f64::from(self.cores)).max(1.0);
+        let end = start + Duration::from_nanos((work.as_nanos() as f64 * slowdown).ceil() as u64);
         if end > start {
             self.handling.push((start, end));
             self.epoch += 1;
@@ -140,17 +147,20 @@ impl<E> SharedCores<E> {
     /// Each computation's share of a core at `t`: all of one while there are no more
     /// contenders than cores.
     fn share(&self, t: Time) -> f64 {
-        let handling = self
-            .handling
-            .iter()
-            .filter(|&&(start, end)| start <= t && t < end)
-            .count();
-        let contenders = self.computing.len() + handling;
+        let contenders = self.computing.len() + self.handlings_at(t);
         if contenders <= self.cores as usize {
             1.0
         } else {
             f64::from(self.cores) / contenders as f64
         }
+    }
+
+    /// Handlings running at `t`.
+    fn handlings_at(&self, t: Time) -> usize {
+        self.handling
+            .iter()
+            .filter(|&&(start, end)| start <= t && t < end)
+            .count()
     }
 
     /// The first start or end of a handling after `self.at`.
@@ -236,16 +246,44 @@ mod tests {
     }
 
     #[test]
-    fn a_handling_ends_on_its_own_time_and_slows_the_computations_meanwhile() {
-        // One core: a 20 ms pass; a 10 ms handling from 5 ms ends at 15 ms and halves the
-        // pass's share while it runs, so the pass ends at 25 ms.
-        let mut cores = SharedCores::new(1);
+    fn a_handling_on_a_free_core_ends_on_its_own_time_and_slows_the_computations_meanwhile() {
+        // Two cores: a 20 ms pass; a 10 ms handling from 5 ms has a core of its own (two
+        // contenders on two cores), ends at 15 ms, and leaves the pass its whole core.
+        let mut cores = SharedCores::new(2);
         cores.compute(Time(0), 1, ms(20), "pass");
         let end = cores.handle(Time(0), Time(0) + ms(5), ms(10));
         assert_eq!(end, Time(0) + ms(15));
         let ends = run(&mut cores);
+        assert!(ends[0].0.since(Time(0)).abs_diff(ms(20)) < Duration::from_micros(1));
+        // Two passes on the two cores: the handling makes three contenders, so each of the
+        // three runs at two thirds of a core while it lasts: it ends after 15 ms, not 10.
+        let mut cores = SharedCores::new(2);
+        cores.compute(Time(0), 1, ms(20), "a");
+        cores.compute(Time(0), 2, ms(20), "b");
+        let end = cores.handle(Time(0), Time(0) + ms(5), ms(10));
+        assert_eq!(end, Time(0) + ms(20));
+        // Each pass: 5 ms alone, 15 ms at 2/3 (10 ms of work), then 5 ms alone: 25 ms.
+        let ends = run(&mut cores);
+        assert_eq!(ends.len(), 2);
+        for (t, _) in ends {
+            assert!(
+                t.since(Time(0)).abs_diff(ms(25)) < Duration::from_micros(1),
+                "{t:?}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_handling_on_a_saturated_core_takes_its_share_too() {
+        // One core: a 20 ms pass; a 10 ms handling from 5 ms gets half the core, so it ends
+        // at 25 ms, and the pass, at half a core meanwhile, ends at 30 ms.
+        let mut cores = SharedCores::new(1);
+        cores.compute(Time(0), 1, ms(20), "pass");
+        let end = cores.handle(Time(0), Time(0) + ms(5), ms(10));
+        assert_eq!(end, Time(0) + ms(25));
+        let ends = run(&mut cores);
         assert_eq!(ends.len(), 1);
-        assert!(ends[0].0.since(Time(0)).abs_diff(ms(25)) < Duration::from_micros(1));
+        assert!(ends[0].0.since(Time(0)).abs_diff(ms(30)) < Duration::from_micros(1));
     }
 
     #[test]

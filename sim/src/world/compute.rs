@@ -34,9 +34,10 @@ impl World<'_> {
         }
     }
 
-    /// When handling a message, `work` that its shell takes up at `ready`, ends: it never
-    /// waits for a shared core (the operating system slices a short task in at once), but
-    /// while it runs it takes its share of them from the computations.
+    /// When handling a message, `work` that its shell takes up at `ready`, ends: on the
+    /// worker's own cores after `work`; on shared cores at its share of them when it starts
+    /// (longer when they are saturated, `SharedCores::handle`), taking that share from the
+    /// computations while it runs.
     pub(super) fn steal(&mut self, ready: Time, work: Duration) -> Time {
         self.outcome.time.handling += work;
         let Some(cores) = self.cores.as_mut() else {
