@@ -6,6 +6,7 @@ cluster"): loads, rays migrated and each schedule's time over image-plane's, fro
 
     compare.py BENCH.csv[,BENCH2.csv...] SIM.csv [SIM2.csv ...]
     compare.py --pass-wait-us BENCH.csv[,...]   # the mean wait of a pass for its thread
+    compare.py --fit-cost BENCH.csv[,...] BASE.toml > COST.toml   # the shells' CPU, fitted
 
 Several bench CSVs (of the same binaries and commands) are pooled: a bench invocation's
 median moves between invocations by more than the bounds on the timing-sensitive figures.
@@ -111,9 +112,98 @@ def split(paths, sim_path, workers):
         print(f"| {s} | " + " | ".join(cells) + " |")
 
 
+def prices(path):
+    """The `key = value` prices of a calibration file (`rayfarm sim calibrate`'s TOML)."""
+    out = {}
+    for line in open(path):
+        key, eq, value = line.partition("=")
+        if eq and not line.lstrip().startswith("#"):
+            out[key.strip()] = float(value)
+    return out
+
+
+def solve(rows, ys):
+    """Least squares of `ys` on the columns of `rows`, no coefficient negative: every subset
+    of the columns fitted by its normal equations (Gaussian elimination), the best of those
+    whose coefficients are all non-negative kept; a column left out fits zero."""
+    n = len(rows[0])
+    best = (float("inf"), [0.0] * n)
+    for mask in range(1, 1 << n):
+        cols = [j for j in range(n) if mask >> j & 1]
+        a = [[sum(r[i] * r[j] for r in rows) for j in cols] for i in cols]
+        b = [sum(r[i] * y for r, y in zip(rows, ys)) for i in cols]
+        k = len(cols)
+        for p in range(k):
+            pivot = max(range(p, k), key=lambda q: abs(a[q][p]))
+            if abs(a[pivot][p]) < 1e-30:
+                break
+            a[p], a[pivot], b[p], b[pivot] = a[pivot], a[p], b[pivot], b[p]
+            for q in range(k):
+                if q != p:
+                    f = a[q][p] / a[p][p]
+                    a[q] = [x - f * y for x, y in zip(a[q], a[p])]
+                    b[q] -= f * b[p]
+        else:
+            coef = [0.0] * n
+            for p, j in enumerate(cols):
+                coef[j] = b[p] / a[p][p]
+            if min(coef) >= 0:
+                err = sum((sum(c * x for c, x in zip(coef, r)) - y) ** 2 for r, y in zip(rows, ys))
+                best = min(best, (err, coef))
+    return best[1]
+
+
+def fit_cost(paths, base_path):
+    """A calibration file for the simulator whose shells spend what this cluster's workers
+    spend outside tracing: each run's CPU outside tracing (`cpu_seconds - trace_cpu_seconds`,
+    every worker summed) fitted, relative to itself, as k x what the base prices charge its
+    peer bundles (per bundle and per byte, sender's and receiver's) + a price a pass + a
+    price a domain load, none negative. The bundles' four prices are the base's times k, the
+    finished pass's (`finished_pass_ns`) the fitted one; a load's CPU is fitted so that it
+    does not land on the others, and the simulator does not charge it (it overlaps the
+    loading it comes with). Prints the file; the fit and its error go to stderr."""
+    base = prices(base_path)
+    per_bundle = base["bundle_send_ns"] + base["bundle_receive_ns"]
+    per_byte = base["bundle_send_byte_ns"] + base["bundle_receive_byte_ns"]
+    rows, ys = [], []
+    for r in bench_rows(paths):
+        if r["ok"] != "true" or not r.get("cpu_seconds"):
+            continue
+        out = float(r["cpu_seconds"]) - float(r["trace_cpu_seconds"])
+        bundles = sum(int(r[c]) for c in ("bundles_migrated", "bundles_results", "bundles_tasks"))
+        priced = (bundles * per_bundle + int(r["bytes_migrated"]) * per_byte) * 1e-9
+        if out > 0:
+            rows.append([priced / out, int(r["passes"]) / out, int(r["domain_loads"]) / out])
+            ys.append(1.0)
+    if not rows:
+        sys.exit("no run with the workers' CPU in the bench CSVs (cpu_seconds)")
+    k, per_pass, per_load = solve(rows, ys)
+    misses = [abs(sum(c * x for c, x in zip((k, per_pass, per_load), row)) - 1) for row in rows]
+    rms = (sum(m * m for m in misses) / len(misses)) ** 0.5
+    print(f"{len(rows)} runs: the shells' CPU outside tracing = {k:.3f} x the priced bundles "
+          f"+ {per_pass * 1e6:.1f} us a pass + {per_load * 1e6:.1f} us a load "
+          f"(relative error {rms * 100:.1f}% rms)", file=sys.stderr)
+    scaled = {"bundle_send_ns", "bundle_receive_ns", "bundle_send_byte_ns",
+              "bundle_receive_byte_ns"}
+    print(f"# {base_path} with the peer bundles' prices x {k:.3f} and a finished pass at "
+          f"{per_pass * 1e9:.0f} ns: the CPU outside tracing of the workers of {paths} "
+          f"(bench/validation/compare.py --fit-cost; relative error {rms * 100:.1f}% rms)")
+    for line in open(base_path):
+        key = line.partition("=")[0].strip()
+        if key in scaled:
+            line = f"{key} = {base[key] * k}\n"
+        elif key == "finished_pass_ns":
+            continue
+        print(line, end="")
+    print(f"finished_pass_ns = {per_pass * 1e9}")
+
+
 def main():
     if sys.argv[1] == "--pass-wait-us":
         print(pass_wait_us(sys.argv[2]))
+        return
+    if sys.argv[1] == "--fit-cost":
+        fit_cost(sys.argv[2], sys.argv[3])
         return
     b = bench(sys.argv[1])
     sims = [sim(p) for p in sys.argv[2:]]

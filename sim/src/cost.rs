@@ -241,9 +241,10 @@ pub struct CostModel {
     /// the worker's engine to take it in (`--bundle-take-us`): no core time, only delay.
     /// Zero by default. Where the whole cluster shares a few cores, the threads that carry a
     /// bundle from one machine to the next wait for cores to wake on: the validation's
-    /// cluster took 0.4-2.6 ms on average from a machine's send to the receiver's machine
-    /// taking the bundle, where the simulator's network and decoding take about 0.13
-    /// (`bench/validation/transit.py` reads it from the workers' debug logs).
+    /// cluster took 0.4-3.0 ms on average from a machine's send to the receiver's machine
+    /// taking the bundle, where the simulator's network and decoding take about 0.13 at the
+    /// default prices and more with the cluster's own (`bench/validation/transit.py` reads
+    /// both from debug logs and charges the difference).
     pub bundle_take: Duration,
 }
 

@@ -123,8 +123,9 @@ pub struct ModelArgs {
     /// Tracing threads each worker is costed with (the cost model's divisor).
     #[arg(long, default_value_t = 1)]
     pub threads: u32,
-    /// Cores shared by all simulated workers: every pass's computing and every bundle's
-    /// handling are sliced between them, as the operating system slices them (as when the
+    /// Cores shared by all simulated workers: every pass's computing and its shell's
+    /// handling of bundles and finished passes are sliced between them, as the operating
+    /// system slices them (as when the
     /// whole cluster runs on one machine, like `rayfarm bench`'s); off by default, each worker
     /// on machines of its own.
     #[arg(long)]
@@ -139,7 +140,7 @@ pub struct ModelArgs {
     /// for the worker's engine to take it in (delay, no core time): 0 for workers with cores
     /// of their own; where the whole cluster shares a few cores, the mean the workers' debug
     /// logs show from a machine's send to the receiver's machine taking the bundle, less the
-    /// simulator's own 130 or so (`bench/validation/transit.py`).
+    /// simulator's own under the same model (`bench/validation/transit.py` reads both).
     #[arg(long, default_value_t = 0)]
     pub bundle_take_us: u64,
     /// Prices of computing, from `rayfarm sim calibrate` [default: the ones measured on this
