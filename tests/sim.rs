@@ -2,7 +2,10 @@
 //! virtual time) makes the image of `rayfarm render --local` to the bit under every schedule;
 //! a seed repeats exactly; a thousand fault seeds of a tiny frame keep every invariant.
 
-use rayfarm_tests::{local_hash, prepare_nbody, rayfarm, rayfarm_ok, s};
+use std::path::Path;
+use std::process::Command;
+
+use rayfarm_tests::{local_hash, prepare_nbody, rayfarm, rayfarm_ok, rayfarm_ok_env, s};
 
 const FRAME: [&str; 8] = [
     "--width", "64", "--height", "48", "--spp", "1", "--depth", "3",
@@ -270,4 +273,128 @@ fn prefetching_workers_make_the_local_image_and_count_their_prefetches() {
         .collect();
     assert_eq!(used.len(), 2, "{stderr}");
     assert!(used.iter().all(|&u| u > 0), "prefetches used: {stderr}");
+}
+
+/// Runs one of the validation's scripts (`bench/validation/`) with `args`; its stdout and
+/// stderr, or `None` where there is no `python3`.
+fn validation_script(script: &str, args: &[&str]) -> Option<(String, String)> {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap();
+    let out = match Command::new("python3")
+        .arg(root.join("bench/validation").join(script))
+        .args(args)
+        .output()
+    {
+        Ok(out) => out,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return None,
+        Err(e) => panic!("python3: {e}"),
+    };
+    let (stdout, stderr) = (
+        String::from_utf8(out.stdout).unwrap(),
+        String::from_utf8(out.stderr).unwrap(),
+    );
+    assert!(
+        out.status.success(),
+        "{script} {args:?}:\n{stdout}\n{stderr}"
+    );
+    Some((stdout, stderr))
+}
+
+/// The validation's pipeline on a cluster of two, as `bench/validation/run.sh` runs it: the
+/// bench's workers' CPU outside tracing fitted into a cost file the simulator reads (and still
+/// makes the local image with), and a bundle's way from machine to machine read from the
+/// cluster's debug logs and from the simulator's.
+#[test]
+fn the_validation_fits_the_clusters_cpu_and_reads_both_logs() {
+    let root = tempfile::tempdir().unwrap();
+    let scene = prepare_nbody(root.path(), "nb", 5_000, 4);
+    let expected = local_hash(&scene, &FRAME);
+    let (csv, logs) = (root.path().join("bench.csv"), root.path().join("logs"));
+    let mut bench = vec![
+        "bench",
+        "--scene",
+        s(&scene),
+        "--workers",
+        "2",
+        "--threads",
+        "1",
+        "--schedules",
+        "image-plane,predictive",
+        "--repeats",
+        "2",
+        "--csv",
+        s(&csv),
+        "--keep-cluster-logs",
+        s(&logs),
+    ];
+    bench.extend_from_slice(&FRAME);
+    let debug = [("RUST_LOG", "info,rayfarm_machine::worker=debug")];
+    rayfarm_ok_env(&bench, &debug);
+    let calibration = Path::new(env!("CARGO_MANIFEST_DIR")).join("../sim/calibration.toml");
+    let Some((cost, fit)) =
+        validation_script("compare.py", &["--fit-cost", s(&csv), s(&calibration)])
+    else {
+        println!("SKIPPED: no python3 for the validation's scripts");
+        return;
+    };
+    // "4 runs: the shells' CPU outside tracing = K x the priced bundles + ..."
+    assert!(fit.starts_with("4 runs: "), "{fit}");
+    for price in [
+        "bundle_send_ns",
+        "bundle_receive_byte_ns",
+        "finished_pass_ns",
+        "pass_ns",
+    ] {
+        assert!(
+            cost.lines().any(|l| l.starts_with(&format!("{price} = "))),
+            "{price} in:\n{cost}"
+        );
+    }
+    let cost_file = root.path().join("cost.toml");
+    std::fs::write(&cost_file, &cost).unwrap();
+    let mut simulated = vec![
+        "sim",
+        "--scene",
+        s(&scene),
+        "--workers",
+        "2",
+        "--schedule",
+        "predictive",
+        "--cores",
+        "2",
+        "--cost",
+        s(&cost_file),
+        "--heartbeat-ms",
+        "1000",
+    ];
+    simulated.extend_from_slice(&FRAME);
+    let out = rayfarm_ok_env(
+        &simulated,
+        &[(
+            "RUST_LOG",
+            "rayfarm_sim=debug,rayfarm_machine::worker=debug",
+        )],
+    );
+    let stdout = String::from_utf8(out.stdout).unwrap();
+    assert_eq!(hash_of_row(&stdout, "predictive"), expected, "{stdout}");
+    let sim_log = root.path().join("sim.log");
+    std::fs::write(&sim_log, &out.stderr).unwrap();
+    let (transit, _) = validation_script("transit.py", &[s(&logs), s(&sim_log)]).unwrap();
+    // "cluster: N bundles: ...", "simulator: M bundles: ...", "--bundle-take-us T".
+    let bundles = |who: &str| -> u64 {
+        let line = transit.lines().find(|l| l.starts_with(who)).unwrap_or("");
+        line.split_whitespace()
+            .nth(1)
+            .and_then(|n| n.parse().ok())
+            .unwrap_or(0)
+    };
+    assert!(
+        bundles("cluster:") > 0 && bundles("simulator:") > 0,
+        "{transit}"
+    );
+    assert!(
+        transit.lines().any(|l| l
+            .strip_prefix("--bundle-take-us ")
+            .is_some_and(|t| t.parse::<u64>().is_ok())),
+        "{transit}"
+    );
 }
