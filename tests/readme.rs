@@ -166,7 +166,7 @@ fn plan(command: &str) -> Option<Plan> {
             Plan::Skip("a benchmark: a 32.8 GiB scene, about 50 GiB of disk and half an hour")
         }),
         ("bench/validation/run.sh", || {
-            Plan::Skip("a benchmark: every schedule benched at 4 and 8 workers, about 15 minutes")
+            Plan::Skip("a benchmark: every schedule benched at 4 and 8 workers, about 22 minutes")
         }),
         ("bench/scanned-mesh/run.sh", || {
             Plan::Skip("a benchmark: reads Debian's libcgal-demo, five schedules on 4 workers")

@@ -17,7 +17,7 @@
 #
 # Needs `cargo build --release --bins` and the scene in scenes/b32
 # (`rayfarm prepare --generate nbody --triangles 200000 --seed 5 --domains 32 --out scenes/b32`).
-# Takes about 15 minutes with the defaults (3 x 7 repeats) on the 2-core machine; run it
+# Takes about 22 minutes with the defaults (3 x 7 repeats) on the 2-core machine; run it
 # with nothing else running.
 set -eu
 out=${1:?usage: run.sh OUT_DIR [REPEATS] [SEEDS]}
