@@ -20,7 +20,7 @@
 # Takes about 22 minutes with the defaults (3 x 7 repeats) on the 2-core machine; run it
 # with nothing else running.
 set -eu
-out=${1:?usage: run.sh OUT_DIR [REPEATS] [SEEDS]}
+out=${1:?usage: run.sh OUT_DIR [REPEATS] [SEEDS] [INVOCATIONS]}
 repeats=${2:-7}
 seeds=${3:-0..9}
 invocations=${4:-3}

@@ -125,9 +125,8 @@ pub struct ModelArgs {
     pub threads: u32,
     /// Cores shared by all simulated workers: every pass's computing and its shell's
     /// handling of bundles and finished passes are sliced between them, as the operating
-    /// system slices them (as when the
-    /// whole cluster runs on one machine, like `rayfarm bench`'s); off by default, each worker
-    /// on machines of its own.
+    /// system slices them (as when the whole cluster runs on one machine, like `rayfarm
+    /// bench`'s); off by default, each worker on machines of its own.
     #[arg(long)]
     pub cores: Option<u32>,
     /// Microseconds a pass waits after the worker hands it over before a tracing thread
