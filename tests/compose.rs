@@ -8,18 +8,11 @@
 //! cluster's `secrets` volume, and without the token it is refused. Skipped, saying so, where no Docker engine or
 //! compose tool is present.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Command, Output};
 use std::time::{Duration, Instant};
 
-use rayfarm_tests::{bin, rayfarm_ok, s, stats_field};
-
-fn repo() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .expect("workspace root")
-        .to_path_buf()
-}
+use rayfarm_tests::{bin, rayfarm_ok, repo_root, s, stats_field};
 
 /// `docker compose` (v2) or `docker-compose` (v1), whichever works here.
 fn compose_tool() -> Option<Vec<String>> {
@@ -50,7 +43,7 @@ struct Project {
 
 impl Project {
     fn run(&self, args: &[&str]) -> Output {
-        let file = repo().join("deploy/docker-compose.yml");
+        let file = repo_root().join("deploy/docker-compose.yml");
         Command::new(&self.tool[0])
             .args(&self.tool[1..])
             .args(["-p", &self.name, "-f", s(&file)])
@@ -104,7 +97,7 @@ fn the_compose_cluster_renders_the_local_image_even_when_a_worker_is_killed() {
     // The binaries under test, as built: a cargo build from inside `cargo test` sees another
     // environment and rebuilt the workspace (minutes of CI).
     let binaries = bin("rayfarm");
-    let built = Command::new(repo().join("deploy/build-image.sh"))
+    let built = Command::new(repo_root().join("deploy/build-image.sh"))
         .arg(tag)
         .env(
             "RAYFARM_BINARIES",

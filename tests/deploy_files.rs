@@ -8,10 +8,7 @@ use std::process::Command;
 use yaml_rust2::{Yaml, YamlLoader};
 
 fn deploy() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .expect("workspace root")
-        .join("deploy")
+    rayfarm_tests::repo_root().join("deploy")
 }
 
 fn documents(path: &Path) -> Vec<Yaml> {

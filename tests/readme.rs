@@ -10,7 +10,7 @@ use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 
-use rayfarm_tests::{START_TIMEOUT, bin, prepare_nbody};
+use rayfarm_tests::{START_TIMEOUT, bin, prepare_nbody, repo_root};
 
 /// How one documented command is run here.
 enum Plan {
@@ -313,9 +313,7 @@ fn shell(dir: &Path, path: &str, coordinator: &str, command: &str) -> Command {
 
 #[test]
 fn every_readme_command_runs_or_is_skipped_with_its_reason() {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .expect("workspace");
+    let root = repo_root();
     let tmp = tempfile::tempdir().expect("temp dir");
     let dir = tmp.path();
     // What the commands expect to find.

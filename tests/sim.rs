@@ -2,10 +2,9 @@
 //! virtual time) makes the image of `rayfarm render --local` to the bit under every schedule;
 //! a seed repeats exactly; a thousand fault seeds of a tiny frame keep every invariant.
 
-use std::path::Path;
 use std::process::Command;
 
-use rayfarm_tests::{local_hash, prepare_nbody, rayfarm, rayfarm_ok, rayfarm_ok_env, s};
+use rayfarm_tests::{local_hash, prepare_nbody, rayfarm, rayfarm_ok, rayfarm_ok_env, repo_root, s};
 
 const FRAME: [&str; 8] = [
     "--width", "64", "--height", "48", "--spp", "1", "--depth", "3",
@@ -278,9 +277,8 @@ fn prefetching_workers_make_the_local_image_and_count_their_prefetches() {
 /// Runs one of the validation's scripts (`bench/validation/`) with `args`; its stdout and
 /// stderr, or `None` where there is no `python3`.
 fn validation_script(script: &str, args: &[&str]) -> Option<(String, String)> {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap();
     let out = match Command::new("python3")
-        .arg(root.join("bench/validation").join(script))
+        .arg(repo_root().join("bench/validation").join(script))
         .args(args)
         .output()
     {
@@ -329,7 +327,7 @@ fn the_validation_fits_the_clusters_cpu_and_reads_both_logs() {
     bench.extend_from_slice(&FRAME);
     let debug = [("RUST_LOG", "info,rayfarm_machine::worker=debug")];
     rayfarm_ok_env(&bench, &debug);
-    let calibration = Path::new(env!("CARGO_MANIFEST_DIR")).join("../sim/calibration.toml");
+    let calibration = repo_root().join("sim/calibration.toml");
     let Some((cost, fit)) =
         validation_script("compare.py", &["--fit-cost", s(&csv), s(&calibration)])
     else {

@@ -243,7 +243,7 @@ fn the_sbatch_script_renders_the_local_image() {
         s(&stats)
     );
     let bin_dir = bin("rayfarm").parent().expect("bin dir").to_path_buf();
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/slurm/rayfarm.sbatch");
+    let script = rayfarm_tests::repo_root().join("deploy/slurm/rayfarm.sbatch");
     let log = work.join("rayfarm-%j.log");
     let started = Instant::now();
     // One node: the script's --nodes=4 is the example's, sbatch's option overrides it.

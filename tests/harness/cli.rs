@@ -38,6 +38,13 @@ pub fn certs(dir: &Path) -> CertFiles {
     }
 }
 
+/// The workspace's root: where the repository's files (README, deploy/, bench/, sim/) are.
+pub fn repo_root() -> &'static Path {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("workspace root")
+}
+
 /// Path of a workspace binary built in the same profile as this test.
 pub fn bin(name: &str) -> PathBuf {
     let exe = std::env::current_exe().expect("test executable path");

@@ -23,7 +23,7 @@ pub mod scenes;
 
 pub use cli::{
     CertFiles, bin, certs, rayfarm, rayfarm_env, rayfarm_err, rayfarm_ok, rayfarm_ok_env,
-    spawn_rayfarm, wait_line,
+    repo_root, spawn_rayfarm, wait_line,
 };
 pub use cluster::{Cluster, ClusterOpts, WorkerOpts, job, jobs, submit_wait};
 pub use http::{http_get, http_request, try_http_request};

@@ -71,9 +71,10 @@ pub struct SimArgs {
     pub seeds: std::ops::Range<u64>,
     /// After each clean run, run the frame again once per seed of A..B (or one seed) with
     /// each pass's wait for its tracing thread (`--pass-start-us`, its mean) and each peer
-    /// bundle's wait for the engine (`--bundle-take-us`) drawn at random from the seed: how far the frame's time, loads and rays migrated move with timing
-    /// alone, as a real cluster's repeats move (`rayfarm bench --repeats`). Prints every run
-    /// and the medians with their range; every image must be the clean run's.
+    /// bundle's wait for the engine (`--bundle-take-us`) drawn at random from the seed: how
+    /// far the frame's time, loads and rays migrated move with timing alone, as a real
+    /// cluster's repeats move (`rayfarm bench --repeats`). Prints every run and the medians
+    /// with their range; every image must be the clean run's.
     #[arg(long, value_parser = parse_seeds, conflicts_with = "faults")]
     pub timing_seeds: Option<std::ops::Range<u64>>,
     /// Liveness bound of a faulty run in virtual microseconds [default: twenty clean frames
