@@ -64,8 +64,9 @@ pub struct VerdictRecord {
     pub kind: u8,
     /// Zero.
     pub _pad: [u8; 3],
-    /// A hit: the domain's place along the ray, the distance, the surface's normal and
-    /// material (`SurfaceHit`); an occluder: the domain's place alone; zero otherwise.
+    /// Clear, an occluder or a hit: the copy's domain (a hit's distance, the surface's normal
+    /// and material follow, `SurfaceHit`); a volume segment or its light: the segment's
+    /// first sample; zero otherwise.
     pub order: u32,
     pub t: f32,
     pub normal: [f32; 3],
@@ -418,7 +419,7 @@ fn check_verdict(v: &VerdictRecord, l: &BatchLimits) -> Result<(), &'static str>
                 return Err("a verdict without a hit carries hit fields");
             }
         }
-        // An occluder's verdict names the domain's place along the ray (`order`) alone.
+        // An occluder's verdict names its copy's domain (`order`) alone.
         VerdictRecord::BLOCKED => {
             if v.t != 0.0 || v.normal != [0.0; 3] || v.material != 0 {
                 return Err("a verdict without a hit carries hit fields");
@@ -531,7 +532,14 @@ fn check_verdict_range(v: &VerdictRecord, l: &BatchLimits) -> Result<(), &'stati
     {
         return Err("material out of range");
     }
-    if v.kind == VerdictRecord::CLEAR && v.order >= l.domains {
+    let names_domain = matches!(
+        v.kind,
+        VerdictRecord::CLEAR
+            | VerdictRecord::BLOCKED
+            | VerdictRecord::HIT
+            | VerdictRecord::VOLUME_HIT
+    );
+    if names_domain && v.order >= l.domains {
         return Err("domain out of range");
     }
     Ok(())

@@ -78,8 +78,8 @@ struct Group {
     answered: Answered,
     /// The nearest place along the ray where a copy found an occluder.
     blocker: Option<u32>,
-    /// The hit of the nearest domain that has one.
-    nearest: Option<SurfaceHit>,
+    /// The hit of the nearest domain that has one, and that domain's place along the ray.
+    nearest: Option<(u32, SurfaceHit)>,
     /// Once a volume verdict came: the ray concludes only once every copy has answered.
     volume: Option<Box<VolumeParts>>,
 }
@@ -95,20 +95,21 @@ struct VolumeParts {
 }
 
 impl Group {
-    /// Adds one verdict to what the copies found.
-    fn add(&mut self, verdict: Verdict) {
-        match verdict {
-            Verdict::Clear | Verdict::VolumeEnd(_) => {}
-            Verdict::Segment(seg) => self.volume_parts().segments.push(seg),
-            Verdict::Light(light) => self.volume_parts().lights.push(light),
-            Verdict::Blocked(order) => {
-                self.blocker = Some(self.blocker.map_or(order, |b| b.min(order)));
+    /// Adds one verdict to what the copies found; `place` is its domain's place along the
+    /// path, for those that name a domain.
+    fn add(&mut self, verdict: Verdict, place: Option<u32>) {
+        match (verdict, place) {
+            (Verdict::Segment(seg), _) => self.volume_parts().segments.push(seg),
+            (Verdict::Light(light), _) => self.volume_parts().lights.push(light),
+            (Verdict::Blocked, Some(p)) => {
+                self.blocker = Some(self.blocker.map_or(p, |b| b.min(p)));
             }
-            Verdict::Hit(hit) | Verdict::VolumeHit(hit) => {
-                if self.nearest.is_none_or(|n| hit.order < n.order) {
-                    self.nearest = Some(hit);
-                }
+            (Verdict::Hit(hit) | Verdict::VolumeHit(hit), Some(p))
+                if self.nearest.is_none_or(|(n, _)| p < n) =>
+            {
+                self.nearest = Some((p, hit));
             }
+            _ => {}
         }
     }
 
@@ -129,7 +130,7 @@ impl Group {
         Outcome {
             blocked: self.blocker.is_some(),
             blocker: self.blocker,
-            nearest: self.nearest,
+            nearest: self.nearest.map(|(_, hit)| hit),
             segments,
             lights,
         }
@@ -138,7 +139,7 @@ impl Group {
     /// Where along the ray it ended, if it did (as [`Outcome::ended`]).
     fn ended(&self) -> Option<u32> {
         match self.ray.kind() {
-            RayKind::Radiance => self.nearest.map(|h| h.order),
+            RayKind::Radiance => self.nearest.map(|(p, _)| p),
             RayKind::Shadow => self.blocker,
         }
     }
@@ -152,9 +153,9 @@ impl Group {
         }
         match self.ray.kind() {
             RayKind::Shadow => self.blocker.is_some(),
-            RayKind::Radiance => self.nearest.is_some_and(|h| {
-                (h.order as usize) < self.path.len()
-                    && self.answered.all_before(h.order as usize, self.path.len())
+            RayKind::Radiance => self.nearest.is_some_and(|(p, _)| {
+                (p as usize) < self.path.len()
+                    && self.answered.all_before(p as usize, self.path.len())
             }),
         }
     }
@@ -348,18 +349,24 @@ impl Groups {
             return Err(GroupError::Mismatch(id));
         }
         let verdict = record.verdict();
-        // Where along the path the copy was: a clear verdict names its domain, a hit or an
-        // occluder its place. (A concluded ray's group has given its path up: its verdicts
-        // teach nothing.)
-        let place = match verdict {
-            Verdict::Clear => group.copied().iter().position(|&d| d == record.order),
-            Verdict::Blocked(order) | Verdict::Hit(SurfaceHit { order, .. }) => {
-                Some(order as usize).filter(|&p| p < group.path.len())
+        // Where along the path the copy was: a clear verdict, an occluder or a hit names the
+        // copy's domain, which a copy was sent to. (A concluded ray's group has given its
+        // path up: its verdicts teach nothing.)
+        let domain = match verdict {
+            Verdict::Clear | Verdict::Blocked | Verdict::Hit(_) | Verdict::VolumeHit(_) => {
+                Some(record.order)
             }
             _ => None,
         };
+        let place = domain.and_then(|d| group.copied().iter().position(|&c| c == d));
+        if domain.is_some() && place.is_none() && !group.spent {
+            // No copy went there: not a verdict on this ray's copies.
+            return Err(GroupError::Mismatch(id));
+        }
         // The copy's domain has been traced for the ray's generation.
-        if let Some(p) = place {
+        if let Some(p) = place
+            && !matches!(verdict, Verdict::VolumeHit(_))
+        {
             self.windows.visited(&group.ray, group.path[p]);
         }
         if group.spent {
@@ -394,12 +401,12 @@ impl Groups {
                 volume.segments_due += i64::from(n);
                 group.waiting = group.waiting.saturating_sub(1);
             }
-            Verdict::Clear | Verdict::Blocked(_) | Verdict::Hit(_) => {
+            Verdict::Clear | Verdict::Blocked | Verdict::Hit(_) => {
                 group.answer(place);
                 group.waiting = group.waiting.saturating_sub(1);
             }
         }
-        group.add(verdict);
+        group.add(verdict, place.map(|p| p as u32));
         let segments_due = group.segments_due();
         if group.waiting > 0 || segments_due != 0 {
             if group.waiting == 0 && segments_due < 0 {

@@ -38,12 +38,71 @@ pub enum KdNode {
 pub struct DomainTree {
     bounds: Aabb,
     nodes: Vec<KdNode>,
+    /// How to reach each domain's leaf from the root (see [`Route`]), by domain id.
+    routes: Vec<Route>,
+}
+
+/// The way from the root to one leaf: at level `l` the upper half (`above`) if bit `l` of
+/// `above` is set, else the lower. A leaf deeper than [`Route::MAX_DEPTH`] levels has none
+/// and is found by walking.
+#[derive(Clone, Copy, Debug, Default)]
+struct Route {
+    above: u64,
+    depth: u8,
+}
+
+impl Route {
+    /// The deepest leaf a route holds: one bit a level.
+    const MAX_DEPTH: u8 = 64;
+    /// A leaf no route reaches (deeper than [`Route::MAX_DEPTH`], or no such domain).
+    const NONE: Route = Route {
+        above: 0,
+        depth: u8::MAX,
+    };
+}
+
+/// Each domain's route from the root of `nodes` (a tree [`DomainTree::check`] accepts, or
+/// one `balanced` built).
+fn routes(nodes: &[KdNode]) -> Vec<Route> {
+    let mut routes = Vec::new();
+    let mut todo = vec![(0usize, Route::default())];
+    while let Some((i, route)) = todo.pop() {
+        match nodes.get(i) {
+            Some(&KdNode::Split { below, above, .. }) => {
+                let deeper = |up: bool| {
+                    if route.depth >= Route::MAX_DEPTH {
+                        return Route::NONE;
+                    }
+                    Route {
+                        above: route.above | (u64::from(up) << route.depth),
+                        depth: route.depth + 1,
+                    }
+                };
+                todo.push((below as usize, deeper(false)));
+                todo.push((above as usize, deeper(true)));
+            }
+            Some(&KdNode::Leaf { domain }) => {
+                let d = domain as usize;
+                if routes.len() <= d {
+                    routes.resize(d + 1, Route::NONE);
+                }
+                routes[d] = route;
+            }
+            None => {}
+        }
+    }
+    routes
 }
 
 impl DomainTree {
     /// Wraps nodes already checked by [`DomainTree::check`].
     pub fn new(bounds: Aabb, nodes: Vec<KdNode>) -> Self {
-        DomainTree { bounds, nodes }
+        let routes = routes(&nodes);
+        DomainTree {
+            bounds,
+            nodes,
+            routes,
+        }
     }
 
     /// Checks that `nodes` is a tree rooted at 0 whose leaves are domains `0..domains`, each once.
@@ -261,13 +320,85 @@ impl DomainTree {
         }
     }
 
+    /// `domain`'s interval along the ray within `[t_min, t_max]`, bit for bit the one
+    /// [`DomainTree::walk`] visits it with, or `None` when the walk does not visit it. One
+    /// descent from the root along the domain's route, where a walk visits every domain
+    /// before it: tracing a speculative copy asks this for a domain far along its ray.
+    pub fn interval(
+        &self,
+        domain: u32,
+        origin: Vec3,
+        dir: Vec3,
+        t_min: f32,
+        t_max: f32,
+    ) -> Option<(f32, f32)> {
+        let route = *self.routes.get(domain as usize)?;
+        if route.depth > Route::MAX_DEPTH {
+            let mut found = None;
+            self.walk(origin, dir, t_min, t_max, |d, a, b| {
+                if d == domain {
+                    found = Some((a, b));
+                    return ControlFlow::Break(());
+                }
+                ControlFlow::Continue(())
+            });
+            return found;
+        }
+        let (mut lo, mut hi) = clip_to_box(&self.bounds, origin, dir, t_min, t_max)?;
+        let mut i = 0usize;
+        // Each split as `walk` takes it: the same planes, the same comparisons, so the same
+        // end points; where the walk would not go on to the route's side, the domain is not
+        // visited.
+        for level in 0..route.depth {
+            let KdNode::Split {
+                axis,
+                position,
+                below,
+                above,
+            } = self.nodes[i]
+            else {
+                return None;
+            };
+            let next = if route.above >> level & 1 == 1 {
+                above
+            } else {
+                below
+            };
+            let (o, d) = (origin[axis as usize], dir[axis as usize]);
+            if d == 0.0 {
+                if next != (if o < position { below } else { above }) {
+                    return None;
+                }
+            } else {
+                let origin_below = o < position || (o == position && d > 0.0);
+                let near = if origin_below { below } else { above };
+                let t = (position - o) / d;
+                if t < 0.0 || t > hi {
+                    if next != near {
+                        return None;
+                    }
+                } else if t < lo {
+                    if next == near {
+                        return None;
+                    }
+                } else if next == near {
+                    hi = t;
+                } else {
+                    lo = t;
+                }
+            }
+            i = next as usize;
+        }
+        matches!(self.nodes[i], KdNode::Leaf { domain: d } if d == domain).then_some((lo, hi))
+    }
+
     /// Splits `bounds` into `domains` boxes so that each holds about the same weight of
     /// `points` (triangle centroids, or surface estimates for generated scenes).
     pub fn balanced(bounds: Aabb, points: &mut [([f32; 3], f64)], domains: u32) -> DomainTree {
         let mut nodes = Vec::new();
         let mut next_domain = 0;
         split(&mut nodes, &mut next_domain, bounds, points, domains.max(1));
-        DomainTree { bounds, nodes }
+        DomainTree::new(bounds, nodes)
     }
 
     /// The nodes, for the manifest.
@@ -453,6 +584,88 @@ mod tests {
                     "{n}: {inside} vs {ideal}"
                 );
             }
+        }
+    }
+
+    /// A coordinate that often lands on the grid's planes (multiples of 1/8) or outside the
+    /// unit box, where a ray's interval is decided by ties.
+    fn coordinate() -> impl proptest::strategy::Strategy<Value = f32> {
+        use proptest::prelude::*;
+        prop_oneof![(-2i32..=10).prop_map(|k| k as f32 / 8.0), -1.5f32..2.5,]
+    }
+
+    /// A direction component: often zero (the walk's own case), else any sign.
+    fn direction() -> impl proptest::strategy::Strategy<Value = f32> {
+        use proptest::prelude::*;
+        prop_oneof![Just(0.0f32), Just(1.0), Just(-1.0), -1.0f32..1.0]
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig {
+            cases: 2_000,
+            failure_persistence: None,
+            ..Default::default()
+        })]
+
+        /// Every domain's interval from one descent is the walk's, bit for bit, and `None`
+        /// exactly where the walk passes the domain by.
+        #[test]
+        fn a_domains_interval_is_the_one_the_walk_visits_it_with(
+            domains in 1u32..40,
+            origin in proptest::array::uniform3(coordinate()),
+            dir in proptest::array::uniform3(direction()),
+            t_min in proptest::prop_oneof![proptest::strategy::Just(0.0f32), 0.0f32..2.0],
+            t_len in proptest::prop_oneof![proptest::strategy::Just(f32::INFINITY), 0.0f32..4.0],
+        ) {
+            let mut pts = grid_points(8);
+            let t = DomainTree::balanced(unit(), &mut pts, domains);
+            let (origin, dir) = (Vec3::from(origin), Vec3::from(dir));
+            let mut walked = vec![None; domains as usize];
+            t.walk(origin, dir, t_min, t_min + t_len, |d, a, b| {
+                walked[d as usize] = Some((a.to_bits(), b.to_bits()));
+                ControlFlow::Continue(())
+            });
+            for d in 0..domains {
+                let found = t
+                    .interval(d, origin, dir, t_min, t_min + t_len)
+                    .map(|(a, b)| (a.to_bits(), b.to_bits()));
+                proptest::prop_assert_eq!(found, walked[d as usize], "domain {}", d);
+            }
+            proptest::prop_assert_eq!(t.interval(domains, origin, dir, t_min, t_min + t_len), None);
+        }
+    }
+
+    #[test]
+    fn a_leaf_deeper_than_a_route_is_found_by_walking() {
+        // A chain of 70 splits on x at 1/2, 1/4, ...: domain 70 sits 70 levels down.
+        let levels = 70u32;
+        let mut nodes = Vec::new();
+        for level in 0..levels {
+            let i = nodes.len() as u32;
+            nodes.push(KdNode::Split {
+                axis: 0,
+                position: 0.5f32.powi(level as i32 + 1),
+                below: i + 2,
+                above: i + 1,
+            });
+            nodes.push(KdNode::Leaf { domain: level });
+        }
+        nodes.push(KdNode::Leaf { domain: levels });
+        DomainTree::check(&nodes, levels as usize + 1).unwrap();
+        let t = DomainTree::new(unit(), nodes);
+        let (origin, dir) = (Vec3::new(1.0, 0.5, 0.5), Vec3::new(-1.0, 0.0, 0.0));
+        let mut walked = Vec::new();
+        t.walk(origin, dir, 0.0, f32::INFINITY, |d, a, b| {
+            walked.push((d, a, b));
+            ControlFlow::Continue(())
+        });
+        assert_eq!(walked.len(), levels as usize + 1);
+        for (d, a, b) in walked {
+            assert_eq!(
+                t.interval(d, origin, dir, 0.0, f32::INFINITY),
+                Some((a, b)),
+                "{d}"
+            );
         }
     }
 

@@ -123,6 +123,22 @@ fn verdicts_round_trip_and_bad_ones_are_refused() {
         }),
         reason("domain out of range")
     );
+    // So does an occluder's or a hit's.
+    assert_eq!(
+        refused(|v| {
+            (v.kind, v.order, v.t, v.normal, v.material) =
+                (VerdictRecord::BLOCKED, 8, 0.0, [0.0; 3], 0);
+        }),
+        reason("domain out of range")
+    );
+    for kind in [VerdictRecord::HIT, VerdictRecord::VOLUME_HIT] {
+        let mut far = vs.clone();
+        (far[5].kind, far[5].order, far[5].t) = (kind, 8, 1.0);
+        assert_eq!(
+            decode_verdicts(&encode_verdicts(&far), &LIMITS).unwrap_err(),
+            reason("domain out of range")
+        );
+    }
     // Volume segments: colour non-negative, opacity a fraction; a closing verdict only
     // counts, and within bounds.
     let segment = |v: &mut VerdictRecord| {

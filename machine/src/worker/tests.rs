@@ -1176,7 +1176,6 @@ fn domains_by_pixel(copies: &[RayRecord]) -> BTreeMap<u32, Vec<u32>> {
 fn a_window_runs_through_a_domain_later_windows_reached_late() {
     use rayfarm_core::render::speculation::{SurfaceHit, Verdict};
     let hit_at_0 = Verdict::Hit(SurfaceHit {
-        order: 0,
         t: 1.0,
         normal: [0.0, 1.0, 0.0],
         material: 0,

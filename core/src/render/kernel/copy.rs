@@ -27,20 +27,9 @@ impl SceneView {
         counters: &mut KernelCounters,
         out: &mut Vec<Verdict>,
     ) {
-        let mut order = 0u32;
-        let mut interval = None;
-        self.walk(ray, |d, a, b| {
-            if d == data.domain() {
-                interval = Some((a, b));
-                return ControlFlow::Break(());
-            }
-            if self.has_triangles[d as usize] {
-                order += 1;
-            }
-            ControlFlow::Continue(())
-        });
+        let domain = data.domain();
         // A copy queued for a domain off its path finds nothing there.
-        let Some((t0, t1)) = interval else {
+        let Some((t0, t1)) = self.interval(ray, domain) else {
             out.push(Verdict::Clear);
             return;
         };
@@ -53,7 +42,6 @@ impl SceneView {
                 RayKind::Radiance => counters.radiance_segments += 1,
                 RayKind::Shadow => counters.shadow_segments += 1,
             }
-            let domain = data.domain();
             if scratch.skip.as_ref().is_none_or(|(d, _)| *d != domain) {
                 scratch.skip = Some((domain, volume.transparent_blocks(&brick)));
             }
@@ -65,14 +53,13 @@ impl SceneView {
             let mut hit = None;
             match surfaces.map(|bvh| (bvh, surface_in(&mut scratch.traverser, bvh, ray, t0, t1))) {
                 Some((_, SurfaceIn::Blocks)) => {
-                    out.push(Verdict::Blocked(order));
+                    out.push(Verdict::Blocked);
                     return;
                 }
                 Some((bvh, SurfaceIn::Hit(h))) => {
                     let (normal, material) = self.surface_at(bvh, &h, ray);
                     end = h.t;
                     hit = Some(SurfaceHit {
-                        order,
                         t: h.t,
                         normal: normal.into(),
                         material,
@@ -111,7 +98,7 @@ impl SceneView {
             RayKind::Shadow => {
                 counters.shadow_segments += 1;
                 if traverser.any_hit(bvh, &tr, t0, t1) {
-                    Verdict::Blocked(order)
+                    Verdict::Blocked
                 } else {
                     Verdict::Clear
                 }
@@ -122,7 +109,6 @@ impl SceneView {
                     Some(hit) => {
                         let (normal, material) = self.surface_at(bvh, &hit, ray);
                         Verdict::Hit(SurfaceHit {
-                            order,
                             t: hit.t,
                             normal: normal.into(),
                             material,

@@ -20,6 +20,14 @@ impl SceneView {
         self.tree.walk(origin, dir, ray.t_min, ray.t_max, visit);
     }
 
+    /// `ray`'s interval in `domain`, as [`SceneView::walk`] would visit it (`None`: the ray
+    /// does not cross it), without walking the domains before it.
+    pub(super) fn interval(&self, ray: &RayRecord, domain: u32) -> Option<(f32, f32)> {
+        let (origin, dir) = (ray.origin.into(), ray.dir.into());
+        self.tree
+            .interval(domain, origin, dir, ray.t_min, ray.t_max)
+    }
+
     /// Sends a new ray to the first domain along it, or retires it at once if it meets none.
     pub fn route_new(&self, ray: RayRecord, sink: &mut impl RaySink) {
         let mut first = None;

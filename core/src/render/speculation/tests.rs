@@ -1,9 +1,8 @@
 use super::*;
 use bytemuck::Zeroable;
 
-fn hit(order: u32, t: f32) -> Verdict {
+fn hit(t: f32) -> Verdict {
     Verdict::Hit(SurfaceHit {
-        order,
         t,
         normal: [0.0, 1.0, 0.0],
         material: 0,
@@ -68,12 +67,16 @@ fn copies_go_to_every_domain_without_credit() {
 #[test]
 fn the_nearest_domain_with_a_hit_wins_whatever_the_order_verdicts_arrive_in() {
     let mut groups = Groups::default();
-    let copy = spread(&mut groups, ray(7), &[1, 2, 3]);
-    assert_eq!(settle(&mut groups, &copy, hit(2, 0.5)), None);
-    assert_eq!(settle(&mut groups, &copy, Verdict::Clear), None);
-    let (r, outcome) = settle(&mut groups, &copy, hit(1, 9.0)).unwrap();
+    let c = copies(&mut groups, ray(7), &[1, 2, 3]);
+    assert_eq!(settle(&mut groups, &c[2], hit(0.5)), None);
+    assert_eq!(settle(&mut groups, &c[0], Verdict::Clear), None);
+    let (r, outcome) = settle(&mut groups, &c[1], hit(9.0)).unwrap();
     assert_eq!(r.credit, 7, "the concluded ray keeps its credit");
-    assert_eq!(outcome.nearest.map(|h| h.order), Some(1));
+    assert_eq!(
+        outcome.nearest.map(|h| h.t),
+        Some(9.0),
+        "the second domain's hit"
+    );
     assert!(!outcome.blocked);
     assert_eq!(groups.waiting(), 0);
 }
@@ -93,8 +96,8 @@ fn windows_go_out_one_after_another_until_one_ends_the_ray() {
         more.iter()
             .all(|c| c.group == first[0].group && c.credit == 0)
     );
-    let (r, outcome) = settle(&mut groups, &more[0], hit(1, 2.0)).unwrap();
-    assert_eq!((r.credit, outcome.nearest.map(|h| h.order)), (7, Some(1)));
+    let (r, outcome) = settle(&mut groups, &more[0], hit(2.0)).unwrap();
+    assert_eq!((r.credit, outcome.nearest.map(|h| h.t)), (7, Some(2.0)));
     assert_eq!((groups.copies, groups.extensions), (2, 1));
 
     // Two at a time: a shadow ray blocked in the first window ends there, before its other
@@ -106,7 +109,7 @@ fn windows_go_out_one_after_another_until_one_ends_the_ray() {
     };
     let w = copies(&mut groups, shadow, &[1, 2, 3]);
     assert_eq!(w.len(), 2);
-    let (_, outcome) = settle(&mut groups, &w[1], Verdict::Blocked(1)).unwrap();
+    let (_, outcome) = settle(&mut groups, &w[1], Verdict::Blocked).unwrap();
     assert_eq!((outcome.blocked, outcome.blocker), (true, Some(1)));
     assert_eq!(settle(&mut groups, &w[0], Verdict::Clear), None);
     assert_eq!(groups.waiting(), 0, "the last copy out frees the id");
@@ -125,10 +128,11 @@ fn windows_go_out_one_after_another_until_one_ends_the_ray() {
 #[test]
 fn one_blocking_copy_blocks_the_shadow_ray() {
     let mut groups = Groups::default();
-    let copy = spread(&mut groups, ray(1), &[1, 2]);
-    settle(&mut groups, &copy, Verdict::Blocked(1));
-    let (_, outcome) = settle(&mut groups, &copy, Verdict::Clear).unwrap();
+    let c = copies(&mut groups, ray(1), &[1, 2]);
+    settle(&mut groups, &c[1], Verdict::Blocked);
+    let (_, outcome) = settle(&mut groups, &c[0], Verdict::Clear).unwrap();
     assert!(outcome.blocked);
+    assert_eq!(outcome.blocker, Some(1), "at the second place");
 }
 
 #[test]
@@ -136,8 +140,8 @@ fn verdicts_survive_the_wire_form() {
     let copy = spread(&mut Groups::default(), ray(1), &[1]);
     for v in [
         Verdict::Clear,
-        Verdict::Blocked(1),
-        hit(4, 2.5),
+        Verdict::Blocked,
+        hit(2.5),
         segment(9, 0.25),
         Verdict::Light(SegmentLight {
             first: 9,
@@ -149,6 +153,28 @@ fn verdicts_survive_the_wire_form() {
     ] {
         assert_eq!(VerdictRecord::new(&copy, v).verdict(), v);
     }
+    // A verdict on a stretch of the ray names the copy's domain, whatever it found there.
+    for v in [Verdict::Clear, Verdict::Blocked, hit(2.5)] {
+        assert_eq!(VerdictRecord::new(&copy, v).order, copy.domain);
+    }
+}
+
+#[test]
+fn a_verdict_naming_a_domain_no_copy_went_to_is_refused() {
+    let mut groups = Groups::default();
+    let c = copies(&mut groups, ray(7), &[4, 5]);
+    for v in [Verdict::Clear, Verdict::Blocked, hit(1.0)] {
+        let forged = VerdictRecord::new(&RayRecord { domain: 9, ..c[0] }, v);
+        assert_eq!(
+            groups.settle(&forged, &mut Vec::new()),
+            Err(GroupError::Mismatch(c[0].group)),
+            "{v:?}"
+        );
+    }
+    // Nothing was counted: the real verdicts conclude the ray as before.
+    assert_eq!(settle(&mut groups, &c[1], hit(3.0)), None);
+    let (_, outcome) = settle(&mut groups, &c[0], Verdict::Clear).unwrap();
+    assert_eq!(outcome.nearest.map(|h| h.t), Some(3.0));
 }
 
 fn segment(first: u32, alpha: f32) -> Verdict {
@@ -174,9 +200,9 @@ fn volume_segments_conclude_once_all_copies_closed_in_order_along_the_ray() {
 
     // A copy that sends nothing closes with a count of zero; an empty copy off the path
     // closes with Clear.
-    let copy = spread(&mut groups, ray(1), &[1, 2]);
-    assert_eq!(settle(&mut groups, &copy, Verdict::VolumeEnd(0)), None);
-    let (_, outcome) = settle(&mut groups, &copy, Verdict::Clear).unwrap();
+    let c = copies(&mut groups, ray(1), &[1, 2]);
+    assert_eq!(settle(&mut groups, &c[0], Verdict::VolumeEnd(0)), None);
+    let (_, outcome) = settle(&mut groups, &c[1], Verdict::Clear).unwrap();
     assert!(outcome.segments.is_empty());
 }
 
@@ -185,25 +211,25 @@ fn a_hit_on_a_bricks_surfaces_comes_with_its_segments_and_the_nearest_wins() {
     // The near brick's hit arrives after its closing count, which counts it; the far
     // brick's hit is farther along the ray and loses.
     let mut groups = Groups::default();
-    let copy = spread(&mut groups, ray(7), &[1, 2]);
-    let volume_hit = |order, t| {
+    let c = copies(&mut groups, ray(7), &[1, 2]);
+    let volume_hit = |t| {
         Verdict::VolumeHit(SurfaceHit {
-            order,
             t,
             normal: [0.0, 0.0, 1.0],
             material: 0,
         })
     };
-    assert_eq!(settle(&mut groups, &copy, segment(3, 0.1)), None);
-    assert_eq!(settle(&mut groups, &copy, Verdict::VolumeEnd(2)), None);
-    assert_eq!(settle(&mut groups, &copy, volume_hit(1, 9.0)), None);
-    assert_eq!(settle(&mut groups, &copy, volume_hit(0, 2.5)), None);
-    let (_, outcome) = settle(&mut groups, &copy, Verdict::VolumeEnd(1)).unwrap();
-    assert_eq!(outcome.nearest.map(|h| (h.order, h.t)), Some((0, 2.5)));
+    assert_eq!(settle(&mut groups, &c[0], segment(3, 0.1)), None);
+    assert_eq!(settle(&mut groups, &c[0], Verdict::VolumeEnd(2)), None);
+    // The far brick's hit is nearer in distance than a real one would be: the place decides.
+    assert_eq!(settle(&mut groups, &c[1], volume_hit(1.0)), None);
+    assert_eq!(settle(&mut groups, &c[0], volume_hit(2.5)), None);
+    let (_, outcome) = settle(&mut groups, &c[1], Verdict::VolumeEnd(1)).unwrap();
+    assert_eq!(outcome.nearest.map(|h| h.t), Some(2.5));
     assert_eq!(outcome.segments.len(), 1);
     // Through the wire and back, a brick's hit stays one.
-    let back = VerdictRecord::new(&copy, volume_hit(0, 2.5)).verdict();
-    assert_eq!(back, volume_hit(0, 2.5));
+    let back = VerdictRecord::new(&c[0], volume_hit(2.5)).verdict();
+    assert_eq!(back, volume_hit(2.5));
 }
 
 fn light(first: u32, light: u32) -> Verdict {
@@ -300,22 +326,22 @@ fn a_hit_with_every_nearer_domain_clear_concludes_before_the_farther_copies_answ
     let mut groups = Groups::default();
     let c = copies(&mut groups, ray(7), &[4, 5, 6]);
     // The hit in the second domain decides nothing while the first has not answered.
-    assert_eq!(settle(&mut groups, &c[1], hit(1, 2.0)), None);
+    assert_eq!(settle(&mut groups, &c[1], hit(2.0)), None);
     let (r, outcome) = settle(&mut groups, &c[0], Verdict::Clear).unwrap();
-    assert_eq!((r.credit, outcome.nearest.map(|h| h.order)), (7, Some(1)));
+    assert_eq!((r.credit, outcome.nearest.map(|h| h.t)), (7, Some(2.0)));
     assert_eq!(groups.early, 1);
     // The third copy is still out: its id is not reused, and its verdict is absorbed.
     let other = copies(&mut groups, RayRecord { pixel: 6, ..ray(1) }, &[4]);
     assert_ne!(other[0].group, c[0].group);
     assert_eq!(groups.waiting(), 2);
-    assert_eq!(settle(&mut groups, &c[2], hit(2, 1.0)), None);
+    assert_eq!(settle(&mut groups, &c[2], hit(1.0)), None);
     assert_eq!(groups.waiting(), 1);
     // The clear verdict names its copy's domain; a hit arriving first with the nearer clear
     // already in concludes at once.
     assert_eq!(VerdictRecord::new(&c[2], Verdict::Clear).order, 6);
     let c = copies(&mut groups, ray(3), &[4, 5, 6]);
     assert_eq!(settle(&mut groups, &c[0], Verdict::Clear), None);
-    assert!(settle(&mut groups, &c[1], hit(1, 2.0)).is_some());
+    assert!(settle(&mut groups, &c[1], hit(2.0)).is_some());
 }
 
 #[test]
@@ -327,7 +353,7 @@ fn copies_of_a_concluded_ray_are_skipped_and_free_the_id_once_all_are_accounted_
     };
     let c = copies(&mut groups, shadow, &[1, 2, 3]);
     assert!(!groups.skip(&c[0]), "the ray is still undecided");
-    assert!(settle(&mut groups, &c[2], Verdict::Blocked(2)).is_some());
+    assert!(settle(&mut groups, &c[2], Verdict::Blocked).is_some());
     assert!(groups.skip(&c[0]));
     // A copy of another ray under the same id is not this ray's.
     let stranger = RayRecord { pixel: 9, ..c[1] };
@@ -351,9 +377,9 @@ fn volume_rays_wait_for_every_copy() {
     let mut groups = Groups::default();
     let c = copies(&mut groups, ray(7), &[1, 2, 3]);
     assert_eq!(settle(&mut groups, &c[0], Verdict::VolumeEnd(0)), None);
-    assert_eq!(settle(&mut groups, &c[1], hit(1, 2.0)), None);
+    assert_eq!(settle(&mut groups, &c[1], hit(2.0)), None);
     let (_, outcome) = settle(&mut groups, &c[2], Verdict::Clear).unwrap();
-    assert_eq!(outcome.nearest.map(|h| h.order), Some(1));
+    assert_eq!(outcome.nearest.map(|h| h.t), Some(2.0));
     assert_eq!(groups.early, 0);
 }
 
@@ -365,10 +391,10 @@ fn a_path_longer_than_the_record_holds_answers_as_a_short_one() {
     let copies = copies(&mut groups, ray(9), &domains);
     assert_eq!(copies.len(), 70);
     // A hit at place 2 decides nothing until places 0 and 1 are clear.
-    assert!(settle(&mut groups, &copies[2], hit(2, 1.0)).is_none());
+    assert!(settle(&mut groups, &copies[2], hit(1.0)).is_none());
     assert!(settle(&mut groups, &copies[1], Verdict::Clear).is_none());
     let (r, outcome) = settle(&mut groups, &copies[0], Verdict::Clear).unwrap();
-    assert_eq!((r.credit, outcome.nearest.map(|h| h.order)), (9, Some(2)));
+    assert_eq!((r.credit, outcome.nearest.map(|h| h.t)), (9, Some(1.0)));
     // The 67 copies still out hold the id until they are skipped.
     assert!(copies[3..].iter().all(|c| groups.skip(c)));
     assert_eq!(groups.waiting(), 0);

@@ -5,12 +5,11 @@ use crate::ray::RayRecord;
 use crate::wire::VerdictRecord;
 
 /// What a radiance ray's copy found in its domain: enough to shade the hit later, without
-/// the domain's data.
+/// the domain's data. Which domain is the copy's: its verdict names it
+/// ([`VerdictRecord::HIT`]), and the hit of the nearest domain along the ray with one wins,
+/// as domains cut a ray into ordered intervals.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SurfaceHit {
-    /// The domain's place along the ray among those with geometry (0 is the nearest); the
-    /// hit of the nearest such domain wins, as domains cut a ray into ordered intervals.
-    pub order: u32,
     /// Distance of the hit along the ray.
     pub t: f32,
     /// The normal to shade the hit with, on the side the ray came from
@@ -25,9 +24,8 @@ pub struct SurfaceHit {
 pub enum Verdict {
     /// Nothing in this domain's stretch of the ray.
     Clear,
-    /// A shadow ray's occluder, in the domain at this place along the ray (see
-    /// [`SurfaceHit::order`]).
-    Blocked(u32),
+    /// A shadow ray's occluder in this domain.
+    Blocked,
     /// A radiance ray's nearest hit in this domain.
     Hit(SurfaceHit),
     /// One segment a volume ray's copy composited in its brick (not the copy's last verdict).
@@ -62,10 +60,12 @@ pub use crate::wire::MAX_SEGMENTS;
 impl VerdictRecord {
     /// Kind of a verdict that found nothing: `order` names the copy's domain, so its group
     /// knows which stretch of the ray is clear (it may conclude before farther copies answer).
+    /// Every verdict on a stretch of the ray (clear, an occluder, a hit) names it so.
     pub const CLEAR: u8 = 0;
-    /// Kind of a verdict that found an occluder: `order` is the domain's place along the ray.
+    /// Kind of a verdict that found an occluder: `order` names the copy's domain.
     pub const BLOCKED: u8 = 1;
-    /// Kind of a verdict that found a hit.
+    /// Kind of a verdict that found a hit: `order` names the copy's domain, `t`, `normal`
+    /// and `material` the hit.
     pub const HIT: u8 = 2;
     /// Kind of a volume segment: `order` its first sample, `normal` its premultiplied colour,
     /// `t` its opacity.
@@ -95,9 +95,9 @@ impl VerdictRecord {
         };
         match verdict {
             Verdict::Clear => r.order = copy.domain,
-            Verdict::Blocked(order) => {
+            Verdict::Blocked => {
                 r.kind = Self::BLOCKED;
-                r.order = order;
+                r.order = copy.domain;
             }
             Verdict::Hit(hit) | Verdict::VolumeHit(hit) => {
                 r.kind = if matches!(verdict, Verdict::Hit(_)) {
@@ -105,7 +105,7 @@ impl VerdictRecord {
                 } else {
                     Self::VOLUME_HIT
                 };
-                r.order = hit.order;
+                r.order = copy.domain;
                 r.t = hit.t;
                 r.normal = hit.normal;
                 r.material = hit.material;
@@ -134,15 +134,13 @@ impl VerdictRecord {
     /// The verdict carried (an unknown kind, refused by the wire checks, reads as clear).
     pub fn verdict(&self) -> Verdict {
         match self.kind {
-            Self::BLOCKED => Verdict::Blocked(self.order),
+            Self::BLOCKED => Verdict::Blocked,
             Self::HIT => Verdict::Hit(SurfaceHit {
-                order: self.order,
                 t: self.t,
                 normal: self.normal,
                 material: self.material,
             }),
             Self::VOLUME_HIT => Verdict::VolumeHit(SurfaceHit {
-                order: self.order,
                 t: self.t,
                 normal: self.normal,
                 material: self.material,
