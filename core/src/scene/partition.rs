@@ -275,6 +275,8 @@ impl DomainTree {
         }
         // Walked for every ray segment: no heap allocation unless the tree is unusually deep.
         let mut stack = WalkStack::default();
+        // Arrays index in one step where a `Vec3` matches on the axis.
+        let (origin, dir) = (origin.to_array(), dir.to_array());
         let mut cur = (0u32, t0, t1);
         loop {
             let (i, lo, hi) = cur;
@@ -345,6 +347,8 @@ impl DomainTree {
             return found;
         }
         let (mut lo, mut hi) = clip_to_box(&self.bounds, origin, dir, t_min, t_max)?;
+        // Arrays index in one step where a `Vec3` matches on the axis.
+        let (origin, dir) = (origin.to_array(), dir.to_array());
         let mut i = 0usize;
         // Each split as `walk` takes it: the same planes, the same comparisons, so the same
         // end points; where the walk would not go on to the route's side, the domain is not
