@@ -16,5 +16,7 @@ include!(concat!(env!("OUT_DIR"), "/rayfarm.v1.rs"));
 /// (`RoundPlan.sole_holders`), which an older worker would not read. 8: a frame's roster
 /// comes in a `Roster` after the `StartFrame` (`StartFrame.roster` retired), which an older
 /// worker would ignore. 9: a queue report after a frame's first names only the queues that
-/// changed (`QueueReport.delta`), which an older coordinator would take as whole.
-pub const PROTOCOL_VERSION: u32 = 9;
+/// changed (`QueueReport.delta`), which an older coordinator would take as whole. 10: a
+/// speculative copy's occluder or hit verdict names the copy's domain, where it named the
+/// domain's place along the ray, which an older worker would misread.
+pub const PROTOCOL_VERSION: u32 = 10;
