@@ -137,6 +137,15 @@ fn a_file_reads_the_same_mapped_or_copied_into_huge_pages() {
         copied.nodes().as_ptr() as usize % (2 << 20),
         104usize.next_multiple_of(64)
     );
+    // A dropped copy's region is the next copy's (its pages are backed already, so the load
+    // only copies), and the bytes are the file's. No other test of this file copies into
+    // huge pages, so nothing else takes the spare region meanwhile.
+    let region = copied.nodes().as_ptr();
+    drop(copied);
+    let again = open(Residence::HugePages).unwrap();
+    assert_eq!(again.nodes().as_ptr(), region);
+    assert_eq!(bytes(&again), bytes(&mapped));
+    drop(again);
     let mut flipped = file.clone();
     flipped[file.len() - 1] ^= 1;
     std::fs::write(&path, &flipped).unwrap();
