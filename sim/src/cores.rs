@@ -197,6 +197,15 @@ mod tests {
     }
 
     /// Runs the cores' checks until nothing is left; the ends in order.
+    /// Asserts that `t` is `n` ms after time zero, to within the microsecond the
+    /// core-nanosecond arithmetic rounds to.
+    fn assert_at(t: Time, n: u64) {
+        assert!(
+            t.since(Time(0)).abs_diff(ms(n)) < Duration::from_micros(1),
+            "{t:?}"
+        );
+    }
+
     fn run(cores: &mut SharedCores<&'static str>) -> Vec<(Time, &'static str)> {
         let mut ends = Vec::new();
         while let Some((t, epoch)) = cores.next_check() {
@@ -218,10 +227,7 @@ mod tests {
         let ends = run(&mut cores);
         assert_eq!(ends.len(), 3);
         for (t, _) in &ends {
-            assert!(
-                t.since(Time(0)).abs_diff(ms(45)) < Duration::from_micros(1),
-                "{t:?}"
-            );
+            assert_at(*t, 45);
         }
     }
 
@@ -241,8 +247,8 @@ mod tests {
         let ends = run(&mut cores);
         let names: Vec<_> = ends.iter().map(|e| e.1).collect();
         assert_eq!(names, ["short", "long"]);
-        assert!(ends[0].0.since(Time(0)).abs_diff(ms(30)) < Duration::from_micros(1));
-        assert!(ends[1].0.since(Time(0)).abs_diff(ms(110)) < Duration::from_micros(1));
+        assert_at(ends[0].0, 30);
+        assert_at(ends[1].0, 110);
     }
 
     #[test]
@@ -254,7 +260,7 @@ mod tests {
         let end = cores.handle(Time(0), Time(0) + ms(5), ms(10));
         assert_eq!(end, Time(0) + ms(15));
         let ends = run(&mut cores);
-        assert!(ends[0].0.since(Time(0)).abs_diff(ms(20)) < Duration::from_micros(1));
+        assert_at(ends[0].0, 20);
         // Two passes on the two cores: the handling makes three contenders, so each of the
         // three runs at two thirds of a core while it lasts: it ends after 15 ms, not 10.
         let mut cores = SharedCores::new(2);
@@ -266,10 +272,7 @@ mod tests {
         let ends = run(&mut cores);
         assert_eq!(ends.len(), 2);
         for (t, _) in ends {
-            assert!(
-                t.since(Time(0)).abs_diff(ms(25)) < Duration::from_micros(1),
-                "{t:?}"
-            );
+            assert_at(t, 25);
         }
     }
 
@@ -283,7 +286,7 @@ mod tests {
         assert_eq!(end, Time(0) + ms(25));
         let ends = run(&mut cores);
         assert_eq!(ends.len(), 1);
-        assert!(ends[0].0.since(Time(0)).abs_diff(ms(30)) < Duration::from_micros(1));
+        assert_at(ends[0].0, 30);
     }
 
     #[test]
@@ -296,6 +299,6 @@ mod tests {
         let ends = run(&mut cores);
         assert_eq!(ends.len(), 1);
         assert_eq!(ends[0].1, "kept");
-        assert!(ends[0].0.since(Time(0)).abs_diff(ms(12)) < Duration::from_micros(1));
+        assert_at(ends[0].0, 12);
     }
 }
