@@ -16,6 +16,7 @@ time ratios."""
 import csv
 import statistics
 import sys
+import tomllib
 
 SCHEDULES = ["domain", "dynamic", "hybrid", "predictive"]
 HASHES = set()
@@ -112,16 +113,6 @@ def split(paths, sim_path, workers):
         print(f"| {s} | " + " | ".join(cells) + " |")
 
 
-def prices(path):
-    """The `key = value` prices of a calibration file (`rayfarm sim calibrate`'s TOML)."""
-    out = {}
-    for line in open(path):
-        key, eq, value = line.partition("=")
-        if eq and not line.lstrip().startswith("#"):
-            out[key.strip()] = float(value)
-    return out
-
-
 def solve(rows, ys):
     """Least squares of `ys` on the columns of `rows`, no coefficient negative: every subset
     of the columns fitted by its normal equations (Gaussian elimination), the best of those
@@ -162,7 +153,8 @@ def fit_cost(paths, base_path):
     finished pass's (`finished_pass_ns`) the fitted one; a load's CPU is fitted so that it
     does not land on the others, and the simulator does not charge it (it overlaps the
     loading it comes with). Prints the file; the fit and its error go to stderr."""
-    base = prices(base_path)
+    with open(base_path, "rb") as f:
+        base = tomllib.load(f)
     per_bundle = base["bundle_send_ns"] + base["bundle_receive_ns"]
     per_byte = base["bundle_send_byte_ns"] + base["bundle_receive_byte_ns"]
     rows, ys = [], []
