@@ -287,26 +287,14 @@ impl DomainTree {
                     below,
                     above,
                 } => {
-                    let (o, d) = (origin[axis as usize], dir[axis as usize]);
-                    if d == 0.0 {
-                        cur = (if o < position { below } else { above }, lo, hi);
-                        continue;
-                    }
-                    let origin_below = o < position || (o == position && d > 0.0);
-                    let (near, far) = if origin_below {
-                        (below, above)
-                    } else {
-                        (above, below)
+                    let a = axis as usize;
+                    cur = match crossing(origin[a], dir[a], position, below, above, lo, hi) {
+                        Crossing::One(child) => (child, lo, hi),
+                        Crossing::Both { near, far, t } => {
+                            stack.push((far, t, hi));
+                            (near, lo, t)
+                        }
                     };
-                    let t = (position - o) / d;
-                    if t < 0.0 || t > hi {
-                        cur = (near, lo, hi);
-                    } else if t < lo {
-                        cur = (far, lo, hi);
-                    } else {
-                        stack.push((far, t, hi));
-                        cur = (near, lo, t);
-                    }
                     continue;
                 }
                 KdNode::Leaf { domain } => {
@@ -350,9 +338,8 @@ impl DomainTree {
         // Arrays index in one step where a `Vec3` matches on the axis.
         let (origin, dir) = (origin.to_array(), dir.to_array());
         let mut i = 0usize;
-        // Each split as `walk` takes it: the same planes, the same comparisons, so the same
-        // end points; where the walk would not go on to the route's side, the domain is not
-        // visited.
+        // Each split by the walk's own rule (`crossing`), so the same end points; where the
+        // walk would not go on to the route's side, the domain is not visited.
         for level in 0..route.depth {
             let KdNode::Split {
                 axis,
@@ -368,28 +355,12 @@ impl DomainTree {
             } else {
                 below
             };
-            let (o, d) = (origin[axis as usize], dir[axis as usize]);
-            if d == 0.0 {
-                if next != (if o < position { below } else { above }) {
-                    return None;
-                }
-            } else {
-                let origin_below = o < position || (o == position && d > 0.0);
-                let near = if origin_below { below } else { above };
-                let t = (position - o) / d;
-                if t < 0.0 || t > hi {
-                    if next != near {
-                        return None;
-                    }
-                } else if t < lo {
-                    if next == near {
-                        return None;
-                    }
-                } else if next == near {
-                    hi = t;
-                } else {
-                    lo = t;
-                }
+            let a = axis as usize;
+            match crossing(origin[a], dir[a], position, below, above, lo, hi) {
+                Crossing::One(child) if child != next => return None,
+                Crossing::One(_) => {}
+                Crossing::Both { near, t, .. } if next == near => hi = t,
+                Crossing::Both { t, .. } => lo = t,
             }
             i = next as usize;
         }
@@ -469,6 +440,40 @@ fn split(
         above,
     };
     me
+}
+
+/// Where a stretch `[lo, hi]` of a ray goes at a split: the one rule of [`DomainTree::walk`]
+/// and [`DomainTree::interval`], so that their end points agree bit for bit.
+enum Crossing {
+    /// All of it into this child.
+    One(u32),
+    /// `[lo, t]` into the near child (the origin's side), `[t, hi]` into the far one.
+    Both { near: u32, far: u32, t: f32 },
+}
+
+/// The split at `position` on an axis (children `below` and `above`) of the stretch `[lo,
+/// hi]` of a ray whose origin and direction on that axis are `o` and `d`: a ray parallel to
+/// the plane stays on its origin's side; one that meets the plane behind its origin or past
+/// `hi` stays on the near side, one that met it before `lo` is on the far side.
+#[inline(always)]
+fn crossing(o: f32, d: f32, position: f32, below: u32, above: u32, lo: f32, hi: f32) -> Crossing {
+    if d == 0.0 {
+        return Crossing::One(if o < position { below } else { above });
+    }
+    let origin_below = o < position || (o == position && d > 0.0);
+    let (near, far) = if origin_below {
+        (below, above)
+    } else {
+        (above, below)
+    };
+    let t = (position - o) / d;
+    if t < 0.0 || t > hi {
+        Crossing::One(near)
+    } else if t < lo {
+        Crossing::One(far)
+    } else {
+        Crossing::Both { near, far, t }
+    }
 }
 
 /// The part of `[t_min, t_max]` in which the ray is inside `b`.
