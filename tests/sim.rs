@@ -396,3 +396,54 @@ fn the_validation_fits_the_clusters_cpu_and_reads_both_logs() {
         "{transit}"
     );
 }
+
+/// `bench/validation/generations.py` reads the workers' "pass handed over" lines from the
+/// simulator's debug log: every load is seen (none is prefetched) and counted under one
+/// generation, so its loads add up to the simulator's own count, and the camera rays'
+/// generation loads first.
+#[test]
+fn the_loads_by_generation_add_up_to_the_simulators_loads() {
+    let root = tempfile::tempdir().unwrap();
+    let scene = prepare_nbody(root.path(), "nb", 20_000, 6);
+    let mut args = vec![
+        "sim",
+        "--scene",
+        s(&scene),
+        "--workers",
+        "3",
+        "--schedule",
+        "predictive",
+        "--cache-bytes",
+        "200KiB",
+    ];
+    args.extend_from_slice(&FRAME);
+    let out = rayfarm_ok_env(
+        &args,
+        &[(
+            "RUST_LOG",
+            "rayfarm_sim=debug,rayfarm_machine::worker::machine=debug",
+        )],
+    );
+    let stdout = String::from_utf8(out.stdout).unwrap();
+    // schedule, workers, virtual ms, loads, ...
+    let loads: u64 = row(&stdout, "predictive")
+        .split_whitespace()
+        .nth(3)
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("no loads in:\n{stdout}"));
+    assert!(loads > 6, "the cache holds the scene:\n{stdout}");
+    let log = root.path().join("sim.log");
+    std::fs::write(&log, &out.stderr).unwrap();
+    let Some((table, _)) = validation_script("generations.py", &[s(&log)]) else {
+        println!("SKIPPED: no python3 for the validation's scripts");
+        return;
+    };
+    let counted = |label: &str| -> Option<u64> {
+        let line = table
+            .lines()
+            .find(|l| l.split_whitespace().next() == Some(label))?;
+        line.split_whitespace().nth(1)?.parse().ok()
+    };
+    assert_eq!(counted("all"), Some(loads), "{table}");
+    assert!(counted("0").is_some_and(|n| n > 0), "{table}");
+}

@@ -114,6 +114,22 @@ impl Generations {
     pub fn oldest(&self) -> Option<u16> {
         self.counts.iter().position(|&n| n > 0).map(|g| g as u16)
     }
+
+    /// Rays counted of each generation, the oldest first (generation 0 at index 0).
+    pub fn counts(&self) -> &[u64] {
+        &self.counts
+    }
+}
+
+impl FromIterator<u16> for Generations {
+    /// The counts of these generations (`RayRecord::generation` of each ray).
+    fn from_iter<I: IntoIterator<Item = u16>>(generations: I) -> Self {
+        let mut counts = Generations::default();
+        for g in generations {
+            counts.add(g);
+        }
+        counts
+    }
 }
 
 /// Rays queued per domain and generation, kept alongside the queues so the policy needs no

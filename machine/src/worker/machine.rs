@@ -9,6 +9,7 @@ use std::time::Duration;
 use rayfarm_core::bundler::{Bundler, BundlerConfig, ConfigError};
 use rayfarm_core::cluster::stats::{WorkerFrameStats, tier_traffic};
 use rayfarm_core::schedule::speculation_depth::parse_setting;
+use rayfarm_core::schedule::speculative::Generations;
 use rayfarm_proto::{self as proto, Schedule, coordinator_message::Body as FromCoordinator};
 use tracing::{debug, error, info, info_span, warn};
 
@@ -633,10 +634,17 @@ impl<S: RaySpill> Worker<S> {
         frame.pass_started();
         self.pass_running = true;
         self.tracing = trace.as_ref().map(|(d, _)| *d);
+        // `mapped`: false when the pass loads its domain; `generations`: its rays of each
+        // generation, oldest first (bench/validation/generations.py reads both from a debug
+        // log: which generation each load served). Evaluated only when debug is on.
         debug!(
             domain = ?self.tracing,
             rays = trace.as_ref().map_or(0, |(_, r)| r.len()),
             primaries = primaries.len(),
+            mapped = ?trace.as_ref().map(|(d, _)| frame.plan().resident().contains(d)),
+            generations = ?trace.as_ref().map(|(_, rays)| {
+                rays.iter().map(|r| r.generation()).collect::<Generations>().counts().to_vec()
+            }),
             "pass handed over"
         );
         let job_id = frame.job_id.clone();
