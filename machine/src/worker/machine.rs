@@ -321,6 +321,19 @@ impl<S: RaySpill> Worker<S> {
     }
 
     fn round_plan(&mut self, p: proto::RoundPlan) {
+        // The domain a pass is tracing stays mapped though the plan evicts it: evicted under
+        // the pass, it would be loaded again for that pass (the pass was handed over before
+        // the plan came; on the cluster the shell's eviction can beat the pass's first use of
+        // the domain: 13 such loads in one 4-worker big48 frame, most for a handful of
+        // rays). The cache lets it go as its next loads need room, least recently used
+        // first, and the reports say it is mapped meanwhile.
+        let tracing = self.tracing;
+        let evict: Vec<u32> = p
+            .evict
+            .iter()
+            .copied()
+            .filter(|&d| Some(d) != tracing)
+            .collect();
         let Some(frame) = self.frame.as_mut().filter(|f| f.job_id == p.job_id) else {
             debug!(job = %p.job_id, "plan for a frame not running here");
             return;
@@ -358,13 +371,13 @@ impl<S: RaySpill> Worker<S> {
             .resident_by_use()
             .iter()
             .copied()
-            .filter(|d| !p.evict.contains(d))
+            .filter(|d| !evict.contains(d))
             .collect();
         frame.set_resident(resident);
         frame.set_next(p.next.iter().copied());
         let pinned = frame.decide_demand_loads(self.config.cache_bytes);
-        debug!(work_on = ?p.work_on, evict = ?p.evict, "round plan");
-        self.actions.push(Action::Evict(p.evict));
+        debug!(work_on = ?p.work_on, evict = ?evict, kept_for_the_pass = ?tracing.filter(|d| p.evict.contains(d)), "round plan");
+        self.actions.push(Action::Evict(evict));
         self.actions.push(Action::Pin(pinned));
         self.send_to_holders();
     }

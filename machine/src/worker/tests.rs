@@ -522,6 +522,56 @@ fn the_report_lists_mapped_domains_in_the_caches_order_of_use() {
     assert_eq!(reports[0].resident_domains, [3, 2, 0]);
 }
 
+/// The domains `actions` ask the shell to evict.
+fn evicted(actions: &[Action]) -> Vec<u32> {
+    actions
+        .iter()
+        .filter_map(|a| match a {
+            Action::Evict(domains) => Some(domains.clone()),
+            _ => None,
+        })
+        .flatten()
+        .collect()
+}
+
+#[test]
+fn a_plan_evicts_the_domain_a_pass_is_tracing_only_once_the_cache_needs_the_room() {
+    let mut w = worker();
+    tracing_a_ray(&mut w);
+    // The pass on domain 0 runs; the next plan moves this worker to domain 1 and evicts 0
+    // and 2. Domain 2 goes; domain 0 stays under its pass (evicted now, the pass would load
+    // it again).
+    let evict = control(FromCoordinator::RoundPlan(proto::RoundPlan {
+        job_id: JOB.into(),
+        round: 2,
+        work_on: vec![1],
+        evict: vec![0, 2],
+        ..Default::default()
+    }));
+    assert_eq!(evicted(&w.handle(Time(3), evict)), [2]);
+    // The pass ends with domain 0 mapped: the report says so, and a later plan's eviction
+    // of it, with no pass on it, is passed on.
+    let done = w.handle(
+        Time(4),
+        Event::PassFinished {
+            job_id: JOB.into(),
+            result: Ok(PassOutput::default()),
+            resident: vec![0],
+        },
+    );
+    let reports = queue_reports(&done);
+    assert_eq!(reports.len(), 1, "{done:?}");
+    assert_eq!(reports[0].resident_domains, [0]);
+    let again = control(FromCoordinator::RoundPlan(proto::RoundPlan {
+        job_id: JOB.into(),
+        round: 3,
+        work_on: vec![1],
+        evict: vec![0],
+        ..Default::default()
+    }));
+    assert_eq!(evicted(&w.handle(Time(5), again)), [0]);
+}
+
 #[test]
 fn a_plan_that_sends_work_here_holds_the_report_until_the_work_runs_or_the_hold_ends() {
     let ms = |n: u64| Time(n * 1_000_000);
