@@ -7,9 +7,11 @@ cluster's (`RUST_LOG=info,rayfarm_machine::worker::machine=debug rayfarm bench .
 
 Each worker logs "pass handed over" with the pass's domain, whether it was mapped then
 (`mapped=Some(false)`: the pass loads it) and its rays of each generation, oldest first. A
-load counts under the oldest generation of the pass that made it. Its residency is every pass
-of that domain on that worker until the domain's next load there (a domain is traced only
-while mapped, so those passes are exactly the ones the load served). Prefetched loads are
+load's residency is every pass of that domain on that worker until the domain's next load
+there (a domain is traced only while mapped, so those passes are exactly the ones the load
+served). The load counts under the generation the schedule made it for: the oldest of its
+first pass, or the next one there when the oldest are a few stragglers (at most 200 rays, as
+the predictive schedule's `speculative::scheduled_generation` counts them). Prefetched loads are
 made beside passes and are not seen: read logs of runs without --prefetch.
 
     generations.py LOG [LOG ...]
@@ -43,8 +45,21 @@ def passes(paths):
                 yield worker, int(m.group(1)), m.group(2) == "false", counts
 
 
+STRAGGLER_RAYS = 200
+
+
+def made_for(counts):
+    """The generation a pass's load was made for (see the module documentation)."""
+    present = [g for g, n in enumerate(counts) if n]
+    if not present:
+        return 0
+    if counts[present[0]] <= STRAGGLER_RAYS and len(present) > 1:
+        return present[1]
+    return present[0]
+
+
 def residencies(paths):
-    """(generation, domain, rays traced) of each load: its pass's oldest generation."""
+    """(generation, domain, rays traced) of each load."""
     open_ = {}
     done = []
     for worker, domain, loads, counts in passes(paths):
@@ -52,8 +67,7 @@ def residencies(paths):
         if loads:
             if key in open_:
                 done.append(open_[key])
-            oldest = next((g for g, n in enumerate(counts) if n), 0)
-            open_[key] = [oldest, domain, 0]
+            open_[key] = [made_for(counts), domain, 0]
         if key in open_:
             open_[key][2] += sum(counts)
     return done + list(open_.values())

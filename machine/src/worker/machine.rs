@@ -81,6 +81,8 @@ pub struct Worker<S> {
     pub(super) tracing: Option<u32>,
     /// The domain a prefetch is loading, if one is under way.
     pub(super) prefetching: Option<u32>,
+    /// Domains a plan evicted while the running pass traced them: evicted when it ends.
+    pub(super) evict_after_pass: Vec<u32>,
     pub(super) early: EarlyBundles,
     /// Recently ended jobs: their late bundles are dropped.
     pub(super) ended: Vec<String>,
@@ -99,6 +101,7 @@ impl<S: RaySpill> Worker<S> {
             pass_running: false,
             tracing: None,
             prefetching: None,
+            evict_after_pass: Vec::new(),
             ended: Vec::new(),
             now: Time::default(),
             actions: Vec::new(),
@@ -165,6 +168,15 @@ impl<S: RaySpill> Worker<S> {
             } => {
                 self.pass_running = false;
                 self.tracing = None;
+                // The plan's eviction of the domain this pass traced waited for the pass.
+                let evict = std::mem::take(&mut self.evict_after_pass);
+                let resident = resident
+                    .into_iter()
+                    .filter(|d| !evict.contains(d))
+                    .collect();
+                if !evict.is_empty() {
+                    self.actions.push(Action::Evict(evict));
+                }
                 // A pass of a frame that has ended since is of no use.
                 if self.frame.as_ref().is_some_and(|f| f.job_id == job_id) {
                     match result {
@@ -321,19 +333,16 @@ impl<S: RaySpill> Worker<S> {
     }
 
     fn round_plan(&mut self, p: proto::RoundPlan) {
-        // The domain a pass is tracing stays mapped though the plan evicts it: evicted under
-        // the pass, it would be loaded again for that pass (the pass was handed over before
-        // the plan came; on the cluster the shell's eviction can beat the pass's first use of
-        // the domain: 13 such loads in one 4-worker big48 frame, most for a handful of
-        // rays). The cache lets it go as its next loads need room, least recently used
-        // first, and the reports say it is mapped meanwhile.
+        // The domain a pass is tracing is evicted when the pass ends, not now: evicted under
+        // the pass, it would be loaded again for that pass (handed over before the plan
+        // came, on a cluster the pass may not have taken the domain from the cache yet: 13
+        // such loads in one 4-worker big48 frame, most for a handful of rays). A plan that
+        // works on it again keeps it.
         let tracing = self.tracing;
-        let evict: Vec<u32> = p
-            .evict
-            .iter()
-            .copied()
-            .filter(|&d| Some(d) != tracing)
-            .collect();
+        self.evict_after_pass.retain(|d| !p.work_on.contains(d));
+        let (later, evict): (Vec<u32>, Vec<u32>) =
+            p.evict.iter().partition(|&&d| Some(d) == tracing);
+        self.evict_after_pass.extend(later);
         let Some(frame) = self.frame.as_mut().filter(|f| f.job_id == p.job_id) else {
             debug!(job = %p.job_id, "plan for a frame not running here");
             return;
@@ -371,12 +380,12 @@ impl<S: RaySpill> Worker<S> {
             .resident_by_use()
             .iter()
             .copied()
-            .filter(|d| !evict.contains(d))
+            .filter(|d| !p.evict.contains(d))
             .collect();
         frame.set_resident(resident);
         frame.set_next(p.next.iter().copied());
         let pinned = frame.decide_demand_loads(self.config.cache_bytes);
-        debug!(work_on = ?p.work_on, evict = ?evict, kept_for_the_pass = ?tracing.filter(|d| p.evict.contains(d)), "round plan");
+        debug!(work_on = ?p.work_on, evict = ?p.evict, after_the_pass = ?self.evict_after_pass, "round plan");
         self.actions.push(Action::Evict(evict));
         self.actions.push(Action::Pin(pinned));
         self.send_to_holders();

@@ -535,22 +535,25 @@ fn evicted(actions: &[Action]) -> Vec<u32> {
 }
 
 #[test]
-fn a_plan_evicts_the_domain_a_pass_is_tracing_only_once_the_cache_needs_the_room() {
+fn a_plan_evicts_the_domain_a_pass_is_tracing_when_the_pass_ends() {
     let mut w = worker();
     tracing_a_ray(&mut w);
+    let evicting = |round: u64, work_on: Vec<u32>, evict: Vec<u32>| {
+        control(FromCoordinator::RoundPlan(proto::RoundPlan {
+            job_id: JOB.into(),
+            round,
+            work_on,
+            evict,
+            ..Default::default()
+        }))
+    };
     // The pass on domain 0 runs; the next plan moves this worker to domain 1 and evicts 0
-    // and 2. Domain 2 goes; domain 0 stays under its pass (evicted now, the pass would load
-    // it again).
-    let evict = control(FromCoordinator::RoundPlan(proto::RoundPlan {
-        job_id: JOB.into(),
-        round: 2,
-        work_on: vec![1],
-        evict: vec![0, 2],
-        ..Default::default()
-    }));
-    assert_eq!(evicted(&w.handle(Time(3), evict)), [2]);
-    // The pass ends with domain 0 mapped: the report says so, and a later plan's eviction
-    // of it, with no pass on it, is passed on.
+    // and 2. Domain 2 goes now; domain 0 when its pass ends (now, the pass would load it
+    // again), and the report after it does not list it.
+    assert_eq!(
+        evicted(&w.handle(Time(3), evicting(2, vec![1], vec![0, 2]))),
+        [2]
+    );
     let done = w.handle(
         Time(4),
         Event::PassFinished {
@@ -559,17 +562,24 @@ fn a_plan_evicts_the_domain_a_pass_is_tracing_only_once_the_cache_needs_the_room
             resident: vec![0],
         },
     );
+    assert_eq!(evicted(&done), [0], "{done:?}");
     let reports = queue_reports(&done);
     assert_eq!(reports.len(), 1, "{done:?}");
-    assert_eq!(reports[0].resident_domains, [0]);
-    let again = control(FromCoordinator::RoundPlan(proto::RoundPlan {
-        job_id: JOB.into(),
-        round: 3,
-        work_on: vec![1],
-        evict: vec![0],
-        ..Default::default()
-    }));
-    assert_eq!(evicted(&w.handle(Time(5), again)), [0]);
+    assert!(reports[0].resident_domains.is_empty(), "{done:?}");
+    // A plan that works on the domain again before the pass ends keeps it.
+    let mut w = worker();
+    tracing_a_ray(&mut w);
+    assert!(evicted(&w.handle(Time(3), evicting(2, vec![1], vec![0]))).is_empty());
+    assert!(evicted(&w.handle(Time(4), evicting(3, vec![0], vec![]))).is_empty());
+    let done = w.handle(
+        Time(5),
+        Event::PassFinished {
+            job_id: JOB.into(),
+            result: Ok(PassOutput::default()),
+            resident: vec![0],
+        },
+    );
+    assert!(evicted(&done).is_empty(), "{done:?}");
 }
 
 #[test]
