@@ -14,7 +14,7 @@ use rayfarm_core::ray::RayRecord;
 use rayfarm_core::render::speculation::Outcome;
 use rayfarm_core::schedule::speculation_depth::Depth;
 use rayfarm_core::schedule::speculative::{
-    GenerationCounts, QueueView, next_queue, scheduled_generation,
+    GenerationCounts, QueueView, last_generation, next_queue, scheduled_generation,
 };
 use rayfarm_core::schedule::static_plans::demand_loads_fit;
 use rayfarm_core::tile::TileGrid;
@@ -651,12 +651,18 @@ impl<S: RaySpill> Frame<S> {
 
     /// The generation `domain`'s queue counts as for the oldest-generation rule: when rays
     /// are placed speculatively, a few stragglers of the oldest generation for a domain not
-    /// in memory count as the next one (`speculative::scheduled_generation`), here and in the
-    /// reports the coordinator plans from, so both wait for that generation's visit.
+    /// in memory count as the next one, unless that is the frame's last
+    /// (`speculative::scheduled_generation`), here and in the reports the coordinator plans
+    /// from, so both wait for that generation's visit.
     fn scheduled_generation(&self, domain: u32) -> Option<u16> {
         let (oldest, of_oldest) = self.generations.oldest_with_count(domain)?;
         Some(if self.speculation.is_some() {
-            scheduled_generation(oldest, of_oldest, self.plan.resident().contains(&domain))
+            scheduled_generation(
+                oldest,
+                of_oldest,
+                self.plan.resident().contains(&domain),
+                last_generation(self.limits.max_depth),
+            )
         } else {
             oldest
         })
