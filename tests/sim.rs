@@ -274,6 +274,13 @@ fn prefetching_workers_make_the_local_image_and_count_their_prefetches() {
     assert!(used.iter().all(|&u| u > 0), "prefetches used: {stderr}");
 }
 
+/// `rayfarm` with `args` under `RUST_LOG=filter`: its stdout; its log (stderr) goes to `log`.
+fn rayfarm_logging(args: &[&str], filter: &str, log: &std::path::Path) -> String {
+    let out = rayfarm_ok_env(args, &[("RUST_LOG", filter)]);
+    std::fs::write(log, &out.stderr).unwrap();
+    String::from_utf8(out.stdout).expect("utf-8 output")
+}
+
 /// Runs one of the validation's scripts (`bench/validation/`) with `args`; its stdout and
 /// stderr, or `None` where there is no `python3`.
 fn validation_script(script: &str, args: &[&str]) -> Option<(String, String)> {
@@ -365,17 +372,10 @@ fn the_validation_fits_the_clusters_cpu_and_reads_both_logs() {
         "1000",
     ];
     simulated.extend_from_slice(&FRAME);
-    let out = rayfarm_ok_env(
-        &simulated,
-        &[(
-            "RUST_LOG",
-            "rayfarm_sim=debug,rayfarm_machine::worker=debug",
-        )],
-    );
-    let stdout = String::from_utf8(out.stdout).unwrap();
-    assert_eq!(hash_of_row(&stdout, "predictive"), expected, "{stdout}");
     let sim_log = root.path().join("sim.log");
-    std::fs::write(&sim_log, &out.stderr).unwrap();
+    let filter = "rayfarm_sim=debug,rayfarm_machine::worker=debug";
+    let stdout = rayfarm_logging(&simulated, filter, &sim_log);
+    assert_eq!(hash_of_row(&stdout, "predictive"), expected, "{stdout}");
     let (transit, _) = validation_script("transit.py", &[s(&logs), s(&sim_log)]).unwrap();
     // "cluster: N bundles: ...", "simulator: M bundles: ...", "--bundle-take-us T".
     let bundles = |who: &str| -> u64 {
@@ -417,14 +417,9 @@ fn the_loads_by_generation_add_up_to_the_simulators_loads() {
         "200KiB",
     ];
     args.extend_from_slice(&FRAME);
-    let out = rayfarm_ok_env(
-        &args,
-        &[(
-            "RUST_LOG",
-            "rayfarm_sim=debug,rayfarm_machine::worker::machine=debug",
-        )],
-    );
-    let stdout = String::from_utf8(out.stdout).unwrap();
+    let log = root.path().join("sim.log");
+    let filter = "rayfarm_sim=debug,rayfarm_machine::worker::machine=debug";
+    let stdout = rayfarm_logging(&args, filter, &log);
     // schedule, workers, virtual ms, loads, ...
     let loads: u64 = row(&stdout, "predictive")
         .split_whitespace()
@@ -432,8 +427,6 @@ fn the_loads_by_generation_add_up_to_the_simulators_loads() {
         .and_then(|n| n.parse().ok())
         .unwrap_or_else(|| panic!("no loads in:\n{stdout}"));
     assert!(loads > 6, "the cache holds the scene:\n{stdout}");
-    let log = root.path().join("sim.log");
-    std::fs::write(&log, &out.stderr).unwrap();
     let Some((table, _)) = validation_script("generations.py", &[s(&log)]) else {
         println!("SKIPPED: no python3 for the validation's scripts");
         return;

@@ -159,6 +159,15 @@ fn bundle(job: &str, rays: &[RayRecord]) -> Event<MemorySpill> {
     }
 }
 
+/// An empty pass's end, the cache then holding `resident` (least recently used first).
+fn finished_holding(resident: Vec<u32>) -> Event<MemorySpill> {
+    Event::PassFinished {
+        job_id: JOB.into(),
+        result: Ok(PassOutput::default()),
+        resident,
+    }
+}
+
 fn finished(out: PassOutput) -> Event<MemorySpill> {
     Event::PassFinished {
         job_id: JOB.into(),
@@ -332,14 +341,7 @@ fn rays_kept_for_a_mapped_domain_leave_when_a_pass_pushes_it_out_of_the_cache() 
     assert!(rays_sent(&w.handle(Time(3), bundle(JOB, &rays))).is_empty());
     // The pass loaded domain 0 and the cache let domain 1 go: its ray is b's now, at once
     // (the coordinator heard it queued here and plans nothing more for it).
-    let mut out = w.handle(
-        Time(4),
-        Event::PassFinished {
-            job_id: JOB.into(),
-            result: Ok(PassOutput::default()),
-            resident: vec![0],
-        },
-    );
+    let mut out = w.handle(Time(4), finished_holding(vec![0]));
     out.extend(w.handle(Time::from_duration(Duration::from_secs(1)), Event::Tick));
     assert_eq!(rays_sent(&out)["b:1"], rays, "{out:?}");
 }
@@ -509,14 +511,7 @@ fn the_report_lists_mapped_domains_in_the_caches_order_of_use() {
     tracing_a_ray(&mut w);
     // The cache's order, least recently used first: the coordinator evicts in it, so domain
     // 0, traced last, is not the first to go though its id is the lowest.
-    let actions = w.handle(
-        Time(3),
-        Event::PassFinished {
-            job_id: JOB.into(),
-            result: Ok(PassOutput::default()),
-            resident: vec![3, 2, 0],
-        },
-    );
+    let actions = w.handle(Time(3), finished_holding(vec![3, 2, 0]));
     let reports = queue_reports(&actions);
     assert_eq!(reports.len(), 1, "{actions:?}");
     assert_eq!(reports[0].resident_domains, [3, 2, 0]);
@@ -554,14 +549,7 @@ fn a_plan_evicts_the_domain_a_pass_is_tracing_when_the_pass_ends() {
         evicted(&w.handle(Time(3), evicting(2, vec![1], vec![0, 2]))),
         [2]
     );
-    let done = w.handle(
-        Time(4),
-        Event::PassFinished {
-            job_id: JOB.into(),
-            result: Ok(PassOutput::default()),
-            resident: vec![0],
-        },
-    );
+    let done = w.handle(Time(4), finished_holding(vec![0]));
     assert_eq!(evicted(&done), [0], "{done:?}");
     let reports = queue_reports(&done);
     assert_eq!(reports.len(), 1, "{done:?}");
@@ -571,14 +559,7 @@ fn a_plan_evicts_the_domain_a_pass_is_tracing_when_the_pass_ends() {
     tracing_a_ray(&mut w);
     assert!(evicted(&w.handle(Time(3), evicting(2, vec![1], vec![0]))).is_empty());
     assert!(evicted(&w.handle(Time(4), evicting(3, vec![0], vec![]))).is_empty());
-    let done = w.handle(
-        Time(5),
-        Event::PassFinished {
-            job_id: JOB.into(),
-            result: Ok(PassOutput::default()),
-            resident: vec![0],
-        },
-    );
+    let done = w.handle(Time(5), finished_holding(vec![0]));
     assert!(evicted(&done).is_empty(), "{done:?}");
 }
 
