@@ -333,6 +333,10 @@ impl<S: RaySpill> Worker<S> {
     }
 
     fn round_plan(&mut self, p: proto::RoundPlan) {
+        let Some(frame) = self.frame.as_mut().filter(|f| f.job_id == p.job_id) else {
+            debug!(job = %p.job_id, "plan for a frame not running here");
+            return;
+        };
         // The domain a pass is tracing is evicted when the pass ends, not now: evicted under
         // the pass, it would be loaded again for that pass (handed over before the plan
         // came, on a cluster the pass may not have taken the domain from the cache yet: 13
@@ -343,10 +347,6 @@ impl<S: RaySpill> Worker<S> {
         let (later, evict): (Vec<u32>, Vec<u32>) =
             p.evict.iter().partition(|&&d| Some(d) == tracing);
         self.evict_after_pass.extend(later);
-        let Some(frame) = self.frame.as_mut().filter(|f| f.job_id == p.job_id) else {
-            debug!(job = %p.job_id, "plan for a frame not running here");
-            return;
-        };
         let _span = info_span!("round", round = p.round).entered();
         // A whole map's packed part first (a delta has none): domain d's one holder's key
         // plus one, 0 for none there.
