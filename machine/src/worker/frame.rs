@@ -724,9 +724,12 @@ impl<S: RaySpill> Frame<S> {
         cap: u64,
     ) -> Result<Vec<RayRecord>, AheadFull> {
         let epochs = &self.plan.epochs;
-        let (newer, known): (Vec<RayRecord>, Vec<RayRecord>) = rays
-            .into_iter()
-            .partition(|r| epochs.get(r.tile as usize).is_some_and(|&e| r.epoch > e));
+        let is_newer = |r: &RayRecord| epochs.get(r.tile as usize).is_some_and(|&e| r.epoch > e);
+        // Nearly always none is: the batch goes on as it came, not copied ray by ray.
+        if !rays.iter().any(is_newer) {
+            return Ok(rays);
+        }
+        let (newer, known): (Vec<RayRecord>, Vec<RayRecord>) = rays.into_iter().partition(is_newer);
         if !newer.is_empty() {
             debug!(
                 rays = newer.len(),

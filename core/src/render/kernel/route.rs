@@ -119,7 +119,10 @@ impl SceneView {
     /// Every domain with geometry along `ray`, nearest first: where a speculative ray is
     /// queued at once.
     pub fn domains_along(&self, ray: &RayRecord) -> Vec<u32> {
-        let mut out = Vec::new();
+        // Sized for the handful of domains most rays cross: grown from empty, a path was
+        // reallocated and copied once or twice a ray (2% of the simulator's instructions on
+        // big48 at 4 workers).
+        let mut out = Vec::with_capacity(self.domain_count().min(8));
         self.walk(ray, |d, _, _| {
             if self.has_triangles[d as usize] {
                 out.push(d);
