@@ -480,7 +480,9 @@ impl<S: RaySpill> Frame<S> {
             }
             _ => self.queues.non_empty().filter(|&d| leaves(d)).collect(),
         };
-        let mut queued = Vec::new();
+        // Sized once: extended domain by domain from empty, the list was regrown and copied.
+        let total = domains.iter().map(|&d| self.queues.len(d) as usize).sum();
+        let mut queued = Vec::with_capacity(total);
         for d in domains {
             let len = self.queues.len(d) as usize;
             queued.extend(self.queues.take(d, len)?);

@@ -120,14 +120,25 @@ impl Speculation {
         &mut self,
         verdicts: Vec<(u32, VerdictRecord)>,
     ) -> BTreeMap<String, Vec<VerdictRecord>> {
-        // By resolver key first: a peer's address is copied once, not once per verdict.
+        // By resolver key first: a peer's address is copied once, not once per verdict. Each
+        // key's list is sized from a count first (a few keys, thousands of verdicts: grown one
+        // push at a time, the lists were regrown and copied).
+        let mut counts: BTreeMap<u32, usize> = BTreeMap::new();
+        for (resolver, _) in &verdicts {
+            *counts.entry(*resolver).or_default() += 1;
+        }
         let mut by_key: BTreeMap<u32, Vec<VerdictRecord>> = BTreeMap::new();
-        let mut mine = Vec::new();
+        let mut mine = Vec::with_capacity(counts.get(&self.me).copied().unwrap_or(0));
         for (resolver, v) in verdicts {
             if resolver == self.me {
                 mine.push(v);
             } else if self.roster.contains_key(&resolver) {
-                by_key.entry(resolver).or_default().push(v);
+                by_key
+                    .entry(resolver)
+                    .or_insert_with(|| {
+                        Vec::with_capacity(counts.get(&resolver).copied().unwrap_or(0))
+                    })
+                    .push(v);
             } else if self.gone.contains(&resolver) {
                 self.refused += 1;
             } else {
