@@ -85,14 +85,18 @@ fn a_thousand_fault_seeds_keep_every_invariant_and_a_seed_repeats_exactly() {
     assert_eq!(first, again, "the same seeds gave other figures");
 }
 
-/// The virtual milliseconds of a schedule's row.
-fn virtual_ms_of_row(out: &str, schedule: &str) -> f64 {
+/// Field `n` of a schedule's row (schedule, workers, virtual ms, loads, ...).
+fn field_of_row<T: std::str::FromStr>(out: &str, schedule: &str, n: usize) -> T {
     row(out, schedule)
         .split_whitespace()
-        .nth(2)
-        .unwrap()
-        .parse()
-        .unwrap()
+        .nth(n)
+        .and_then(|f| f.parse().ok())
+        .unwrap_or_else(|| panic!("no field {n} in {schedule}'s row of:\n{out}"))
+}
+
+/// The virtual milliseconds of a schedule's row.
+fn virtual_ms_of_row(out: &str, schedule: &str) -> f64 {
+    field_of_row(out, schedule, 2)
 }
 
 #[test]
@@ -399,8 +403,8 @@ fn the_validation_fits_the_clusters_cpu_and_reads_both_logs() {
 
 /// `bench/validation/generations.py` reads the workers' "pass handed over" lines from the
 /// simulator's debug log: every load is seen (none is prefetched) and counted under one
-/// generation, so its loads add up to the simulator's own count, and the camera rays'
-/// generation loads first.
+/// generation, so its loads add up to the simulator's own count, the camera rays'
+/// generation among them.
 #[test]
 fn the_loads_by_generation_add_up_to_the_simulators_loads() {
     let root = tempfile::tempdir().unwrap();
@@ -420,12 +424,7 @@ fn the_loads_by_generation_add_up_to_the_simulators_loads() {
     let log = root.path().join("sim.log");
     let filter = "rayfarm_sim=debug,rayfarm_machine::worker::machine=debug";
     let stdout = rayfarm_logging(&args, filter, &log);
-    // schedule, workers, virtual ms, loads, ...
-    let loads: u64 = row(&stdout, "predictive")
-        .split_whitespace()
-        .nth(3)
-        .and_then(|n| n.parse().ok())
-        .unwrap_or_else(|| panic!("no loads in:\n{stdout}"));
+    let loads: u64 = field_of_row(&stdout, "predictive", 3);
     assert!(loads > 6, "the cache holds the scene:\n{stdout}");
     let Some((table, _)) = validation_script("generations.py", &[s(&log)]) else {
         println!("SKIPPED: no python3 for the validation's scripts");

@@ -196,7 +196,6 @@ mod tests {
         Duration::from_millis(n)
     }
 
-    /// Runs the cores' checks until nothing is left; the ends in order.
     /// Asserts that `t` is `n` ms after time zero, to within the microsecond the
     /// core-nanosecond arithmetic rounds to.
     fn assert_at(t: Time, n: u64) {
@@ -206,6 +205,7 @@ mod tests {
         );
     }
 
+    /// Runs the cores' checks until nothing is left; the ends in order.
     fn run(cores: &mut SharedCores<&'static str>) -> Vec<(Time, &'static str)> {
         let mut ends = Vec::new();
         while let Some((t, epoch)) = cores.next_check() {

@@ -732,16 +732,14 @@ impl<S: RaySpill> Frame<S> {
             return Ok(rays);
         }
         let (newer, known): (Vec<RayRecord>, Vec<RayRecord>) = rays.into_iter().partition(is_newer);
-        if !newer.is_empty() {
-            debug!(
-                rays = newer.len(),
-                "a peer's rays are of epochs not announced here yet: held for the bump"
-            );
-            self.ahead.extend(newer);
-            let held = std::mem::size_of_val(self.ahead.as_slice()) as u64;
-            if held > cap {
-                return Err(AheadFull { held, cap });
-            }
+        debug!(
+            rays = newer.len(),
+            "a peer's rays are of epochs not announced here yet: held for the bump"
+        );
+        self.ahead.extend(newer);
+        let held = std::mem::size_of_val(self.ahead.as_slice()) as u64;
+        if held > cap {
+            return Err(AheadFull { held, cap });
         }
         Ok(known)
     }

@@ -169,12 +169,10 @@ impl<S: RaySpill> Worker<S> {
                 self.pass_running = false;
                 self.tracing = None;
                 // The plan's eviction of the domain this pass traced waited for the pass.
+                let mut resident = resident;
                 let evict = std::mem::take(&mut self.evict_after_pass);
-                let resident = resident
-                    .into_iter()
-                    .filter(|d| !evict.contains(d))
-                    .collect();
                 if !evict.is_empty() {
+                    resident.retain(|d| !evict.contains(d));
                     self.actions.push(Action::Evict(evict));
                 }
                 // A pass of a frame that has ended since is of no use.
